@@ -1,0 +1,196 @@
+// The body model: a kinematic tree of rigid segments joined by joints, with markers fixed on the
+// segments, and its geometric parameters p.
+//
+// Shape (after Pinocchio): a `Model` is immutable once built and shared by every thread; each
+// thread evaluates it with its own `ModelData` workspace (model/kinematics.h), so the fit's and
+// the filter's hot loops allocate nothing.
+//
+// Frames. Every segment has a frame whose origin is its proximal joint centre. A joint J between
+// parent segment P and child segment C places C's frame at
+//
+//     T_C = T_P * Trans(s_P * c_J) * Rot(R_J) * E_1(v_1) * ... * E_k(v_k)
+//
+// where s_P is P's scale factor, c_J the joint centre in P's unscaled frame, R_J a fixed
+// orientation, and E_i an ELEMENTARY motion: a rotation about, or a translation along, a unit axis
+// fixed in the frame reached after E_1..E_{i-1}. Each element's value v_i = f_i(z_k) is a function
+// of one coordinate (identity, linear, or constant today; OpenSim's splines later), which is how an
+// OpenSim CustomJoint's SpatialTransform maps onto a joint without a rewrite. A marker on segment C
+// sits at T_C * (s_C * m).
+//
+// Geometric parameters p (Lugrís et al. 2024, eq. 1), in switchable groups, in this order:
+//   scales   one uniform scale factor per segment                       [n_segments]
+//   centres  each non-root joint's centre c_J in its parent (unscaled)   [3 per joint]
+//   axes     each fitted axis (hinge and universal joints) as two angles
+//            (alpha, beta) about the axis stored in the model:
+//            a = cos(b)(cos(a) e1 + sin(a) e2) + sin(b) e3, e1 = stored axis [2 per axis]
+//   markers  each marker's position on its segment (unscaled)            [3 per marker]
+// Axis angles are relative to the model's stored axes, so Model::InitialParameters() has zeros
+// there; Model::WithParameters(p) bakes a p into a new Model (axes re-based, angles back to 0).
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <string>
+#include <vector>
+
+#include "model/status.h"
+
+namespace mocap {
+
+enum class JointType { kFree, kSpherical, kUniversal, kHinge, kCustom };
+enum class ElementKind { kRotation, kTranslation };
+enum class ParameterGroup { kScale = 0, kCentre = 1, kAxis = 2, kMarker = 3 };
+constexpr int kNumParameterGroups = 4;
+
+const char* ToString(JointType type);
+const char* ToString(ParameterGroup group);
+
+// v = f(z): how a coordinate drives an element. kIdentity today's default; kLinear (v = a z + b)
+// and kConstant (v = b, no coordinate) for OpenSim's SpatialTransform.
+struct CoordinateFunction {
+  enum class Kind { kIdentity, kLinear, kConstant } kind = Kind::kIdentity;
+  double slope = 1.0;
+  double offset = 0.0;
+  double Value(double z) const {
+    switch (kind) {
+      case Kind::kIdentity: return z;
+      case Kind::kLinear: return slope * z + offset;
+      case Kind::kConstant: return offset;
+    }
+    return z;
+  }
+  double Derivative(double /*z*/) const {
+    return kind == Kind::kIdentity ? 1.0 : kind == Kind::kLinear ? slope : 0.0;
+  }
+};
+
+struct JointElement {
+  ElementKind kind = ElementKind::kRotation;
+  Eigen::Vector3d axis = Eigen::Vector3d::UnitX();  // unit, in the frame after earlier elements
+  int coordinate = -1;                               // model coordinate index; -1 with kConstant
+  CoordinateFunction function;
+  bool fitted_axis = false;  // the axis is a geometric parameter (hinge/universal axes)
+};
+
+struct Coordinate {
+  std::string name;
+  bool rotational = true;
+  double default_value = 0.0;  // radians or metres
+  double min_value = -1e9;
+  double max_value = 1e9;
+  int joint = -1;  // filled by Model::Build
+};
+
+struct Joint {
+  std::string name;
+  JointType type = JointType::kCustom;
+  int parent = -1;  // segment index; -1 = ground (the lab)
+  int child = -1;   // segment index
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero();            // in parent, unscaled
+  Eigen::Matrix3d orientation = Eigen::Matrix3d::Identity();   // fixed, not fitted
+  std::vector<JointElement> elements;
+};
+
+struct Segment {
+  std::string name;
+  double scale = 1.0;
+  int joint = -1;  // the joint whose child this segment is (filled by Model::Build)
+};
+
+struct Marker {
+  std::string name;
+  int segment = -1;
+  Eigen::Vector3d position = Eigen::Vector3d::Zero();  // on the segment, unscaled
+  bool optional = false;  // not in every lab's marker set (medial knee/ankle, ...)
+  double weight = 1.0;    // relative weight in the fit
+};
+
+// One entry of p: which group, which object (segment, joint, axis element or marker), which
+// component. Used for names in reports and by the fit to pick groups.
+struct ParameterInfo {
+  ParameterGroup group;
+  int object = -1;     // segment / joint / marker index
+  int element = -1;    // for axes: element index within the joint
+  int component = 0;   // x,y,z or alpha,beta
+  std::string name;    // e.g. "knee_r.centre.x", "RKNE.y", "femur_r.scale", "knee_r.axis0.alpha"
+};
+
+class Model {
+ public:
+  // Builds the index structures (topological order, chains, parameter layout) after the
+  // description fields are filled in; validates (names unique, tree connected, parents before
+  // children, unit axes, a single root). Segments and joints may be given in any order; Build
+  // reorders joints so that every parent comes before its children.
+  static Status Build(std::string name, std::vector<Segment> segments, std::vector<Joint> joints,
+                      std::vector<Coordinate> coordinates, std::vector<Marker> markers, Model* out);
+
+  const std::string& name() const { return name_; }
+  const std::vector<Segment>& segments() const { return segments_; }
+  const std::vector<Joint>& joints() const { return joints_; }          // parents first
+  const std::vector<Coordinate>& coordinates() const { return coordinates_; }
+  const std::vector<Marker>& markers() const { return markers_; }
+  int num_segments() const { return static_cast<int>(segments_.size()); }
+  int num_joints() const { return static_cast<int>(joints_.size()); }
+  int num_coordinates() const { return static_cast<int>(coordinates_.size()); }
+  int num_markers() const { return static_cast<int>(markers_.size()); }
+  int num_parameters() const { return static_cast<int>(parameters_.size()); }
+  const std::vector<ParameterInfo>& parameters() const { return parameters_; }
+
+  int FindSegment(const std::string& n) const;
+  int FindJoint(const std::string& n) const;
+  int FindCoordinate(const std::string& n) const;
+  int FindMarker(const std::string& n) const;
+  int FindParameter(const std::string& n) const;
+
+  // First index of each group in p, and of each object's block.
+  int scale_index(int segment) const { return segment; }
+  int centre_index(int joint) const { return centre_index_[joint]; }  // -1 for the root joint
+  int axis_index(int joint, int element) const;                       // -1 if not fitted
+  int marker_index(int marker) const { return marker_index_[marker]; }
+
+  // p of this model as stored (axis angles zero) and the default pose z.
+  Eigen::VectorXd InitialParameters() const;
+  Eigen::VectorXd DefaultCoordinates() const;
+  // A new model with geometry p baked in (scales, centres, re-based axes, markers).
+  Model WithParameters(const Eigen::VectorXd& p) const;
+  // The same model without some markers (for data that lacks them).
+  Model WithMarkers(const std::vector<int>& keep) const;
+
+  // --- precomputed structure used by the kinematics (read-only) ---
+  // Joints on the path from the root to segment s, root first.
+  const std::vector<int>& chain(int segment) const { return chains_[segment]; }
+  // Coordinates that move marker m, ascending, and the p entries it depends on (in the order
+  // MarkerJacobian writes its columns).
+  const std::vector<int>& marker_coordinates(int m) const { return marker_coords_[m]; }
+  const std::vector<int>& marker_parameters(int m) const { return marker_params_[m]; }
+  int max_chain_coordinates() const { return max_chain_coords_; }
+  int max_chain_parameters() const { return max_chain_params_; }
+  // Axis basis (e2, e3) of a fitted element, fixed at build time.
+  const Eigen::Matrix<double, 3, 2>& axis_basis(int joint, int element) const {
+    return axis_basis_[joint][element];
+  }
+
+ private:
+  std::string name_;
+  std::vector<Segment> segments_;
+  std::vector<Joint> joints_;
+  std::vector<Coordinate> coordinates_;
+  std::vector<Marker> markers_;
+  std::vector<ParameterInfo> parameters_;
+  std::vector<int> centre_index_, marker_index_;
+  std::vector<std::vector<int>> axis_index_;
+  std::vector<std::vector<Eigen::Matrix<double, 3, 2>>> axis_basis_;
+  std::vector<std::vector<int>> chains_;
+  std::vector<std::vector<int>> marker_coords_, marker_params_;
+  int max_chain_coords_ = 0, max_chain_params_ = 0;
+};
+
+// A unit vector's two tangent directions, chosen deterministically (for axis parameters).
+Eigen::Matrix<double, 3, 2> TangentBasis(const Eigen::Vector3d& axis);
+// The fitted axis for angles (alpha, beta) about e1 with tangent basis (e2, e3), and its
+// derivatives with respect to alpha and beta.
+void AxisFromAngles(const Eigen::Vector3d& e1, const Eigen::Matrix<double, 3, 2>& basis,
+                    double alpha, double beta, Eigen::Vector3d* axis, Eigen::Vector3d* d_alpha,
+                    Eigen::Vector3d* d_beta);
+
+}  // namespace mocap
