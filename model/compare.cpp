@@ -303,6 +303,57 @@ Status CompareModels(const Model& a, const Model& b, ModelComparison* out) {
   auto segment_basis = [&](int s) {
     return Basis{a.segments()[s].name, s, segment_b[s], align[s] ? *align[s] : Rigid{}};
   };
+  // A segment's alignment for measuring joint `exclude`: its markers plus the centres of its
+  // other joints that marker data determine (not the root's, not a hinge's, whose point along
+  // the axis is free). Thighs and shanks carry two markers in the Plug-in Gait set; with the
+  // hip or ankle centre they are aligned without falling back to the zero pose, where a hinge's
+  // zero angle (a convention) would count as error.
+  std::vector<std::vector<std::optional<Rigid>>> align_without(ns);
+  auto aligned_without = [&](int s, int exclude) -> const std::optional<Rigid>& {
+    auto& cache = align_without[s];
+    if (cache.empty()) cache.resize(a.num_joints() + 1);
+    auto& slot = cache[exclude + 1];
+    if (slot) return slot;
+    Eigen::Matrix3Xd src, dst;
+    collect({s}, false, &src, &dst);
+    std::vector<std::pair<Vector3d, Vector3d>> extra;
+    const Vector3d centroid_b = src.cols() > 0 ? Vector3d(src.rowwise().mean()) : Vector3d::Zero();
+    const Vector3d centroid_a = dst.cols() > 0 ? Vector3d(dst.rowwise().mean()) : Vector3d::Zero();
+    for (int j = 0; j < a.num_joints(); ++j) {
+      const Joint& jt = a.joints()[j];
+      if (j == exclude || (jt.parent != s && jt.child != s)) continue;
+      if (jt.parent < 0 || HasTranslation(jt)) continue;
+      const int he = HingeElement(jt);
+      if (he < 0) {
+        extra.emplace_back(pb.Centre(joint_b[j], segment_b[s]), pa.Centre(j, s));
+        continue;
+      }
+      // A hinge fixes a line: use its point nearest the markers' centroid, and one 10 cm along it.
+      auto on_axis = [](const Vector3d& q, const Vector3d& u, const Vector3d& c) {
+        return Vector3d(q + (c - q).dot(u) * u);
+      };
+      const Vector3d ub = pb.Axis(joint_b[j], he, segment_b[s]), ua = pa.Axis(j, he, s);
+      const Vector3d qb = on_axis(pb.Centre(joint_b[j], segment_b[s]), ub, centroid_b);
+      const Vector3d qa = on_axis(pa.Centre(j, s), ua, centroid_a);
+      extra.emplace_back(qb, qa);
+      extra.emplace_back(qb + 0.1 * ub, qa + 0.1 * ua);
+    }
+    const Eigen::Index n = src.cols();
+    src.conservativeResize(3, n + extra.size());
+    dst.conservativeResize(3, n + extra.size());
+    for (size_t k = 0; k < extra.size(); ++k) {
+      src.col(n + k) = extra[k].first;
+      dst.col(n + k) = extra[k].second;
+    }
+    slot = Align(src, dst);
+    return slot;
+  };
+  auto segment_basis_without = [&](int s, int exclude) {
+    const auto& r = aligned_without(s, exclude);
+    const bool markers_only = align[s].has_value();
+    return Basis{a.segments()[s].name + (markers_only ? "" : "+centres"), s, segment_b[s],
+                 markers_only ? *align[s] : (r ? *r : Rigid{})};
+  };
   // The fallback when none of the wanted segments can be aligned.
   auto fallback_basis = [&](int p, int c, int frame) {
     Eigen::Matrix3Xd src, dst;
@@ -334,8 +385,8 @@ Status CompareModels(const Model& a, const Model& b, ModelComparison* out) {
     jd.hinge = he >= 0;
 
     std::vector<Basis> bases;
-    if (align[p]) bases.push_back(segment_basis(p));
-    if (align[c] && !HasTranslation(jt)) bases.push_back(segment_basis(c));
+    if (aligned_without(p, ja)) bases.push_back(segment_basis_without(p, ja));
+    if (aligned_without(c, ja) && !HasTranslation(jt)) bases.push_back(segment_basis_without(c, ja));
     if (bases.empty()) bases.push_back(fallback_basis(p, c, p));
     double worst = 0;
     for (const Basis& basis : bases) {
@@ -358,8 +409,8 @@ Status CompareModels(const Model& a, const Model& b, ModelComparison* out) {
       ad.coordinate = jt.elements[e].coordinate >= 0 ? a.coordinates()[jt.elements[e].coordinate].name : "";
       const bool in_p = AxisFixedInParent(jt, ei), in_c = AxisFixedInChild(jt, ei);
       std::vector<Basis> axis_bases;
-      if (in_p && align[p]) axis_bases.push_back(segment_basis(p));
-      if (in_c && align[c]) axis_bases.push_back(segment_basis(c));
+      if (in_p && aligned_without(p, -1)) axis_bases.push_back(segment_basis_without(p, -1));
+      if (in_c && aligned_without(c, -1)) axis_bases.push_back(segment_basis_without(c, -1));
       if (axis_bases.empty()) axis_bases.push_back(fallback_basis(p, c, in_p || !in_c ? p : c));
       double angle = 0;
       for (const Basis& basis : axis_bases)
@@ -414,8 +465,10 @@ Status CompareModels(const Model& a, const Model& b, ModelComparison* out) {
     MarkerDifference md;
     md.marker = a.markers()[ma].name;
     md.segment = a.segments()[s].name;
-    md.aligned = align[s].has_value();
-    const Rigid map = md.aligned ? *align[s] : Rigid{};
+    // Segments with fewer than 3 markers borrow their determined joint centres (see above).
+    const std::optional<Rigid>& r = align[s] ? align[s] : aligned_without(s, -1);
+    md.aligned = r.has_value();
+    const Rigid map = md.aligned ? *r : Rigid{};
     md.error_mm = (map.Point(pb.Marker(mb, segment_b[s])) - pa.Marker(ma, s)).norm() * kMm;
     marker_errors.push_back(md.error_mm);
     result.markers.push_back(md);

@@ -119,20 +119,25 @@ void MarkerFitProblem::BuildGaugeRows(double gauge_sigma_m) {
   };
   for (int s = 0; s < model_.num_segments(); ++s) {
     // The segment's local geometry: observed markers on it and centres of joints hanging from it.
-    std::vector<std::pair<int, Eigen::Vector3d>> local;  // (first parameter index, position)
+    // The gauge exists only if all of it is free. The rows are written on the markers alone:
+    // a child joint centre may itself have an unobservable component (a hinge centre along its
+    // axis), and a row through it would tie that weak direction to the segment's orientation and
+    // so to every axis expressed in the segment. Centres are used only without markers.
+    std::vector<std::pair<int, Eigen::Vector3d>> markers, centres;  // (first parameter, position)
     bool all_free = true;
     for (int m = 0; m < model_.num_markers(); ++m) {
       if (model_.markers()[m].segment != s || !observed_[m]) continue;
       const int base = model_.marker_index(m);
       all_free = all_free && free3(base);
-      local.emplace_back(base, p0_.segment<3>(base));
+      markers.emplace_back(base, p0_.segment<3>(base));
     }
     for (int j = 0; j < model_.num_joints(); ++j) {
       if (model_.joints()[j].parent != s) continue;
       const int base = model_.centre_index(j);
       all_free = all_free && free3(base);
-      local.emplace_back(base, p0_.segment<3>(base));
+      centres.emplace_back(base, p0_.segment<3>(base));
     }
+    const auto& local = markers.empty() ? centres : markers;
     if (local.empty() || !all_free) continue;
     const int j = model_.segments()[s].joint;
     const Joint& joint = model_.joints()[j];

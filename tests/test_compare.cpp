@@ -339,8 +339,9 @@ TEST(CompareModels, MarkersInOneModelOnlyAreListedAndIgnored) {
   EXPECT_TRUE(c.markers_only_in_b.empty());
   EXPECT_EQ(c.markers.size(), 39u);
   ExpectAllZero(c, 1e-9);
-  // Femur and tibia keep 2 markers each: the knee falls back to their union at the zero pose.
-  EXPECT_EQ(J(c, "knee_l").basis, "union(femur_l,tibia_l)");
+  // Femur and tibia keep 2 markers each: they are aligned with their determined joint centres
+  // (hip, ankle) and, for the tibia, the knee's axis line, never at the zero pose.
+  EXPECT_EQ(J(c, "knee_l").basis, "femur_l+centres+tibia_l+centres");
   const ModelComparison reverse = Compare(b, a);
   EXPECT_EQ(reverse.markers_only_in_b.size(), 4u);
 }
