@@ -13,6 +13,8 @@ struct ArrowSchurProblem::ThreadState {
   Eigen::MatrixXd u, w, y, s, gather, outer;
   Eigen::VectorXd gy, v, rhs, gp, diag_p, wdp, dy;
   Eigen::LLT<Eigen::MatrixXd> llt;
+  Eigen::MatrixXd block_jp, block_u, block_w, block_v;  // one residual block's products
+  std::vector<int> ycol, pcol, plocal;
   double cost = 0;
   bool ok = true;
 };
@@ -41,6 +43,13 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads)
     ts->wdp.resize(ny_);
     ts->dy.resize(ny_);
     ts->llt = Eigen::LLT<Eigen::MatrixXd>(ny_);
+    ts->block_jp.resize(kMaxBlockRows, max_block_p_);
+    ts->block_u.resize(max_block_y_, max_block_y_);
+    ts->block_w.resize(max_block_y_, max_block_p_);
+    ts->block_v.resize(max_block_p_, max_block_p_);
+    ts->ycol.resize(max_block_y_);
+    ts->pcol.resize(max_block_p_);
+    ts->plocal.resize(max_block_p_);
     threads_.push_back(std::move(ts));
   }
 }
@@ -53,6 +62,11 @@ int ArrowSchurProblem::num_residuals() const { return problem_->num_residuals();
 void ArrowSchurProblem::Analyse() {
   std::vector<std::vector<int>> ycols, pcols;
   problem_->BlockStructure(&ycols, &pcols);
+  max_block_y_ = max_block_p_ = 1;
+  for (size_t b = 0; b < ycols.size(); ++b) {
+    max_block_y_ = std::max<int>(max_block_y_, ycols[b].size());
+    max_block_p_ = std::max<int>(max_block_p_, pcols[b].size());
+  }
   // Graph of U and pattern of W.
   std::vector<std::vector<char>> adj(ny_, std::vector<char>(ny_, 0));
   std::vector<std::vector<char>> wpat(ny_, std::vector<char>(np_, 0));
@@ -212,6 +226,46 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
   return std::isfinite(*cost) && gradient->allFinite();
 }
 
+// U (lower, elimination order), W and V (lower, into ts.s) of one evaluated frame. Each block's
+// three small products are formed densely (vectorised), then scattered by index.
+void ArrowSchurProblem::AccumulateFrame(ThreadState& ts) const {
+  ts.u.setZero();
+  ts.w.setZero();
+  int* ycol = ts.ycol.data();
+  int* pcol = ts.pcol.data();
+  int* plocal = ts.plocal.data();
+  for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
+    const ResidualBlock& blk = ts.evaluator->block(k);
+    using Strided = Eigen::Map<const Eigen::MatrixXd, 0, Eigen::OuterStride<>>;
+    const Strided jy(blk.jy, blk.rows, blk.num_y, Eigen::OuterStride<>(kMaxBlockRows));
+    const Strided jp_all(blk.jp, blk.rows, blk.num_p, Eigen::OuterStride<>(kMaxBlockRows));
+    int np = 0;
+    for (int c = 0; c < blk.num_p; ++c)
+      if (blk.p_index[c] >= 0) {
+        plocal[np] = c;
+        pcol[np++] = blk.p_index[c];
+      }
+    for (int a = 0; a < blk.num_y; ++a) ycol[a] = position_[blk.y_index[a]];
+    auto& jp = ts.block_jp;
+    for (int c = 0; c < np; ++c) jp.col(c).head(blk.rows) = jp_all.col(plocal[c]);
+    auto jpc = jp.topLeftCorner(blk.rows, np);
+    auto uy = ts.block_u.topLeftCorner(blk.num_y, blk.num_y);
+    auto wy = ts.block_w.topLeftCorner(blk.num_y, np);
+    auto vp = ts.block_v.topLeftCorner(np, np);
+    uy.noalias() = jy.transpose() * jy;
+    wy.noalias() = jy.transpose() * jpc;
+    vp.noalias() = jpc.transpose() * jpc;
+    for (int a = 0; a < blk.num_y; ++a) {
+      for (int c = 0; c < blk.num_y; ++c)
+        if (ycol[c] <= ycol[a]) ts.u(ycol[a], ycol[c]) += uy(a, c);
+      for (int c = 0; c < np; ++c) ts.w(ycol[a], pcol[c]) += wy(a, c);
+    }
+    for (int d = 0; d < np; ++d)
+      for (int c = 0; c < np; ++c)
+        if (pcol[d] <= pcol[c]) ts.s(pcol[c], pcol[d]) += vp(c, d);
+  }
+}
+
 bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s_out,
                                           Eigen::VectorXd* rhs_out) {
   if (!problem_->SetShared(x_.tail(np_))) return false;
@@ -226,44 +280,7 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
         ts.ok = false;
         return;
       }
-      ts.u.setZero();
-      ts.w.setZero();
-      for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
-        const ResidualBlock& blk = ts.evaluator->block(k);
-        for (int a = 0; a < blk.num_y; ++a) {
-          const int pa = position_[blk.y_index[a]];
-          const double* ja = blk.jy + a * kMaxBlockRows;
-          for (int c = 0; c < blk.num_y; ++c) {
-            const int pc = position_[blk.y_index[c]];
-            if (pc > pa) continue;  // lower triangle only
-            const double* jc = blk.jy + c * kMaxBlockRows;
-            double sum = 0;
-            for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jc[r];
-            ts.u(pa, pc) += sum;
-          }
-          for (int c = 0; c < blk.num_p; ++c) {
-            const int p = blk.p_index[c];
-            if (p < 0) continue;
-            const double* jc = blk.jp + c * kMaxBlockRows;
-            double sum = 0;
-            for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jc[r];
-            ts.w(pa, p) += sum;
-          }
-        }
-        for (int c = 0; c < blk.num_p; ++c) {
-          const int p = blk.p_index[c];
-          if (p < 0) continue;
-          const double* jc = blk.jp + c * kMaxBlockRows;
-          for (int d = 0; d < blk.num_p; ++d) {
-            const int q = blk.p_index[d];
-            if (q < 0 || q > p) continue;
-            const double* jd = blk.jp + d * kMaxBlockRows;
-            double sum = 0;
-            for (int r = 0; r < blk.rows; ++r) sum += jc[r] * jd[r];
-            ts.s(p, q) += sum;
-          }
-        }
-      }
+      AccumulateFrame(ts);
       const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
       const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
       for (int i = 0; i < ny_; ++i) {

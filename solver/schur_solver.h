@@ -53,6 +53,7 @@ class ArrowSchurProblem : public LmProblem {
  private:
   struct ThreadState;
   void Analyse();
+  void AccumulateFrame(ThreadState& ts) const;
   double SharedRowsSquaredNorm(const Eigen::VectorXd& p) const;
   // Pass 1: accumulates S (lower triangle) and the reduced right-hand side over all frames.
   bool FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s, Eigen::VectorXd* rhs);
@@ -60,6 +61,7 @@ class ArrowSchurProblem : public LmProblem {
   ArrowProblem* problem_;
   int num_threads_;
   int nf_, ny_, np_;
+  int max_block_y_ = 1, max_block_p_ = 1;  // widest residual block (from BlockStructure)
   std::vector<int> order_;     // elimination order: position -> y index
   std::vector<int> position_;  // y index -> position
   struct RowGroup {
