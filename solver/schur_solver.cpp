@@ -19,13 +19,20 @@ struct ArrowSchurProblem::ThreadState {
   bool ok = true;
 };
 
-ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads)
+ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
+                                     double cache_budget_bytes)
     : problem_(problem),
       num_threads_(ResolveThreads(num_threads)),
       nf_(problem->num_frames()),
       ny_(problem->frame_dim()),
       np_(problem->shared_dim()) {
   Analyse();
+  const double cache_bytes = 8.0 * nf_ * (static_cast<double>(ny_) * ny_ + static_cast<double>(ny_) * np_);
+  cached_ = cache_bytes <= cache_budget_bytes;
+  if (cached_) {
+    u_cache_.resize(static_cast<size_t>(nf_) * ny_ * ny_);
+    w_cache_.resize(static_cast<size_t>(nf_) * ny_ * np_);
+  }
   for (int t = 0; t < num_threads_; ++t) {
     auto ts = std::make_unique<ThreadState>();
     ts->evaluator = problem_->NewEvaluator();
@@ -176,10 +183,16 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
     ts.ok = true;
     ts.gp.setZero();
     ts.diag_p.setZero();
+    if (cached_) ts.s.setZero();
     for (int f = b; f < e; ++f) {
       if (!ts.evaluator->Evaluate(f, x.data() + static_cast<size_t>(f) * ny_, true)) {
         ts.ok = false;
         return;
+      }
+      if (cached_) {
+        AccumulateFrame(ts);
+        CachedU(f) = ts.u;
+        CachedW(f) = ts.w;
       }
       double* gy = gradient->data() + static_cast<size_t>(f) * ny_;
       double* dg = diagonal->data() + static_cast<size_t>(f) * ny_;
@@ -205,12 +218,14 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
     }
   });
   double sum = 0;
+  if (cached_) v_total_.setZero(np_, np_);
   for (int t = 0; t < std::max(1, std::min(num_threads_, nf_)); ++t) {
     const ThreadState& ts = *threads_[t];
     if (!ts.ok) return false;
     sum += ts.cost;
     gradient->tail(np_) += ts.gp;
     diagonal->tail(np_) += ts.diag_p;
+    if (cached_) v_total_ += ts.s;
   }
   const Eigen::VectorXd& w = problem_->prior_weight();
   const Eigen::VectorXd delta = x.tail(np_) - problem_->prior_target();
@@ -276,11 +291,16 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
     ts.s.setZero();
     ts.rhs.setZero();
     for (int f = b; f < e; ++f) {
-      if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) {
-        ts.ok = false;
-        return;
+      if (cached_) {
+        ts.u = CachedU(f);
+        ts.w = CachedW(f);
+      } else {
+        if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) {
+          ts.ok = false;
+          return;
+        }
+        AccumulateFrame(ts);  // V of the frame goes into ts.s
       }
-      AccumulateFrame(ts);
       const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
       const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
       for (int i = 0; i < ny_; ++i) {
@@ -325,6 +345,7 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
     *s_out += threads_[t]->s;
     *rhs_out += threads_[t]->rhs;
   }
+  if (cached_) *s_out += v_total_;
   *rhs_out -= gradient_.tail(np_);
   const Eigen::VectorXd& w = problem_->prior_weight();
   s_out->diagonal() += w.cwiseProduct(w) + damping.tail(np_);
@@ -346,40 +367,17 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
     dx->tail(np_) = dp;
   }
   // Back-substitution, frame by frame: dy_f = -U_f^{-1} (g_yf + W_f dp).
-  if (!problem_->SetShared(x_.tail(np_))) return false;
+  if (!cached_ && !problem_->SetShared(x_.tail(np_))) return false;
   ParallelChunks(nf_, num_threads_, [&](int t, int b, int e) {
     ThreadState& ts = *threads_[t];
     ts.ok = true;
     for (int f = b; f < e; ++f) {
-      if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) {
+      if (cached_) {
+        ts.u = CachedU(f);
+        ts.wdp.noalias() = CachedW(f) * dp;
+      } else if (!BackSubstitutionTerms(ts, f, dp)) {
         ts.ok = false;
         return;
-      }
-      ts.u.setZero();
-      ts.wdp.setZero();
-      for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
-        const ResidualBlock& blk = ts.evaluator->block(k);
-        double jdp[kMaxBlockRows] = {0, 0, 0};
-        for (int c = 0; c < blk.num_p; ++c) {
-          const int p = blk.p_index[c];
-          if (p < 0) continue;
-          for (int r = 0; r < blk.rows; ++r) jdp[r] += blk.jp[c * kMaxBlockRows + r] * dp[p];
-        }
-        for (int a = 0; a < blk.num_y; ++a) {
-          const int pa = position_[blk.y_index[a]];
-          const double* ja = blk.jy + a * kMaxBlockRows;
-          double sum = 0;
-          for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jdp[r];
-          ts.wdp[pa] += sum;
-          for (int c = 0; c < blk.num_y; ++c) {
-            const int pc = position_[blk.y_index[c]];
-            if (pc > pa) continue;
-            const double* jc = blk.jy + c * kMaxBlockRows;
-            double s2 = 0;
-            for (int r = 0; r < blk.rows; ++r) s2 += ja[r] * jc[r];
-            ts.u(pa, pc) += s2;
-          }
-        }
       }
       const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
       const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
@@ -400,6 +398,38 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
   for (int t = 0; t < std::max(1, std::min(num_threads_, nf_)); ++t)
     if (!threads_[t]->ok) return false;
   return dx->allFinite();
+}
+
+// Without the cache: U_f and W_f dp of frame f from a fresh evaluation of its Jacobian.
+bool ArrowSchurProblem::BackSubstitutionTerms(ThreadState& ts, int f, const Eigen::VectorXd& dp) {
+  if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) return false;
+  ts.u.setZero();
+  ts.wdp.setZero();
+  for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
+    const ResidualBlock& blk = ts.evaluator->block(k);
+    double jdp[kMaxBlockRows] = {0, 0, 0};
+    for (int c = 0; c < blk.num_p; ++c) {
+      const int p = blk.p_index[c];
+      if (p < 0) continue;
+      for (int r = 0; r < blk.rows; ++r) jdp[r] += blk.jp[c * kMaxBlockRows + r] * dp[p];
+    }
+    for (int a = 0; a < blk.num_y; ++a) {
+      const int pa = position_[blk.y_index[a]];
+      const double* ja = blk.jy + a * kMaxBlockRows;
+      double sum = 0;
+      for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jdp[r];
+      ts.wdp[pa] += sum;
+      for (int c = 0; c < blk.num_y; ++c) {
+        const int pc = position_[blk.y_index[c]];
+        if (pc > pa) continue;
+        const double* jc = blk.jy + c * kMaxBlockRows;
+        double s2 = 0;
+        for (int r = 0; r < blk.rows; ++r) s2 += ja[r] * jc[r];
+        ts.u(pa, pc) += s2;
+      }
+    }
+  }
+  return true;
 }
 
 bool ArrowSchurProblem::SharedCovariance(Eigen::MatrixXd* covariance, double frame_ridge) {
