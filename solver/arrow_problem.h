@@ -1,0 +1,72 @@
+// Nonlinear least squares with the arrow structure of bundle adjustment:
+//
+//     x = [y_1 ... y_F, p],
+//     cost = 1/2 sum_f ||r_f(y_f, p)||^2 + 1/2 ||A (p - p0)||^2 + 1/2 ||G (p - p0)||^2
+//
+// Frame f's residuals depend only on its own block y_f and on the shared parameters p; the
+// shared parameters also carry a diagonal prior A and a few dense rows G. The global body-model fit (frames = time
+// steps, y_f = coordinates z_f, p = geometry) and camera bundle adjustment (frames = wand
+// poses or points, p = cameras) both have this shape. Residuals come in small row blocks, each
+// touching a listed subset of y_f and of p, so Jacobians stay sparse without a general sparse
+// matrix type.
+#pragma once
+
+#include <Eigen/Core>
+#include <memory>
+#include <vector>
+
+namespace mocap::solver {
+
+constexpr int kMaxBlockRows = 3;
+
+// One block of up to kMaxBlockRows residual rows. Jacobians are column-major with leading
+// dimension kMaxBlockRows. A p column index of -1 marks a parameter that is held fixed.
+struct ResidualBlock {
+  int rows = 0;
+  const double* residual = nullptr;
+  int num_y = 0;
+  const int* y_index = nullptr;
+  const double* jy = nullptr;
+  int num_p = 0;
+  const int* p_index = nullptr;
+  const double* jp = nullptr;
+};
+
+// Evaluates one frame at a time; one per thread, so it may keep scratch space.
+class FrameEvaluator {
+ public:
+  virtual ~FrameEvaluator() = default;
+  // Evaluates frame f at y (frame_dim values) and the shared values last given to
+  // ArrowProblem::SetShared. Returns false if any residual is not finite.
+  virtual bool Evaluate(int frame, const double* y, bool with_jacobians) = 0;
+  virtual int num_blocks() const = 0;
+  virtual const ResidualBlock& block(int i) const = 0;
+};
+
+class ArrowProblem {
+ public:
+  virtual ~ArrowProblem() = default;
+  virtual int num_frames() const = 0;
+  virtual int frame_dim() const = 0;
+  virtual int shared_dim() const = 0;          // free shared parameters
+  virtual int num_residuals() const = 0;       // frame rows + prior rows
+  // Sets p for the evaluators that follow (not concurrently with Evaluate).
+  virtual bool SetShared(const Eigen::VectorXd& p) = 0;
+  virtual std::unique_ptr<FrameEvaluator> NewEvaluator() const = 0;
+  // Prior rows r_i = weight_i (p_i - target_i); weight 0 means none.
+  virtual const Eigen::VectorXd& prior_weight() const = 0;
+  virtual const Eigen::VectorXd& prior_target() const = 0;
+  // Further rows on the shared parameters alone, r = G (p - target), G dense (few rows): the
+  // body fit's gauge constraints. Empty by default.
+  virtual const Eigen::MatrixXd& shared_rows() const {
+    static const Eigen::MatrixXd kNone;
+    return kNone;
+  }
+  // Every kind of residual block a frame can have, as its y columns and its p columns (-1 =
+  // fixed). The Schur solver's symbolic analysis (elimination order, fill, which p columns each
+  // eliminated row reaches) is computed once from it, so it must cover every block of every frame.
+  virtual void BlockStructure(std::vector<std::vector<int>>* y_columns,
+                              std::vector<std::vector<int>>* p_columns) const = 0;
+};
+
+}  // namespace mocap::solver

@@ -1,0 +1,240 @@
+#include "solver/global_fit.h"
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <map>
+#include <set>
+#include <sstream>
+
+#include "solver/marker_fit_problem.h"
+#include "solver/parallel.h"
+#include "solver/schur_solver.h"
+
+namespace mocap::solver {
+namespace {
+using Clock = std::chrono::steady_clock;
+double Since(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
+}  // namespace
+
+bool FitOptions::IsValid(std::string* error) const {
+  auto fail = [&](const std::string& what) {
+    if (error) *error = what;
+    return false;
+  };
+  if (!(marker_sigma_m > 0)) return fail("marker_sigma_m must be > 0");
+  if (!(prior_sigma_scale > 0) || !(prior_sigma_position_m > 0) || !(prior_sigma_axis_rad > 0))
+    return fail("prior sigmas must be > 0");
+  if (!(undetermined_ratio > 0)) return fail("undetermined_ratio must be > 0");
+  if (!(gauge_sigma_m > 0)) return fail("gauge_sigma_m must be > 0");
+  if (num_threads < 0) return fail("num_threads must be >= 0");
+  std::string why;
+  if (!lm.IsValid(&why)) return fail("lm: " + why);
+  if (!ik.IsValid(&why)) return fail("ik: " + why);
+  return true;
+}
+
+Status FitOptions::SetGroups(const std::string& list) {
+  bool groups[4] = {false, false, false, false};
+  std::stringstream ss(list);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    if (item == "all") {
+      for (bool& g : groups) g = true;
+    } else if (item == "none" || item.empty()) {
+    } else if (item == "scales") groups[0] = true;
+    else if (item == "centres" || item == "centers") groups[1] = true;
+    else if (item == "axes") groups[2] = true;
+    else if (item == "markers") groups[3] = true;
+    else
+      return Status::Error("unknown parameter group '" + item +
+                           "' (expected scales, centres, axes, markers, all or none)");
+  }
+  fit_scales = groups[0];
+  fit_centres = groups[1];
+  fit_axes = groups[2];
+  fit_markers = groups[3];
+  return Status::Ok();
+}
+
+std::string FitReport::BriefReport() const {
+  char buf[512];
+  std::snprintf(buf, sizeof(buf),
+                "fit: %d trials, %d frames, %d markers, %d unknowns; marker RMS %.3f -> %.3f mm; "
+                "%d iterations, %s; %zu undetermined; %.2f s (IK %.2f s, solve %.2f s)",
+                trials, frames, markers, unknowns, initial_marker_rms_mm, marker_rms_mm,
+                solver.num_iterations(), ToString(solver.termination), undetermined.size(),
+                wall_seconds, ik_seconds, solve_seconds);
+  return buf;
+}
+
+Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
+                FitResult* result) {
+  const auto start = Clock::now();
+  std::string why;
+  if (!options.IsValid(&why)) return Status::Error("fit options: " + why);
+  if (trials.empty()) return Status::Error("fit: no trials given");
+  const int nm = initial.num_markers(), nz = initial.num_coordinates();
+  FitReport report;
+  report.trials = static_cast<int>(trials.size());
+
+  // Map each trial's markers onto the model's by name.
+  std::set<std::string> unmatched;
+  std::vector<std::vector<int>> column_of(trials.size(), std::vector<int>(nm, -1));
+  int total_frames = 0;
+  for (size_t t = 0; t < trials.size(); ++t) {
+    const formats::MarkerTrial& trial = trials[t].markers;
+    const std::string name = trial.name.empty() ? "trial " + std::to_string(t + 1) : "trial '" + trial.name + "'";
+    if (trial.num_frames() == 0) return Status::Error(name + ": has no frames");
+    if (trial.positions.cols() != 3 * trial.num_markers())
+      return Status::Error(name + ": positions do not match the marker names");
+    int matched = 0;
+    for (int c = 0; c < trial.num_markers(); ++c) {
+      const int m = initial.FindMarker(trial.marker_names[c]);
+      if (m < 0) {
+        unmatched.insert(trial.marker_names[c]);
+        continue;
+      }
+      column_of[t][m] = c;
+      ++matched;
+    }
+    if (matched == 0)
+      return Status::Error(name + ": none of its " + std::to_string(trial.num_markers()) +
+                           " markers is in the model");
+    for (int f = 0; f < trial.num_frames(); ++f)
+      for (int c = 0; c < trial.positions.cols(); ++c)
+        if (std::isinf(trial.positions(f, c)))
+          return Status::Error(name + ": frame " + std::to_string(f + 1) + ", marker '" +
+                               trial.marker_names[c / 3] + "' has an infinite coordinate");
+    const Eigen::MatrixXd& z0 = trials[t].initial_coordinates;
+    if (z0.size() > 0 && (z0.rows() != trial.num_frames() || z0.cols() != nz))
+      return Status::Error(name + ": starting coordinates are " + std::to_string(z0.rows()) + "x" +
+                           std::to_string(z0.cols()) + ", expected " +
+                           std::to_string(trial.num_frames()) + "x" + std::to_string(nz));
+    if (z0.size() > 0 && !z0.allFinite())
+      return Status::Error(name + ": starting coordinates are not finite");
+    total_frames += trial.num_frames();
+  }
+  report.unmatched_trial_markers.assign(unmatched.begin(), unmatched.end());
+
+  // One measurement matrix over all frames, model marker order.
+  formats::RowMatrix measurements(total_frames, 3 * nm);
+  measurements.setConstant(std::numeric_limits<double>::quiet_NaN());
+  std::vector<int> first_frame(trials.size() + 1, 0);
+  for (size_t t = 0; t < trials.size(); ++t) {
+    const formats::MarkerTrial& trial = trials[t].markers;
+    first_frame[t + 1] = first_frame[t] + trial.num_frames();
+    for (int m = 0; m < nm; ++m) {
+      const int c = column_of[t][m];
+      if (c < 0) continue;
+      measurements.block(first_frame[t], 3 * m, trial.num_frames(), 3) =
+          trial.positions.middleCols(3 * c, 3);
+    }
+  }
+  // A sample is all three coordinates or nothing.
+  for (int f = 0; f < total_frames; ++f)
+    for (int m = 0; m < nm; ++m)
+      if (!measurements.row(f).segment<3>(3 * m).allFinite())
+        measurements.row(f).segment<3>(3 * m).setConstant(std::numeric_limits<double>::quiet_NaN());
+
+  MarkerFitProblem problem(initial, std::move(measurements), options);
+  for (int m = 0; m < nm; ++m) {
+    if (problem.observed(m)) ++report.markers;
+    else report.unobserved_model_markers.push_back(initial.markers()[m].name);
+  }
+  report.frames = total_frames;
+  report.marker_samples = problem.num_samples();
+  const int np = problem.shared_dim();
+  report.unknowns = total_frames * nz + np;
+  report.residuals = problem.num_residuals();
+
+  // Starting point: given poses, else per-frame IK with the initial geometry (trials in parallel).
+  const auto ik_start = Clock::now();
+  Eigen::VectorXd x(static_cast<Eigen::Index>(total_frames) * nz + np);
+  std::vector<Status> ik_status(trials.size());
+  const int threads = ResolveThreads(options.num_threads);
+  std::vector<int> order(trials.size());
+  for (size_t t = 0; t < trials.size(); ++t) order[t] = static_cast<int>(t);
+  ParallelChunks(static_cast<int>(trials.size()), threads, [&](int, int b, int e) {
+    Geometry geometry(initial);
+    InverseKinematics ik(initial, geometry, options.ik);
+    for (int t = b; t < e; ++t) {
+      Eigen::MatrixXd z;
+      if (trials[t].initial_coordinates.size() > 0) {
+        z = trials[t].initial_coordinates;
+      } else {
+        ik_status[t] = ik.SolveTrial(problem.measurements().middleRows(first_frame[t], trials[t].markers.num_frames()), &z);
+        if (!ik_status[t].ok()) continue;
+      }
+      for (int f = 0; f < z.rows(); ++f)
+        x.segment(static_cast<Eigen::Index>(first_frame[t] + f) * nz, nz) = z.row(f).transpose();
+    }
+  });
+  for (size_t t = 0; t < trials.size(); ++t)
+    if (!ik_status[t].ok())
+      return Status::Error("trial '" + trials[t].markers.name + "': " + ik_status[t].message());
+  x.tail(np) = problem.InitialShared();
+  report.ik_seconds = Since(ik_start);
+
+  Eigen::VectorXd sum_sq;
+  Eigen::VectorXi counts;
+  problem.MarkerErrors(x, threads, &sum_sq, &counts);
+  report.initial_marker_rms_mm = 1000.0 * std::sqrt(sum_sq.sum() / std::max(1, counts.sum()));
+
+  const auto solve_start = Clock::now();
+  ArrowSchurProblem schur(&problem, threads);
+  report.solver = Solve(options.lm, &schur, &x);
+  report.solve_seconds = Since(solve_start);
+  if (!report.solver.IsSolutionUsable())
+    return Status::Error("fit: the solver failed: " + report.solver.message);
+
+  problem.MarkerErrors(x, threads, &sum_sq, &counts);
+  report.marker_rms_mm = 1000.0 * std::sqrt(sum_sq.sum() / std::max(1, counts.sum()));
+  for (int m = 0; m < nm; ++m)
+    if (counts[m] > 0)
+      report.per_marker_rms_mm.emplace_back(initial.markers()[m].name,
+                                            1000.0 * std::sqrt(sum_sq[m] / counts[m]));
+
+  // Uncertainty: S^{-1} in residual units; scaled by the residual variance for the reported std.
+  const auto cov_start = Clock::now();
+  Eigen::MatrixXd covariance;
+  const bool have_covariance = np > 0 && schur.SharedCovariance(&covariance);
+  const int dof = std::max(1, report.residuals - report.unknowns);
+  const double variance = 2.0 * report.solver.final_cost / dof;
+  const Eigen::VectorXd p0 = initial.InitialParameters();
+  const Eigen::VectorXd p = problem.FullParameters(x.tail(np));
+  for (int k = 0; k < np; ++k) {
+    const int i = problem.free_parameters()[k];
+    ParameterEstimate e;
+    e.name = initial.parameters()[i].name;
+    e.group = initial.parameters()[i].group;
+    e.initial = p0[i];
+    e.value = p[i];
+    e.fitted = true;
+    if (have_covariance) {
+      const double c = std::max(0.0, covariance(k, k));
+      e.std = std::sqrt(c * variance);
+      e.determined = std::sqrt(c) <= options.undetermined_ratio * problem.prior_sigma(k);
+    } else {
+      e.std = problem.prior_sigma(k);
+      e.determined = false;
+    }
+    if (!e.determined) report.undetermined.push_back(e.name);
+    report.parameters.push_back(e);
+  }
+  report.covariance_seconds = Since(cov_start);
+
+  result->model = initial.WithParameters(p);
+  result->coordinates.resize(trials.size());
+  for (size_t t = 0; t < trials.size(); ++t) {
+    Eigen::MatrixXd& z = result->coordinates[t];
+    z.resize(trials[t].markers.num_frames(), nz);
+    for (int f = 0; f < z.rows(); ++f)
+      z.row(f) = x.segment(static_cast<Eigen::Index>(first_frame[t] + f) * nz, nz).transpose();
+  }
+  report.wall_seconds = Since(start);
+  result->report = std::move(report);
+  return Status::Ok();
+}
+
+}  // namespace mocap::solver

@@ -1,0 +1,107 @@
+// The global body-model fit of Lugrís, Beron, Michaud & Cuadrado (2024): every frame of every
+// calibration trial and the geometric parameters in ONE least-squares problem
+//
+//     min_q  sum_f sum_m w_m ||h_m(z_f, p) - r_fm||^2 / sigma^2  +  sum_i ((p_i - p0_i) / s_i)^2
+//     q = [z_1 ... z_F, p]
+//
+// solved by Levenberg–Marquardt with the analytic sparse Jacobian of model/kinematics.h and the
+// per-frame Schur elimination of solver/schur_solver.h. Missing markers have no residual. The
+// weak priors (s_i: FitOptions' prior sigmas) towards the initial model pin the directions the
+// data cannot fix — a hinge centre along its axis, a marker offset that trades against a joint
+// centre — and keep the normal matrix positive definite, so no NaN ever comes out. The report
+// gives a standard deviation for every fitted parameter (the p-block of the inverse normal
+// matrix, scaled by the residual variance) and names the parameters the data did not determine:
+// those whose posterior standard deviation, with the data's nominal sigma, is more than
+// `undetermined_ratio` of their prior sigma.
+#pragma once
+
+#include <Eigen/Core>
+#include <string>
+#include <vector>
+
+#include "formats/marker_data.h"
+#include "model/model.h"
+#include "model/status.h"
+#include "solver/inverse_kinematics.h"
+#include "solver/levenberg_marquardt.h"
+
+namespace mocap::solver {
+
+struct FitOptions {
+  // Parameter groups to fit (scales, centres, axes, markers); the others stay at the initial model.
+  bool fit_scales = true;
+  bool fit_centres = true;
+  bool fit_axes = true;
+  bool fit_markers = true;
+  double marker_sigma_m = 0.001;        // residual unit: 1 mm of marker error
+  double prior_sigma_scale = 0.1;       // 10 % of segment size
+  double prior_sigma_position_m = 0.05; // joint centres and marker positions
+  double prior_sigma_axis_rad = 0.17;   // about 10 degrees
+  double gauge_sigma_m = 1e-5;          // stiffness of the gauge rows (marker_fit_problem.h)
+  double undetermined_ratio = 0.1;
+  int num_threads = 0;                  // 0: all cores
+  LmOptions lm;
+  IkOptions ik;
+
+  FitOptions() {
+    lm.function_tolerance = 1e-7;
+    lm.parameter_tolerance = 1e-9;
+    lm.max_iterations = 50;
+  }
+  bool IsValid(std::string* error) const;
+  // Parses "scales,centres,axes,markers" (any subset, or "all"/"none").
+  Status SetGroups(const std::string& list);
+};
+
+// One trial: labelled markers (metres) and, optionally, a starting pose per frame (from the live
+// filter, or a .mot); without it the fit runs per-frame inverse kinematics first.
+struct FitTrial {
+  formats::MarkerTrial markers;
+  Eigen::MatrixXd initial_coordinates;  // frames x n_coordinates, or empty
+};
+
+struct ParameterEstimate {
+  std::string name;
+  ParameterGroup group;
+  double initial = 0;
+  double value = 0;
+  double std = 0;          // standard deviation (same unit as value); 0 when not fitted
+  bool fitted = false;
+  bool determined = true;
+};
+
+struct FitReport {
+  LmSummary solver;
+  int trials = 0;
+  int frames = 0;
+  int markers = 0;                 // model markers with data
+  int marker_samples = 0;
+  int unknowns = 0;
+  int residuals = 0;
+  double initial_marker_rms_mm = 0;
+  double marker_rms_mm = 0;
+  std::vector<std::pair<std::string, double>> per_marker_rms_mm;
+  std::vector<ParameterEstimate> parameters;   // every fitted parameter
+  std::vector<std::string> undetermined;
+  std::vector<std::string> unmatched_trial_markers;   // in a trial, not in the model (ignored)
+  std::vector<std::string> unobserved_model_markers;  // in the model, in no trial (not fitted)
+  double ik_seconds = 0;
+  double solve_seconds = 0;
+  double covariance_seconds = 0;
+  double wall_seconds = 0;
+  bool converged() const { return solver.termination == TerminationType::kConvergence; }
+  std::string BriefReport() const;
+};
+
+struct FitResult {
+  Model model;                                // the fitted model (unobserved markers unchanged)
+  std::vector<Eigen::MatrixXd> coordinates;   // per trial: frames x n_coordinates
+  FitReport report;
+};
+
+// Fits `initial` to the trials. Errors name the trial: no frames, none of the model's markers,
+// non-finite coordinates, a starting pose of the wrong size.
+Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
+                FitResult* result);
+
+}  // namespace mocap::solver

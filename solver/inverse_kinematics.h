@@ -1,0 +1,60 @@
+// Per-frame inverse kinematics: the pose z that best fits one frame's measured markers for a
+// fixed model geometry, by a small dense Levenberg–Marquardt (what OpenSim's IK tool does, with
+// all marker weights equal). It builds the global fit's initial guess when data come from a file
+// instead of the live filter: each frame starts from the previous frame's solution; the first
+// frame (and any frame where the warm start fails) starts from a rigid alignment of the standing
+// model, tried at four headings so a subject facing any direction is found.
+#pragma once
+
+#include <Eigen/Core>
+#include <vector>
+
+#include "model/kinematics.h"
+#include "model/model.h"
+#include "model/status.h"
+
+namespace mocap::solver {
+
+struct IkOptions {
+  int max_iterations = 50;
+  double step_tolerance = 1e-9;       // stop when |dz| < this
+  double restart_rms_m = 0.03;        // a warm start worse than this re-initialises
+  bool IsValid(std::string* error) const;
+};
+
+struct IkFrameResult {
+  double rms_m = 0;        // RMS marker distance after the solve
+  int iterations = 0;
+  int markers = 0;         // markers present in the frame
+};
+
+class InverseKinematics {
+ public:
+  InverseKinematics(const Model& model, const Geometry& geometry, IkOptions options = IkOptions());
+
+  // measured: 3 x n_markers in model marker order (NaN = missing). z: in = start, out = solution.
+  // free: coordinates to solve for (empty = all).
+  IkFrameResult Solve(const Eigen::Matrix3Xd& measured, Eigen::VectorXd* z,
+                      const std::vector<char>& free = {});
+  // A pose from nothing: rigid alignment of the default pose, then a full solve.
+  IkFrameResult Initialise(const Eigen::Matrix3Xd& measured, Eigen::VectorXd* z);
+
+  // Solves every frame of a trial (rows of `measured`: frames x 3 n_markers, model order),
+  // warm-starting from the previous frame. Fills `coordinates` (frames x n_coordinates) and the
+  // per-frame RMS. A frame with fewer than 3 markers keeps its neighbour's pose; the trial fails
+  // only when no frame has 3 markers.
+  Status SolveTrial(const Eigen::Ref<const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic,
+                                                          Eigen::RowMajor>>& measured,
+                    Eigen::MatrixXd* coordinates, std::vector<double>* rms_m = nullptr);
+
+ private:
+  const Model& model_;
+  const Geometry& geometry_;
+  IkOptions options_;
+  ModelData data_;
+  Eigen::MatrixXd jtj_;
+  Eigen::VectorXd jtr_;
+  Eigen::Matrix<double, 3, Eigen::Dynamic> jz_;
+};
+
+}  // namespace mocap::solver

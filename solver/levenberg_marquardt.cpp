@@ -1,0 +1,202 @@
+#include "solver/levenberg_marquardt.h"
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <sstream>
+
+namespace mocap::solver {
+namespace {
+using Clock = std::chrono::steady_clock;
+double Since(Clock::time_point t) {
+  return std::chrono::duration<double>(Clock::now() - t).count();
+}
+}  // namespace
+
+const char* ToString(TerminationType type) {
+  switch (type) {
+    case TerminationType::kConvergence: return "CONVERGENCE";
+    case TerminationType::kNoConvergence: return "NO_CONVERGENCE";
+    case TerminationType::kUserCancelled: return "USER_CANCELLED";
+    case TerminationType::kFailure: return "FAILURE";
+  }
+  return "?";
+}
+
+bool LmOptions::IsValid(std::string* error) const {
+  auto fail = [&](const char* what) {
+    if (error) *error = what;
+    return false;
+  };
+  if (max_iterations < 0) return fail("max_iterations must be >= 0");
+  if (!(max_seconds > 0)) return fail("max_seconds must be > 0");
+  if (!(function_tolerance >= 0)) return fail("function_tolerance must be >= 0");
+  if (!(gradient_tolerance >= 0)) return fail("gradient_tolerance must be >= 0");
+  if (!(parameter_tolerance >= 0)) return fail("parameter_tolerance must be >= 0");
+  if (!(initial_lambda > 0)) return fail("initial_lambda must be > 0");
+  if (!(min_lambda > 0 && min_lambda <= initial_lambda && initial_lambda <= max_lambda))
+    return fail("need 0 < min_lambda <= initial_lambda <= max_lambda");
+  if (!(min_diagonal > 0 && min_diagonal <= max_diagonal))
+    return fail("need 0 < min_diagonal <= max_diagonal");
+  if (!(min_gain_ratio >= 0 && min_gain_ratio < 1)) return fail("min_gain_ratio must be in [0, 1)");
+  if (max_consecutive_rejections < 1) return fail("max_consecutive_rejections must be >= 1");
+  return true;
+}
+
+std::string LmSummary::BriefReport() const {
+  char buf[512];
+  std::snprintf(buf, sizeof(buf),
+                "Levenberg-Marquardt: %s, initial cost %.6e, final cost %.6e, %d iterations, "
+                "%d linear solves, %.3f s (%s)",
+                ToString(termination), initial_cost, final_cost, num_iterations(),
+                num_linear_solves, total_seconds, message.c_str());
+  return buf;
+}
+
+std::string LmSummary::FullReport() const {
+  std::ostringstream os;
+  char buf[256];
+  os << "Levenberg-Marquardt solver summary\n";
+  std::snprintf(buf, sizeof(buf), "  parameters %d, residuals %d\n", num_parameters, num_residuals);
+  os << buf;
+  os << "  iter        cost      change   |gradient|       |step|       lambda   gain  accept  time(s)\n";
+  for (const auto& it : iterations) {
+    std::snprintf(buf, sizeof(buf), "  %4d %11.5e %11.4e %11.4e %11.4e %11.4e %6.3f %6s %8.3f\n",
+                  it.iteration, it.cost, it.cost_change, it.gradient_max_norm, it.step_norm,
+                  it.lambda, it.gain_ratio, it.step_accepted ? "yes" : "no", it.total_seconds);
+    os << buf;
+  }
+  std::snprintf(buf, sizeof(buf),
+                "  initial cost %.8e\n  final cost   %.8e\n  time: linearize %.3f s, linear "
+                "solver %.3f s, cost %.3f s, total %.3f s\n",
+                initial_cost, final_cost, linearize_seconds, linear_solver_seconds,
+                cost_evaluation_seconds, total_seconds);
+  os << buf;
+  os << "  termination: " << ToString(termination) << " (" << message << ")\n";
+  return os.str();
+}
+
+LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x) {
+  LmSummary summary;
+  const auto start = Clock::now();
+  summary.num_parameters = problem->num_parameters();
+  summary.num_residuals = problem->num_residuals();
+  std::string why;
+  if (!options.IsValid(&why)) {
+    summary.message = "invalid options: " + why;
+    return summary;
+  }
+  if (x->size() != problem->num_parameters() || !x->allFinite()) {
+    summary.message = "initial parameters have the wrong size or are not finite";
+    return summary;
+  }
+
+  Eigen::VectorXd gradient, diagonal, damping, dx, x_new;
+  double cost = 0;
+  auto t = Clock::now();
+  if (!problem->Linearize(*x, &cost, &gradient, &diagonal)) {
+    summary.message = "residuals or Jacobian not finite at the initial parameters";
+    summary.total_seconds = Since(start);
+    return summary;
+  }
+  summary.linearize_seconds += Since(t);
+  summary.initial_cost = summary.final_cost = cost;
+  double lambda = options.initial_lambda, nu = 2.0;
+  int rejections = 0;
+
+  auto finish = [&](TerminationType type, std::string message) {
+    summary.termination = type;
+    summary.message = std::move(message);
+    summary.final_cost = cost;
+    summary.total_seconds = Since(start);
+    return summary;
+  };
+
+  if (gradient.lpNorm<Eigen::Infinity>() <= options.gradient_tolerance)
+    return finish(TerminationType::kConvergence, "gradient tolerance reached at the start");
+
+  for (int iteration = 1;; ++iteration) {
+    if (iteration > options.max_iterations)
+      return finish(TerminationType::kNoConvergence, "maximum number of iterations reached");
+    if (Since(start) > options.max_seconds)
+      return finish(TerminationType::kNoConvergence, "maximum time reached");
+    const auto iteration_start = Clock::now();
+    IterationSummary it;
+    it.iteration = iteration;
+
+    // Inner loop: raise lambda until a step is accepted or we give up.
+    for (;;) {
+      damping = lambda * diagonal.cwiseMax(options.min_diagonal).cwiseMin(options.max_diagonal);
+      t = Clock::now();
+      const bool solved = problem->SolveDamped(damping, &dx);
+      summary.linear_solver_seconds += Since(t);
+      ++it.linear_solves;
+      ++summary.num_linear_solves;
+      double new_cost = std::numeric_limits<double>::infinity();
+      double predicted = 0;
+      if (solved && dx.allFinite()) {
+        predicted = 0.5 * (dx.dot(damping.cwiseProduct(dx)) - dx.dot(gradient));
+        x_new = *x + dx;
+        t = Clock::now();
+        if (!problem->Cost(x_new, &new_cost)) new_cost = std::numeric_limits<double>::infinity();
+        summary.cost_evaluation_seconds += Since(t);
+      }
+      const double actual = cost - new_cost;
+      const double rho = predicted > 0 ? actual / predicted : -1.0;
+      it.step_norm = solved ? dx.norm() : 0.0;
+      it.gain_ratio = std::isfinite(rho) ? rho : -1.0;
+      if (std::isfinite(new_cost) && rho > options.min_gain_ratio) {
+        // Accept.
+        const double parameter_norm = x->norm();
+        x->swap(x_new);
+        const double old_cost = cost;
+        t = Clock::now();
+        if (!problem->Linearize(*x, &cost, &gradient, &diagonal)) {
+          // Cannot happen for a finite cost in exact arithmetic; step back to the last good x.
+          *x -= dx;
+          cost = old_cost;
+          return finish(TerminationType::kNoConvergence, "Jacobian not finite after a step");
+        }
+        summary.linearize_seconds += Since(t);
+        lambda = std::max(options.min_lambda,
+                          lambda * std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3)));
+        nu = 2.0;
+        rejections = 0;
+        it.step_accepted = true;
+        it.cost_change = old_cost - cost;
+        it.cost = cost;
+        it.lambda = lambda;
+        it.gradient_max_norm = gradient.lpNorm<Eigen::Infinity>();
+        it.iteration_seconds = Since(iteration_start);
+        it.total_seconds = Since(start);
+        summary.iterations.push_back(it);
+        for (const auto& cb : options.callbacks)
+          if (!cb(it)) return finish(TerminationType::kUserCancelled, "cancelled by the callback");
+        if (it.cost_change <= options.function_tolerance * old_cost)
+          return finish(TerminationType::kConvergence, "function tolerance reached");
+        if (it.gradient_max_norm <= options.gradient_tolerance)
+          return finish(TerminationType::kConvergence, "gradient tolerance reached");
+        if (it.step_norm <= options.parameter_tolerance * (parameter_norm + options.parameter_tolerance))
+          return finish(TerminationType::kConvergence, "parameter tolerance reached");
+        break;
+      }
+      // Reject.
+      lambda *= nu;
+      nu *= 2.0;
+      ++rejections;
+      if (lambda > options.max_lambda || rejections >= options.max_consecutive_rejections) {
+        it.cost = cost;
+        it.lambda = lambda;
+        it.gradient_max_norm = gradient.lpNorm<Eigen::Infinity>();
+        it.iteration_seconds = Since(iteration_start);
+        it.total_seconds = Since(start);
+        summary.iterations.push_back(it);
+        // No step decreases the cost any more: at the floating-point floor of a minimum.
+        return finish(TerminationType::kConvergence,
+                      "no further decrease possible (damping at its limit)");
+      }
+    }
+  }
+}
+
+}  // namespace mocap::solver

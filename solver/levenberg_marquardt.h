@@ -1,0 +1,101 @@
+// Levenberg–Marquardt for sparse nonlinear least squares, min_x 1/2 ||r(x)||^2.
+//
+// The minimiser is independent of how the damped normal equations
+//     (J^T J + D) dx = -J^T r,   D = lambda * clamp(diag(J^T J), min_diagonal, max_diagonal)
+// are solved: an LmProblem owns its Jacobian and its linear solver (the global fit uses a
+// per-frame Schur elimination, solver/schur_solver.h, or CHOLMOD, solver/cholmod_solver.h).
+// Damping follows Marquardt's diagonal scaling and Nielsen's update rule (H. B. Nielsen, "Damping
+// parameter in Marquardt's method", IMM-REP-1999-05): after a step with gain ratio rho > eta,
+// lambda *= max(1/3, 1 - (2 rho - 1)^3); otherwise lambda *= nu, nu *= 2. The predicted decrease
+// uses the identity dx^T J^T J dx = -dx^T g - dx^T D dx, so no extra product with J is needed.
+// Options, Summary and termination types follow Ceres Solver's shape.
+#pragma once
+
+#include <Eigen/Core>
+#include <functional>
+#include <string>
+#include <vector>
+
+namespace mocap::solver {
+
+enum class TerminationType {
+  kConvergence,        // a tolerance was met: the solution is a local minimum
+  kNoConvergence,      // max_iterations or max_seconds reached: usable, not converged
+  kUserCancelled,      // the iteration callback asked to stop: usable, not converged
+  kFailure,            // the problem could not be evaluated or solved at the start
+};
+const char* ToString(TerminationType type);
+
+struct IterationSummary {
+  int iteration = 0;
+  double cost = 0;              // after this iteration
+  double cost_change = 0;       // decrease achieved (0 if the step was rejected)
+  double gradient_max_norm = 0;
+  double step_norm = 0;
+  double lambda = 0;
+  double gain_ratio = 0;
+  bool step_accepted = false;
+  int linear_solves = 0;        // in this iteration (rejected steps re-solve)
+  double iteration_seconds = 0;
+  double total_seconds = 0;
+};
+
+// Return false to stop the solve (the summary then says kUserCancelled).
+using IterationCallback = std::function<bool(const IterationSummary&)>;
+
+struct LmOptions {
+  int max_iterations = 100;
+  double max_seconds = 1e9;
+  double function_tolerance = 1e-8;   // stop when |cost change| / cost < this
+  double gradient_tolerance = 1e-10;  // stop when max |g_i| < this
+  double parameter_tolerance = 1e-10; // stop when |dx| < this * (|x| + this)
+  double initial_lambda = 1e-4;
+  double min_lambda = 1e-16;
+  double max_lambda = 1e16;
+  double min_diagonal = 1e-6;         // floor for diag(J^T J) in the damping
+  double max_diagonal = 1e32;
+  double min_gain_ratio = 1e-3;       // eta: accept steps whose gain ratio exceeds this
+  int max_consecutive_rejections = 10;
+  std::vector<IterationCallback> callbacks;
+
+  bool IsValid(std::string* error) const;
+};
+
+struct LmSummary {
+  TerminationType termination = TerminationType::kFailure;
+  std::string message;
+  double initial_cost = 0;
+  double final_cost = 0;
+  int num_parameters = 0;
+  int num_residuals = 0;
+  std::vector<IterationSummary> iterations;
+  int num_linear_solves = 0;
+  double total_seconds = 0;
+  double linearize_seconds = 0;
+  double linear_solver_seconds = 0;
+  double cost_evaluation_seconds = 0;
+
+  int num_iterations() const { return static_cast<int>(iterations.size()); }
+  bool IsSolutionUsable() const { return termination != TerminationType::kFailure; }
+  std::string BriefReport() const;
+  std::string FullReport() const;
+};
+
+class LmProblem {
+ public:
+  virtual ~LmProblem() = default;
+  virtual int num_parameters() const = 0;
+  virtual int num_residuals() const = 0;
+  // 1/2 ||r(x)||^2; false if r is not finite.
+  virtual bool Cost(const Eigen::VectorXd& x, double* cost) = 0;
+  // Linearises at x: cost, gradient J^T r and diag(J^T J). False if not finite.
+  virtual bool Linearize(const Eigen::VectorXd& x, double* cost, Eigen::VectorXd* gradient,
+                         Eigen::VectorXd* jtj_diagonal) = 0;
+  // Solves (J^T J + diag(damping)) dx = -gradient at the last linearisation point.
+  virtual bool SolveDamped(const Eigen::VectorXd& damping, Eigen::VectorXd* dx) = 0;
+};
+
+// Minimises from *x in place. Never leaves a non-finite value in *x.
+LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x);
+
+}  // namespace mocap::solver

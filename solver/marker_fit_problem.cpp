@@ -1,0 +1,259 @@
+#include "solver/marker_fit_problem.h"
+
+#include <cmath>
+
+#include "solver/global_fit.h"
+#include "solver/parallel.h"
+
+namespace mocap::solver {
+
+class MarkerFrameEvaluator : public FrameEvaluator {
+ public:
+  explicit MarkerFrameEvaluator(const MarkerFitProblem& problem)
+      : problem_(problem), data_(problem.model()) {
+    const Model& model = problem.model();
+    const int nm = model.num_markers();
+    blocks_.resize(nm);
+    residual_.resize(3 * nm);
+    jy_.resize(nm, Eigen::Matrix<double, 3, Eigen::Dynamic>(3, model.max_chain_coordinates()));
+    jp_.resize(nm, Eigen::Matrix<double, 3, Eigen::Dynamic>(3, model.max_chain_parameters()));
+    z_.resize(model.num_coordinates());
+  }
+
+  bool Evaluate(int frame, const double* y, bool with_jacobians) override {
+    const Model& model = problem_.model();
+    const Geometry& g = problem_.geometry();
+    z_ = Eigen::Map<const Eigen::VectorXd>(y, model.num_coordinates());
+    ForwardKinematics(model, g, z_, &data_);
+    const double* meas = problem_.measurements().row(frame).data();
+    num_blocks_ = 0;
+    for (int m = 0; m < model.num_markers(); ++m) {
+      if (!std::isfinite(meas[3 * m])) continue;
+      const double scale = problem_.residual_scale(m);
+      const Eigen::Vector3d x = MarkerPosition(model, g, data_, m);
+      double* r = residual_.data() + 3 * num_blocks_;
+      for (int k = 0; k < 3; ++k) r[k] = scale * (x[k] - meas[3 * m + k]);
+      if (!std::isfinite(r[0] + r[1] + r[2])) return false;
+      ResidualBlock& blk = blocks_[num_blocks_];
+      blk.rows = 3;
+      blk.residual = r;
+      const auto& ycols = model.marker_coordinates(m);
+      const auto& pcols = problem_.marker_free_columns(m);
+      blk.num_y = static_cast<int>(ycols.size());
+      blk.y_index = ycols.data();
+      blk.num_p = static_cast<int>(pcols.size());
+      blk.p_index = pcols.data();
+      if (with_jacobians) {
+        auto jy = jy_[num_blocks_].leftCols(blk.num_y);
+        auto jp = jp_[num_blocks_].leftCols(blk.num_p);
+        MarkerJacobian(model, g, data_, m, &jy, &jp);
+        jy *= scale;
+        jp *= scale;
+        blk.jy = jy_[num_blocks_].data();
+        blk.jp = jp_[num_blocks_].data();
+      }
+      ++num_blocks_;
+    }
+    return true;
+  }
+  int num_blocks() const override { return num_blocks_; }
+  const ResidualBlock& block(int i) const override { return blocks_[i]; }
+
+ private:
+  const MarkerFitProblem& problem_;
+  ModelData data_;
+  Eigen::VectorXd z_;
+  std::vector<ResidualBlock> blocks_;
+  std::vector<double> residual_;
+  std::vector<Eigen::Matrix<double, 3, Eigen::Dynamic>> jy_, jp_;
+  int num_blocks_ = 0;
+};
+
+MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measurements,
+                                   const FitOptions& options)
+    : model_(model), measurements_(std::move(measurements)), geometry_(model) {
+  const bool free_groups[4] = {options.fit_scales, options.fit_centres, options.fit_axes,
+                               options.fit_markers};
+  const double marker_sigma_m = options.marker_sigma_m;
+  const double prior_sigma_scale = options.prior_sigma_scale;
+  const double prior_sigma_position_m = options.prior_sigma_position_m;
+  const double prior_sigma_axis_rad = options.prior_sigma_axis_rad;
+  const int nm = model.num_markers();
+  p0_ = model.InitialParameters();
+  observed_.assign(nm, 0);
+  for (int f = 0; f < measurements_.rows(); ++f)
+    for (int m = 0; m < nm; ++m)
+      if (std::isfinite(measurements_(f, 3 * m))) {
+        observed_[m] = 1;
+        ++samples_;
+      }
+  free_index_.assign(model.num_parameters(), -1);
+  std::vector<double> weights;
+  for (int i = 0; i < model.num_parameters(); ++i) {
+    const ParameterInfo& info = model.parameters()[i];
+    if (!free_groups[static_cast<int>(info.group)]) continue;
+    if (info.group == ParameterGroup::kMarker && !observed_[info.object]) continue;
+    free_index_[i] = static_cast<int>(free_parameters_.size());
+    free_parameters_.push_back(i);
+    double sigma = prior_sigma_position_m;
+    if (info.group == ParameterGroup::kScale) sigma = prior_sigma_scale;
+    if (info.group == ParameterGroup::kAxis) sigma = prior_sigma_axis_rad;
+    weights.push_back(1.0 / sigma);
+  }
+  prior_weight_ = Eigen::Map<Eigen::VectorXd>(weights.data(), weights.size());
+  prior_target_ = InitialShared();
+  marker_free_columns_.resize(nm);
+  residual_scale_.resize(nm);
+  for (int m = 0; m < nm; ++m) {
+    for (int p : model.marker_parameters(m)) marker_free_columns_[m].push_back(free_index_[p]);
+    residual_scale_[m] = std::sqrt(model.markers()[m].weight) / marker_sigma_m;
+  }
+  BuildGaugeRows(options.gauge_sigma_m);
+}
+
+void MarkerFitProblem::BuildGaugeRows(double gauge_sigma_m) {
+  const int np = shared_dim();
+  std::vector<Eigen::VectorXd> rows;
+  auto free3 = [&](int base) {
+    return free_index_[base] >= 0 && free_index_[base + 1] >= 0 && free_index_[base + 2] >= 0;
+  };
+  for (int s = 0; s < model_.num_segments(); ++s) {
+    // The segment's local geometry: observed markers on it and centres of joints hanging from it.
+    // The gauge exists only if all of it is free. The rows are written on the markers alone:
+    // a child joint centre may itself have an unobservable component (a hinge centre along its
+    // axis), and a row through it would tie that weak direction to the segment's orientation and
+    // so to every axis expressed in the segment. Centres are used only without markers.
+    std::vector<std::pair<int, Eigen::Vector3d>> markers, centres;  // (first parameter, position)
+    bool all_free = true;
+    for (int m = 0; m < model_.num_markers(); ++m) {
+      if (model_.markers()[m].segment != s || !observed_[m]) continue;
+      const int base = model_.marker_index(m);
+      all_free = all_free && free3(base);
+      markers.emplace_back(base, p0_.segment<3>(base));
+    }
+    for (int j = 0; j < model_.num_joints(); ++j) {
+      if (model_.joints()[j].parent != s) continue;
+      const int base = model_.centre_index(j);
+      all_free = all_free && free3(base);
+      centres.emplace_back(base, p0_.segment<3>(base));
+    }
+    const auto& local = markers.empty() ? centres : markers;
+    if (local.empty() || !all_free) continue;
+    const int j = model_.segments()[s].joint;
+    const Joint& joint = model_.joints()[j];
+    const std::string& name = model_.segments()[s].name;
+    auto add_row = [&](auto&& entry, const std::string& what) {
+      Eigen::VectorXd row = Eigen::VectorXd::Zero(np);
+      for (const auto& [base, v] : local) {
+        const Eigen::Vector3d e = entry(v);
+        for (int k = 0; k < 3; ++k) row[free_index_[base + k]] = e[k];
+      }
+      const double norm = row.norm();
+      if (norm < 1e-9) return;
+      rows.push_back(row / (norm * gauge_sigma_m));
+      gauge_names_.push_back(name + "." + what);
+    };
+    std::vector<Eigen::Vector3d> rotations;
+    switch (joint.type) {
+      case JointType::kFree:
+        for (int k = 0; k < 3; ++k) {
+          const Eigen::Vector3d d = Eigen::Vector3d::Unit(k);
+          add_row([&](const Eigen::Vector3d&) { return d; }, std::string("translation") + "xyz"[k]);
+        }
+        [[fallthrough]];
+      case JointType::kSpherical:
+        for (int k = 0; k < 3; ++k) rotations.push_back(Eigen::Vector3d::Unit(k));
+        break;
+      case JointType::kHinge:
+        if (!joint.elements.empty()) rotations.push_back(joint.elements[0].axis);
+        break;
+      case JointType::kUniversal:
+        if (joint.elements.size() == 2) {
+          rotations.push_back(joint.elements[1].axis);
+          const int a2 = model_.axis_index(j, 1);
+          if (a2 >= 0 && free_index_[a2] >= 0 && free_index_[a2 + 1] >= 0)
+            rotations.push_back(joint.elements[0].axis);
+        }
+        break;
+      case JointType::kCustom:
+        break;
+    }
+    for (size_t r = 0; r < rotations.size(); ++r) {
+      const Eigen::Vector3d u = rotations[r].normalized();
+      add_row([&](const Eigen::Vector3d& v) { return Eigen::Vector3d(u.cross(v)); },
+              "rotation" + std::to_string(r));
+    }
+    if (free_index_[model_.scale_index(s)] >= 0)
+      add_row([](const Eigen::Vector3d& v) { return v; }, "scale");
+  }
+  gauge_rows_.resize(static_cast<Eigen::Index>(rows.size()), np);
+  for (size_t r = 0; r < rows.size(); ++r) gauge_rows_.row(r) = rows[r].transpose();
+}
+
+Eigen::VectorXd MarkerFitProblem::InitialShared() const {
+  Eigen::VectorXd s(free_parameters_.size());
+  for (size_t k = 0; k < free_parameters_.size(); ++k) s[k] = p0_[free_parameters_[k]];
+  return s;
+}
+
+Eigen::VectorXd MarkerFitProblem::FullParameters(const Eigen::VectorXd& shared) const {
+  Eigen::VectorXd p = p0_;
+  for (size_t k = 0; k < free_parameters_.size(); ++k) p[free_parameters_[k]] = shared[k];
+  return p;
+}
+
+bool MarkerFitProblem::SetShared(const Eigen::VectorXd& shared) {
+  if (!shared.allFinite()) return false;
+  const Eigen::VectorXd p = FullParameters(shared);
+  for (int s = 0; s < model_.num_segments(); ++s)
+    if (!(p[model_.scale_index(s)] > 0)) return false;  // a non-positive scale is no body
+  geometry_.Set(model_, p);
+  return true;
+}
+
+std::unique_ptr<FrameEvaluator> MarkerFitProblem::NewEvaluator() const {
+  return std::make_unique<MarkerFrameEvaluator>(*this);
+}
+
+void MarkerFitProblem::BlockStructure(std::vector<std::vector<int>>* y_columns,
+                                      std::vector<std::vector<int>>* p_columns) const {
+  y_columns->clear();
+  p_columns->clear();
+  for (int m = 0; m < model_.num_markers(); ++m) {
+    if (!observed_[m]) continue;
+    y_columns->push_back(model_.marker_coordinates(m));
+    p_columns->push_back(marker_free_columns_[m]);
+  }
+}
+
+void MarkerFitProblem::MarkerErrors(const Eigen::VectorXd& x, int num_threads,
+                                    Eigen::VectorXd* sum_squared, Eigen::VectorXi* count) {
+  const int nm = model_.num_markers(), nz = model_.num_coordinates(), nf = num_frames();
+  SetShared(x.tail(shared_dim()));
+  num_threads = ResolveThreads(num_threads);
+  std::vector<Eigen::VectorXd> sums(num_threads, Eigen::VectorXd::Zero(nm));
+  std::vector<Eigen::VectorXi> counts(num_threads, Eigen::VectorXi::Zero(nm));
+  ParallelChunks(nf, num_threads, [&](int t, int b, int e) {
+    ModelData data(model_);
+    Eigen::VectorXd z(nz);
+    for (int f = b; f < e; ++f) {
+      z = x.segment(static_cast<Eigen::Index>(f) * nz, nz);
+      ForwardKinematics(model_, geometry_, z, &data);
+      for (int m = 0; m < nm; ++m) {
+        const double* meas = measurements_.row(f).data() + 3 * m;
+        if (!std::isfinite(meas[0])) continue;
+        sums[t][m] += (MarkerPosition(model_, geometry_, data, m) -
+                       Eigen::Map<const Eigen::Vector3d>(meas)).squaredNorm();
+        counts[t][m] += 1;
+      }
+    }
+  });
+  sum_squared->setZero(nm);
+  count->setZero(nm);
+  for (int t = 0; t < num_threads; ++t) {
+    *sum_squared += sums[t];
+    *count += counts[t];
+  }
+}
+
+}  // namespace mocap::solver

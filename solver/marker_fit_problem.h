@@ -1,0 +1,87 @@
+// The global fit as an ArrowProblem: frames of measured markers, y_f = z_f, shared = the free
+// geometric parameters. Exposed so the benchmark can hand the identical residuals, weights,
+// priors and starting point to another solver (Ceres) for comparison.
+//
+// Gauge. Some changes of p leave every marker trajectory unchanged once the per-frame poses
+// adjust: rotating a segment's frame against its markers and child joint centres (3 directions
+// behind a spherical or free joint, the axis direction behind a hinge, both axes behind a
+// universal joint), translating the root segment's frame, and trading a segment's scale against
+// the size of its local geometry. These are conventions, not properties of the subject; a weak
+// prior alone would leave them as long, curved, almost flat valleys in which Levenberg–Marquardt
+// crawls. Each one that is exact for the free parameters gets a stiff linear row that keeps the
+// segment's free local geometry from rotating / translating / growing as a whole relative to the
+// initial model (the row is the gauge's own tangent, so it fixes exactly that direction and
+// biases nothing observable). A gauge that free parameters cannot realise (e.g. a fixed marker
+// on the segment) does not exist and gets no row.
+#pragma once
+
+#include <Eigen/Core>
+#include <memory>
+#include <vector>
+
+#include "formats/marker_data.h"
+#include "model/kinematics.h"
+#include "model/model.h"
+#include "solver/arrow_problem.h"
+
+namespace mocap::solver {
+
+struct FitOptions;
+
+class MarkerFitProblem : public ArrowProblem {
+ public:
+  // measurements: frames x 3 n_markers in MODEL marker order, metres, NaN = missing.
+  // options: which groups are fitted, sigmas of residuals, priors and gauge rows. Markers with
+  // no sample stay fixed.
+  MarkerFitProblem(const Model& model, formats::RowMatrix measurements, const FitOptions& options);
+
+  int num_frames() const override { return static_cast<int>(measurements_.rows()); }
+  int frame_dim() const override { return model_.num_coordinates(); }
+  int shared_dim() const override { return static_cast<int>(free_parameters_.size()); }
+  int num_residuals() const override { return 3 * samples_ + shared_dim(); }
+  bool SetShared(const Eigen::VectorXd& shared) override;
+  std::unique_ptr<FrameEvaluator> NewEvaluator() const override;
+  const Eigen::VectorXd& prior_weight() const override { return prior_weight_; }
+  const Eigen::VectorXd& prior_target() const override { return prior_target_; }
+  const Eigen::MatrixXd& shared_rows() const override { return gauge_rows_; }
+  const std::vector<std::string>& gauge_names() const { return gauge_names_; }
+  void BlockStructure(std::vector<std::vector<int>>* y_columns,
+                      std::vector<std::vector<int>>* p_columns) const override;
+
+  const Model& model() const { return model_; }
+  const Geometry& geometry() const { return geometry_; }
+  const formats::RowMatrix& measurements() const { return measurements_; }
+  // Model parameter index of each free shared parameter, and the reverse map (-1 = fixed).
+  const std::vector<int>& free_parameters() const { return free_parameters_; }
+  const std::vector<int>& free_index() const { return free_index_; }
+  // Free index of each column of marker_parameters(m) (-1 = fixed).
+  const std::vector<int>& marker_free_columns(int m) const { return marker_free_columns_[m]; }
+  double residual_scale(int m) const { return residual_scale_[m]; }
+  bool observed(int m) const { return observed_[m]; }
+  int num_samples() const { return samples_; }
+  Eigen::VectorXd InitialShared() const;
+  Eigen::VectorXd FullParameters(const Eigen::VectorXd& shared) const;
+  double prior_sigma(int free) const { return 1.0 / prior_weight_[free]; }
+
+  // Sum of squared marker distances (m^2) and sample count per marker at x = [z..., shared].
+  void MarkerErrors(const Eigen::VectorXd& x, int num_threads, Eigen::VectorXd* sum_squared,
+                    Eigen::VectorXi* count);
+
+ private:
+  friend class MarkerFrameEvaluator;
+  const Model& model_;
+  formats::RowMatrix measurements_;
+  Geometry geometry_;
+  Eigen::VectorXd p0_;
+  std::vector<int> free_parameters_, free_index_;
+  std::vector<std::vector<int>> marker_free_columns_;
+  std::vector<double> residual_scale_;
+  std::vector<char> observed_;
+  Eigen::VectorXd prior_weight_, prior_target_;
+  Eigen::MatrixXd gauge_rows_;
+  std::vector<std::string> gauge_names_;
+  void BuildGaugeRows(double gauge_sigma_m);
+  int samples_ = 0;
+};
+
+}  // namespace mocap::solver
