@@ -1,6 +1,7 @@
 #include "sim/protocol.h"
 
 #include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <limits>
 #include <nlohmann/json.hpp>
@@ -16,6 +17,12 @@ namespace {
 
 using json = nlohmann::json;
 constexpr double kRadToDeg = 180.0 / M_PI;
+
+std::string Show(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%g", v);
+  return buf;
+}
 
 // Field readers: each error names the source and the JSON path of the field.
 struct Reader {
@@ -59,8 +66,8 @@ Status ParseExcitation(const Reader& r, const json& e, const std::string& path, 
   MOCAP_TRY(r.Number(e, path, "min_deg", &out->min_deg, true));
   MOCAP_TRY(r.Number(e, path, "max_deg", &out->max_deg, true));
   if (out->min_deg > out->max_deg)
-    return r.Fail(path + "min_deg", "greater than max_deg (" + std::to_string(out->min_deg) +
-                                        " > " + std::to_string(out->max_deg) + ")");
+    return r.Fail(path + "min_deg", "greater than max_deg (" + Show(out->min_deg) +
+                                        " > " + Show(out->max_deg) + ")");
   MOCAP_TRY(r.Bool(e, path, "required", &out->required));
   MOCAP_TRY(r.String(e, path, "follow", &out->follow, false));
   MOCAP_TRY(r.Bool(e, path, "anti_phase", &out->anti_phase));
@@ -203,6 +210,7 @@ Status LoadProtocolJson(const std::string& path, Protocol* protocol) {
 }
 
 std::string ProtocolToJsonString(const Protocol& protocol) {
+  using json = nlohmann::ordered_json;  // the file's order: format, version, name, movements
   json doc;
   doc["format"] = "mocap-protocol";
   doc["version"] = 1;
@@ -250,9 +258,9 @@ Status ValidateProtocol(const Protocol& protocol, const Model& model) {
         return Status::Error(where + " is a translation; excitations are angles in degrees");
       const double lo = coord.min_value * kRadToDeg, hi = coord.max_value * kRadToDeg;
       if (e.min_deg < lo || e.max_deg > hi)
-        return Status::Error(where + ": range [" + std::to_string(e.min_deg) + ", " +
-                             std::to_string(e.max_deg) + "] deg leaves the coordinate's limits [" +
-                             std::to_string(lo) + ", " + std::to_string(hi) + "] deg");
+        return Status::Error(where + ": range [" + Show(e.min_deg) + ", " +
+                             Show(e.max_deg) + "] deg leaves the coordinate's limits [" +
+                             Show(lo) + ", " + Show(hi) + "] deg");
     }
   }
   return Status::Ok();

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <limits>
 #include <nlohmann/json.hpp>
 
@@ -433,16 +434,21 @@ bool SimulationOptions::IsValid(std::string* error) const {
     if (error) *error = message;
     return false;
   };
+  auto show = [](double v) {
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%g", v);
+    return std::string(buf);
+  };
   if (!(std::isfinite(noise_mm) && noise_mm >= 0.0))
-    return fail("noise_mm must be a finite number >= 0 (got " + std::to_string(noise_mm) + ")");
+    return fail("noise_mm must be a finite number >= 0 (got " + show(noise_mm) + ")");
   if (!(std::isfinite(sta_mm) && sta_mm >= 0.0))
-    return fail("sta_mm must be a finite number >= 0 (got " + std::to_string(sta_mm) + ")");
+    return fail("sta_mm must be a finite number >= 0 (got " + show(sta_mm) + ")");
   if (!(missing >= 0.0 && missing < 0.9))
-    return fail("missing must be a fraction in [0, 0.9) (got " + std::to_string(missing) + ")");
+    return fail("missing must be a fraction in [0, 0.9) (got " + show(missing) + ")");
   if (!(std::isfinite(rate_hz) && rate_hz > 0.0 && rate_hz <= 10000.0))
-    return fail("rate_hz must be in (0, 10000] (got " + std::to_string(rate_hz) + ")");
+    return fail("rate_hz must be in (0, 10000] (got " + show(rate_hz) + ")");
   if (!(std::isfinite(duration_scale) && duration_scale > 0.0 && duration_scale <= 1000.0))
-    return fail("duration_scale must be in (0, 1000] (got " + std::to_string(duration_scale) +
+    return fail("duration_scale must be in (0, 1000] (got " + show(duration_scale) +
                 ")");
   std::string subject_error;
   if (!subject.IsValid(&subject_error)) return fail("subject." + subject_error);
@@ -561,7 +567,7 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
 }
 
 std::string SessionSummaryJson(const SimulatedSession& session) {
-  using json = nlohmann::json;
+  using json = nlohmann::ordered_json;  // keeps "format" and "version" first
   const SimulationOptions& o = session.options;
   json doc;
   doc["format"] = "mocap-sim-subject";
