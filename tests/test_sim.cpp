@@ -1,14 +1,23 @@
 // The simulator: the protocol file, the virtual subject's perturbation bounds, and the simulated
 // recordings — determinism, reached ranges, noise, soft-tissue artefact, occlusions, smoothness,
-// grounding and speed. Everything in memory (the TRC/MOT writers are tested in test_formats).
+// grounding and speed, in memory — and the `mocap sim` command end to end.
 #include <gtest/gtest.h>
+
+#include <sys/wait.h>
 
 #include <chrono>
 #include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
 #include <nlohmann/json.hpp>
 
+#include "formats/mot.h"
+#include "formats/trc.h"
 #include "model/default_model.h"
 #include "model/kinematics.h"
+#include "model/model_io.h"
 #include "sim/protocol.h"
 #include "sim/random.h"
 #include "sim/simulate.h"
@@ -679,4 +688,92 @@ TEST(Simulation, CustomProtocol) {
   st = SimulateSession(SimulationOptions(), p, &s);
   EXPECT_FALSE(st.ok());
   EXPECT_NE(st.message().find("knee_bend"), std::string::npos);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The command
+
+namespace {
+
+int RunTool(const std::string& args, std::string* out) {
+  const std::string cmd = std::string(MOCAP_TOOL) + " " + args + " 2>&1";
+  FILE* pipe = popen(cmd.c_str(), "r");
+  if (!pipe) return -1;
+  out->clear();
+  char buf[4096];
+  for (size_t n; (n = fread(buf, 1, sizeof buf, pipe)) > 0;) out->append(buf, n);
+  const int status = pclose(pipe);
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+}  // namespace
+
+TEST(SimCommand, WritesModelsTrialsAndSummaryThatReadBack) {
+  if (!std::filesystem::exists(MOCAP_TOOL)) GTEST_SKIP() << "the mocap tool is not built";
+  const std::string dir = std::string(MOCAP_TEST_TMP) + "/sim_command";
+  std::filesystem::remove_all(dir);
+  std::string out;
+  ASSERT_EQ(RunTool("sim --out " + dir + " --seed 9 --duration-scale 0.3 --missing 0.05 --medial", &out), 0)
+      << out;
+  EXPECT_NE(out.find("43 markers"), std::string::npos) << out;
+
+  SimulationOptions o;
+  o.seed = 9;
+  o.duration_scale = 0.3;
+  o.missing = 0.05;
+  o.medial_markers = true;
+  const SimulatedSession s = Simulate(o);
+
+  Model nominal, truth;
+  ASSERT_TRUE(LoadModelJson(dir + "/nominal.model.json", &nominal).ok());
+  ASSERT_TRUE(LoadModelJson(dir + "/truth.model.json", &truth).ok());
+  EXPECT_EQ(truth.num_markers(), 43);
+  EXPECT_TRUE(truth.InitialParameters().isApprox(s.truth.InitialParameters(), 1e-12));
+  EXPECT_TRUE(nominal.InitialParameters().isApprox(s.nominal.InitialParameters(), 1e-12));
+
+  for (const SimulatedTrial& t : s.trials) {
+    SCOPED_TRACE(t.markers.name);
+    formats::MarkerTrial trc;
+    Status st = formats::ReadTrc(dir + "/" + t.markers.name + ".trc", &trc);
+    ASSERT_TRUE(st.ok()) << st.message();
+    ASSERT_EQ(trc.num_frames(), t.markers.num_frames());
+    ASSERT_EQ(trc.marker_names, t.markers.marker_names);
+    EXPECT_EQ(trc.rate_hz, 100.0);
+    EXPECT_EQ(trc.frame_numbers.front(), 1);
+    for (int f = 0; f < trc.num_frames(); ++f)
+      for (int c = 0; c < trc.positions.cols(); ++c) {
+        const double a = trc.positions(f, c), b = t.markers.positions(f, c);
+        ASSERT_EQ(std::isnan(a), std::isnan(b)) << f << " " << c;
+        if (!std::isnan(a)) ASSERT_NEAR(a, b, 1e-7);  // written in mm with 5 decimals
+      }
+    formats::CoordinateTable mot;
+    st = formats::ReadMot(dir + "/" + t.markers.name + ".mot", &mot);
+    ASSERT_TRUE(st.ok()) << st.message();
+    EXPECT_TRUE(mot.in_degrees);
+    ASSERT_EQ(mot.column_names, t.coordinates.column_names);
+    EXPECT_TRUE(mot.values.isApprox(t.coordinates.values, 1e-7));
+  }
+  const nlohmann::json j = nlohmann::json::parse(std::ifstream(dir + "/subject.json"));
+  EXPECT_EQ(j["seed"], 9);
+  EXPECT_EQ(j["movements"].size(), 15u);
+  EXPECT_EQ(j["total_frames"], s.total_frames());
+}
+
+TEST(SimCommand, BadOptionsExitWithStatus2AndNameTheOption) {
+  if (!std::filesystem::exists(MOCAP_TOOL)) GTEST_SKIP() << "the mocap tool is not built";
+  const std::string dir = std::string(MOCAP_TEST_TMP) + "/sim_command_bad";
+  const std::pair<const char*, const char*> cases[] = {
+      {"--noise-mm -1", "--noise-mm"},       {"--missing 0.95", "--missing"},
+      {"--rate 0", "--rate"},                {"--duration-scale 0", "--duration-scale"},
+      {"--sta-mm -3", "--sta-mm"},           {"--rate fast", "--rate"},
+      {"--seed -1", "--seed"},               {"--protocol /nonexistent.json", "/nonexistent.json"},
+  };
+  for (const auto& [args, expected] : cases) {
+    std::string out;
+    EXPECT_EQ(RunTool(std::string("sim --out ") + dir + " " + args, &out), 2) << args << "\n" << out;
+    EXPECT_NE(out.find(expected), std::string::npos) << args << "\n" << out;
+  }
+  std::string out;
+  EXPECT_EQ(RunTool("sim", &out), 2) << out;  // --out is required
+  EXPECT_NE(out.find("--out"), std::string::npos) << out;
 }

@@ -22,11 +22,21 @@ struct SimArgs {
   mocap::sim::SimulationOptions options;
 };
 
+// SimulationOptions::IsValid names the field; the user typed the flag.
+std::string FlagOf(const std::string& message) {
+  static const std::pair<const char*, const char*> flags[] = {
+      {"noise_mm", "--noise-mm"}, {"sta_mm", "--sta-mm"},  {"missing", "--missing"},
+      {"rate_hz", "--rate"},      {"duration_scale", "--duration-scale"}};
+  for (const auto& [field, flag] : flags)
+    if (message.rfind(field, 0) == 0) return std::string(flag) + ": ";
+  return "";
+}
+
 int RunSim(const SimArgs& args) {
   namespace fs = std::filesystem;
   std::string error;
   if (!args.options.IsValid(&error)) {
-    spdlog::error("mocap sim: {}", error);
+    spdlog::error("mocap sim: {}{}", FlagOf(error), error);
     return 2;
   }
   mocap::sim::Protocol protocol = mocap::sim::DefaultProtocol();
@@ -91,6 +101,7 @@ void SetupSim(CLI::App& app, int* exit_code) {
       "sim", "Simulate a virtual subject (known true model) performing the calibration protocol");
   cmd->add_option("--out", args->out, "Output directory (created)")->required();
   cmd->add_option("--seed", args->options.seed, "Random seed: same seed, same session")
+      ->check(CLI::NonNegativeNumber)  // CLI11 would otherwise wrap -1 to 2^64 - 1
       ->capture_default_str();
   cmd->add_option("--noise-mm", args->options.noise_mm,
                   "Marker noise, standard deviation per coordinate (mm)")
