@@ -7,6 +7,9 @@
 #include "solver/parallel.h"
 
 namespace mocap::solver {
+namespace {
+constexpr int kBatchRows = 384;  // 64 frames of a 6-coordinate root
+}  // namespace
 
 struct ArrowSchurProblem::ThreadState {
   std::unique_ptr<FrameEvaluator> evaluator;
@@ -14,6 +17,8 @@ struct ArrowSchurProblem::ThreadState {
   Eigen::VectorXd gy, v, rhs, gp, diag_p, wdp, dy;
   Eigen::LLT<Eigen::MatrixXd> llt;
   Eigen::MatrixXd block_jp, block_u, block_w, block_v;  // one residual block's products
+  Eigen::MatrixXd batch;  // root rows of Y from several frames, applied together
+  int batch_rows = 0;
   std::vector<int> ycol, pcol, plocal;
   double cost = 0;
   bool ok = true;
@@ -54,6 +59,7 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
     ts->block_u.resize(max_block_y_, max_block_y_);
     ts->block_w.resize(max_block_y_, max_block_p_);
     ts->block_v.resize(max_block_p_, max_block_p_);
+    ts->batch.resize(kBatchRows, np_);
     ts->ycol.resize(max_block_y_);
     ts->pcol.resize(max_block_p_);
     ts->plocal.resize(max_block_p_);
@@ -142,6 +148,18 @@ double ArrowSchurProblem::SharedRowsSquaredNorm(const Eigen::VectorXd& p) const 
   const Eigen::MatrixXd& g = problem_->shared_rows();
   if (g.rows() > 0) sum += (g * delta).squaredNorm();
   return sum;
+}
+
+std::string ArrowSchurProblem::DescribeStructure() const {
+  std::string out = "elimination order:";
+  for (int i : order_) out += " " + std::to_string(i);
+  out += "\n";
+  for (const RowGroup& g : groups_) {
+    out += "  rows " + std::to_string(g.first_row) + "+" + std::to_string(g.num_rows) + ": " +
+           std::to_string(g.columns.size()) + " columns in [" + std::to_string(g.columns.front()) +
+           ", " + std::to_string(g.columns.back()) + "]" + (g.contiguous ? " contiguous" : "") + "\n";
+  }
+  return out;
 }
 
 bool ArrowSchurProblem::Cost(const Eigen::VectorXd& x, double* cost) {
@@ -281,6 +299,12 @@ void ArrowSchurProblem::AccumulateFrame(ThreadState& ts) const {
   }
 }
 
+void ArrowSchurProblem::FlushBatch(ThreadState& ts) const {
+  if (ts.batch_rows == 0) return;
+  ts.s.selfadjointView<Eigen::Lower>().rankUpdate(ts.batch.topRows(ts.batch_rows).transpose(), -1.0);
+  ts.batch_rows = 0;
+}
+
 bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s_out,
                                           Eigen::VectorXd* rhs_out) {
   if (!problem_->SetShared(x_.tail(np_))) return false;
@@ -290,10 +314,10 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
     ts.ok = true;
     ts.s.setZero();
     ts.rhs.setZero();
+    ts.batch_rows = 0;
     for (int f = b; f < e; ++f) {
       if (cached_) {
         ts.u = CachedU(f);
-        ts.w = CachedW(f);
       } else {
         if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) {
           ts.ok = false;
@@ -313,14 +337,21 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
         return;
       }
       if (np_ == 0) continue;
-      ts.y = ts.w;
+      if (cached_) ts.y = CachedW(f);
+      else ts.y = ts.w;
       ts.llt.matrixL().solveInPlace(ts.y);
       ts.v = ts.gy;
       ts.llt.matrixL().solveInPlace(ts.v);
       ts.rhs.noalias() += ts.y.transpose() * ts.v;
       for (const RowGroup& grp : groups_) {
         const int n = static_cast<int>(grp.columns.size());
-        if (grp.contiguous) {
+        if (n == np_) {
+          // Rows reaching every shared column (the root's): stacked over frames and applied in
+          // one tall rank update, where the matrix product runs near peak.
+          ts.batch.middleRows(ts.batch_rows, grp.num_rows) = ts.y.middleRows(grp.first_row, grp.num_rows);
+          ts.batch_rows += grp.num_rows;
+          if (ts.batch_rows + grp.num_rows > ts.batch.rows()) FlushBatch(ts);
+        } else if (grp.contiguous) {
           const int a = grp.columns.front();
           ts.s.block(a, a, n, n).selfadjointView<Eigen::Lower>().rankUpdate(
               ts.y.block(grp.first_row, a, grp.num_rows, n).transpose(), -1.0);
@@ -337,6 +368,7 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
         }
       }
     }
+    FlushBatch(ts);
   });
   s_out->setZero(np_, np_);
   rhs_out->setZero(np_);

@@ -25,6 +25,7 @@
 
 #include <Eigen/Core>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include "solver/arrow_problem.h"
@@ -38,6 +39,8 @@ class ArrowSchurProblem : public LmProblem {
   ArrowSchurProblem(ArrowProblem* problem, int num_threads,
                     double cache_budget_bytes = kDefaultCacheBudgetBytes);
   bool caches_frames() const { return cached_; }
+  // The symbolic structure: row groups in elimination order, how many shared columns each reaches.
+  std::string DescribeStructure() const;
   ~ArrowSchurProblem() override;
 
   int num_parameters() const override;
@@ -59,6 +62,7 @@ class ArrowSchurProblem : public LmProblem {
   struct ThreadState;
   void Analyse();
   void AccumulateFrame(ThreadState& ts) const;
+  void FlushBatch(ThreadState& ts) const;
   bool BackSubstitutionTerms(ThreadState& ts, int f, const Eigen::VectorXd& dp);
   Eigen::Map<Eigen::MatrixXd> CachedU(int f) {
     return Eigen::Map<Eigen::MatrixXd>(u_cache_.data() + static_cast<size_t>(f) * ny_ * ny_, ny_, ny_);

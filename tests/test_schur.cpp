@@ -96,3 +96,12 @@ TEST(ArrowSchur, StepMatchesDenseNormalEquations) {
   Eigen::MatrixXd inv = jtj.ldlt().solve(Eigen::MatrixXd::Identity(jtj.rows(), jtj.cols()));
   EXPECT_LT((cov - inv.bottomRightCorner(np, np)).norm(), 1e-5 * inv.bottomRightCorner(np, np).norm());
 }
+
+TEST(ArrowSchur, DISABLED_PrintStructure) {
+  Model nominal = DefaultFullBodyModel();
+  std::mt19937_64 rng(5);
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(nominal, 3, 0.0005, rng);
+  solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
+  solver::ArrowSchurProblem schur(&problem, 1);
+  std::printf("%s", schur.DescribeStructure().c_str());
+}
