@@ -524,8 +524,19 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
   SimulatedSession out;
   out.options = options;
   out.height_m = subject.height_m;
-  out.nominal = std::move(subject.nominal);
-  out.truth_parameters = subject.truth_parameters;
+  // The session's models carry exactly the markers it records: a marker no trial shows is not
+  // fitted, and comparing an unfitted marker with the truth would only measure its nominal offset.
+  out.nominal = subject.nominal.WithMarkers(markers);
+  {
+    const Model& full = subject.nominal;
+    const int first_marker = full.num_markers() > 0 ? full.marker_index(0) : full.num_parameters();
+    Eigen::VectorXd p(out.nominal.num_parameters());
+    p.head(first_marker) = subject.truth_parameters.head(first_marker);
+    for (size_t i = 0; i < markers.size(); ++i)
+      p.segment<3>(out.nominal.marker_index(static_cast<int>(i))) =
+          subject.truth_parameters.segment<3>(full.marker_index(markers[i]));
+    out.truth_parameters = p;
+  }
   out.protocol = protocol;
   std::vector<std::string> marker_names, coordinate_names;
   for (int m : markers) marker_names.push_back(truth.markers()[m].name);
@@ -561,7 +572,7 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
       if (truth.coordinates()[c].rotational) trial.coordinates.values.col(c) /= kDeg;
     out.trials.push_back(std::move(trial));
   }
-  out.truth = std::move(subject.truth);
+  out.truth = subject.truth.WithMarkers(markers);
   *session = std::move(out);
   return Status::Ok();
 }

@@ -71,8 +71,8 @@ struct SimulatedTrial {
 struct SimulatedSession {
   SimulationOptions options;
   double height_m = 0.0;
-  Model nominal;  // the fit's starting point (all markers, including the optional ones)
-  Model truth;    // the true geometry (all markers)
+  Model nominal;  // the fit's starting point, with the markers the session records
+  Model truth;    // the true geometry, with the same markers
   Eigen::VectorXd truth_parameters;  // p of the truth in the nominal model's layout
   Protocol protocol;
   std::vector<SimulatedTrial> trials;  // one per protocol movement, in order
