@@ -1,10 +1,12 @@
 // Nonlinear least squares with the arrow structure of bundle adjustment:
 //
 //     x = [y_1 ... y_F, p],
-//     cost = 1/2 sum_f ||r_f(y_f, p)||^2 + 1/2 ||A (p - p0)||^2 + 1/2 ||G (p - p0)||^2
+//     cost = 1/2 sum_f (||r_f(y_f, p)||^2 + ||B_f (y_f - y0_f)||^2)
+//            + 1/2 ||A (p - p0)||^2 + 1/2 ||G (p - p0)||^2
 //
 // Frame f's residuals depend only on its own block y_f and on the shared parameters p; the
-// shared parameters also carry a diagonal prior A and a few dense rows G. The global body-model fit (frames = time
+// shared parameters also carry a diagonal prior A and a few dense rows G; each frame may carry a diagonal
+// prior B_f. The global body-model fit (frames = time
 // steps, y_f = coordinates z_f, p = geometry) and camera bundle adjustment (frames = wand
 // poses or points, p = cameras) both have this shape. Residuals come in small row blocks, each
 // touching a listed subset of y_f and of p, so Jacobians stay sparse without a general sparse
@@ -56,6 +58,12 @@ class ArrowProblem {
   // Prior rows r_i = weight_i (p_i - target_i); weight 0 means none.
   virtual const Eigen::VectorXd& prior_weight() const = 0;
   virtual const Eigen::VectorXd& prior_target() const = 0;
+  // Optional diagonal prior rows on a frame's own block, r_i = weight_i (y_i - target_i): pins
+  // what the frame's residuals leave free (a coordinate whose markers are all missing). Both
+  // arrays hold frame_dim values; return false for none.
+  virtual bool FramePrior(int frame, const double** weight, const double** target) const {
+    return false;
+  }
   // Further rows on the shared parameters alone, r = G (p - target), G dense (few rows): the
   // body fit's gauge constraints. Empty by default.
   virtual const Eigen::MatrixXd& shared_rows() const {

@@ -27,6 +27,9 @@ bool FitOptions::IsValid(std::string* error) const {
     return fail("prior sigmas must be > 0");
   if (!(undetermined_ratio > 0)) return fail("undetermined_ratio must be > 0");
   if (!(gauge_sigma_m > 0)) return fail("gauge_sigma_m must be > 0");
+  if (repose_after_iterations < 1) return fail("repose_after_iterations must be >= 1");
+  if (!(frame_prior_sigma_rad > 0) || !(frame_prior_sigma_m > 0))
+    return fail("frame prior sigmas must be > 0");
   if (num_threads < 0) return fail("num_threads must be >= 0");
   std::string why;
   if (!lm.IsValid(&why)) return fail("lm: " + why);
@@ -151,29 +154,35 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   // Starting point: given poses, else per-frame IK with the initial geometry (trials in parallel).
   const auto ik_start = Clock::now();
   Eigen::VectorXd x(static_cast<Eigen::Index>(total_frames) * nz + np);
-  std::vector<Status> ik_status(trials.size());
   const int threads = ResolveThreads(options.num_threads);
-  std::vector<int> order(trials.size());
-  for (size_t t = 0; t < trials.size(); ++t) order[t] = static_cast<int>(t);
-  ParallelChunks(static_cast<int>(trials.size()), threads, [&](int, int b, int e) {
-    Geometry geometry(initial);
-    InverseKinematics ik(initial, geometry, options.ik);
-    for (int t = b; t < e; ++t) {
-      Eigen::MatrixXd z;
-      if (trials[t].initial_coordinates.size() > 0) {
-        z = trials[t].initial_coordinates;
-      } else {
-        ik_status[t] = ik.SolveTrial(problem.measurements().middleRows(first_frame[t], trials[t].markers.num_frames()), &z);
-        if (!ik_status[t].ok()) continue;
+  // Poses of every frame by IK for the geometry `p` (trials in parallel); given poses are kept
+  // on the first call.
+  auto solve_poses = [&](const Eigen::VectorXd& p, bool keep_given) -> Status {
+    const Model model = initial.WithParameters(p);
+    std::vector<Status> status(trials.size());
+    ParallelChunks(static_cast<int>(trials.size()), threads, [&](int, int b, int e) {
+      Geometry geometry(model);
+      InverseKinematics ik(model, geometry, options.ik);
+      for (int t = b; t < e; ++t) {
+        Eigen::MatrixXd z;
+        if (keep_given && trials[t].initial_coordinates.size() > 0) {
+          z = trials[t].initial_coordinates;
+        } else {
+          status[t] = ik.SolveTrial(
+              problem.measurements().middleRows(first_frame[t], trials[t].markers.num_frames()), &z);
+          if (!status[t].ok()) continue;
+        }
+        for (int f = 0; f < z.rows(); ++f)
+          x.segment(static_cast<Eigen::Index>(first_frame[t] + f) * nz, nz) = z.row(f).transpose();
       }
-      for (int f = 0; f < z.rows(); ++f)
-        x.segment(static_cast<Eigen::Index>(first_frame[t] + f) * nz, nz) = z.row(f).transpose();
-    }
-  });
-  for (size_t t = 0; t < trials.size(); ++t)
-    if (!ik_status[t].ok())
-      return Status::Error("trial '" + trials[t].markers.name + "': " + ik_status[t].message());
+    });
+    for (size_t t = 0; t < trials.size(); ++t)
+      if (!status[t].ok()) return Status::Error("trial '" + trials[t].markers.name + "': " + status[t].message());
+    return Status::Ok();
+  };
+  if (Status s = solve_poses(initial.InitialParameters(), true); !s) return s;
   x.tail(np) = problem.InitialShared();
+  problem.SetFramePriorTargets(x);
   report.ik_seconds = Since(ik_start);
 
   Eigen::VectorXd sum_sq;
@@ -183,7 +192,29 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
 
   const auto solve_start = Clock::now();
   ArrowSchurProblem schur(&problem, threads);
-  report.solver = Solve(options.lm, &schur, &x);
+  LmOptions first = options.lm;
+  first.max_iterations = std::min(options.lm.max_iterations, options.repose_after_iterations);
+  report.solver = Solve(first, &schur, &x);
+  if (report.solver.termination == TerminationType::kNoConvergence &&
+      options.lm.max_iterations > first.max_iterations) {
+    // Still crawling: the poses found with the initial geometry hold the fit back (frames in
+    // gaps sit where the first IK put them). Re-solve every pose with the geometry reached so
+    // far and continue from there.
+    const auto repose_start = Clock::now();
+    if (Status s = solve_poses(problem.FullParameters(x.tail(np)), false); !s) return s;
+    problem.SetFramePriorTargets(x);
+    report.ik_seconds += Since(repose_start);
+    report.reposed = true;
+    LmOptions rest = options.lm;
+    rest.max_iterations = options.lm.max_iterations - first.max_iterations;
+    LmSummary second = Solve(rest, &schur, &x);
+    second.initial_cost = report.solver.initial_cost;
+    second.iterations.insert(second.iterations.begin(), report.solver.iterations.begin(),
+                             report.solver.iterations.end());
+    second.num_linear_solves += report.solver.num_linear_solves;
+    second.total_seconds += report.solver.total_seconds;
+    report.solver = second;
+  }
   report.solve_seconds = Since(solve_start);
   if (!report.solver.IsSolutionUsable())
     return Status::Error("fit: the solver failed: " + report.solver.message);

@@ -37,8 +37,16 @@ struct FitOptions {
   double prior_sigma_scale = 0.1;       // 10 % of segment size
   double prior_sigma_position_m = 0.05; // joint centres and marker positions
   double prior_sigma_axis_rad = 0.17;   // about 10 degrees
+  // Each frame's coordinates are pulled, very weakly, to their starting pose: a coordinate whose
+  // markers are all missing in a frame (a gap) stays put instead of taking a wild step. 1 rad or
+  // 1 m of deviation costs what 0.1 mm of one marker's error costs.
+  double frame_prior_sigma_rad = 10.0;
+  double frame_prior_sigma_m = 10.0;
   double gauge_sigma_m = 1e-5;          // stiffness of the gauge rows (marker_fit_problem.h)
   double undetermined_ratio = 0.1;
+  // If the solve has not converged after this many iterations, every pose is re-solved by IK
+  // with the geometry reached so far and the solve continues (see FitModel).
+  int repose_after_iterations = 12;
   int num_threads = 0;                  // 0: all cores
   LmOptions lm;
   IkOptions ik;
@@ -89,6 +97,7 @@ struct FitReport {
   double solve_seconds = 0;
   double covariance_seconds = 0;
   double wall_seconds = 0;
+  bool reposed = false;  // the poses were re-solved part-way (FitOptions::repose_after_iterations)
   bool converged() const { return solver.termination == TerminationType::kConvergence; }
   std::string BriefReport() const;
 };

@@ -171,22 +171,43 @@ Status InverseKinematics::SolveTrial(
                          " columns, the model needs " + std::to_string(3 * nm));
   coordinates->resize(nf, model_.num_coordinates());
   if (rms_m) rms_m->assign(nf, 0.0);
-  Eigen::VectorXd z = model_.DefaultCoordinates();
   Eigen::Matrix3Xd frame(3, nm);
-  int first_valid = -1;
-  for (int f = 0; f < nf; ++f) {
+  auto load = [&](int f) {
     frame = Eigen::Map<const Eigen::Matrix3Xd>(measured.row(f).data(), 3, nm);
     int present = 0;
     for (int m = 0; m < nm; ++m) present += std::isfinite(frame(0, m)) ? 1 : 0;
-    IkFrameResult r;
-    if (present >= 3) {
-      if (first_valid < 0) {
-        r = Initialise(frame, &z);
-        first_valid = f;
-      } else {
+    return present;
+  };
+  // Start where the most markers are seen: a pose found from a frame with gaps can sit on a
+  // wrong branch (a two-marker segment with one marker missing), and warm starts would carry it
+  // through the trial. Then sweep forwards and backwards from there.
+  int start = -1, best = 2;
+  for (int f = 0; f < nf; ++f) {
+    const int present = load(f);
+    if (present > best) {
+      best = present;
+      start = f;
+    }
+  }
+  if (start < 0)
+    return Status::Error("inverse kinematics: no frame has 3 or more of the model's markers");
+  load(start);
+  Eigen::VectorXd z_start;
+  IkFrameResult r0 = Initialise(frame, &z_start);
+  coordinates->row(start) = z_start.transpose();
+  if (rms_m) (*rms_m)[start] = r0.rms_m;
+  for (int direction : {+1, -1}) {
+    Eigen::VectorXd z = z_start;
+    // The trial's typical error so far: with an approximate model (before the fit) it is
+    // several millimetres, so a fixed threshold would miss a pose that slid into a wrong valley
+    // during a gap and stayed there. A jump well above the running level re-initialises.
+    double level = r0.rms_m;
+    for (int f = start + direction; f >= 0 && f < nf; f += direction) {
+      IkFrameResult r;
+      if (load(f) >= 3) {
         Eigen::VectorXd warm = z;
         r = Solve(frame, &warm);
-        if (r.rms_m > options_.restart_rms_m) {
+        if (r.rms_m > std::min(options_.restart_rms_m, 1.25 * level + 0.002)) {
           Eigen::VectorXd fresh;
           IkFrameResult r2 = Initialise(frame, &fresh);
           if (r2.rms_m < r.rms_m) {
@@ -195,14 +216,12 @@ Status InverseKinematics::SolveTrial(
           }
         }
         z = warm;
+        level = 0.9 * level + 0.1 * r.rms_m;
       }
+      coordinates->row(f) = z.transpose();  // a frame with < 3 markers keeps its neighbour's pose
+      if (rms_m) (*rms_m)[f] = r.rms_m;
     }
-    coordinates->row(f) = z.transpose();
-    if (rms_m) (*rms_m)[f] = r.rms_m;
   }
-  if (first_valid < 0)
-    return Status::Error("inverse kinematics: no frame has 3 or more of the model's markers");
-  for (int f = 0; f < first_valid; ++f) coordinates->row(f) = coordinates->row(first_valid);
   return Status::Ok();
 }
 

@@ -1,9 +1,10 @@
 // Per-frame inverse kinematics: the pose z that best fits one frame's measured markers for a
 // fixed model geometry, by a small dense Levenberg–Marquardt (what OpenSim's IK tool does, with
 // all marker weights equal). It builds the global fit's initial guess when data come from a file
-// instead of the live filter: each frame starts from the previous frame's solution; the first
-// frame (and any frame where the warm start fails) starts from a rigid alignment of the standing
-// model, tried at four headings so a subject facing any direction is found.
+// instead of the live filter: the trial's most complete frame starts from a rigid alignment of the
+// standing model, tried at four headings so a subject facing any direction is found; the other
+// frames are solved outwards from it, each warm-started from its neighbour (and re-initialised
+// when the warm start fails).
 #pragma once
 
 #include <Eigen/Cholesky>
@@ -40,8 +41,8 @@ class InverseKinematics {
   // A pose from nothing: rigid alignment of the default pose, then a full solve.
   IkFrameResult Initialise(const Eigen::Matrix3Xd& measured, Eigen::VectorXd* z);
 
-  // Solves every frame of a trial (rows of `measured`: frames x 3 n_markers, model order),
-  // warm-starting from the previous frame. Fills `coordinates` (frames x n_coordinates) and the
+  // Solves every frame of a trial (rows of `measured`: frames x 3 n_markers, model order): the
+  // frame with the most markers from scratch, then the others warm-started outwards from it. Fills `coordinates` (frames x n_coordinates) and the
   // per-frame RMS. A frame with fewer than 3 markers keeps its neighbour's pose; the trial fails
   // only when no frame has 3 markers.
   Status SolveTrial(const Eigen::Ref<const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic,

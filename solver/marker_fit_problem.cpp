@@ -109,6 +109,22 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
     residual_scale_[m] = std::sqrt(model.markers()[m].weight) / marker_sigma_m;
   }
   BuildGaugeRows(options.gauge_sigma_m);
+  frame_prior_weight_.resize(model.num_coordinates());
+  for (int c = 0; c < model.num_coordinates(); ++c)
+    frame_prior_weight_[c] = 1.0 / (model.coordinates()[c].rotational ? options.frame_prior_sigma_rad
+                                                                        : options.frame_prior_sigma_m);
+}
+
+void MarkerFitProblem::SetFramePriorTargets(const Eigen::VectorXd& x) {
+  const int nz = model_.num_coordinates();
+  frame_prior_target_ = Eigen::Map<const formats::RowMatrix>(x.data(), num_frames(), nz);
+}
+
+bool MarkerFitProblem::FramePrior(int frame, const double** weight, const double** target) const {
+  if (frame_prior_target_.rows() != num_frames()) return false;
+  *weight = frame_prior_weight_.data();
+  *target = frame_prior_target_.row(frame).data();
+  return true;
 }
 
 void MarkerFitProblem::BuildGaugeRows(double gauge_sigma_m) {

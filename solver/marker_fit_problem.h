@@ -38,12 +38,18 @@ class MarkerFitProblem : public ArrowProblem {
   int num_frames() const override { return static_cast<int>(measurements_.rows()); }
   int frame_dim() const override { return model_.num_coordinates(); }
   int shared_dim() const override { return static_cast<int>(free_parameters_.size()); }
-  int num_residuals() const override { return 3 * samples_ + shared_dim(); }
+  int num_residuals() const override {
+    return 3 * samples_ + shared_dim() + static_cast<int>(gauge_rows_.rows()) +
+           static_cast<int>(frame_prior_target_.size());
+  }
   bool SetShared(const Eigen::VectorXd& shared) override;
   std::unique_ptr<FrameEvaluator> NewEvaluator() const override;
   const Eigen::VectorXd& prior_weight() const override { return prior_weight_; }
   const Eigen::VectorXd& prior_target() const override { return prior_target_; }
   const Eigen::MatrixXd& shared_rows() const override { return gauge_rows_; }
+  bool FramePrior(int frame, const double** weight, const double** target) const override;
+  // The frame prior's targets: the starting poses, x = [z_1 ... z_F, shared].
+  void SetFramePriorTargets(const Eigen::VectorXd& x);
   const std::vector<std::string>& gauge_names() const { return gauge_names_; }
   void BlockStructure(std::vector<std::vector<int>>* y_columns,
                       std::vector<std::vector<int>>* p_columns) const override;
@@ -79,6 +85,8 @@ class MarkerFitProblem : public ArrowProblem {
   std::vector<char> observed_;
   Eigen::VectorXd prior_weight_, prior_target_;
   Eigen::MatrixXd gauge_rows_;
+  Eigen::VectorXd frame_prior_weight_;
+  formats::RowMatrix frame_prior_target_;
   std::vector<std::string> gauge_names_;
   void BuildGaugeRows(double gauge_sigma_m);
   int samples_ = 0;

@@ -177,6 +177,11 @@ bool ArrowSchurProblem::Cost(const Eigen::VectorXd& x, double* cost) {
         const ResidualBlock& blk = ts.evaluator->block(k);
         for (int r = 0; r < blk.rows; ++r) ts.cost += blk.residual[r] * blk.residual[r];
       }
+      const double *w, *target;
+      if (problem_->FramePrior(f, &w, &target)) {
+        const double* y = x.data() + static_cast<size_t>(f) * ny_;
+        for (int i = 0; i < ny_; ++i) ts.cost += (w[i] * (y[i] - target[i])) * (w[i] * (y[i] - target[i]));
+      }
     }
   });
   double sum = 0;
@@ -231,6 +236,16 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
             ts.gp[p] += j * blk.residual[r];
             ts.diag_p[p] += j * j;
           }
+        }
+      }
+      const double *w, *target;
+      if (problem_->FramePrior(f, &w, &target)) {
+        const double* y = x.data() + static_cast<size_t>(f) * ny_;
+        for (int i = 0; i < ny_; ++i) {
+          const double r = w[i] * (y[i] - target[i]);
+          ts.cost += r * r;
+          gy[i] += w[i] * r;
+          dg[i] += w[i] * w[i];
         }
       }
     }
@@ -299,6 +314,12 @@ void ArrowSchurProblem::AccumulateFrame(ThreadState& ts) const {
   }
 }
 
+void ArrowSchurProblem::AddFramePrior(int f, Eigen::MatrixXd* u) const {
+  const double *w, *target;
+  if (!problem_->FramePrior(f, &w, &target)) return;
+  for (int i = 0; i < ny_; ++i) (*u)(position_[i], position_[i]) += w[i] * w[i];
+}
+
 void ArrowSchurProblem::FlushBatch(ThreadState& ts) const {
   if (ts.batch_rows == 0) return;
   ts.s.selfadjointView<Eigen::Lower>().rankUpdate(ts.batch.topRows(ts.batch_rows).transpose(), -1.0);
@@ -327,6 +348,7 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
       }
       const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
       const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
+      AddFramePrior(f, &ts.u);
       for (int i = 0; i < ny_; ++i) {
         ts.u(position_[i], position_[i]) += dmp[i];
         ts.gy[position_[i]] = g[i];
@@ -413,6 +435,7 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
       }
       const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
       const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
+      AddFramePrior(f, &ts.u);
       for (int i = 0; i < ny_; ++i) {
         ts.u(position_[i], position_[i]) += dmp[i];
         ts.wdp[position_[i]] += g[i];

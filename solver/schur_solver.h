@@ -63,6 +63,7 @@ class ArrowSchurProblem : public LmProblem {
   void Analyse();
   void AccumulateFrame(ThreadState& ts) const;
   void FlushBatch(ThreadState& ts) const;
+  void AddFramePrior(int f, Eigen::MatrixXd* u) const;
   bool BackSubstitutionTerms(ThreadState& ts, int f, const Eigen::VectorXd& dp);
   Eigen::Map<Eigen::MatrixXd> CachedU(int f) {
     return Eigen::Map<Eigen::MatrixXd>(u_cache_.data() + static_cast<size_t>(f) * ny_ * ny_, ny_, ny_);

@@ -36,7 +36,7 @@ TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
   std::printf("%s\n", r.BriefReport().c_str());
   EXPECT_TRUE(r.converged());
   // 3D marker distance RMS for per-coordinate noise sigma is sigma*sqrt(3), less the fitted dof.
-  const double expected = 1000 * noise * std::sqrt(3.0 * (1.0 - double(r.unknowns) / r.residuals));
+  const double expected = 1000 * noise * std::sqrt(3.0 * (1.0 - double(r.unknowns) / (3.0 * r.marker_samples)));
   EXPECT_NEAR(r.marker_rms_mm, expected, 0.1 * expected);
   // Gauge-free comparison with the truth (model/compare.h). Random motion of every joint at
   // once excites everything but the wrists, whose axes one hand marker cannot determine; the

@@ -19,6 +19,14 @@ void DenseJacobian(solver::MarkerFitProblem& problem, const Eigen::VectorXd& x, 
   problem.SetShared(x.tail(np));
   auto ev = problem.NewEvaluator();
   for (int f = 0; f < nf; ++f) {
+    const double *w, *target;
+    if (problem.FramePrior(f, &w, &target))
+      for (int i = 0; i < ny; ++i) {
+        Eigen::RowVectorXd row = Eigen::RowVectorXd::Zero(n);
+        row[f * ny + i] = w[i];
+        rows.push_back(row);
+        res.push_back(w[i] * (x[f * ny + i] - target[i]));
+      }
     ASSERT_TRUE(ev->Evaluate(f, x.data() + f * ny, true));
     for (int b = 0; b < ev->num_blocks(); ++b) {
       const auto& blk = ev->block(b);
@@ -69,6 +77,10 @@ TEST(ArrowSchur, StepMatchesDenseNormalEquations) {
   Eigen::VectorXd x(nf * ny + np);
   for (int f = 0; f < nf; ++f) x.segment(f * ny, ny) = z_true.row(f).transpose();
   x.tail(np) = problem.InitialShared() + 0.001 * Eigen::VectorXd::Random(np);
+  // Frame priors towards poses a little off the current ones, so their rows have residuals.
+  Eigen::VectorXd targets = x;
+  targets.head(nf * ny) += 0.01 * Eigen::VectorXd::Random(nf * ny);
+  problem.SetFramePriorTargets(targets);
   solver::ArrowSchurProblem schur(&problem, 2);
   double cost;
   Eigen::VectorXd g, d;
