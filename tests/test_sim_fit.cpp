@@ -51,14 +51,36 @@ bool AxisDetermined(const solver::FitReport& r, const std::string& joint, int k)
   return !Undetermined(r, base + "alpha") && !Undetermined(r, base + "beta");
 }
 
+// Standard deviation of an axis's direction, degrees (both angles together).
+double AxisSigmaDeg(const solver::FitReport& r, const std::string& joint, int k) {
+  const std::string base = joint + ".axis" + std::to_string(k) + ".";
+  double var = 0;
+  for (const auto& e : r.parameters)
+    if (e.name.rfind(base, 0) == 0) var += e.std * e.std;
+  return std::sqrt(var) * 180.0 / M_PI;
+}
+
 void ExpectAccurate(const Outcome& o, double centre_mm, double axis_deg, double length_pct) {
   const solver::FitReport& r = o.fit.report;
   EXPECT_TRUE(r.converged()) << r.solver.message;
   for (const auto& jd : o.cmp.joints) {
     EXPECT_LE(jd.centre_error_mm, centre_mm) << jd.joint << " via " << jd.basis;
-    for (size_t k = 0; k < jd.axes.size(); ++k)
-      if (AxisDetermined(r, jd.joint, static_cast<int>(k)))
+    for (size_t k = 0; k < jd.axes.size(); ++k) {
+      if (!AxisDetermined(r, jd.joint, static_cast<int>(k))) continue;
+      // The bound holds where the data pin the axis to a third of it. The talocrural axis behind
+      // the two-marker Plug-in Gait foot is determined to about 0.45 deg (1 sigma) by this
+      // protocol: there the estimate must agree with the truth within 3 of its own sigmas, and
+      // no other axis may fall short of the bound.
+      const double sigma = AxisSigmaDeg(r, jd.joint, static_cast<int>(k));
+      if (3 * sigma <= axis_deg) {
         EXPECT_LE(jd.axes[k].error_deg, axis_deg) << jd.joint << " axis " << k;
+      } else {
+        EXPECT_TRUE(jd.joint.rfind("ankle_", 0) == 0 && k == 0) << jd.joint << " axis " << k << " sigma " << sigma;
+        EXPECT_LE(jd.axes[k].error_deg, 3 * sigma) << jd.joint << " axis " << k;
+        std::printf("  short of the %.2f deg target: %s axis %zu, error %.3f deg, sigma %.3f deg\n", axis_deg,
+                    jd.joint.c_str(), k, jd.axes[k].error_deg, sigma);
+      }
+    }
   }
   for (const auto& sd : o.cmp.segments) EXPECT_LE(std::abs(sd.error_pct), length_pct) << sd.name;
   // What one hand marker and a two-marker foot cannot fix is reported, not guessed: the wrist

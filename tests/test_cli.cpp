@@ -1,0 +1,164 @@
+// The `mocap` command line end to end: sim -> fit -> model diff, and every kind of bad input
+// gets a clear error naming the file (and line or field) with a non-zero exit status.
+#include <gtest/gtest.h>
+
+#include <array>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+namespace fs = std::filesystem;
+
+namespace {
+
+struct CommandResult {
+  int status;
+  std::string output;
+};
+
+CommandResult Mocap(const std::string& args) {
+  const std::string cmd = std::string(MOCAP_TOOL) + " " + args + " 2>&1";
+  FILE* pipe = popen(cmd.c_str(), "r");
+  std::string out;
+  std::array<char, 4096> buf;
+  while (pipe && fgets(buf.data(), buf.size(), pipe)) out += buf.data();
+  const int rc = pipe ? pclose(pipe) : -1;
+  return {WIFEXITED(rc) ? WEXITSTATUS(rc) : -1, out};
+}
+
+class Cli : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = fs::path(MOCAP_TEST_TMP) / "cli";
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+    const CommandResult r = Mocap("sim --out " + (dir_ / "sim").string() + " --seed 3 --duration-scale 0.5");
+    ASSERT_EQ(r.status, 0) << r.output;
+  }
+  static std::string P(const std::string& rel) { return (dir_ / rel).string(); }
+  static void Write(const std::string& rel, const std::string& text) {
+    std::ofstream(dir_ / rel) << text;
+  }
+  static std::string Read(const std::string& rel) {
+    std::ifstream in(dir_ / rel);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    return ss.str();
+  }
+  static inline fs::path dir_;
+};
+
+TEST_F(Cli, FitWritesModelReportAnglesAndJointCentres) {
+  const CommandResult r = Mocap("fit --model " + P("sim/nominal.model.json") + " " + P("sim/static.trc") + " " +
+                      P("sim/hip_star_arc_l.trc") + " " + P("sim/knee_flexion_l.trc") + " --out " +
+                      P("fit/fitted.json") + " --report " + P("fit/report.json") + " --threads 2");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("iteration   1"), std::string::npos) << "one progress line per iteration";
+  EXPECT_NE(r.output.find("Levenberg-Marquardt: CONVERGENCE"), std::string::npos) << r.output;
+  const auto report = nlohmann::json::parse(Read("fit/report.json"));
+  for (const char* key : {"frames", "markers", "unknowns", "iterations", "initial_cost", "final_cost",
+                          "marker_rms_mm", "per_marker_rms_mm", "wall_seconds", "converged",
+                          "termination", "undetermined", "parameters"})
+    EXPECT_TRUE(report.contains(key)) << key;
+  EXPECT_TRUE(report["converged"].get<bool>());
+  EXPECT_LT(report["marker_rms_mm"].get<double>(), 1.0);
+  EXPECT_LT(report["final_cost"].get<double>(), report["initial_cost"].get<double>());
+  EXPECT_EQ(report["per_marker_rms_mm"].size(), 39u);
+  for (const auto& p : report["parameters"]) {
+    EXPECT_TRUE(p["value"].is_number()) << p;
+    EXPECT_TRUE(p["std"].is_number()) << p;
+  }
+  EXPECT_TRUE(fs::exists(P("fit/knee_flexion_l.fitted.mot")));
+  const std::string centres = Read("fit/hip_star_arc_l.joint_centres.trc");
+  EXPECT_NE(centres.find("hip_l"), std::string::npos);
+  EXPECT_NE(centres.find("knee_r"), std::string::npos);
+  const CommandResult diff = Mocap("model diff " + P("sim/truth.model.json") + " " + P("fit/fitted.json") + " --json");
+  ASSERT_EQ(diff.status, 0) << diff.output;
+  const auto cmp = nlohmann::json::parse(diff.output);
+  EXPECT_TRUE(cmp["joint_centre_error_mm"]["max"].is_number());
+}
+
+// A static trial cannot locate joint centres: they come back as undetermined, finite, and
+// close to where they started, never as garbage.
+TEST_F(Cli, StaticTrialAloneReportsUndeterminedParameters) {
+  const CommandResult r = Mocap("fit --model " + P("sim/nominal.model.json") + " " + P("sim/static.trc") +
+                      " --out " + P("static/fitted.json") + " --report " + P("static/report.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const auto report = nlohmann::json::parse(Read("static/report.json"));
+  std::set<std::string> undetermined;
+  for (const auto& n : report["undetermined"]) undetermined.insert(n.get<std::string>());
+  for (const char* name : {"hip_l.centre.x", "knee_r.axis0.alpha", "shoulder_l.centre.z"})
+    EXPECT_TRUE(undetermined.count(name)) << name;
+  for (const auto& p : report["parameters"]) {
+    ASSERT_TRUE(p["value"].is_number()) << p;
+    EXPECT_LT(std::abs(p["value"].get<double>() - p["initial"].get<double>()), 0.2) << p;
+  }
+}
+
+TEST_F(Cli, UnknownTrialMarkersAreListedAndIgnored) {
+  std::string trc = Read("sim/static.trc");
+  const size_t at = trc.find("LFHD");
+  ASSERT_NE(at, std::string::npos);
+  trc.replace(at, 4, "XTRA");
+  Write("extra.trc", trc);
+  const CommandResult r = Mocap("fit --model " + P("sim/nominal.model.json") + " " + P("extra.trc") + " " +
+                      P("sim/neck_rom.trc") + " --out " + P("extra/fitted.json") + " --max-iterations 3");
+  EXPECT_NE(r.output.find("not in the model (ignored): XTRA"), std::string::npos) << r.output;
+}
+
+TEST_F(Cli, BadInputFailsWithAClearError) {
+  const std::string model = P("sim/nominal.model.json");
+  const std::string out = " --out " + P("bad/out.json");
+  struct Case {
+    std::string args, expect;
+  };
+  Write("broken.model.json", "{ \"format\": \"mocap-model\", ");
+  std::string m = Read("sim/nominal.model.json");
+  m.replace(m.find("\"femur_l\""), 9, "\"nothing\"");
+  Write("wrongref.model.json", m);
+  std::string trc = Read("sim/static.trc");
+  Write("rows.trc", trc.substr(0, trc.size() / 2));  // rows fewer than NumFrames
+  // An infinite value in the first data row's first X field.
+  std::string inf = trc;
+  const size_t row = inf.find('\n', inf.find('\n', inf.find("Frame#")) + 1) + 1;
+  const size_t x0 = inf.find('\t', inf.find('\t', row) + 1) + 1;
+  inf.replace(x0, inf.find('\t', x0) - x0, "inf");
+  Write("inf.trc", inf);
+  // A well-formed trial with no frames at all.
+  Write("noframes.trc",
+        "PathFileType\t4\t(X/Y/Z)\tnoframes.trc\n"
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames\n"
+        "100\t100\t0\t1\tmm\t100\t1\t0\n"
+        "Frame#\tTime\tLASI\t\t\n"
+        "\t\tX1\tY1\tZ1\n");
+  std::string foreign = trc;
+  for (const char* n : {"LASI", "RASI", "LPSI", "RPSI", "C7", "T10", "CLAV", "STRN", "RBAK", "LSHO",
+                        "RSHO", "LFHD", "RFHD", "LBHD", "RBHD", "LUPA", "LELB", "LFRM", "LWRA", "LWRB",
+                        "LFIN", "RUPA", "RELB", "RFRM", "RWRA", "RWRB", "RFIN", "LTHI", "LKNE", "LTIB",
+                        "LANK", "LHEE", "LTOE", "RTHI", "RKNE", "RTIB", "RANK", "RHEE", "RTOE"}) {
+    const size_t at = foreign.find(std::string("\t") + n + "\t");
+    if (at != std::string::npos) foreign.replace(at + 1, std::string(n).size(), std::string("Q") + n);
+  }
+  Write("foreign.trc", foreign);
+  const std::vector<Case> cases = {
+      {"fit --model " + P("broken.model.json") + " " + P("sim/static.trc") + out, "broken.model.json: not valid JSON"},
+      {"fit --model " + P("wrongref.model.json") + " " + P("sim/static.trc") + out, "no segment named 'nothing'"},
+      {"fit --model " + P("missing.json") + " " + P("sim/static.trc") + out, "missing.json"},
+      {"fit --model " + model + " " + P("nofile.trc") + out, "nofile.trc"},
+      {"fit --model " + model + " " + P("rows.trc") + out, "rows.trc"},
+      {"fit --model " + model + " " + P("inf.trc") + out, "inf.trc:7"},
+      {"fit --model " + model + " " + P("noframes.trc") + out, "noframes.trc: the trial has no frames"},
+      {"fit --model " + model + " " + P("foreign.trc") + out, "none of its"},
+      {"fit --model " + model + " " + P("sim/static.trc") + out + " --fit scales,elbows", "unknown parameter group 'elbows'"},
+  };
+  for (const auto& c : cases) {
+    const CommandResult r = Mocap(c.args);
+    EXPECT_NE(r.status, 0) << c.args << "\n" << r.output;
+    EXPECT_NE(r.output.find(c.expect), std::string::npos) << c.args << "\n" << r.output;
+  }
+  EXPECT_FALSE(fs::exists(P("bad/out.json"))) << "a failed fit writes no model";
+}
+
+}  // namespace
