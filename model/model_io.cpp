@@ -4,6 +4,8 @@
 #include <cmath>
 #include <map>
 #include <nlohmann/json.hpp>
+
+#include "model/json_fields.h"
 #include <sstream>
 
 namespace mocap {
@@ -11,64 +13,15 @@ namespace {
 
 using json = nlohmann::json;
 
-// Field readers: each returns an error naming the JSON path of the field.
-struct Reader {
-  std::string source;
-  Status Fail(const std::string& path, const std::string& what) const {
-    return Status::Error(source + ": " + path + ": " + what);
-  }
-  Status String(const json& obj, const std::string& path, const char* key, std::string* out,
-                bool required = true) const {
-    if (!obj.contains(key)) return required ? Fail(path + "." + key, "missing") : Status::Ok();
-    if (!obj[key].is_string()) return Fail(path + "." + key, "expected a string");
-    *out = obj[key].get<std::string>();
-    return Status::Ok();
-  }
-  Status Number(const json& obj, const std::string& path, const char* key, double* out,
-                bool required = true) const {
-    if (!obj.contains(key)) return required ? Fail(path + "." + key, "missing") : Status::Ok();
-    if (!obj[key].is_number()) return Fail(path + "." + key, "expected a number");
-    *out = obj[key].get<double>();
-    if (!std::isfinite(*out)) return Fail(path + "." + key, "not finite");
-    return Status::Ok();
-  }
-  Status Bool(const json& obj, const std::string& path, const char* key, bool* out) const {
-    if (!obj.contains(key)) return Status::Ok();
-    if (!obj[key].is_boolean()) return Fail(path + "." + key, "expected true or false");
-    *out = obj[key].get<bool>();
-    return Status::Ok();
-  }
-  Status Vec3(const json& obj, const std::string& path, const char* key, Eigen::Vector3d* out,
-              bool required = true) const {
-    if (!obj.contains(key)) return required ? Fail(path + "." + key, "missing") : Status::Ok();
-    const json& v = obj[key];
-    if (!v.is_array() || v.size() != 3) return Fail(path + "." + key, "expected 3 numbers");
-    for (int i = 0; i < 3; ++i) {
-      if (!v[i].is_number()) return Fail(path + "." + key, "expected 3 numbers");
-      (*out)[i] = v[i].get<double>();
-    }
-    if (!out->allFinite()) return Fail(path + "." + key, "not finite");
-    return Status::Ok();
-  }
-  Status Array(const json& obj, const std::string& path, const char* key) const {
-    if (!obj.contains(key)) return Fail(path + key, "missing");
-    if (!obj[key].is_array()) return Fail(path + key, "expected an array");
-    return Status::Ok();
-  }
-};
-
-#define MOCAP_TRY(expr)         \
-  do {                          \
-    Status _s = (expr);         \
-    if (!_s.ok()) return _s;    \
-  } while (0)
+using Reader = JsonFields;
+#define MOCAP_TRY MOCAP_RETURN_IF_ERROR
 
 json V(const Eigen::Vector3d& v) { return json::array({v.x(), v.y(), v.z()}); }
 
 }  // namespace
 
 Status ParseModelJson(const std::string& text, const std::string& source, Model* model) {
-  Reader r{source};
+  Reader r(source);
   json doc;
   try {
     doc = json::parse(text);

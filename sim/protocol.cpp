@@ -5,6 +5,8 @@
 #include <fstream>
 #include <limits>
 #include <nlohmann/json.hpp>
+
+#include "model/json_fields.h"
 #include <set>
 #include <sstream>
 
@@ -24,40 +26,8 @@ std::string Show(double v) {
   return buf;
 }
 
-// Field readers: each error names the source and the JSON path of the field.
-struct Reader {
-  std::string source;
-  Status Fail(const std::string& path, const std::string& what) const {
-    return Status::Error(source + ": " + path + ": " + what);
-  }
-  Status String(const json& obj, const std::string& path, const char* key, std::string* out,
-                bool required) const {
-    if (!obj.contains(key)) return required ? Fail(path + key, "missing") : Status::Ok();
-    if (!obj[key].is_string()) return Fail(path + key, "expected a string");
-    *out = obj[key].get<std::string>();
-    return Status::Ok();
-  }
-  Status Number(const json& obj, const std::string& path, const char* key, double* out,
-                bool required) const {
-    if (!obj.contains(key)) return required ? Fail(path + key, "missing") : Status::Ok();
-    if (!obj[key].is_number()) return Fail(path + key, "expected a number");
-    *out = obj[key].get<double>();
-    if (!std::isfinite(*out)) return Fail(path + key, "not finite");
-    return Status::Ok();
-  }
-  Status Bool(const json& obj, const std::string& path, const char* key, bool* out) const {
-    if (!obj.contains(key)) return Status::Ok();
-    if (!obj[key].is_boolean()) return Fail(path + key, "expected true or false");
-    *out = obj[key].get<bool>();
-    return Status::Ok();
-  }
-};
-
-#define MOCAP_TRY(expr)      \
-  do {                       \
-    Status _s = (expr);      \
-    if (!_s.ok()) return _s; \
-  } while (0)
+using Reader = JsonFields;
+#define MOCAP_TRY MOCAP_RETURN_IF_ERROR
 
 Status ParseExcitation(const Reader& r, const json& e, const std::string& path, Excitation* out) {
   if (!e.is_object()) return r.Fail(path, "expected an object");

@@ -337,15 +337,15 @@ std::vector<StaMap> MakeStaMaps(const Model& truth, const std::vector<int>& mark
                                 const std::vector<RowMatrix>& z, const Eigen::VectorXd& mean,
                                 const SimulationOptions& options) {
   const int nc = truth.num_coordinates();
-  // Second moments about the session mean, over every frame of every movement.
-  Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(nc, nc);
-  long frames = 0;
+  // Second moments about the session mean, per movement: the artefact is scaled so that its RMS
+  // is sta_mm in the movement that moves the marker most. Scaling over the whole session instead
+  // would put all of a joint's artefact into the one movement that moves it (head markers swinging
+  // by four times sta_mm during neck range of motion).
+  std::vector<Eigen::MatrixXd> covs;
   for (const RowMatrix& zm : z) {
     const Eigen::MatrixXd centred = zm.rowwise() - mean.transpose();
-    cov.noalias() += centred.transpose() * centred;
-    frames += zm.rows();
+    covs.push_back(centred.transpose() * centred / static_cast<double>(std::max<Eigen::Index>(1, zm.rows())));
   }
-  cov /= static_cast<double>(std::max(1L, frames));
 
   std::vector<StaMap> maps(markers.size());
   for (size_t i = 0; i < markers.size(); ++i) {
@@ -366,9 +366,12 @@ std::vector<StaMap> MakeStaMaps(const Model& truth, const std::vector<int>& mark
     for (int r = 0; r < 3; ++r)
       for (int c = 0; c < k; ++c) map.gain(r, c) = rng.Normal();
     Eigen::MatrixXd sub(k, k);
-    for (int a = 0; a < k; ++a)
-      for (int b = 0; b < k; ++b) sub(a, b) = cov(map.coordinates[a], map.coordinates[b]);
-    const double mean_square = (map.gain * sub * map.gain.transpose()).trace();
+    double mean_square = 0;
+    for (const Eigen::MatrixXd& cov : covs) {
+      for (int a = 0; a < k; ++a)
+        for (int b = 0; b < k; ++b) sub(a, b) = cov(map.coordinates[a], map.coordinates[b]);
+      mean_square = std::max(mean_square, (map.gain * sub * map.gain.transpose()).trace());
+    }
     if (k == 0 || !(mean_square > 1e-18)) {
       map.gain.setZero();  // nothing moves this segment relative to its neighbours
       continue;

@@ -23,8 +23,9 @@
 //   - soft-tissue artefact (sta_mm > 0): marker m on segment S moves, in S's frame, by
 //     B_m (q_adj - mean q_adj), with q_adj the rotational coordinates of the joints adjacent to S
 //     (its own proximal joint unless it is the root, and its child joints) and B_m a random
-//     3 x k matrix scaled so that the RMS length of the displacement over the whole session is
-//     sta_mm for every marker: smooth, correlated with the joint angles, zero mean;
+//     3 x k matrix scaled so that the RMS length of the displacement is sta_mm in the movement
+//     that moves the marker most (and less in the others): smooth, correlated with the joint
+//     angles;
 //   - Gaussian noise of standard deviation noise_mm on each coordinate, independent per sample;
 //   - occlusions (missing > 0): gaps of 5..30 frames at random markers and times until that
 //     fraction of the trial's marker samples is NaN.
@@ -47,7 +48,7 @@ namespace mocap::sim {
 struct SimulationOptions {
   std::uint64_t seed = 1;
   double noise_mm = 0.5;        // standard deviation per coordinate
-  double sta_mm = 0.0;          // RMS soft-tissue artefact per marker
+  double sta_mm = 0.0;          // soft-tissue artefact: RMS per marker in its most active movement
   double missing = 0.0;         // fraction of marker samples lost, in [0, 0.9)
   double rate_hz = 100.0;
   double duration_scale = 1.0;  // multiplies each movement's duration: more cycles, same speeds

@@ -54,7 +54,7 @@ struct FitOptions {
   FitOptions() {
     lm.function_tolerance = 1e-7;
     lm.parameter_tolerance = 1e-9;
-    lm.max_iterations = 50;
+    lm.max_iterations = 100;
   }
   bool IsValid(std::string* error) const;
   // Parses "scales,centres,axes,markers" (any subset, or "all"/"none").

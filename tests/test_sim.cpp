@@ -624,21 +624,20 @@ TEST(Simulation, SoftTissueArtefactHasTheRequestedRmsAndIsSmooth) {
   o.sta_mm = 10;
   const SimulatedSession soft = Simulate(o);
   const int nm = rigid.trials[0].markers.num_markers();
-  Eigen::ArrayXd sum2 = Eigen::ArrayXd::Zero(nm);
-  long frames = 0;
+  // Per marker, the RMS in the movement that moves it most is the requested amplitude, and no
+  // movement exceeds it.
+  Eigen::ArrayXd worst = Eigen::ArrayXd::Zero(nm);
   double max_step = 0, max_step2 = 0;
   for (size_t i = 0; i < rigid.trials.size(); ++i) {
     const formats::RowMatrix d = soft.trials[i].markers.positions - rigid.trials[i].markers.positions;
-    for (int m = 0; m < nm; ++m) sum2[m] += d.middleCols(3 * m, 3).rowwise().squaredNorm().sum();
-    frames += d.rows();
+    for (int m = 0; m < nm; ++m)
+      worst[m] = std::max(worst[m], std::sqrt(d.middleCols(3 * m, 3).rowwise().squaredNorm().mean()));
     for (int f = 1; f < d.rows(); ++f)
       max_step = std::max(max_step, (d.row(f) - d.row(f - 1)).cwiseAbs().maxCoeff());
     for (int f = 2; f < d.rows(); ++f)
       max_step2 = std::max(max_step2, (d.row(f) - 2 * d.row(f - 1) + d.row(f - 2)).cwiseAbs().maxCoeff());
   }
-  const Eigen::ArrayXd rms = (sum2 / frames).sqrt();
-  EXPECT_NEAR(std::sqrt(rms.square().mean()), 0.010, 0.002);
-  for (int m = 0; m < nm; ++m) EXPECT_NEAR(rms[m], 0.010, 0.002) << rigid.trials[0].markers.marker_names[m];
+  for (int m = 0; m < nm; ++m) EXPECT_NEAR(worst[m], 0.010, 0.002) << rigid.trials[0].markers.marker_names[m];
   // Smooth: it follows the joint angles, so it changes little between frames (unlike noise, whose
   // second difference would be about 2.4 x its RMS).
   std::printf("STA 10 mm RMS: largest change between frames %.2f mm, largest second difference %.3f mm\n",
