@@ -74,7 +74,8 @@ Model DefaultFullBodyModel(double height_m) {
     b.AddElement(&j, rot, V3::UnitZ(), "pelvis_rotation", false, -2 * M_PI, 2 * M_PI);
     b.AddElement(&j, rot, -V3::UnitY(), "pelvis_tilt", false, -M_PI / 2, M_PI / 2);
     b.AddElement(&j, rot, V3::UnitX(), "pelvis_list", false, -M_PI / 2, M_PI / 2);
-    b.coordinates[j.elements[2].coordinate].default_value = 0.93 * k;
+    // Standing: ankle centres about 9 cm above the floor, heel markers just above it.
+    b.coordinates[j.elements[2].coordinate].default_value = 1.02 * k;
     b.joints.push_back(j);
   }
   b.AddMarker("LASI", pelvis, V3(0.070, 0.120, 0.000) * k);

@@ -63,6 +63,8 @@ TEST(DefaultModel, HasTheDesignedStructure) {
   Eigen::Matrix3Xd x = Positions(model, model.DefaultCoordinates(), model.InitialParameters());
   EXPECT_GT(x(2, model.FindMarker("LFHD")), 1.55);
   EXPECT_LT(x(2, model.FindMarker("LHEE")), 0.08);
+  EXPECT_GT(x(2, model.FindMarker("LHEE")), 0.0);
+  EXPECT_GT(x(2, model.FindMarker("RTOE")), 0.0);
   EXPECT_GT(x(1, model.FindMarker("LASI")), 0.0);
   EXPECT_LT(x(1, model.FindMarker("RASI")), 0.0);
 }
