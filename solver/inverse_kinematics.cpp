@@ -22,6 +22,8 @@ InverseKinematics::InverseKinematics(const Model& model, const Geometry& geometr
     : model_(model), geometry_(geometry), options_(options), data_(model) {
   const int nz = model.num_coordinates();
   jtj_.resize(nz, nz);
+  damped_.resize(nz, nz);
+  llt_ = Eigen::LLT<Eigen::MatrixXd>(nz);
   jtr_.resize(nz);
   jz_.resize(3, model.max_chain_coordinates());
 }
@@ -72,12 +74,17 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
         jtr_[c] = 0.0;
       }
     bool accepted = false;
+    double decrease = 0;
     for (int tries = 0; tries < 12 && !accepted; ++tries) {
-      Eigen::MatrixXd a = jtj_.selfadjointView<Eigen::Lower>();
-      a.diagonal() += lambda * a.diagonal().cwiseMax(1e-9) + Eigen::VectorXd::Constant(nz, 1e-12);
-      Eigen::LLT<Eigen::MatrixXd> llt(a);
-      dz = -llt.solve(jtr_);
-      if (llt.info() != Eigen::Success || !dz.allFinite()) {
+      damped_ = jtj_;
+      damped_.diagonal() += lambda * jtj_.diagonal().cwiseMax(1e-9) + Eigen::VectorXd::Constant(nz, 1e-12);
+      llt_.compute(damped_);  // reads the lower triangle, which is all jtj_ holds
+      if (llt_.info() != Eigen::Success) {
+        lambda *= 10;
+        continue;
+      }
+      dz = -llt_.solve(jtr_);
+      if (!dz.allFinite()) {
         lambda *= 10;
         continue;
       }
@@ -85,6 +92,7 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
       ForwardKinematics(model_, geometry_, z_new, &data_);
       const double new_cost = SquaredError(model_, geometry_, data_, measured, nullptr);
       if (new_cost < cost) {
+        decrease = cost - new_cost;
         cost = new_cost;
         z->swap(z_new);
         lambda = std::max(1e-9, lambda * 0.3);
@@ -93,6 +101,9 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
         lambda *= 10;
       }
     }
+    // Converged when the step is tiny or the cost no longer moves (1e-12 m^2: a nanometre-level
+    // change of a marker), which is far below any marker noise.
+    if (accepted && decrease < 1e-12 * std::max(1.0, double(result.markers))) break;
     if (!accepted || dz.norm() < options_.step_tolerance) break;
   }
   ForwardKinematics(model_, geometry_, *z, &data_);

@@ -6,6 +6,7 @@
 // model, tried at four headings so a subject facing any direction is found.
 #pragma once
 
+#include <Eigen/Cholesky>
 #include <Eigen/Core>
 #include <vector>
 
@@ -17,7 +18,7 @@ namespace mocap::solver {
 
 struct IkOptions {
   int max_iterations = 50;
-  double step_tolerance = 1e-9;       // stop when |dz| < this
+  double step_tolerance = 1e-8;       // stop when |dz| < this
   double restart_rms_m = 0.03;        // a warm start worse than this re-initialises
   bool IsValid(std::string* error) const;
 };
@@ -52,7 +53,8 @@ class InverseKinematics {
   const Geometry& geometry_;
   IkOptions options_;
   ModelData data_;
-  Eigen::MatrixXd jtj_;
+  Eigen::MatrixXd jtj_, damped_;
+  Eigen::LLT<Eigen::MatrixXd> llt_;
   Eigen::VectorXd jtr_;
   Eigen::Matrix<double, 3, Eigen::Dynamic> jz_;
 };

@@ -13,17 +13,26 @@ struct ArrowSchurProblem::ThreadState {
   Eigen::MatrixXd u, w, y, s, gather, outer;
   Eigen::VectorXd gy, v, rhs, gp, diag_p, wdp, dy;
   Eigen::LLT<Eigen::MatrixXd> llt;
+  Eigen::MatrixXd block_jp, block_u, block_w, block_v;  // one residual block's products
+  std::vector<int> ycol, pcol, plocal;
   double cost = 0;
   bool ok = true;
 };
 
-ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads)
+ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
+                                     double cache_budget_bytes)
     : problem_(problem),
       num_threads_(ResolveThreads(num_threads)),
       nf_(problem->num_frames()),
       ny_(problem->frame_dim()),
       np_(problem->shared_dim()) {
   Analyse();
+  const double cache_bytes = 8.0 * nf_ * (static_cast<double>(ny_) * ny_ + static_cast<double>(ny_) * np_);
+  cached_ = cache_bytes <= cache_budget_bytes;
+  if (cached_) {
+    u_cache_.resize(static_cast<size_t>(nf_) * ny_ * ny_);
+    w_cache_.resize(static_cast<size_t>(nf_) * ny_ * np_);
+  }
   for (int t = 0; t < num_threads_; ++t) {
     auto ts = std::make_unique<ThreadState>();
     ts->evaluator = problem_->NewEvaluator();
@@ -41,6 +50,13 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads)
     ts->wdp.resize(ny_);
     ts->dy.resize(ny_);
     ts->llt = Eigen::LLT<Eigen::MatrixXd>(ny_);
+    ts->block_jp.resize(kMaxBlockRows, max_block_p_);
+    ts->block_u.resize(max_block_y_, max_block_y_);
+    ts->block_w.resize(max_block_y_, max_block_p_);
+    ts->block_v.resize(max_block_p_, max_block_p_);
+    ts->ycol.resize(max_block_y_);
+    ts->pcol.resize(max_block_p_);
+    ts->plocal.resize(max_block_p_);
     threads_.push_back(std::move(ts));
   }
 }
@@ -53,6 +69,11 @@ int ArrowSchurProblem::num_residuals() const { return problem_->num_residuals();
 void ArrowSchurProblem::Analyse() {
   std::vector<std::vector<int>> ycols, pcols;
   problem_->BlockStructure(&ycols, &pcols);
+  max_block_y_ = max_block_p_ = 1;
+  for (size_t b = 0; b < ycols.size(); ++b) {
+    max_block_y_ = std::max<int>(max_block_y_, ycols[b].size());
+    max_block_p_ = std::max<int>(max_block_p_, pcols[b].size());
+  }
   // Graph of U and pattern of W.
   std::vector<std::vector<char>> adj(ny_, std::vector<char>(ny_, 0));
   std::vector<std::vector<char>> wpat(ny_, std::vector<char>(np_, 0));
@@ -162,10 +183,16 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
     ts.ok = true;
     ts.gp.setZero();
     ts.diag_p.setZero();
+    if (cached_) ts.s.setZero();
     for (int f = b; f < e; ++f) {
       if (!ts.evaluator->Evaluate(f, x.data() + static_cast<size_t>(f) * ny_, true)) {
         ts.ok = false;
         return;
+      }
+      if (cached_) {
+        AccumulateFrame(ts);
+        CachedU(f) = ts.u;
+        CachedW(f) = ts.w;
       }
       double* gy = gradient->data() + static_cast<size_t>(f) * ny_;
       double* dg = diagonal->data() + static_cast<size_t>(f) * ny_;
@@ -191,12 +218,14 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
     }
   });
   double sum = 0;
+  if (cached_) v_total_.setZero(np_, np_);
   for (int t = 0; t < std::max(1, std::min(num_threads_, nf_)); ++t) {
     const ThreadState& ts = *threads_[t];
     if (!ts.ok) return false;
     sum += ts.cost;
     gradient->tail(np_) += ts.gp;
     diagonal->tail(np_) += ts.diag_p;
+    if (cached_) v_total_ += ts.s;
   }
   const Eigen::VectorXd& w = problem_->prior_weight();
   const Eigen::VectorXd delta = x.tail(np_) - problem_->prior_target();
@@ -212,6 +241,46 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
   return std::isfinite(*cost) && gradient->allFinite();
 }
 
+// U (lower, elimination order), W and V (lower, into ts.s) of one evaluated frame. Each block's
+// three small products are formed densely (vectorised), then scattered by index.
+void ArrowSchurProblem::AccumulateFrame(ThreadState& ts) const {
+  ts.u.setZero();
+  ts.w.setZero();
+  int* ycol = ts.ycol.data();
+  int* pcol = ts.pcol.data();
+  int* plocal = ts.plocal.data();
+  for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
+    const ResidualBlock& blk = ts.evaluator->block(k);
+    using Strided = Eigen::Map<const Eigen::MatrixXd, 0, Eigen::OuterStride<>>;
+    const Strided jy(blk.jy, blk.rows, blk.num_y, Eigen::OuterStride<>(kMaxBlockRows));
+    const Strided jp_all(blk.jp, blk.rows, blk.num_p, Eigen::OuterStride<>(kMaxBlockRows));
+    int np = 0;
+    for (int c = 0; c < blk.num_p; ++c)
+      if (blk.p_index[c] >= 0) {
+        plocal[np] = c;
+        pcol[np++] = blk.p_index[c];
+      }
+    for (int a = 0; a < blk.num_y; ++a) ycol[a] = position_[blk.y_index[a]];
+    auto& jp = ts.block_jp;
+    for (int c = 0; c < np; ++c) jp.col(c).head(blk.rows) = jp_all.col(plocal[c]);
+    auto jpc = jp.topLeftCorner(blk.rows, np);
+    auto uy = ts.block_u.topLeftCorner(blk.num_y, blk.num_y);
+    auto wy = ts.block_w.topLeftCorner(blk.num_y, np);
+    auto vp = ts.block_v.topLeftCorner(np, np);
+    uy.noalias() = jy.transpose() * jy;
+    wy.noalias() = jy.transpose() * jpc;
+    vp.noalias() = jpc.transpose() * jpc;
+    for (int a = 0; a < blk.num_y; ++a) {
+      for (int c = 0; c < blk.num_y; ++c)
+        if (ycol[c] <= ycol[a]) ts.u(ycol[a], ycol[c]) += uy(a, c);
+      for (int c = 0; c < np; ++c) ts.w(ycol[a], pcol[c]) += wy(a, c);
+    }
+    for (int d = 0; d < np; ++d)
+      for (int c = 0; c < np; ++c)
+        if (pcol[d] <= pcol[c]) ts.s(pcol[c], pcol[d]) += vp(c, d);
+  }
+}
+
 bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s_out,
                                           Eigen::VectorXd* rhs_out) {
   if (!problem_->SetShared(x_.tail(np_))) return false;
@@ -222,47 +291,15 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
     ts.s.setZero();
     ts.rhs.setZero();
     for (int f = b; f < e; ++f) {
-      if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) {
-        ts.ok = false;
-        return;
-      }
-      ts.u.setZero();
-      ts.w.setZero();
-      for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
-        const ResidualBlock& blk = ts.evaluator->block(k);
-        for (int a = 0; a < blk.num_y; ++a) {
-          const int pa = position_[blk.y_index[a]];
-          const double* ja = blk.jy + a * kMaxBlockRows;
-          for (int c = 0; c < blk.num_y; ++c) {
-            const int pc = position_[blk.y_index[c]];
-            if (pc > pa) continue;  // lower triangle only
-            const double* jc = blk.jy + c * kMaxBlockRows;
-            double sum = 0;
-            for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jc[r];
-            ts.u(pa, pc) += sum;
-          }
-          for (int c = 0; c < blk.num_p; ++c) {
-            const int p = blk.p_index[c];
-            if (p < 0) continue;
-            const double* jc = blk.jp + c * kMaxBlockRows;
-            double sum = 0;
-            for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jc[r];
-            ts.w(pa, p) += sum;
-          }
+      if (cached_) {
+        ts.u = CachedU(f);
+        ts.w = CachedW(f);
+      } else {
+        if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) {
+          ts.ok = false;
+          return;
         }
-        for (int c = 0; c < blk.num_p; ++c) {
-          const int p = blk.p_index[c];
-          if (p < 0) continue;
-          const double* jc = blk.jp + c * kMaxBlockRows;
-          for (int d = 0; d < blk.num_p; ++d) {
-            const int q = blk.p_index[d];
-            if (q < 0 || q > p) continue;
-            const double* jd = blk.jp + d * kMaxBlockRows;
-            double sum = 0;
-            for (int r = 0; r < blk.rows; ++r) sum += jc[r] * jd[r];
-            ts.s(p, q) += sum;
-          }
-        }
+        AccumulateFrame(ts);  // V of the frame goes into ts.s
       }
       const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
       const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
@@ -308,6 +345,7 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
     *s_out += threads_[t]->s;
     *rhs_out += threads_[t]->rhs;
   }
+  if (cached_) *s_out += v_total_;
   *rhs_out -= gradient_.tail(np_);
   const Eigen::VectorXd& w = problem_->prior_weight();
   s_out->diagonal() += w.cwiseProduct(w) + damping.tail(np_);
@@ -329,40 +367,17 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
     dx->tail(np_) = dp;
   }
   // Back-substitution, frame by frame: dy_f = -U_f^{-1} (g_yf + W_f dp).
-  if (!problem_->SetShared(x_.tail(np_))) return false;
+  if (!cached_ && !problem_->SetShared(x_.tail(np_))) return false;
   ParallelChunks(nf_, num_threads_, [&](int t, int b, int e) {
     ThreadState& ts = *threads_[t];
     ts.ok = true;
     for (int f = b; f < e; ++f) {
-      if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) {
+      if (cached_) {
+        ts.u = CachedU(f);
+        ts.wdp.noalias() = CachedW(f) * dp;
+      } else if (!BackSubstitutionTerms(ts, f, dp)) {
         ts.ok = false;
         return;
-      }
-      ts.u.setZero();
-      ts.wdp.setZero();
-      for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
-        const ResidualBlock& blk = ts.evaluator->block(k);
-        double jdp[kMaxBlockRows] = {0, 0, 0};
-        for (int c = 0; c < blk.num_p; ++c) {
-          const int p = blk.p_index[c];
-          if (p < 0) continue;
-          for (int r = 0; r < blk.rows; ++r) jdp[r] += blk.jp[c * kMaxBlockRows + r] * dp[p];
-        }
-        for (int a = 0; a < blk.num_y; ++a) {
-          const int pa = position_[blk.y_index[a]];
-          const double* ja = blk.jy + a * kMaxBlockRows;
-          double sum = 0;
-          for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jdp[r];
-          ts.wdp[pa] += sum;
-          for (int c = 0; c < blk.num_y; ++c) {
-            const int pc = position_[blk.y_index[c]];
-            if (pc > pa) continue;
-            const double* jc = blk.jy + c * kMaxBlockRows;
-            double s2 = 0;
-            for (int r = 0; r < blk.rows; ++r) s2 += ja[r] * jc[r];
-            ts.u(pa, pc) += s2;
-          }
-        }
       }
       const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
       const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
@@ -383,6 +398,38 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
   for (int t = 0; t < std::max(1, std::min(num_threads_, nf_)); ++t)
     if (!threads_[t]->ok) return false;
   return dx->allFinite();
+}
+
+// Without the cache: U_f and W_f dp of frame f from a fresh evaluation of its Jacobian.
+bool ArrowSchurProblem::BackSubstitutionTerms(ThreadState& ts, int f, const Eigen::VectorXd& dp) {
+  if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) return false;
+  ts.u.setZero();
+  ts.wdp.setZero();
+  for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
+    const ResidualBlock& blk = ts.evaluator->block(k);
+    double jdp[kMaxBlockRows] = {0, 0, 0};
+    for (int c = 0; c < blk.num_p; ++c) {
+      const int p = blk.p_index[c];
+      if (p < 0) continue;
+      for (int r = 0; r < blk.rows; ++r) jdp[r] += blk.jp[c * kMaxBlockRows + r] * dp[p];
+    }
+    for (int a = 0; a < blk.num_y; ++a) {
+      const int pa = position_[blk.y_index[a]];
+      const double* ja = blk.jy + a * kMaxBlockRows;
+      double sum = 0;
+      for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jdp[r];
+      ts.wdp[pa] += sum;
+      for (int c = 0; c < blk.num_y; ++c) {
+        const int pc = position_[blk.y_index[c]];
+        if (pc > pa) continue;
+        const double* jc = blk.jy + c * kMaxBlockRows;
+        double s2 = 0;
+        for (int r = 0; r < blk.rows; ++r) s2 += ja[r] * jc[r];
+        ts.u(pa, pc) += s2;
+      }
+    }
+  }
+  return true;
 }
 
 bool ArrowSchurProblem::SharedCovariance(Eigen::MatrixXd* covariance, double frame_ridge) {

@@ -16,9 +16,11 @@
 //    affect the subtree below coordinate i; so S -= Y^T Y is a sum of small dense outer products
 //    over row groups, and only the root's rows touch every shared parameter.
 // Both patterns are found once, symbolically, from ArrowProblem::BlockStructure.
-// Nothing per frame is stored between passes (the Jacobian is re-evaluated instead), so memory is
-// O(frames x frame_dim) and 60,000 frames fit easily; frames are processed in parallel with
-// per-thread accumulators.
+// Each frame's U_f and W_f are cached between the linearisation and the solves when they fit in
+// `cache_budget_bytes`, so a step (and a rejected step's re-solve) costs no Jacobian evaluation;
+// above the budget nothing per frame is stored and the Jacobian is re-evaluated in each pass, so
+// memory stays O(frames x frame_dim) and 60,000 frames fit easily. Frames are processed in
+// parallel with per-thread accumulators.
 #pragma once
 
 #include <Eigen/Core>
@@ -32,7 +34,10 @@ namespace mocap::solver {
 
 class ArrowSchurProblem : public LmProblem {
  public:
-  ArrowSchurProblem(ArrowProblem* problem, int num_threads);
+  static constexpr double kDefaultCacheBudgetBytes = 1.0 * (1 << 30);
+  ArrowSchurProblem(ArrowProblem* problem, int num_threads,
+                    double cache_budget_bytes = kDefaultCacheBudgetBytes);
+  bool caches_frames() const { return cached_; }
   ~ArrowSchurProblem() override;
 
   int num_parameters() const override;
@@ -53,6 +58,14 @@ class ArrowSchurProblem : public LmProblem {
  private:
   struct ThreadState;
   void Analyse();
+  void AccumulateFrame(ThreadState& ts) const;
+  bool BackSubstitutionTerms(ThreadState& ts, int f, const Eigen::VectorXd& dp);
+  Eigen::Map<Eigen::MatrixXd> CachedU(int f) {
+    return Eigen::Map<Eigen::MatrixXd>(u_cache_.data() + static_cast<size_t>(f) * ny_ * ny_, ny_, ny_);
+  }
+  Eigen::Map<Eigen::MatrixXd> CachedW(int f) {
+    return Eigen::Map<Eigen::MatrixXd>(w_cache_.data() + static_cast<size_t>(f) * ny_ * np_, ny_, np_);
+  }
   double SharedRowsSquaredNorm(const Eigen::VectorXd& p) const;
   // Pass 1: accumulates S (lower triangle) and the reduced right-hand side over all frames.
   bool FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s, Eigen::VectorXd* rhs);
@@ -60,6 +73,7 @@ class ArrowSchurProblem : public LmProblem {
   ArrowProblem* problem_;
   int num_threads_;
   int nf_, ny_, np_;
+  int max_block_y_ = 1, max_block_p_ = 1;  // widest residual block (from BlockStructure)
   std::vector<int> order_;     // elimination order: position -> y index
   std::vector<int> position_;  // y index -> position
   struct RowGroup {
@@ -70,6 +84,9 @@ class ArrowSchurProblem : public LmProblem {
   std::vector<RowGroup> groups_;
   std::vector<std::unique_ptr<ThreadState>> threads_;
   Eigen::VectorXd x_, gradient_;
+  bool cached_ = false;
+  std::vector<double> u_cache_, w_cache_;  // per frame U_f (elimination order) and W_f
+  Eigen::MatrixXd v_total_;                // sum of V_f (lower), with the cache
 };
 
 }  // namespace mocap::solver

@@ -16,7 +16,9 @@ int main(int argc, char** argv) {
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    return app.exit(e);
+    // --help and --version exit 0; a usage error (unknown option, bad or missing value) exits 2,
+    // as getopt-style tools do, rather than with CLI11's internal error numbers.
+    return app.exit(e) == 0 ? 0 : 2;
   }
   return exit_code;
 }

@@ -1,0 +1,202 @@
+// mocap fit: the global body-model fit of a model to labelled marker trials.
+#include <spdlog/spdlog.h>
+
+#include <atomic>
+#include <csignal>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "formats/mot.h"
+#include "formats/trc.h"
+#include "model/kinematics.h"
+#include "model/model_io.h"
+#include "solver/global_fit.h"
+#include "tools/command.h"
+
+namespace mocap::tools {
+namespace {
+
+namespace fs = std::filesystem;
+std::atomic<bool> g_interrupted{false};
+
+struct FitArgs {
+  std::string model_path;
+  std::vector<std::string> trials;
+  std::string out;
+  std::string report;
+  int threads = 0;
+  std::string groups = "scales,centres,axes,markers";
+  int max_iterations = 50;
+};
+
+formats::CoordinateTable AnglesTable(const Model& model, const std::string& name,
+                                     const formats::MarkerTrial& trial, const Eigen::MatrixXd& z) {
+  formats::CoordinateTable table;
+  table.name = name;
+  table.in_degrees = true;
+  for (const auto& c : model.coordinates()) table.column_names.push_back(c.name);
+  table.times = trial.times;
+  table.values.resize(z.rows(), z.cols());
+  for (int c = 0; c < z.cols(); ++c) {
+    const double k = model.coordinates()[c].rotational ? 180.0 / M_PI : 1.0;
+    table.values.col(c) = z.col(c) * k;
+  }
+  return table;
+}
+
+formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerTrial& trial,
+                                      const Eigen::MatrixXd& z) {
+  formats::MarkerTrial out;
+  out.name = trial.name + "_joint_centres";
+  out.rate_hz = trial.rate_hz;
+  out.frame_numbers = trial.frame_numbers;
+  out.times = trial.times;
+  for (const auto& j : model.joints()) out.marker_names.push_back(j.name);
+  out.positions.resize(z.rows(), 3 * model.num_joints());
+  Geometry g(model);
+  ModelData d(model);
+  for (int f = 0; f < z.rows(); ++f) {
+    ForwardKinematics(model, g, z.row(f).transpose(), &d);
+    for (int j = 0; j < model.num_joints(); ++j)
+      out.positions.row(f).segment<3>(3 * j) = JointCentre(model, d, j).transpose();
+  }
+  return out;
+}
+
+int RunFit(const FitArgs& args) {
+  Model model;
+  if (Status s = LoadModelJson(args.model_path, &model); !s) {
+    spdlog::error("{}", s.message());
+    return 1;
+  }
+  solver::FitOptions options;
+  if (Status s = options.SetGroups(args.groups); !s) {
+    spdlog::error("--fit: {}", s.message());
+    return 2;
+  }
+  options.num_threads = args.threads;
+  options.lm.max_iterations = args.max_iterations;
+  std::vector<solver::FitTrial> trials;
+  for (const auto& path : args.trials) {
+    solver::FitTrial t;
+    if (Status s = formats::ReadTrc(path, &t.markers); !s) {
+      spdlog::error("{}", s.message());
+      return 1;
+    }
+    if (t.markers.num_frames() == 0) {
+      spdlog::error("{}: the trial has no frames", path);
+      return 1;
+    }
+    spdlog::info("{}: {} frames, {} markers at {} Hz", path, t.markers.num_frames(),
+                 t.markers.num_markers(), t.markers.rate_hz);
+    trials.push_back(std::move(t));
+  }
+  options.lm.callbacks.push_back([](const solver::IterationSummary& it) {
+    spdlog::info("iteration {:3d}  cost {:.6e}  change {:.3e}  |gradient| {:.3e}  |step| {:.3e}  "
+                 "lambda {:.2e}  {:.2f} s",
+                 it.iteration, it.cost, it.cost_change, it.gradient_max_norm, it.step_norm, it.lambda,
+                 it.total_seconds);
+    return !g_interrupted.load();
+  });
+  std::signal(SIGINT, [](int) { g_interrupted = true; });
+  spdlog::info("fitting {} ({} trials); Ctrl-C stops after the current iteration and keeps the result",
+               args.model_path, trials.size());
+  solver::FitResult result;
+  Status s = solver::FitModel(model, trials, options, &result);
+  std::signal(SIGINT, SIG_DFL);
+  if (!s) {
+    spdlog::error("{}", s.message());
+    return 1;
+  }
+  const solver::FitReport& r = result.report;
+  if (!r.unmatched_trial_markers.empty()) {
+    std::string list;
+    for (const auto& n : r.unmatched_trial_markers) list += " " + n;
+    spdlog::warn("trial markers not in the model (ignored):{}", list);
+  }
+  if (!r.unobserved_model_markers.empty()) {
+    std::string list;
+    for (const auto& n : r.unobserved_model_markers) list += " " + n;
+    spdlog::warn("model markers in no trial (kept as they were):{}", list);
+  }
+  if (!r.undetermined.empty())
+    spdlog::warn("{} parameters not determined by these trials (kept near the initial model): {}{}",
+                 r.undetermined.size(), r.undetermined.front(), r.undetermined.size() > 1 ? ", ..." : "");
+  std::printf("%s\n%s\n", r.solver.BriefReport().c_str(), r.BriefReport().c_str());
+
+  fs::path out(args.out);
+  if (out.has_parent_path()) fs::create_directories(out.parent_path());
+  if (Status w = SaveModelJson(args.out, result.model); !w) {
+    spdlog::error("{}", w.message());
+    return 1;
+  }
+  const fs::path dir = out.has_parent_path() ? out.parent_path() : fs::path(".");
+  for (size_t t = 0; t < trials.size(); ++t) {
+    const auto& trial = trials[t].markers;
+    const std::string base = trial.name.empty() ? "trial" + std::to_string(t + 1) : trial.name;
+    const fs::path mot = dir / (base + ".fitted.mot");
+    const fs::path centres = dir / (base + ".joint_centres.trc");
+    Status w = formats::WriteMot(mot.string(), AnglesTable(result.model, base, trial, result.coordinates[t]));
+    if (w) w = formats::WriteTrc(centres.string(), JointCentreTrial(result.model, trial, result.coordinates[t]));
+    if (!w) {
+      spdlog::error("{}", w.message());
+      return 1;
+    }
+  }
+  spdlog::info("wrote {} and, per trial, <trial>.fitted.mot and <trial>.joint_centres.trc in {}",
+               args.out, dir.string());
+
+  if (!args.report.empty()) {
+    nlohmann::json j;
+    j["frames"] = r.frames;
+    j["trials"] = r.trials;
+    j["markers"] = r.markers;
+    j["marker_samples"] = r.marker_samples;
+    j["unknowns"] = r.unknowns;
+    j["residuals"] = r.residuals;
+    j["iterations"] = r.solver.num_iterations();
+    j["initial_cost"] = r.solver.initial_cost;
+    j["final_cost"] = r.solver.final_cost;
+    j["initial_marker_rms_mm"] = r.initial_marker_rms_mm;
+    j["marker_rms_mm"] = r.marker_rms_mm;
+    j["per_marker_rms_mm"] = nlohmann::json::object();
+    for (const auto& [name, v] : r.per_marker_rms_mm) j["per_marker_rms_mm"][name] = v;
+    j["wall_seconds"] = r.wall_seconds;
+    j["ik_seconds"] = r.ik_seconds;
+    j["solve_seconds"] = r.solve_seconds;
+    j["converged"] = r.converged();
+    j["termination"] = solver::ToString(r.solver.termination);
+    j["termination_message"] = r.solver.message;
+    j["undetermined"] = r.undetermined;
+    j["unmatched_trial_markers"] = r.unmatched_trial_markers;
+    j["unobserved_model_markers"] = r.unobserved_model_markers;
+    j["parameters"] = nlohmann::json::array();
+    for (const auto& e : r.parameters)
+      j["parameters"].push_back({{"name", e.name}, {"group", ToString(e.group)}, {"initial", e.initial},
+                                 {"value", e.value}, {"std", e.std}, {"determined", e.determined}});
+    std::ofstream f(args.report);
+    f << j.dump(1) << "\n";
+    if (!f) {
+      spdlog::error("{}: cannot write the report", args.report);
+      return 1;
+    }
+  }
+  return 0;
+}
+
+const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
+  auto args = std::make_shared<FitArgs>();
+  CLI::App* cmd = app.add_subcommand("fit", "fit a body model to labelled marker trials (global sparse LM)");
+  cmd->add_option("--model", args->model_path, "initial model (.json)")->required();
+  cmd->add_option("trials", args->trials, "marker trials (.trc)")->required();
+  cmd->add_option("--out", args->out, "fitted model to write (.json)")->required();
+  cmd->add_option("--report", args->report, "JSON report to write");
+  cmd->add_option("--threads", args->threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);
+  cmd->add_option("--fit", args->groups, "parameter groups: scales,centres,axes,markers (or all, none)");
+  cmd->add_option("--max-iterations", args->max_iterations, "iteration limit")->check(CLI::PositiveNumber);
+  cmd->callback([args, exit_code] { *exit_code = RunFit(*args); });
+});
+
+}  // namespace
+}  // namespace mocap::tools
