@@ -38,6 +38,7 @@
 #include <ceres/ceres.h>
 #include <sched.h>
 #include <sys/resource.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
@@ -100,6 +101,37 @@ class PeakMemory {
 
  private:
   double total_mb_ = 0;
+};
+
+// The share of the machine's CPU that OTHER processes used while a solve ran, from /proc/stat's
+// busy time minus this process's own CPU time. The cores are shared (builds run alongside), and a
+// busy neighbour slows ours more than Ceres: our frames are split into equal static chunks per
+// thread, so a pass waits for the thread whose core is taken.
+class OthersCpu {
+ public:
+  OthersCpu() : machine_(MachineBusySeconds()), self_(SelfSeconds()), start_(Clock::now()) {}
+  double Fraction() const {
+    const double others = (MachineBusySeconds() - machine_) - (SelfSeconds() - self_);
+    return std::max(0.0, others / (Since(start_) * NumCpus()));
+  }
+
+ private:
+  static int NumCpus() { return std::max(1, static_cast<int>(sysconf(_SC_NPROCESSORS_ONLN))); }
+  static double MachineBusySeconds() {
+    std::ifstream in("/proc/stat");
+    std::string cpu;
+    double user = 0, nice = 0, system = 0, idle = 0, iowait = 0, irq = 0, softirq = 0, steal = 0;
+    in >> cpu >> user >> nice >> system >> idle >> iowait >> irq >> softirq >> steal;
+    return (user + nice + system + irq + softirq + steal) / sysconf(_SC_CLK_TCK);
+  }
+  static double SelfSeconds() {
+    rusage usage{};
+    getrusage(RUSAGE_SELF, &usage);
+    auto seconds = [](const timeval& t) { return t.tv_sec + 1e-6 * t.tv_usec; };
+    return seconds(usage.ru_utime) + seconds(usage.ru_stime);
+  }
+  double machine_, self_;
+  Clock::time_point start_;
 };
 
 double LoadAverage() {
@@ -672,6 +704,7 @@ ceres::Solver::Options CeresOptions(const solver::LmOptions& lm, ceres::LinearSo
 struct CeresRun {
   std::string name;
   double seconds = 0;
+  double others_cpu = 0;  // of the fastest run
   ceres::Solver::Summary summary;
   bool capped = false;
   int iterations() const { return summary.num_successful_steps + summary.num_unsuccessful_steps; }
@@ -729,13 +762,18 @@ int main(int argc, char** argv) {
   solver::LmSummary ours;
   bool ours_cached = false;
   std::vector<double> ours_times;
+  double ours_others_cpu = 0;
   for (int rep = 0; rep < args.repeat; ++rep) {
     Eigen::VectorXd x = x0;
+    const OthersCpu others;
     const auto start = Clock::now();
     solver::ArrowSchurProblem schur(&problem, args.threads);  // FitModel's memory budget
     solver::LmSummary summary = solver::Solve(fit_options.lm, &schur, &x);
     ours_times.push_back(Since(start));
-    if (ours_times.back() <= *std::min_element(ours_times.begin(), ours_times.end())) ours = summary;
+    if (ours_times.back() <= *std::min_element(ours_times.begin(), ours_times.end())) {
+      ours = summary;
+      ours_others_cpu = others.Fraction();
+    }
     ours_cached = schur.caches_frames();
   }
   const double ours_seconds = *std::min_element(ours_times.begin(), ours_times.end());
@@ -743,6 +781,7 @@ int main(int argc, char** argv) {
   if (args.verbose) std::fprintf(stderr, "--- ours ---\n%s\n", ours.FullReport().c_str());
   out["ours_s"] = ours_seconds;
   out["ours_s_all"] = ours_times;
+  out["ours_others_cpu"] = ours_others_cpu;
   out["ours_cost"] = ours.final_cost;
   out["initial_cost"] = ours.initial_cost;
   out["ours_iterations"] = ours.num_iterations();
@@ -793,11 +832,13 @@ int main(int argc, char** argv) {
       const bool own_peak = memory.Reset();
       for (int rep = 0; rep < args.repeat; ++rep) {
         ceres_fit.x() = x0;  // in place: Ceres's parameter blocks point into it
+        const OthersCpu others;
         const auto start = Clock::now();
         ceres::Solver::Summary summary = ceres_fit.Solve(options);
         times.push_back(Since(start));
         if (times.back() < run.seconds) {
           run.seconds = times.back();
+          run.others_cpu = others.Fraction();
           run.summary = std::move(summary);
         }
       }
@@ -816,6 +857,7 @@ int main(int argc, char** argv) {
           {{"linear_solver", CeresSolverName(s)},
            {"seconds", run.seconds},
            {"seconds_all", times},
+           {"others_cpu", run.others_cpu},
            {"cost", sm.final_cost},
            {"iterations", run.iterations()},
            {"successful_steps", sm.num_successful_steps},
@@ -840,6 +882,7 @@ int main(int argc, char** argv) {
     out["ceres_cost"] = best.summary.final_cost;
     out["ceres_iterations"] = best.iterations();
     out["ceres_capped"] = best.capped;
+    out["ceres_others_cpu"] = best.others_cpu;
   } else {
     for (const char* k : {"ceres_s", "ratio", "ceres_cost", "ceres_iterations"}) out[k] = nullptr;
   }
@@ -856,13 +899,17 @@ int main(int argc, char** argv) {
               problem.num_residuals(), args.threads);
   std::printf("  setup %.2f s, IK %.2f s; initial cost %.6e\n", setup_seconds, ik_seconds,
               ours.initial_cost);
-  std::printf("  %-32s %9s %14s %6s  %s\n", "solver", "seconds", "final cost", "iter", "termination");
-  std::printf("  %-32s %9.3f %14.8e %6d  %s\n", "ours (Schur LM)", ours_seconds, ours.final_cost,
-              ours.num_iterations(), solver::ToString(ours.termination));
+  // others: the share of the machine's CPU other processes used during the (fastest) solve.
+  std::printf("  %-30s %9s %15s %5s %7s  %s\n", "solver", "seconds", "final cost", "iter", "others",
+              "termination");
+  std::printf("  %-30s %9.3f %15.9e %5d %6.0f%%  %s\n", "ours (Schur LM)", ours_seconds,
+              ours.final_cost, ours.num_iterations(), 100 * ours_others_cpu,
+              solver::ToString(ours.termination));
   for (const CeresRun& r : runs) {
     const std::string name = std::string("Ceres ") + CeresSolverName(r.name);
-    std::printf("  %-32s %9.3f %14.8e %6d  %s%s\n", name.c_str(), r.seconds, r.summary.final_cost,
-                r.iterations(), ceres::TerminationTypeToString(r.summary.termination_type),
+    std::printf("  %-30s %9.3f %15.9e %5d %6.0f%%  %s%s\n", name.c_str(), r.seconds,
+                r.summary.final_cost, r.iterations(), 100 * r.others_cpu,
+                ceres::TerminationTypeToString(r.summary.termination_type),
                 r.capped ? " (time cap)" : "");
   }
   if (!runs.empty())
