@@ -503,6 +503,29 @@ class MarkerCost final : public ceres::CostFunction {
   int frame_;
 };
 
+// The per-frame prior rows w_i (z_i - target_i) on one frame block (ArrowProblem::FramePrior).
+class FramePriorCost final : public ceres::CostFunction {
+ public:
+  FramePriorCost(const double* weight, const double* target, int nz) : weight_(weight), target_(target) {
+    set_num_residuals(nz);
+    mutable_parameter_block_sizes()->push_back(nz);
+  }
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    const int nz = num_residuals();
+    for (int i = 0; i < nz; ++i) residuals[i] = weight_[i] * (parameters[0][i] - target_[i]);
+    if (jacobians && jacobians[0]) {
+      std::fill(jacobians[0], jacobians[0] + nz * nz, 0.0);
+      for (int i = 0; i < nz; ++i) jacobians[0][i * nz + i] = weight_[i];
+    }
+    return true;
+  }
+
+ private:
+  const double* weight_;
+  const double* target_;
+};
+
 // The prior rows w_i (p_i - target_i) and the gauge rows G (p - target), on every shared block.
 class PriorCost final : public ceres::CostFunction {
  public:
@@ -606,6 +629,11 @@ class CeresFit {
       } else {
         AddMarkerCost(layout_for(present), f, nz, nf);
       }
+    }
+    for (int f = 0; f < nf; ++f) {
+      const double *w, *target;
+      if (problem.FramePrior(f, &w, &target))
+        problem_->AddResidualBlock(new FramePriorCost(w, target, nz), nullptr, frame_block(f, nz));
     }
     std::vector<double*> shared(parameter_blocks_.begin() + nf, parameter_blocks_.end());
     problem_->AddResidualBlock(new PriorCost(&context_), nullptr, shared);
@@ -747,6 +775,7 @@ int main(int argc, char** argv) {
 
   const auto ik_start = Clock::now();
   const Eigen::VectorXd x0 = InitialGuess(data, problem, fit_options, args.threads);
+  problem.SetFramePriorTargets(x0);  // as FitModel does: each frame weakly held at its start
   const double ik_seconds = Since(ik_start);
 
   json out;
