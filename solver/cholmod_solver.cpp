@@ -692,6 +692,13 @@ bool SparseNormalCholeskyProblem::Cost(const Eigen::VectorXd& x, double* cost) {
 bool SparseNormalCholeskyProblem::Linearize(const Eigen::VectorXd& x, double* cost,
                                             Eigen::VectorXd* gradient, Eigen::VectorXd* diagonal) {
   if (!error_.empty()) return false;
+  // Per-frame priors (ArrowProblem::FramePrior) came after this path was written and are not
+  // assembled here yet: refuse rather than solve a different problem.
+  const double *prior_weight, *prior_target;
+  if (nf_ > 0 && problem_->FramePrior(0, &prior_weight, &prior_target)) {
+    error_ = "the CHOLMOD path does not support per-frame priors yet (use ArrowSchurProblem)";
+    return false;
+  }
   const auto start = Clock::now();
   const double analyse_before = stats_.analyse_seconds;
   gradient_.resize(0);

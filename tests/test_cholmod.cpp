@@ -3,6 +3,7 @@
 // the Schur solver's final cost.
 #include <gtest/gtest.h>
 
+#include "dense_reference.h"
 #include "fit_test_util.h"
 #include "solver/cholmod_solver.h"
 #include "solver/global_fit.h"
@@ -13,51 +14,6 @@ using namespace mocap;
 using Sparse = solver::SparseNormalCholeskyProblem;
 
 namespace {
-// Dense J (rows: all frame blocks, then prior rows, then the shared rows) and r at x.
-void DenseJacobian(solver::ArrowProblem& problem, const Eigen::VectorXd& x, Eigen::MatrixXd* j,
-                   Eigen::VectorXd* r) {
-  const int nf = problem.num_frames(), ny = problem.frame_dim(), np = problem.shared_dim();
-  const int n = nf * ny + np;
-  std::vector<Eigen::RowVectorXd> rows;
-  std::vector<double> res;
-  ASSERT_TRUE(problem.SetShared(x.tail(np)));
-  auto ev = problem.NewEvaluator();
-  for (int f = 0; f < nf; ++f) {
-    ASSERT_TRUE(ev->Evaluate(f, x.data() + f * ny, true));
-    for (int b = 0; b < ev->num_blocks(); ++b) {
-      const auto& blk = ev->block(b);
-      for (int k = 0; k < blk.rows; ++k) {
-        Eigen::RowVectorXd row = Eigen::RowVectorXd::Zero(n);
-        for (int a = 0; a < blk.num_y; ++a) row[f * ny + blk.y_index[a]] += blk.jy[a * 3 + k];
-        for (int c = 0; c < blk.num_p; ++c)
-          if (blk.p_index[c] >= 0) row[nf * ny + blk.p_index[c]] += blk.jp[c * 3 + k];
-        rows.push_back(row);
-        res.push_back(blk.residual[k]);
-      }
-    }
-  }
-  const Eigen::VectorXd delta = x.tail(np) - problem.prior_target();
-  for (int i = 0; i < np; ++i) {
-    Eigen::RowVectorXd row = Eigen::RowVectorXd::Zero(n);
-    row[nf * ny + i] = problem.prior_weight()[i];
-    rows.push_back(row);
-    res.push_back(problem.prior_weight()[i] * delta[i]);
-  }
-  const Eigen::MatrixXd& g = problem.shared_rows();
-  for (int i = 0; i < g.rows(); ++i) {
-    Eigen::RowVectorXd row = Eigen::RowVectorXd::Zero(n);
-    row.tail(np) = g.row(i);
-    rows.push_back(row);
-    res.push_back(g.row(i).dot(delta));
-  }
-  j->resize(rows.size(), n);
-  r->resize(rows.size());
-  for (size_t i = 0; i < rows.size(); ++i) {
-    j->row(i) = rows[i];
-    (*r)[i] = res[i];
-  }
-}
-
 // Hides one marker of one frame while `hide` is set: a frame whose blocks change between
 // linearisations (the Jacobian assemblies must notice and build their pattern again).
 class HidingProblem : public solver::ArrowProblem {
@@ -146,7 +102,7 @@ TEST_P(CholmodStep, MatchesDenseNormalEquationsAndSchur) {
   ASSERT_TRUE(schur.Linearize(sp.x, &schur_cost, &schur_g, &schur_d));
   Eigen::MatrixXd j;
   Eigen::VectorXd r;
-  DenseJacobian(problem, sp.x, &j, &r);
+  testutil::DenseJacobian(problem, sp.x, &j, &r);
   EXPECT_NEAR(cost, 0.5 * r.squaredNorm(), 1e-12 * cost);
   EXPECT_NEAR(cost, schur_cost, 1e-12 * cost);
   const Eigen::VectorXd g_dense = j.transpose() * r;
@@ -214,7 +170,7 @@ TEST(Cholmod, PatternRebuiltWhenBlocksChange) {
     ASSERT_TRUE(cholmod.Linearize(sp.x, &cost, &g, &d));
     Eigen::MatrixXd j;
     Eigen::VectorXd r;
-    DenseJacobian(hiding, sp.x, &j, &r);
+    testutil::DenseJacobian(hiding, sp.x, &j, &r);
     const Eigen::MatrixXd jtj = j.transpose() * j;
     const Eigen::VectorXd damping = 1e-3 * jtj.diagonal().cwiseMax(1e-6);
     ASSERT_TRUE(cholmod.SolveDamped(damping, &dx));
@@ -251,4 +207,21 @@ TEST(Cholmod, SolveReachesSchurCost) {
   EXPECT_LT((x_cholmod - x_schur).lpNorm<Eigen::Infinity>(), 1e-5);
   EXPECT_EQ(cholmod.statistics().analyses, 1);
   std::printf("schur:   %s\ncholmod: %s\n", s1.BriefReport().c_str(), s2.BriefReport().c_str());
+}
+
+// Per-frame priors are not assembled by the CHOLMOD path yet: it must refuse, not ignore them.
+TEST(SparseNormalCholesky, RefusesPerFramePriors) {
+  std::mt19937_64 rng(9);
+  Model nominal = DefaultFullBodyModel();
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(nominal, 4, 0.0005, rng);
+  solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
+  Eigen::VectorXd x(4 * problem.frame_dim() + problem.shared_dim());
+  x.setZero();
+  x.tail(problem.shared_dim()) = problem.InitialShared();
+  problem.SetFramePriorTargets(x);
+  solver::SparseNormalCholeskyProblem cholmod(&problem, 1);
+  double cost;
+  Eigen::VectorXd g, d;
+  EXPECT_FALSE(cholmod.Linearize(x, &cost, &g, &d));
+  EXPECT_NE(cholmod.error().find("per-frame priors"), std::string::npos) << cholmod.error();
 }

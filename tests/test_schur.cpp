@@ -1,6 +1,7 @@
 // The Schur-complement LM step equals the dense solution of the same damped normal equations.
 #include <gtest/gtest.h>
 
+#include "dense_reference.h"
 #include "fit_test_util.h"
 #include "solver/global_fit.h"
 #include "solver/marker_fit_problem.h"
@@ -8,60 +9,7 @@
 
 using namespace mocap;
 
-namespace {
-// Dense J (rows: all frame blocks then prior rows then gauge rows) and r at x.
-void DenseJacobian(solver::MarkerFitProblem& problem, const Eigen::VectorXd& x, Eigen::MatrixXd* j,
-                   Eigen::VectorXd* r) {
-  const int nf = problem.num_frames(), ny = problem.frame_dim(), np = problem.shared_dim();
-  const int n = nf * ny + np;
-  std::vector<Eigen::RowVectorXd> rows;
-  std::vector<double> res;
-  problem.SetShared(x.tail(np));
-  auto ev = problem.NewEvaluator();
-  for (int f = 0; f < nf; ++f) {
-    const double *w, *target;
-    if (problem.FramePrior(f, &w, &target))
-      for (int i = 0; i < ny; ++i) {
-        Eigen::RowVectorXd row = Eigen::RowVectorXd::Zero(n);
-        row[f * ny + i] = w[i];
-        rows.push_back(row);
-        res.push_back(w[i] * (x[f * ny + i] - target[i]));
-      }
-    ASSERT_TRUE(ev->Evaluate(f, x.data() + f * ny, true));
-    for (int b = 0; b < ev->num_blocks(); ++b) {
-      const auto& blk = ev->block(b);
-      for (int k = 0; k < blk.rows; ++k) {
-        Eigen::RowVectorXd row = Eigen::RowVectorXd::Zero(n);
-        for (int a = 0; a < blk.num_y; ++a) row[f * ny + blk.y_index[a]] += blk.jy[a * 3 + k];
-        for (int c = 0; c < blk.num_p; ++c)
-          if (blk.p_index[c] >= 0) row[nf * ny + blk.p_index[c]] += blk.jp[c * 3 + k];
-        rows.push_back(row);
-        res.push_back(blk.residual[k]);
-      }
-    }
-  }
-  const Eigen::VectorXd delta = x.tail(np) - problem.prior_target();
-  for (int i = 0; i < np; ++i) {
-    Eigen::RowVectorXd row = Eigen::RowVectorXd::Zero(n);
-    row[nf * ny + i] = problem.prior_weight()[i];
-    rows.push_back(row);
-    res.push_back(problem.prior_weight()[i] * delta[i]);
-  }
-  const Eigen::MatrixXd& g = problem.shared_rows();
-  for (int i = 0; i < g.rows(); ++i) {
-    Eigen::RowVectorXd row = Eigen::RowVectorXd::Zero(n);
-    row.tail(np) = g.row(i);
-    rows.push_back(row);
-    res.push_back(g.row(i).dot(delta));
-  }
-  j->resize(rows.size(), n);
-  r->resize(rows.size());
-  for (size_t i = 0; i < rows.size(); ++i) {
-    j->row(i) = rows[i];
-    (*r)[i] = res[i];
-  }
-}
-}  // namespace
+
 
 TEST(ArrowSchur, StepMatchesDenseNormalEquations) {
   std::mt19937_64 rng(5);
@@ -87,7 +35,7 @@ TEST(ArrowSchur, StepMatchesDenseNormalEquations) {
   ASSERT_TRUE(schur.Linearize(x, &cost, &g, &d));
   Eigen::MatrixXd j;
   Eigen::VectorXd r;
-  DenseJacobian(problem, x, &j, &r);
+  testutil::DenseJacobian(problem, x, &j, &r);
   EXPECT_NEAR(cost, 0.5 * r.squaredNorm(), 1e-9 * cost);
   const Eigen::VectorXd g_dense = j.transpose() * r;
   EXPECT_LT((g - g_dense).norm(), 1e-9 * g_dense.norm());
