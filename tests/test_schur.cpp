@@ -57,11 +57,24 @@ TEST(ArrowSchur, StepMatchesDenseNormalEquations) {
   EXPECT_LT((cov - inv.bottomRightCorner(np, np)).norm(), 1e-5 * inv.bottomRightCorner(np, np).norm());
 }
 
-TEST(ArrowSchur, DISABLED_PrintStructure) {
+// The symbolic analysis finds the tree: leaves are eliminated first, the root's six coordinates
+// last, and only the root's rows reach every shared column.
+TEST(ArrowSchur, EliminatesLeavesFirstAndOnlyTheRootReachesEveryParameter) {
   Model nominal = DefaultFullBodyModel();
   std::mt19937_64 rng(5);
   formats::MarkerTrial trial = testutil::SimulateRandomMotion(nominal, 3, 0.0005, rng);
   solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
   solver::ArrowSchurProblem schur(&problem, 1);
-  std::printf("%s", schur.DescribeStructure().c_str());
+  const std::vector<int>& order = schur.elimination_order();
+  ASSERT_EQ(order.size(), 38u);
+  std::vector<int> last(order.end() - 6, order.end());
+  std::sort(last.begin(), last.end());
+  EXPECT_EQ(last, (std::vector<int>{0, 1, 2, 3, 4, 5})) << "the pelvis (root) is eliminated last";
+  const int first_joint = nominal.coordinates()[order.front()].joint;
+  for (const Joint& j : nominal.joints()) EXPECT_NE(j.parent, nominal.joints()[first_joint].child) << "a leaf comes first";
+  const std::string structure = schur.DescribeStructure();
+  const std::string full = std::to_string(problem.shared_dim()) + " columns in [0, " +
+                           std::to_string(problem.shared_dim() - 1) + "] contiguous";
+  EXPECT_EQ(structure.find(full), structure.rfind(full)) << structure;  // exactly one group
+  EXPECT_NE(structure.find("rows 32+6: " + full), std::string::npos) << structure;
 }
