@@ -23,7 +23,10 @@ constexpr int kMaxBlockRows = 3;
 
 // One block of up to kMaxBlockRows residual rows. Jacobians are column-major with leading
 // dimension kMaxBlockRows. A p column index of -1 marks a parameter that is held fixed.
+// `kind` is the block's index in ArrowProblem::BlockStructure, whose y and p columns it has
+// (the Schur solver's precomputed scatter maps are per kind).
 struct ResidualBlock {
+  int kind = -1;
   int rows = 0;
   const double* residual = nullptr;
   int num_y = 0;

@@ -35,6 +35,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       for (int k = 0; k < 3; ++k) r[k] = scale * (x[k] - meas[3 * m + k]);
       if (!std::isfinite(r[0] + r[1] + r[2])) return false;
       ResidualBlock& blk = blocks_[num_blocks_];
+      blk.kind = problem_.block_kind(m);
       blk.rows = 3;
       blk.residual = r;
       const auto& ycols = model.marker_coordinates(m);
@@ -87,6 +88,9 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
         observed_[m] = 1;
         ++samples_;
       }
+  block_kind_.assign(nm, -1);
+  for (int m = 0, kinds = 0; m < nm; ++m)
+    if (observed_[m]) block_kind_[m] = kinds++;
   free_index_.assign(model.num_parameters(), -1);
   std::vector<double> weights;
   for (int i = 0; i < model.num_parameters(); ++i) {
@@ -236,7 +240,7 @@ void MarkerFitProblem::BlockStructure(std::vector<std::vector<int>>* y_columns,
   y_columns->clear();
   p_columns->clear();
   for (int m = 0; m < model_.num_markers(); ++m) {
-    if (!observed_[m]) continue;
+    if (!observed_[m]) continue;  // block_kind(m) counts the same way
     y_columns->push_back(model_.marker_coordinates(m));
     p_columns->push_back(marker_free_columns_[m]);
   }

@@ -64,6 +64,8 @@ class MarkerFitProblem : public ArrowProblem {
   const std::vector<int>& marker_free_columns(int m) const { return marker_free_columns_[m]; }
   double residual_scale(int m) const { return residual_scale_[m]; }
   bool observed(int m) const { return observed_[m]; }
+  // Index of marker m's residual block in BlockStructure (-1 if never observed).
+  int block_kind(int m) const { return block_kind_[m]; }
   int num_samples() const { return samples_; }
   Eigen::VectorXd InitialShared() const;
   Eigen::VectorXd FullParameters(const Eigen::VectorXd& shared) const;
@@ -83,6 +85,7 @@ class MarkerFitProblem : public ArrowProblem {
   std::vector<std::vector<int>> marker_free_columns_;
   std::vector<double> residual_scale_;
   std::vector<char> observed_;
+  std::vector<int> block_kind_;
   Eigen::VectorXd prior_weight_, prior_target_;
   Eigen::MatrixXd gauge_rows_;
   Eigen::VectorXd frame_prior_weight_;

@@ -8,18 +8,42 @@
 
 namespace mocap::solver {
 namespace {
-constexpr int kBatchRows = 384;  // 64 frames of a 6-coordinate root
+// Frames whose rows are stacked into one rank update: enough rows for the matrix product to run
+// near peak speed, few enough that each group's stack stays in cache.
+constexpr int kStackFrames = 16;
+
+// v <- L^{-1} v and v <- L^{-T} v for the Cholesky factor in the lower triangle of `l`, by
+// columns (contiguous in memory); Eigen's general triangular solve costs several times more at
+// these sizes.
+void SolveLower(const Eigen::MatrixXd& l, Eigen::VectorXd* v) {
+  const int n = static_cast<int>(l.rows());
+  for (int j = 0; j < n; ++j) {
+    const double vj = ((*v)[j] /= l(j, j));
+    if (j + 1 < n) v->tail(n - j - 1) -= vj * l.col(j).tail(n - j - 1);
+  }
+}
+void SolveLowerTransposed(const Eigen::MatrixXd& l, Eigen::VectorXd* v) {
+  const int n = static_cast<int>(l.rows());
+  for (int i = n - 1; i >= 0; --i) {
+    double sum = (*v)[i];
+    if (i + 1 < n) sum -= l.col(i).tail(n - i - 1).dot(v->tail(n - i - 1));
+    (*v)[i] = sum / l(i, i);
+  }
+}
 }  // namespace
 
 struct ArrowSchurProblem::ThreadState {
   std::unique_ptr<FrameEvaluator> evaluator;
-  Eigen::MatrixXd u, w, y, s, gather, outer;
-  Eigen::VectorXd gy, v, rhs, gp, diag_p, wdp, dy;
+  Eigen::MatrixXd u, s;
+  std::vector<double> w, y;    // compact W_f (when not cached) and Y_f
+  const double* w_frame = nullptr;  // the current frame's compact W (cache or w)
+  Eigen::VectorXd gy, gyi, v, rhs, gp, wdp;
+  std::vector<double> panel_y, panel_p;  // one block's Jacobians, 3 rows, zero-padded
   Eigen::LLT<Eigen::MatrixXd> llt;
-  Eigen::MatrixXd block_jp, block_u, block_w, block_v;  // one residual block's products
-  Eigen::MatrixXd batch;  // root rows of Y from several frames, applied together
-  int batch_rows = 0;
-  std::vector<int> ycol, pcol, plocal;
+  // Stacked columns awaiting a rank update, and what they have been applied to: per block kind
+  // (J_p^T, for V) and per row group (Y_g^T, for S).
+  std::vector<Eigen::MatrixXd> v_stack, v_acc, g_stack, g_acc;
+  std::vector<int> v_count, g_count;
   double cost = 0;
   bool ok = true;
 };
@@ -32,37 +56,40 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
       ny_(problem->frame_dim()),
       np_(problem->shared_dim()) {
   Analyse();
-  const double cache_bytes = 8.0 * nf_ * (static_cast<double>(ny_) * ny_ + static_cast<double>(ny_) * np_);
+  const double cache_bytes = 8.0 * nf_ * (static_cast<double>(ny_) * ny_ + w_size_);
   cached_ = cache_bytes <= cache_budget_bytes;
   if (cached_) {
     u_cache_.resize(static_cast<size_t>(nf_) * ny_ * ny_);
-    w_cache_.resize(static_cast<size_t>(nf_) * ny_ * np_);
+    w_cache_.resize(static_cast<size_t>(nf_) * w_size_);
   }
   for (int t = 0; t < num_threads_; ++t) {
     auto ts = std::make_unique<ThreadState>();
     ts->evaluator = problem_->NewEvaluator();
     ts->u.resize(ny_, ny_);
-    ts->w.resize(ny_, np_);
-    ts->y.resize(ny_, np_);
     ts->s.resize(np_, np_);
-    ts->gather.resize(np_, ny_);
-    ts->outer.resize(np_, np_);
+    ts->w.resize(w_size_);
+    ts->y.resize(w_size_);
     ts->gy.resize(ny_);
+    ts->gyi.resize(ny_);
+    ts->panel_y.resize(3 * max_block_y_);
+    ts->panel_p.resize(3 * max_block_p_);
     ts->v.resize(ny_);
     ts->rhs.resize(np_);
     ts->gp.resize(np_);
-    ts->diag_p.resize(np_);
     ts->wdp.resize(ny_);
-    ts->dy.resize(ny_);
     ts->llt = Eigen::LLT<Eigen::MatrixXd>(ny_);
-    ts->block_jp.resize(kMaxBlockRows, max_block_p_);
-    ts->block_u.resize(max_block_y_, max_block_y_);
-    ts->block_w.resize(max_block_y_, max_block_p_);
-    ts->block_v.resize(max_block_p_, max_block_p_);
-    ts->batch.resize(kBatchRows, np_);
-    ts->ycol.resize(max_block_y_);
-    ts->pcol.resize(max_block_p_);
-    ts->plocal.resize(max_block_p_);
+    for (const BlockKind& k : kinds_) {
+      const int n = static_cast<int>(k.free_p.size());
+      ts->v_stack.emplace_back(n, kMaxBlockRows * kStackFrames);
+      ts->v_acc.emplace_back(n, n);
+    }
+    ts->v_count.assign(kinds_.size(), 0);
+    for (const RowGroup& g : groups_) {
+      const int n = static_cast<int>(g.columns.size());
+      ts->g_stack.emplace_back(n, g.num_rows * kStackFrames);
+      ts->g_acc.emplace_back(g.full ? 0 : n, g.full ? 0 : n);
+    }
+    ts->g_count.assign(groups_.size(), 0);
     threads_.push_back(std::move(ts));
   }
 }
@@ -117,7 +144,8 @@ void ArrowSchurProblem::Analyse() {
   }
   position_.assign(ny_, 0);
   for (int k = 0; k < ny_; ++k) position_[order_[k]] = k;
-  // Y row patterns in elimination order.
+  // Y row patterns in elimination order: a row reaches what its own W row and every row it is
+  // eliminated against reach.
   std::vector<std::vector<char>> ypat(ny_);
   for (int k = 0; k < ny_; ++k) {
     const int i = order_[k];
@@ -127,6 +155,8 @@ void ArrowSchurProblem::Analyse() {
         for (int p = 0; p < np_; ++p) ypat[k][p] |= ypat[kj][p];
   }
   groups_.clear();
+  std::vector<int> row_group(ny_, -1);
+  w_size_ = 0;
   for (int k = 0; k < ny_;) {
     int e = k + 1;
     while (e < ny_ && ypat[e] == ypat[k]) ++e;
@@ -135,10 +165,55 @@ void ArrowSchurProblem::Analyse() {
     g.num_rows = e - k;
     for (int p = 0; p < np_; ++p)
       if (ypat[k][p]) g.columns.push_back(p);
-    g.contiguous = g.columns.empty() ||
-                   g.columns.back() - g.columns.front() + 1 == static_cast<int>(g.columns.size());
-    if (!g.columns.empty()) groups_.push_back(std::move(g));
+    const int n = static_cast<int>(g.columns.size());
+    g.full = n == np_;
+    g.contiguous = n == 0 || g.columns.back() - g.columns.front() + 1 == n;
+    g.offset = w_size_;
+    if (n > 0) {
+      for (int r = k; r < e; ++r) row_group[r] = static_cast<int>(groups_.size());
+      w_size_ += g.num_rows * n;
+      groups_.push_back(std::move(g));
+    }
     k = e;
+  }
+  // Which earlier groups each group is eliminated against, and where their columns sit in ours
+  // (a descendant reaches a subset of what its ancestor reaches).
+  for (size_t gi = 0; gi < groups_.size(); ++gi) {
+    RowGroup& g = groups_[gi];
+    for (size_t hi = 0; hi < gi; ++hi) {
+      const RowGroup& h = groups_[hi];
+      bool coupled = false;
+      for (int r = 0; r < g.num_rows && !coupled; ++r)
+        for (int q = 0; q < h.num_rows && !coupled; ++q)
+          coupled = lpat[order_[g.first_row + r]][order_[h.first_row + q]];
+      if (!coupled) continue;
+      RowGroup::Child child;
+      child.group = static_cast<int>(hi);
+      for (int p : h.columns) {
+        auto it = std::lower_bound(g.columns.begin(), g.columns.end(), p);
+        child.map.push_back(static_cast<int>(it - g.columns.begin()));  // present by construction
+      }
+      g.children.push_back(std::move(child));
+    }
+  }
+  // Scatter maps of each residual-block kind into U (positions) and compact W (offsets).
+  kinds_.assign(ycols.size(), BlockKind());
+  for (size_t b = 0; b < ycols.size(); ++b) {
+    BlockKind& kind = kinds_[b];
+    kind.num_y = static_cast<int>(ycols[b].size());
+    for (int y : ycols[b]) kind.y_position.push_back(position_[y]);
+    for (size_t c = 0; c < pcols[b].size(); ++c)
+      if (pcols[b][c] >= 0) {
+        kind.free_local.push_back(static_cast<int>(c));
+        kind.free_p.push_back(pcols[b][c]);
+      }
+    for (int k : kind.y_position)
+      for (int p : kind.free_p) {
+        const RowGroup& g = groups_[row_group[k]];  // the row reaches p, so it has a group
+        const int col = static_cast<int>(std::lower_bound(g.columns.begin(), g.columns.end(), p) -
+                                         g.columns.begin());
+        kind.w_offset.push_back(g.offset + (k - g.first_row) * static_cast<int>(g.columns.size()) + col);
+      }
   }
 }
 
@@ -205,38 +280,23 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
     ts.cost = 0;
     ts.ok = true;
     ts.gp.setZero();
-    ts.diag_p.setZero();
-    if (cached_) ts.s.setZero();
+    ts.s.setZero();
+    for (Eigen::MatrixXd& acc : ts.v_acc) acc.setZero();
     for (int f = b; f < e; ++f) {
-      if (!ts.evaluator->Evaluate(f, x.data() + static_cast<size_t>(f) * ny_, true)) {
+      if (!ts.evaluator->Evaluate(f, x.data() + static_cast<size_t>(f) * ny_, true) ||
+          !AccumulateFrame(ts, /*linearizing=*/true)) {
         ts.ok = false;
         return;
       }
       if (cached_) {
-        AccumulateFrame(ts);
         CachedU(f) = ts.u;
-        CachedW(f) = ts.w;
+        std::copy(ts.w.begin(), ts.w.end(), CachedW(f));
       }
       double* gy = gradient->data() + static_cast<size_t>(f) * ny_;
       double* dg = diagonal->data() + static_cast<size_t>(f) * ny_;
-      for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
-        const ResidualBlock& blk = ts.evaluator->block(k);
-        for (int r = 0; r < blk.rows; ++r) ts.cost += blk.residual[r] * blk.residual[r];
-        for (int a = 0; a < blk.num_y; ++a)
-          for (int r = 0; r < blk.rows; ++r) {
-            const double j = blk.jy[a * kMaxBlockRows + r];
-            gy[blk.y_index[a]] += j * blk.residual[r];
-            dg[blk.y_index[a]] += j * j;
-          }
-        for (int c = 0; c < blk.num_p; ++c) {
-          const int p = blk.p_index[c];
-          if (p < 0) continue;
-          for (int r = 0; r < blk.rows; ++r) {
-            const double j = blk.jp[c * kMaxBlockRows + r];
-            ts.gp[p] += j * blk.residual[r];
-            ts.diag_p[p] += j * j;
-          }
-        }
+      for (int i = 0; i < ny_; ++i) {
+        gy[i] = ts.gyi[i];
+        dg[i] = ts.u(position_[i], position_[i]);
       }
       const double *w, *target;
       if (problem_->FramePrior(f, &w, &target)) {
@@ -249,17 +309,27 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
         }
       }
     }
+    // V of this thread's frames: the last stacks, then each kind's accumulator into S's lower
+    // triangle (a kind's columns need not be sorted).
+    for (size_t k = 0; k < kinds_.size(); ++k) {
+      FlushV(ts, static_cast<int>(k));
+      const std::vector<int>& cols = kinds_[k].free_p;
+      const Eigen::MatrixXd& acc = ts.v_acc[k];
+      for (size_t c = 0; c < cols.size(); ++c)
+        for (size_t d = 0; d <= c; ++d)
+          ts.s(std::max(cols[c], cols[d]), std::min(cols[c], cols[d])) += acc(c, d);
+    }
   });
   double sum = 0;
-  if (cached_) v_total_.setZero(np_, np_);
+  v_total_.setZero(np_, np_);
   for (int t = 0; t < std::max(1, std::min(num_threads_, nf_)); ++t) {
     const ThreadState& ts = *threads_[t];
     if (!ts.ok) return false;
     sum += ts.cost;
     gradient->tail(np_) += ts.gp;
-    diagonal->tail(np_) += ts.diag_p;
-    if (cached_) v_total_ += ts.s;
+    v_total_ += ts.s;
   }
+  diagonal->tail(np_) = v_total_.diagonal();
   const Eigen::VectorXd& w = problem_->prior_weight();
   const Eigen::VectorXd delta = x.tail(np_) - problem_->prior_target();
   gradient->tail(np_) += w.cwiseProduct(w.cwiseProduct(delta));
@@ -274,44 +344,79 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
   return std::isfinite(*cost) && gradient->allFinite();
 }
 
-// U (lower, elimination order), W and V (lower, into ts.s) of one evaluated frame. Each block's
-// three small products are formed densely (vectorised), then scattered by index.
-void ArrowSchurProblem::AccumulateFrame(ThreadState& ts) const {
+// U (lower, elimination order) and compact W of one evaluated frame. When `linearizing`, also
+// the frame's cost, its gradient (by y index, in ts.gyi) and its part of the shared gradient, and
+// its J_p^T columns stacked for V. Blocks are copied into zero-padded 3-row panels so every
+// product is an unrolled 3-term dot product, scattered through the block kind's precomputed
+// maps (Eigen's general small products cost three times as much here: their sizes are only
+// known at run time). False if a block's kind is unknown.
+bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const {
+  static_assert(kMaxBlockRows == 3, "the panels below are unrolled for 3 rows");
   ts.u.setZero();
-  ts.w.setZero();
-  int* ycol = ts.ycol.data();
-  int* pcol = ts.pcol.data();
-  int* plocal = ts.plocal.data();
+  std::fill(ts.w.begin(), ts.w.end(), 0.0);
+  if (linearizing) ts.gyi.setZero();
+  double* w = ts.w.data();
+  double* u = ts.u.data();
+  double* jy = ts.panel_y.data();
+  double* jp = ts.panel_p.data();
   for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
     const ResidualBlock& blk = ts.evaluator->block(k);
-    using Strided = Eigen::Map<const Eigen::MatrixXd, 0, Eigen::OuterStride<>>;
-    const Strided jy(blk.jy, blk.rows, blk.num_y, Eigen::OuterStride<>(kMaxBlockRows));
-    const Strided jp_all(blk.jp, blk.rows, blk.num_p, Eigen::OuterStride<>(kMaxBlockRows));
-    int np = 0;
-    for (int c = 0; c < blk.num_p; ++c)
-      if (blk.p_index[c] >= 0) {
-        plocal[np] = c;
-        pcol[np++] = blk.p_index[c];
+    if (blk.kind < 0 || blk.kind >= static_cast<int>(kinds_.size()) ||
+        kinds_[blk.kind].num_y != blk.num_y || blk.rows < 1 || blk.rows > kMaxBlockRows)
+      return false;
+    const BlockKind& kind = kinds_[blk.kind];
+    const int rows = blk.rows, nyb = blk.num_y, np = static_cast<int>(kind.free_p.size());
+    for (int a = 0; a < nyb; ++a)
+      for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[a * kMaxBlockRows + r] : 0.0;
+    for (int c = 0; c < np; ++c)
+      for (int r = 0; r < 3; ++r)
+        jp[3 * c + r] = r < rows ? blk.jp[kind.free_local[c] * kMaxBlockRows + r] : 0.0;
+    const int* ypos = kind.y_position.data();
+    const int* woff = kind.w_offset.data();
+    for (int a = 0; a < nyb; ++a) {
+      const double a0 = jy[3 * a], a1 = jy[3 * a + 1], a2 = jy[3 * a + 2];
+      double* ucol = u;
+      const int pa = ypos[a];
+      for (int c = 0; c < nyb; ++c) {
+        if (ypos[c] > pa) continue;
+        ucol[pa + static_cast<size_t>(ypos[c]) * ny_] += a0 * jy[3 * c] + a1 * jy[3 * c + 1] + a2 * jy[3 * c + 2];
       }
-    for (int a = 0; a < blk.num_y; ++a) ycol[a] = position_[blk.y_index[a]];
-    auto& jp = ts.block_jp;
-    for (int c = 0; c < np; ++c) jp.col(c).head(blk.rows) = jp_all.col(plocal[c]);
-    auto jpc = jp.topLeftCorner(blk.rows, np);
-    auto uy = ts.block_u.topLeftCorner(blk.num_y, blk.num_y);
-    auto wy = ts.block_w.topLeftCorner(blk.num_y, np);
-    auto vp = ts.block_v.topLeftCorner(np, np);
-    uy.noalias() = jy.transpose() * jy;
-    wy.noalias() = jy.transpose() * jpc;
-    vp.noalias() = jpc.transpose() * jpc;
-    for (int a = 0; a < blk.num_y; ++a) {
-      for (int c = 0; c < blk.num_y; ++c)
-        if (ycol[c] <= ycol[a]) ts.u(ycol[a], ycol[c]) += uy(a, c);
-      for (int c = 0; c < np; ++c) ts.w(ycol[a], pcol[c]) += wy(a, c);
+      const int* wo = woff + a * np;
+      for (int c = 0; c < np; ++c) w[wo[c]] += a0 * jp[3 * c] + a1 * jp[3 * c + 1] + a2 * jp[3 * c + 2];
     }
-    for (int d = 0; d < np; ++d)
-      for (int c = 0; c < np; ++c)
-        if (pcol[d] <= pcol[c]) ts.s(pcol[c], pcol[d]) += vp(c, d);
+    if (!linearizing) continue;
+    double res[3] = {0, 0, 0};
+    for (int r = 0; r < rows; ++r) res[r] = blk.residual[r];
+    ts.cost += res[0] * res[0] + res[1] * res[1] + res[2] * res[2];
+    for (int a = 0; a < nyb; ++a)
+      ts.gyi[blk.y_index[a]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
+    for (int c = 0; c < np; ++c)
+      ts.gp[kind.free_p[c]] += jp[3 * c] * res[0] + jp[3 * c + 1] * res[1] + jp[3 * c + 2] * res[2];
+    if (np > 0) {
+      int& count = ts.v_count[blk.kind];
+      double* stack = ts.v_stack[blk.kind].data() + static_cast<size_t>(count) * np;
+      for (int r = 0; r < rows; ++r)
+        for (int c = 0; c < np; ++c) stack[r * np + c] = jp[3 * c + r];
+      count += rows;
+      if (count + kMaxBlockRows > ts.v_stack[blk.kind].cols()) FlushV(ts, blk.kind);
+    }
   }
+  return true;
+}
+
+void ArrowSchurProblem::FlushV(ThreadState& ts, int kind) const {
+  int& count = ts.v_count[kind];
+  if (count == 0) return;
+  ts.v_acc[kind].selfadjointView<Eigen::Lower>().rankUpdate(ts.v_stack[kind].leftCols(count), 1.0);
+  count = 0;
+}
+
+void ArrowSchurProblem::FlushGroup(ThreadState& ts, int group) const {
+  int& count = ts.g_count[group];
+  if (count == 0) return;
+  Eigen::MatrixXd& target = groups_[group].full ? ts.s : ts.g_acc[group];
+  target.selfadjointView<Eigen::Lower>().rankUpdate(ts.g_stack[group].leftCols(count), -1.0);
+  count = 0;
 }
 
 void ArrowSchurProblem::AddFramePrior(int f, Eigen::MatrixXd* u) const {
@@ -320,77 +425,97 @@ void ArrowSchurProblem::AddFramePrior(int f, Eigen::MatrixXd* u) const {
   for (int i = 0; i < ny_; ++i) (*u)(position_[i], position_[i]) += w[i] * w[i];
 }
 
-void ArrowSchurProblem::FlushBatch(ThreadState& ts) const {
-  if (ts.batch_rows == 0) return;
-  ts.s.selfadjointView<Eigen::Lower>().rankUpdate(ts.batch.topRows(ts.batch_rows).transpose(), -1.0);
-  ts.batch_rows = 0;
+// U_f + damping factored into ts.llt, W_f at ts.w_frame, the frame's gradient in ts.gy (both in
+// elimination order): from the cache, or from a fresh evaluation at the linearisation point.
+bool ArrowSchurProblem::LoadFrame(ThreadState& ts, int f, const Eigen::VectorXd& damping) {
+  if (cached_) {
+    ts.u = CachedU(f);
+    ts.w_frame = CachedW(f);
+  } else {
+    if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true) ||
+        !AccumulateFrame(ts, /*linearizing=*/false))
+      return false;
+    ts.w_frame = ts.w.data();
+  }
+  const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
+  const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
+  AddFramePrior(f, &ts.u);
+  for (int i = 0; i < ny_; ++i) {
+    ts.u(position_[i], position_[i]) += dmp[i];
+    ts.gy[position_[i]] = g[i];
+  }
+  ts.llt.compute(ts.u);
+  return ts.llt.info() == Eigen::Success;
 }
 
 bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s_out,
                                           Eigen::VectorXd* rhs_out) {
-  if (!problem_->SetShared(x_.tail(np_))) return false;
+  if (!cached_ && !problem_->SetShared(x_.tail(np_))) return false;
   const int used_threads = std::max(1, std::min(num_threads_, nf_));
   ParallelChunks(nf_, num_threads_, [&](int t, int b, int e) {
     ThreadState& ts = *threads_[t];
     ts.ok = true;
     ts.s.setZero();
     ts.rhs.setZero();
-    ts.batch_rows = 0;
+    for (Eigen::MatrixXd& acc : ts.g_acc) acc.setZero();
+    std::fill(ts.g_count.begin(), ts.g_count.end(), 0);
     for (int f = b; f < e; ++f) {
-      if (cached_) {
-        ts.u = CachedU(f);
-      } else {
-        if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) {
-          ts.ok = false;
-          return;
-        }
-        AccumulateFrame(ts);  // V of the frame goes into ts.s
-      }
-      const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
-      const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
-      AddFramePrior(f, &ts.u);
-      for (int i = 0; i < ny_; ++i) {
-        ts.u(position_[i], position_[i]) += dmp[i];
-        ts.gy[position_[i]] = g[i];
-      }
-      ts.llt.compute(ts.u);
-      if (ts.llt.info() != Eigen::Success) {
+      if (!LoadFrame(ts, f, damping)) {
         ts.ok = false;
         return;
       }
       if (np_ == 0) continue;
-      if (cached_) ts.y = CachedW(f);
-      else ts.y = ts.w;
-      ts.llt.matrixL().solveInPlace(ts.y);
+      const Eigen::MatrixXd& l = ts.llt.matrixLLT();  // L in the lower triangle
       ts.v = ts.gy;
-      ts.llt.matrixL().solveInPlace(ts.v);
-      ts.rhs.noalias() += ts.y.transpose() * ts.v;
-      for (const RowGroup& grp : groups_) {
-        const int n = static_cast<int>(grp.columns.size());
-        if (n == np_) {
-          // Rows reaching every shared column (the root's): stacked over frames and applied in
-          // one tall rank update, where the matrix product runs near peak.
-          ts.batch.middleRows(ts.batch_rows, grp.num_rows) = ts.y.middleRows(grp.first_row, grp.num_rows);
-          ts.batch_rows += grp.num_rows;
-          if (ts.batch_rows + grp.num_rows > ts.batch.rows()) FlushBatch(ts);
-        } else if (grp.contiguous) {
-          const int a = grp.columns.front();
-          ts.s.block(a, a, n, n).selfadjointView<Eigen::Lower>().rankUpdate(
-              ts.y.block(grp.first_row, a, grp.num_rows, n).transpose(), -1.0);
-        } else {
-          for (int c = 0; c < n; ++c)
-            for (int r = 0; r < grp.num_rows; ++r)
-              ts.gather(c, r) = ts.y(grp.first_row + r, grp.columns[c]);
-          auto g2 = ts.gather.topLeftCorner(n, grp.num_rows);
-          auto o = ts.outer.topLeftCorner(n, n);
-          o.triangularView<Eigen::Lower>().setZero();
-          o.selfadjointView<Eigen::Lower>().rankUpdate(g2, 1.0);
-          for (int c = 0; c < n; ++c)
-            for (int d = 0; d <= c; ++d) ts.s(grp.columns[c], grp.columns[d]) -= o(c, d);
+      SolveLower(l, &ts.v);
+      double* y = ts.y.data();
+      std::copy(ts.w_frame, ts.w_frame + w_size_, y);
+      // Y = L^{-1} W, group by group in elimination order: subtract what the rows eliminated
+      // earlier contribute (through the columns they reach), then the group's own triangle.
+      for (size_t gi = 0; gi < groups_.size(); ++gi) {
+        const RowGroup& g = groups_[gi];
+        const int n = static_cast<int>(g.columns.size());
+        double* yg = y + g.offset;
+        for (const RowGroup::Child& child : g.children) {
+          const RowGroup& h = groups_[child.group];
+          const int hn = static_cast<int>(h.columns.size());
+          const int* map = child.map.data();
+          for (int r = 0; r < g.num_rows; ++r) {
+            double* dst = yg + r * n;
+            for (int q = 0; q < h.num_rows; ++q) {
+              const double lv = l(g.first_row + r, h.first_row + q);
+              if (lv == 0.0) continue;
+              const double* src = y + h.offset + q * hn;
+              for (int c = 0; c < hn; ++c) dst[map[c]] -= lv * src[c];
+            }
+          }
         }
+        for (int r = 0; r < g.num_rows; ++r) {
+          Eigen::Map<Eigen::VectorXd> row(yg + r * n, n);
+          for (int q = 0; q < r; ++q)
+            row -= l(g.first_row + r, g.first_row + q) * Eigen::Map<const Eigen::VectorXd>(yg + q * n, n);
+          row /= l(g.first_row + r, g.first_row + r);
+          const double vr = ts.v[g.first_row + r];
+          for (int c = 0; c < n; ++c) ts.rhs[g.columns[c]] += row[c] * vr;
+        }
+        // Stack the group's rows (as columns) for its rank update.
+        int& count = ts.g_count[gi];
+        Eigen::MatrixXd& stack = ts.g_stack[gi];
+        for (int r = 0; r < g.num_rows; ++r)
+          std::copy(yg + r * n, yg + (r + 1) * n, stack.col(count + r).data());
+        count += g.num_rows;
+        if (count + g.num_rows > stack.cols()) FlushGroup(ts, static_cast<int>(gi));
       }
     }
-    FlushBatch(ts);
+    for (size_t gi = 0; gi < groups_.size(); ++gi) {
+      FlushGroup(ts, static_cast<int>(gi));
+      const RowGroup& g = groups_[gi];
+      if (g.full) continue;
+      const Eigen::MatrixXd& acc = ts.g_acc[gi];
+      const int n = static_cast<int>(g.columns.size());
+      for (int c = 0; c < n; ++c)
+        for (int d = 0; d <= c; ++d) ts.s(g.columns[c], g.columns[d]) += acc(c, d);
+    }
   });
   s_out->setZero(np_, np_);
   rhs_out->setZero(np_);
@@ -399,7 +524,7 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
     *s_out += threads_[t]->s;
     *rhs_out += threads_[t]->rhs;
   }
-  if (cached_) *s_out += v_total_;
+  *s_out += v_total_;
   *rhs_out -= gradient_.tail(np_);
   const Eigen::VectorXd& w = problem_->prior_weight();
   s_out->diagonal() += w.cwiseProduct(w) + damping.tail(np_);
@@ -426,65 +551,33 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
     ThreadState& ts = *threads_[t];
     ts.ok = true;
     for (int f = b; f < e; ++f) {
-      if (cached_) {
-        ts.u = CachedU(f);
-        ts.wdp.noalias() = CachedW(f) * dp;
-      } else if (!BackSubstitutionTerms(ts, f, dp)) {
+      if (!LoadFrame(ts, f, damping)) {
         ts.ok = false;
         return;
       }
-      const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
-      const double* dmp = damping.data() + static_cast<size_t>(f) * ny_;
-      AddFramePrior(f, &ts.u);
-      for (int i = 0; i < ny_; ++i) {
-        ts.u(position_[i], position_[i]) += dmp[i];
-        ts.wdp[position_[i]] += g[i];
+      ts.wdp = ts.gy;
+      for (const RowGroup& g : groups_) {
+        const int n = static_cast<int>(g.columns.size());
+        const double* wg = ts.w_frame + g.offset;
+        for (int r = 0; r < g.num_rows; ++r) {
+          double sum = 0;
+          if (g.contiguous) {
+            sum = Eigen::Map<const Eigen::VectorXd>(wg + r * n, n).dot(dp.segment(g.columns.front(), n));
+          } else {
+            for (int c = 0; c < n; ++c) sum += wg[r * n + c] * dp[g.columns[c]];
+          }
+          ts.wdp[g.first_row + r] += sum;
+        }
       }
-      ts.llt.compute(ts.u);
-      if (ts.llt.info() != Eigen::Success) {
-        ts.ok = false;
-        return;
-      }
-      ts.dy = ts.llt.solve(ts.wdp);
+      SolveLower(ts.llt.matrixLLT(), &ts.wdp);
+      SolveLowerTransposed(ts.llt.matrixLLT(), &ts.wdp);
       double* out = dx->data() + static_cast<size_t>(f) * ny_;
-      for (int i = 0; i < ny_; ++i) out[i] = -ts.dy[position_[i]];
+      for (int i = 0; i < ny_; ++i) out[i] = -ts.wdp[position_[i]];
     }
   });
   for (int t = 0; t < std::max(1, std::min(num_threads_, nf_)); ++t)
     if (!threads_[t]->ok) return false;
   return dx->allFinite();
-}
-
-// Without the cache: U_f and W_f dp of frame f from a fresh evaluation of its Jacobian.
-bool ArrowSchurProblem::BackSubstitutionTerms(ThreadState& ts, int f, const Eigen::VectorXd& dp) {
-  if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true)) return false;
-  ts.u.setZero();
-  ts.wdp.setZero();
-  for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
-    const ResidualBlock& blk = ts.evaluator->block(k);
-    double jdp[kMaxBlockRows] = {0, 0, 0};
-    for (int c = 0; c < blk.num_p; ++c) {
-      const int p = blk.p_index[c];
-      if (p < 0) continue;
-      for (int r = 0; r < blk.rows; ++r) jdp[r] += blk.jp[c * kMaxBlockRows + r] * dp[p];
-    }
-    for (int a = 0; a < blk.num_y; ++a) {
-      const int pa = position_[blk.y_index[a]];
-      const double* ja = blk.jy + a * kMaxBlockRows;
-      double sum = 0;
-      for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jdp[r];
-      ts.wdp[pa] += sum;
-      for (int c = 0; c < blk.num_y; ++c) {
-        const int pc = position_[blk.y_index[c]];
-        if (pc > pa) continue;
-        const double* jc = blk.jy + c * kMaxBlockRows;
-        double s2 = 0;
-        for (int r = 0; r < blk.rows; ++r) s2 += ja[r] * jc[r];
-        ts.u(pa, pc) += s2;
-      }
-    }
-  }
-  return true;
 }
 
 bool ArrowSchurProblem::SharedCovariance(Eigen::MatrixXd* covariance, double frame_ridge) {

@@ -9,18 +9,26 @@
 // independently. This is the reduced camera system of bundle adjustment (Triggs et al., "Bundle
 // Adjustment — A Modern Synthesis", 2000, §6.1) with frames in place of points.
 //
-// Two structural facts make it fast for kinematic trees:
+// Structure makes it fast for kinematic trees (all of it found once, symbolically, from
+// ArrowProblem::BlockStructure):
 //  * U_f has the sparsity of a tree (coordinates couple only along a kinematic chain); eliminated
 //    leaves first (minimum degree finds that order), its Cholesky factor L_f has no fill.
-//  * With that order, row i of Y_f = L_f^{-1} W_f is non-zero only on the shared parameters that
-//    affect the subtree below coordinate i; so S -= Y^T Y is a sum of small dense outer products
-//    over row groups, and only the root's rows touch every shared parameter.
-// Both patterns are found once, symbolically, from ArrowProblem::BlockStructure.
-// Each frame's U_f and W_f are cached between the linearisation and the solves when they fit in
-// `cache_budget_bytes`, so a step (and a rejected step's re-solve) costs no Jacobian evaluation;
-// above the budget nothing per frame is stored and the Jacobian is re-evaluated in each pass, so
-// memory stays O(frames x frame_dim) and 60,000 frames fit easily. Frames are processed in
-// parallel with per-thread accumulators.
+//  * With that order, row i of W_f and of Y_f = L_f^{-1} W_f is non-zero only on the shared
+//    parameters that move the subtree below coordinate i, and an ancestor's set contains its
+//    descendants'. Rows with one pattern form a row group; W_f and Y_f are stored compactly, each
+//    group as a dense block over its own columns (a fifth of the dense 38 x 200 matrix for the
+//    full body), and the forward substitution runs group by group with precomputed column maps.
+//  * S -= Y^T Y is then a sum of one dense outer product per group. Each group's rows are
+//    stacked over many frames and applied as one tall rank update (a matrix product near peak
+//    speed) into a per-group accumulator, scattered into S once per thread; only the root's rows
+//    reach every shared column, and go straight into S.
+//  * V = sum_f J_pf^T J_pf does not depend on the damping: it is formed once per linearisation,
+//    per residual-block kind, by the same stacked rank updates.
+// Each frame's U_f and compact W_f are cached between the linearisation and the solves when they
+// fit in `cache_budget_bytes`, so a step (and a rejected step's re-solve) costs no Jacobian
+// evaluation; above the budget nothing per frame is stored and the Jacobian is re-evaluated in
+// each pass, so memory stays O(frames x frame_dim). Frames are processed in parallel with
+// per-thread accumulators.
 #pragma once
 
 #include <Eigen/Core>
@@ -60,19 +68,39 @@ class ArrowSchurProblem : public LmProblem {
 
  private:
   struct ThreadState;
+  // A run of rows (elimination order) with one pattern of reached shared columns.
+  struct RowGroup {
+    int first_row, num_rows;
+    std::vector<int> columns;   // shared columns reached, sorted
+    bool full;                  // reaches every shared column (the root): columns == 0..np-1
+    bool contiguous;            // columns == [columns.front(), columns.back()]
+    int offset;                 // of its block (num_rows x columns.size(), row-major) in W_f, Y_f
+    struct Child {
+      int group;
+      std::vector<int> map;     // position of each of the child's columns among ours
+    };
+    std::vector<Child> children;  // earlier groups with a non-zero block of L_f in our rows
+  };
+  // Where one residual-block kind's products go.
+  struct BlockKind {
+    int num_y = 0;
+    std::vector<int> y_position;  // elimination position of each y column
+    std::vector<int> free_local;  // block columns with a free shared parameter
+    std::vector<int> free_p;      // their shared indices
+    std::vector<int> w_offset;    // num_y x free: offset in compact W (-1 none), row-major
+  };
   void Analyse();
-  void AccumulateFrame(ThreadState& ts) const;
-  void FlushBatch(ThreadState& ts) const;
+  bool AccumulateFrame(ThreadState& ts, bool linearizing) const;
+  void FlushV(ThreadState& ts, int kind) const;
+  void FlushGroup(ThreadState& ts, int group) const;
   void AddFramePrior(int f, Eigen::MatrixXd* u) const;
-  bool BackSubstitutionTerms(ThreadState& ts, int f, const Eigen::VectorXd& dp);
+  bool LoadFrame(ThreadState& ts, int f, const Eigen::VectorXd& damping);
   Eigen::Map<Eigen::MatrixXd> CachedU(int f) {
     return Eigen::Map<Eigen::MatrixXd>(u_cache_.data() + static_cast<size_t>(f) * ny_ * ny_, ny_, ny_);
   }
-  Eigen::Map<Eigen::MatrixXd> CachedW(int f) {
-    return Eigen::Map<Eigen::MatrixXd>(w_cache_.data() + static_cast<size_t>(f) * ny_ * np_, ny_, np_);
-  }
+  double* CachedW(int f) { return w_cache_.data() + static_cast<size_t>(f) * w_size_; }
   double SharedRowsSquaredNorm(const Eigen::VectorXd& p) const;
-  // Pass 1: accumulates S (lower triangle) and the reduced right-hand side over all frames.
+  // Accumulates S (lower triangle) and the reduced right-hand side over all frames.
   bool FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s, Eigen::VectorXd* rhs);
 
   ArrowProblem* problem_;
@@ -81,17 +109,14 @@ class ArrowSchurProblem : public LmProblem {
   int max_block_y_ = 1, max_block_p_ = 1;  // widest residual block (from BlockStructure)
   std::vector<int> order_;     // elimination order: position -> y index
   std::vector<int> position_;  // y index -> position
-  struct RowGroup {
-    int first_row, num_rows;   // in elimination order
-    std::vector<int> columns;  // p columns reached (sorted)
-    bool contiguous;           // columns == [columns.front(), columns.back()]
-  };
   std::vector<RowGroup> groups_;
+  std::vector<BlockKind> kinds_;
+  int w_size_ = 0;             // doubles in a compact W_f
   std::vector<std::unique_ptr<ThreadState>> threads_;
   Eigen::VectorXd x_, gradient_;
   bool cached_ = false;
-  std::vector<double> u_cache_, w_cache_;  // per frame U_f (elimination order) and W_f
-  Eigen::MatrixXd v_total_;                // sum of V_f (lower), with the cache
+  std::vector<double> u_cache_, w_cache_;  // per frame U_f (elimination order) and compact W_f
+  Eigen::MatrixXd v_total_;                // sum of V_f (lower) at the linearisation point
 };
 
 }  // namespace mocap::solver

@@ -11,17 +11,27 @@ using namespace mocap;
 
 
 
-TEST(ArrowSchur, StepMatchesDenseNormalEquations) {
+// With and without the per-frame cache, on one and two threads; 40 frames, so each thread's
+// stacked rank updates are flushed both when full and at the end of its chunk.
+struct SchurCase {
+  int threads;
+  double cache_budget_bytes;
+};
+class ArrowSchurStep : public ::testing::TestWithParam<SchurCase> {};
+
+TEST_P(ArrowSchurStep, MatchesDenseNormalEquations) {
   std::mt19937_64 rng(5);
   Model nominal = DefaultFullBodyModel();
   const Model truth = nominal.WithParameters(testutil::PerturbedParameters(nominal, rng));
   Eigen::MatrixXd z_true;
-  formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, 6, 0.0005, rng, &z_true);
+  const int nf = 40;
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, nf, 0.0005, rng, &z_true);
   // Some missing samples, so frames differ in structure.
   trial.positions.block(2, 0, 1, 6).setConstant(NAN);
+  trial.positions.block(17, 30, 3, 3).setConstant(NAN);
   solver::FitOptions options;
   solver::MarkerFitProblem problem(nominal, trial.positions, options);
-  const int nf = 6, ny = nominal.num_coordinates(), np = problem.shared_dim();
+  const int ny = nominal.num_coordinates(), np = problem.shared_dim();
   Eigen::VectorXd x(nf * ny + np);
   for (int f = 0; f < nf; ++f) x.segment(f * ny, ny) = z_true.row(f).transpose();
   x.tail(np) = problem.InitialShared() + 0.001 * Eigen::VectorXd::Random(np);
@@ -29,7 +39,8 @@ TEST(ArrowSchur, StepMatchesDenseNormalEquations) {
   Eigen::VectorXd targets = x;
   targets.head(nf * ny) += 0.01 * Eigen::VectorXd::Random(nf * ny);
   problem.SetFramePriorTargets(targets);
-  solver::ArrowSchurProblem schur(&problem, 2);
+  solver::ArrowSchurProblem schur(&problem, GetParam().threads, GetParam().cache_budget_bytes);
+  EXPECT_EQ(schur.caches_frames(), GetParam().cache_budget_bytes > 0);
   double cost;
   Eigen::VectorXd g, d;
   ASSERT_TRUE(schur.Linearize(x, &cost, &g, &d));
@@ -56,6 +67,13 @@ TEST(ArrowSchur, StepMatchesDenseNormalEquations) {
   Eigen::MatrixXd inv = jtj.ldlt().solve(Eigen::MatrixXd::Identity(jtj.rows(), jtj.cols()));
   EXPECT_LT((cov - inv.bottomRightCorner(np, np)).norm(), 1e-5 * inv.bottomRightCorner(np, np).norm());
 }
+
+INSTANTIATE_TEST_SUITE_P(CacheAndThreads, ArrowSchurStep,
+                         ::testing::Values(SchurCase{1, 1e9}, SchurCase{2, 1e9}, SchurCase{2, 0.0}),
+                         [](const ::testing::TestParamInfo<SchurCase>& info) {
+                           return std::to_string(info.param.threads) + "threads" +
+                                  (info.param.cache_budget_bytes > 0 ? "Cached" : "Uncached");
+                         });
 
 // The symbolic analysis finds the tree: leaves are eliminated first, the root's six coordinates
 // last, and only the root's rows reach every shared column.
