@@ -106,15 +106,6 @@ struct Encoder {
   }
 };
 
-const char* ProcessorName(C3dProcessor p) {
-  switch (p) {
-    case C3dProcessor::kIntel: return "Intel";
-    case C3dProcessor::kDec: return "DEC";
-    case C3dProcessor::kMips: return "MIPS";
-  }
-  return "?";
-}
-
 std::string Upper(std::string_view s) {
   std::string u(s);
   for (char& c : u) {
@@ -699,7 +690,8 @@ Status WriteC3d(const std::string& path, const MarkerTrial& trial, const C3dWrit
           return Status::Error(cannot + "frame " + std::to_string(f) + " marker " +
                                trial.marker_names[m] + " has an infinite or huge coordinate");
         }
-        if (trial.Has(f, m)) max_mm = std::max(max_mm, std::fabs(v * 1000.0));
+        // Of the float that is stored, so that rewriting a file read back gives the same scale.
+        if (trial.Has(f, m)) max_mm = std::max(max_mm, std::fabs(double{static_cast<float>(v * 1000.0)}));
       }
     }
   }
