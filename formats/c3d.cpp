@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <initializer_list>
 #include <map>
 #include <set>
 #include <tuple>
@@ -161,6 +162,7 @@ class Reader {
   Status ParseParameters();
   // Element `i` of a numeric parameter as an unsigned count (int16 read as uint16: counts past
   // 32767 are stored that way) or as a real number.
+  Status HasValue(const Param& p, size_t i) const;
   Status Unsigned(const Param& p, size_t i, uint32_t* value) const;
   Status Real(const Param& p, size_t i, double* value) const;
   // The strings of a character parameter: the first dimension is the length.
@@ -247,11 +249,14 @@ Status Reader::ParseParameters() {
   return Status::Ok();
 }
 
+Status Reader::HasValue(const Param& p, size_t i) const {
+  if (i < p.count) return Status::Ok();
+  return Error(ParamWhere(p), "has " + std::to_string(p.count) + " values, expected at least " +
+                                  std::to_string(i + 1));
+}
+
 Status Reader::Unsigned(const Param& p, size_t i, uint32_t* value) const {
-  if (i >= p.count) {
-    return Error(ParamWhere(p), "has " + std::to_string(p.count) + " values, expected at least " +
-                                    std::to_string(i + 1));
-  }
+  if (Status s = HasValue(p, i); !s.ok()) return s;
   switch (p.type) {
     case kByte: *value = b_[p.data + i]; return Status::Ok();
     case kInt16: *value = dec_.U16(b_ + p.data + 2 * i); return Status::Ok();
@@ -268,10 +273,7 @@ Status Reader::Unsigned(const Param& p, size_t i, uint32_t* value) const {
 }
 
 Status Reader::Real(const Param& p, size_t i, double* value) const {
-  if (i >= p.count) {
-    return Error(ParamWhere(p), "has " + std::to_string(p.count) + " values, expected at least " +
-                                    std::to_string(i + 1));
-  }
+  if (Status s = HasValue(p, i); !s.ok()) return s;
   switch (p.type) {
     case kByte: *value = b_[p.data + i]; return Status::Ok();
     case kInt16: *value = dec_.I16(b_ + p.data + 2 * i); return Status::Ok();
@@ -558,25 +560,18 @@ class ParamWriter {
     End();
   }
   void Int16(int group, const std::string& name, int value) {
-    Begin(name, group);
-    body_.push_back(static_cast<char>(kInt16));
-    body_.push_back(0);
+    BeginParam(name, group, kInt16, {});
     Enc().I16(value);
     End();
   }
   void Float(int group, const std::string& name, float value) {
-    Begin(name, group);
-    body_.push_back(static_cast<char>(kFloat));
-    body_.push_back(0);
+    BeginParam(name, group, kFloat, {});
     Enc().F32(value);
     End();
   }
   // Two int16 words forming an unsigned 32-bit number, low word first (TRIAL:ACTUAL_*_FIELD).
   void Word32(int group, const std::string& name, uint32_t value) {
-    Begin(name, group);
-    body_.push_back(static_cast<char>(kInt16));
-    body_.push_back(1);
-    body_.push_back(2);
+    BeginParam(name, group, kInt16, {2});
     Enc().U16(static_cast<uint16_t>(value & 0xffff));
     Enc().U16(static_cast<uint16_t>(value >> 16));
     End();
@@ -586,11 +581,11 @@ class ParamWriter {
                bool as_array) {
     size_t len = 1;
     for (const std::string& s : strings) len = std::max(len, s.size());
-    Begin(name, group);
-    body_.push_back(static_cast<char>(kChar));
-    body_.push_back(static_cast<char>(as_array ? 2 : 1));
-    body_.push_back(static_cast<char>(len));
-    if (as_array) body_.push_back(static_cast<char>(strings.size()));
+    if (as_array) {
+      BeginParam(name, group, kChar, {len, strings.size()});
+    } else {
+      BeginParam(name, group, kChar, {len});
+    }
     for (const std::string& s : strings) body_ += s + std::string(len - s.size(), ' ');
     End();
   }
@@ -619,6 +614,13 @@ class ParamWriter {
     body_ += name;
     offset_at_ = body_.size();
     body_ += "..";  // offset, filled in by End
+  }
+  void BeginParam(const std::string& name, int group, ParamType type,
+                  std::initializer_list<size_t> dims) {
+    Begin(name, group);
+    body_.push_back(static_cast<char>(type));
+    body_.push_back(static_cast<char>(dims.size()));
+    for (size_t d : dims) body_.push_back(static_cast<char>(d));
   }
   Encoder Enc() { return Encoder{processor_, &body_}; }
   // Ends the item with an empty description; its offset points just past it.

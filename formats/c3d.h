@@ -16,7 +16,9 @@
 //   scale. Analog samples use the same storage and are skipped: ANALOG:USED x the header's analog
 //   samples per frame (the header's total analog count, word 3, only where ANALOG:USED is absent).
 // - The 4th word: a negative residual marks an invalid (missing) sample. In float files it is a
-//   float whose integer part holds the camera mask and residual; the sign is what matters.
+//   float whose integer part holds the camera mask and residual; the sign is what matters. Some
+//   writers (ezc3d, as in shared/data's biobuddy files) mark gaps with NaN coordinates and
+//   residual 0 instead: a non-finite coordinate is missing too.
 // - POINT:LABELS holds at most 255 labels; LABELS2, LABELS3, ... continue it. Labels are padded
 //   with spaces; Cortex and Vicon prefix them with the subject ("FullBody_static:r_knee"), which
 //   `strip_label_prefix` drops so the names match the model's markers.

@@ -4,24 +4,21 @@
 // corrupt and truncated files; and `mocap convert` end to end.
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
-#include <sys/wait.h>
 
-#include <array>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
-#include <fstream>
 #include <limits>
 #include <map>
 #include <random>
-#include <sstream>
 #include <string>
 #include <vector>
 
 #include "formats/c3d.h"
 #include "formats/marker_data.h"
 #include "formats/trc.h"
+#include "tests/file_test_util.h"
 
 namespace fs = std::filesystem;
 using mocap::Status;
@@ -40,34 +37,13 @@ namespace {
 
 const double kNaN = std::numeric_limits<double>::quiet_NaN();
 
-std::string SharedData() { return MOCAP_SHARED_DATA; }
+using mocap::testutil::CommandResult;
+using mocap::testutil::Mocap;
+using mocap::testutil::ReadBytes;
+using mocap::testutil::SharedData;
+using mocap::testutil::WriteBytes;
 
-#define SKIP_WITHOUT_SHARED_DATA()                                                          \
-  do {                                                                                       \
-    if (!fs::is_directory(SharedData())) {                                                   \
-      GTEST_SKIP() << "shared data folder " << SharedData()                                  \
-                   << " is absent (CI puts shared/ beside the checkout); skipping real-data test"; \
-    }                                                                                        \
-  } while (0)
-
-// A scratch path unique to the running test (ctest runs tests in parallel processes).
-std::string TmpPath(const std::string& suffix) {
-  const fs::path dir = fs::path(MOCAP_TEST_TMP) / "c3d";
-  fs::create_directories(dir);
-  const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
-  return (dir / (std::string(info->test_suite_name()) + "_" + info->name() + suffix)).string();
-}
-
-std::string ReadBytes(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return ss.str();
-}
-
-void WriteBytes(const std::string& path, const std::string& bytes) {
-  std::ofstream(path, std::ios::binary | std::ios::trunc) << bytes;
-}
+std::string TmpPath(const std::string& suffix) { return mocap::testutil::TmpPath("c3d", suffix); }
 
 int CountMissing(const MarkerTrial& t) {
   int n = 0;
@@ -676,21 +652,6 @@ TEST_F(C3dBad, RandomCorruptionNeverCrashes) {
 }
 
 // ---------------------------------------------------------------- mocap convert
-
-struct CommandResult {
-  int status;
-  std::string output;
-};
-
-CommandResult Mocap(const std::string& args) {
-  const std::string cmd = std::string(MOCAP_TOOL) + " " + args + " 2>&1";
-  FILE* pipe = popen(cmd.c_str(), "r");
-  std::string out;
-  std::array<char, 4096> buf;
-  while (pipe && fgets(buf.data(), buf.size(), pipe)) out += buf.data();
-  const int rc = pipe ? pclose(pipe) : -1;
-  return {WIFEXITED(rc) ? WEXITSTATUS(rc) : -1, out};
-}
 
 // C3D -> TRC -> C3D -> TRC: the TRC has the C3D's values (to its 5 decimals of mm), and so has
 // the TRC made from the C3D made from it.
