@@ -102,6 +102,13 @@ bool EqualsIgnoreCase(std::string_view a, std::string_view b) {
   return true;
 }
 
+double UnitsPerMetre(std::string_view units) {
+  if (EqualsIgnoreCase(units, "mm")) return 1000.0;
+  if (EqualsIgnoreCase(units, "cm")) return 100.0;
+  if (EqualsIgnoreCase(units, "m")) return 1.0;
+  return 0.0;
+}
+
 NumberKind ParseDouble(std::string_view field, double* value) {
   std::string_view s = Trim(field);
   if (s.empty()) return NumberKind::kInvalid;

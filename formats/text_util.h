@@ -1,4 +1,4 @@
-// Internal helpers shared by the TRC and MOT readers/writers: whole-file I/O, line splitting
+// Internal helpers shared by the TRC, C3D and MOT readers/writers: whole-file I/O, line splitting
 // that tolerates LF / CRLF / CR endings, field splitting, strict locale-independent number
 // parsing and formatting. Not part of the public formats API.
 #pragma once
@@ -46,6 +46,10 @@ NumberKind ParseDouble(std::string_view field, double* value);
 bool ParseInt(std::string_view field, int* value);
 
 bool EqualsIgnoreCase(std::string_view a, std::string_view b);
+
+// File units per metre for a length unit name (any case): mm 1000, cm 100, m 1; 0 when the unit is
+// not supported. Exact integers, so dividing a value in file units by them rounds correctly.
+double UnitsPerMetre(std::string_view units);
 
 // Appends `value` in fixed notation with `decimals` digits after the point (locale-independent).
 void AppendFixed(std::string* out, double value, int decimals);

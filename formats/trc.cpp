@@ -21,24 +21,11 @@ using detail::ParseDouble;
 using detail::ParseInt;
 using detail::Quote;
 using detail::SplitFields;
+using detail::UnitsPerMetre;
 
 namespace {
 
 const char* const kAxis[3] = {"X", "Y", "Z"};
-
-// Metres per file unit, or 0 if the unit is not supported.
-double MetresPerUnit(std::string_view units) {
-  if (EqualsIgnoreCase(units, "mm")) return 1e-3;
-  if (EqualsIgnoreCase(units, "cm")) return 1e-2;
-  if (EqualsIgnoreCase(units, "m")) return 1.0;
-  return 0.0;
-}
-// File units per metre (exact integers, so a division by them is correctly rounded).
-double UnitsPerMetre(std::string_view units) {
-  if (EqualsIgnoreCase(units, "mm")) return 1000.0;
-  if (EqualsIgnoreCase(units, "cm")) return 100.0;
-  return 1.0;
-}
 
 // "X12" / "x12": the coordinate-label line's first label.
 bool IsCoordinateLabel(std::string_view f) {
@@ -94,7 +81,7 @@ Status ParseHeader(const std::string& path, const Line& keys_line, const Line& v
       continue;
     }
     if (key == "Units") {
-      if (MetresPerUnit(value) == 0.0) {
+      if (UnitsPerMetre(value) == 0.0) {
         return Status::Error(At(path, values_line.number,
                                 "Units " + Quote(value) + " is not supported (expected mm, cm or m)"));
       }

@@ -9,24 +9,14 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "tests/file_test_util.h"
+
 namespace fs = std::filesystem;
 
 namespace {
 
-struct CommandResult {
-  int status;
-  std::string output;
-};
-
-CommandResult Mocap(const std::string& args) {
-  const std::string cmd = std::string(MOCAP_TOOL) + " " + args + " 2>&1";
-  FILE* pipe = popen(cmd.c_str(), "r");
-  std::string out;
-  std::array<char, 4096> buf;
-  while (pipe && fgets(buf.data(), buf.size(), pipe)) out += buf.data();
-  const int rc = pipe ? pclose(pipe) : -1;
-  return {WIFEXITED(rc) ? WEXITSTATUS(rc) : -1, out};
-}
+using mocap::testutil::CommandResult;
+using mocap::testutil::Mocap;
 
 class Cli : public ::testing::Test {
  protected:

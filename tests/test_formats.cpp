@@ -13,6 +13,7 @@
 #include "formats/marker_data.h"
 #include "formats/mot.h"
 #include "formats/trc.h"
+#include "tests/file_test_util.h"
 
 namespace fs = std::filesystem;
 using mocap::Status;
@@ -29,15 +30,9 @@ namespace {
 
 const double kNaN = std::numeric_limits<double>::quiet_NaN();
 
-std::string SharedData() { return MOCAP_SHARED_DATA; }
+using mocap::testutil::SharedData;
 
-// A scratch file path unique to the running test (ctest runs tests in parallel processes).
-std::string TmpPath(const std::string& suffix) {
-  const fs::path dir = fs::path(MOCAP_TEST_TMP) / "formats";
-  fs::create_directories(dir);
-  const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
-  return (dir / (std::string(info->test_suite_name()) + "_" + info->name() + suffix)).string();
-}
+std::string TmpPath(const std::string& suffix) { return mocap::testutil::TmpPath("formats", suffix); }
 
 std::string WriteText(const std::string& suffix, const std::string& text) {
   const std::string path = TmpPath(suffix);
@@ -45,14 +40,6 @@ std::string WriteText(const std::string& suffix, const std::string& text) {
   out << text;
   return path;
 }
-
-#define SKIP_WITHOUT_SHARED_DATA()                                                          \
-  do {                                                                                       \
-    if (!fs::is_directory(SharedData())) {                                                   \
-      GTEST_SKIP() << "shared data folder " << SharedData()                                  \
-                   << " is absent (CI puts shared/ beside the checkout); skipping real-data test"; \
-    }                                                                                        \
-  } while (0)
 
 // The status failed and its message names the file and "FILE:LINE:" and contains `what`.
 void ExpectErrorAt(const Status& s, const std::string& path, int line, const std::string& what) {

@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# Builds the libFuzzer targets of fuzz/ with clang, AddressSanitizer and UBSan in build-fuzz/, and
+# runs each for a bounded time, seeded with fuzz/seeds/NAME/ (small files covering the formats'
+# variants), the files *.NAME of ../shared/data, and the corpus it grew before (fuzz_NAME reads
+# *.NAME). Exits non-zero on a crash (the input is kept in
+# build-fuzz/artifacts/) or when the build fails.
+# Usage: scripts/fuzz.sh [seconds per target, default 60]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+secs=${1:-60}
+CXX_BIN=$(command -v clang++ || command -v clang++-14 || true)
+if [ -z "$CXX_BIN" ]; then
+  echo "fuzz: clang++ not found (scripts/deps.sh installs clang-14 and libclang-rt-14-dev)" >&2
+  exit 1
+fi
+san="-fsanitize=fuzzer-no-link,address,undefined -fno-sanitize-recover=all -fno-omit-frame-pointer"
+cmake -S . -B build-fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_CXX_COMPILER="$CXX_BIN" \
+      -DMOCAP_FUZZ=ON -DMOCAP_NATIVE=OFF -DCMAKE_CXX_FLAGS="$san" >/dev/null
+targets=()
+for src in fuzz/fuzz_*.cpp; do targets+=("$(basename "$src" .cpp)"); done
+cmake --build build-fuzz -j2 --target "${targets[@]}"
+
+shared=../shared/data
+failed=()
+for t in "${targets[@]}"; do
+  ext=${t#fuzz_}
+  corpus=build-fuzz/corpus/$t seeds=build-fuzz/seeds/$t
+  mkdir -p "$corpus" "$seeds" build-fuzz/artifacts
+  [ -d "fuzz/seeds/$ext" ] && cp -f fuzz/seeds/"$ext"/* "$seeds/"
+  if [ -d "$shared" ]; then
+    find "$shared" -name "*.$ext" -exec cp -f {} "$seeds/" \;
+  else
+    echo "fuzz: $shared is absent: $t starts from its own corpus only"
+  fi
+  echo "fuzz: $t for ${secs} s ($(ls "$seeds" | wc -l) seed files)"
+  # Seeds past max_len are cut to it (the header and parameters are at the front): small inputs
+  # keep the runs fast; the mutations of the frame counts make the cut files whole again.
+  if ! "build-fuzz/fuzz/$t" -max_total_time="$secs" -timeout=10 -rss_limit_mb=2048 \
+       -max_len=65536 -print_final_stats=1 -artifact_prefix="build-fuzz/artifacts/$t-" \
+       "$corpus" "$seeds" 2>"build-fuzz/$t.log"; then
+    tail -n 60 "build-fuzz/$t.log" >&2
+    failed+=("$t")
+  else
+    grep -E "^(Done|stat::number_of_executed_units|stat::peak_rss_mb)" "build-fuzz/$t.log" || true
+  fi
+done
+if [ ${#failed[@]} -gt 0 ]; then
+  echo "fuzz: FAILED: ${failed[*]} (crashing inputs in build-fuzz/artifacts/)" >&2
+  exit 1
+fi
+echo "fuzz: ${#targets[@]} targets ran ${secs} s each without a crash"
