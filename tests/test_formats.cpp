@@ -13,6 +13,7 @@
 #include "formats/marker_data.h"
 #include "formats/mot.h"
 #include "formats/trc.h"
+#include "shared_data.h"
 
 namespace fs = std::filesystem;
 using mocap::Status;
@@ -29,7 +30,7 @@ namespace {
 
 const double kNaN = std::numeric_limits<double>::quiet_NaN();
 
-std::string SharedData() { return MOCAP_SHARED_DATA; }
+using mocap::testing::SharedData;
 
 // A scratch file path unique to the running test (ctest runs tests in parallel processes).
 std::string TmpPath(const std::string& suffix) {
@@ -46,13 +47,6 @@ std::string WriteText(const std::string& suffix, const std::string& text) {
   return path;
 }
 
-#define SKIP_WITHOUT_SHARED_DATA()                                                          \
-  do {                                                                                       \
-    if (!fs::is_directory(SharedData())) {                                                   \
-      GTEST_SKIP() << "shared data folder " << SharedData()                                  \
-                   << " is absent (CI puts shared/ beside the checkout); skipping real-data test"; \
-    }                                                                                        \
-  } while (0)
 
 // The status failed and its message names the file and "FILE:LINE:" and contains `what`.
 void ExpectErrorAt(const Status& s, const std::string& path, int line, const std::string& what) {

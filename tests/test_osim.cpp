@@ -18,6 +18,7 @@
 #include "model/kinematics.h"
 #include "model/model_io.h"
 #include "model_test_util.h"
+#include "shared_data.h"
 
 namespace fs = std::filesystem;
 using namespace mocap;
@@ -30,17 +31,10 @@ using ::testing::HasSubstr;
 
 namespace {
 
-std::string SharedData() { return MOCAP_SHARED_DATA; }
+using mocap::testing::SharedData;
 std::string Gait(const std::string& f) { return SharedData() + "/opensim_gait2354_subject01/" + f; }
 std::string Welk(const std::string& f) { return SharedData() + "/welk007_hipfunc/" + f; }
 
-#define SKIP_WITHOUT_SHARED_DATA()                                                                  \
-  do {                                                                                               \
-    if (!fs::is_directory(SharedData())) {                                                           \
-      GTEST_SKIP() << "shared data folder " << SharedData()                                          \
-                   << " is absent (CI puts shared/ beside the checkout); skipping real-data test"; \
-    }                                                                                                \
-  } while (0)
 
 std::string TmpPath(const std::string& suffix) {
   const fs::path dir = fs::path(MOCAP_TEST_TMP) / "osim";
