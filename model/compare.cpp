@@ -22,7 +22,7 @@ constexpr double kCollinear = 1e-6;
 using Eigen::Vector3d;
 
 bool Varying(const JointElement& el) {
-  return el.coordinate >= 0 && el.function.kind != CoordinateFunction::Kind::kConstant;
+  return el.coordinate >= 0 && !el.function.IsConstant();
 }
 
 bool HasTranslation(const Joint& j) {
@@ -185,8 +185,8 @@ std::string ElementText(const Model& m, const JointElement& el) {
   std::string t = el.kind == ElementKind::kRotation ? "rotation" : "translation";
   t += el.coordinate >= 0 ? " of '" + m.coordinates()[el.coordinate].name + "'" : " (no coordinate)";
   if (el.fitted_axis) t += ", fitted axis";
-  if (el.function.kind == CoordinateFunction::Kind::kLinear) t += ", linear";
-  if (el.function.kind == CoordinateFunction::Kind::kConstant) t += ", constant";
+  if (el.function.kind != CoordinateFunction::Kind::kIdentity)
+    t += std::string(", ") + CoordinateFunction::KindName(el.function.kind);
   return t;
 }
 

@@ -12,12 +12,6 @@
 
 namespace mocap {
 
-#define MOCAP_RETURN_IF_ERROR(expr) \
-  do {                              \
-    ::mocap::Status _s = (expr);    \
-    if (!_s.ok()) return _s;        \
-  } while (0)
-
 class JsonFields {
  public:
   using json = nlohmann::json;

@@ -49,11 +49,13 @@ ModelData::ModelData(const Model& model) {
   element_rotation.resize(nj);
   element_origin.resize(nj);
   element_value.resize(nj);
+  element_derivative.resize(nj);
   for (int j = 0; j < nj; ++j) {
     const size_t ne = model.joints()[j].elements.size();
     element_rotation[j].assign(ne, Eigen::Matrix3d::Identity());
     element_origin[j].assign(ne, Eigen::Vector3d::Zero());
     element_value[j].assign(ne, 0.0);
+    element_derivative[j].assign(ne, 0.0);
   }
 }
 
@@ -76,12 +78,14 @@ void ForwardKinematics(const Model& model, const Geometry& g, const Eigen::Vecto
       const JointElement& el = jt.elements[e];
       d->element_rotation[j][e] = r;
       d->element_origin[j][e] = t;
-      const double v = el.function.Value(el.coordinate >= 0 ? z[el.coordinate] : 0.0);
+      double v, dv;
+      el.function.Evaluate(el.coordinate >= 0 ? z[el.coordinate] : 0.0, &v, &dv);
       d->element_value[j][e] = v;
+      d->element_derivative[j][e] = dv;
       if (el.kind == ElementKind::kRotation)
         r = r * Eigen::AngleAxisd(v, g.axis[j][e]).toRotationMatrix();
       else
-        t += r * (g.axis[j][e] * v);
+        t += r * (g.axis[j][e] * (TranslationScale(jt, el, g) * v));
     }
     d->segment_rotation[jt.child] = r;
     d->segment_position[jt.child] = t;

@@ -9,13 +9,17 @@
 //
 // Derivatives (x = world marker position, element i with world axis w and frame origin o):
 //   rotation element, value v = f(z):   dx/dz = f'(z) w x (x - o)
-//   translation element:                dx/dz = f'(z) w
+//   translation element:                dx/dz = k f'(z) w, k = s_P if the element scales with
+//                                       its joint's parent P (model/model.h), else 1
+//   (f'(z) at the pose's z: ForwardKinematics keeps it per element)
 //   fitted rotation axis a(alpha,beta): the rotation's left perturbation for a tangent change
 //     da of its unit axis at fixed angle v is  omega = sin(v) da + (1 - cos(v)) a x da
 //     (from the left Jacobian of SO(3)), so dx/dalpha = (R_before omega) x (x - o)
 //   joint centre c (in parent P):       dx/dc = s_P R_P
 //   marker position m (on segment S):   dx/dm = s_S R_S
-//   scale s_P of a chain segment:       dx/ds_P = R_P c_child_joint (or R_S m for the marker's own)
+//   scale s_P of a chain segment:       dx/ds_P = R_P c_child_joint + sum over the child joint's
+//                                       scaled translation elements of R_before,i a_i f_i(z)
+//                                       (or R_S m for the marker's own segment)
 #pragma once
 
 #include <Eigen/Core>
@@ -49,8 +53,20 @@ struct ModelData {
   // element_rotation * axis, its origin element_origin) and the element's value v.
   std::vector<std::vector<Eigen::Matrix3d>> element_rotation;
   std::vector<std::vector<Eigen::Vector3d>> element_origin;
-  std::vector<std::vector<double>> element_value;
+  std::vector<std::vector<double>> element_value;       // f(z), before any scaling
+  std::vector<std::vector<double>> element_derivative;  // f'(z)
 };
+
+// A non-identity translation of a non-root joint moves by s_P f(z) (OpenSim's CustomJoint
+// scaling, model/model.h); TranslationScale is that factor (1 for every other element).
+inline bool ScalesWithParent(const Joint& joint, const JointElement& element) {
+  return joint.parent >= 0 && element.kind == ElementKind::kTranslation &&
+         !element.function.IsIdentity();
+}
+inline double TranslationScale(const Joint& joint, const JointElement& element,
+                               const Geometry& geometry) {
+  return ScalesWithParent(joint, element) ? geometry.scale[joint.parent] : 1.0;
+}
 
 // Places every segment for coordinates z.
 void ForwardKinematics(const Model& model, const Geometry& geometry, const Eigen::VectorXd& z,

@@ -19,16 +19,16 @@ void MarkerJacobian(const Model& model, const Geometry& g, const ModelData& d, i
       const Joint& jt = model.joints()[j];
       for (size_t e = 0; e < jt.elements.size(); ++e) {
         const JointElement& el = jt.elements[e];
-        if (el.coordinate < 0 || el.function.kind == CoordinateFunction::Kind::kConstant) continue;
+        if (el.coordinate < 0 || el.function.IsConstant()) continue;
         // cols is short and sorted: a linear scan beats a lookup table here.
         int c = 0;
         while (cols[c] != el.coordinate) ++c;
         const Eigen::Vector3d w = d.element_rotation[j][e] * g.axis[j][e];
-        const double dv = el.function.Derivative(0.0);
+        const double dv = d.element_derivative[j][e];
         if (el.kind == ElementKind::kRotation)
           jz->col(c) += dv * w.cross(x - d.element_origin[j][e]);
         else
-          jz->col(c) += dv * w;
+          jz->col(c) += (TranslationScale(jt, el, g) * dv) * w;
       }
     }
   }
@@ -40,7 +40,11 @@ void MarkerJacobian(const Model& model, const Geometry& g, const ModelData& d, i
       const Joint& jt = model.joints()[j];
       const int parent = jt.parent;
       if (parent >= 0) {
-        jp->col(c++) = d.segment_rotation[parent] * g.centre[j];
+        auto col = jp->col(c++);
+        col = d.segment_rotation[parent] * g.centre[j];
+        for (size_t e = 0; e < jt.elements.size(); ++e)
+          if (ScalesWithParent(jt, jt.elements[e]))
+            col += d.element_rotation[j][e] * (g.axis[j][e] * d.element_value[j][e]);
       }
       if (model.centre_index(j) >= 0) {
         if (parent >= 0)

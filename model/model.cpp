@@ -82,6 +82,13 @@ int Model::axis_index(int joint, int element) const { return axis_index_[joint][
 Status Model::Build(std::string name, std::vector<Segment> segments, std::vector<Joint> joints,
                     std::vector<Coordinate> coordinates, std::vector<Marker> markers,
                     Model* out) {
+  return Build(std::move(name), std::move(segments), std::move(joints), std::move(coordinates),
+               std::move(markers), {}, out);
+}
+
+Status Model::Build(std::string name, std::vector<Segment> segments, std::vector<Joint> joints,
+                    std::vector<Coordinate> coordinates, std::vector<Marker> markers,
+                    std::vector<DerivedCoordinate> derived, Model* out) {
   if (segments.empty()) return Status::Error("model has no segments");
   if (Status s = CheckUniqueNames(segments, "segments"); !s) return s;
   if (Status s = CheckUniqueNames(joints, "joints"); !s) return s;
@@ -118,7 +125,8 @@ Status Model::Build(std::string name, std::vector<Segment> segments, std::vector
       const std::string ew = where + ".elements[" + std::to_string(e) + "]";
       if (!el.axis.allFinite() || std::abs(el.axis.norm() - 1.0) > 1e-6)
         return Status::Error(ew + ".axis: not a unit vector");
-      if (el.function.kind == CoordinateFunction::Kind::kConstant) {
+      if (Status s = el.function.Check(ew + ".function"); !s) return s;
+      if (el.function.IsConstant()) {
         if (el.coordinate != -1 && (el.coordinate < 0 || el.coordinate >= nc))
           return Status::Error(ew + ".coordinate: out of range");
       } else if (el.coordinate < 0 || el.coordinate >= nc) {
@@ -126,6 +134,21 @@ Status Model::Build(std::string name, std::vector<Segment> segments, std::vector
       }
       if (el.fitted_axis && el.kind != ElementKind::kRotation)
         return Status::Error(ew + ": only rotation axes can be fitted");
+    }
+  }
+  {
+    std::set<std::string> names;
+    for (const auto& c : coordinates) names.insert(c.name);
+    for (size_t i = 0; i < derived.size(); ++i) {
+      const DerivedCoordinate& dc = derived[i];
+      const std::string where = "derived_coordinates[" + std::to_string(i) + "] '" + dc.name + "'";
+      if (dc.name.empty()) return Status::Error(where + ": empty name");
+      if (!names.insert(dc.name).second)
+        return Status::Error(where + ": name already used by another coordinate");
+      if (dc.source < -1 || dc.source >= nc) return Status::Error(where + ".source: out of range");
+      if (Status s = dc.function.Check(where + ".function"); !s) return s;
+      if (dc.source < 0 && !dc.function.IsConstant())
+        return Status::Error(where + ": no source coordinate but the function is not constant");
     }
   }
   if (roots != 1)
@@ -157,16 +180,14 @@ Status Model::Build(std::string name, std::vector<Segment> segments, std::vector
   m.joints_ = std::move(sorted);
   m.coordinates_ = std::move(coordinates);
   m.markers_ = std::move(markers);
+  m.derived_ = std::move(derived);
   for (int j = 0; j < ns; ++j) m.segments_[m.joints_[j].child].joint = j;
   for (auto& c : m.coordinates_) c.joint = -1;
   for (int j = 0; j < ns; ++j)
     for (const auto& el : m.joints_[j].elements)
       if (el.coordinate >= 0) {
         Coordinate& c = m.coordinates_[el.coordinate];
-        if (c.joint >= 0 && c.joint != j)
-          return Status::Error("coordinate '" + c.name + "' drives joints '" +
-                               m.joints_[c.joint].name + "' and '" + m.joints_[j].name + "'");
-        c.joint = j;
+        if (c.joint < 0) c.joint = j;
       }
   for (const auto& c : m.coordinates_)
     if (c.joint < 0) return Status::Error("coordinate '" + c.name + "' drives no joint");
@@ -244,7 +265,7 @@ Status Model::Build(std::string name, std::vector<Segment> segments, std::vector
     for (int j : m.chains_[s]) {
       const Joint& jt = m.joints_[j];
       for (const auto& el : jt.elements)
-        if (el.coordinate >= 0 && el.function.kind != CoordinateFunction::Kind::kConstant)
+        if (el.coordinate >= 0 && !el.function.IsConstant())
           coords.insert(el.coordinate);
       if (jt.parent >= 0) params.push_back(m.scale_index(jt.parent));
       if (m.centre_index_[j] >= 0)
@@ -298,7 +319,7 @@ Model Model::WithParameters(const Eigen::VectorXd& p) const {
   }
   for (int i = 0; i < num_markers(); ++i) markers[i].position = p.segment<3>(marker_index_[i]);
   Model out;
-  Status s = Build(name_, segments, joints, coordinates_, markers, &out);
+  Status s = Build(name_, segments, joints, coordinates_, markers, derived_, &out);
   (void)s;  // same topology as *this, which was valid
   return out;
 }
@@ -307,7 +328,7 @@ Model Model::WithMarkers(const std::vector<int>& keep) const {
   std::vector<Marker> markers;
   for (int i : keep) markers.push_back(markers_[i]);
   Model out;
-  Status s = Build(name_, segments_, joints_, coordinates_, markers, &out);
+  Status s = Build(name_, segments_, joints_, coordinates_, markers, derived_, &out);
   (void)s;
   return out;
 }

@@ -13,9 +13,12 @@
 // where s_P is P's scale factor, c_J the joint centre in P's unscaled frame, R_J a fixed
 // orientation, and E_i an ELEMENTARY motion: a rotation about, or a translation along, a unit axis
 // fixed in the frame reached after E_1..E_{i-1}. Each element's value v_i = f_i(z_k) is a function
-// of one coordinate (identity, linear, or constant today; OpenSim's splines later), which is how an
-// OpenSim CustomJoint's SpatialTransform maps onto a joint without a rewrite. A marker on segment C
-// sits at T_C * (s_C * m).
+// of one coordinate (model/coordinate_function.h: identity, linear, constant, OpenSim's splines,
+// polynomials, multipliers and compositions), which is how an OpenSim CustomJoint's
+// SpatialTransform maps onto a joint (formats/osim.h). A translation element of a non-root joint
+// whose function is not the identity moves by s_P f(z) (OpenSim scales such a translation with the
+// parent body). A coordinate may drive elements of several joints (a coupled coordinate, e.g. a
+// patella driven by the knee angle). A marker on segment C sits at T_C * (s_C * m).
 //
 // Geometric parameters p (Lugrís et al. 2024, eq. 1), in switchable groups, in this order:
 //   scales   one uniform scale factor per segment                       [n_segments]
@@ -33,6 +36,7 @@
 #include <string>
 #include <vector>
 
+#include "model/coordinate_function.h"
 #include "model/status.h"
 
 namespace mocap {
@@ -45,29 +49,14 @@ constexpr int kNumParameterGroups = 4;
 const char* ToString(JointType type);
 const char* ToString(ParameterGroup group);
 
-// v = f(z): how a coordinate drives an element. kIdentity today's default; kLinear (v = a z + b)
-// and kConstant (v = b, no coordinate) for OpenSim's SpatialTransform.
-struct CoordinateFunction {
-  enum class Kind { kIdentity, kLinear, kConstant } kind = Kind::kIdentity;
-  double slope = 1.0;
-  double offset = 0.0;
-  double Value(double z) const {
-    switch (kind) {
-      case Kind::kIdentity: return z;
-      case Kind::kLinear: return slope * z + offset;
-      case Kind::kConstant: return offset;
-    }
-    return z;
-  }
-  double Derivative(double /*z*/) const {
-    return kind == Kind::kIdentity ? 1.0 : kind == Kind::kLinear ? slope : 0.0;
-  }
-};
-
 struct JointElement {
   ElementKind kind = ElementKind::kRotation;
   Eigen::Vector3d axis = Eigen::Vector3d::UnitX();  // unit, in the frame after earlier elements
-  int coordinate = -1;                               // model coordinate index; -1 with kConstant
+  int coordinate = -1;  // model coordinate index; -1 when the function is constant
+  // v = f(z). A translation element of a non-root joint whose function is not the identity is
+  // scaled by the parent segment's scale factor, as OpenSim scales a CustomJoint's translation
+  // functions with the parent body (SpatialTransform::scale); an identity translation is a
+  // degree of freedom and is not scaled.
   CoordinateFunction function;
   bool fitted_axis = false;  // the axis is a geometric parameter (hinge/universal axes)
 };
@@ -78,7 +67,21 @@ struct Coordinate {
   double default_value = 0.0;  // radians or metres
   double min_value = -1e9;
   double max_value = 1e9;
-  int joint = -1;  // filled by Model::Build
+  int joint = -1;  // filled by Model::Build: the first joint (parents first) it drives
+};
+
+// A coordinate that is not an independent degree of freedom but a function of one (OpenSim's
+// CoordinateCouplerConstraint: dependent = f(independent)) or a constant (a locked coordinate).
+// It is not in z; the elements it drove are driven by `source` through the composed function.
+// Kept so that joint angles can be written out under every OpenSim coordinate name.
+struct DerivedCoordinate {
+  std::string name;
+  bool rotational = true;
+  int source = -1;  // model coordinate index; -1: constant
+  CoordinateFunction function;
+  double Value(const Eigen::VectorXd& z) const {
+    return function.Value(source >= 0 ? z[source] : 0.0);
+  }
 };
 
 struct Joint {
@@ -123,12 +126,16 @@ class Model {
   // reorders joints so that every parent comes before its children.
   static Status Build(std::string name, std::vector<Segment> segments, std::vector<Joint> joints,
                       std::vector<Coordinate> coordinates, std::vector<Marker> markers, Model* out);
+  static Status Build(std::string name, std::vector<Segment> segments, std::vector<Joint> joints,
+                      std::vector<Coordinate> coordinates, std::vector<Marker> markers,
+                      std::vector<DerivedCoordinate> derived, Model* out);
 
   const std::string& name() const { return name_; }
   const std::vector<Segment>& segments() const { return segments_; }
   const std::vector<Joint>& joints() const { return joints_; }          // parents first
   const std::vector<Coordinate>& coordinates() const { return coordinates_; }
   const std::vector<Marker>& markers() const { return markers_; }
+  const std::vector<DerivedCoordinate>& derived_coordinates() const { return derived_; }
   int num_segments() const { return static_cast<int>(segments_.size()); }
   int num_joints() const { return static_cast<int>(joints_.size()); }
   int num_coordinates() const { return static_cast<int>(coordinates_.size()); }
@@ -176,6 +183,7 @@ class Model {
   std::vector<Joint> joints_;
   std::vector<Coordinate> coordinates_;
   std::vector<Marker> markers_;
+  std::vector<DerivedCoordinate> derived_;
   std::vector<ParameterInfo> parameters_;
   std::vector<int> centre_index_, marker_index_;
   std::vector<std::vector<int>> axis_index_;

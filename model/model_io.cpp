@@ -18,6 +18,110 @@ using Reader = JsonFields;
 
 json V(const Eigen::Vector3d& v) { return json::array({v.x(), v.y(), v.z()}); }
 
+Status NumberArray(const Reader& r, const json& obj, const std::string& path, const char* key,
+                   std::vector<double>* out) {
+  MOCAP_TRY(r.Array(obj, path, key));
+  out->clear();
+  for (const json& v : obj[key]) {
+    if (!v.is_number()) return r.Fail(Reader::Join(path, key), "expected numbers");
+    out->push_back(v.get<double>());
+  }
+  return Status::Ok();
+}
+
+// {"kind": ..., kind-specific fields}; splines keep only their points (the coefficients follow).
+Status ParseFunction(const Reader& r, const json& jf, const std::string& path,
+                     CoordinateFunction* f) {
+  using Kind = CoordinateFunction::Kind;
+  if (!jf.is_object()) return r.Fail(path, "expected an object");
+  std::string name;
+  MOCAP_TRY(r.String(jf, path, "kind", &name));
+  Kind kind;
+  if (!CoordinateFunction::KindFromName(name, &kind))
+    return r.Fail(Reader::Join(path, "kind"),
+                  "unknown function '" + name +
+                      "' (identity, linear, constant, simm_spline, natural_cubic_spline, "
+                      "polynomial, multiplier, composed)");
+  switch (kind) {
+    case Kind::kIdentity:
+      *f = CoordinateFunction::Identity();
+      break;
+    case Kind::kLinear:
+    case Kind::kConstant: {
+      double slope = 1.0, offset = 0.0;
+      MOCAP_TRY(r.Number(jf, path, "slope", &slope, false));
+      MOCAP_TRY(r.Number(jf, path, "offset", &offset, false));
+      *f = kind == Kind::kLinear ? CoordinateFunction::Linear(slope, offset)
+                                 : CoordinateFunction::Constant(offset);
+      if (kind == Kind::kConstant) f->slope = slope;  // kept as written (unused)
+      break;
+    }
+    case Kind::kSimmSpline:
+    case Kind::kNaturalCubicSpline: {
+      std::vector<double> x, y;
+      MOCAP_TRY(NumberArray(r, jf, path, "x", &x));
+      MOCAP_TRY(NumberArray(r, jf, path, "y", &y));
+      *f = kind == Kind::kSimmSpline ? CoordinateFunction::SimmSpline(x, y)
+                                     : CoordinateFunction::NaturalCubicSpline(x, y);
+      break;
+    }
+    case Kind::kPolynomial: {
+      std::vector<double> c;
+      MOCAP_TRY(NumberArray(r, jf, path, "coefficients", &c));
+      *f = CoordinateFunction::Polynomial(c);
+      break;
+    }
+    case Kind::kMultiplier: {
+      double scale = 1.0;
+      MOCAP_TRY(r.Number(jf, path, "scale", &scale));
+      if (!jf.contains("function")) return r.Fail(Reader::Join(path, "function"), "missing");
+      CoordinateFunction inner;
+      MOCAP_TRY(ParseFunction(r, jf["function"], Reader::Join(path, "function"), &inner));
+      *f = CoordinateFunction::Multiplier(scale, inner);
+      break;
+    }
+    case Kind::kComposed: {
+      CoordinateFunction outer, inner;
+      for (const char* key : {"outer", "inner"})
+        if (!jf.contains(key)) return r.Fail(Reader::Join(path, key), "missing");
+      MOCAP_TRY(ParseFunction(r, jf["outer"], Reader::Join(path, "outer"), &outer));
+      MOCAP_TRY(ParseFunction(r, jf["inner"], Reader::Join(path, "inner"), &inner));
+      *f = CoordinateFunction::Compose(outer, inner);
+      break;
+    }
+  }
+  if (Status s = f->Check(path); !s) return r.Fail(path, s.message().substr(path.size() + 2));
+  return Status::Ok();
+}
+
+json FunctionToJson(const CoordinateFunction& f) {
+  using Kind = CoordinateFunction::Kind;
+  json j = {{"kind", CoordinateFunction::KindName(f.kind)}};
+  switch (f.kind) {
+    case Kind::kIdentity: break;
+    case Kind::kLinear:
+    case Kind::kConstant:
+      j["slope"] = f.slope;
+      j["offset"] = f.offset;
+      break;
+    case Kind::kSimmSpline:
+    case Kind::kNaturalCubicSpline:
+      j["x"] = f.x;
+      j["y"] = f.y;
+      break;
+    case Kind::kPolynomial: j["coefficients"] = f.coefficients; break;
+    case Kind::kMultiplier:
+      j["scale"] = f.slope;
+      j["function"] = FunctionToJson(f.inner[0]);
+      break;
+    case Kind::kComposed:
+      j["outer"] = FunctionToJson(f.inner[0]);
+      j["inner"] = FunctionToJson(f.inner[1]);
+      break;
+  }
+  return j;
+}
+
 }  // namespace
 
 Status ParseModelJson(const std::string& text, const std::string& source, Model* model) {
@@ -126,22 +230,13 @@ Status ParseModelJson(const std::string& text, const std::string& source, Model*
       else return r.Fail(ep + ".kind", "expected \"rotation\" or \"translation\", got \"" + kind + "\"");
       MOCAP_TRY(r.Vec3(je, ep, "axis", &el.axis));
       if (el.axis.norm() < 1e-9) return r.Fail(ep + ".axis", "zero vector");
-      el.axis.normalize();
+      // Saved axes are unit already: renormalising them would change their last bits.
+      if (std::abs(el.axis.norm() - 1.0) > 1e-12) el.axis.normalize();
       MOCAP_TRY(r.Bool(je, ep, "fitted_axis", &el.fitted_axis));
-      if (je.contains("function")) {
-        const json& jf = je["function"];
-        if (!jf.is_object()) return r.Fail(ep + ".function", "expected an object");
-        std::string fk;
-        MOCAP_TRY(r.String(jf, ep + ".function", "kind", &fk));
-        if (fk == "identity") el.function.kind = CoordinateFunction::Kind::kIdentity;
-        else if (fk == "linear") el.function.kind = CoordinateFunction::Kind::kLinear;
-        else if (fk == "constant") el.function.kind = CoordinateFunction::Kind::kConstant;
-        else return r.Fail(ep + ".function.kind", "unknown function '" + fk + "' (identity, linear, constant)");
-        MOCAP_TRY(r.Number(jf, ep + ".function", "slope", &el.function.slope, false));
-        MOCAP_TRY(r.Number(jf, ep + ".function", "offset", &el.function.offset, false));
-      }
+      if (je.contains("function"))
+        MOCAP_TRY(ParseFunction(r, je["function"], ep + ".function", &el.function));
       std::string coord;
-      const bool constant = el.function.kind == CoordinateFunction::Kind::kConstant;
+      const bool constant = el.function.IsConstant();
       MOCAP_TRY(r.String(je, ep, "coordinate", &coord, !constant));
       if (!coord.empty()) {
         auto it = coordinate_index.find(coord);
@@ -170,7 +265,30 @@ Status ParseModelJson(const std::string& text, const std::string& source, Model*
     if (!(m.weight > 0)) return r.Fail(path + ".weight", "must be > 0");
     markers.push_back(m);
   }
-  Status s = Model::Build(name, segments, joints, coordinates, markers, model);
+  std::vector<DerivedCoordinate> derived;
+  if (doc.contains("derived_coordinates")) {
+    MOCAP_TRY(r.Array(doc, "", "derived_coordinates"));
+    for (size_t i = 0; i < doc["derived_coordinates"].size(); ++i) {
+      const json& jd = doc["derived_coordinates"][i];
+      const std::string path = "derived_coordinates[" + std::to_string(i) + "]";
+      if (!jd.is_object()) return r.Fail(path, "expected an object");
+      DerivedCoordinate dc;
+      MOCAP_TRY(r.String(jd, path, "name", &dc.name));
+      MOCAP_TRY(r.Bool(jd, path, "rotational", &dc.rotational));
+      std::string source;
+      MOCAP_TRY(r.String(jd, path, "source", &source, false));
+      if (!source.empty()) {
+        auto it = coordinate_index.find(source);
+        if (it == coordinate_index.end())
+          return r.Fail(path + ".source", "no coordinate named '" + source + "'");
+        dc.source = it->second;
+      }
+      if (!jd.contains("function")) return r.Fail(path + ".function", "missing");
+      MOCAP_TRY(ParseFunction(r, jd["function"], path + ".function", &dc.function));
+      derived.push_back(dc);
+    }
+  }
+  Status s = Model::Build(name, segments, joints, coordinates, markers, derived, model);
   if (!s.ok()) return Status::Error(source + ": " + s.message());
   return Status::Ok();
 }
@@ -213,8 +331,7 @@ std::string ModelToJsonString(const Model& model) {
       if (el.coordinate >= 0) je["coordinate"] = model.coordinates()[el.coordinate].name;
       if (el.fitted_axis) je["fitted_axis"] = true;
       if (el.function.kind != CoordinateFunction::Kind::kIdentity)
-        je["function"] = {{"kind", el.function.kind == CoordinateFunction::Kind::kLinear ? "linear" : "constant"},
-                          {"slope", el.function.slope}, {"offset", el.function.offset}};
+        je["function"] = FunctionToJson(el.function);
       jj["elements"].push_back(je);
     }
     doc["joints"].push_back(jj);
@@ -225,6 +342,15 @@ std::string ModelToJsonString(const Model& model) {
     if (m.optional) jm["optional"] = true;
     if (m.weight != 1.0) jm["weight"] = m.weight;
     doc["markers"].push_back(jm);
+  }
+  if (!model.derived_coordinates().empty()) {
+    doc["derived_coordinates"] = json::array();
+    for (const auto& dc : model.derived_coordinates()) {
+      json jd = {{"name", dc.name}, {"rotational", dc.rotational},
+                 {"function", FunctionToJson(dc.function)}};
+      if (dc.source >= 0) jd["source"] = model.coordinates()[dc.source].name;
+      doc["derived_coordinates"].push_back(jd);
+    }
   }
   return doc.dump(1);
 }

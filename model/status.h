@@ -23,3 +23,10 @@ class Status {
 };
 
 }  // namespace mocap
+
+// Returns the Status of `expr` from the enclosing function if it failed.
+#define MOCAP_RETURN_IF_ERROR(expr) \
+  do {                              \
+    ::mocap::Status _s = (expr);    \
+    if (!_s.ok()) return _s;        \
+  } while (0)

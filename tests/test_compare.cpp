@@ -16,6 +16,7 @@
 #include "model/default_model.h"
 #include "model/kinematics.h"
 #include "model/model_io.h"
+#include "model_test_util.h"
 
 using namespace mocap;
 
@@ -97,17 +98,7 @@ Eigen::VectorXd RandomPose(const Model& model, std::mt19937& rng) {
 Model Perturbed(unsigned seed) {
   Model base = DefaultFullBodyModel();
   std::mt19937 rng(seed);
-  std::uniform_real_distribution<double> u(-1, 1);
-  Eigen::VectorXd p = base.InitialParameters();
-  for (int i = 0; i < base.num_parameters(); ++i) {
-    switch (base.parameters()[i].group) {
-      case ParameterGroup::kScale: p[i] *= 1 + 0.1 * u(rng); break;
-      case ParameterGroup::kCentre: p[i] += 0.02 * u(rng); break;
-      case ParameterGroup::kAxis: p[i] += 0.1 * u(rng); break;
-      case ParameterGroup::kMarker: p[i] += 0.01 * u(rng); break;
-    }
-  }
-  return base.WithParameters(p);
+  return base.WithParameters(mocap::testutil::RandomParameters(base, rng));
 }
 
 void ExpectAllZero(const ModelComparison& c, double tol) {

@@ -59,10 +59,12 @@ TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
       EXPECT_LT(sd, 1.5) << jd.joint;
     }
   }
-  for (const auto& sd : cmp.segments)
+  for (const auto& sd : cmp.segments) {
     if (sd.to.rfind("wrist", 0) != 0) EXPECT_LT(std::abs(sd.error_pct), 0.2) << sd.name;
-  for (const auto& md : cmp.markers)
+  }
+  for (const auto& md : cmp.markers) {
     if (md.segment.rfind("hand", 0) != 0) EXPECT_LT(md.error_mm, 1.0) << md.marker;
+  }
   for (const char* wrist_axis : {"wrist_l.axis0.alpha", "wrist_r.axis1.beta"})
     EXPECT_NE(std::find(r.undetermined.begin(), r.undetermined.end(), wrist_axis), r.undetermined.end())
         << wrist_axis << " cannot be determined from one hand marker";

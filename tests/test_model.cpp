@@ -9,44 +9,14 @@
 #include "model/default_model.h"
 #include "model/kinematics.h"
 #include "model/model_io.h"
+#include "model_test_util.h"
 
 using namespace mocap;
 
-namespace {
-
-Eigen::VectorXd RandomPose(const Model& model, std::mt19937& rng) {
-  std::uniform_real_distribution<double> u(-0.8, 0.8);
-  Eigen::VectorXd z = model.DefaultCoordinates();
-  for (int c = 0; c < model.num_coordinates(); ++c) z[c] += model.coordinates()[c].rotational ? u(rng) : 0.3 * u(rng);
-  return z;
-}
-
-// Perturbs every parameter so that the Jacobian test does not run at a special point.
-Eigen::VectorXd RandomParameters(const Model& model, std::mt19937& rng) {
-  std::uniform_real_distribution<double> u(-1, 1);
-  Eigen::VectorXd p = model.InitialParameters();
-  for (int i = 0; i < model.num_parameters(); ++i) {
-    switch (model.parameters()[i].group) {
-      case ParameterGroup::kScale: p[i] *= 1 + 0.1 * u(rng); break;
-      case ParameterGroup::kCentre: p[i] += 0.02 * u(rng); break;
-      case ParameterGroup::kAxis: p[i] += 0.1 * u(rng); break;
-      case ParameterGroup::kMarker: p[i] += 0.01 * u(rng); break;
-    }
-  }
-  return p;
-}
-
-Eigen::Matrix3Xd Positions(const Model& model, const Eigen::VectorXd& z, const Eigen::VectorXd& p) {
-  Geometry g(model);
-  g.Set(model, p);
-  ModelData d(model);
-  ForwardKinematics(model, g, z, &d);
-  Eigen::Matrix3Xd x;
-  MarkerPositions(model, g, d, &x);
-  return x;
-}
-
-}  // namespace
+using mocap::testutil::ExpectJacobiansMatchCentralDifferences;
+using mocap::testutil::Positions;
+using mocap::testutil::RandomParameters;
+using mocap::testutil::RandomPose;
 
 TEST(DefaultModel, HasTheDesignedStructure) {
   Model model = DefaultFullBodyModel();
@@ -83,41 +53,7 @@ TEST(Kinematics, JacobiansMatchCentralDifferences) {
   for (int trial = 0; trial < 5; ++trial) {
     const Eigen::VectorXd z = RandomPose(model, rng);
     const Eigen::VectorXd p = RandomParameters(model, rng);
-    Geometry g(model);
-    g.Set(model, p);
-    ModelData d(model);
-    ForwardKinematics(model, g, z, &d);
-    double worst = 0;
-    for (int m = 0; m < model.num_markers(); ++m) {
-      const auto& zc = model.marker_coordinates(m);
-      const auto& pc = model.marker_parameters(m);
-      Eigen::MatrixXd jz(3, zc.size()), jp(3, pc.size());
-      MarkerJacobian(model, g, d, m, &jz, &jp);
-      // Columns of coordinates and parameters that are NOT listed must have zero derivative.
-      const double h = 1e-6;
-      for (int c = 0; c < model.num_coordinates(); ++c) {
-        Eigen::VectorXd zp = z, zm = z;
-        zp[c] += h;
-        zm[c] -= h;
-        const Eigen::Vector3d fd = (Positions(model, zp, p).col(m) - Positions(model, zm, p).col(m)) / (2 * h);
-        auto it = std::find(zc.begin(), zc.end(), c);
-        const Eigen::Vector3d an = it == zc.end() ? Eigen::Vector3d::Zero() : Eigen::Vector3d(jz.col(it - zc.begin()));
-        const double err = (fd - an).norm() / std::max(1.0, an.norm());
-        worst = std::max(worst, err);
-        EXPECT_LT(err, 1e-6) << model.markers()[m].name << " d/d " << model.coordinates()[c].name;
-      }
-      for (int i = 0; i < model.num_parameters(); ++i) {
-        Eigen::VectorXd pp = p, pm = p;
-        pp[i] += h;
-        pm[i] -= h;
-        const Eigen::Vector3d fd = (Positions(model, z, pp).col(m) - Positions(model, z, pm).col(m)) / (2 * h);
-        auto it = std::find(pc.begin(), pc.end(), i);
-        const Eigen::Vector3d an = it == pc.end() ? Eigen::Vector3d::Zero() : Eigen::Vector3d(jp.col(it - pc.begin()));
-        const double err = (fd - an).norm() / std::max(1.0, an.norm());
-        EXPECT_LT(err, 1e-6) << model.markers()[m].name << " d/d " << model.parameters()[i].name;
-      }
-    }
-    EXPECT_LT(worst, 1e-6);
+    EXPECT_LT(ExpectJacobiansMatchCentralDifferences(model, z, p), 1e-6);
   }
 }
 
@@ -190,4 +126,246 @@ TEST(ModelJson, ErrorsNameTheField) {
   s = LoadModelJson("/nonexistent/model.json", &m);
   EXPECT_FALSE(s.ok());
   EXPECT_NE(s.message().find("/nonexistent/model.json"), std::string::npos);
+}
+
+// --- coordinate functions (OpenSim's) and models that use them ---
+
+namespace {
+
+using Fn = CoordinateFunction;
+
+double NumericDerivative(const Fn& f, double z) {
+  const double h = 1e-6;
+  return (f.Value(z + h) - f.Value(z - h)) / (2 * h);
+}
+
+Fn KneeSpline() {  // gait2354's knee_r translation2 (metres of knee_angle_r)
+  return Fn::SimmSpline({-2.0944, -1.22173, -0.523599, -0.349066, -0.174533, 0.159149, 2.0944},
+                        {-0.4226, -0.4082, -0.399, -0.3976, -0.3966, -0.395264, -0.396});
+}
+
+// A model exercising every function kind, coupled coordinates (one coordinate driving two
+// joints), scaled translations of non-root joints, a fitted axis after translations.
+Model FunctionModel() {
+  std::vector<Segment> segments = {{"base", 1.0, -1}, {"thigh", 1.0, -1}, {"shank", 1.0, -1}};
+  std::vector<Coordinate> coords;
+  for (const char* n : {"tx", "ty", "tz", "r1", "r2", "r3", "a", "b"}) {
+    Coordinate c;
+    c.name = n;
+    c.rotational = n[0] != 't';
+    coords.push_back(c);
+  }
+  coords[1].default_value = 0.9;
+  auto el = [](ElementKind k, Eigen::Vector3d axis, int c, Fn f, bool fitted = false) {
+    JointElement e;
+    e.kind = k;
+    e.axis = axis.normalized();
+    e.coordinate = c;
+    e.function = std::move(f);
+    e.fitted_axis = fitted;
+    return e;
+  };
+  const auto R = ElementKind::kRotation, T = ElementKind::kTranslation;
+  Joint root;
+  root.name = "root";
+  root.type = JointType::kFree;
+  root.child = 0;
+  for (int k = 0; k < 3; ++k) root.elements.push_back(el(T, Eigen::Vector3d::Unit(k), k, Fn::Identity()));
+  for (int k = 0; k < 3; ++k) root.elements.push_back(el(R, Eigen::Vector3d::Unit(k), 3 + k, Fn::Identity()));
+  Joint hip;
+  hip.name = "hip";
+  hip.parent = 0;
+  hip.child = 1;
+  hip.centre = {0.05, -0.1, 0.08};
+  hip.orientation = Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  hip.elements = {el(T, {1, 0, 0}, 6, KneeSpline()),
+                  el(T, {0, 1, 0.2}, 6, Fn::Polynomial({0.01, -0.02, 0.03, 0.005})),
+                  el(T, {0, 0, 1}, -1, Fn::Constant(0.012)),
+                  el(R, {0.1, 0.2, 1}, 6, Fn::Identity(), true),
+                  el(R, {1, 0, 0}, 6, Fn::Linear(0.3, 0.1))};
+  Joint knee;
+  knee.name = "knee";
+  knee.parent = 1;
+  knee.child = 2;
+  knee.centre = {0.0, -0.4, 0.0};
+  knee.elements = {el(T, {0, 1, 0}, 7, Fn::Multiplier(1.3, KneeSpline())),
+                   el(R, {0, 0, 1}, 7, Fn::NaturalCubicSpline({-2, -1, 0, 0.5, 2}, {-1.9, -1.1, 0.1, 0.4, 2.2})),
+                   el(R, {1, 0, 0}, 6, Fn::Compose(KneeSpline(), Fn::Polynomial({0.5, 0.1})))};
+  std::vector<Marker> markers;
+  const Eigen::Vector3d pos[] = {{0.1, 0.0, 0.1}, {0.0, -0.2, 0.05}, {0.02, -0.1, -0.03}, {0.05, -0.3, 0.0}};
+  const int seg[] = {0, 1, 2, 2};
+  for (int i = 0; i < 4; ++i) {
+    Marker m;
+    m.name = "M" + std::to_string(i);
+    m.segment = seg[i];
+    m.position = pos[i];
+    markers.push_back(m);
+  }
+  DerivedCoordinate beta;
+  beta.name = "a_beta";
+  beta.source = 6;
+  beta.function = Fn::Multiplier(0.5, KneeSpline());
+  DerivedCoordinate locked;
+  locked.name = "locked";
+  locked.function = Fn::Constant(0.2);
+  Model model;
+  Status s = Model::Build("functions", segments, {root, hip, knee}, coords, markers, {beta, locked}, &model);
+  EXPECT_TRUE(s.ok()) << s.message();
+  return model;
+}
+
+}  // namespace
+
+TEST(CoordinateFunction, SimmSplineInterpolatesAndIsC2) {
+  const Fn f = KneeSpline();
+  ASSERT_TRUE(f.Check("f").ok());
+  for (size_t i = 0; i < f.x.size(); ++i) EXPECT_NEAR(f.Value(f.x[i]), f.y[i], 1e-14);
+  for (size_t i = 1; i + 1 < f.x.size(); ++i) {
+    // Slope and curvature continuous across every interior knot.
+    const double e = 1e-9, xi = f.x[i];
+    EXPECT_NEAR(f.Derivative(xi - e), f.Derivative(xi + e), 1e-7);
+    const double left = (f.Derivative(xi - e) - f.Derivative(xi - 1e-4)) / (1e-4 - e);
+    const double right = (f.Derivative(xi + 1e-4) - f.Derivative(xi + e)) / (1e-4 - e);
+    EXPECT_NEAR(left, right, 1e-3 * std::max(1.0, std::abs(left)));
+  }
+  // Linear extrapolation with the end slopes.
+  EXPECT_NEAR(f.Value(3.0), f.y.back() + (3.0 - f.x.back()) * f.Derivative(f.x.back()), 1e-12);
+  EXPECT_NEAR(f.Derivative(-3.0), f.Derivative(f.x.front()), 1e-12);
+}
+
+// Forsythe-Malcolm-Moler end conditions match the third derivative of the cubic through the end
+// knots, so a cubic is reproduced exactly (a natural spline would not); 3 knots give the parabola.
+TEST(CoordinateFunction, SplineEndConditionsAreOpenSims) {
+  auto cubic = [](double x) { return 0.3 - 0.7 * x + 0.25 * x * x + 0.4 * x * x * x; };
+  std::vector<double> x = {-2.0, -1.3, -0.2, 0.1, 0.9, 1.7, 2.5}, y;
+  for (double v : x) y.push_back(cubic(v));
+  for (const Fn& f : {Fn::SimmSpline(x, y), Fn::NaturalCubicSpline(x, y)})
+    for (double v = -2.0; v <= 2.5; v += 0.01) EXPECT_NEAR(f.Value(v), cubic(v), 1e-12) << v;
+  auto parabola = [](double x) { return 1.0 - x + 0.5 * x * x; };
+  const Fn p = Fn::SimmSpline({-1.0, 0.3, 2.0}, {parabola(-1.0), parabola(0.3), parabola(2.0)});
+  for (double v = -1.0; v <= 2.0; v += 0.05) EXPECT_NEAR(p.Value(v), parabola(v), 1e-12) << v;
+  const Fn line = Fn::SimmSpline({0.0, 2.0}, {1.0, 2.0});
+  EXPECT_NEAR(line.Value(1.0), 1.5, 1e-15);
+  EXPECT_NEAR(line.Derivative(5.0), 0.5, 1e-15);
+}
+
+TEST(CoordinateFunction, DerivativesMatchCentralDifferences) {
+  const std::vector<Fn> fns = {
+      Fn::Identity(), Fn::Linear(-0.4, 0.2), Fn::Constant(0.7), KneeSpline(),
+      Fn::NaturalCubicSpline({0, 1, 2, 3}, {0, 0.5, 0.2, 1.0}), Fn::Polynomial({0.1, -0.2, 0.3, 0.5}),
+      Fn::Multiplier(1.7, KneeSpline()), Fn::Compose(KneeSpline(), Fn::Polynomial({2.0, -0.1, 0.4}))};
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-3, 3);
+  for (const Fn& f : fns) {
+    ASSERT_TRUE(f.Check("f").ok()) << Fn::KindName(f.kind);
+    for (int i = 0; i < 200; ++i) {
+      const double z = u(rng);
+      EXPECT_NEAR(f.Derivative(z), NumericDerivative(f, z), 1e-7) << Fn::KindName(f.kind) << " at " << z;
+    }
+  }
+  EXPECT_DOUBLE_EQ(Fn::Polynomial({2.0, -3.0, 1.0}).Value(2.0), 3.0);  // 2 z^2 - 3 z + 1
+  EXPECT_DOUBLE_EQ(Fn::Multiplier(2.0, Fn::Constant(0.5)).Value(9.0), 1.0);
+  EXPECT_TRUE(Fn::Multiplier(2.0, Fn::Constant(0.5)).IsConstant());
+  EXPECT_FALSE(Fn::SimmSpline({0, 1}, {0, 1}).IsIdentity());
+  EXPECT_TRUE(Fn::Linear(1.0, 0.0).IsIdentity());
+}
+
+TEST(CoordinateFunction, CheckRejectsBadSplines) {
+  EXPECT_FALSE(Fn::SimmSpline({0, 1, 1}, {0, 1, 2}).Check("f").ok());
+  EXPECT_FALSE(Fn::SimmSpline({0, 1}, {0}).Check("f").ok());
+  EXPECT_FALSE(Fn::SimmSpline({0}, {0}).Check("f").ok());
+  EXPECT_FALSE(Fn::Polynomial({}).Check("f").ok());
+  const Status s = Fn::SimmSpline({0, 2, 1}, {0, 1, 2}).Check("joints[1].elements[0].function");
+  EXPECT_NE(s.message().find("joints[1].elements[0].function: spline x values must increase"), std::string::npos)
+      << s.message();
+}
+
+TEST(Kinematics, FunctionModelJacobiansMatchCentralDifferences) {
+  const Model model = FunctionModel();
+  ASSERT_EQ(model.num_markers(), 4);
+  // Coordinate a drives hip and knee; the knee markers list it.
+  EXPECT_NE(std::find(model.marker_coordinates(3).begin(), model.marker_coordinates(3).end(), 6),
+            model.marker_coordinates(3).end());
+  std::mt19937 rng(5);
+  for (int trial = 0; trial < 8; ++trial) {
+    // Wide poses: outside the spline knots too (linear extrapolation).
+    const Eigen::VectorXd z = RandomPose(model, rng, trial < 4 ? 0.8 : 2.5);
+    const Eigen::VectorXd p = RandomParameters(model, rng);
+    EXPECT_LT(ExpectJacobiansMatchCentralDifferences(model, z, p), 1e-6);
+  }
+}
+
+// A non-identity translation of a non-root joint moves with the parent's scale; identity
+// translations (degrees of freedom) do not.
+TEST(Kinematics, TranslationFunctionsScaleWithTheParent) {
+  const Model model = FunctionModel();
+  Eigen::VectorXd z = Eigen::VectorXd::Zero(model.num_coordinates());
+  z[6] = 0.4;
+  z[0] = 0.3;
+  Eigen::VectorXd p = model.InitialParameters();
+  const Eigen::Matrix3Xd x1 = Positions(model, z, p);
+  p[model.scale_index(0)] = 2.0;
+  const Eigen::Matrix3Xd x2 = Positions(model, z, p);
+  // The thigh's origin: root translation (not scaled) + 2 * (centre + hip translations).
+  const Eigen::Vector3d root(0.3, 0.0, 0.0);
+  Geometry g(model);
+  ModelData d(model);
+  ForwardKinematics(model, g, z, &d);
+  const Eigen::Vector3d o1 = d.segment_position[1];
+  g.Set(model, p);
+  ForwardKinematics(model, g, z, &d);
+  EXPECT_LT((d.segment_position[1] - (root + 2.0 * (o1 - root))).norm(), 1e-12);
+  EXPECT_GT((x2 - x1).norm(), 0.01);
+}
+
+TEST(Kinematics, FunctionModelEvaluationDoesNotAllocate) {
+  const Model model = FunctionModel();
+  Geometry g(model);
+  ModelData d(model);
+  const Eigen::VectorXd z = Eigen::VectorXd::Constant(model.num_coordinates(), 0.3);
+  Eigen::Matrix<double, 3, Eigen::Dynamic> jz(3, model.max_chain_coordinates()),
+      jp(3, model.max_chain_parameters());
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  g.Set(model, model.InitialParameters());
+  Eigen::internal::set_is_malloc_allowed(false);
+  ForwardKinematics(model, g, z, &d);
+  for (int m = 0; m < model.num_markers(); ++m) {
+    sum += MarkerPosition(model, g, d, m);
+    auto bz = jz.leftCols(model.marker_coordinates(m).size());
+    auto bp = jp.leftCols(model.marker_parameters(m).size());
+    MarkerJacobian(model, g, d, m, &bz, &bp);
+  }
+  double derived = 0;
+  for (const auto& dc : model.derived_coordinates()) derived += dc.Value(z);
+  Eigen::internal::set_is_malloc_allowed(true);
+  EXPECT_TRUE(sum.allFinite());
+  EXPECT_TRUE(std::isfinite(derived));
+}
+
+TEST(ModelJson, FunctionsAndDerivedCoordinatesRoundTripExactly) {
+  const Model model = FunctionModel();
+  const std::string text = ModelToJsonString(model);
+  Model back;
+  Status s = ParseModelJson(text, "mem", &back);
+  ASSERT_TRUE(s.ok()) << s.message();
+  EXPECT_EQ(ModelToJsonString(back), text);
+  for (int j = 0; j < model.num_joints(); ++j)
+    for (size_t e = 0; e < model.joints()[j].elements.size(); ++e)
+      EXPECT_TRUE(back.joints()[j].elements[e].function == model.joints()[j].elements[e].function);
+  ASSERT_EQ(back.derived_coordinates().size(), 2u);
+  EXPECT_TRUE(back.derived_coordinates()[0].function == model.derived_coordinates()[0].function);
+  EXPECT_EQ(back.derived_coordinates()[0].source, 6);
+  EXPECT_EQ(back.derived_coordinates()[1].source, -1);
+  std::mt19937 rng(2);
+  const Eigen::VectorXd z = RandomPose(model, rng);
+  EXPECT_EQ((Positions(back, z, back.InitialParameters()) - Positions(model, z, model.InitialParameters())).norm(), 0.0);
+  // A bad spline names its place.
+  std::string bad = text;
+  const size_t at = bad.find("-1.22173", bad.find("\"joints\""));
+  ASSERT_NE(at, std::string::npos);
+  bad.replace(at, 8, "-3.0");
+  s = ParseModelJson(bad, "bad.json", &back);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("bad.json: joints[1].elements[0].function: spline x values must increase"), std::string::npos)
+      << s.message();
 }

@@ -1,0 +1,608 @@
+// OpenSim models in and out: the real models of shared/data import; OpenSim's own scaled model
+// and IK angles reproduce the measured markers of a walk through our kinematics; Jacobians of
+// imported models against finite differences; export/import round trips to 1e-9 m; .mot out;
+// bad input.
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <regex>
+#include <sstream>
+
+#include "formats/mot.h"
+#include "formats/osim.h"
+#include "formats/trc.h"
+#include "model/kinematics.h"
+#include "model/model_io.h"
+#include "model_test_util.h"
+#include "tests/file_test_util.h"
+
+namespace fs = std::filesystem;
+using namespace mocap;
+using namespace mocap::formats;
+using mocap::testutil::ExpectJacobiansMatchCentralDifferences;
+using mocap::testutil::Positions;
+using mocap::testutil::RandomParameters;
+using mocap::testutil::RandomPose;
+using ::testing::HasSubstr;
+
+namespace {
+
+using mocap::testutil::SharedData;
+std::string Gait(const std::string& f) { return SharedData() + "/opensim_gait2354_subject01/" + f; }
+std::string Welk(const std::string& f) { return SharedData() + "/welk007_hipfunc/" + f; }
+
+
+std::string TmpPath(const std::string& suffix) {
+  const fs::path dir = fs::path(MOCAP_TEST_TMP) / "osim";
+  fs::create_directories(dir);
+  const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
+  return (dir / (std::string(info->test_suite_name()) + "_" + info->name() + suffix)).string();
+}
+
+OsimImport MustImport(const std::string& path) {
+  OsimImport im;
+  Status s = ImportOsim(path, &im);
+  EXPECT_TRUE(s.ok()) << s.message();
+  return im;
+}
+
+// Marker positions of `b` for the pose z of `a`, matched by coordinate and marker name.
+Eigen::Matrix3Xd PositionsByName(const Model& a, const Eigen::VectorXd& za, const Model& b) {
+  Eigen::VectorXd zb = b.DefaultCoordinates();
+  for (int c = 0; c < b.num_coordinates(); ++c) {
+    const int k = a.FindCoordinate(b.coordinates()[c].name);
+    EXPECT_GE(k, 0) << b.coordinates()[c].name;
+    if (k >= 0) zb[c] = za[k];
+  }
+  const Eigen::Matrix3Xd xb = Positions(b, zb, b.InitialParameters());
+  Eigen::Matrix3Xd out(3, a.num_markers());
+  for (int m = 0; m < a.num_markers(); ++m) {
+    const int k = b.FindMarker(a.markers()[m].name);
+    EXPECT_GE(k, 0) << a.markers()[m].name;
+    out.col(m) = k >= 0 ? Eigen::Vector3d(xb.col(k)) : Eigen::Vector3d::Constant(NAN);
+  }
+  return out;
+}
+
+// Exports `fitted` into `import`'s document, imports that, and compares marker positions over
+// random poses. Returns the largest distance (m).
+double RoundTripError(const OsimImport& import, const Model& fitted, std::mt19937& rng) {
+  std::string xml;
+  Status s = ExportOsimText(fitted, import, &xml);
+  EXPECT_TRUE(s.ok()) << s.message();
+  OsimImport back;
+  s = ImportOsimText(xml, "exported.osim", &back);
+  EXPECT_TRUE(s.ok()) << s.message();
+  if (!s.ok()) return INFINITY;
+  EXPECT_EQ(back.model.num_coordinates(), fitted.num_coordinates());
+  EXPECT_EQ(back.model.num_markers(), fitted.num_markers());
+  double worst = 0;
+  for (int trial = 0; trial < 20; ++trial) {
+    const Eigen::VectorXd z = RandomPose(fitted, rng, 1.0);
+    const Eigen::Matrix3Xd xa = Positions(fitted, z, fitted.InitialParameters());
+    const Eigen::Matrix3Xd xb = PositionsByName(fitted, z, back.model);
+    worst = std::max(worst, (xa - xb).colwise().norm().maxCoeff());
+  }
+  return worst;
+}
+
+// A small OpenSim 4 model to break in the bad-input tests: pelvis on a free custom joint,
+// femur on a pin, tibia on a knee with a spline, patella coupled to the knee.
+const char* kSmallModel = R"(<?xml version="1.0" encoding="UTF-8" ?>
+<OpenSimDocument Version="40000">
+  <Model name="small">
+    <Ground name="ground" />
+    <BodySet name="bodyset">
+      <objects>
+        <Body name="pelvis"><mass>10</mass><mass_center>0 0 0</mass_center><inertia>1 1 1 0 0 0</inertia></Body>
+        <Body name="femur"><mass>5</mass><mass_center>0 -0.2 0</mass_center><inertia>1 1 1 0 0 0</inertia></Body>
+        <Body name="tibia"><mass>3</mass><mass_center>0 -0.2 0</mass_center><inertia>1 1 1 0 0 0</inertia></Body>
+      </objects>
+    </BodySet>
+    <JointSet name="jointset">
+      <objects>
+        <FreeJoint name="ground_pelvis">
+          <socket_parent_frame>/ground</socket_parent_frame>
+          <socket_child_frame>/bodyset/pelvis</socket_child_frame>
+          <coordinates>
+            <Coordinate name="rx" /><Coordinate name="ry" /><Coordinate name="rz" />
+            <Coordinate name="tx" /><Coordinate name="ty"><default_value>0.9</default_value></Coordinate><Coordinate name="tz" />
+          </coordinates>
+        </FreeJoint>
+        <PinJoint name="hip">
+          <socket_parent_frame>pelvis_offset</socket_parent_frame>
+          <socket_child_frame>femur_offset</socket_child_frame>
+          <coordinates><Coordinate name="hip_flexion"><range>-1 1</range></Coordinate></coordinates>
+          <frames>
+            <PhysicalOffsetFrame name="pelvis_offset">
+              <socket_parent>/bodyset/pelvis</socket_parent>
+              <translation>-0.07 -0.06 0.08</translation>
+              <orientation>0.1 -0.2 0.3</orientation>
+            </PhysicalOffsetFrame>
+            <PhysicalOffsetFrame name="femur_offset">
+              <socket_parent>/bodyset/femur</socket_parent>
+              <translation>0.01 0.02 0</translation>
+              <orientation>0 0 0.2</orientation>
+            </PhysicalOffsetFrame>
+          </frames>
+        </PinJoint>
+        <CustomJoint name="knee">
+          <socket_parent_frame>/bodyset/femur</socket_parent_frame>
+          <socket_child_frame>/bodyset/tibia</socket_child_frame>
+          <coordinates>
+            <Coordinate name="knee_angle"><default_value>0</default_value></Coordinate>
+            <Coordinate name="knee_beta" />
+          </coordinates>
+          <SpatialTransform>
+            <TransformAxis name="rotation1"><coordinates>knee_angle</coordinates><axis>0 0 1</axis><LinearFunction name="function"><coefficients>1 0</coefficients></LinearFunction></TransformAxis>
+            <TransformAxis name="rotation2"><coordinates>knee_beta</coordinates><axis>1 0 0</axis><PolynomialFunction name="function"><coefficients>0.1 0.05 0</coefficients></PolynomialFunction></TransformAxis>
+            <TransformAxis name="rotation3"><coordinates></coordinates><axis>0 1 0</axis><Constant name="function"><value>0</value></Constant></TransformAxis>
+            <TransformAxis name="translation1"><coordinates>knee_angle</coordinates><axis>1 0 0</axis><SimmSpline name="function"><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></SimmSpline></TransformAxis>
+            <TransformAxis name="translation2"><coordinates>knee_angle</coordinates><axis>0 1 0</axis><NaturalCubicSpline name="function"><x>-2 -1 0 2</x><y>-0.42 -0.41 -0.40 -0.396</y></NaturalCubicSpline></TransformAxis>
+            <TransformAxis name="translation3"><coordinates></coordinates><axis>0 0 1</axis><Constant name="function"><value>0.003</value></Constant></TransformAxis>
+          </SpatialTransform>
+        </CustomJoint>
+      </objects>
+    </JointSet>
+    <ConstraintSet name="constraintset">
+      <objects>
+        <CoordinateCouplerConstraint name="knee_coupler">
+          <isEnforced>true</isEnforced>
+          <coupled_coordinates_function><SimmSpline><x>-2 0 2</x><y>-1 0 1.5</y></SimmSpline></coupled_coordinates_function>
+          <independent_coordinate_names>knee_angle</independent_coordinate_names>
+          <dependent_coordinate_name>knee_beta</dependent_coordinate_name>
+          <scale_factor>0.8</scale_factor>
+        </CoordinateCouplerConstraint>
+        <PointConstraint name="some_point" />
+      </objects>
+    </ConstraintSet>
+    <MarkerSet name="markerset">
+      <objects>
+        <Marker name="ASIS"><socket_parent_frame>/bodyset/pelvis</socket_parent_frame><location>0.02 0.03 0.12</location><fixed>false</fixed></Marker>
+        <Marker name="THIGH"><socket_parent_frame>/bodyset/femur</socket_parent_frame><location>0.03 -0.2 0.05</location><fixed>true</fixed></Marker>
+        <Marker name="KNEE"><socket_parent_frame>/bodyset/femur</socket_parent_frame><location>0.0 -0.4 0.05</location></Marker>
+        <Marker name="SHANK"><socket_parent_frame>/bodyset/tibia</socket_parent_frame><location>0.02 -0.2 0.04</location></Marker>
+        <Marker name="ANKLE"><socket_parent_frame>/bodyset/tibia</socket_parent_frame><location>0.0 -0.4 0.04</location></Marker>
+      </objects>
+    </MarkerSet>
+  </Model>
+</OpenSimDocument>
+)";
+
+int LineOf(const std::string& text, const std::string& needle) {
+  const size_t at = text.find(needle);
+  EXPECT_NE(at, std::string::npos) << needle;
+  return 1 + static_cast<int>(std::count(text.begin(), text.begin() + at, '\n'));
+}
+
+}  // namespace
+
+TEST(Osim, SmallModelImportsWithCouplerAndIgnoredConstraint) {
+  OsimImport im;
+  Status s = ImportOsimText(kSmallModel, "small.osim", &im);
+  ASSERT_TRUE(s.ok()) << s.message();
+  const Model& m = im.model;
+  EXPECT_EQ(m.num_segments(), 3);
+  EXPECT_EQ(m.num_coordinates(), 8);  // knee_beta is derived
+  ASSERT_EQ(m.derived_coordinates().size(), 1u);
+  EXPECT_EQ(m.derived_coordinates()[0].name, "knee_beta");
+  EXPECT_EQ(m.derived_coordinates()[0].source, m.FindCoordinate("knee_angle"));
+  ASSERT_EQ(im.ignored.size(), 1u);
+  EXPECT_THAT(im.ignored[0], HasSubstr("PointConstraint 'some_point'"));
+  EXPECT_EQ(m.joints()[m.FindJoint("hip")].type, JointType::kHinge);
+  EXPECT_EQ(m.joints()[m.FindJoint("ground_pelvis")].type, JointType::kFree);
+  EXPECT_EQ(m.num_markers(), 5);
+  for (const Marker& mk : m.markers()) EXPECT_FALSE(mk.optional);
+  EXPECT_EQ(im.motion.at("knee_beta"), OsimMotion::kCoupled);
+  EXPECT_EQ(im.motion.at("tx"), OsimMotion::kTranslational);
+  EXPECT_EQ(im.motion.at("knee_angle"), OsimMotion::kRotational);
+  std::mt19937 rng(1);
+  for (int trial = 0; trial < 6; ++trial)
+    EXPECT_LT(ExpectJacobiansMatchCentralDifferences(m, RandomPose(m, rng, 1.5), RandomParameters(m, rng)), 1e-6);
+}
+
+// The pelvis sits where the free joint puts it, the hip offset frame's orientation is body-fixed
+// XYZ, and markers keep their OpenSim body positions (checked against a hand computation).
+TEST(Osim, FramesFollowOpenSimsConventions) {
+  OsimImport im;
+  ASSERT_TRUE(ImportOsimText(kSmallModel, "small.osim", &im).ok());
+  const Model& m = im.model;
+  Eigen::VectorXd z = m.DefaultCoordinates();
+  z[m.FindCoordinate("hip_flexion")] = 0.4;
+  const Eigen::Matrix3Xd x = Positions(m, z, m.InitialParameters());
+  // Pelvis at (0, 0.9, 0), unrotated: ASIS at its body location.
+  EXPECT_LT((x.col(m.FindMarker("ASIS")) - Eigen::Vector3d(0.02, 0.93, 0.12)).norm(), 1e-15);
+  auto rot = [](double a, double b, double c) {
+    return (Eigen::AngleAxisd(a, Eigen::Vector3d::UnitX()) * Eigen::AngleAxisd(b, Eigen::Vector3d::UnitY()) *
+            Eigen::AngleAxisd(c, Eigen::Vector3d::UnitZ())).toRotationMatrix();
+  };
+  // femur body frame: X_G,pelvis * X_pelvis,F * Rz(q) * X_femur,M^-1.
+  const Eigen::Matrix3d rf = rot(0.1, -0.2, 0.3) * Eigen::AngleAxisd(0.4, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  const Eigen::Matrix3d rm = rot(0, 0, 0.2);
+  const Eigen::Vector3d f_origin = Eigen::Vector3d(0, 0.9, 0) + Eigen::Vector3d(-0.07, -0.06, 0.08);
+  const Eigen::Vector3d thigh = f_origin + rf * (rm.transpose() * (Eigen::Vector3d(0.03, -0.2, 0.05) - Eigen::Vector3d(0.01, 0.02, 0)));
+  EXPECT_LT((x.col(m.FindMarker("THIGH")) - thigh).norm(), 1e-14);
+}
+
+TEST(Osim, Gait2354ImportsWithItsMarkerSet) {
+  SKIP_WITHOUT_SHARED_DATA();
+  OsimImport im = MustImport(Gait("gait2354_simbody.osim"));
+  EXPECT_EQ(im.model.num_markers(), 0);
+  EXPECT_EQ(im.model.num_coordinates(), 23);
+  EXPECT_EQ(im.model.num_segments(), 12);
+  Status s = LoadOsimMarkerSet(Gait("gait2354_Scale_MarkerSet.xml"), &im);
+  ASSERT_TRUE(s.ok()) << s.message();
+  EXPECT_EQ(im.model.num_markers(), 39);
+  const Model& m = im.model;
+  const int asis = m.FindMarker("R.ASIS");
+  ASSERT_GE(asis, 0);
+  EXPECT_EQ(m.segments()[m.markers()[asis].segment].name, "pelvis");
+  EXPECT_LT((m.markers()[asis].position - Eigen::Vector3d(0.02, 0.03, 0.128)).norm(), 1e-12);
+  // The knee: a custom joint with spline translations and a fitted flexion axis.
+  const Joint& knee = m.joints()[m.FindJoint("knee_r")];
+  EXPECT_EQ(knee.type, JointType::kCustom);
+  int splines = 0, fitted = 0;
+  for (const auto& el : knee.elements) {
+    splines += el.function.kind == CoordinateFunction::Kind::kSimmSpline;
+    fitted += el.fitted_axis;
+  }
+  EXPECT_EQ(splines, 2);
+  EXPECT_EQ(fitted, 1);
+  EXPECT_EQ(m.joints()[m.FindJoint("ground_pelvis")].type, JointType::kFree);
+  EXPECT_EQ(m.joints()[m.FindJoint("hip_r")].type, JointType::kSpherical);
+  std::mt19937 rng(3);
+  for (int trial = 0; trial < 3; ++trial)
+    EXPECT_LT(ExpectJacobiansMatchCentralDifferences(m, RandomPose(m, rng), RandomParameters(m, rng)), 1e-6);
+}
+
+// OpenSim's scaled model and its IK angles, evaluated by our kinematics, against the measured
+// markers of the walk: the RMS is OpenSim's IK residual, a few mm to ~2 cm if (and only if) our
+// kinematics reproduce OpenSim's (frames, Euler conventions, the knee's splines and scaling).
+TEST(Osim, OpenSimsScaledModelAndIkReproduceTheWalk) {
+  SKIP_WITHOUT_SHARED_DATA();
+  OsimImport im = MustImport(Gait("reference_outputs/subject01_simbody.osim"));
+  const Model& m = im.model;
+  ASSERT_EQ(m.num_markers(), 39);
+  CoordinateTable ik;
+  Status s = ReadMot(Gait("reference_outputs/subject01_walk1_ik.mot"), &ik);
+  ASSERT_TRUE(s.ok()) << s.message();
+  MarkerTrial trial;
+  s = ReadTrc(Gait("subject01_walk1.trc"), &trial);
+  ASSERT_TRUE(s.ok()) << s.message();
+  std::vector<int> column(m.num_coordinates());
+  for (int c = 0; c < m.num_coordinates(); ++c) {
+    column[c] = ik.FindColumn(m.coordinates()[c].name);
+    ASSERT_GE(column[c], 0) << m.coordinates()[c].name;
+  }
+  std::vector<int> in_trial(m.num_markers());
+  for (int k = 0; k < m.num_markers(); ++k) in_trial[k] = trial.FindMarker(m.markers()[k].name);
+  Geometry g(m);
+  ModelData d(m);
+  double sum_sq = 0;
+  int count = 0;
+  std::vector<double> frame_rms;
+  std::vector<double> marker_sq(m.num_markers(), 0.0);
+  // OpenSim's IK minimises sum_k w_k |x_k - r_k|^2 with the weights of its setup (and coordinate
+  // tasks on the subtalar and mtp angles): at its solution the gradient along every other
+  // coordinate vanishes -- if our kinematics are OpenSim's.
+  std::vector<double> weight(m.num_markers(), 0.0);
+  {
+    std::ifstream in(Gait("subject01_Setup_IK.xml"));
+    std::stringstream ss;
+    ss << in.rdbuf();
+    const std::string setup = ss.str();
+    const std::regex task(R"re(<IKMarkerTask name="([^"]+)">[\s\S]*?<apply>\s*true\s*</apply>[\s\S]*?<weight>\s*([0-9.eE+-]+)\s*</weight>)re");
+    for (auto it = std::sregex_iterator(setup.begin(), setup.end(), task); it != std::sregex_iterator(); ++it) {
+      const int k = m.FindMarker((*it)[1]);
+      if (k >= 0) weight[k] = std::stod((*it)[2]);
+    }
+  }
+  double worst_stationarity = 0;
+  std::string worst_coordinate;
+  std::vector<int> marker_n(m.num_markers(), 0);
+  for (int f = 0; f < ik.num_frames(); ++f) {
+    Eigen::VectorXd z(m.num_coordinates());
+    for (int c = 0; c < m.num_coordinates(); ++c) {
+      const double v = ik.values(f, column[c]);
+      z[c] = ik.in_degrees && im.motion.at(m.coordinates()[c].name) == OsimMotion::kRotational ? v * M_PI / 180 : v;
+    }
+    ForwardKinematics(m, g, z, &d);
+    // The TRC frame at the same time (its times are rounded to the ms).
+    int tf = 0;
+    for (int k = 0; k < trial.num_frames(); ++k)
+      if (std::abs(trial.times[k] - ik.times[f]) < std::abs(trial.times[tf] - ik.times[f])) tf = k;
+    ASSERT_LT(std::abs(trial.times[tf] - ik.times[f]), 0.5 / trial.rate_hz);
+    double fs = 0;
+    int fn = 0;
+    for (int k = 0; k < m.num_markers(); ++k) {
+      if (in_trial[k] < 0 || !trial.Has(tf, in_trial[k])) continue;
+      const double e2 = (MarkerPosition(m, g, d, k) - trial.At(tf, in_trial[k])).squaredNorm();
+      fs += e2;
+      ++fn;
+      marker_sq[k] += e2;
+      ++marker_n[k];
+    }
+    ASSERT_GT(fn, 20);
+    // Relative gradient per coordinate: |sum w J^T e| / sum w |J| |e|.
+    Eigen::VectorXd grad = Eigen::VectorXd::Zero(m.num_coordinates()), size = grad;
+    for (int k = 0; k < m.num_markers(); ++k) {
+      if (in_trial[k] < 0 || !trial.Has(tf, in_trial[k]) || weight[k] == 0) continue;
+      const auto& cols = m.marker_coordinates(k);
+      Eigen::MatrixXd jz(3, cols.size());
+      MarkerJacobian(m, g, d, k, &jz, static_cast<Eigen::MatrixXd*>(nullptr));
+      const Eigen::Vector3d e = MarkerPosition(m, g, d, k) - trial.At(tf, in_trial[k]);
+      for (size_t i = 0; i < cols.size(); ++i) {
+        grad[cols[i]] += weight[k] * jz.col(i).dot(e);
+        size[cols[i]] += weight[k] * jz.col(i).norm() * e.norm();
+      }
+    }
+    for (int c = 0; c < m.num_coordinates(); ++c) {
+      const std::string& n = m.coordinates()[c].name;
+      if (n.rfind("subtalar", 0) == 0 || n.rfind("mtp", 0) == 0 || size[c] == 0) continue;
+      const double r = std::abs(grad[c]) / size[c];
+      if (r > worst_stationarity) {
+        worst_stationarity = r;
+        worst_coordinate = n + " at t=" + std::to_string(ik.times[f]);
+      }
+    }
+    sum_sq += fs;
+    count += fn;
+    frame_rms.push_back(std::sqrt(fs / fn));
+  }
+  const double rms_mm = 1000 * std::sqrt(sum_sq / count);
+  double max_jump_mm = 0, max_frame_mm = 0;
+  for (size_t f = 0; f < frame_rms.size(); ++f) {
+    max_frame_mm = std::max(max_frame_mm, 1000 * frame_rms[f]);
+    if (f > 0) max_jump_mm = std::max(max_jump_mm, 1000 * std::abs(frame_rms[f] - frame_rms[f - 1]));
+  }
+  std::printf("OpenSim's scale + IK of subject01_walk1 through our kinematics: marker RMS %.2f mm over "
+              "%d frames (%d marker samples), worst frame %.2f mm, largest frame-to-frame change %.2f mm\n",
+              rms_mm, ik.num_frames(), count, max_frame_mm, max_jump_mm);
+  for (int k = 0; k < m.num_markers(); ++k)
+    if (marker_n[k] > 0)
+      std::printf("  %-16s %.2f mm\n", m.markers()[k].name.c_str(), 1000 * std::sqrt(marker_sq[k] / marker_n[k]));
+  std::printf("  stationarity of OpenSim's weighted IK objective in our kinematics: worst relative "
+              "gradient %.2e (%s)\n", worst_stationarity, worst_coordinate.c_str());
+  EXPECT_LT(worst_stationarity, 0.02);
+  EXPECT_GT(rms_mm, 1.0);   // a perfect fit of real data would be suspicious
+  EXPECT_LT(rms_mm, 25.0);
+  EXPECT_LT(max_frame_mm, 35.0);
+  EXPECT_LT(max_jump_mm, 3.0);  // continuous: no frame where our kinematics jump away
+}
+
+TEST(Osim, Welk007ModelsImportWithCouplersAndJacobians) {
+  SKIP_WITHOUT_SHARED_DATA();
+  for (const char* name : {"unscaled_generic.osim", "manually_scaled.osim"}) {
+    SCOPED_TRACE(name);
+    OsimImport im = MustImport(Welk(name));
+    const Model& m = im.model;
+    EXPECT_EQ(m.num_markers(), 68);  // the file lists 72, four of them commented out
+    for (const char* mk : {"R_HJC", "L_HJC", "midASIS", "r.ASIS", "r_knee"}) EXPECT_GE(m.FindMarker(mk), 0) << mk;
+    for (const Marker& mk : m.markers()) EXPECT_FALSE(mk.optional);
+    // The patellae follow the knees: knee_angle_r drives both joints.
+    const int knee = m.FindCoordinate("knee_angle_r");
+    ASSERT_GE(knee, 0);
+    EXPECT_LT(m.FindCoordinate("knee_angle_r_beta"), 0);
+    bool drives_patella = false;
+    for (const auto& el : m.joints()[m.FindJoint("patellofemoral_r")].elements) drives_patella |= el.coordinate == knee;
+    EXPECT_TRUE(drives_patella);
+    bool derived = false;
+    for (const auto& dc : m.derived_coordinates()) derived |= dc.name == "knee_angle_r_beta" && dc.source == knee;
+    EXPECT_TRUE(derived);
+    EXPECT_EQ(m.joints()[m.FindJoint("ankle_r")].type, JointType::kHinge);
+    // Both wrist coordinates are locked: constants, kept as derived coordinates for a .mot.
+    for (const char* n : {"wrist_flex_r", "wrist_dev_r"}) {
+      EXPECT_LT(m.FindCoordinate(n), 0) << n;
+      bool constant = false;
+      for (const auto& dc : m.derived_coordinates()) constant |= dc.name == n && dc.source == -1;
+      EXPECT_TRUE(constant) << n;
+    }
+    for (const auto& el : m.joints()[m.FindJoint("radius_hand_r")].elements) EXPECT_TRUE(el.function.IsConstant());
+    std::mt19937 rng(17);
+    for (int trial = 0; trial < 3; ++trial)
+      EXPECT_LT(ExpectJacobiansMatchCentralDifferences(m, RandomPose(m, rng), RandomParameters(m, rng)), 1e-6);
+  }
+}
+
+TEST(Osim, ExportImportRoundTripKeepsKinematics) {
+  std::vector<OsimImport> imports;
+  OsimImport small;
+  ASSERT_TRUE(ImportOsimText(kSmallModel, "small.osim", &small).ok());
+  imports.push_back(small);
+  if (fs::is_directory(SharedData())) {
+    OsimImport gait = MustImport(Gait("gait2354_simbody.osim"));
+    ASSERT_TRUE(LoadOsimMarkerSet(Gait("gait2354_Scale_MarkerSet.xml"), &gait).ok());
+    imports.push_back(gait);
+    imports.push_back(MustImport(Gait("reference_outputs/subject01_simbody.osim")));
+    imports.push_back(MustImport(Welk("unscaled_generic.osim")));
+    imports.push_back(MustImport(Welk("manually_scaled.osim")));
+  } else {
+    std::printf("shared data folder %s is absent: round trip of the small model only\n", SharedData().c_str());
+  }
+  std::mt19937 rng(23);
+  for (const OsimImport& im : imports) {
+    SCOPED_TRACE(im.source);
+    const double same = RoundTripError(im, im.model, rng);
+    EXPECT_LT(same, 1e-9);
+    double worst = 0;
+    for (int k = 0; k < 3; ++k) {
+      const Model fitted = im.model.WithParameters(RandomParameters(im.model, rng));
+      worst = std::max(worst, RoundTripError(im, fitted, rng));
+    }
+    std::printf("%s: round trip %.3g m unchanged, %.3g m after random scales, centres, axes, markers\n",
+                im.source.c_str(), same, worst);
+    EXPECT_LT(worst, 1e-9);
+  }
+}
+
+TEST(Osim, ExportWritesOpenSimsScaling) {
+  OsimImport im;
+  ASSERT_TRUE(ImportOsimText(kSmallModel, "small.osim", &im).ok());
+  Eigen::VectorXd p = im.model.InitialParameters();
+  p[im.model.scale_index(im.model.FindSegment("femur"))] = 1.2;
+  std::string xml;
+  ASSERT_TRUE(ExportOsimText(im.model.WithParameters(p), im, &xml).ok());
+  // The knee's translations are functions of the femur: wrapped in a MultiplierFunction; its
+  // mass properties scaled (mass kept).
+  EXPECT_THAT(xml, HasSubstr("<MultiplierFunction name=\"function\">"));
+  EXPECT_THAT(xml, HasSubstr("<scale>1.2</scale>"));
+  EXPECT_THAT(xml, HasSubstr("<mass_center>0 -0.24 0</mass_center>"));
+  EXPECT_THAT(xml, HasSubstr("<mass>5</mass>"));
+  // The exported document imports again (and says which constraint it ignores).
+  OsimImport back;
+  Status s = ImportOsimText(xml, "back.osim", &back);
+  ASSERT_TRUE(s.ok()) << s.message();
+  EXPECT_EQ(back.ignored.size(), 1u);
+}
+
+TEST(Osim, MotHasOpenSimsNamesAndUnits) {
+  OsimImport im;
+  ASSERT_TRUE(ImportOsimText(kSmallModel, "small.osim", &im).ok());
+  const Model& m = im.model;
+  std::mt19937 rng(4);
+  Eigen::MatrixXd poses(3, m.num_coordinates());
+  for (int f = 0; f < 3; ++f) poses.row(f) = RandomPose(m, rng).transpose();
+  const std::string path = TmpPath(".mot");
+  Status s = WriteOsimMot(path, im, m, {0.0, 0.01, 0.02}, poses);
+  ASSERT_TRUE(s.ok()) << s.message();
+  CoordinateTable t;
+  ASSERT_TRUE(ReadMot(path, &t).ok());
+  EXPECT_TRUE(t.in_degrees);
+  ASSERT_EQ(t.column_names.size(), 9u);
+  const int hip = t.FindColumn("hip_flexion"), tx = t.FindColumn("tx"), beta = t.FindColumn("knee_beta");
+  ASSERT_GE(hip, 0);
+  ASSERT_GE(tx, 0);
+  ASSERT_GE(beta, 0);
+  for (int f = 0; f < 3; ++f) {
+    EXPECT_NEAR(t.values(f, hip), poses(f, m.FindCoordinate("hip_flexion")) * 180 / M_PI, 1e-6);
+    EXPECT_NEAR(t.values(f, tx), poses(f, m.FindCoordinate("tx")), 1e-8);
+    // Coupled: radians, as OpenSim writes it, = 0.8 * spline(knee_angle).
+    EXPECT_NEAR(t.values(f, beta), m.derived_coordinates()[0].Value(poses.row(f).transpose()), 1e-8);
+  }
+}
+
+// OpenSim 3.x: joints inside bodies, CoordinateSet, markers with <body>, ground as a body.
+TEST(Osim, OpenSim3LayoutMatchesThe4Layout) {
+  const char* v3 = R"(<?xml version="1.0" encoding="UTF-8"?>
+<OpenSimDocument Version="30000">
+  <Model name="small3">
+    <BodySet><objects>
+      <Body name="ground"><mass>0</mass></Body>
+      <Body name="pelvis"><mass>10</mass>
+        <Joint><FreeJoint name="ground_pelvis"><parent_body>ground</parent_body>
+          <location_in_parent>0 0 0</location_in_parent><orientation_in_parent>0 0 0</orientation_in_parent>
+          <location>0 0 0</location><orientation>0 0 0</orientation>
+          <CoordinateSet><objects>
+            <Coordinate name="rx" /><Coordinate name="ry" /><Coordinate name="rz" />
+            <Coordinate name="tx" /><Coordinate name="ty"><default_value>0.9</default_value></Coordinate><Coordinate name="tz" />
+          </objects></CoordinateSet></FreeJoint></Joint></Body>
+      <Body name="femur"><mass>5</mass>
+        <Joint><PinJoint name="hip"><parent_body>pelvis</parent_body>
+          <location_in_parent>-0.07 -0.06 0.08</location_in_parent><orientation_in_parent>0.1 -0.2 0.3</orientation_in_parent>
+          <location>0.01 0.02 0</location><orientation>0 0 0.2</orientation>
+          <CoordinateSet><objects><Coordinate name="hip_flexion" /></objects></CoordinateSet></PinJoint></Joint></Body>
+      <Body name="tibia"><mass>3</mass>
+        <Joint><CustomJoint name="knee"><parent_body>femur</parent_body>
+          <location_in_parent>0 0 0</location_in_parent><orientation_in_parent>0 0 0</orientation_in_parent>
+          <location>0 0 0</location><orientation>0 0 0</orientation>
+          <CoordinateSet><objects><Coordinate name="knee_angle" /></objects></CoordinateSet>
+          <SpatialTransform>
+            <TransformAxis name="rotation1"><coordinates>knee_angle</coordinates><axis>0 0 1</axis><function><LinearFunction><coefficients>1 0</coefficients></LinearFunction></function></TransformAxis>
+            <TransformAxis name="rotation2"><coordinates></coordinates><axis>1 0 0</axis><function><Constant><value>0</value></Constant></function></TransformAxis>
+            <TransformAxis name="rotation3"><coordinates></coordinates><axis>0 1 0</axis><function><Constant><value>0</value></Constant></function></TransformAxis>
+            <TransformAxis name="translation1"><coordinates>knee_angle</coordinates><axis>1 0 0</axis><function><SimmSpline><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></SimmSpline></function></TransformAxis>
+            <TransformAxis name="translation2"><coordinates>knee_angle</coordinates><axis>0 1 0</axis><function><NaturalCubicSpline><x>-2 -1 0 2</x><y>-0.42 -0.41 -0.40 -0.396</y></NaturalCubicSpline></function></TransformAxis>
+            <TransformAxis name="translation3"><coordinates></coordinates><axis>0 0 1</axis><function><Constant><value>0.003</value></Constant></function></TransformAxis>
+          </SpatialTransform></CustomJoint></Joint></Body>
+    </objects></BodySet>
+    <MarkerSet><objects>
+      <Marker name="ASIS"><body>pelvis</body><location>0.02 0.03 0.12</location></Marker>
+      <Marker name="THIGH"><body>femur</body><location>0.03 -0.2 0.05</location></Marker>
+      <Marker name="SHANK"><body>tibia</body><location>0.02 -0.2 0.04</location></Marker>
+    </objects></MarkerSet>
+  </Model>
+</OpenSimDocument>)";
+  OsimImport a, b;
+  Status s = ImportOsimText(v3, "small3.osim", &a);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ASSERT_TRUE(ImportOsimText(kSmallModel, "small.osim", &b).ok());
+  EXPECT_EQ(a.version, 30000);
+  EXPECT_EQ(a.model.num_segments(), 3);
+  std::mt19937 rng(8);
+  for (int k = 0; k < 5; ++k) {
+    Eigen::VectorXd z = RandomPose(a.model, rng);
+    const Eigen::Matrix3Xd xa = Positions(a.model, z, a.model.InitialParameters());
+    Eigen::VectorXd zb = b.model.DefaultCoordinates();
+    for (int c = 0; c < a.model.num_coordinates(); ++c) zb[b.model.FindCoordinate(a.model.coordinates()[c].name)] = z[c];
+    zb[b.model.FindCoordinate("knee_angle")] = z[a.model.FindCoordinate("knee_angle")];
+    const Eigen::Matrix3Xd xb = Positions(b.model, zb, b.model.InitialParameters());
+    for (const char* mk : {"ASIS", "THIGH"})
+      EXPECT_LT((xa.col(a.model.FindMarker(mk)) - xb.col(b.model.FindMarker(mk))).norm(), 1e-14) << mk;
+  }
+  // Round trip of the 3.x document too.
+  std::mt19937 rng2(9);
+  EXPECT_LT(RoundTripError(a, a.model.WithParameters(RandomParameters(a.model, rng2)), rng2), 1e-9);
+}
+
+TEST(Osim, BadInputIsAClearErrorWithElementAndLine) {
+  const std::string good = kSmallModel;
+  OsimImport im;
+  Status s = ImportOsimText("this is not XML <", "junk.osim", &im);
+  EXPECT_FALSE(s.ok());
+  EXPECT_THAT(s.message(), HasSubstr("junk.osim:1: not a valid XML document"));
+  s = ImportOsimText("<a><b></a>", "bad.osim", &im);
+  EXPECT_FALSE(s.ok());
+  EXPECT_THAT(s.message(), HasSubstr("bad.osim:"));
+  s = ImportOsimText("<Model/>", "nodoc.osim", &im);
+  EXPECT_THAT(s.message(), HasSubstr("expected an <OpenSimDocument>"));
+  struct Case { std::string from, to, line_of, expect; };
+  const std::vector<Case> cases = {
+      {"<PinJoint name=\"hip\">", "<EllipsoidJoint name=\"hip\">", "<PinJoint name=\"hip\">",
+       "EllipsoidJoint 'hip': unsupported joint type 'EllipsoidJoint'"},
+      {"</PinJoint>", "</EllipsoidJoint>", "", ""},  // (paired with the case above)
+      {"<SimmSpline name=\"function\"><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></SimmSpline>",
+       "<GCVSpline name=\"function\"><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></GCVSpline>",
+       "<SimmSpline name=\"function\"><x>-2", "GCVSpline 'function': unsupported function type 'GCVSpline'"},
+      {"<independent_coordinate_names>knee_angle</independent_coordinate_names>",
+       "<independent_coordinate_names>knee_angel</independent_coordinate_names>",
+       "<CoordinateCouplerConstraint name=\"knee_coupler\">",
+       "CoordinateCouplerConstraint 'knee_coupler': unknown independent coordinate 'knee_angel'"},
+      {"<independent_coordinate_names>knee_angle</independent_coordinate_names>",
+       "<independent_coordinate_names>knee_angle hip_flexion</independent_coordinate_names>",
+       "<CoordinateCouplerConstraint name=\"knee_coupler\">",
+       "couplers with 2 independent coordinates are unsupported"},
+      {"<socket_child_frame>/bodyset/tibia</socket_child_frame>", "<socket_child_frame>/bodyset/fibula</socket_child_frame>",
+       "<socket_child_frame>/bodyset/tibia</socket_child_frame>", "socket_child_frame: no body, ground or frame of this joint named '/bodyset/fibula'"},
+      {"<socket_parent>/bodyset/femur</socket_parent>", "<socket_parent>/bodyset/thigh</socket_parent>",
+       "<socket_parent>/bodyset/femur</socket_parent>", "no body, ground or frame of this joint named '/bodyset/thigh'"},
+      {"<x>-2 -1 0 1 2</x>", "<x>-2 -1 0 0 2</x>", "<SimmSpline name=\"function\"><x>-2", "spline x values must increase"},
+      {"<translation>-0.07 -0.06 0.08</translation>", "<translation>-0.07 oops 0.08</translation>",
+       "<translation>-0.07 -0.06 0.08</translation>", "translation: expected numbers, got 'oops'"},
+  };
+  for (size_t i = 0; i < cases.size(); ++i) {
+    const Case& c = cases[i];
+    if (c.expect.empty()) continue;
+    std::string text = good;
+    const int line = LineOf(text, c.line_of);
+    text.replace(text.find(c.from), c.from.size(), c.to);
+    if (i == 0) text.replace(text.find(cases[1].from), cases[1].from.size(), cases[1].to);
+    s = ImportOsimText(text, "broken.osim", &im);
+    EXPECT_FALSE(s.ok()) << c.expect;
+    EXPECT_THAT(s.message(), HasSubstr("broken.osim:" + std::to_string(line) + ": ")) << c.expect;
+    EXPECT_THAT(s.message(), HasSubstr(c.expect));
+  }
+  // A body that no joint holds.
+  std::string text = good;
+  const std::string extra = "<Body name=\"orphan\"><mass>1</mass></Body>\n";
+  text.insert(text.find("      </objects>\n    </BodySet>"), "        " + extra);
+  s = ImportOsimText(text, "orphan.osim", &im);
+  EXPECT_FALSE(s.ok());
+  EXPECT_THAT(s.message(), HasSubstr("orphan.osim:" + std::to_string(LineOf(text, extra)) + ": Body 'orphan': body is not the child of any joint"));
+  s = ImportOsim("/nonexistent/model.osim", &im);
+  EXPECT_FALSE(s.ok());
+  EXPECT_THAT(s.message(), HasSubstr("/nonexistent/model.osim"));
+}
