@@ -60,10 +60,14 @@ TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
     }
   }
   for (const auto& sd : cmp.segments) {
-    if (sd.to.rfind("wrist", 0) != 0) EXPECT_LT(std::abs(sd.error_pct), 0.2) << sd.name;
+    if (sd.to.rfind("wrist", 0) != 0) {
+      EXPECT_LT(std::abs(sd.error_pct), 0.2) << sd.name;
+    }
   }
   for (const auto& md : cmp.markers) {
-    if (md.segment.rfind("hand", 0) != 0) EXPECT_LT(md.error_mm, 1.0) << md.marker;
+    if (md.segment.rfind("hand", 0) != 0) {
+      EXPECT_LT(md.error_mm, 1.0) << md.marker;
+    }
   }
   for (const char* wrist_axis : {"wrist_l.axis0.alpha", "wrist_r.axis1.beta"})
     EXPECT_NE(std::find(r.undetermined.begin(), r.undetermined.end(), wrist_axis), r.undetermined.end())
