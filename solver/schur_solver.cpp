@@ -12,34 +12,16 @@ namespace {
 // near peak speed, few enough that each group's stack stays in cache.
 constexpr int kStackFrames = 16;
 
-// v <- L^{-1} v and v <- L^{-T} v for the Cholesky factor in the lower triangle of `l`, by
-// columns (contiguous in memory); Eigen's general triangular solve costs several times more at
-// these sizes.
-void SolveLower(const Eigen::MatrixXd& l, Eigen::VectorXd* v) {
-  const int n = static_cast<int>(l.rows());
-  for (int j = 0; j < n; ++j) {
-    const double vj = ((*v)[j] /= l(j, j));
-    if (j + 1 < n) v->tail(n - j - 1) -= vj * l.col(j).tail(n - j - 1);
-  }
-}
-void SolveLowerTransposed(const Eigen::MatrixXd& l, Eigen::VectorXd* v) {
-  const int n = static_cast<int>(l.rows());
-  for (int i = n - 1; i >= 0; --i) {
-    double sum = (*v)[i];
-    if (i + 1 < n) sum -= l.col(i).tail(n - i - 1).dot(v->tail(n - i - 1));
-    (*v)[i] = sum / l(i, i);
-  }
-}
 }  // namespace
 
 struct ArrowSchurProblem::ThreadState {
   std::unique_ptr<FrameEvaluator> evaluator;
-  Eigen::MatrixXd u, s;
+  Eigen::MatrixXd u, s;  // u: U_f, then its factor L_f, in the lower triangle (pattern only)
   std::vector<double> w, y;    // compact W_f (when not cached) and Y_f
   const double* w_frame = nullptr;  // the current frame's compact W (cache or w)
-  Eigen::VectorXd gy, gyi, v, rhs, gp, wdp;
+  Eigen::VectorXd gy, gyi, v, rhs, gp, wdp, child_sum;
   std::vector<double> panel_y, panel_p;  // one block's Jacobians, 3 rows, zero-padded
-  Eigen::LLT<Eigen::MatrixXd> llt;
+  std::vector<double> w_row;              // one row of the block's J_y^T J_p
   // Stacked columns awaiting a rank update, and what they have been applied to: per block kind
   // (J_p^T, for V) and per row group (Y_g^T, for S).
   std::vector<Eigen::MatrixXd> v_stack, v_acc, g_stack, g_acc;
@@ -56,16 +38,17 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
       ny_(problem->frame_dim()),
       np_(problem->shared_dim()) {
   Analyse();
-  const double cache_bytes = 8.0 * nf_ * (static_cast<double>(ny_) * ny_ + w_size_);
+  const double cache_bytes = 8.0 * nf_ * (2.0 * u_pattern_.size() + w_size_);
   cached_ = cache_bytes <= cache_budget_bytes;
   if (cached_) {
-    u_cache_.resize(static_cast<size_t>(nf_) * ny_ * ny_);
+    u_cache_.resize(static_cast<size_t>(nf_) * u_pattern_.size());
+    l_cache_.resize(static_cast<size_t>(nf_) * u_pattern_.size());
     w_cache_.resize(static_cast<size_t>(nf_) * w_size_);
   }
   for (int t = 0; t < num_threads_; ++t) {
     auto ts = std::make_unique<ThreadState>();
     ts->evaluator = problem_->NewEvaluator();
-    ts->u.resize(ny_, ny_);
+    ts->u.setZero(ny_, ny_);
     ts->s.resize(np_, np_);
     ts->w.resize(w_size_);
     ts->y.resize(w_size_);
@@ -73,11 +56,12 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
     ts->gyi.resize(ny_);
     ts->panel_y.resize(3 * max_block_y_);
     ts->panel_p.resize(3 * max_block_p_);
+    ts->w_row.resize(max_block_p_);
     ts->v.resize(ny_);
     ts->rhs.resize(np_);
     ts->gp.resize(np_);
     ts->wdp.resize(ny_);
-    ts->llt = Eigen::LLT<Eigen::MatrixXd>(ny_);
+    ts->child_sum.resize(std::max(np_, 1));
     for (const BlockKind& k : kinds_) {
       const int n = static_cast<int>(k.free_p.size());
       ts->v_stack.emplace_back(n, kMaxBlockRows * kStackFrames);
@@ -144,6 +128,17 @@ void ArrowSchurProblem::Analyse() {
   }
   position_.assign(ny_, 0);
   for (int k = 0; k < ny_; ++k) position_[order_[k]] = k;
+  // L's pattern by columns (positions), and its lower-triangle offsets in a column-major ny x ny.
+  l_rows_.assign(ny_, {});
+  u_pattern_.clear();
+  for (int j = 0; j < ny_; ++j) {
+    u_pattern_.push_back(j + j * ny_);
+    for (int i = j + 1; i < ny_; ++i)
+      if (lpat[order_[i]][order_[j]]) {
+        l_rows_[j].push_back(i);
+        u_pattern_.push_back(i + j * ny_);
+      }
+  }
   // Y row patterns in elimination order: a row reaches what its own W row and every row it is
   // eliminated against reach.
   std::vector<std::vector<char>> ypat(ny_);
@@ -217,6 +212,46 @@ void ArrowSchurProblem::Analyse() {
   }
 }
 
+// Cholesky in place, right-looking, skipping what is outside L_f's pattern: a column updates only
+// the columns of its non-zero rows (the rest of its chain). Eigen's blocked dense LLT costs four
+// times as much at 38 x 38, most of it on zeros.
+bool ArrowSchurProblem::FactorInPlace(Eigen::MatrixXd* a) const {
+  const int n = ny_;
+  for (int j = 0; j < n; ++j) {
+    double* col = a->col(j).data();
+    if (!(col[j] > 0.0)) return false;
+    const double d = std::sqrt(col[j]);
+    col[j] = d;
+    const std::vector<int>& rows = l_rows_[j];
+    for (int i : rows) col[i] /= d;
+    // Column segments are contiguous and zero off the pattern, so whole tails are updated
+    // (vectorised) instead of indexed entries.
+    for (int r : rows) {
+      const double lx = col[r];
+      Eigen::Map<Eigen::VectorXd>(a->col(r).data() + r, n - r) -=
+          lx * Eigen::Map<const Eigen::VectorXd>(col + r, n - r);
+    }
+  }
+  return true;
+}
+
+void ArrowSchurProblem::SolveLower(const Eigen::MatrixXd& l, Eigen::VectorXd* v) const {
+  const int n = ny_;
+  for (int j = 0; j < n; ++j) {
+    const double vj = ((*v)[j] /= l(j, j));
+    if (!l_rows_[j].empty()) v->tail(n - j - 1) -= vj * l.col(j).tail(n - j - 1);
+  }
+}
+
+void ArrowSchurProblem::SolveLowerTransposed(const Eigen::MatrixXd& l, Eigen::VectorXd* v) const {
+  const int n = ny_;
+  for (int i = n - 1; i >= 0; --i) {
+    double sum = (*v)[i];
+    if (!l_rows_[i].empty()) sum -= l.col(i).tail(n - i - 1).dot(v->tail(n - i - 1));
+    (*v)[i] = sum / l(i, i);
+  }
+}
+
 double ArrowSchurProblem::SharedRowsSquaredNorm(const Eigen::VectorXd& p) const {
   const Eigen::VectorXd delta = p - problem_->prior_target();
   double sum = problem_->prior_weight().cwiseProduct(delta).squaredNorm();
@@ -228,7 +263,9 @@ double ArrowSchurProblem::SharedRowsSquaredNorm(const Eigen::VectorXd& p) const 
 std::string ArrowSchurProblem::DescribeStructure() const {
   std::string out = "elimination order:";
   for (int i : order_) out += " " + std::to_string(i);
-  out += "\n";
+  out += "\nL_f non-zeros below the diagonal: " + std::to_string(u_pattern_.size() - ny_) + " (dense " +
+         std::to_string(ny_ * (ny_ - 1) / 2) + "); compact W_f: " + std::to_string(w_size_) +
+         " values (dense " + std::to_string(ny_ * np_) + ")\n";
   for (const RowGroup& g : groups_) {
     out += "  rows " + std::to_string(g.first_row) + "+" + std::to_string(g.num_rows) + ": " +
            std::to_string(g.columns.size()) + " columns in [" + std::to_string(g.columns.front()) +
@@ -289,7 +326,8 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
         return;
       }
       if (cached_) {
-        CachedU(f) = ts.u;
+        double* packed = CachedU(f);
+        for (size_t k = 0; k < u_pattern_.size(); ++k) packed[k] = ts.u.data()[u_pattern_[k]];
         std::copy(ts.w.begin(), ts.w.end(), CachedW(f));
       }
       double* gy = gradient->data() + static_cast<size_t>(f) * ny_;
@@ -352,7 +390,7 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
 // known at run time). False if a block's kind is unknown.
 bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const {
   static_assert(kMaxBlockRows == 3, "the panels below are unrolled for 3 rows");
-  ts.u.setZero();
+  for (int k : u_pattern_) ts.u.data()[k] = 0.0;  // the rest of ts.u stays zero
   std::fill(ts.w.begin(), ts.w.end(), 0.0);
   if (linearizing) ts.gyi.setZero();
   double* w = ts.w.data();
@@ -368,9 +406,14 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     const int rows = blk.rows, nyb = blk.num_y, np = static_cast<int>(kind.free_p.size());
     for (int a = 0; a < nyb; ++a)
       for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[a * kMaxBlockRows + r] : 0.0;
+    // jp as three rows of np values (row r at jp + r * np), so a W row is three axpys.
     for (int c = 0; c < np; ++c)
       for (int r = 0; r < 3; ++r)
-        jp[3 * c + r] = r < rows ? blk.jp[kind.free_local[c] * kMaxBlockRows + r] : 0.0;
+        jp[r * np + c] = r < rows ? blk.jp[kind.free_local[c] * kMaxBlockRows + r] : 0.0;
+    const double* jp0 = jp;
+    const double* jp1 = jp + np;
+    const double* jp2 = jp + 2 * np;
+    double* wrow = ts.w_row.data();
     const int* ypos = kind.y_position.data();
     const int* woff = kind.w_offset.data();
     for (int a = 0; a < nyb; ++a) {
@@ -381,8 +424,9 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
         if (ypos[c] > pa) continue;
         ucol[pa + static_cast<size_t>(ypos[c]) * ny_] += a0 * jy[3 * c] + a1 * jy[3 * c + 1] + a2 * jy[3 * c + 2];
       }
+      for (int c = 0; c < np; ++c) wrow[c] = a0 * jp0[c] + a1 * jp1[c] + a2 * jp2[c];
       const int* wo = woff + a * np;
-      for (int c = 0; c < np; ++c) w[wo[c]] += a0 * jp[3 * c] + a1 * jp[3 * c + 1] + a2 * jp[3 * c + 2];
+      for (int c = 0; c < np; ++c) w[wo[c]] += wrow[c];
     }
     if (!linearizing) continue;
     double res[3] = {0, 0, 0};
@@ -391,12 +435,11 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     for (int a = 0; a < nyb; ++a)
       ts.gyi[blk.y_index[a]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
     for (int c = 0; c < np; ++c)
-      ts.gp[kind.free_p[c]] += jp[3 * c] * res[0] + jp[3 * c + 1] * res[1] + jp[3 * c + 2] * res[2];
+      ts.gp[kind.free_p[c]] += jp0[c] * res[0] + jp1[c] * res[1] + jp2[c] * res[2];
     if (np > 0) {
       int& count = ts.v_count[blk.kind];
       double* stack = ts.v_stack[blk.kind].data() + static_cast<size_t>(count) * np;
-      for (int r = 0; r < rows; ++r)
-        for (int c = 0; c < np; ++c) stack[r * np + c] = jp[3 * c + r];
+      std::copy(jp, jp + rows * np, stack);
       count += rows;
       if (count + kMaxBlockRows > ts.v_stack[blk.kind].cols()) FlushV(ts, blk.kind);
     }
@@ -425,11 +468,12 @@ void ArrowSchurProblem::AddFramePrior(int f, Eigen::MatrixXd* u) const {
   for (int i = 0; i < ny_; ++i) (*u)(position_[i], position_[i]) += w[i] * w[i];
 }
 
-// U_f + damping factored into ts.llt, W_f at ts.w_frame, the frame's gradient in ts.gy (both in
+// U_f + damping factored in place into ts.u, W_f at ts.w_frame, the frame's gradient in ts.gy (both in
 // elimination order): from the cache, or from a fresh evaluation at the linearisation point.
 bool ArrowSchurProblem::LoadFrame(ThreadState& ts, int f, const Eigen::VectorXd& damping) {
   if (cached_) {
-    ts.u = CachedU(f);
+    const double* packed = CachedU(f);
+    for (size_t k = 0; k < u_pattern_.size(); ++k) ts.u.data()[u_pattern_[k]] = packed[k];
     ts.w_frame = CachedW(f);
   } else {
     if (!ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true) ||
@@ -444,8 +488,7 @@ bool ArrowSchurProblem::LoadFrame(ThreadState& ts, int f, const Eigen::VectorXd&
     ts.u(position_[i], position_[i]) += dmp[i];
     ts.gy[position_[i]] = g[i];
   }
-  ts.llt.compute(ts.u);
-  return ts.llt.info() == Eigen::Success;
+  return FactorInPlace(&ts.u);
 }
 
 bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s_out,
@@ -464,8 +507,12 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
         ts.ok = false;
         return;
       }
+      if (cached_) {  // the back-substitution reuses the factor
+        double* packed = CachedL(f);
+        for (size_t k = 0; k < u_pattern_.size(); ++k) packed[k] = ts.u.data()[u_pattern_[k]];
+      }
       if (np_ == 0) continue;
-      const Eigen::MatrixXd& l = ts.llt.matrixLLT();  // L in the lower triangle
+      const Eigen::MatrixXd& l = ts.u;
       ts.v = ts.gy;
       SolveLower(l, &ts.v);
       double* y = ts.y.data();
@@ -480,14 +527,22 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
           const RowGroup& h = groups_[child.group];
           const int hn = static_cast<int>(h.columns.size());
           const int* map = child.map.data();
+          auto sum = ts.child_sum.head(hn);
           for (int r = 0; r < g.num_rows; ++r) {
-            double* dst = yg + r * n;
+            // L_gh row r times Y_h, formed densely over the child's columns (vectorised), then
+            // scattered into our columns once.
+            bool any = false;
             for (int q = 0; q < h.num_rows; ++q) {
               const double lv = l(g.first_row + r, h.first_row + q);
               if (lv == 0.0) continue;
-              const double* src = y + h.offset + q * hn;
-              for (int c = 0; c < hn; ++c) dst[map[c]] -= lv * src[c];
+              const Eigen::Map<const Eigen::VectorXd> yh(y + h.offset + q * hn, hn);
+              if (any) sum += lv * yh;
+              else sum = lv * yh;
+              any = true;
             }
+            if (!any) continue;
+            double* dst = yg + r * n;
+            for (int c = 0; c < hn; ++c) dst[map[c]] -= sum[c];
           }
         }
         for (int r = 0; r < g.num_rows; ++r) {
@@ -551,7 +606,13 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
     ThreadState& ts = *threads_[t];
     ts.ok = true;
     for (int f = b; f < e; ++f) {
-      if (!LoadFrame(ts, f, damping)) {
+      if (cached_) {  // the factor FormReducedSystem kept, at this damping
+        const double* packed = CachedL(f);
+        for (size_t k = 0; k < u_pattern_.size(); ++k) ts.u.data()[u_pattern_[k]] = packed[k];
+        ts.w_frame = CachedW(f);
+        const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
+        for (int i = 0; i < ny_; ++i) ts.gy[position_[i]] = g[i];
+      } else if (!LoadFrame(ts, f, damping)) {
         ts.ok = false;
         return;
       }
@@ -569,8 +630,8 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
           ts.wdp[g.first_row + r] += sum;
         }
       }
-      SolveLower(ts.llt.matrixLLT(), &ts.wdp);
-      SolveLowerTransposed(ts.llt.matrixLLT(), &ts.wdp);
+      SolveLower(ts.u, &ts.wdp);
+      SolveLowerTransposed(ts.u, &ts.wdp);
       double* out = dx->data() + static_cast<size_t>(f) * ny_;
       for (int i = 0; i < ny_; ++i) out[i] = -ts.wdp[position_[i]];
     }

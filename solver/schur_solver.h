@@ -95,9 +95,11 @@ class ArrowSchurProblem : public LmProblem {
   void FlushGroup(ThreadState& ts, int group) const;
   void AddFramePrior(int f, Eigen::MatrixXd* u) const;
   bool LoadFrame(ThreadState& ts, int f, const Eigen::VectorXd& damping);
-  Eigen::Map<Eigen::MatrixXd> CachedU(int f) {
-    return Eigen::Map<Eigen::MatrixXd>(u_cache_.data() + static_cast<size_t>(f) * ny_ * ny_, ny_, ny_);
-  }
+  double* CachedU(int f) { return u_cache_.data() + static_cast<size_t>(f) * u_pattern_.size(); }
+  double* CachedL(int f) { return l_cache_.data() + static_cast<size_t>(f) * u_pattern_.size(); }
+  bool FactorInPlace(Eigen::MatrixXd* a) const;
+  void SolveLower(const Eigen::MatrixXd& l, Eigen::VectorXd* v) const;
+  void SolveLowerTransposed(const Eigen::MatrixXd& l, Eigen::VectorXd* v) const;
   double* CachedW(int f) { return w_cache_.data() + static_cast<size_t>(f) * w_size_; }
   double SharedRowsSquaredNorm(const Eigen::VectorXd& p) const;
   // Accumulates S (lower triangle) and the reduced right-hand side over all frames.
@@ -109,13 +111,16 @@ class ArrowSchurProblem : public LmProblem {
   int max_block_y_ = 1, max_block_p_ = 1;  // widest residual block (from BlockStructure)
   std::vector<int> order_;     // elimination order: position -> y index
   std::vector<int> position_;  // y index -> position
+  std::vector<std::vector<int>> l_rows_;  // rows below the diagonal of each column of L_f
+  std::vector<int> u_pattern_;            // offsets of L_f's pattern in a column-major ny x ny
   std::vector<RowGroup> groups_;
   std::vector<BlockKind> kinds_;
   int w_size_ = 0;             // doubles in a compact W_f
   std::vector<std::unique_ptr<ThreadState>> threads_;
   Eigen::VectorXd x_, gradient_;
   bool cached_ = false;
-  std::vector<double> u_cache_, w_cache_;  // per frame U_f (elimination order) and compact W_f
+  // Per frame: U_f and the last damped factor L_f (their pattern, packed), and compact W_f.
+  std::vector<double> u_cache_, l_cache_, w_cache_;
   Eigen::MatrixXd v_total_;                // sum of V_f (lower) at the linearisation point
 };
 
