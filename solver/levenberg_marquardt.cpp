@@ -94,6 +94,7 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
   Eigen::VectorXd gradient, diagonal, damping, dx, x_new;
   double cost = 0;
   auto t = Clock::now();
+  problem->AnticipateDamping(options.initial_lambda, options.min_diagonal, options.max_diagonal);
   if (!problem->Linearize(*x, &cost, &gradient, &diagonal)) {
     summary.message = "residuals or Jacobian not finite at the initial parameters";
     summary.total_seconds = Since(start);
@@ -150,6 +151,9 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         const double parameter_norm = x->norm();
         x->swap(x_new);
         const double old_cost = cost;
+        lambda = std::max(options.min_lambda,
+                          lambda * std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3)));
+        problem->AnticipateDamping(lambda, options.min_diagonal, options.max_diagonal);
         t = Clock::now();
         if (!problem->Linearize(*x, &cost, &gradient, &diagonal)) {
           // Cannot happen for a finite cost in exact arithmetic; step back to the last good x.
@@ -158,8 +162,6 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
           return finish(TerminationType::kNoConvergence, "Jacobian not finite after a step");
         }
         summary.linearize_seconds += Since(t);
-        lambda = std::max(options.min_lambda,
-                          lambda * std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3)));
         nu = 2.0;
         rejections = 0;
         it.step_accepted = true;

@@ -93,6 +93,10 @@ class LmProblem {
                          Eigen::VectorXd* jtj_diagonal) = 0;
   // Solves (J^T J + diag(damping)) dx = -gradient at the last linearisation point.
   virtual bool SolveDamped(const Eigen::VectorXd& damping, Eigen::VectorXd* dx) = 0;
+  // A hint before each Linearize: the next SolveDamped will most likely ask for damping =
+  // lambda * clamp(jtj_diagonal, min_diagonal, max_diagonal), so a problem may prepare that
+  // solve during the linearisation pass. Ignoring it is correct.
+  virtual void AnticipateDamping(double lambda, double min_diagonal, double max_diagonal) {}
 };
 
 // Minimises from *x in place. Never leaves a non-finite value in *x.

@@ -17,6 +17,8 @@ constexpr int kStackFrames = 16;
 struct ArrowSchurProblem::ThreadState {
   std::unique_ptr<FrameEvaluator> evaluator;
   Eigen::MatrixXd u, s;  // u: U_f, then its factor L_f, in the lower triangle (pattern only)
+  Eigen::MatrixXd s_v;   // this thread's share of V (lower)
+  bool reduced = false;  // Linearize also reduced this thread's frames
   std::vector<double> w, y;    // compact W_f (when not cached) and Y_f
   const double* w_frame = nullptr;  // the current frame's compact W (cache or w)
   Eigen::VectorXd gy, gyi, v, rhs, gp, wdp, child_sum;
@@ -50,6 +52,7 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
     ts->evaluator = problem_->NewEvaluator();
     ts->u.setZero(ny_, ny_);
     ts->s.resize(np_, np_);
+    ts->s_v.resize(np_, np_);
     ts->w.resize(w_size_);
     ts->y.resize(w_size_);
     ts->gy.resize(ny_);
@@ -311,14 +314,21 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
   const int n = num_parameters();
   gradient->setZero(n);
   diagonal->setZero(n);
+  anticipated_ready_ = false;
   if (!problem_->SetShared(x.tail(np_))) return false;
+  // With an anticipated damping, each frame is also reduced while its U_f and W_f are hot (the
+  // pass SolveDamped would otherwise make), at the damping LM will ask for next.
+  const bool reduce = anticipated_lambda_ > 0;
+  if (reduce) anticipated_damping_.resize(n);
   ParallelChunks(nf_, num_threads_, [&](int t, int b, int e) {
     ThreadState& ts = *threads_[t];
     ts.cost = 0;
     ts.ok = true;
+    ts.reduced = reduce;
     ts.gp.setZero();
-    ts.s.setZero();
+    ts.s_v.setZero();
     for (Eigen::MatrixXd& acc : ts.v_acc) acc.setZero();
+    if (reduce) BeginReduction(ts);
     for (int f = b; f < e; ++f) {
       if (!ts.evaluator->Evaluate(f, x.data() + static_cast<size_t>(f) * ny_, true) ||
           !AccumulateFrame(ts, /*linearizing=*/true)) {
@@ -346,8 +356,23 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
           dg[i] += w[i] * w[i];
         }
       }
+      if (!ts.reduced) continue;
+      // The damped U_f exactly as LevenbergMarquardt will form it from `diagonal`.
+      double* dmp = anticipated_damping_.data() + static_cast<size_t>(f) * ny_;
+      AddFramePrior(f, &ts.u);
+      for (int i = 0; i < ny_; ++i) {
+        dmp[i] = anticipated_lambda_ * std::min(std::max(dg[i], anticipated_min_), anticipated_max_);
+        ts.u(position_[i], position_[i]) += dmp[i];
+        ts.gy[position_[i]] = gy[i];
+      }
+      ts.w_frame = ts.w.data();
+      if (!FactorInPlace(&ts.u)) {
+        ts.reduced = false;  // SolveDamped will say so with its own pass
+        continue;
+      }
+      ReduceFrame(ts, f);
     }
-    // V of this thread's frames: the last stacks, then each kind's accumulator into S's lower
+    // V of this thread's frames: the last stacks, then each kind's accumulator into its lower
     // triangle (a kind's columns need not be sorted).
     for (size_t k = 0; k < kinds_.size(); ++k) {
       FlushV(ts, static_cast<int>(k));
@@ -355,17 +380,20 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
       const Eigen::MatrixXd& acc = ts.v_acc[k];
       for (size_t c = 0; c < cols.size(); ++c)
         for (size_t d = 0; d <= c; ++d)
-          ts.s(std::max(cols[c], cols[d]), std::min(cols[c], cols[d])) += acc(c, d);
+          ts.s_v(std::max(cols[c], cols[d]), std::min(cols[c], cols[d])) += acc(c, d);
     }
+    if (ts.reduced) EndReduction(ts);
   });
   double sum = 0;
+  bool all_reduced = reduce;
   v_total_.setZero(np_, np_);
   for (int t = 0; t < std::max(1, std::min(num_threads_, nf_)); ++t) {
     const ThreadState& ts = *threads_[t];
     if (!ts.ok) return false;
     sum += ts.cost;
     gradient->tail(np_) += ts.gp;
-    v_total_ += ts.s;
+    v_total_ += ts.s_v;
+    all_reduced = all_reduced && ts.reduced;
   }
   diagonal->tail(np_) = v_total_.diagonal();
   const Eigen::VectorXd& w = problem_->prior_weight();
@@ -379,6 +407,13 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
   }
   *cost = 0.5 * (sum + SharedRowsSquaredNorm(x.tail(np_)));
   gradient_ = *gradient;
+  if (all_reduced) {
+    auto dmp_p = anticipated_damping_.tail(np_);
+    for (int i = 0; i < np_; ++i)
+      dmp_p[i] = anticipated_lambda_ *
+                 std::min(std::max((*diagonal)[nf_ * ny_ + i], anticipated_min_), anticipated_max_);
+    anticipated_ready_ = FinishReducedSystem(dmp_p, &anticipated_s_, &anticipated_rhs_);
+  }
   return std::isfinite(*cost) && gradient->allFinite();
 }
 
@@ -491,90 +526,91 @@ bool ArrowSchurProblem::LoadFrame(ThreadState& ts, int f, const Eigen::VectorXd&
   return FactorInPlace(&ts.u);
 }
 
-bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s_out,
-                                          Eigen::VectorXd* rhs_out) {
-  if (!cached_ && !problem_->SetShared(x_.tail(np_))) return false;
-  const int used_threads = std::max(1, std::min(num_threads_, nf_));
-  ParallelChunks(nf_, num_threads_, [&](int t, int b, int e) {
-    ThreadState& ts = *threads_[t];
-    ts.ok = true;
-    ts.s.setZero();
-    ts.rhs.setZero();
-    for (Eigen::MatrixXd& acc : ts.g_acc) acc.setZero();
-    std::fill(ts.g_count.begin(), ts.g_count.end(), 0);
-    for (int f = b; f < e; ++f) {
-      if (!LoadFrame(ts, f, damping)) {
-        ts.ok = false;
-        return;
-      }
-      if (cached_) {  // the back-substitution reuses the factor
-        double* packed = CachedL(f);
-        for (size_t k = 0; k < u_pattern_.size(); ++k) packed[k] = ts.u.data()[u_pattern_[k]];
-      }
-      if (np_ == 0) continue;
-      const Eigen::MatrixXd& l = ts.u;
-      ts.v = ts.gy;
-      SolveLower(l, &ts.v);
-      double* y = ts.y.data();
-      std::copy(ts.w_frame, ts.w_frame + w_size_, y);
-      // Y = L^{-1} W, group by group in elimination order: subtract what the rows eliminated
-      // earlier contribute (through the columns they reach), then the group's own triangle.
-      for (size_t gi = 0; gi < groups_.size(); ++gi) {
-        const RowGroup& g = groups_[gi];
-        const int n = static_cast<int>(g.columns.size());
-        double* yg = y + g.offset;
-        for (const RowGroup::Child& child : g.children) {
-          const RowGroup& h = groups_[child.group];
-          const int hn = static_cast<int>(h.columns.size());
-          const int* map = child.map.data();
-          auto sum = ts.child_sum.head(hn);
-          for (int r = 0; r < g.num_rows; ++r) {
-            // L_gh row r times Y_h, formed densely over the child's columns (vectorised), then
-            // scattered into our columns once.
-            bool any = false;
-            for (int q = 0; q < h.num_rows; ++q) {
-              const double lv = l(g.first_row + r, h.first_row + q);
-              if (lv == 0.0) continue;
-              const Eigen::Map<const Eigen::VectorXd> yh(y + h.offset + q * hn, hn);
-              if (any) sum += lv * yh;
-              else sum = lv * yh;
-              any = true;
-            }
-            if (!any) continue;
-            double* dst = yg + r * n;
-            for (int c = 0; c < hn; ++c) dst[map[c]] -= sum[c];
-          }
+// Begin / ReduceFrame / EndReduction: one thread's share of S - V and of the reduced
+// right-hand side; ReduceFrame takes a frame whose U_f + damping is factored in ts.u, with W_f at
+// ts.w_frame and its gradient in ts.gy.
+void ArrowSchurProblem::BeginReduction(ThreadState& ts) const {
+  ts.s.setZero();
+  ts.rhs.setZero();
+  for (Eigen::MatrixXd& acc : ts.g_acc) acc.setZero();
+  std::fill(ts.g_count.begin(), ts.g_count.end(), 0);
+}
+
+void ArrowSchurProblem::ReduceFrame(ThreadState& ts, int f) {
+  if (cached_) {  // the back-substitution reuses the factor
+    double* packed = CachedL(f);
+    for (size_t k = 0; k < u_pattern_.size(); ++k) packed[k] = ts.u.data()[u_pattern_[k]];
+  }
+  if (np_ == 0) return;
+  const Eigen::MatrixXd& l = ts.u;
+  ts.v = ts.gy;
+  SolveLower(l, &ts.v);
+  double* y = ts.y.data();
+  std::copy(ts.w_frame, ts.w_frame + w_size_, y);
+  // Y = L^{-1} W, group by group in elimination order: subtract what the rows eliminated
+  // earlier contribute (through the columns they reach), then the group's own triangle.
+  for (size_t gi = 0; gi < groups_.size(); ++gi) {
+    const RowGroup& g = groups_[gi];
+    const int n = static_cast<int>(g.columns.size());
+    double* yg = y + g.offset;
+    for (const RowGroup::Child& child : g.children) {
+      const RowGroup& h = groups_[child.group];
+      const int hn = static_cast<int>(h.columns.size());
+      const int* map = child.map.data();
+      auto sum = ts.child_sum.head(hn);
+      for (int r = 0; r < g.num_rows; ++r) {
+        // L_gh row r times Y_h, formed densely over the child's columns (vectorised), then
+        // scattered into our columns once.
+        bool any = false;
+        for (int q = 0; q < h.num_rows; ++q) {
+          const double lv = l(g.first_row + r, h.first_row + q);
+          if (lv == 0.0) continue;
+          const Eigen::Map<const Eigen::VectorXd> yh(y + h.offset + q * hn, hn);
+          if (any) sum += lv * yh;
+          else sum = lv * yh;
+          any = true;
         }
-        for (int r = 0; r < g.num_rows; ++r) {
-          Eigen::Map<Eigen::VectorXd> row(yg + r * n, n);
-          for (int q = 0; q < r; ++q)
-            row -= l(g.first_row + r, g.first_row + q) * Eigen::Map<const Eigen::VectorXd>(yg + q * n, n);
-          row /= l(g.first_row + r, g.first_row + r);
-          const double vr = ts.v[g.first_row + r];
-          for (int c = 0; c < n; ++c) ts.rhs[g.columns[c]] += row[c] * vr;
-        }
-        // Stack the group's rows (as columns) for its rank update.
-        int& count = ts.g_count[gi];
-        Eigen::MatrixXd& stack = ts.g_stack[gi];
-        for (int r = 0; r < g.num_rows; ++r)
-          std::copy(yg + r * n, yg + (r + 1) * n, stack.col(count + r).data());
-        count += g.num_rows;
-        if (count + g.num_rows > stack.cols()) FlushGroup(ts, static_cast<int>(gi));
+        if (!any) continue;
+        double* dst = yg + r * n;
+        for (int c = 0; c < hn; ++c) dst[map[c]] -= sum[c];
       }
     }
-    for (size_t gi = 0; gi < groups_.size(); ++gi) {
-      FlushGroup(ts, static_cast<int>(gi));
-      const RowGroup& g = groups_[gi];
-      if (g.full) continue;
-      const Eigen::MatrixXd& acc = ts.g_acc[gi];
-      const int n = static_cast<int>(g.columns.size());
-      for (int c = 0; c < n; ++c)
-        for (int d = 0; d <= c; ++d) ts.s(g.columns[c], g.columns[d]) += acc(c, d);
+    for (int r = 0; r < g.num_rows; ++r) {
+      Eigen::Map<Eigen::VectorXd> row(yg + r * n, n);
+      for (int q = 0; q < r; ++q)
+        row -= l(g.first_row + r, g.first_row + q) * Eigen::Map<const Eigen::VectorXd>(yg + q * n, n);
+      row /= l(g.first_row + r, g.first_row + r);
+      const double vr = ts.v[g.first_row + r];
+      for (int c = 0; c < n; ++c) ts.rhs[g.columns[c]] += row[c] * vr;
     }
-  });
+    // Stack the group's rows (as columns) for its rank update.
+    int& count = ts.g_count[gi];
+    Eigen::MatrixXd& stack = ts.g_stack[gi];
+    for (int r = 0; r < g.num_rows; ++r)
+      std::copy(yg + r * n, yg + (r + 1) * n, stack.col(count + r).data());
+    count += g.num_rows;
+    if (count + g.num_rows > stack.cols()) FlushGroup(ts, static_cast<int>(gi));
+  }
+}
+
+void ArrowSchurProblem::EndReduction(ThreadState& ts) const {
+  for (size_t gi = 0; gi < groups_.size(); ++gi) {
+    FlushGroup(ts, static_cast<int>(gi));
+    const RowGroup& g = groups_[gi];
+    if (g.full) continue;
+    const Eigen::MatrixXd& acc = ts.g_acc[gi];
+    const int n = static_cast<int>(g.columns.size());
+    for (int c = 0; c < n; ++c)
+      for (int d = 0; d <= c; ++d) ts.s(g.columns[c], g.columns[d]) += acc(c, d);
+  }
+}
+
+// The threads' shares summed, plus V, the priors, the damping of p and the dense rows.
+bool ArrowSchurProblem::FinishReducedSystem(const Eigen::VectorXd& damping_p, Eigen::MatrixXd* s_out,
+                                            Eigen::VectorXd* rhs_out) const {
   s_out->setZero(np_, np_);
   rhs_out->setZero(np_);
-  for (int t = 0; t < used_threads; ++t) {
+  for (int t = 0; t < std::max(1, std::min(num_threads_, nf_)); ++t) {
     if (!threads_[t]->ok) return false;
     *s_out += threads_[t]->s;
     *rhs_out += threads_[t]->rhs;
@@ -582,16 +618,44 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
   *s_out += v_total_;
   *rhs_out -= gradient_.tail(np_);
   const Eigen::VectorXd& w = problem_->prior_weight();
-  s_out->diagonal() += w.cwiseProduct(w) + damping.tail(np_);
+  s_out->diagonal() += w.cwiseProduct(w) + damping_p;
   const Eigen::MatrixXd& g = problem_->shared_rows();
   if (g.rows() > 0) s_out->selfadjointView<Eigen::Lower>().rankUpdate(g.transpose(), 1.0);
   return true;
 }
 
+bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s_out,
+                                          Eigen::VectorXd* rhs_out) {
+  if (!cached_ && !problem_->SetShared(x_.tail(np_))) return false;
+  ++reduction_passes_;
+  ParallelChunks(nf_, num_threads_, [&](int t, int b, int e) {
+    ThreadState& ts = *threads_[t];
+    ts.ok = true;
+    BeginReduction(ts);
+    for (int f = b; f < e; ++f) {
+      if (!LoadFrame(ts, f, damping)) {
+        ts.ok = false;
+        return;
+      }
+      ReduceFrame(ts, f);
+    }
+    EndReduction(ts);
+  });
+  return FinishReducedSystem(damping.tail(np_), s_out, rhs_out);
+}
+
 bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::VectorXd* dx) {
   Eigen::MatrixXd s;
   Eigen::VectorXd rhs;
-  if (!FormReducedSystem(damping, &s, &rhs)) return false;
+  if (anticipated_ready_ && damping.size() == anticipated_damping_.size() &&
+      (damping.array() == anticipated_damping_.array()).all()) {
+    s.swap(anticipated_s_);
+    rhs.swap(anticipated_rhs_);
+  } else if (!FormReducedSystem(damping, &s, &rhs)) {
+    anticipated_ready_ = false;
+    return false;
+  }
+  anticipated_ready_ = false;
   dx->resize(num_parameters());
   Eigen::VectorXd dp = Eigen::VectorXd::Zero(np_);
   if (np_ > 0) {
@@ -645,7 +709,11 @@ bool ArrowSchurProblem::SharedCovariance(Eigen::MatrixXd* covariance, double fra
   // Damping: a relative ridge on the frame blocks only (their diagonal from the gradient pass).
   Eigen::VectorXd gradient, diagonal;
   double cost;
-  if (!Linearize(x_, &cost, &gradient, &diagonal)) return false;
+  const double lambda = anticipated_lambda_;
+  anticipated_lambda_ = 0;  // no step follows
+  const bool linearized = Linearize(x_, &cost, &gradient, &diagonal);
+  anticipated_lambda_ = lambda;
+  if (!linearized) return false;
   Eigen::VectorXd damping = frame_ridge * diagonal.cwiseMax(1e-12);
   damping.tail(np_).setZero();
   Eigen::MatrixXd s;

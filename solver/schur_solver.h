@@ -47,6 +47,8 @@ class ArrowSchurProblem : public LmProblem {
   ArrowSchurProblem(ArrowProblem* problem, int num_threads,
                     double cache_budget_bytes = kDefaultCacheBudgetBytes);
   bool caches_frames() const { return cached_; }
+  // Passes SolveDamped made to form the reduced system (0 while Linearize anticipated them).
+  int reduction_passes() const { return reduction_passes_; }
   // The symbolic structure: row groups in elimination order, how many shared columns each reaches.
   std::string DescribeStructure() const;
   ~ArrowSchurProblem() override;
@@ -57,6 +59,13 @@ class ArrowSchurProblem : public LmProblem {
   bool Linearize(const Eigen::VectorXd& x, double* cost, Eigen::VectorXd* gradient,
                  Eigen::VectorXd* jtj_diagonal) override;
   bool SolveDamped(const Eigen::VectorXd& damping, Eigen::VectorXd* dx) override;
+  // Linearize then also forms the reduced system for this damping (one pass over the frames
+  // fewer per iteration); SolveDamped uses it when asked for exactly that damping.
+  void AnticipateDamping(double lambda, double min_diagonal, double max_diagonal) override {
+    anticipated_lambda_ = lambda;
+    anticipated_min_ = min_diagonal;
+    anticipated_max_ = max_diagonal;
+  }
 
   // Covariance of the shared parameters at the last linearisation point, (S^{-1} with no
   // damping on p), in the units of the residuals. Frame blocks that the data leave singular get
@@ -91,6 +100,11 @@ class ArrowSchurProblem : public LmProblem {
   };
   void Analyse();
   bool AccumulateFrame(ThreadState& ts, bool linearizing) const;
+  void BeginReduction(ThreadState& ts) const;
+  void ReduceFrame(ThreadState& ts, int f);
+  void EndReduction(ThreadState& ts) const;
+  bool FinishReducedSystem(const Eigen::VectorXd& damping_p, Eigen::MatrixXd* s,
+                           Eigen::VectorXd* rhs) const;
   void FlushV(ThreadState& ts, int kind) const;
   void FlushGroup(ThreadState& ts, int group) const;
   void AddFramePrior(int f, Eigen::MatrixXd* u) const;
@@ -122,6 +136,11 @@ class ArrowSchurProblem : public LmProblem {
   // Per frame: U_f and the last damped factor L_f (their pattern, packed), and compact W_f.
   std::vector<double> u_cache_, l_cache_, w_cache_;
   Eigen::MatrixXd v_total_;                // sum of V_f (lower) at the linearisation point
+  double anticipated_lambda_ = 0, anticipated_min_ = 0, anticipated_max_ = 0;
+  bool anticipated_ready_ = false;
+  int reduction_passes_ = 0;
+  Eigen::VectorXd anticipated_damping_, anticipated_rhs_;
+  Eigen::MatrixXd anticipated_s_;
 };
 
 }  // namespace mocap::solver

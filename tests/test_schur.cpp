@@ -61,6 +61,19 @@ TEST_P(ArrowSchurStep, MatchesDenseNormalEquations) {
   EXPECT_LT((dx - dx_dense).norm(), 1e-6 * dx_dense.norm())
       << "frames part " << (dx - dx_dense).head(nf * ny).norm() << " shared part "
       << (dx - dx_dense).tail(np).norm();
+  // The same step when Linearize anticipated this damping and reduced the frames in its pass.
+  const double lambda = 1e-3, min_diagonal = 1e-6, max_diagonal = 1e32;
+  schur.AnticipateDamping(lambda, min_diagonal, max_diagonal);
+  ASSERT_TRUE(schur.Linearize(x, &cost, &g, &d));
+  const int passes = schur.reduction_passes();
+  Eigen::VectorXd dx2;
+  ASSERT_TRUE(schur.SolveDamped(lambda * d.cwiseMax(min_diagonal).cwiseMin(max_diagonal), &dx2));
+  EXPECT_EQ(schur.reduction_passes(), passes) << "the anticipated reduction was not used";
+  EXPECT_LT((dx2 - dx_dense).norm(), 1e-6 * dx_dense.norm());
+  // A different damping (a rejected step) forms the system anew.
+  ASSERT_TRUE(schur.SolveDamped(2.0 * damping, &dx2));
+  EXPECT_EQ(schur.reduction_passes(), passes + 1);
+  schur.AnticipateDamping(0, 0, 0);
   // Covariance = inverse of the undamped normal matrix's Schur complement = p-block of inverse.
   Eigen::MatrixXd cov;
   ASSERT_TRUE(schur.SharedCovariance(&cov, 1e-12));
