@@ -22,10 +22,7 @@ namespace fs = std::filesystem;
 std::atomic<bool> g_interrupted{false};
 
 struct FitArgs {
-  std::string model_path;
-  std::string marker_set;
-  std::string marker_map;
-  std::vector<std::string> trials;
+  InputArgs in;
   std::string out;
   std::string report;
   int threads = 0;
@@ -58,16 +55,17 @@ int RunFit(const FitArgs& args) {
     spdlog::error("--out {}: expected a .json or .osim model file", args.out);
     return 2;
   }
-  if (osim_out && !HasExtension(args.model_path, ".osim")) {
+  if (osim_out && !HasExtension(args.in.model_path, ".osim")) {
     spdlog::error("--out {}: an .osim is written from an OpenSim model; {} is not one (write .json)",
-                  args.out, args.model_path);
+                  args.out, args.in.model_path);
     return 2;
   }
-  ModelInput input;
-  if (Status s = LoadModelInput(args.model_path, args.marker_set, &input); !s) {
+  Inputs inputs;
+  if (Status s = LoadInputs(args.in, &inputs); !s) {
     spdlog::error("{}", s.message());
     return 1;
   }
+  const ModelInput& input = inputs.model;
   const Model& model = input.model;
   solver::FitOptions options;
   if (Status s = options.SetGroups(args.groups); !s) {
@@ -76,19 +74,8 @@ int RunFit(const FitArgs& args) {
   }
   options.num_threads = args.threads;
   options.lm.max_iterations = args.max_iterations;
-  std::vector<formats::MarkerTrial> loaded;
-  MarkerMatch match;
-  if (Status s = LoadTrials(args.trials, args.marker_map, model, &loaded, &match); !s) {
-    spdlog::error("{}", s.message());
-    return 1;
-  }
   std::vector<solver::FitTrial> trials;
-  for (size_t t = 0; t < loaded.size(); ++t) {
-    spdlog::info("{}: {} frames, {} markers at {} Hz", args.trials[t], loaded[t].num_frames(),
-                 loaded[t].num_markers(), loaded[t].rate_hz);
-    trials.push_back({std::move(loaded[t]), {}});
-  }
-  LogMarkerMatch(match);
+  for (auto& t : inputs.trials) trials.push_back({std::move(t), {}});
   options.lm.callbacks.push_back([](const solver::IterationSummary& it) {
     spdlog::info("iteration {:3d}  cost {:.6e}  change {:.3e}  |gradient| {:.3e}  |step| {:.3e}  "
                  "lambda {:.2e}  {:.2f} s",
@@ -98,7 +85,7 @@ int RunFit(const FitArgs& args) {
   });
   std::signal(SIGINT, [](int) { g_interrupted = true; });
   spdlog::info("fitting {} ({} trials); Ctrl-C stops after the current iteration and keeps the result",
-               args.model_path, trials.size());
+               args.in.model_path, trials.size());
   solver::FitResult result;
   Status s = solver::FitModel(model, trials, options, &result);
   std::signal(SIGINT, SIG_DFL);
@@ -134,7 +121,7 @@ int RunFit(const FitArgs& args) {
     }
   }
   for (size_t t = 0; t < trials.size(); ++t)
-    spdlog::info("{}: marker RMS {:.2f} mm", args.trials[t], r.per_trial_rms_mm[t]);
+    spdlog::info("{}: marker RMS {:.2f} mm", args.in.trials[t], r.per_trial_rms_mm[t]);
   spdlog::info("wrote {} and, per trial, <trial>.fitted.mot and <trial>.joint_centres.trc in {}",
                args.out, dir.string());
 
@@ -153,7 +140,7 @@ int RunFit(const FitArgs& args) {
     j["marker_rms_mm"] = r.marker_rms_mm;
     j["per_trial"] = nlohmann::json::array();
     for (size_t t = 0; t < trials.size(); ++t)
-      j["per_trial"].push_back({{"file", args.trials[t]}, {"name", trials[t].markers.name},
+      j["per_trial"].push_back({{"file", args.in.trials[t]}, {"name", trials[t].markers.name},
                                 {"frames", trials[t].markers.num_frames()},
                                 {"marker_rms_mm", r.per_trial_rms_mm[t]}});
     j["per_marker_rms_mm"] = nlohmann::json::object();
@@ -184,11 +171,7 @@ int RunFit(const FitArgs& args) {
 const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
   auto args = std::make_shared<FitArgs>();
   CLI::App* cmd = app.add_subcommand("fit", "fit a body model to labelled marker trials (global sparse LM)");
-  cmd->add_option("--model", args->model_path, "initial model (.json, or OpenSim .osim)")->required();
-  cmd->add_option("--marker-set", args->marker_set, "OpenSim marker set (.xml) added to an .osim model");
-  cmd->add_option("--marker-map", args->marker_map,
-                  "marker-name map: lines 'model_name = file_name' (# comments)");
-  cmd->add_option("trials", args->trials, "marker trials (.trc, .c3d)")->required();
+  AddInputOptions(cmd, &args->in);
   cmd->add_option("--out", args->out, "fitted model to write (.json, or .osim from an .osim model)")->required();
   cmd->add_option("--report", args->report, "JSON report to write");
   cmd->add_option("--threads", args->threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);

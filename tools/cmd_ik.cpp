@@ -21,10 +21,7 @@ namespace {
 namespace fs = std::filesystem;
 
 struct IkArgs {
-  std::string model_path;
-  std::string marker_set;
-  std::string marker_map;
-  std::vector<std::string> trials;
+  InputArgs in;
   std::string out;
 };
 
@@ -33,24 +30,19 @@ int RunIk(const IkArgs& args) {
     spdlog::error("--out {}: expected a .mot file", args.out);
     return 2;
   }
-  ModelInput input;
-  if (Status s = LoadModelInput(args.model_path, args.marker_set, &input); !s) {
+  Inputs inputs;
+  if (Status s = LoadInputs(args.in, &inputs); !s) {
     spdlog::error("{}", s.message());
     return 1;
   }
+  const ModelInput& input = inputs.model;
   const Model& model = input.model;
-  std::vector<formats::MarkerTrial> trials;
-  MarkerMatch match;
-  if (Status s = LoadTrials(args.trials, args.marker_map, model, &trials, &match); !s) {
-    spdlog::error("{}", s.message());
-    return 1;
-  }
-  LogMarkerMatch(match);
+  const std::vector<formats::MarkerTrial>& trials = inputs.trials;
   for (size_t a = 0; a < trials.size(); ++a)
     for (size_t b = 0; b < a; ++b)
       if (trials[a].name == trials[b].name) {
-        spdlog::error("{} and {} would both write {}_{}.mot: give the trials distinct file names", args.trials[b],
-                      args.trials[a], fs::path(args.out).stem().string(), trials[a].name);
+        spdlog::error("{} and {} would both write {}_{}.mot: give the trials distinct file names", args.in.trials[b],
+                      args.in.trials[a], fs::path(args.out).stem().string(), trials[a].name);
         return 2;
       }
   const fs::path out(args.out);
@@ -74,13 +66,13 @@ int RunIk(const IkArgs& args) {
       for (int m = 0; m < model.num_markers(); ++m)
         if (!measured.row(f).segment<3>(3 * m).allFinite()) measured.row(f).segment<3>(3 * m).setConstant(std::nan(""));
     if (matched == 0) {
-      spdlog::error("{}: none of its {} markers is in the model", args.trials[t], trial.num_markers());
+      spdlog::error("{}: none of its {} markers is in the model", args.in.trials[t], trial.num_markers());
       return 1;
     }
     Eigen::MatrixXd z;
     std::vector<double> frame_rms;
     if (Status s = ik.SolveTrial(measured, &z, &frame_rms); !s) {
-      spdlog::error("{}: {}", args.trials[t], s.message());
+      spdlog::error("{}: {}", args.in.trials[t], s.message());
       return 1;
     }
     // RMS over every marker sample of the trial (3D distances): frames weighted by their samples.
@@ -103,7 +95,7 @@ int RunIk(const IkArgs& args) {
     }
     const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     std::printf("%s: %d frames, %d model markers, marker RMS %.3f mm (worst frame %.3f mm), %.2f s -> %s\n",
-                args.trials[t].c_str(), trial.num_frames(), matched,
+                args.in.trials[t].c_str(), trial.num_frames(), matched,
                 1000.0 * std::sqrt(sum_sq / std::max(1L, samples)), 1000.0 * worst, seconds,
                 path.string().c_str());
   }
@@ -114,11 +106,7 @@ const CommandRegistrar kRegisterIk("ik", [](CLI::App& app, int* exit_code) {
   auto args = std::make_shared<IkArgs>();
   CLI::App* cmd = app.add_subcommand(
       "ik", "per-frame inverse kinematics with the model as given: joint angles (.mot) and marker RMS");
-  cmd->add_option("--model", args->model_path, "model (.json, or OpenSim .osim)")->required();
-  cmd->add_option("--marker-set", args->marker_set, "OpenSim marker set (.xml) added to an .osim model");
-  cmd->add_option("--marker-map", args->marker_map,
-                  "marker-name map: lines 'model_name = file_name' (# comments)");
-  cmd->add_option("trials", args->trials, "marker trials (.trc, .c3d)")->required();
+  AddInputOptions(cmd, &args->in);
   cmd->add_option("--out", args->out,
                   "joint angles (.mot); with several trials, <stem>_<trial>.mot beside it")->required();
   cmd->callback([args, exit_code] { *exit_code = RunIk(*args); });

@@ -90,6 +90,23 @@ void LogMarkerMatch(const MarkerMatch& match) {
                  join(match.unobserved_model_markers));
 }
 
+void AddInputOptions(CLI::App* cmd, InputArgs* args) {
+  cmd->add_option("--model", args->model_path, "model (.json, or OpenSim .osim)")->required();
+  cmd->add_option("--marker-set", args->marker_set, "OpenSim marker set (.xml) added to an .osim model");
+  cmd->add_option("--marker-map", args->marker_map, "marker-name map: lines 'model_name = file_name' (# comments)");
+  cmd->add_option("trials", args->trials, "marker trials (.trc, .c3d)")->required();
+}
+
+Status LoadInputs(const InputArgs& args, Inputs* out) {
+  MOCAP_RETURN_IF_ERROR(LoadModelInput(args.model_path, args.marker_set, &out->model));
+  MOCAP_RETURN_IF_ERROR(LoadTrials(args.trials, args.marker_map, out->model.model, &out->trials, &out->match));
+  for (size_t t = 0; t < out->trials.size(); ++t)
+    spdlog::info("{}: {} frames, {} markers at {} Hz", args.trials[t], out->trials[t].num_frames(),
+                 out->trials[t].num_markers(), out->trials[t].rate_hz);
+  LogMarkerMatch(out->match);
+  return Status::Ok();
+}
+
 Status WriteAngles(const std::string& path, const ModelInput& input, const Model& model,
                    const formats::MarkerTrial& trial, const Eigen::MatrixXd& z) {
   if (input.osim) return formats::WriteOsimMot(path, input.import, model, trial.times, z);

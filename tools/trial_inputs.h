@@ -2,6 +2,7 @@
 // file) or .json, the trials from .c3d or .trc with an optional marker-name map, the lists of
 // markers that match nothing, and joint angles out as .mot.
 #pragma once
+#include <CLI/CLI.hpp>
 #include <Eigen/Core>
 #include <string>
 #include <vector>
@@ -42,6 +43,23 @@ Status LoadTrials(const std::vector<std::string>& paths, const std::string& mark
 
 // Logs (spdlog warn) the two lists of `match`, when not empty.
 void LogMarkerMatch(const MarkerMatch& match);
+
+// The inputs of `mocap fit` and `mocap ik`: --model, --marker-set, --marker-map and the trials.
+struct InputArgs {
+  std::string model_path;
+  std::string marker_set;
+  std::string marker_map;
+  std::vector<std::string> trials;
+};
+void AddInputOptions(CLI::App* cmd, InputArgs* args);
+
+struct Inputs {
+  ModelInput model;
+  std::vector<formats::MarkerTrial> trials;
+  MarkerMatch match;
+};
+// LoadModelInput + LoadTrials; logs each trial's size and the marker lists (LogMarkerMatch).
+Status LoadInputs(const InputArgs& args, Inputs* out);
 
 // Joint angles of one trial (rows of `z`: frames) as a .mot: OpenSim's coordinate names and units
 // (formats::WriteOsimMot) for an OpenSim model, our coordinate names in degrees / metres otherwise.
