@@ -1,6 +1,7 @@
 #include "solver/inverse_kinematics.h"
 
 #include <Eigen/Cholesky>
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <optional>
@@ -194,7 +195,11 @@ IkFrameResult InverseKinematics::Initialise(const Eigen::Matrix3Xd& measured, Ei
     if (a && SetRootRotation(root, a->rotation * root_rotation, &start)) starts.push_back(start);
   }
 
-  for (Eigen::VectorXd& trial : starts) {
+  // Each start: its root alone solved first (6 unknowns: cheap); the full solve only from the
+  // two best of those.
+  std::vector<std::pair<double, int>> root_rms;
+  for (size_t k = 0; k < starts.size(); ++k) {
+    Eigen::VectorXd& trial = starts[k];
     // Shift the root's translations so the model's marker centroid lands on the data's.
     ForwardKinematics(model_, geometry_, trial, &data_);
     Eigen::Vector3d model_centroid = Eigen::Vector3d::Zero();
@@ -207,7 +212,11 @@ IkFrameResult InverseKinematics::Initialise(const Eigen::Matrix3Xd& measured, Ei
       if (el.coordinate >= 0 && el.function.kind == CoordinateFunction::Kind::kIdentity)
         trial[el.coordinate] += (root.orientation * el.axis).dot(shift);
     }
-    Solve(measured, &trial, root_free);
+    root_rms.emplace_back(Solve(measured, &trial, root_free).rms_m, static_cast<int>(k));
+  }
+  std::sort(root_rms.begin(), root_rms.end());
+  for (size_t i = 0; i < std::min<size_t>(2, root_rms.size()); ++i) {
+    Eigen::VectorXd trial = starts[root_rms[i].second];
     IkFrameResult r = Solve(measured, &trial);
     if (r.rms_m < best.rms_m) {
       best = r;

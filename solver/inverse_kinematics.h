@@ -40,8 +40,8 @@ class InverseKinematics {
   // free: coordinates to solve for (empty = all).
   IkFrameResult Solve(const Eigen::Matrix3Xd& measured, Eigen::VectorXd* z,
                       const std::vector<char>& free = {});
-  // A pose from nothing: each placement of the default pose above, its root solved alone, then
-  // a full solve; the one with the lowest marker RMS wins.
+  // A pose from nothing: each placement of the default pose above with its root solved alone;
+  // from the two best of those a full solve; the lower marker RMS wins.
   IkFrameResult Initialise(const Eigen::Matrix3Xd& measured, Eigen::VectorXd* z);
 
   // Solves every frame of a trial (rows of `measured`: frames x 3 n_markers, model order): the
