@@ -553,6 +553,14 @@ TEST(Osim, BadInputIsAClearErrorWithElementAndLine) {
   EXPECT_THAT(s.message(), HasSubstr("bad.osim:"));
   s = ImportOsimText("<Model/>", "nodoc.osim", &im);
   EXPECT_THAT(s.message(), HasSubstr("expected an <OpenSimDocument>"));
+  // Found by the fuzzer: tinyxml2 takes text and elements beside the root, which export wrote
+  // back in a form that did not read back.
+  const std::string tail = good + "\nstray words\n</objects>\n";
+  s = ImportOsimText(tail, "tail.osim", &im);
+  EXPECT_THAT(s.message(), HasSubstr("tail.osim:" + std::to_string(LineOf(tail, "stray words")) +
+                                     ": not a valid XML document: text outside the root element"));
+  s = ImportOsimText(good + "<More/>", "two.osim", &im);
+  EXPECT_THAT(s.message(), HasSubstr("not a valid XML document: a second root element <More>"));
   struct Case { std::string from, to, line_of, expect; };
   const std::vector<Case> cases = {
       {"<PinJoint name=\"hip\">", "<EllipsoidJoint name=\"hip\">", "<PinJoint name=\"hip\">",
