@@ -61,12 +61,8 @@ int RunFit(const FitArgs& args) {
     return 2;
   }
   Inputs inputs;
-  if (Status s = LoadInputs(args.in, &inputs); !s) {
-    spdlog::error("{}", s.message());
-    return 1;
-  }
-  const ModelInput& input = inputs.model;
-  const Model& model = input.model;
+  if (!LoadInputs(args.in, &inputs)) return 1;
+  const Model& model = inputs.model.model;
   solver::FitOptions options;
   if (Status s = options.SetGroups(args.groups); !s) {
     spdlog::error("--fit: {}", s.message());
@@ -101,7 +97,7 @@ int RunFit(const FitArgs& args) {
 
   fs::path out(args.out);
   if (out.has_parent_path()) fs::create_directories(out.parent_path());
-  if (Status w = osim_out ? formats::ExportOsim(result.model, input.import, args.out)
+  if (Status w = osim_out ? formats::ExportOsim(result.model, inputs.model.import, args.out)
                           : SaveModelJson(args.out, result.model);
       !w) {
     spdlog::error("{}", w.message());
@@ -113,7 +109,7 @@ int RunFit(const FitArgs& args) {
     const std::string base = trial.name.empty() ? "trial" + std::to_string(t + 1) : trial.name;
     const fs::path mot = dir / (base + ".fitted.mot");
     const fs::path centres = dir / (base + ".joint_centres.trc");
-    Status w = WriteAngles(mot.string(), input, result.model, trial, result.coordinates[t]);
+    Status w = WriteAngles(mot.string(), inputs.model, result.model, trial, result.coordinates[t]);
     if (w) w = formats::WriteTrc(centres.string(), JointCentreTrial(result.model, trial, result.coordinates[t]));
     if (!w) {
       spdlog::error("{}", w.message());

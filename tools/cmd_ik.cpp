@@ -31,12 +31,8 @@ int RunIk(const IkArgs& args) {
     return 2;
   }
   Inputs inputs;
-  if (Status s = LoadInputs(args.in, &inputs); !s) {
-    spdlog::error("{}", s.message());
-    return 1;
-  }
-  const ModelInput& input = inputs.model;
-  const Model& model = input.model;
+  if (!LoadInputs(args.in, &inputs)) return 1;
+  const Model& model = inputs.model.model;
   const std::vector<formats::MarkerTrial>& trials = inputs.trials;
   for (size_t a = 0; a < trials.size(); ++a)
     for (size_t b = 0; b < a; ++b)
@@ -89,7 +85,7 @@ int RunIk(const IkArgs& args) {
     const fs::path path = trials.size() == 1
                               ? out
                               : out.parent_path() / (out.stem().string() + "_" + trial.name + ".mot");
-    if (Status s = WriteAngles(path.string(), input, model, trial, z); !s) {
+    if (Status s = WriteAngles(path.string(), inputs.model, model, trial, z); !s) {
       spdlog::error("{}", s.message());
       return 1;
     }

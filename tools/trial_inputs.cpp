@@ -97,14 +97,18 @@ void AddInputOptions(CLI::App* cmd, InputArgs* args) {
   cmd->add_option("trials", args->trials, "marker trials (.trc, .c3d)")->required();
 }
 
-Status LoadInputs(const InputArgs& args, Inputs* out) {
-  MOCAP_RETURN_IF_ERROR(LoadModelInput(args.model_path, args.marker_set, &out->model));
-  MOCAP_RETURN_IF_ERROR(LoadTrials(args.trials, args.marker_map, out->model.model, &out->trials, &out->match));
+bool LoadInputs(const InputArgs& args, Inputs* out) {
+  Status s = LoadModelInput(args.model_path, args.marker_set, &out->model);
+  if (s) s = LoadTrials(args.trials, args.marker_map, out->model.model, &out->trials, &out->match);
+  if (!s) {
+    spdlog::error("{}", s.message());
+    return false;
+  }
   for (size_t t = 0; t < out->trials.size(); ++t)
     spdlog::info("{}: {} frames, {} markers at {} Hz", args.trials[t], out->trials[t].num_frames(),
                  out->trials[t].num_markers(), out->trials[t].rate_hz);
   LogMarkerMatch(out->match);
-  return Status::Ok();
+  return true;
 }
 
 Status WriteAngles(const std::string& path, const ModelInput& input, const Model& model,

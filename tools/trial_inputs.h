@@ -58,8 +58,9 @@ struct Inputs {
   std::vector<formats::MarkerTrial> trials;
   MarkerMatch match;
 };
-// LoadModelInput + LoadTrials; logs each trial's size and the marker lists (LogMarkerMatch).
-Status LoadInputs(const InputArgs& args, Inputs* out);
+// LoadModelInput + LoadTrials; logs each trial's size and the marker lists (LogMarkerMatch), or
+// the error and returns false.
+bool LoadInputs(const InputArgs& args, Inputs* out);
 
 // Joint angles of one trial (rows of `z`: frames) as a .mot: OpenSim's coordinate names and units
 // (formats::WriteOsimMot) for an OpenSim model, our coordinate names in degrees / metres otherwise.
