@@ -707,6 +707,18 @@ Status ParseDocument(XMLDocument* doc, const std::string& text, const std::strin
   if (doc->Error())
     return Status::Error(detail::At(source, doc->ErrorLineNum(),
                                     std::string("not a valid XML document: ") + doc->ErrorName()));
+  // tinyxml2 accepts text and further elements beside the root, which export would then write
+  // out in a form it does not read back: refuse them.
+  int elements = 0;
+  for (const tinyxml2::XMLNode* n = doc->FirstChild(); n; n = n->NextSibling()) {
+    if (n->ToText())
+      return Status::Error(detail::At(source, n->GetLineNum(),
+                                      "not a valid XML document: text outside the root element"));
+    if (n->ToElement() && ++elements > 1)
+      return Status::Error(detail::At(source, n->GetLineNum(),
+                                      std::string("not a valid XML document: a second root element <") +
+                                          n->Value() + ">"));
+  }
   return Status::Ok();
 }
 

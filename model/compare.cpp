@@ -10,14 +10,13 @@
 #include <optional>
 
 #include "model/kinematics.h"
+#include "model/rigid_align.h"
 
 namespace mocap {
 namespace {
 
 constexpr double kMm = 1000.0;
 constexpr double kDeg = 180.0 / M_PI;
-// Points whose spread across their main line is below this (m) do not fix a rotation.
-constexpr double kCollinear = 1e-6;
 
 using Eigen::Vector3d;
 
@@ -58,33 +57,9 @@ bool AxisFixedInChild(const Joint& j, int e) {
 }
 
 // x -> R x + t, taking B's coordinates to A's.
-struct Rigid {
-  Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();
-  Vector3d translation = Vector3d::Zero();
-  Vector3d Point(const Vector3d& x) const { return rotation * x + translation; }
-  Vector3d Direction(const Vector3d& x) const { return rotation * x; }
-};
-
-bool SpansPlane(const Eigen::Matrix3Xd& x) {
-  const Eigen::Matrix3Xd c = x.colwise() - x.rowwise().mean();
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(c * c.transpose(), Eigen::EigenvaluesOnly);
-  return std::sqrt(std::max(0.0, eig.eigenvalues()[1])) > kCollinear;
-}
-
-// Best rigid map of src onto dst (columns paired), if the points determine one.
+using Rigid = RigidTransform;
 std::optional<Rigid> Align(const Eigen::Matrix3Xd& src, const Eigen::Matrix3Xd& dst) {
-  if (src.cols() < 3 || !SpansPlane(src) || !SpansPlane(dst)) return std::nullopt;
-  // Kabsch (Umeyama without scale); written out because Eigen::umeyama trips GCC 12's
-  // -Warray-bounds under AVX.
-  const Vector3d cs = src.rowwise().mean(), cd = dst.rowwise().mean();
-  const Eigen::Matrix3d h = (src.colwise() - cs) * (dst.colwise() - cd).transpose();
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d fix = Eigen::Matrix3d::Identity();
-  fix(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1.0 : 1.0;
-  Rigid r;
-  r.rotation = svd.matrixV() * fix * svd.matrixU().transpose();
-  r.translation = cd - r.rotation * cs;
-  return r;
+  return RigidAlign(src, dst);
 }
 
 // One model at the zero pose.

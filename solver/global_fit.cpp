@@ -257,11 +257,25 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
 
   result->model = initial.WithParameters(p);
   result->coordinates.resize(trials.size());
+  const Geometry geometry(result->model);
+  ModelData data(result->model);
   for (size_t t = 0; t < trials.size(); ++t) {
     Eigen::MatrixXd& z = result->coordinates[t];
     z.resize(trials[t].markers.num_frames(), nz);
-    for (int f = 0; f < z.rows(); ++f)
+    double trial_sq = 0;
+    int trial_n = 0;
+    for (int f = 0; f < z.rows(); ++f) {
       z.row(f) = x.segment(static_cast<Eigen::Index>(first_frame[t] + f) * nz, nz).transpose();
+      ForwardKinematics(result->model, geometry, z.row(f).transpose(), &data);
+      const auto row = problem.measurements().row(first_frame[t] + f);
+      for (int m = 0; m < nm; ++m) {
+        if (!std::isfinite(row[3 * m])) continue;
+        trial_sq += (MarkerPosition(result->model, geometry, data, m) -
+                     row.segment<3>(3 * m).transpose()).squaredNorm();
+        ++trial_n;
+      }
+    }
+    report.per_trial_rms_mm.push_back(1000.0 * std::sqrt(trial_sq / std::max(1, trial_n)));
   }
   report.wall_seconds = Since(start);
   result->report = std::move(report);

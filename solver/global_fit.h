@@ -89,6 +89,7 @@ struct FitReport {
   double initial_marker_rms_mm = 0;
   double marker_rms_mm = 0;
   std::vector<std::pair<std::string, double>> per_marker_rms_mm;
+  std::vector<double> per_trial_rms_mm;        // RMS over each trial's marker samples, trial order
   std::vector<ParameterEstimate> parameters;   // every fitted parameter
   std::vector<std::string> undetermined;
   std::vector<std::string> unmatched_trial_markers;   // in a trial, not in the model (ignored)

@@ -1,8 +1,12 @@
 #include "solver/inverse_kinematics.h"
 
 #include <Eigen/Cholesky>
+#include <algorithm>
 #include <cmath>
 #include <limits>
+#include <optional>
+
+#include "model/rigid_align.h"
 
 namespace mocap::solver {
 
@@ -111,8 +115,38 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
   return result;
 }
 
+namespace {
+// Sets the root joint's rotation coordinates so that its child segment's orientation becomes
+// `target` (world). Possible when the root's moving rotations are three identity-driven
+// rotations about signed coordinate axes (x, y or z, consecutive ones different), with no
+// constant rotation among them, as in OpenSim's and our free joints; false otherwise.
+bool SetRootRotation(const Joint& root, const Eigen::Matrix3d& target, Eigen::VectorXd* z) {
+  std::vector<const JointElement*> rot;
+  for (const auto& el : root.elements) {
+    if (el.kind != ElementKind::kRotation) continue;
+    if (el.coordinate < 0 || el.function.kind != CoordinateFunction::Kind::kIdentity) return false;
+    rot.push_back(&el);
+  }
+  if (rot.size() != 3) return false;
+  int index[3];
+  double sign[3];
+  for (int i = 0; i < 3; ++i) {
+    Eigen::Index k;
+    const double largest = rot[i]->axis.cwiseAbs().maxCoeff(&k);
+    if (std::abs(largest - 1.0) > 1e-12) return false;  // not a coordinate axis
+    index[i] = static_cast<int>(k);
+    sign[i] = rot[i]->axis[k] > 0 ? 1.0 : -1.0;
+  }
+  if (index[0] == index[1] || index[1] == index[2]) return false;
+  const Eigen::Vector3d angles =
+      (root.orientation.transpose() * target).eulerAngles(index[0], index[1], index[2]);
+  for (int i = 0; i < 3; ++i) (*z)[rot[i]->coordinate] = sign[i] * angles[i];
+  return true;
+}
+}  // namespace
+
 IkFrameResult InverseKinematics::Initialise(const Eigen::Matrix3Xd& measured, Eigen::VectorXd* z) {
-  // The root joint (first in parents-first order) carries the subject's place and heading.
+  // The root joint (first in parents-first order) carries the subject's place and orientation.
   const Joint& root = model_.joints()[0];
   std::vector<char> root_free(model_.num_coordinates(), 0);
   int heading = -1;
@@ -121,35 +155,68 @@ IkFrameResult InverseKinematics::Initialise(const Eigen::Matrix3Xd& measured, Ei
     root_free[el.coordinate] = 1;
     if (heading < 0 && el.kind == ElementKind::kRotation) heading = el.coordinate;
   }
-  // Start every try at the measured centroid so the translation is close from the outset.
-  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
-  int n = 0;
+  std::vector<int> present;
   for (int m = 0; m < model_.num_markers(); ++m)
-    if (std::isfinite(measured(0, m))) {
-      centroid += measured.col(m);
-      ++n;
-    }
+    if (std::isfinite(measured(0, m))) present.push_back(m);
   IkFrameResult best;
   best.rms_m = std::numeric_limits<double>::infinity();
   Eigen::VectorXd best_z = model_.DefaultCoordinates();
-  if (n == 0) return best;
-  centroid /= n;
+  if (present.empty()) {
+    *z = best_z;
+    return best;
+  }
+  const int n = static_cast<int>(present.size());
+  Eigen::Matrix3Xd dst(3, n);
+  for (int i = 0; i < n; ++i) dst.col(i) = measured.col(present[i]);
+  const Eigen::Vector3d centroid = dst.rowwise().mean();
+
+  // Starting orientations of the root. The lab's vertical may be any axis (Y in OpenSim data, Z
+  // or -Z elsewhere) and the subject may face anywhere, so besides the default pose turned to four
+  // headings, the default pose is rigidly aligned (Kabsch) onto the measured markers: all of them,
+  // and those of the root segment alone (the pelvis, whose shape does not change with the pose).
+  std::vector<Eigen::VectorXd> starts;
+  const Eigen::VectorXd z_default = model_.DefaultCoordinates();
   const int tries = heading >= 0 ? 4 : 1;
   for (int k = 0; k < tries; ++k) {
-    Eigen::VectorXd trial = model_.DefaultCoordinates();
-    if (heading >= 0) trial[heading] += k * M_PI / 2;
+    starts.push_back(z_default);
+    if (heading >= 0) starts.back()[heading] += k * M_PI / 2;
+  }
+  ForwardKinematics(model_, geometry_, z_default, &data_);
+  const Eigen::Matrix3d root_rotation = data_.segment_rotation[root.child];
+  Eigen::Matrix3Xd src(3, n);
+  for (int i = 0; i < n; ++i) src.col(i) = MarkerPosition(model_, geometry_, data_, present[i]);
+  std::vector<int> on_root;
+  for (int i = 0; i < n; ++i)
+    if (model_.markers()[present[i]].segment == root.child) on_root.push_back(i);
+  std::vector<std::optional<RigidTransform>> alignments = {RigidAlign(src, dst)};
+  if (on_root.size() >= 3) alignments.push_back(RigidAlign(src(Eigen::all, on_root), dst(Eigen::all, on_root)));
+  for (const auto& a : alignments) {
+    Eigen::VectorXd start = z_default;
+    if (a && SetRootRotation(root, a->rotation * root_rotation, &start)) starts.push_back(start);
+  }
+
+  // Each start: its root alone solved first (6 unknowns: cheap); the full solve only from the
+  // two best of those.
+  std::vector<std::pair<double, int>> root_rms;
+  for (size_t k = 0; k < starts.size(); ++k) {
+    Eigen::VectorXd& trial = starts[k];
     // Shift the root's translations so the model's marker centroid lands on the data's.
     ForwardKinematics(model_, geometry_, trial, &data_);
     Eigen::Vector3d model_centroid = Eigen::Vector3d::Zero();
-    for (int m = 0; m < model_.num_markers(); ++m)
-      if (std::isfinite(measured(0, m))) model_centroid += MarkerPosition(model_, geometry_, data_, m);
+    for (int m : present) model_centroid += MarkerPosition(model_, geometry_, data_, m);
     model_centroid /= n;
     const Eigen::Vector3d shift = centroid - model_centroid;
-    for (const auto& el : root.elements)
-      if (el.kind == ElementKind::kTranslation && el.coordinate >= 0 &&
-          el.function.kind == CoordinateFunction::Kind::kIdentity)
-        trial[el.coordinate] += el.axis.dot(shift);  // root translations are along lab axes
-    Solve(measured, &trial, root_free);
+    // Translations before any rotation move along the joint's fixed frame.
+    for (const auto& el : root.elements) {
+      if (el.kind == ElementKind::kRotation) break;
+      if (el.coordinate >= 0 && el.function.kind == CoordinateFunction::Kind::kIdentity)
+        trial[el.coordinate] += (root.orientation * el.axis).dot(shift);
+    }
+    root_rms.emplace_back(Solve(measured, &trial, root_free).rms_m, static_cast<int>(k));
+  }
+  std::sort(root_rms.begin(), root_rms.end());
+  for (size_t i = 0; i < std::min<size_t>(2, root_rms.size()); ++i) {
+    Eigen::VectorXd trial = starts[root_rms[i].second];
     IkFrameResult r = Solve(measured, &trial);
     if (r.rms_m < best.rms_m) {
       best = r;

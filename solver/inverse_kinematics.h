@@ -1,8 +1,10 @@
 // Per-frame inverse kinematics: the pose z that best fits one frame's measured markers for a
 // fixed model geometry, by a small dense Levenberg–Marquardt (what OpenSim's IK tool does, with
 // all marker weights equal). It builds the global fit's initial guess when data come from a file
-// instead of the live filter: the trial's most complete frame starts from a rigid alignment of the
-// standing model, tried at four headings so a subject facing any direction is found; the other
+// instead of the live filter: the trial's most complete frame starts from the best of several
+// placements of the default pose -- turned to four headings, and rigidly aligned (Kabsch) onto all
+// measured markers and onto the root segment's markers -- so a subject facing any direction in a
+// lab whose vertical is Y, Z or -Z is found without being told; the other
 // frames are solved outwards from it, each warm-started from its neighbour (and re-initialised
 // when the warm start fails).
 #pragma once
@@ -38,7 +40,8 @@ class InverseKinematics {
   // free: coordinates to solve for (empty = all).
   IkFrameResult Solve(const Eigen::Matrix3Xd& measured, Eigen::VectorXd* z,
                       const std::vector<char>& free = {});
-  // A pose from nothing: rigid alignment of the default pose, then a full solve.
+  // A pose from nothing: each placement of the default pose above with its root solved alone;
+  // from the two best of those a full solve; the lower marker RMS wins.
   IkFrameResult Initialise(const Eigen::Matrix3Xd& measured, Eigen::VectorXd* z);
 
   // Solves every frame of a trial (rows of `measured`: frames x 3 n_markers, model order): the

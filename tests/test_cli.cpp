@@ -7,7 +7,9 @@
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <regex>
 #include <sstream>
+#include <unistd.h>
 
 #include "tests/file_test_util.h"
 
@@ -21,14 +23,18 @@ using mocap::testutil::Mocap;
 class Cli : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    dir_ = fs::path(MOCAP_TEST_TMP) / "cli";
+    // One folder per process: ctest runs the tests of this suite as parallel processes, each of
+    // which sets the suite up.
+    dir_ = fs::path(MOCAP_TEST_TMP) / "cli" / std::to_string(::getpid());
     fs::remove_all(dir_);
     fs::create_directories(dir_);
     const CommandResult r = Mocap("sim --out " + (dir_ / "sim").string() + " --seed 3 --duration-scale 0.5");
     ASSERT_EQ(r.status, 0) << r.output;
   }
+  static void TearDownTestSuite() { fs::remove_all(dir_); }
   static std::string P(const std::string& rel) { return (dir_ / rel).string(); }
   static void Write(const std::string& rel, const std::string& text) {
+    fs::create_directories((dir_ / rel).parent_path());
     std::ofstream(dir_ / rel) << text;
   }
   static std::string Read(const std::string& rel) {
@@ -149,6 +155,78 @@ TEST_F(Cli, BadInputFailsWithAClearError) {
     EXPECT_NE(r.output.find(c.expect), std::string::npos) << c.args << "\n" << r.output;
   }
   EXPECT_FALSE(fs::exists(P("bad/out.json"))) << "a failed fit writes no model";
+}
+
+// `mocap ik` with a JSON model, a C3D trial (read by its extension) and a marker map that renames
+// a trial marker to the model's name.
+TEST_F(Cli, IkReadsC3dAndAppliesTheMarkerMap) {
+  fs::create_directories(P("ik"));
+  const CommandResult conv = Mocap("convert " + P("sim/static.trc") + " " + P("ik/static_c3d.c3d"));
+  ASSERT_EQ(conv.status, 0) << conv.output;
+  std::string trc = Read("sim/static.trc");
+  const size_t at = trc.find("\tLASI\t");
+  ASSERT_NE(at, std::string::npos);
+  trc.replace(at + 1, 4, "L.ASIS");
+  Write("ik/renamed.trc", trc);
+  Write("ik/map.txt", "# model = file\n\n  LASI = L.ASIS   # left ASIS\n");
+  const std::string model = P("sim/nominal.model.json");
+  const CommandResult plain = Mocap("ik --model " + model + " " + P("ik/renamed.trc") + " --out " + P("ik/plain.mot"));
+  ASSERT_EQ(plain.status, 0) << plain.output;
+  EXPECT_NE(plain.output.find("not in the model (ignored): L.ASIS"), std::string::npos) << plain.output;
+  EXPECT_NE(plain.output.find("38 model markers"), std::string::npos) << plain.output;
+  const CommandResult mapped = Mocap("ik --model " + model + " " + P("ik/renamed.trc") + " " + P("ik/static_c3d.c3d") +
+                                     " --marker-map " + P("ik/map.txt") + " --out " + P("ik/angles.mot"));
+  ASSERT_EQ(mapped.status, 0) << mapped.output;
+  EXPECT_EQ(mapped.output.find("L.ASIS"), std::string::npos) << mapped.output;
+  EXPECT_TRUE(std::regex_search(mapped.output, std::regex(R"(renamed.trc: \d+ frames, 39 model markers)")))
+      << mapped.output;
+  // One .mot per trial when there are several: <out stem>_<trial>.mot.
+  EXPECT_TRUE(fs::exists(P("ik/angles_renamed.mot")));
+  EXPECT_TRUE(fs::exists(P("ik/angles_static_c3d.mot")));
+  // The C3D (floats, mm) gives the TRC's result.
+  std::smatch m1;
+  const std::regex rms(R"(renamed.trc: .* marker RMS ([0-9.]+) mm[\s\S]*static_c3d.c3d: .* marker RMS ([0-9.]+) mm)");
+  ASSERT_TRUE(std::regex_search(mapped.output, m1, rms)) << mapped.output;
+  EXPECT_NEAR(std::stod(m1[1]), std::stod(m1[2]), 0.01);
+  EXPECT_LT(std::stod(m1[1]), 20.0);
+}
+
+// Marker maps and OpenSim models that are wrong: the message names the file and line.
+TEST_F(Cli, BadMarkerMapsAndModelsNameFileAndLine) {
+  const std::string model = P("sim/nominal.model.json"), trial = " " + P("sim/static.trc");
+  Write("maps/unknown_model.txt", "LASI = LASI\nNOPE = RASI\n");
+  Write("maps/unknown_trial.txt", "# ok\nLASI = XYZ\n");
+  Write("maps/garbled.txt", "LASI = LASI\n\nRASI RASI\n");
+  Write("maps/twice.txt", "LASI = A\nLASI = B\n");
+  Write("maps/junk.osim", "this is not XML <");
+  struct Case {
+    std::string args, expect;
+  };
+  const std::vector<Case> cases = {
+      {"fit --model " + model + trial + " --marker-map " + P("maps/unknown_model.txt") + " --out " + P("maps/o.json"),
+       "unknown_model.txt:2: model marker 'NOPE' is not in the model"},
+      {"ik --model " + model + trial + " --marker-map " + P("maps/unknown_trial.txt") + " --out " + P("maps/o.mot"),
+       "unknown_trial.txt:2: trial marker 'XYZ' is in none of the trials"},
+      {"fit --model " + model + trial + " --marker-map " + P("maps/garbled.txt") + " --out " + P("maps/o.json"),
+       "garbled.txt:3: expected 'model_name = file_name'"},
+      {"fit --model " + model + trial + " --marker-map " + P("maps/twice.txt") + " --out " + P("maps/o.json"),
+       "twice.txt:2: model marker 'LASI' is already mapped on line 1"},
+      {"fit --model " + model + trial + " --marker-map " + P("maps/none.txt") + " --out " + P("maps/o.json"), "none.txt"},
+      {"fit --model " + P("maps/junk.osim") + trial + " --out " + P("maps/o.osim"), "junk.osim:1: not a valid XML document"},
+      {"ik --model " + P("maps/junk.osim") + trial + " --out " + P("maps/o.mot"), "junk.osim:1: not a valid XML document"},
+      {"fit --model " + model + trial + " --out " + P("maps/o.osim"), "is not one (write .json)"},
+      {"fit --model " + model + trial + " --marker-set " + P("maps/x.xml") + " --out " + P("maps/o.json"),
+       "a marker set goes with an OpenSim model"},
+      {"ik --model " + model + " " + P("maps/garbled.txt") + " --out " + P("maps/o.mot"), "unknown marker file type"},
+  };
+  for (const auto& c : cases) {
+    const CommandResult r = Mocap(c.args);
+    EXPECT_NE(r.status, 0) << c.args << "\n" << r.output;
+    EXPECT_NE(r.output.find(c.expect), std::string::npos) << c.args << "\n" << r.output;
+  }
+  EXPECT_FALSE(fs::exists(P("maps/o.json")));
+  EXPECT_FALSE(fs::exists(P("maps/o.osim")));
+  EXPECT_FALSE(fs::exists(P("maps/o.mot")));
 }
 
 }  // namespace

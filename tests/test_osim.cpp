@@ -18,12 +18,16 @@
 #include "model/kinematics.h"
 #include "model/model_io.h"
 #include "model_test_util.h"
+#include "tests/osim_test_util.h"
 #include "tests/file_test_util.h"
 
 namespace fs = std::filesystem;
 using namespace mocap;
 using namespace mocap::formats;
+using mocap::testutil::CoordinateColumns;
 using mocap::testutil::ExpectJacobiansMatchCentralDifferences;
+using mocap::testutil::NearestTime;
+using mocap::testutil::OsimPose;
 using mocap::testutil::Positions;
 using mocap::testutil::RandomParameters;
 using mocap::testutil::RandomPose;
@@ -273,11 +277,8 @@ TEST(Osim, OpenSimsScaledModelAndIkReproduceTheWalk) {
   MarkerTrial trial;
   s = ReadTrc(Gait("subject01_walk1.trc"), &trial);
   ASSERT_TRUE(s.ok()) << s.message();
-  std::vector<int> column(m.num_coordinates());
-  for (int c = 0; c < m.num_coordinates(); ++c) {
-    column[c] = ik.FindColumn(m.coordinates()[c].name);
-    ASSERT_GE(column[c], 0) << m.coordinates()[c].name;
-  }
+  const std::vector<int> column = CoordinateColumns(m, ik);
+  for (int c = 0; c < m.num_coordinates(); ++c) ASSERT_GE(column[c], 0) << m.coordinates()[c].name;
   std::vector<int> in_trial(m.num_markers());
   for (int k = 0; k < m.num_markers(); ++k) in_trial[k] = trial.FindMarker(m.markers()[k].name);
   Geometry g(m);
@@ -305,16 +306,9 @@ TEST(Osim, OpenSimsScaledModelAndIkReproduceTheWalk) {
   std::string worst_coordinate;
   std::vector<int> marker_n(m.num_markers(), 0);
   for (int f = 0; f < ik.num_frames(); ++f) {
-    Eigen::VectorXd z(m.num_coordinates());
-    for (int c = 0; c < m.num_coordinates(); ++c) {
-      const double v = ik.values(f, column[c]);
-      z[c] = ik.in_degrees && im.motion.at(m.coordinates()[c].name) == OsimMotion::kRotational ? v * M_PI / 180 : v;
-    }
-    ForwardKinematics(m, g, z, &d);
+    ForwardKinematics(m, g, OsimPose(im, ik, column, f), &d);
     // The TRC frame at the same time (its times are rounded to the ms).
-    int tf = 0;
-    for (int k = 0; k < trial.num_frames(); ++k)
-      if (std::abs(trial.times[k] - ik.times[f]) < std::abs(trial.times[tf] - ik.times[f])) tf = k;
+    const int tf = NearestTime(trial.times, ik.times[f]);
     ASSERT_LT(std::abs(trial.times[tf] - ik.times[f]), 0.5 / trial.rate_hz);
     double fs = 0;
     int fn = 0;
@@ -559,6 +553,14 @@ TEST(Osim, BadInputIsAClearErrorWithElementAndLine) {
   EXPECT_THAT(s.message(), HasSubstr("bad.osim:"));
   s = ImportOsimText("<Model/>", "nodoc.osim", &im);
   EXPECT_THAT(s.message(), HasSubstr("expected an <OpenSimDocument>"));
+  // Found by the fuzzer: tinyxml2 takes text and elements beside the root, which export wrote
+  // back in a form that did not read back.
+  const std::string tail = good + "\nstray words\n</objects>\n";
+  s = ImportOsimText(tail, "tail.osim", &im);
+  EXPECT_THAT(s.message(), HasSubstr("tail.osim:" + std::to_string(LineOf(tail, "stray words")) +
+                                     ": not a valid XML document: text outside the root element"));
+  s = ImportOsimText(good + "<More/>", "two.osim", &im);
+  EXPECT_THAT(s.message(), HasSubstr("not a valid XML document: a second root element <More>"));
   struct Case { std::string from, to, line_of, expect; };
   const std::vector<Case> cases = {
       {"<PinJoint name=\"hip\">", "<EllipsoidJoint name=\"hip\">", "<PinJoint name=\"hip\">",

@@ -9,20 +9,14 @@
 #include <string>
 
 #include "formats/c3d.h"
+#include "formats/marker_file.h"
 #include "formats/trc.h"
 #include "tools/command.h"
 
 namespace {
 
-enum class Kind { kUnknown, kC3d, kTrc };
-
-Kind KindOf(const std::string& path) {
-  std::string ext = std::filesystem::path(path).extension().string();
-  for (char& c : ext) c = static_cast<char>(c >= 'A' && c <= 'Z' ? c - 'A' + 'a' : c);
-  if (ext == ".c3d") return Kind::kC3d;
-  if (ext == ".trc") return Kind::kTrc;
-  return Kind::kUnknown;
-}
+using mocap::formats::MarkerFileKind;
+using mocap::formats::MarkerFileKindOf;
 
 struct ConvertArgs {
   std::string in, out;
@@ -31,9 +25,8 @@ struct ConvertArgs {
 };
 
 int RunConvert(const ConvertArgs& args) {
-  const Kind in_kind = KindOf(args.in), out_kind = KindOf(args.out);
-  for (const auto& [path, kind] : {std::pair{args.in, in_kind}, std::pair{args.out, out_kind}}) {
-    if (kind == Kind::kUnknown) {
+  for (const std::string& path : {args.in, args.out}) {
+    if (MarkerFileKindOf(path) == MarkerFileKind::kUnknown) {
       spdlog::error("mocap convert: {}: unknown file type (expected a .c3d or .trc extension)",
                     path);
       return 2;
@@ -50,19 +43,14 @@ int RunConvert(const ConvertArgs& args) {
   }
 
   mocap::formats::MarkerTrial trial;
-  mocap::Status s;
-  if (in_kind == Kind::kC3d) {
-    mocap::formats::C3dReadOptions options;
-    options.strip_label_prefix = !args.keep_label_prefix;
-    s = mocap::formats::ReadC3d(args.in, &trial, options);
-  } else {
-    s = mocap::formats::ReadTrc(args.in, &trial);
-  }
+  mocap::formats::C3dReadOptions c3d_options;
+  c3d_options.strip_label_prefix = !args.keep_label_prefix;
+  mocap::Status s = mocap::formats::ReadMarkerFile(args.in, &trial, c3d_options);
   if (!s) {
     spdlog::error("mocap convert: {}", s.message());
     return 1;
   }
-  if (out_kind == Kind::kC3d) {
+  if (MarkerFileKindOf(args.out) == MarkerFileKind::kC3d) {
     s = mocap::formats::WriteC3d(args.out, trial);
   } else {
     mocap::formats::TrcWriteOptions options;

@@ -7,12 +7,13 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 
-#include "formats/mot.h"
+#include "formats/osim.h"
 #include "formats/trc.h"
 #include "model/kinematics.h"
 #include "model/model_io.h"
 #include "solver/global_fit.h"
 #include "tools/command.h"
+#include "tools/trial_inputs.h"
 
 namespace mocap::tools {
 namespace {
@@ -21,29 +22,13 @@ namespace fs = std::filesystem;
 std::atomic<bool> g_interrupted{false};
 
 struct FitArgs {
-  std::string model_path;
-  std::vector<std::string> trials;
+  InputArgs in;
   std::string out;
   std::string report;
   int threads = 0;
   std::string groups = "scales,centres,axes,markers";
   int max_iterations = 50;
 };
-
-formats::CoordinateTable AnglesTable(const Model& model, const std::string& name,
-                                     const formats::MarkerTrial& trial, const Eigen::MatrixXd& z) {
-  formats::CoordinateTable table;
-  table.name = name;
-  table.in_degrees = true;
-  for (const auto& c : model.coordinates()) table.column_names.push_back(c.name);
-  table.times = trial.times;
-  table.values.resize(z.rows(), z.cols());
-  for (int c = 0; c < z.cols(); ++c) {
-    const double k = model.coordinates()[c].rotational ? 180.0 / M_PI : 1.0;
-    table.values.col(c) = z.col(c) * k;
-  }
-  return table;
-}
 
 formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerTrial& trial,
                                       const Eigen::MatrixXd& z) {
@@ -65,11 +50,19 @@ formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerT
 }
 
 int RunFit(const FitArgs& args) {
-  Model model;
-  if (Status s = LoadModelJson(args.model_path, &model); !s) {
-    spdlog::error("{}", s.message());
-    return 1;
+  const bool osim_out = HasExtension(args.out, ".osim");
+  if (!osim_out && !HasExtension(args.out, ".json")) {
+    spdlog::error("--out {}: expected a .json or .osim model file", args.out);
+    return 2;
   }
+  if (osim_out && !HasExtension(args.in.model_path, ".osim")) {
+    spdlog::error("--out {}: an .osim is written from an OpenSim model; {} is not one (write .json)",
+                  args.out, args.in.model_path);
+    return 2;
+  }
+  Inputs inputs;
+  if (!LoadInputs(args.in, &inputs)) return 1;
+  const Model& model = inputs.model.model;
   solver::FitOptions options;
   if (Status s = options.SetGroups(args.groups); !s) {
     spdlog::error("--fit: {}", s.message());
@@ -78,20 +71,7 @@ int RunFit(const FitArgs& args) {
   options.num_threads = args.threads;
   options.lm.max_iterations = args.max_iterations;
   std::vector<solver::FitTrial> trials;
-  for (const auto& path : args.trials) {
-    solver::FitTrial t;
-    if (Status s = formats::ReadTrc(path, &t.markers); !s) {
-      spdlog::error("{}", s.message());
-      return 1;
-    }
-    if (t.markers.num_frames() == 0) {
-      spdlog::error("{}: the trial has no frames", path);
-      return 1;
-    }
-    spdlog::info("{}: {} frames, {} markers at {} Hz", path, t.markers.num_frames(),
-                 t.markers.num_markers(), t.markers.rate_hz);
-    trials.push_back(std::move(t));
-  }
+  for (auto& t : inputs.trials) trials.push_back({std::move(t), {}});
   options.lm.callbacks.push_back([](const solver::IterationSummary& it) {
     spdlog::info("iteration {:3d}  cost {:.6e}  change {:.3e}  |gradient| {:.3e}  |step| {:.3e}  "
                  "lambda {:.2e}  {:.2f} s",
@@ -101,7 +81,7 @@ int RunFit(const FitArgs& args) {
   });
   std::signal(SIGINT, [](int) { g_interrupted = true; });
   spdlog::info("fitting {} ({} trials); Ctrl-C stops after the current iteration and keeps the result",
-               args.model_path, trials.size());
+               args.in.model_path, trials.size());
   solver::FitResult result;
   Status s = solver::FitModel(model, trials, options, &result);
   std::signal(SIGINT, SIG_DFL);
@@ -110,16 +90,6 @@ int RunFit(const FitArgs& args) {
     return 1;
   }
   const solver::FitReport& r = result.report;
-  if (!r.unmatched_trial_markers.empty()) {
-    std::string list;
-    for (const auto& n : r.unmatched_trial_markers) list += " " + n;
-    spdlog::warn("trial markers not in the model (ignored):{}", list);
-  }
-  if (!r.unobserved_model_markers.empty()) {
-    std::string list;
-    for (const auto& n : r.unobserved_model_markers) list += " " + n;
-    spdlog::warn("model markers in no trial (kept as they were):{}", list);
-  }
   if (!r.undetermined.empty())
     spdlog::warn("{} parameters not determined by these trials (kept near the initial model): {}{}",
                  r.undetermined.size(), r.undetermined.front(), r.undetermined.size() > 1 ? ", ..." : "");
@@ -127,7 +97,9 @@ int RunFit(const FitArgs& args) {
 
   fs::path out(args.out);
   if (out.has_parent_path()) fs::create_directories(out.parent_path());
-  if (Status w = SaveModelJson(args.out, result.model); !w) {
+  if (Status w = osim_out ? formats::ExportOsim(result.model, inputs.model.import, args.out)
+                          : SaveModelJson(args.out, result.model);
+      !w) {
     spdlog::error("{}", w.message());
     return 1;
   }
@@ -137,13 +109,15 @@ int RunFit(const FitArgs& args) {
     const std::string base = trial.name.empty() ? "trial" + std::to_string(t + 1) : trial.name;
     const fs::path mot = dir / (base + ".fitted.mot");
     const fs::path centres = dir / (base + ".joint_centres.trc");
-    Status w = formats::WriteMot(mot.string(), AnglesTable(result.model, base, trial, result.coordinates[t]));
+    Status w = WriteAngles(mot.string(), inputs.model, result.model, trial, result.coordinates[t]);
     if (w) w = formats::WriteTrc(centres.string(), JointCentreTrial(result.model, trial, result.coordinates[t]));
     if (!w) {
       spdlog::error("{}", w.message());
       return 1;
     }
   }
+  for (size_t t = 0; t < trials.size(); ++t)
+    spdlog::info("{}: marker RMS {:.2f} mm", args.in.trials[t], r.per_trial_rms_mm[t]);
   spdlog::info("wrote {} and, per trial, <trial>.fitted.mot and <trial>.joint_centres.trc in {}",
                args.out, dir.string());
 
@@ -160,6 +134,11 @@ int RunFit(const FitArgs& args) {
     j["final_cost"] = r.solver.final_cost;
     j["initial_marker_rms_mm"] = r.initial_marker_rms_mm;
     j["marker_rms_mm"] = r.marker_rms_mm;
+    j["per_trial"] = nlohmann::json::array();
+    for (size_t t = 0; t < trials.size(); ++t)
+      j["per_trial"].push_back({{"file", args.in.trials[t]}, {"name", trials[t].markers.name},
+                                {"frames", trials[t].markers.num_frames()},
+                                {"marker_rms_mm", r.per_trial_rms_mm[t]}});
     j["per_marker_rms_mm"] = nlohmann::json::object();
     for (const auto& [name, v] : r.per_marker_rms_mm) j["per_marker_rms_mm"][name] = v;
     j["wall_seconds"] = r.wall_seconds;
@@ -188,9 +167,8 @@ int RunFit(const FitArgs& args) {
 const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
   auto args = std::make_shared<FitArgs>();
   CLI::App* cmd = app.add_subcommand("fit", "fit a body model to labelled marker trials (global sparse LM)");
-  cmd->add_option("--model", args->model_path, "initial model (.json)")->required();
-  cmd->add_option("trials", args->trials, "marker trials (.trc)")->required();
-  cmd->add_option("--out", args->out, "fitted model to write (.json)")->required();
+  AddInputOptions(cmd, &args->in);
+  cmd->add_option("--out", args->out, "fitted model to write (.json, or .osim from an .osim model)")->required();
   cmd->add_option("--report", args->report, "JSON report to write");
   cmd->add_option("--threads", args->threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);
   cmd->add_option("--fit", args->groups, "parameter groups: scales,centres,axes,markers (or all, none)");

@@ -1,5 +1,7 @@
-// `mocap model show M.json` and `mocap model diff A.json B.json [--json]`: a readable summary of a
-// model file, and the gauge-free comparison of two models (model/compare.h), A the reference.
+// `mocap model show M.json`, `mocap model diff A.json B.json [--json]` and
+// `mocap model default --out M.json [--height H]`: a readable summary of a model file, the
+// gauge-free comparison of two models (model/compare.h), A the reference, and the default
+// full-body model (model/default_model.h) written out.
 // Exit codes: 0 done, 1 a file could not be loaded or the models differ in topology, 2 usage.
 #include <cmath>
 #include <cstdio>
@@ -9,6 +11,7 @@
 #include <vector>
 
 #include "model/compare.h"
+#include "model/default_model.h"
 #include "model/model.h"
 #include "model/model_io.h"
 #include "tools/command.h"
@@ -199,6 +202,20 @@ const CommandRegistrar registrar("model", [](CLI::App& app, int* exit_code) {
   CLI::App* show = model->add_subcommand("show", "Summarise a model file");
   CLI::App* diff = model->add_subcommand(
       "diff", "Compare model B with reference A by what marker data determines (gauge-free)");
+  CLI::App* def = model->add_subcommand(
+      "default", "Write the default full-body model (Plug-in Gait markers, Z up) as JSON");
+  auto default_out = std::make_shared<std::string>();
+  auto default_height = std::make_shared<double>(1.75);
+  def->add_option("--out", *default_out, "Model file to write (.json)")->required();
+  def->add_option("--height", *default_height, "Stature (m) the segments are scaled to")
+      ->capture_default_str()
+      ->check(CLI::Range(0.5, 2.5));
+  def->callback([default_out, default_height, exit_code] {
+    if (Status s = SaveModelJson(*default_out, DefaultFullBodyModel(*default_height)); !s) {
+      std::fprintf(stderr, "mocap model default: %s\n", s.message().c_str());
+      *exit_code = 1;
+    }
+  });
   auto show_options = std::make_shared<ModelOptions>();
   auto diff_options = std::make_shared<ModelOptions>();
   show->add_option("model", show_options->files, "Model file (JSON)");
@@ -215,7 +232,7 @@ const CommandRegistrar registrar("model", [](CLI::App& app, int* exit_code) {
     if (CheckArguments(diff, *diff_options, 2, exit_code)) *exit_code = RunDiff(*diff_options);
   });
   model->callback([model, exit_code] {
-    if (model->get_subcommands().empty()) *exit_code = UsageError(model, "expected show or diff");
+    if (model->get_subcommands().empty()) *exit_code = UsageError(model, "expected show, diff or default");
   });
 });
 

@@ -1,0 +1,25 @@
+// The best rigid motion between two paired point sets (Kabsch; Umeyama without scale). Used to
+// compare models (model/compare.h) and to place a model on measured markers before inverse
+// kinematics (solver/inverse_kinematics.h).
+#pragma once
+#include <Eigen/Core>
+#include <optional>
+
+namespace mocap {
+
+// x -> R x + t.
+struct RigidTransform {
+  Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d translation = Eigen::Vector3d::Zero();
+  Eigen::Vector3d Point(const Eigen::Vector3d& x) const { return rotation * x + translation; }
+  Eigen::Vector3d Direction(const Eigen::Vector3d& x) const { return rotation * x; }
+};
+
+// True when the points (columns) are not all on one line (spread > 1 micrometre across it).
+bool SpansPlane(const Eigen::Matrix3Xd& points);
+
+// The proper rotation R and translation t minimising sum |R src_i + t - dst_i|^2 (columns
+// paired), or nothing when fewer than 3 points are given or either set is collinear.
+std::optional<RigidTransform> RigidAlign(const Eigen::Matrix3Xd& src, const Eigen::Matrix3Xd& dst);
+
+}  // namespace mocap

@@ -1,0 +1,67 @@
+// Per-frame inverse kinematics from nothing (InverseKinematics::Initialise): whatever the lab's
+// vertical (Z, Y, -Z, a lying subject) and the subject's heading, the pose is found without being
+// told, to the exactness of noise-free data.
+#include <gtest/gtest.h>
+
+#include <Eigen/Geometry>
+#include <random>
+
+#include "model/default_model.h"
+#include "model/kinematics.h"
+#include "model_test_util.h"
+#include "solver/inverse_kinematics.h"
+
+using namespace mocap;
+
+namespace {
+
+Eigen::Matrix3Xd Markers(const Model& m, const Eigen::VectorXd& z) {
+  const Geometry g(m);
+  ModelData d(m);
+  ForwardKinematics(m, g, z, &d);
+  Eigen::Matrix3Xd x(3, m.num_markers());
+  for (int k = 0; k < m.num_markers(); ++k) x.col(k) = MarkerPosition(m, g, d, k);
+  return x;
+}
+
+}  // namespace
+
+TEST(InverseKinematics, InitialiseFindsTheSubjectWhateverTheLabsVertical) {
+  const Model m = DefaultFullBodyModel();
+  const Geometry g(m);
+  solver::InverseKinematics ik(m, g);
+  std::mt19937 rng(5);
+  using Eigen::AngleAxisd;
+  using Eigen::Vector3d;
+  const std::vector<std::pair<const char*, Eigen::Matrix3d>> labs = {
+      {"Z up", Eigen::Matrix3d::Identity()},
+      {"Y up (OpenSim)", AngleAxisd(-M_PI / 2, Vector3d::UnitX()).toRotationMatrix()},
+      {"-Z up (upside down)", AngleAxisd(M_PI, Vector3d::UnitY()).toRotationMatrix()},
+      {"X up (lying)", AngleAxisd(M_PI / 2, Vector3d::UnitY()).toRotationMatrix()},
+  };
+  for (const auto& [name, lab] : labs) {
+    for (int k = 0; k < 3; ++k) {
+      // A standing subject with moderately bent joints, turned to some heading about its own
+      // vertical, in a lab whose axes are `lab`.
+      Eigen::VectorXd z = m.DefaultCoordinates() + 0.3 * (testutil::RandomPose(m, rng) - m.DefaultCoordinates());
+      const Eigen::Matrix3d heading = AngleAxisd(2.1 * k + 0.4, Vector3d::UnitZ()).toRotationMatrix();
+      Eigen::Matrix3Xd measured = (lab * heading) * Markers(m, z);
+      measured.colwise() += Vector3d(1.5, -0.7, 0.3);
+      Eigen::VectorXd solved;
+      const solver::IkFrameResult r = ik.Initialise(measured, &solved);
+      EXPECT_LT(r.rms_m, 1e-6) << name << ", heading " << k;
+    }
+  }
+  // Any orientation at all (uniform random rotations) and larger joint angles.
+  std::normal_distribution<double> n(0, 1);
+  int found = 0;
+  const int tries = 40;
+  for (int k = 0; k < tries; ++k) {
+    const Eigen::Quaterniond q(n(rng), n(rng), n(rng), n(rng));
+    const Eigen::VectorXd z = m.DefaultCoordinates() + 0.6 * (testutil::RandomPose(m, rng) - m.DefaultCoordinates());
+    Eigen::Matrix3Xd measured = q.normalized().toRotationMatrix() * Markers(m, z);
+    Eigen::VectorXd solved;
+    found += ik.Initialise(measured, &solved).rms_m < 1e-6;
+  }
+  EXPECT_EQ(found, tries);
+}
