@@ -14,6 +14,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <algorithm>
 #include <memory>
 #include <vector>
 
@@ -79,5 +80,15 @@ class ArrowProblem {
   virtual void BlockStructure(std::vector<std::vector<int>>* y_columns,
                               std::vector<std::vector<int>>* p_columns) const = 0;
 };
+
+// The widest residual block of a BlockStructure: its most y columns and most p columns (at least 1).
+inline void WidestBlock(const std::vector<std::vector<int>>& y_columns,
+                        const std::vector<std::vector<int>>& p_columns, int* max_y, int* max_p) {
+  *max_y = *max_p = 1;
+  for (size_t b = 0; b < y_columns.size(); ++b) {
+    *max_y = std::max<int>(*max_y, static_cast<int>(y_columns[b].size()));
+    *max_p = std::max<int>(*max_p, static_cast<int>(p_columns[b].size()));
+  }
+}
 
 }  // namespace mocap::solver

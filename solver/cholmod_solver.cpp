@@ -252,11 +252,7 @@ bool SparseNormalCholeskyProblem::StoreLower() const {
 void SparseNormalCholeskyProblem::ComputeFrameOrder() {
   std::vector<std::vector<int>> ycols, pcols;
   problem_->BlockStructure(&ycols, &pcols);
-  max_block_y_ = max_block_p_ = 1;
-  for (size_t b = 0; b < ycols.size(); ++b) {
-    max_block_y_ = std::max<int>(max_block_y_, ycols[b].size());
-    max_block_p_ = std::max<int>(max_block_p_, pcols[b].size());
-  }
+  WidestBlock(ycols, pcols, &max_block_y_, &max_block_p_);
   y_elimination_.resize(ny_);
   p_elimination_.resize(np_);
   std::iota(y_elimination_.begin(), y_elimination_.end(), 0);

@@ -89,11 +89,7 @@ int ArrowSchurProblem::num_residuals() const { return problem_->num_residuals();
 void ArrowSchurProblem::Analyse() {
   std::vector<std::vector<int>> ycols, pcols;
   problem_->BlockStructure(&ycols, &pcols);
-  max_block_y_ = max_block_p_ = 1;
-  for (size_t b = 0; b < ycols.size(); ++b) {
-    max_block_y_ = std::max<int>(max_block_y_, ycols[b].size());
-    max_block_p_ = std::max<int>(max_block_p_, pcols[b].size());
-  }
+  WidestBlock(ycols, pcols, &max_block_y_, &max_block_p_);
   // Graph of U and pattern of W.
   std::vector<std::vector<char>> adj(ny_, std::vector<char>(ny_, 0));
   std::vector<std::vector<char>> wpat(ny_, std::vector<char>(np_, 0));
