@@ -229,7 +229,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   // Uncertainty: S^{-1} in residual units; scaled by the residual variance for the reported std.
   const auto cov_start = Clock::now();
   Eigen::MatrixXd covariance;
-  const bool have_covariance = np > 0 && schur.SharedCovariance(&covariance);
+  const bool have_covariance = np > 0 && schur.SharedCovariance(x, &covariance);
   const int dof = std::max(1, report.residuals - report.unknowns);
   const double variance = 2.0 * report.solver.final_cost / dof;
   const Eigen::VectorXd p0 = initial.InitialParameters();

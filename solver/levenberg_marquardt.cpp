@@ -153,33 +153,42 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         const double old_cost = cost;
         lambda = std::max(options.min_lambda,
                           lambda * std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3)));
-        problem->AnticipateDamping(lambda, options.min_diagonal, options.max_diagonal);
-        t = Clock::now();
-        if (!problem->Linearize(*x, &cost, &gradient, &diagonal)) {
-          // Cannot happen for a finite cost in exact arithmetic; step back to the last good x.
-          *x -= dx;
-          cost = old_cost;
-          return finish(TerminationType::kNoConvergence, "Jacobian not finite after a step");
-        }
-        summary.linearize_seconds += Since(t);
         nu = 2.0;
         rejections = 0;
         it.step_accepted = true;
+        it.lambda = lambda;
+        // The function and parameter tolerances need no Jacobian: when one is met the solve ends
+        // here and the final point is not linearised (one pass over all the data saved; Ceres
+        // does the same). The gradient reported is then the previous iterate's.
+        const char* converged = nullptr;
+        if (old_cost - new_cost <= options.function_tolerance * old_cost)
+          converged = "function tolerance reached";
+        else if (it.step_norm <= options.parameter_tolerance * (parameter_norm + options.parameter_tolerance))
+          converged = "parameter tolerance reached";
+        if (converged == nullptr) {
+          problem->AnticipateDamping(lambda, options.min_diagonal, options.max_diagonal);
+          t = Clock::now();
+          if (!problem->Linearize(*x, &cost, &gradient, &diagonal)) {
+            // Cannot happen for a finite cost in exact arithmetic; step back to the last good x.
+            *x -= dx;
+            cost = old_cost;
+            return finish(TerminationType::kNoConvergence, "Jacobian not finite after a step");
+          }
+          summary.linearize_seconds += Since(t);
+        } else {
+          cost = new_cost;
+        }
         it.cost_change = old_cost - cost;
         it.cost = cost;
-        it.lambda = lambda;
         it.gradient_max_norm = gradient.lpNorm<Eigen::Infinity>();
         it.iteration_seconds = Since(iteration_start);
         it.total_seconds = Since(start);
         summary.iterations.push_back(it);
         for (const auto& cb : options.callbacks)
           if (!cb(it)) return finish(TerminationType::kUserCancelled, "cancelled by the callback");
-        if (it.cost_change <= options.function_tolerance * old_cost)
-          return finish(TerminationType::kConvergence, "function tolerance reached");
+        if (converged != nullptr) return finish(TerminationType::kConvergence, converged);
         if (it.gradient_max_norm <= options.gradient_tolerance)
           return finish(TerminationType::kConvergence, "gradient tolerance reached");
-        if (it.step_norm <= options.parameter_tolerance * (parameter_norm + options.parameter_tolerance))
-          return finish(TerminationType::kConvergence, "parameter tolerance reached");
         break;
       }
       // Reject.

@@ -30,7 +30,8 @@ struct IterationSummary {
   int iteration = 0;
   double cost = 0;              // after this iteration
   double cost_change = 0;       // decrease achieved (0 if the step was rejected)
-  double gradient_max_norm = 0;
+  double gradient_max_norm = 0;  // at the new iterate; at the previous one when the solve ends
+                                 // on the function or parameter tolerance (not re-linearised)
   double step_norm = 0;
   double lambda = 0;
   double gain_ratio = 0;

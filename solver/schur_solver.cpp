@@ -701,13 +701,14 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
   return dx->allFinite();
 }
 
-bool ArrowSchurProblem::SharedCovariance(Eigen::MatrixXd* covariance, double frame_ridge) {
+bool ArrowSchurProblem::SharedCovariance(const Eigen::VectorXd& x, Eigen::MatrixXd* covariance,
+                                         double frame_ridge) {
   // Damping: a relative ridge on the frame blocks only (their diagonal from the gradient pass).
   Eigen::VectorXd gradient, diagonal;
   double cost;
   const double lambda = anticipated_lambda_;
   anticipated_lambda_ = 0;  // no step follows
-  const bool linearized = Linearize(x_, &cost, &gradient, &diagonal);
+  const bool linearized = Linearize(x, &cost, &gradient, &diagonal);
   anticipated_lambda_ = lambda;
   if (!linearized) return false;
   Eigen::VectorXd damping = frame_ridge * diagonal.cwiseMax(1e-12);

@@ -71,10 +71,11 @@ class ArrowSchurProblem : public LmProblem {
     anticipated_max_ = max_diagonal;
   }
 
-  // Covariance of the shared parameters at the last linearisation point, (S^{-1} with no
-  // damping on p), in the units of the residuals. Frame blocks that the data leave singular get
-  // a ridge of `frame_ridge` relative to their diagonal. False if S is not positive definite.
-  bool SharedCovariance(Eigen::MatrixXd* covariance, double frame_ridge = 1e-10);
+  // Covariance of the shared parameters at x, (S^{-1} with no damping on p), in the units of the
+  // residuals. Frame blocks that the data leave singular get a ridge of `frame_ridge` relative
+  // to their diagonal. False if S is not positive definite.
+  bool SharedCovariance(const Eigen::VectorXd& x, Eigen::MatrixXd* covariance,
+                        double frame_ridge = 1e-10);
 
   // Per-frame squared residual sums at x (for per-marker statistics the problem computes itself).
   const std::vector<int>& elimination_order() const { return order_; }

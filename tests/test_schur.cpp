@@ -76,7 +76,7 @@ TEST_P(ArrowSchurStep, MatchesDenseNormalEquations) {
   schur.AnticipateDamping(0, 0, 0);
   // Covariance = inverse of the undamped normal matrix's Schur complement = p-block of inverse.
   Eigen::MatrixXd cov;
-  ASSERT_TRUE(schur.SharedCovariance(&cov, 1e-12));
+  ASSERT_TRUE(schur.SharedCovariance(x, &cov, 1e-12));
   Eigen::MatrixXd inv = jtj.ldlt().solve(Eigen::MatrixXd::Identity(jtj.rows(), jtj.cols()));
   EXPECT_LT((cov - inv.bottomRightCorner(np, np)).norm(), 1e-5 * inv.bottomRightCorner(np, np).norm());
 }
