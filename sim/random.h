@@ -15,6 +15,9 @@ namespace mocap::sim {
 enum class Stream : std::uint64_t {
   kHeight = 1, kScale, kCentre, kAxis, kMarker,  // the virtual subject
   kMotion, kSta, kNoise, kMissing,               // the recordings
+  kRig, kImageNoise, kReflections, kJitter,      // the simulated cameras (sim/camera_rig.h, renderer)
+  kWand,                                         // the simulated wand calibration
+  kGhosts, kOcclusion, kSwapTraps, kSecondPerson,  // unlabelled points for the tracker
 };
 
 // SplitMix64's finaliser: a bijective 64-bit mix (Steele, Lea, Flood 2014).

@@ -1,0 +1,82 @@
+// One interface for every camera backend, shaped after Aravis's own layers
+// (system -> interface -> device -> stream -> buffer):
+//   - CameraSource    one camera: settings, start/stop, a stream of Frames from a pooled buffer;
+//   - backends        drivers/aravis_camera.h (GigE Vision + USB3 Vision, and Aravis's own fake
+//                     devices, so tests run the Aravis code unchanged) and
+//                     drivers/simulated_camera.h (in process, no Aravis, for fast unit tests).
+// Images of the fake and simulated cameras come from an ImageGenerator the caller plugs in
+// (sim/renderer.h draws the simulated subject's markers): drivers/ depends on nothing of ours.
+//
+// Threading: Grab() is called from one acquisition thread per camera; Counters() and State()
+// may be read from any thread.
+#pragma once
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <string>
+
+#include "drivers/frame.h"
+#include "model/status.h"
+
+namespace mocap::drivers {
+
+enum class TriggerMode : std::uint8_t { kFreeRun, kHardwareLine, kSoftware };
+const char* ToString(TriggerMode m);
+
+struct CameraSettings {
+  double exposure_us = 500.0;
+  double gain_db = 0.0;
+  double frame_rate_hz = 200.0;
+  // Region of interest; width/height 0 = the whole sensor.
+  int roi_x = 0, roi_y = 0, roi_width = 0, roi_height = 0;
+  PixelFormat pixel_format = PixelFormat::kMono8;
+  TriggerMode trigger = TriggerMode::kFreeRun;
+  int trigger_line = 0;   // for kHardwareLine: Line<trigger_line>
+  int buffer_count = 16;  // the pre-allocated pool
+  double timeout_ms = 1000.0;
+
+  bool IsValid(std::string* error) const;
+};
+
+enum class CameraState : std::uint8_t { kClosed, kStreaming, kLost };
+const char* ToString(CameraState s);
+
+// Per-camera counts of everything that did not become a frame, and of what did.
+struct CameraCounters {
+  std::atomic<std::uint64_t> complete{0};
+  std::atomic<std::uint64_t> missing_packets{0};
+  std::atomic<std::uint64_t> timeouts{0};
+  std::atomic<std::uint64_t> underruns{0};
+  std::atomic<std::uint64_t> size_mismatches{0};
+  std::atomic<std::uint64_t> wrong_format{0};
+  std::atomic<std::uint64_t> other_errors{0};
+  std::atomic<std::uint64_t> losses{0};   // control lost / device removed
+  std::atomic<std::uint64_t> reopens{0};  // came back after a loss
+};
+
+enum class GrabResult : std::uint8_t { kFrame, kIncomplete, kTimeout, kLost, kStopped };
+
+class CameraSource {
+ public:
+  virtual ~CameraSource() = default;
+  virtual const std::string& id() const = 0;  // Aravis device id or serial; "sim-<n>" otherwise
+  virtual Status Open(const CameraSettings& settings) = 0;
+  virtual Status Start() = 0;
+  virtual void Stop() = 0;
+  // Waits up to the settings' timeout for the next buffer. kFrame: *frame is complete and must
+  // be given back with Release(). kIncomplete: the buffer was counted and already recycled.
+  virtual GrabResult Grab(Frame* frame) = 0;
+  virtual void Release(const Frame& frame) = 0;
+  // Software trigger (TriggerMode::kSoftware).
+  virtual Status Trigger() = 0;
+  virtual CameraState State() const = 0;
+  virtual const CameraCounters& Counters() const = 0;
+};
+
+// Draws the image of one camera for one frame: the fake and simulated backends call it to fill
+// a buffer. `sequence` is the frame's unwrapped number (time = sequence / frame rate).
+using ImageGenerator = std::function<void(int camera, std::uint64_t sequence, std::uint8_t* data,
+                                          int width, int height, std::ptrdiff_t stride,
+                                          PixelFormat format)>;
+
+}  // namespace mocap::drivers

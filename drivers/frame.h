@@ -1,0 +1,93 @@
+// Frames: what every camera source (drivers/camera_source.h) hands to detection.
+//
+// A Frame is a VIEW of one image in a buffer that the source owns (Aravis: a stream buffer of the
+// pre-allocated pool; simulated: a ring of images). It stays valid until the frame is released
+// back to the source, so detection reads the pixels in place: no copy on the hot path.
+//
+// Frame ids: GigE Vision 1.x and USB3 Vision block ids as Aravis reports them are 16 bit on GigE
+// (they wrap every 65,536 frames, ~5.5 min at 200 Hz) and the sources extend them to a 64-bit
+// `sequence` (FrameIdUnwrapper below), which is what sync across cameras uses.
+#pragma once
+#include <cstddef>
+#include <cstdint>
+
+namespace mocap::drivers {
+
+enum class PixelFormat : std::uint8_t { kMono8, kMono12, kMono16 };
+
+inline int BytesPerPixel(PixelFormat f) { return f == PixelFormat::kMono8 ? 1 : 2; }
+inline int BitDepth(PixelFormat f) {
+  return f == PixelFormat::kMono8 ? 8 : (f == PixelFormat::kMono12 ? 12 : 16);
+}
+const char* ToString(PixelFormat f);
+
+// Why a buffer did or did not become a usable frame. Only kComplete frames reach detection; the
+// others are counted per camera (CameraCounters) and never parsed.
+enum class FrameStatus : std::uint8_t {
+  kComplete,
+  kMissingPackets,  // GigE Vision packets lost (ARV_BUFFER_STATUS_MISSING_PACKETS)
+  kTimeout,         // the buffer was not filled in time
+  kUnderrun,        // no free buffer when the image arrived
+  kSizeMismatch,    // payload does not match width x height x bytes per pixel
+  kWrongFormat,     // pixel format other than the configured one
+  kOther,
+};
+const char* ToString(FrameStatus s);
+
+// A row-major image, stride in bytes. Mono12 is stored unpacked in 16-bit little-endian words.
+struct ImageView {
+  const std::uint8_t* data = nullptr;
+  int width = 0;
+  int height = 0;
+  std::ptrdiff_t stride = 0;  // bytes from one row to the next
+  PixelFormat format = PixelFormat::kMono8;
+
+  std::size_t size_bytes() const { return static_cast<std::size_t>(stride) * height; }
+  const std::uint8_t* row8(int y) const { return data + stride * y; }
+  const std::uint16_t* row16(int y) const {
+    return reinterpret_cast<const std::uint16_t*>(data + stride * y);
+  }
+};
+
+struct Frame {
+  int camera = -1;                  // index of the camera in the rig
+  std::uint16_t frame_id = 0;       // as the device numbers it (wraps)
+  std::uint64_t sequence = 0;       // frame_id unwrapped (FrameIdUnwrapper)
+  std::uint64_t device_timestamp_ns = 0;
+  std::uint64_t host_timestamp_ns = 0;  // CLOCK_MONOTONIC when the buffer was handed over
+  FrameStatus status = FrameStatus::kComplete;
+  ImageView image;
+  const void* handle = nullptr;     // the source's buffer, for CameraSource::Release
+};
+
+// Extends 16-bit frame ids to a monotonic 64-bit sequence. A step back of more than half the
+// range is a wrap; a smaller step back (a stale or repeated id) returns the sequence it maps to
+// without advancing.
+class FrameIdUnwrapper {
+ public:
+  std::uint64_t Next(std::uint16_t id) {
+    if (!started_) {
+      started_ = true;
+      last_ = id;
+      base_ = 0;
+      return id;
+    }
+    const std::uint16_t delta = static_cast<std::uint16_t>(id - last_);
+    if (delta < 0x8000u) {
+      if (id < last_) base_ += 0x10000u;
+      last_ = id;
+      return base_ + id;
+    }
+    // A step backwards: place it before the last id without moving the base.
+    const std::uint64_t last_seq = base_ + last_;
+    const std::uint64_t back = static_cast<std::uint16_t>(last_ - id);
+    return last_seq >= back ? last_seq - back : 0;
+  }
+
+ private:
+  bool started_ = false;
+  std::uint16_t last_ = 0;
+  std::uint64_t base_ = 0;
+};
+
+}  // namespace mocap::drivers
