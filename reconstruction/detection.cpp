@@ -1,0 +1,439 @@
+#include "reconstruction/detection.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+
+#include "reconstruction/reflection_mask.h"
+
+#if defined(__AVX2__)
+#include <immintrin.h>
+#endif
+
+namespace mocap::reconstruction {
+
+bool DetectionOptions::IsValid(std::string* error) const {
+  auto fail = [&](const std::string& what) {
+    if (error) *error = "detection options: " + what;
+    return false;
+  };
+  if (threshold < 1 || threshold > 65535)
+    return fail("threshold " + std::to_string(threshold) + " is outside [1, 65535]");
+  if (min_area_px < 1) return fail("min_area_px must be >= 1");
+  if (max_area_px < min_area_px) return fail("max_area_px is below min_area_px");
+  if (!(min_roundness >= 0 && min_roundness <= 1))
+    return fail("min_roundness must be in [0, 1]");
+  if (!(read_noise_dn >= 0) || !std::isfinite(read_noise_dn))
+    return fail("read_noise_dn must be finite and >= 0");
+  if (!(shot_noise_gain >= 0) || !std::isfinite(shot_noise_gain))
+    return fail("shot_noise_gain must be finite and >= 0");
+  if (!(sigma_floor_px >= 0) || !std::isfinite(sigma_floor_px))
+    return fail("sigma_floor_px must be finite and >= 0");
+  if (max_centroids < 1) return fail("max_centroids must be >= 1");
+  return true;
+}
+
+Status CheckImage(const drivers::ImageView& image) {
+  const auto format = static_cast<int>(image.format);
+  if (format < 0 || format > static_cast<int>(drivers::PixelFormat::kMono16))
+    return Status::Error("image: unknown pixel format " + std::to_string(format) +
+                         " (expected Mono8, Mono12 or Mono16)");
+  if (image.data == nullptr) return Status::Error("image: null pixel data");
+  if (image.width <= 0 || image.height <= 0)
+    return Status::Error("image: size " + std::to_string(image.width) + " x " +
+                         std::to_string(image.height) + " is not positive");
+  const std::ptrdiff_t row_bytes =
+      static_cast<std::ptrdiff_t>(image.width) * drivers::BytesPerPixel(image.format);
+  if (image.stride < row_bytes)
+    return Status::Error("image: stride " + std::to_string(image.stride) + " bytes is below width " +
+                         std::to_string(image.width) + " x " +
+                         std::to_string(drivers::BytesPerPixel(image.format)) + " bytes (" +
+                         drivers::ToString(image.format) + ")");
+  if (image.format != drivers::PixelFormat::kMono8 && (image.stride % 2) != 0)
+    return Status::Error("image: stride " + std::to_string(image.stride) +
+                         " is odd for a 16-bit pixel format");
+  return Status::Ok();
+}
+
+void DetectionWorkspace::Reserve(int max_runs_per_row, int max_blobs) {
+  previous_.reserve(static_cast<std::size_t>(std::max(max_runs_per_row, 0)));
+  current_.reserve(static_cast<std::size_t>(std::max(max_runs_per_row, 0)));
+  parent_.reserve(static_cast<std::size_t>(std::max(max_blobs, 0)));
+  blobs_.reserve(static_cast<std::size_t>(std::max(max_blobs, 0)));
+}
+
+std::size_t DetectionWorkspace::CapacityBytes() const {
+  return (previous_.capacity() + current_.capacity()) * sizeof(Run) +
+         parent_.capacity() * sizeof(int) + blobs_.capacity() * sizeof(Blob);
+}
+
+namespace {
+
+// Walks the bright-pixel bit mask of a block of `nbits` (<= 64) pixels starting at x = base
+// (bit i: pixel base + i is bright) and emits its runs [x0, x1). `open` is the start of a run
+// that continues from the previous block, or -1; a run reaching the end of the block stays open.
+template <class Emit>
+inline void WalkMask(std::uint64_t m, int base, int nbits, int* open, Emit& emit) {
+  const std::uint64_t valid = nbits == 64 ? ~0ull : ((1ull << nbits) - 1);
+  if (*open >= 0) {
+    const std::uint64_t zeros = ~m & valid;
+    if (zeros == 0) return;  // the whole block is bright: the run goes on
+    const int e = __builtin_ctzll(zeros);
+    emit(*open, base + e);
+    *open = -1;
+    m &= ~0ull << e;
+  }
+  while (m != 0) {
+    const int s = __builtin_ctzll(m);
+    const std::uint64_t zeros = ~m & valid & (~0ull << s);
+    if (zeros == 0) {
+      *open = base + s;
+      return;
+    }
+    const int e = __builtin_ctzll(zeros);
+    emit(base + s, base + e);
+    m &= ~0ull << e;
+  }
+}
+
+// The tail of a row (fewer than 64 pixels), scalar.
+template <class P, class Emit>
+inline void ScanTail(const P* row, int x, int width, int threshold, int* open, Emit& emit) {
+  while (x < width) {
+    const int n = std::min(64, width - x);
+    std::uint64_t m = 0;
+    for (int i = 0; i < n; ++i) m |= static_cast<std::uint64_t>(row[x + i] >= threshold) << i;
+    WalkMask(m, x, n, open, emit);
+    x += n;
+  }
+  if (*open >= 0) {
+    emit(*open, width);
+    *open = -1;
+  }
+}
+
+// Portable scan: GCC/Clang vector extensions (32-byte vectors, lowered to whatever the target has).
+template <class P, class Emit>
+void ScanRowPortable(const P* row, int width, int threshold, Emit& emit) {
+  constexpr int kLanes = 32 / sizeof(P);
+  typedef P Vec __attribute__((vector_size(32)));
+  Vec vt;
+  for (int i = 0; i < kLanes; ++i) vt[i] = static_cast<P>(threshold);
+  int open = -1;
+  int x = 0;
+  for (; x + 64 <= width; x += 64) {
+    std::uint64_t any = 0;
+    for (int k = 0; k < 64; k += kLanes) {
+      Vec v;
+      std::memcpy(&v, row + x + k, 32);
+      const auto ge = v >= vt;  // lanes of all ones where bright
+      std::uint64_t words[4];
+      std::memcpy(words, &ge, 32);
+      any |= words[0] | words[1] | words[2] | words[3];
+    }
+    if (any == 0) {
+      if (open >= 0) {
+        emit(open, x);
+        open = -1;
+      }
+      continue;
+    }
+    std::uint64_t m = 0;
+    for (int i = 0; i < 64; ++i) m |= static_cast<std::uint64_t>(row[x + i] >= threshold) << i;
+    WalkMask(m, x, 64, &open, emit);
+  }
+  ScanTail(row, x, width, threshold, &open, emit);
+}
+
+#if defined(__AVX2__)
+// AVX2, 8-bit: the block's maximum (two loads, one max), one unsigned compare (max(v, t) == v
+// <=> v >= t), one test; a bright block is turned into a 64-bit mask with two movemasks.
+template <class Emit>
+void ScanRowAvx2(const std::uint8_t* row, int width, int threshold, Emit& emit) {
+  const __m256i vt = _mm256_set1_epi8(static_cast<char>(threshold));
+  int open = -1;
+  int x = 0;
+  for (; x + 64 <= width; x += 64) {
+    const __m256i a = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(row + x));
+    const __m256i b = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(row + x + 32));
+    const __m256i mx = _mm256_max_epu8(a, b);
+    const __m256i ge = _mm256_cmpeq_epi8(_mm256_max_epu8(mx, vt), mx);
+    if (_mm256_testz_si256(ge, ge)) {
+      if (open >= 0) {
+        emit(open, x);
+        open = -1;
+      }
+      continue;
+    }
+    const std::uint32_t ma = static_cast<std::uint32_t>(
+        _mm256_movemask_epi8(_mm256_cmpeq_epi8(_mm256_max_epu8(a, vt), a)));
+    const std::uint32_t mb = static_cast<std::uint32_t>(
+        _mm256_movemask_epi8(_mm256_cmpeq_epi8(_mm256_max_epu8(b, vt), b)));
+    WalkMask(static_cast<std::uint64_t>(ma) | (static_cast<std::uint64_t>(mb) << 32), x, 64, &open,
+             emit);
+  }
+  ScanTail(row, x, width, threshold, &open, emit);
+}
+
+// AVX2, 16-bit: 64 pixels are four loads; the 16-bit compare results are packed to bytes
+// (packs works per 128-bit lane, hence the 64-bit permute that restores pixel order).
+template <class Emit>
+void ScanRowAvx2(const std::uint16_t* row, int width, int threshold, Emit& emit) {
+  const __m256i vt = _mm256_set1_epi16(static_cast<short>(static_cast<std::uint16_t>(threshold)));
+  auto ge16 = [&](__m256i v) { return _mm256_cmpeq_epi16(_mm256_max_epu16(v, vt), v); };
+  auto mask32 = [&](__m256i c0, __m256i c1) {
+    const __m256i packed = _mm256_permute4x64_epi64(_mm256_packs_epi16(c0, c1), 0xD8);
+    return static_cast<std::uint32_t>(_mm256_movemask_epi8(packed));
+  };
+  int open = -1;
+  int x = 0;
+  for (; x + 64 <= width; x += 64) {
+    const auto* p = reinterpret_cast<const __m256i*>(row + x);
+    const __m256i a = _mm256_loadu_si256(p), b = _mm256_loadu_si256(p + 1);
+    const __m256i c = _mm256_loadu_si256(p + 2), d = _mm256_loadu_si256(p + 3);
+    const __m256i mx = _mm256_max_epu16(_mm256_max_epu16(a, b), _mm256_max_epu16(c, d));
+    const __m256i ge = ge16(mx);
+    if (_mm256_testz_si256(ge, ge)) {
+      if (open >= 0) {
+        emit(open, x);
+        open = -1;
+      }
+      continue;
+    }
+    const std::uint64_t lo = mask32(ge16(a), ge16(b));
+    const std::uint64_t hi = mask32(ge16(c), ge16(d));
+    WalkMask(lo | (hi << 32), x, 64, &open, emit);
+  }
+  ScanTail(row, x, width, threshold, &open, emit);
+}
+#endif
+
+}  // namespace
+
+// The connected-component pass and the per-blob reduction; a friend of the workspace.
+class DetectionScanner {
+ public:
+  DetectionScanner(DetectionWorkspace* ws, const DetectionOptions& options, int width, int height)
+      : ws_(*ws), options_(options), width_(width), height_(height) {
+    ws_.previous_.clear();
+    ws_.current_.clear();
+    ws_.parent_.clear();
+    ws_.blobs_.clear();
+  }
+
+  template <class P>
+  void Scan(const drivers::ImageView& image) {
+    const int t = options_.threshold;
+    auto emit = [this](int x0, int x1) { ws_.current_.push_back({x0, x1, -1}); };
+    for (int y = 0; y < height_; ++y) {
+      const P* row = reinterpret_cast<const P*>(image.data + image.stride * y);
+#if defined(__AVX2__)
+      if (!options_.force_portable_scan)
+        ScanRowAvx2(row, width_, t, emit);
+      else
+        ScanRowPortable(row, width_, t, emit);
+#else
+      ScanRowPortable(row, width_, t, emit);
+#endif
+      if (!ws_.current_.empty() || !ws_.previous_.empty()) LinkRow(row, y);
+    }
+  }
+
+  Status Finish(const ReflectionMask* mask, std::vector<Centroid>* out, DetectionStats* stats) {
+    out->clear();
+    DetectionStats st;
+    st.runs = runs_;
+    const double t1 = options_.threshold - 1.0;
+    const double var_const = options_.read_noise_dn * options_.read_noise_dn + 1.0 / 12.0;
+    const double gain = options_.shot_noise_gain;
+    const double floor2 = options_.sigma_floor_px * options_.sigma_floor_px;
+    const int count = static_cast<int>(ws_.blobs_.size());
+    for (int i = 0; i < count; ++i) {
+      if (ws_.parent_[i] != i) continue;
+      ++st.blobs;
+      const DetectionWorkspace::Blob& b = ws_.blobs_[i];
+      if (b.n < options_.min_area_px) { ++st.too_small; continue; }
+      if (b.n > options_.max_area_px) { ++st.too_large; continue; }
+      if (b.border && options_.drop_border_blobs) { ++st.at_border; continue; }
+      const double cx = b.wx / b.w, cy = b.wy / b.w;
+      // Weighted central second moments, plus a unit pixel's own 1/12.
+      const double mxx = std::max(b.wxx / b.w - cx * cx, 0.0) + 1.0 / 12.0;
+      const double myy = std::max(b.wyy / b.w - cy * cy, 0.0) + 1.0 / 12.0;
+      const double mxy = b.wxy / b.w - cx * cy;
+      const double half_tr = 0.5 * (mxx + myy);
+      const double rad = std::sqrt(0.25 * (mxx - myy) * (mxx - myy) + mxy * mxy);
+      const double major = half_tr + rad, minor = std::max(half_tr - rad, 0.0);
+      const double roundness = std::sqrt(minor / major);
+      if (roundness < options_.min_roundness) { ++st.not_round; continue; }
+      if (mask != nullptr && mask->Contains(static_cast<int>(std::lround(cx)),
+                                            static_cast<int>(std::lround(cy)))) {
+        ++st.masked;
+        continue;
+      }
+      // sum (x_i - cx)^2 unweighted and sum w_i (x_i - cx)^2, from the running sums.
+      const double n = static_cast<double>(b.n);
+      const double ux = std::max(static_cast<double>(b.sxx) - 2 * cx * b.sx + n * cx * cx, 0.0);
+      const double uy = std::max(static_cast<double>(b.syy) - 2 * cy * b.sy + n * cy * cy, 0.0);
+      const double wx2 = std::max(b.wxx - cx * cx * b.w, 0.0);
+      const double wy2 = std::max(b.wyy - cy * cy * b.w, 0.0);
+      // var_i = var_const + gain * value_i, value_i = w_i + threshold - 1.
+      const double var_x = (var_const * ux + gain * (wx2 + t1 * ux)) / (b.w * b.w);
+      const double var_y = (var_const * uy + gain * (wy2 + t1 * uy)) / (b.w * b.w);
+      if (st.accepted >= options_.max_centroids) {
+        out->clear();
+        if (stats) *stats = st;
+        return Status::Error("detection: more than " + std::to_string(options_.max_centroids) +
+                             " blobs pass the filters (max_centroids); is threshold " +
+                             std::to_string(options_.threshold) + " at the background level?");
+      }
+      Centroid c;
+      c.pixel = Eigen::Vector2d(cx, cy);
+      c.sigma_px = std::sqrt(std::max(var_x, var_y) + floor2);
+      c.area_px = static_cast<float>(b.n);
+      c.roundness = static_cast<float>(roundness);
+      c.peak = static_cast<float>(b.peak);
+      out->push_back(c);
+      ++st.accepted;
+    }
+    if (stats) *stats = st;
+    return Status::Ok();
+  }
+
+ private:
+  int Find(int i) {
+    std::vector<int>& p = ws_.parent_;
+    int r = i;
+    while (p[r] != r) r = p[r];
+    while (p[i] != r) {
+      const int next = p[i];
+      p[i] = r;
+      i = next;
+    }
+    return r;
+  }
+
+  // Unites two roots; the older (smaller) label stays the root and takes the other's sums.
+  int Unite(int a, int b) {
+    if (a > b) std::swap(a, b);
+    ws_.parent_[b] = a;
+    DetectionWorkspace::Blob& ra = ws_.blobs_[a];
+    const DetectionWorkspace::Blob& rb = ws_.blobs_[b];
+    ra.n += rb.n;
+    ra.sx += rb.sx;
+    ra.sy += rb.sy;
+    ra.sxx += rb.sxx;
+    ra.syy += rb.syy;
+    ra.w += rb.w;
+    ra.wx += rb.wx;
+    ra.wy += rb.wy;
+    ra.wxx += rb.wxx;
+    ra.wyy += rb.wyy;
+    ra.wxy += rb.wxy;
+    ra.peak = std::max(ra.peak, rb.peak);
+    ra.border = ra.border || rb.border;
+    return a;
+  }
+
+  int NewBlob() {
+    const int label = static_cast<int>(ws_.blobs_.size());
+    ws_.parent_.push_back(label);
+    ws_.blobs_.push_back(DetectionWorkspace::Blob{});
+    return label;
+  }
+
+  template <class P>
+  void Accumulate(DetectionWorkspace::Blob& b, const P* row, int x0, int x1, int y) {
+    const int t1 = options_.threshold - 1;
+    std::int64_t s0 = 0, s1 = 0, s2 = 0;
+    int peak = 0;
+    for (int x = x0; x < x1; ++x) {
+      const int v = row[x];
+      const std::int64_t w = v - t1;
+      const std::int64_t k = x - x0;
+      s0 += w;
+      s1 += w * k;
+      s2 += w * k * k;
+      peak = std::max(peak, v);
+    }
+    const double X0 = x0, Y = y;
+    const double w = static_cast<double>(s0);
+    const double wx = static_cast<double>(s1) + X0 * w;
+    const double wxx = static_cast<double>(s2) + 2 * X0 * static_cast<double>(s1) + X0 * X0 * w;
+    b.w += w;
+    b.wx += wx;
+    b.wy += Y * w;
+    b.wxx += wxx;
+    b.wyy += Y * Y * w;
+    b.wxy += Y * wx;
+    const std::int64_t len = x1 - x0;
+    auto sum_sq = [](std::int64_t n) { return n * (n + 1) * (2 * n + 1) / 6; };  // 0^2..n^2
+    b.n += len;
+    b.sx += len * x0 + len * (len - 1) / 2;
+    b.sxx += sum_sq(x1 - 1) - sum_sq(x0 - 1);
+    b.sy += len * y;
+    b.syy += len * static_cast<std::int64_t>(y) * y;
+    b.peak = std::max(b.peak, peak);
+    if (x0 == 0 || x1 == width_ || y == 0 || y == height_ - 1) b.border = true;
+  }
+
+  // Joins the runs of row y to those of the row above (8-connectivity) and adds their sums.
+  template <class P>
+  void LinkRow(const P* row, int y) {
+    std::vector<DetectionWorkspace::Run>& prev = ws_.previous_;
+    std::vector<DetectionWorkspace::Run>& cur = ws_.current_;
+    runs_ += static_cast<int>(cur.size());
+    std::size_t i = 0;
+    for (DetectionWorkspace::Run& r : cur) {
+      // prev[i] cannot touch r (nor any later run of this row) when it ends before r.x0 - 1.
+      while (i < prev.size() && prev[i].x1 < r.x0) ++i;
+      int label = -1;
+      for (std::size_t j = i; j < prev.size() && prev[j].x0 <= r.x1; ++j) {
+        const int root = Find(prev[j].label);
+        if (label < 0)
+          label = root;
+        else if (root != label)
+          label = Unite(label, root);
+      }
+      if (label < 0) label = NewBlob();
+      r.label = label;
+      Accumulate(ws_.blobs_[label], row, r.x0, r.x1, y);
+    }
+    std::swap(prev, cur);
+    cur.clear();
+  }
+
+  DetectionWorkspace& ws_;
+  const DetectionOptions& options_;
+  const int width_, height_;
+  int runs_ = 0;
+};
+
+Status DetectMarkers(const drivers::ImageView& image, const DetectionOptions& options,
+                     const ReflectionMask* mask, DetectionWorkspace* workspace,
+                     std::vector<Centroid>* centroids, DetectionStats* stats) {
+  if (workspace == nullptr || centroids == nullptr)
+    return Status::Error("detection: workspace and centroids must not be null");
+  centroids->clear();
+  if (stats) *stats = DetectionStats{};
+  MOCAP_RETURN_IF_ERROR(CheckImage(image));
+  std::string error;
+  if (!options.IsValid(&error)) return Status::Error(error);
+  const int max_value = (1 << drivers::BitDepth(image.format)) - 1;
+  if (options.threshold > max_value)
+    return Status::Error("detection: threshold " + std::to_string(options.threshold) +
+                         " is above the largest " + drivers::ToString(image.format) + " value " +
+                         std::to_string(max_value));
+  if (mask != nullptr && !mask->empty() &&
+      (mask->width() != image.width || mask->height() != image.height))
+    return Status::Error("detection: reflection mask is " + std::to_string(mask->width()) + " x " +
+                         std::to_string(mask->height()) + ", image is " +
+                         std::to_string(image.width) + " x " + std::to_string(image.height));
+  DetectionScanner scanner(workspace, options, image.width, image.height);
+  if (image.format == drivers::PixelFormat::kMono8)
+    scanner.Scan<std::uint8_t>(image);
+  else
+    scanner.Scan<std::uint16_t>(image);
+  return scanner.Finish(mask != nullptr && !mask->empty() ? mask : nullptr, centroids, stats);
+}
+
+}  // namespace mocap::reconstruction

@@ -1,0 +1,144 @@
+// 2D marker detection: the bright blobs of one infrared image, as subpixel centroids.
+//
+// Algorithm (one pass over the image, top to bottom):
+//
+//  1. Row scan. A pixel is bright when value >= threshold. Infrared images of a capture volume are
+//     almost entirely dark (a few dozen markers of a few pixels each on a 1.3-megapixel frame), so
+//     the scan is built to reject dark pixels as fast as memory delivers them: 64 pixels at a time
+//     it takes the maximum of the block with SIMD and compares that once against the threshold
+//     (AVX2 when the compiler targets it, else GCC/Clang vector extensions, which lower to SSE2 or
+//     NEON). Only a block that holds a bright pixel is turned into a bit mask, whose set bits are
+//     walked with count-trailing-zeros to give the RUNS of bright pixels [x0, x1) of the row. Each
+//     dark pixel is read exactly once; bright pixels are read a second time to weigh them.
+//  2. Connected components over runs, not pixels. A run joins every run of the previous row that
+//     it touches with 8-connectivity (x ranges overlapping once widened by one pixel, as OpenCV's
+//     default), found by a two-pointer merge of the two sorted run lists; runs that join two
+//     blobs unite them (union-find over blob labels, path compression). Each blob carries running
+//     sums (count, first and second moments, weighted and unweighted), so no pixel list is kept
+//     and nothing is revisited: the sums of a united blob are added into its root.
+//  3. Per blob: intensity-weighted centroid, second-moment shape, filters, uncertainty.
+//
+// Weights are w = value - (threshold - 1), i.e. the signal above the threshold (plus one count so
+// that a blob lying entirely at the threshold still has a defined centre). Why not the raw or
+// background-subtracted value: with those, a pixel that noise pushes across the threshold enters
+// or leaves the blob with a weight equal to the threshold, a jump that drags the centroid towards
+// the pixel grid ("pixel locking"). With w = value - threshold the weight of a pixel goes to zero
+// continuously as it reaches the edge of the blob, so which edge pixels happen to be above the
+// threshold hardly matters, and the background level (constant, below the threshold on these
+// sensors) is removed along with it. Saturated pixels keep their clipped weight; a saturated blob
+// is flat-topped but still symmetric, so its centre stays unbiased.
+//
+// Shape: the weighted second moments of the blob, each pixel counted as a unit square (adding
+// 1/12 px^2 to both variances, so that a 1- or 2-pixel blob has a finite, honest shape).
+// roundness = sqrt(minor eigenvalue / major eigenvalue) = minor / major axis, in (0, 1].
+// Two markers whose images touch merge into one elongated blob: the roundness filter drops it
+// rather than reporting a centre between them.
+//
+// Uncertainty sigma_px: first-order propagation of independent pixel noise through the centroid
+// x_c = sum(w_i x_i) / W. d x_c / d value_i = (x_i - x_c) / W, so
+//     var(x_c) = sum_i var_i (x_i - x_c)^2 / W^2,  var_i = read_noise^2 + 1/12 + gain * value_i
+// (read noise, quantisation, shot noise in the image's units), computed from the blob's running
+// sums with no second pass; likewise along y. Because w is continuous at the threshold, pixels
+// crossing it add no further first-order term. sigma_px = sqrt(max(var_x, var_y) + floor^2);
+// the floor stands for what the pixel noise does not model (the sampling bias of a weighted
+// centroid on a small blob, lens blur, marker shape).
+//
+// Threads: the options and the reflection mask are read-only and may be shared; every thread
+// owns its DetectionWorkspace. After the first frames have sized it (or after Reserve), a frame
+// with no more runs per row and blobs than seen before allocates nothing, provided the output
+// vector keeps its capacity (it is cleared, not freed).
+#pragma once
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "drivers/frame.h"
+#include "model/status.h"
+#include "reconstruction/centroid.h"
+
+namespace mocap::reconstruction {
+
+class ReflectionMask;
+
+struct DetectionOptions {
+  // In the image's own units (0..255 for Mono8, 0..4095 for Mono12, 0..65535 for Mono16); a
+  // pixel is bright when value >= threshold. Must be >= 1 and within the image's bit depth.
+  int threshold = 64;
+  // Blob size, in bright pixels. A marker 3-10 px across covers about 7-80 px.
+  int min_area_px = 3;
+  int max_area_px = 500;
+  // minor / major axis of the blob (see above). A round marker scores about 0.8-1 even at 3 px;
+  // two merged markers score below 0.6.
+  double min_roundness = 0.6;
+  // A blob that touches the first or last row or column is cut by the edge of the sensor and its
+  // centroid is pulled inwards: dropped when true.
+  bool drop_border_blobs = true;
+  // Pixel noise model for sigma_px, in the image's units (DN): read noise (standard deviation)
+  // and the shot-noise gain (variance per DN of signal; 0 leaves shot noise out).
+  double read_noise_dn = 1.0;
+  double shot_noise_gain = 0.0;
+  double sigma_floor_px = 0.01;
+  // More blobs than this passing the filters is an error (the threshold is at the background, the
+  // room lights are on): the frame is not worth triangulating.
+  int max_centroids = 1000;
+  // Use the portable scan even where AVX2 is available (tests compare the two; benchmarks).
+  bool force_portable_scan = false;
+
+  bool IsValid(std::string* error) const;
+};
+
+// What happened to the blobs of one frame (for tests, diagnostics and the daemon's counters).
+struct DetectionStats {
+  int runs = 0;         // bright runs found by the row scan
+  int blobs = 0;        // connected components
+  int accepted = 0;     // centroids returned
+  int too_small = 0;    // area < min_area_px
+  int too_large = 0;    // area > max_area_px
+  int not_round = 0;    // roundness < min_roundness
+  int at_border = 0;    // touching the image edge (drop_border_blobs)
+  int masked = 0;       // centre inside the reflection mask
+};
+
+// Per-thread scratch memory of DetectMarkers. Its buffers grow to the largest frame seen and
+// are then reused.
+class DetectionWorkspace {
+ public:
+  // Sizes the buffers for rows of up to `max_runs_per_row` runs and `max_blobs` blobs per frame,
+  // so that even the first frame allocates nothing.
+  void Reserve(int max_runs_per_row, int max_blobs);
+  // Bytes held (capacity, not size): constant across frames once warm.
+  std::size_t CapacityBytes() const;
+
+  struct Run {
+    int x0, x1;  // [x0, x1)
+    int label;
+  };
+  struct Blob {
+    // Unweighted sums (exact): pixel count, sum x, sum y, sum x^2, sum y^2.
+    std::int64_t n, sx, sy, sxx, syy;
+    // Weighted sums, w = value - threshold + 1.
+    double w, wx, wy, wxx, wyy, wxy;
+    int peak;
+    bool border;
+  };
+
+ private:
+  friend class DetectionScanner;
+  std::vector<Run> previous_, current_;
+  std::vector<int> parent_;
+  std::vector<Blob> blobs_;
+};
+
+// Finds the markers of `image` (Mono8, Mono12 or Mono16). `centroids` is cleared and filled in
+// order of each blob's first row. `mask` (may be null) drops blobs whose centre lies in it; it
+// must have the image's size. `stats` is optional. Errors (no centroid returned): an invalid
+// image (null data, non-positive size, stride too small for the width, unknown pixel format),
+// invalid options, a threshold beyond the bit depth, a mask of another size, too many blobs.
+Status DetectMarkers(const drivers::ImageView& image, const DetectionOptions& options,
+                     const ReflectionMask* mask, DetectionWorkspace* workspace,
+                     std::vector<Centroid>* centroids, DetectionStats* stats = nullptr);
+
+// Checks an image view (shared by detection and the reflection mask).
+Status CheckImage(const drivers::ImageView& image);
+
+}  // namespace mocap::reconstruction
