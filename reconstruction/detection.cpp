@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <limits>
 
 #include "reconstruction/reflection_mask.h"
 
@@ -30,6 +31,10 @@ bool DetectionOptions::IsValid(std::string* error) const {
   if (!(sigma_floor_px >= 0) || !std::isfinite(sigma_floor_px))
     return fail("sigma_floor_px must be finite and >= 0");
   if (max_centroids < 1) return fail("max_centroids must be >= 1");
+  if (centroid != CentroidMethod::kThresholdWeighted && centroid != CentroidMethod::kGaussianWindowed)
+    return fail("unknown centroid method");
+  if (!std::isfinite(background_dn) || background_dn < 0 || background_dn >= threshold)
+    return fail("background_dn must be finite, >= 0 and below the threshold");
   return true;
 }
 
@@ -60,11 +65,14 @@ void DetectionWorkspace::Reserve(int max_runs_per_row, int max_blobs) {
   current_.reserve(static_cast<std::size_t>(std::max(max_runs_per_row, 0)));
   parent_.reserve(static_cast<std::size_t>(std::max(max_blobs, 0)));
   blobs_.reserve(static_cast<std::size_t>(std::max(max_blobs, 0)));
+  gx_.reserve(256);
+  gy_.reserve(256);
 }
 
 std::size_t DetectionWorkspace::CapacityBytes() const {
   return (previous_.capacity() + current_.capacity()) * sizeof(Run) +
-         parent_.capacity() * sizeof(int) + blobs_.capacity() * sizeof(Blob);
+         parent_.capacity() * sizeof(int) + blobs_.capacity() * sizeof(Blob) +
+         (gx_.capacity() + gy_.capacity()) * sizeof(double);
 }
 
 namespace {
@@ -213,8 +221,9 @@ void ScanRowAvx2(const std::uint16_t* row, int width, int threshold, Emit& emit)
 // The connected-component pass and the per-blob reduction; a friend of the workspace.
 class DetectionScanner {
  public:
-  DetectionScanner(DetectionWorkspace* ws, const DetectionOptions& options, int width, int height)
-      : ws_(*ws), options_(options), width_(width), height_(height) {
+  DetectionScanner(DetectionWorkspace* ws, const DetectionOptions& options, int width, int height,
+                   int max_value)
+      : ws_(*ws), options_(options), width_(width), height_(height), max_value_(max_value) {
     ws_.previous_.clear();
     ws_.current_.clear();
     ws_.parent_.clear();
@@ -239,7 +248,9 @@ class DetectionScanner {
     }
   }
 
-  Status Finish(const ReflectionMask* mask, std::vector<Centroid>* out, DetectionStats* stats) {
+  template <class P>
+  Status Finish(const drivers::ImageView& image, const ReflectionMask* mask,
+                std::vector<Centroid>* out, DetectionStats* stats) {
     out->clear();
     DetectionStats st;
     st.runs = runs_;
@@ -270,15 +281,28 @@ class DetectionScanner {
         ++st.masked;
         continue;
       }
-      // sum (x_i - cx)^2 unweighted and sum w_i (x_i - cx)^2, from the running sums.
-      const double n = static_cast<double>(b.n);
-      const double ux = std::max(static_cast<double>(b.sxx) - 2 * cx * b.sx + n * cx * cx, 0.0);
-      const double uy = std::max(static_cast<double>(b.syy) - 2 * cy * b.sy + n * cy * cy, 0.0);
-      const double wx2 = std::max(b.wxx - cx * cx * b.w, 0.0);
-      const double wy2 = std::max(b.wyy - cy * cy * b.w, 0.0);
-      // var_i = var_const + gain * value_i, value_i = w_i + threshold - 1.
-      const double var_x = (var_const * ux + gain * (wx2 + t1 * ux)) / (b.w * b.w);
-      const double var_y = (var_const * uy + gain * (wy2 + t1 * uy)) / (b.w * b.w);
+      double x = cx, y = cy, var_x = 0, var_y = 0;
+      bool refined = false;
+      if (options_.centroid == DetectionOptions::CentroidMethod::kGaussianWindowed) {
+        // A saturated spot is a plateau with a sharp rim; a wider window averages over more of
+        // the rim's sampling phases (measured: max error 0.05 -> 0.03 px at sigma 1.2-1.4 px).
+        const double factor = b.peak >= max_value_ ? 3.0 : 1.3;
+        const double s = std::max(0.7, factor * std::sqrt(0.5 * (mxx + myy)));
+        refined = RefineGaussian<P>(image, b, s, var_const, gain, &x, &y, &var_x, &var_y);
+      }
+      if (!refined) {
+        // sum (x_i - cx)^2 unweighted and sum w_i (x_i - cx)^2, from the running sums.
+        const double n = static_cast<double>(b.n);
+        const double ux = std::max(static_cast<double>(b.sxx) - 2 * cx * b.sx + n * cx * cx, 0.0);
+        const double uy = std::max(static_cast<double>(b.syy) - 2 * cy * b.sy + n * cy * cy, 0.0);
+        const double wx2 = std::max(b.wxx - cx * cx * b.w, 0.0);
+        const double wy2 = std::max(b.wyy - cy * cy * b.w, 0.0);
+        // var_i = var_const + gain * value_i, value_i = w_i + threshold - 1.
+        var_x = (var_const * ux + gain * (wx2 + t1 * ux)) / (b.w * b.w);
+        var_y = (var_const * uy + gain * (wy2 + t1 * uy)) / (b.w * b.w);
+        x = cx;
+        y = cy;
+      }
       if (st.accepted >= options_.max_centroids) {
         out->clear();
         if (stats) *stats = st;
@@ -287,7 +311,7 @@ class DetectionScanner {
                              std::to_string(options_.threshold) + " at the background level?");
       }
       Centroid c;
-      c.pixel = Eigen::Vector2d(cx, cy);
+      c.pixel = Eigen::Vector2d(x, y);
       c.sigma_px = std::sqrt(std::max(var_x, var_y) + floor2);
       c.area_px = static_cast<float>(b.n);
       c.roundness = static_cast<float>(roundness);
@@ -300,6 +324,84 @@ class DetectionScanner {
   }
 
  private:
+  // The Gaussian-windowed centre (see detection.h), Newton's method from (*x, *y). False (and
+  // nothing written) when the window holds no signal or the centre runs off by more than a pixel.
+  template <class P>
+  bool RefineGaussian(const drivers::ImageView& image, const DetectionWorkspace::Blob& b, double s,
+                      double var_const, double gain, double* x, double* y, double* var_x,
+                      double* var_y) {
+    const int m = static_cast<int>(std::ceil(2.5 * s));
+    const int x0 = std::max(0, b.x_min - m), x1 = std::min(width_ - 1, b.x_max + m);
+    const int y0 = std::max(0, b.y_min - m), y1 = std::min(height_ - 1, b.y_max + m);
+    const int nx = x1 - x0 + 1, ny = y1 - y0 + 1;
+    std::vector<double>& gx = ws_.gx_;
+    std::vector<double>& gy = ws_.gy_;
+    if (static_cast<int>(gx.size()) < nx) gx.resize(nx);
+    if (static_cast<int>(gy.size()) < ny) gy.resize(ny);
+    const double inv2s2 = 0.5 / (s * s), inv_s2 = 1.0 / (s * s);
+    const double bg = options_.background_dn;
+    double cx = *x, cy = *y;
+    const double start_x = cx, start_y = cy;
+    double sum = 0, dx_sum = 0, dy_sum = 0, dxx = 0, dyy = 0;
+    double nvx = 0, nvy = 0;  // sum var_i (x_i - c)^2 G_i^2, likewise y
+    constexpr int kMaxSteps = 8;
+    for (int step = 0; step < kMaxSteps; ++step) {
+      for (int i = 0; i < nx; ++i) {
+        const double d = x0 + i - cx;
+        gx[i] = std::exp(-d * d * inv2s2);
+      }
+      for (int j = 0; j < ny; ++j) {
+        const double d = y0 + j - cy;
+        gy[j] = std::exp(-d * d * inv2s2);
+      }
+      sum = dx_sum = dy_sum = dxx = dyy = nvx = nvy = 0;
+      for (int j = 0; j < ny; ++j) {
+        const P* row = reinterpret_cast<const P*>(image.data + image.stride * (y0 + j)) + x0;
+        const double dy = y0 + j - cy;
+        double rs = 0, rsx = 0, rsxx = 0, rvx = 0, rv = 0;
+        for (int i = 0; i < nx; ++i) {
+          const double v = row[i];
+          const double g = gx[i];
+          const double wg = (v - bg) * g;
+          const double d = x0 + i - cx;
+          rs += wg;
+          rsx += wg * d;
+          rsxx += wg * d * d;
+          const double var = (var_const + gain * v) * g * g;
+          rvx += var * d * d;
+          rv += var;
+        }
+        const double g = gy[j];
+        sum += rs * g;
+        dx_sum += rsx * g;
+        dy_sum += rs * g * dy;
+        dxx += rsxx * g;
+        dyy += rs * g * dy * dy;
+        nvx += rvx * g * g;
+        nvy += rv * g * g * dy * dy;
+      }
+      if (!(sum > 0)) return false;
+      // Newton on F(c) = sum (x - c) w G(x - c): F' = -(sum - dxx / s^2); fall back to the
+      // fixed-point step when the curvature term is not clearly positive.
+      double den_x = sum - dxx * inv_s2, den_y = sum - dyy * inv_s2;
+      if (den_x < 0.2 * sum) den_x = sum;
+      if (den_y < 0.2 * sum) den_y = sum;
+      const double step_x = std::clamp(dx_sum / den_x, -1.0, 1.0);
+      const double step_y = std::clamp(dy_sum / den_y, -1.0, 1.0);
+      cx += step_x;
+      cy += step_y;
+      if (std::abs(cx - start_x) > 1.0 || std::abs(cy - start_y) > 1.0) return false;
+      if (std::abs(step_x) < 1e-4 && std::abs(step_y) < 1e-4) {
+        *x = cx;
+        *y = cy;
+        *var_x = nvx / (den_x * den_x);
+        *var_y = nvy / (den_y * den_y);
+        return true;
+      }
+    }
+    return false;
+  }
+
   int Find(int i) {
     std::vector<int>& p = ws_.parent_;
     int r = i;
@@ -331,13 +433,20 @@ class DetectionScanner {
     ra.wxy += rb.wxy;
     ra.peak = std::max(ra.peak, rb.peak);
     ra.border = ra.border || rb.border;
+    ra.x_min = std::min(ra.x_min, rb.x_min);
+    ra.x_max = std::max(ra.x_max, rb.x_max);
+    ra.y_min = std::min(ra.y_min, rb.y_min);
+    ra.y_max = std::max(ra.y_max, rb.y_max);
     return a;
   }
 
   int NewBlob() {
     const int label = static_cast<int>(ws_.blobs_.size());
     ws_.parent_.push_back(label);
-    ws_.blobs_.push_back(DetectionWorkspace::Blob{});
+    DetectionWorkspace::Blob b{};
+    b.x_min = b.y_min = std::numeric_limits<int>::max();
+    b.x_max = b.y_max = -1;
+    ws_.blobs_.push_back(b);
     return label;
   }
 
@@ -374,6 +483,10 @@ class DetectionScanner {
     b.syy += len * static_cast<std::int64_t>(y) * y;
     b.peak = std::max(b.peak, peak);
     if (x0 == 0 || x1 == width_ || y == 0 || y == height_ - 1) b.border = true;
+    b.x_min = std::min(b.x_min, x0);
+    b.x_max = std::max(b.x_max, x1 - 1);
+    b.y_min = std::min(b.y_min, y);
+    b.y_max = std::max(b.y_max, y);
   }
 
   // Joins the runs of row y to those of the row above (8-connectivity) and adds their sums.
@@ -405,6 +518,7 @@ class DetectionScanner {
   DetectionWorkspace& ws_;
   const DetectionOptions& options_;
   const int width_, height_;
+  const int max_value_;  // saturation level of the pixel format
   int runs_ = 0;
 };
 
@@ -428,12 +542,14 @@ Status DetectMarkers(const drivers::ImageView& image, const DetectionOptions& op
     return Status::Error("detection: reflection mask is " + std::to_string(mask->width()) + " x " +
                          std::to_string(mask->height()) + ", image is " +
                          std::to_string(image.width) + " x " + std::to_string(image.height));
-  DetectionScanner scanner(workspace, options, image.width, image.height);
-  if (image.format == drivers::PixelFormat::kMono8)
+  DetectionScanner scanner(workspace, options, image.width, image.height, max_value);
+  const ReflectionMask* used_mask = mask != nullptr && !mask->empty() ? mask : nullptr;
+  if (image.format == drivers::PixelFormat::kMono8) {
     scanner.Scan<std::uint8_t>(image);
-  else
-    scanner.Scan<std::uint16_t>(image);
-  return scanner.Finish(mask != nullptr && !mask->empty() ? mask : nullptr, centroids, stats);
+    return scanner.Finish<std::uint8_t>(image, used_mask, centroids, stats);
+  }
+  scanner.Scan<std::uint16_t>(image);
+  return scanner.Finish<std::uint16_t>(image, used_mask, centroids, stats);
 }
 
 }  // namespace mocap::reconstruction
