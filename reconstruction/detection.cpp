@@ -64,15 +64,18 @@ void DetectionWorkspace::Reserve(int max_runs_per_row, int max_blobs) {
   previous_.reserve(static_cast<std::size_t>(std::max(max_runs_per_row, 0)));
   current_.reserve(static_cast<std::size_t>(std::max(max_runs_per_row, 0)));
   parent_.reserve(static_cast<std::size_t>(std::max(max_blobs, 0)));
+  candidates_.reserve(static_cast<std::size_t>(std::max(max_blobs, 0)));
   blobs_.reserve(static_cast<std::size_t>(std::max(max_blobs, 0)));
-  gx_.reserve(256);
-  gy_.reserve(256);
+  for (std::vector<double>* v : {&gx_, &gy_, &gxd_, &gxdd_, &gxd2_}) v->reserve(128);
+  window_.reserve(128 * 128);
 }
 
 std::size_t DetectionWorkspace::CapacityBytes() const {
   return (previous_.capacity() + current_.capacity()) * sizeof(Run) +
          parent_.capacity() * sizeof(int) + blobs_.capacity() * sizeof(Blob) +
-         (gx_.capacity() + gy_.capacity()) * sizeof(double);
+         candidates_.capacity() * sizeof(Candidate) +
+         (gx_.capacity() + gy_.capacity() + gxd_.capacity() + gxdd_.capacity() + gxd2_.capacity() +
+          window_.capacity()) * sizeof(double);
 }
 
 namespace {
@@ -103,6 +106,15 @@ inline void WalkMask(std::uint64_t m, int base, int nbits, int* open, Emit& emit
     m &= ~0ull << e;
   }
 }
+
+// Four doubles (AVX2 where the target has it; GCC/Clang lower it to pairs of SSE2 otherwise).
+typedef double V4 __attribute__((vector_size(32)));
+inline V4 Load4(const double* p) {
+  V4 v;
+  std::memcpy(&v, p, sizeof(v));
+  return v;
+}
+inline double Sum4(V4 v) { return (v[0] + v[1]) + (v[2] + v[3]); }
 
 // The tail of a row (fewer than 64 pixels), scalar.
 template <class P, class Emit>
@@ -252,6 +264,7 @@ class DetectionScanner {
   Status Finish(const drivers::ImageView& image, const ReflectionMask* mask,
                 std::vector<Centroid>* out, DetectionStats* stats) {
     out->clear();
+    ws_.candidates_.clear();
     DetectionStats st;
     st.runs = runs_;
     const double t1 = options_.threshold - 1.0;
@@ -281,14 +294,41 @@ class DetectionScanner {
         ++st.masked;
         continue;
       }
+      if (st.accepted >= options_.max_centroids) {
+        out->clear();
+        if (stats) *stats = st;
+        return Status::Error("detection: more than " + std::to_string(options_.max_centroids) +
+                             " blobs pass the filters (max_centroids); is threshold " +
+                             std::to_string(options_.threshold) + " at the background level?");
+      }
+      Centroid c;
+      c.pixel = Eigen::Vector2d(cx, cy);
+      c.area_px = static_cast<float>(b.n);
+      c.roundness = static_cast<float>(roundness);
+      c.peak = static_cast<float>(b.peak);
+      out->push_back(c);
+      // A saturated spot is a plateau with a sharp rim; a wider window averages over more of the
+      // rim's sampling phases (measured: max error 0.05 -> 0.03 px at sigma 1.2-1.4 px).
+      const double factor = b.peak >= max_value_ ? 3.0 : 1.3;
+      ws_.candidates_.push_back({i, std::max(0.7, factor * std::sqrt(0.5 * (mxx + myy)))});
+      ++st.accepted;
+    }
+    // Centres and uncertainties of the accepted blobs. The refinement reads a window of the
+    // image that the scan passed long ago (out of L1/L2 by now): the next blob's window is
+    // prefetched while this one is refined.
+    const bool windowed = options_.centroid == DetectionOptions::CentroidMethod::kGaussianWindowed;
+    const int accepted = static_cast<int>(ws_.candidates_.size());
+    if (windowed && accepted > 0) Prefetch<P>(image, ws_.candidates_[0]);
+    for (int k = 0; k < accepted; ++k) {
+      const DetectionWorkspace::Candidate cand = ws_.candidates_[k];
+      const DetectionWorkspace::Blob& b = ws_.blobs_[cand.blob];
+      Centroid& c = (*out)[k];
+      const double cx = c.pixel.x(), cy = c.pixel.y();
       double x = cx, y = cy, var_x = 0, var_y = 0;
       bool refined = false;
-      if (options_.centroid == DetectionOptions::CentroidMethod::kGaussianWindowed) {
-        // A saturated spot is a plateau with a sharp rim; a wider window averages over more of
-        // the rim's sampling phases (measured: max error 0.05 -> 0.03 px at sigma 1.2-1.4 px).
-        const double factor = b.peak >= max_value_ ? 3.0 : 1.3;
-        const double s = std::max(0.7, factor * std::sqrt(0.5 * (mxx + myy)));
-        refined = RefineGaussian<P>(image, b, s, var_const, gain, &x, &y, &var_x, &var_y);
+      if (windowed) {
+        if (k + 1 < accepted) Prefetch<P>(image, ws_.candidates_[k + 1]);
+        refined = RefineGaussian<P>(image, b, cand.s, var_const, gain, &x, &y, &var_x, &var_y);
       }
       if (!refined) {
         // sum (x_i - cx)^2 unweighted and sum w_i (x_i - cx)^2, from the running sums.
@@ -303,103 +343,174 @@ class DetectionScanner {
         x = cx;
         y = cy;
       }
-      if (st.accepted >= options_.max_centroids) {
-        out->clear();
-        if (stats) *stats = st;
-        return Status::Error("detection: more than " + std::to_string(options_.max_centroids) +
-                             " blobs pass the filters (max_centroids); is threshold " +
-                             std::to_string(options_.threshold) + " at the background level?");
-      }
-      Centroid c;
       c.pixel = Eigen::Vector2d(x, y);
       c.sigma_px = std::sqrt(std::max(var_x, var_y) + floor2);
-      c.area_px = static_cast<float>(b.n);
-      c.roundness = static_cast<float>(roundness);
-      c.peak = static_cast<float>(b.peak);
-      out->push_back(c);
-      ++st.accepted;
     }
     if (stats) *stats = st;
     return Status::Ok();
   }
 
  private:
+  struct Window {
+    int x0, x1, y0, y1;  // inclusive
+  };
+  Window WindowOf(const DetectionWorkspace::Blob& b, double s) const {
+    const int m = static_cast<int>(std::ceil(2.5 * s));
+    return {std::max(0, b.x_min - m), std::min(width_ - 1, b.x_max + m), std::max(0, b.y_min - m),
+            std::min(height_ - 1, b.y_max + m)};
+  }
+
+  template <class P>
+  void Prefetch(const drivers::ImageView& image, const DetectionWorkspace::Candidate& cand) const {
+    const Window w = WindowOf(ws_.blobs_[cand.blob], cand.s);
+    for (int y = w.y0; y <= w.y1; ++y) {
+      const std::uint8_t* row = image.data + image.stride * y;
+      __builtin_prefetch(row + w.x0 * sizeof(P));
+      __builtin_prefetch(row + w.x1 * sizeof(P));
+    }
+  }
+
   // The Gaussian-windowed centre (see detection.h), Newton's method from (*x, *y). False (and
   // nothing written) when the window holds no signal or the centre runs off by more than a pixel.
   template <class P>
   bool RefineGaussian(const drivers::ImageView& image, const DetectionWorkspace::Blob& b, double s,
                       double var_const, double gain, double* x, double* y, double* var_x,
                       double* var_y) {
-    const int m = static_cast<int>(std::ceil(2.5 * s));
-    const int x0 = std::max(0, b.x_min - m), x1 = std::min(width_ - 1, b.x_max + m);
-    const int y0 = std::max(0, b.y_min - m), y1 = std::min(height_ - 1, b.y_max + m);
+    const Window win_box = WindowOf(b, s);
+    const int x0 = win_box.x0, x1 = win_box.x1, y0 = win_box.y0, y1 = win_box.y1;
     const int nx = x1 - x0 + 1, ny = y1 - y0 + 1;
-    std::vector<double>& gx = ws_.gx_;
-    std::vector<double>& gy = ws_.gy_;
-    if (static_cast<int>(gx.size()) < nx) gx.resize(nx);
-    if (static_cast<int>(gy.size()) < ny) gy.resize(ny);
-    const double inv2s2 = 0.5 / (s * s), inv_s2 = 1.0 / (s * s);
+    DetectionWorkspace& ws = ws_;
+    auto fit = [](std::vector<double>& v, std::size_t n) {
+      if (v.size() < n) v.resize(n);
+      return v.data();
+    };
+    // Rows padded to a multiple of 4 doubles (zeros) for the 4-wide loops below.
+    const int nxp = (nx + 3) & ~3;
+    double* gx = fit(ws.gx_, nxp);
+    double* gxd = fit(ws.gxd_, nxp);
+    double* gxdd = fit(ws.gxdd_, nxp);
+    double* gy = fit(ws.gy_, ny);
+    double* win = fit(ws.window_, static_cast<std::size_t>(nxp) * ny);
+    for (int i = nx; i < nxp; ++i) gx[i] = gxd[i] = gxdd[i] = 0;
+    // The window, background-subtracted, as doubles: read once, used by every Newton pass.
+    // A bright pixel outside the blob's bounding box belongs to another blob: it is left out
+    // (set to the background), so that a neighbouring marker does not pull the centre.
     const double bg = options_.background_dn;
+    const int t = options_.threshold;
+    for (int j = 0; j < ny; ++j) {
+      const P* row = reinterpret_cast<const P*>(image.data + image.stride * (y0 + j)) + x0;
+      double* out = win + static_cast<std::size_t>(j) * nxp;
+      const int y = y0 + j;
+      const bool inside_rows = y >= b.y_min && y <= b.y_max;
+      for (int i = 0; i < nx; ++i) {
+        const int x = x0 + i;
+        const bool foreign = row[i] >= t && !(inside_rows && x >= b.x_min && x <= b.x_max);
+        out[i] = foreign ? 0.0 : row[i] - bg;
+      }
+      for (int i = nx; i < nxp; ++i) out[i] = 0;
+    }
+    const double inv2s2 = 0.5 / (s * s), inv_s2 = 1.0 / (s * s);
+    const double k = std::exp(-inv_s2);  // ratio of consecutive ratios, see Gauss below
+    // exp(-d_i^2 / 2s^2) at d_i = start + i, by the recurrence g_{i+1} = g_i q_i,
+    // q_{i+1} = q_i k: three exp() per axis instead of one per sample.
+    auto gauss = [&](double start, int n, double* g) {
+      double gi = std::exp(-start * start * inv2s2);
+      double q = std::exp(-(2 * start + 1) * inv2s2);
+      for (int i = 0; i < n; ++i) {
+        g[i] = gi;
+        gi *= q;
+        q *= k;
+      }
+    };
     double cx = *x, cy = *y;
     const double start_x = cx, start_y = cy;
-    double sum = 0, dx_sum = 0, dy_sum = 0, dxx = 0, dyy = 0;
-    double nvx = 0, nvy = 0;  // sum var_i (x_i - c)^2 G_i^2, likewise y
-    constexpr int kMaxSteps = 8;
+    constexpr int kMaxSteps = 10;
     for (int step = 0; step < kMaxSteps; ++step) {
+      gauss(x0 - cx, nx, gx);
+      gauss(y0 - cy, ny, gy);
       for (int i = 0; i < nx; ++i) {
         const double d = x0 + i - cx;
-        gx[i] = std::exp(-d * d * inv2s2);
+        gxd[i] = gx[i] * d;
+        gxdd[i] = gx[i] * d * d;
       }
+      double sum = 0, sx = 0, sy = 0, sxx = 0, syy = 0;
       for (int j = 0; j < ny; ++j) {
-        const double d = y0 + j - cy;
-        gy[j] = std::exp(-d * d * inv2s2);
-      }
-      sum = dx_sum = dy_sum = dxx = dyy = nvx = nvy = 0;
-      for (int j = 0; j < ny; ++j) {
-        const P* row = reinterpret_cast<const P*>(image.data + image.stride * (y0 + j)) + x0;
-        const double dy = y0 + j - cy;
-        double rs = 0, rsx = 0, rsxx = 0, rvx = 0, rv = 0;
-        for (int i = 0; i < nx; ++i) {
-          const double v = row[i];
-          const double g = gx[i];
-          const double wg = (v - bg) * g;
-          const double d = x0 + i - cx;
-          rs += wg;
-          rsx += wg * d;
-          rsxx += wg * d * d;
-          const double var = (var_const + gain * v) * g * g;
-          rvx += var * d * d;
-          rv += var;
+        const double* row = win + static_cast<std::size_t>(j) * nxp;
+        V4 rs = {0, 0, 0, 0}, rsx = rs, rsxx = rs;
+        for (int i = 0; i < nxp; i += 4) {
+          const V4 v = Load4(row + i);
+          rs += v * Load4(gx + i);
+          rsx += v * Load4(gxd + i);
+          rsxx += v * Load4(gxdd + i);
         }
-        const double g = gy[j];
-        sum += rs * g;
-        dx_sum += rsx * g;
-        dy_sum += rs * g * dy;
-        dxx += rsxx * g;
-        dyy += rs * g * dy * dy;
-        nvx += rvx * g * g;
-        nvy += rv * g * g * dy * dy;
+        const double g = gy[j], dy = y0 + j - cy;
+        const double r0 = Sum4(rs);
+        sum += r0 * g;
+        sx += Sum4(rsx) * g;
+        sy += r0 * g * dy;
+        sxx += Sum4(rsxx) * g;
+        syy += r0 * g * dy * dy;
       }
       if (!(sum > 0)) return false;
-      // Newton on F(c) = sum (x - c) w G(x - c): F' = -(sum - dxx / s^2); fall back to the
-      // fixed-point step when the curvature term is not clearly positive.
-      double den_x = sum - dxx * inv_s2, den_y = sum - dyy * inv_s2;
+      // Newton on F(c) = sum (x - c) w G(x - c), F'(c) = -(sum - sxx / s^2); the fixed-point
+      // step where that curvature is not clearly positive.
+      double den_x = sum - sxx * inv_s2, den_y = sum - syy * inv_s2;
       if (den_x < 0.2 * sum) den_x = sum;
       if (den_y < 0.2 * sum) den_y = sum;
-      const double step_x = std::clamp(dx_sum / den_x, -1.0, 1.0);
-      const double step_y = std::clamp(dy_sum / den_y, -1.0, 1.0);
+      const double step_x = std::clamp(sx / den_x, -1.0, 1.0);
+      const double step_y = std::clamp(sy / den_y, -1.0, 1.0);
       cx += step_x;
       cy += step_y;
       if (std::abs(cx - start_x) > 1.0 || std::abs(cy - start_y) > 1.0) return false;
-      if (std::abs(step_x) < 1e-4 && std::abs(step_y) < 1e-4) {
-        *x = cx;
-        *y = cy;
-        *var_x = nvx / (den_x * den_x);
-        *var_y = nvy / (den_y * den_y);
-        return true;
-      }
+      if (std::abs(step_x) < 1e-3 && std::abs(step_y) < 1e-3) break;  // Newton: next is < 1e-6
+      if (step == kMaxSteps - 1) return false;
     }
-    return false;
+    // Uncertainty at the final centre: sum var_i (x_i - c)^2 G_i^2 / D^2 (see detection.h), with
+    // var_i = var_const + gain (w_i + bg), so per row only sum w G^2 and sum w G^2 d^2 are needed.
+    gauss(x0 - cx, nx, gx);
+    gauss(y0 - cy, ny, gy);
+    double* g2 = gxd;     // reused: G^2
+    double* g2d2 = gxdd;  // G^2 d^2
+    double* gd2 = fit(ws.gxd2_, nxp);  // G d^2
+    double sum_g2 = 0, sum_g2d2 = 0;
+    for (int i = 0; i < nxp; ++i) {
+      const double d = x0 + i - cx;
+      const double g = i < nx ? gx[i] : 0.0;
+      g2[i] = g * g;
+      g2d2[i] = g * g * d * d;
+      gd2[i] = g * d * d;
+      sum_g2 += g2[i];
+      sum_g2d2 += g2d2[i];
+    }
+    double sum = 0, sxx = 0, syy = 0, nvx = 0, nvy = 0;
+    for (int j = 0; j < ny; ++j) {
+      const double* row = win + static_cast<std::size_t>(j) * nxp;
+      V4 rs = {0, 0, 0, 0}, rsxx = rs, rw2 = rs, rw2d2 = rs;
+      for (int i = 0; i < nxp; i += 4) {
+        const V4 v = Load4(row + i);
+        rs += v * Load4(gx + i);
+        rsxx += v * Load4(gd2 + i);
+        rw2 += v * Load4(g2 + i);
+        rw2d2 += v * Load4(g2d2 + i);
+      }
+      const double rv = (var_const + gain * bg) * sum_g2 + gain * Sum4(rw2);
+      const double rvxx = (var_const + gain * bg) * sum_g2d2 + gain * Sum4(rw2d2);
+      const double g = gy[j], dy = y0 + j - cy;
+      const double r0 = Sum4(rs);
+      sum += r0 * g;
+      sxx += Sum4(rsxx) * g;
+      syy += r0 * g * dy * dy;
+      nvx += rvxx * g * g;
+      nvy += rv * g * g * dy * dy;
+    }
+    double den_x = sum - sxx * inv_s2, den_y = sum - syy * inv_s2;
+    if (den_x < 0.2 * sum) den_x = sum;
+    if (den_y < 0.2 * sum) den_y = sum;
+    *x = cx;
+    *y = cy;
+    *var_x = nvx / (den_x * den_x);
+    *var_y = nvy / (den_y * den_y);
+    return true;
   }
 
   int Find(int i) {

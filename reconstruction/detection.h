@@ -40,7 +40,8 @@
 // whatever its sampling phase, so the pixel-locking bias falls to about 0.01 px; for the same
 // reason an error in the background level b cancels to first order. s = 1.3 x the blob's
 // thresholded second-moment radius (the cut moments understate the spot's width; 1.3 matches
-// the spot, which also minimises the noise of the estimate). Cost: about (blob width + 5 s)^2
+// the spot, which also minimises the noise of the estimate). Bright pixels of the window outside
+// the blob's bounding box belong to other blobs and are left out. Cost: about (blob width + 5 s)^2
 // pixels x 4 passes per blob, a small fraction of the scan for a few dozen markers. A saturated
 // spot (peak at the format's maximum) is a plateau with a sharp rim, which no sampled centroid
 // handles exactly: its window is 3x the moment radius, averaging over more of the rim; still,
@@ -149,13 +150,19 @@ class DetectionWorkspace {
     bool border;
     int x_min, x_max, y_min, y_max;  // bounding box, inclusive
   };
+  struct Candidate {
+    int blob;  // index into blobs_
+    double s;  // Gaussian window sigma
+  };
 
  private:
   friend class DetectionScanner;
   std::vector<Run> previous_, current_;
   std::vector<int> parent_;
   std::vector<Blob> blobs_;
-  std::vector<double> gx_, gy_;  // Gaussian window weights along x and y
+  std::vector<Candidate> candidates_;  // blobs that passed the filters, in output order
+  // Gaussian-window refinement: weights along x (and times d, d^2), along y; the window's pixels.
+  std::vector<double> gx_, gy_, gxd_, gxdd_, gxd2_, window_;
 };
 
 // Finds the markers of `image` (Mono8, Mono12 or Mono16). `centroids` is cleared and filled in
