@@ -54,9 +54,11 @@ Status CheckImage(const drivers::ImageView& image) {
                          std::to_string(image.width) + " x " +
                          std::to_string(drivers::BytesPerPixel(image.format)) + " bytes (" +
                          drivers::ToString(image.format) + ")");
-  if (image.format != drivers::PixelFormat::kMono8 && (image.stride % 2) != 0)
-    return Status::Error("image: stride " + std::to_string(image.stride) +
-                         " is odd for a 16-bit pixel format");
+  if (image.format != drivers::PixelFormat::kMono8 &&
+      ((image.stride % 2) != 0 || reinterpret_cast<std::uintptr_t>(image.data) % 2 != 0))
+    return Status::Error("image: " + std::string(drivers::ToString(image.format)) +
+                         " rows must start on 2-byte boundaries (stride " +
+                         std::to_string(image.stride) + ", data at an odd address?)");
   return Status::Ok();
 }
 

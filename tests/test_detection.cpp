@@ -198,39 +198,47 @@ TEST(Detection, Mono16AndMono12GiveTheSameCentres) {
 TEST(Detection, NoiseErrorIsConsistentWithSigma) {
   // The error that noise adds (noisy centre - noise-free centre of the same blob) divided by
   // sigma_px must have unit RMS per axis; the floor is off so sigma_px is the noise model alone.
-  std::mt19937 rng(9);
-  const double noise = 6, background = 20;
-  DetectionOptions o;
-  o.threshold = 70;  // background + 8 sigma: noise alone never crosses it
-  o.read_noise_dn = noise;
-  o.sigma_floor_px = 0;
-  DetectionWorkspace ws;
-  double sum_sq = 0;
-  int samples = 0;
-  double mean_sigma = 0;
-  for (int frame = 0; frame < 6; ++frame) {
-    Scene scene(800, 400, background);
-    const std::vector<Truth> truth = MakeBlobs(&scene, 80, rng, 1.2, 2.5, 150, 230);
-    std::vector<Centroid> clean, noisy;
-    ASSERT_TRUE(DetectMarkers(scene.Render().view(), o, nullptr, &ws, &clean).ok());
-    scene.AddNoise(noise, rng);
-    ASSERT_TRUE(DetectMarkers(scene.Render().view(), o, nullptr, &ws, &noisy).ok());
-    ASSERT_EQ(clean.size(), truth.size());
-    ASSERT_EQ(noisy.size(), truth.size());
-    for (const Centroid& c : clean) {
-      const Centroid* n = nullptr;
-      ASSERT_LT(Nearest(noisy, c.pixel.x(), c.pixel.y(), &n), 0.5);
-      const Eigen::Vector2d d = (n->pixel - c.pixel) / n->sigma_px;
-      sum_sq += d.squaredNorm();
-      samples += 2;
-      mean_sigma += n->sigma_px;
+  // Both centre estimates, each with its own propagation (detection.h).
+  for (auto method : {DetectionOptions::CentroidMethod::kGaussianWindowed,
+                      DetectionOptions::CentroidMethod::kThresholdWeighted}) {
+    SCOPED_TRACE(method == DetectionOptions::CentroidMethod::kGaussianWindowed ? "windowed"
+                                                                               : "thresholded");
+    std::mt19937 rng(9);
+    const double noise = 6, background = 20;
+    DetectionOptions o;
+    o.centroid = method;
+    o.threshold = 70;  // background + 8 sigma: noise alone never crosses it
+    o.background_dn = background;
+    o.read_noise_dn = noise;
+    o.sigma_floor_px = 0;
+    DetectionWorkspace ws;
+    double sum_sq = 0;
+    int samples = 0;
+    double mean_sigma = 0;
+    for (int frame = 0; frame < 6; ++frame) {
+      Scene scene(800, 400, background);
+      const std::vector<Truth> truth = MakeBlobs(&scene, 80, rng, 1.2, 2.5, 150, 230);
+      std::vector<Centroid> clean, noisy;
+      ASSERT_TRUE(DetectMarkers(scene.Render().view(), o, nullptr, &ws, &clean).ok());
+      scene.AddNoise(noise, rng);
+      ASSERT_TRUE(DetectMarkers(scene.Render().view(), o, nullptr, &ws, &noisy).ok());
+      ASSERT_EQ(clean.size(), truth.size());
+      ASSERT_EQ(noisy.size(), truth.size());
+      for (const Centroid& c : clean) {
+        const Centroid* n = nullptr;
+        ASSERT_LT(Nearest(noisy, c.pixel.x(), c.pixel.y(), &n), 0.5);
+        const Eigen::Vector2d d = (n->pixel - c.pixel) / n->sigma_px;
+        sum_sq += d.squaredNorm();
+        samples += 2;
+        mean_sigma += n->sigma_px;
+      }
     }
+    const double rms = std::sqrt(sum_sq / samples);
+    mean_sigma /= samples / 2;
+    EXPECT_GT(rms, 0.8) << "sigma_px overstates the noise; mean sigma " << mean_sigma;
+    EXPECT_LT(rms, 1.25) << "sigma_px understates the noise; mean sigma " << mean_sigma;
+    EXPECT_GT(mean_sigma, 0.01);  // the test is not trivial: noise moves centres measurably
   }
-  const double rms = std::sqrt(sum_sq / samples);
-  mean_sigma /= samples / 2;
-  EXPECT_GT(rms, 0.8) << "sigma_px overstates the noise; mean sigma " << mean_sigma;
-  EXPECT_LT(rms, 1.25) << "sigma_px understates the noise; mean sigma " << mean_sigma;
-  EXPECT_GT(mean_sigma, 0.01);  // the test is not trivial: noise moves centres measurably
 }
 
 TEST(Detection, SizeAndRoundnessFiltersRejectWhatTheyShould) {
@@ -537,6 +545,11 @@ TEST(Detection, BadInputGivesAClearStatus) {
   v = img.view();
   v.format = PixelFormat::kMono16;  // 64 px of 2 bytes do not fit a 64-byte stride
   expect_error(v, o, "stride 64 bytes is below width 64 x 2");
+  v = img.view();
+  v.format = PixelFormat::kMono16;
+  v.width = 32;
+  v.data += 1;  // 16-bit pixels at an odd address
+  expect_error(v, o, "2-byte boundaries");
   v = img.view();
   v.format = static_cast<PixelFormat>(7);
   expect_error(v, o, "unknown pixel format 7");
