@@ -2,7 +2,9 @@
 // cv::threshold + cv::connectedComponentsWithStats (+ the stats' centroids, what OpenCV users
 // take), on the same frames, side by side in one process, one thread each.
 //
-//   detect_vs_opencv [--frames N] [--repeats R] [--threshold T] [--seed S]
+//   detect_vs_opencv [--frames N] [--repeats R] [--threshold T] [--seed S] [--only K]
+//
+// --only K times method K alone (0-based, in the order of the table), e.g. under a profiler.
 //
 // Frames: 1280 x 1024 Mono8, 40 markers 3-10 px across above the threshold (Gaussian spots with
 // peaks 120-250 DN, sigma 0.84-3.8 px to match; each pixel the exact integral of the spot over its
@@ -131,7 +133,6 @@ double Median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   return v[v.size() / 2];
 }
-double Min(const std::vector<double>& v) { return *std::min_element(v.begin(), v.end()); }
 
 std::string CpuModel() {
   std::ifstream in("/proc/cpuinfo");
@@ -316,14 +317,14 @@ int main(int argc, char** argv) {
               " (built WITHOUT AVX2: every 'ours' row uses the portable scan)"
 #endif
   );
-  std::printf("| method | ms / frame: median (best round) | GB/s (median) | speed-up vs best OpenCV "
+  std::printf("| method | ms / frame: median (best) | GB/s (median) | speed-up vs best OpenCV "
               "(median) | blobs / frame | noise-free error RMS / max px | saturated RMS / max px | "
               "noisy RMS px |\n");
   std::printf("|---|---:|---:|---:|---:|---:|---:|---:|\n");
   for (std::size_t k = 0; k < methods.size(); ++k) {
-    const double t = Median(methods[k].seconds);
+    const double t = methods[k].seconds[0];
     std::printf("| %s | %.3f (%.3f) | %.2f | %.1fx | %.1f | %.4f / %.4f | %.4f / %.4f | %.4f |\n",
-                methods[k].name.c_str(), t * 1e3, Min(methods[k].seconds) * 1e3, bytes / t / 1e9,
+                methods[k].name.c_str(), t * 1e3, methods[k].seconds[1] * 1e3, bytes / t / 1e9,
                 best_opencv / t, found[k],
                 clean[k].rms(), clean[k].max, clean_sat[k].rms(), clean_sat[k].max, noisy[k].rms());
     if (clean[k].missed + clean_sat[k].missed + noisy[k].missed > 0)

@@ -181,6 +181,23 @@ void FrameSync::Flush(std::vector<DetectionSet>* ready) {
   while (!pending_.empty()) EmitFront(ready);
 }
 
+Status FrameSync::ResyncCamera(int camera) {
+  if (!initialised_) return Status::Error("frame sync: Reset with valid options first");
+  if (camera < 0 || camera >= options_.num_cameras)
+    return Status::Error("frame sync: camera " + std::to_string(camera) +
+                         " is outside the rig's " + std::to_string(options_.num_cameras) +
+                         " cameras");
+  if (options_.mode != FrameSyncOptions::Mode::kTimestamp)
+    return Status::Error("frame sync: camera " + std::to_string(camera) +
+                         " cannot be re-synchronised in sequence mode (its frame ids restarted); "
+                         "use timestamp mode");
+  if (!options_.estimate_offsets)
+    return Status::Error("frame sync: offsets are given (estimate_offsets = false); set camera " +
+                         std::to_string(camera) + "'s new offset with Reset");
+  offset_frames_[camera] = 0;
+  return Status::Ok();
+}
+
 void FrameSync::EmitTimedOut(std::uint64_t host_now_ns, std::vector<DetectionSet>* ready) {
   if (options_.timeout_ns == 0) return;
   // Sets are emitted oldest first, so a timed-out set releases every older one too.

@@ -96,6 +96,11 @@ class FrameSync {
   void Poll(std::uint64_t host_now_ns, std::vector<DetectionSet>* ready);
   // Emits every pending set (at the end of a recording).
   void Flush(std::vector<DetectionSet>* ready);
+  // A camera came back (unplugged and reconnected, restarted): its clock and its frame ids
+  // started again. kTimestamp: its offset is estimated afresh from its next frames (the warm-up
+  // above). kSequence: an error, as the new ids cannot be placed against the rig's without a
+  // common trigger count; run such rigs in kTimestamp mode.
+  Status ResyncCamera(int camera);
 
   const FrameSyncCounters& counters() const { return counters_; }
   int pending() const { return static_cast<int>(pending_.size()); }
