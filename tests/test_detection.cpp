@@ -169,6 +169,30 @@ TEST(Detection, NoiseFreeCentresWithin003PxMono8) {
   for (const Centroid& c : cs) EXPECT_GT(c.roundness, 0.8f);
 }
 
+TEST(Detection, WindowedCentreHardlyDependsOnTheBackgroundLevel) {
+  std::mt19937 rng(17);
+  Scene scene(640, 320, 15);  // a black level of 15 DN
+  const std::vector<Truth> truth = MakeBlobs(&scene, 50, rng);
+  const TestImage img = scene.Render();
+  DetectionOptions right, wrong;
+  right.threshold = wrong.threshold = 60;
+  right.background_dn = 15;
+  wrong.background_dn = 0;
+  DetectionWorkspace ws;
+  std::vector<Centroid> a, b;
+  ASSERT_TRUE(DetectMarkers(img.view(), right, nullptr, &ws, &a).ok());
+  ASSERT_TRUE(DetectMarkers(img.view(), wrong, nullptr, &ws, &b).ok());
+  ASSERT_EQ(a.size(), truth.size());
+  ASSERT_EQ(b.size(), truth.size());
+  double worst_right = 0, worst_shift = 0;
+  for (std::size_t i = 0; i < a.size(); ++i) {
+    worst_shift = std::max(worst_shift, (a[i].pixel - b[i].pixel).norm());
+    worst_right = std::max(worst_right, Nearest(a, truth[i].x, truth[i].y));
+  }
+  EXPECT_LE(worst_right, 0.03);
+  EXPECT_LT(worst_shift, 0.005);
+}
+
 TEST(Detection, Mono16AndMono12GiveTheSameCentres) {
   std::mt19937 rng(8);
   Scene scene(700, 300);
