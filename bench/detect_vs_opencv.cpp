@@ -129,6 +129,15 @@ void DetectOpenCv(const cv::Mat& img, int threshold, int min_area, int max_area,
   }
 }
 
+// Reads a buffer larger than any CPU cache, so that the next frame comes from memory.
+void EvictCaches() {
+  static std::vector<std::uint64_t> junk(64 << 20 >> 3, 1);
+  static volatile std::uint64_t sink = 0;
+  std::uint64_t acc = 0;
+  for (std::size_t i = 0; i < junk.size(); i += 8) acc += junk[i]++;
+  sink = sink + acc;
+}
+
 double Median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   return v[v.size() / 2];
@@ -244,7 +253,9 @@ int main(int argc, char** argv) {
   // Timing, interleaved as finely as possible so that every method sees the same machine (this
   // one is shared and busy): in each round, each frame goes through every method, starting with
   // a different method each time (a preemption after a long OpenCV call must not always land on
-  // the same method). A method's time is the mean over frames of its median over rounds, which
+  // the same method). Before every call the caches are flushed: a camera frame arrives by DMA
+  // into memory, never in cache, and a method that ran after another on the same frame would
+  // otherwise find it there. A method's time is the mean over frames of its median over rounds, which
   // ignores the odd time slice lost to another process; the best round is shown beside it.
   std::vector<std::vector<std::vector<double>>> calls(
       methods.size(), std::vector<std::vector<double>>(frames));
@@ -254,6 +265,7 @@ int main(int argc, char** argv) {
       for (std::size_t i = 0; i < methods.size(); ++i) {
         const std::size_t k = (i + turn) % methods.size();
         if (only >= 0 && static_cast<int>(k) != only) continue;
+        EvictCaches();
         const auto t0 = Clock::now();
         methods[k].detect(set[f].noisy, &pts);
         calls[k][f].push_back(std::chrono::duration<double>(Clock::now() - t0).count());

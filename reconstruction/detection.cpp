@@ -316,11 +316,12 @@ class DetectionScanner {
       ++st.accepted;
     }
     // Centres and uncertainties of the accepted blobs. The refinement reads a window of the
-    // image that the scan passed long ago (out of L1/L2 by now): the next blob's window is
-    // prefetched while this one is refined.
+    // image that the scan passed long ago (out of L1/L2 by now): the windows of the next
+    // kPrefetchAhead blobs are prefetched while this one is refined.
     const bool windowed = options_.centroid == DetectionOptions::CentroidMethod::kGaussianWindowed;
     const int accepted = static_cast<int>(ws_.candidates_.size());
-    if (windowed && accepted > 0) Prefetch<P>(image, ws_.candidates_[0]);
+    if (windowed)
+      for (int k = 0; k < std::min(accepted, kPrefetchAhead); ++k) Prefetch<P>(image, ws_.candidates_[k]);
     for (int k = 0; k < accepted; ++k) {
       const DetectionWorkspace::Candidate cand = ws_.candidates_[k];
       const DetectionWorkspace::Blob& b = ws_.blobs_[cand.blob];
@@ -329,7 +330,7 @@ class DetectionScanner {
       double x = cx, y = cy, var_x = 0, var_y = 0;
       bool refined = false;
       if (windowed) {
-        if (k + 1 < accepted) Prefetch<P>(image, ws_.candidates_[k + 1]);
+        if (k + kPrefetchAhead < accepted) Prefetch<P>(image, ws_.candidates_[k + kPrefetchAhead]);
         refined = RefineGaussian<P>(image, b, cand.s, var_const, gain, &x, &y, &var_x, &var_y);
       }
       if (!refined) {
@@ -353,6 +354,7 @@ class DetectionScanner {
   }
 
  private:
+  static constexpr int kPrefetchAhead = 4;
   struct Window {
     int x0, x1, y0, y1;  // inclusive
   };
