@@ -76,6 +76,7 @@ drivers::ImageView View(const cv::Mat& m) {
 
 struct Frame {
   cv::Mat noisy, clean;
+  cv::Mat noisy16, clean16;  // the same x 256, Mono16
   std::vector<Spot> markers;  // not the reflections
 };
 
@@ -107,6 +108,8 @@ Frame MakeFrame(std::mt19937& rng, int threshold) {
   for (double& p : noisy) p += 8 + noise(rng);
   f.clean = Quantise(clean);
   f.noisy = Quantise(noisy);
+  f.clean.convertTo(f.clean16, CV_16U, 256);
+  f.noisy.convertTo(f.noisy16, CV_16U, 256);
   return f;
 }
 
@@ -211,11 +214,13 @@ int main(int argc, char** argv) {
   // The contenders, each a function from a frame to centre points.
   struct Method {
     std::string name;
-    std::function<void(const cv::Mat&, std::vector<cv::Point2d>*)> detect;
+    std::function<void(const Frame&, bool clean, std::vector<cv::Point2d>*)> detect;
     std::vector<double> seconds;  // per frame: {median, best}
+    int bytes_per_pixel = 1;
   };
   auto ours_with = [&](DetectionOptions o, const ReflectionMask* m) {
-    return [&, o, m](const cv::Mat& img, std::vector<cv::Point2d>* pts) {
+    return [&, o, m](const Frame& f, bool clean, std::vector<cv::Point2d>* pts) {
+      const cv::Mat& img = clean ? f.clean : f.noisy;
       if (Status s = DetectMarkers(View(img), o, m, &ws, &ours); !s.ok()) {
         std::fprintf(stderr, "%s\n", s.message().c_str());
         std::exit(1);
@@ -229,7 +234,8 @@ int main(int argc, char** argv) {
   DetectionOptions portable = options;
   portable.force_portable_scan = true;
   auto opencv_with = [&](int algorithm) {
-    return [&, algorithm](const cv::Mat& img, std::vector<cv::Point2d>* pts) {
+    return [&, algorithm](const Frame& f, bool clean, std::vector<cv::Point2d>* pts) {
+      const cv::Mat& img = clean ? f.clean : f.noisy;
       DetectOpenCv(img, threshold, options.min_area_px, options.max_area_px, algorithm, &cvws, pts);
     };
   };
@@ -238,16 +244,35 @@ int main(int argc, char** argv) {
   methods.push_back({"ours: Gaussian-windowed centre, no mask", ours_with(options, nullptr), {}});
   methods.push_back({"ours: thresholded centre (no refinement), no mask", ours_with(thresholded, nullptr), {}});
   methods.push_back({"ours: portable scan (no AVX2), Gaussian-windowed, no mask", ours_with(portable, nullptr), {}});
+  DetectionOptions mono16 = options;
+  mono16.threshold = threshold * 256;
+  mono16.read_noise_dn = options.read_noise_dn * 256;
+  mono16.saturation_level = 255 * 256;  // where these frames clip
+  methods.push_back({"ours: Mono16 (the same frames x 256; 2 bytes a pixel), no mask",
+                     [&, mono16](const Frame& f, bool clean, std::vector<cv::Point2d>* pts) {
+                       const cv::Mat& img = clean ? f.clean16 : f.noisy16;
+                       const drivers::ImageView v{img.data, img.cols, img.rows,
+                                                  static_cast<std::ptrdiff_t>(img.step),
+                                                  drivers::PixelFormat::kMono16};
+                       if (Status s = DetectMarkers(v, mono16, nullptr, &ws, &ours); !s.ok()) {
+                         std::fprintf(stderr, "%s\n", s.message().c_str());
+                         std::exit(1);
+                       }
+                       pts->clear();
+                       for (const Centroid& c : ours) pts->emplace_back(c.pixel.x(), c.pixel.y());
+                     },
+                     {},
+                     2});
   methods.push_back({"OpenCV threshold + connectedComponentsWithStats (CCL_DEFAULT)", opencv_with(cv::CCL_DEFAULT), {}});
   methods.push_back({"OpenCV threshold + connectedComponentsWithStats (CCL_GRANA)", opencv_with(cv::CCL_GRANA), {}});
-  const std::size_t first_opencv = 4;
+  const std::size_t first_opencv = 5;
 
   // Warm-up (sizes every workspace); blobs found per frame.
   std::vector<double> found(methods.size(), 0);
   std::vector<cv::Point2d> pts;
   for (std::size_t k = 0; k < methods.size(); ++k)
     for (const Frame& f : set) {
-      methods[k].detect(f.noisy, &pts);
+      methods[k].detect(f, false, &pts);
       found[k] += double(pts.size()) / frames;
     }
   // Timing, interleaved as finely as possible so that every method sees the same machine (this
@@ -267,7 +292,7 @@ int main(int argc, char** argv) {
         if (only >= 0 && static_cast<int>(k) != only) continue;
         EvictCaches();
         const auto t0 = Clock::now();
-        methods[k].detect(set[f].noisy, &pts);
+        methods[k].detect(set[f], false, &pts);
         calls[k][f].push_back(std::chrono::duration<double>(Clock::now() - t0).count());
       }
   for (std::size_t k = 0; k < methods.size(); ++k) {
@@ -297,7 +322,7 @@ int main(int argc, char** argv) {
   for (std::size_t k = 0; k < methods.size(); ++k)
     for (const Frame& f : set)
       for (int pass = 0; pass < 2; ++pass) {
-        methods[k].detect(pass == 0 ? f.clean : f.noisy, &pts);
+        methods[k].detect(f, pass == 0, &pts);
         for (const Spot& s : f.markers) {
           double best = 1e9;
           for (const cv::Point2d& p : pts) best = std::min(best, std::hypot(p.x - s.x, p.y - s.y));
@@ -310,7 +335,7 @@ int main(int argc, char** argv) {
         }
       }
 
-  const double bytes = double(kWidth) * kHeight;
+  const double bytes = double(kWidth) * kHeight;  // per frame, Mono8
   double best_opencv = 1e9;
   for (std::size_t k = first_opencv; k < methods.size(); ++k)
     best_opencv = std::min(best_opencv, methods[k].seconds[0]);
@@ -336,7 +361,8 @@ int main(int argc, char** argv) {
   for (std::size_t k = 0; k < methods.size(); ++k) {
     const double t = methods[k].seconds[0];
     std::printf("| %s | %.3f (%.3f) | %.2f | %.1fx | %.1f | %.4f / %.4f | %.4f / %.4f | %.4f |\n",
-                methods[k].name.c_str(), t * 1e3, methods[k].seconds[1] * 1e3, bytes / t / 1e9,
+                methods[k].name.c_str(), t * 1e3, methods[k].seconds[1] * 1e3,
+                methods[k].bytes_per_pixel * bytes / t / 1e9,
                 best_opencv / t, found[k],
                 clean[k].rms(), clean[k].max, clean_sat[k].rms(), clean_sat[k].max, noisy[k].rms());
     if (clean[k].missed + clean_sat[k].missed + noisy[k].missed > 0)

@@ -31,6 +31,8 @@ bool DetectionOptions::IsValid(std::string* error) const {
   if (!(sigma_floor_px >= 0) || !std::isfinite(sigma_floor_px))
     return fail("sigma_floor_px must be finite and >= 0");
   if (max_centroids < 1) return fail("max_centroids must be >= 1");
+  if (saturation_level < 0 || saturation_level > 65535)
+    return fail("saturation_level " + std::to_string(saturation_level) + " is outside [0, 65535]");
   if (centroid != CentroidMethod::kThresholdWeighted && centroid != CentroidMethod::kGaussianWindowed)
     return fail("unknown centroid method");
   if (!std::isfinite(background_dn) || background_dn < 0 || background_dn >= threshold)
@@ -644,7 +646,7 @@ class DetectionScanner {
   DetectionWorkspace& ws_;
   const DetectionOptions& options_;
   const int width_, height_;
-  const int max_value_;  // saturation level of the pixel format
+  const int max_value_;  // the level at which pixels clip
   const double var_const_, gain_, floor2_;  // noise model (detection.h)
   const ReflectionMask* mask_ = nullptr;
   DetectionStats st_;
@@ -672,7 +674,9 @@ Status DetectMarkers(const drivers::ImageView& image, const DetectionOptions& op
     return Status::Error("detection: reflection mask is " + std::to_string(mask->width()) + " x " +
                          std::to_string(mask->height()) + ", image is " +
                          std::to_string(image.width) + " x " + std::to_string(image.height));
-  DetectionScanner scanner(workspace, options, image.width, image.height, max_value);
+  const int saturation = options.saturation_level > 0 ? std::min(options.saturation_level, max_value)
+                                                      : max_value;
+  DetectionScanner scanner(workspace, options, image.width, image.height, saturation);
   const ReflectionMask* used_mask = mask != nullptr && !mask->empty() ? mask : nullptr;
   if (image.format == drivers::PixelFormat::kMono8)
     return scanner.Run<std::uint8_t>(image, used_mask, centroids, stats);

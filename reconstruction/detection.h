@@ -49,7 +49,7 @@
 // the blob's bounding box belong to other blobs and are left out. Cost: (blob width + 5 s)^2
 // pixels x 3 passes (two Newton steps, one for the uncertainty), 4-wide, on rows still in cache:
 // about 2.5 us per marker, i.e. 40 markers cost about 2/3 of the scan of a 1.3 MP frame. A saturated
-// spot (peak at the format's maximum) is a plateau with a sharp rim, which no sampled centroid
+// spot (peak at DetectionOptions::saturation_level) is a plateau with a sharp rim, which no sampled centroid
 // handles exactly: its window is 3x the moment radius, averaging over more of the rim; still,
 // 0.03 px holds for sigma >= 1.2 px up to 5x saturation; smaller or harder-saturated spots
 // (nearly binary discs) keep errors of 0.03-0.07 px (tests/test_detection.cpp). A blob whose
@@ -111,6 +111,11 @@ struct DetectionOptions {
   // The image's level where there is no light (black level), for kGaussianWindowed. An error in
   // it cancels to first order (tests: 15 DN off moves centres by < 0.005 px).
   double background_dn = 0;
+  // The value at which the sensor clips, in the image's units; 0: the pixel format's largest
+  // value. Set it where the data does not fill the format (12-bit data shifted into Mono16
+  // clips at 65520; a camera with a digital gain may clip lower). Saturated blobs get a wider
+  // window (above).
+  int saturation_level = 0;
   // Pixel noise model for sigma_px, in the image's units (DN): read noise (standard deviation)
   // and the shot-noise gain (variance per DN of signal; 0 leaves shot noise out).
   double read_noise_dn = 1.0;
@@ -147,6 +152,8 @@ class DetectionWorkspace {
   // Bytes held (capacity, not size): constant across frames once warm.
   std::size_t CapacityBytes() const;
 
+ private:
+  friend class DetectionScanner;
   struct Run {
     int x0, x1;  // [x0, x1)
     int label;
@@ -168,8 +175,6 @@ class DetectionWorkspace {
     Centroid centroid;
   };
 
- private:
-  friend class DetectionScanner;
   std::vector<Run> previous_, current_;
   std::vector<int> parent_;
   std::vector<Blob> blobs_;

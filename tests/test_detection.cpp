@@ -395,6 +395,26 @@ TEST(Detection, SaturatedBlobsKeepAccurateCentres) {
         << "sigma " << t.sigma << " peak " << t.peak;
     EXPECT_EQ(c->peak, 255.0f);
   }
+  // 12-bit data shifted into Mono16 clips at 4095 x 16 = 65520, not 65535: told so, detection
+  // treats those blobs as saturated and finds the same centres.
+  Scene scene12 = scene;
+  for (double& v : scene12.v) v = std::min(std::round(v * 4095.0 / 255.0), 4095.0) * 16;
+  const TestImage img16 = scene12.Render(PixelFormat::kMono16);
+  DetectionOptions o16 = o;
+  o16.threshold = 60 * 4095 / 255 * 16;
+  o16.saturation_level = 65520;
+  std::vector<Centroid> cs16;
+  ASSERT_TRUE(DetectMarkers(img16.view(), o16, nullptr, &ws, &cs16).ok());
+  ASSERT_EQ(cs16.size(), truth.size());
+  for (const Truth& t : truth) {
+    const Centroid* c = nullptr;
+    const bool mild = t.sigma >= 1.2 && t.peak <= 5 * 255;
+    EXPECT_LT(Nearest(cs16, t.x, t.y, &c), mild ? 0.03 : 0.07)
+        << "Mono16: sigma " << t.sigma << " peak " << t.peak;
+    EXPECT_EQ(c->peak, 65520.0f);
+  }
+  o16.saturation_level = 70000;
+  EXPECT_FALSE(DetectMarkers(img16.view(), o16, nullptr, &ws, &cs16).ok());
 }
 
 // Reference labelling: flood fill with 8-connectivity, weights value - threshold + 1.
