@@ -395,8 +395,8 @@ TEST(Detection, SaturatedBlobsKeepAccurateCentres) {
         << "sigma " << t.sigma << " peak " << t.peak;
     EXPECT_EQ(c->peak, 255.0f);
   }
-  // 12-bit data shifted into Mono16 clips at 4095 x 16 = 65520, not 65535: told so, detection
-  // treats those blobs as saturated and finds the same centres.
+  // 12-bit data shifted into Mono16 clips at 4095 x 16 = 65520, not 65535: with
+  // saturation_level set to it, the same bounds hold.
   Scene scene12 = scene;
   for (double& v : scene12.v) v = std::min(std::round(v * 4095.0 / 255.0), 4095.0) * 16;
   const TestImage img16 = scene12.Render(PixelFormat::kMono16);
