@@ -426,6 +426,10 @@ class DetectionScanner {
     // exp(-d_i^2 / 2s^2) at d_i = start + i, by the recurrence g_{i+1} = g_i q_i,
     // q_{i+1} = q_i k: three exp() per axis instead of one per sample.
     auto gauss = [&](double start, int n, double* g) {
+      if (start * start * inv2s2 > 600) {  // the recurrence would start from an underflow
+        for (int i = 0; i < n; ++i) g[i] = std::exp(-(start + i) * (start + i) * inv2s2);
+        return;
+      }
       double gi = std::exp(-start * start * inv2s2);
       double q = std::exp(-(2 * start + 1) * inv2s2);
       for (int i = 0; i < n; ++i) {
