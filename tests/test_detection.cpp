@@ -369,6 +369,26 @@ TEST(Detection, BlobsAtTheImageBorders) {
   EXPECT_GT(left->pixel.x(), 0.7);
 }
 
+TEST(Detection, LargeAndThinBlobsGiveFiniteCentresWhenTheFiltersAllowThem) {
+  Scene scene(1000, 400);
+  scene.AddRect(100, 100, 120, 120, 255);  // a lamp, saturated: centre (159.5, 159.5)
+  scene.AddRect(300, 50, 600, 1, 200);     // a one-pixel line: centre (599.5, 50)
+  scene.AddRect(300, 300, 1, 90, 200);     // a vertical one: centre (300, 344.5)
+  DetectionOptions o = Permissive(50);
+  o.centroid = DetectionOptions::CentroidMethod::kGaussianWindowed;
+  DetectionWorkspace ws;
+  std::vector<Centroid> cs;
+  ASSERT_TRUE(DetectMarkers(scene.Render().view(), o, nullptr, &ws, &cs).ok());
+  ASSERT_EQ(cs.size(), 3u);
+  for (const Centroid& c : cs) {
+    EXPECT_TRUE(std::isfinite(c.pixel.x()) && std::isfinite(c.pixel.y()) &&
+                std::isfinite(c.sigma_px));
+  }
+  EXPECT_LT(Nearest(cs, 159.5, 159.5), 1e-6);
+  EXPECT_LT(Nearest(cs, 599.5, 50), 1e-6);
+  EXPECT_LT(Nearest(cs, 300, 344.5), 1e-6);
+}
+
 TEST(Detection, SaturatedBlobsKeepAccurateCentres) {
   std::mt19937 rng(3);
   std::uniform_real_distribution<double> u(0, 1);
