@@ -22,7 +22,9 @@
 //    jitter. A frame joins the pending set whose reference time (the running mean of its
 //    members' t) is within `tolerance_ns` of its own t. With PTP-synchronised cameras (GigE
 //    Vision 2.0), set estimate_offsets = false and give the known offsets (or none: zeros).
-//    A set's sequence is then the sequence of its lowest-numbered present camera.
+//    A set's sequence is then the sequence of its lowest-numbered present camera, and its
+//    timestamp_ns the median of its members' CORRECTED times (device - o_c: the rig's common
+//    timeline, which runs with the host clock, offset by the fastest delivery latency).
 //
 // Emission, in order of sequence (or time): a set is emitted as soon as every camera has
 // contributed (complete). A pending set older than one that completes is emitted first, as
