@@ -5,8 +5,12 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
+#include <fstream>
 
 #include "reconstruction/calibration.h"
+#include "reconstruction/calibration_file.h"
+#include "reconstruction/calibration_intrinsics.h"
 #include "reconstruction/calibration_problem.h"
 #include "sim/camera_rig.h"
 #include "sim/random.h"
@@ -227,6 +231,223 @@ TEST(WandCalibration, AWandNeverSeenByTwoCamerasIsAClearError) {
   const Status s = CalibrateWand(rig, simulation.wand_frames, {}, {}, &out, &summary);
   ASSERT_FALSE(s.ok());
   EXPECT_NE(s.message().find("never seen by two cameras at once"), std::string::npos) << s.message();
+}
+
+// ---- The calibration file ----
+
+std::string TmpPath(const std::string& name) {
+  std::filesystem::create_directories(MOCAP_TEST_TMP);
+  return std::string(MOCAP_TEST_TMP) + "/calibration_" + name;
+}
+
+TEST(CalibrationFile, RoundTripsExactly) {
+  CalibrationFile file;
+  for (const CameraModel& c : TrueRig(3)) {
+    CalibratedCamera cc;
+    cc.camera = c;
+    cc.reprojection_rms_px = 0.125;
+    cc.wand_frames = 500;
+    file.cameras.push_back(cc);
+  }
+  file.lab_frame = "L-frame";
+  file.reprojection_rms_px = 0.13;
+  file.wand_length_error_mm_rms = 0.25;
+  file.wand_markers_m = {0, 0.2, 0.5};
+  const std::string path = TmpPath("roundtrip.json");
+  ASSERT_TRUE(WriteCalibrationJson(path, file).ok());
+  CalibrationFile back;
+  const Status s = ReadCalibrationJson(path, &back);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ASSERT_EQ(back.cameras.size(), 3u);
+  for (int c = 0; c < 3; ++c) {
+    const CameraModel &a = file.cameras[c].camera, &b = back.cameras[c].camera;
+    EXPECT_EQ(a.id, b.id);
+    EXPECT_EQ((a.R - b.R).norm(), 0.0);
+    EXPECT_EQ((a.t - b.t).norm(), 0.0);
+    EXPECT_EQ(a.intrinsics.fx, b.intrinsics.fx);
+    EXPECT_EQ(a.intrinsics.k1, b.intrinsics.k1);
+    EXPECT_EQ(a.intrinsics.width, b.intrinsics.width);
+    EXPECT_EQ(back.cameras[c].wand_frames, 500);
+  }
+  EXPECT_EQ(back.lab_frame, "L-frame");
+  EXPECT_EQ(back.wand_length_error_mm_rms, 0.25);
+  EXPECT_TRUE(std::isnan(back.wand_length_error_mm_mean));
+  std::vector<CameraModel> ordered;
+  ASSERT_TRUE(MatchCalibrationToRig(back, {"sim-2", "sim-0", "sim-1"}, &ordered).ok());
+  EXPECT_EQ(ordered[0].id, "sim-2");
+  EXPECT_EQ(ordered[2].id, "sim-1");
+}
+
+// A valid one-camera document with one piece replaced.
+std::string OneCamera(const std::string& replace_from = "", const std::string& replace_to = "") {
+  std::string doc = R"({"format": "mocap-calibration", "version": 1, "cameras": [
+    {"id": "cam-A", "width": 1280, "height": 1024, "fx": 1000, "fy": 1000, "cx": 640, "cy": 512,
+     "k1": -0.05, "k2": 0.01, "p1": 0, "p2": 0, "k3": 0,
+     "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 4]}]})";
+  if (!replace_from.empty()) {
+    const size_t at = doc.find(replace_from);
+    EXPECT_NE(at, std::string::npos) << replace_from;
+    doc.replace(at, replace_from.size(), replace_to);
+  }
+  return doc;
+}
+
+void ExpectError(const std::string& doc, const std::string& expected) {
+  CalibrationFile f;
+  const Status s = ParseCalibrationJson(doc, "cal.json", &f);
+  ASSERT_FALSE(s.ok()) << "accepted a document that should fail with: " << expected;
+  EXPECT_NE(s.message().find(expected), std::string::npos) << s.message();
+  EXPECT_EQ(s.message().rfind("cal.json: ", 0), 0u) << s.message();
+}
+
+TEST(CalibrationFile, BadFilesGetClearErrors) {
+  CalibrationFile f;
+  ASSERT_TRUE(ParseCalibrationJson(OneCamera(), "cal.json", &f).ok());
+  ExpectError("{\"format\": \"mocap-calibration\", ", "not valid JSON");
+  ExpectError("[1, 2]", "expected a JSON object");
+  ExpectError(OneCamera("mocap-calibration", "mocap-model"), "format: expected \"mocap-calibration\"");
+  ExpectError(OneCamera("\"version\": 1", "\"version\": 7"), "version: unsupported");
+  ExpectError(OneCamera("\"fx\": 1000", "\"fx\": \"big\""), "cameras[0].fx: expected a number");
+  ExpectError(OneCamera("\"fy\": 1000", "\"fy\": -3"), "cameras[0]: fx and fy must be positive");
+  ExpectError(OneCamera("\"width\": 1280", "\"width\": 12.5"), "cameras[0]: width and height");
+  ExpectError(OneCamera("\"cy\": 512,", ""), "cameras[0].cy: missing");
+  ExpectError(OneCamera("[0, 1, 0]", "[0, 2, 0]"), "cameras[0].R: not a rotation matrix");
+  ExpectError(OneCamera("[0, 0, 1]]", "[0, 0, -1]]"), "cameras[0].R: not a rotation matrix");
+  ExpectError(OneCamera("[0, 1, 0]", "[0, 1]"), "cameras[0].R: expected 3 rows of 3 numbers");
+  ExpectError(OneCamera("\"t\": [0, 0, 4]", "\"t\": [0, 4]"), "cameras[0].t: expected 3 numbers");
+  ExpectError(OneCamera("\"cameras\": [", "\"cameras\": [], \"x\": ["), "cameras: no cameras");
+  // A second camera with the same id.
+  std::string two = OneCamera();
+  const size_t open = two.find("{\"id\"");
+  const size_t close = two.rfind("]}");
+  two.insert(close, ", " + two.substr(open, close - open));
+  ExpectError(two, "cameras[1].id: duplicate camera id 'cam-A'");
+  // A file that does not exist.
+  const Status missing = ReadCalibrationJson(TmpPath("does_not_exist.json"), &f);
+  ASSERT_FALSE(missing.ok());
+  EXPECT_NE(missing.message().find("cannot open"), std::string::npos);
+}
+
+TEST(CalibrationFile, ACalibrationOfOtherCamerasIsRefused) {
+  CalibrationFile f;
+  ASSERT_TRUE(ParseCalibrationJson(OneCamera(), "cal.json", &f).ok());
+  std::vector<CameraModel> ordered;
+  Status s = MatchCalibrationToRig(f, {"cam-A", "cam-B"}, &ordered);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("it has 1 cameras, the rig 2"), std::string::npos) << s.message();
+  EXPECT_NE(s.message().find("not calibrated: 'cam-B'"), std::string::npos) << s.message();
+  s = MatchCalibrationToRig(f, {"cam-Z"}, &ordered);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("unknown to the rig: 'cam-A'"), std::string::npos) << s.message();
+}
+
+// ---- Checkerboard intrinsics on rendered images ----
+
+// Renders a checkerboard (inner corners nx x ny, square sq) seen through `cam` at board pose
+// (R_b, t_b: board -> camera), 3 x 3 supersampled, with N(0, 2) grey-level noise. `rays` holds the
+// undistorted normalised coordinates of every subsample (the same for every image).
+GrayImage RenderBoard(const CameraModel& cam, const std::vector<Eigen::Vector2f>& rays,
+                      const Eigen::Matrix3d& rb, const Eigen::Vector3d& tb, int nx, int ny,
+                      double sq, sim::Random& rng) {
+  const int w = cam.intrinsics.width, h = cam.intrinsics.height, ss = 3;
+  GrayImage im;
+  im.width = w;
+  im.height = h;
+  im.pixels.resize(static_cast<size_t>(w) * h);
+  const Eigen::Vector3d n = rb.col(2);
+  const double nt = n.dot(tb);
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) {
+      double sum = 0;
+      for (int s = 0; s < ss * ss; ++s) {
+        const Eigen::Vector2f& r = rays[(static_cast<size_t>(y) * w + x) * ss * ss + s];
+        const Eigen::Vector3d d(r.x(), r.y(), 1.0);
+        const double dn = n.dot(d);
+        double v = 90;  // background
+        if (std::abs(dn) > 1e-9 && nt / dn > 0) {
+          const Eigen::Vector3d b = rb.transpose() * (nt / dn * d - tb);
+          if (b.x() > -2 * sq && b.x() < (nx + 1) * sq && b.y() > -2 * sq && b.y() < (ny + 1) * sq) {
+            v = 220;  // white margin
+            if (b.x() > -sq && b.x() < nx * sq && b.y() > -sq && b.y() < ny * sq) {
+              const int i = static_cast<int>(std::floor(b.x() / sq)), j = static_cast<int>(std::floor(b.y() / sq));
+              if (((i + j) & 1) == 0) v = 30;
+            }
+          }
+        }
+        sum += v;
+      }
+      const double g = sum / (ss * ss) + 2.0 * rng.Normal();
+      im.pixels[static_cast<size_t>(y) * w + x] = static_cast<std::uint8_t>(std::clamp(g, 0.0, 255.0));
+    }
+  return im;
+}
+
+TEST(CheckerboardIntrinsics, RecoversTheTrueIntrinsicsFromRenderedImages) {
+  CameraModel cam;
+  CameraIntrinsics& k = cam.intrinsics;
+  k.width = 640;
+  k.height = 480;
+  k.fx = 610;
+  k.fy = 612;
+  k.cx = 326;
+  k.cy = 236;
+  k.k1 = -0.12;
+  k.k2 = 0.03;
+  k.p1 = 0.0005;
+  k.p2 = -0.0004;
+  const int ss = 3;
+  std::vector<Eigen::Vector2f> rays(static_cast<size_t>(k.width) * k.height * ss * ss);
+  for (int y = 0; y < k.height; ++y)
+    for (int x = 0; x < k.width; ++x)
+      for (int s = 0; s < ss * ss; ++s) {
+        const Eigen::Vector2d px(x + ((s % ss) + 0.5) / ss - 0.5, y + ((s / ss) + 0.5) / ss - 0.5);
+        rays[(static_cast<size_t>(y) * k.width + x) * ss * ss + s] = cam.Undistort(px).cast<float>();
+      }
+  CheckerboardOptions opt;  // 9 x 6 inner corners, 30 mm
+  const double sq = opt.square_m;
+  sim::Random rng(5);
+  std::vector<GrayImage> images;
+  for (int i = 0; i < 12; ++i) {
+    // Tilted up to ~35 degrees about random in-plane axes, 0.45-0.7 m away, spread over the image.
+    const double tilt = 0.6 * (0.3 + 0.7 * rng.Uniform());
+    const double axis_angle = rng.Uniform(0, 2 * M_PI);
+    const Eigen::Matrix3d rb =
+        (Eigen::AngleAxisd(rng.Uniform(-0.3, 0.3), Eigen::Vector3d::UnitZ()) *
+         Eigen::AngleAxisd(tilt, Eigen::Vector3d(std::cos(axis_angle), std::sin(axis_angle), 0)))
+            .toRotationMatrix();
+    const double z = rng.Uniform(0.45, 0.7);
+    const Eigen::Vector3d centre(rng.Uniform(-0.12, 0.12) * z / 0.6, rng.Uniform(-0.08, 0.08) * z / 0.6, z);
+    const Eigen::Vector3d board_centre(4 * sq, 2.5 * sq, 0);
+    const Eigen::Vector3d tb = centre - rb * board_centre;
+    images.push_back(RenderBoard(cam, rays, rb, tb, opt.inner_corners_x, opt.inner_corners_y, sq, rng));
+  }
+  CameraIntrinsics est;
+  IntrinsicsSummary summary;
+  const Status s = CalibrateIntrinsics(images, opt, &est, &summary);
+  ASSERT_TRUE(s.ok()) << s.message();
+  std::printf("%s\n  fx %.3f (%.3f) fy %.3f (%.3f) cx %.3f (%.3f) cy %.3f (%.3f) k1 %.5f (%.5f) "
+              "k2 %.5f (%.5f)\n",
+              summary.BriefReport().c_str(), est.fx, k.fx, est.fy, k.fy, est.cx, k.cx, est.cy, k.cy,
+              est.k1, k.k1, est.k2, k.k2);
+  EXPECT_GE(summary.images_used, 10);
+  EXPECT_LT(summary.rms_px, 0.1);
+  EXPECT_NEAR(est.fx, k.fx, 1.5);  // 0.25 %; measured 0.6 px
+  EXPECT_NEAR(est.fy, k.fy, 1.5);
+  EXPECT_NEAR(est.cx, k.cx, 1.0);
+  EXPECT_NEAR(est.cy, k.cy, 1.0);
+  EXPECT_NEAR(est.k1, k.k1, 0.005);
+}
+
+TEST(CheckerboardIntrinsics, NoBoardIsAClearError) {
+  GrayImage blank;
+  blank.width = 320;
+  blank.height = 240;
+  blank.pixels.assign(320 * 240, 128);
+  CameraIntrinsics est;
+  IntrinsicsSummary summary;
+  const Status s = CalibrateIntrinsics(std::vector<GrayImage>(5, blank), {}, &est, &summary);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("board was found in 0 of 5 images"), std::string::npos) << s.message();
 }
 
 }  // namespace
