@@ -644,7 +644,8 @@ Status CalibrateWand(const std::vector<CameraModel>& cameras,
                    solver::LmSummary* lm, Eigen::VectorXd* x_out,
                    std::unique_ptr<WandBundleProblem>* out) -> bool {
     auto problem = std::make_unique<WandBundleProblem>(std::move(start_cams), std::move(fr),
-                                                       offsets, options.refine_intrinsics, 0);
+                                                       offsets, options.refine_intrinsics, 0,
+                                                       cameras);
     Eigen::VectorXd x = problem->InitialState();
     solver::ArrowSchurProblem schur(problem.get(), options.num_threads);
     *lm = solver::Solve(options.lm, &schur, &x);

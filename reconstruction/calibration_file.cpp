@@ -15,7 +15,8 @@ namespace mocap::reconstruction {
 namespace {
 using json = nlohmann::json;
 
-void PutIfKnown(json* j, const char* key, double v) {
+template <typename Json>
+void PutIfKnown(Json* j, const char* key, double v) {
   if (std::isfinite(v)) (*j)[key] = v;
 }
 }  // namespace
@@ -27,6 +28,7 @@ std::vector<CameraModel> CalibrationFile::Models() const {
 }
 
 Status WriteCalibrationJson(const std::string& path, const CalibrationFile& file) {
+  using json = nlohmann::ordered_json;  // fields in the order written, as the header shows
   json doc = {{"format", "mocap-calibration"}, {"version", 1}, {"lab_frame", file.lab_frame}};
   PutIfKnown(&doc, "reprojection_rms_px", file.reprojection_rms_px);
   PutIfKnown(&doc, "wand_length_error_mm_rms", file.wand_length_error_mm_rms);
@@ -185,6 +187,140 @@ Status MatchCalibrationToRig(const CalibrationFile& file, const std::vector<std:
     return Status::Error(msg);
   }
   *ordered = std::move(out);
+  return Status::Ok();
+}
+
+namespace {
+
+json FramesToJson(const std::vector<DetectionSet>& frames) {
+  json out = json::array();
+  for (const DetectionSet& set : frames) {
+    json cams = json::array();
+    for (size_t c = 0; c < set.cameras.size(); ++c) {
+      if (!set.present[c]) {
+        cams.push_back(nullptr);
+        continue;
+      }
+      json pts = json::array();
+      for (const Centroid& ct : set.cameras[c].centroids) pts.push_back({ct.pixel.x(), ct.pixel.y()});
+      cams.push_back(pts);
+    }
+    out.push_back(cams);
+  }
+  return out;
+}
+
+Status FramesFromJson(const JsonFields& r, const json& doc, const char* key, int cameras,
+                      std::vector<DetectionSet>* frames) {
+  if (!doc.contains(key)) return Status::Ok();
+  if (!doc[key].is_array()) return r.Fail(key, "expected an array of frames");
+  const json& arr = doc[key];
+  for (size_t f = 0; f < arr.size(); ++f) {
+    const std::string path = std::string(key) + "[" + std::to_string(f) + "]";
+    const json& jf = arr[f];
+    if (!jf.is_array() || jf.size() != static_cast<size_t>(cameras))
+      return r.Fail(path, "expected one entry per camera (" + std::to_string(cameras) + ")");
+    DetectionSet set;
+    set.sequence = f;
+    set.cameras.resize(cameras);
+    set.present.assign(cameras, true);
+    for (int c = 0; c < cameras; ++c) {
+      set.cameras[c].camera = c;
+      set.cameras[c].sequence = f;
+      if (jf[c].is_null()) {
+        set.present[c] = false;
+        continue;
+      }
+      const std::string cpath = path + "[" + std::to_string(c) + "]";
+      if (!jf[c].is_array()) return r.Fail(cpath, "expected an array of [u, v] or null");
+      for (const json& p : jf[c]) {
+        if (!p.is_array() || p.size() != 2 || !p[0].is_number() || !p[1].is_number())
+          return r.Fail(cpath, "expected [u, v] pairs of numbers");
+        Centroid ct;
+        ct.pixel = {p[0].get<double>(), p[1].get<double>()};
+        if (!ct.pixel.allFinite()) return r.Fail(cpath, "not finite");
+        set.cameras[c].centroids.push_back(ct);
+      }
+    }
+    frames->push_back(std::move(set));
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
+Status WriteWandObservationsJson(const std::string& path, const WandObservations& obs) {
+  json doc = {{"format", "mocap-wand-observations"}, {"version", 1}, {"cameras", obs.camera_ids},
+              {"wand_markers_m", obs.wand.marker_positions_m}};
+  json lf = json::array();
+  for (const Eigen::Vector3d& m : obs.lframe.markers_m) lf.push_back({m.x(), m.y(), m.z()});
+  doc["lframe_markers_m"] = lf;
+  doc["wand_frames"] = FramesToJson(obs.wand_frames);
+  doc["lframe_frames"] = FramesToJson(obs.lframe_frames);
+  std::ofstream f(path, std::ios::binary);
+  if (!f) return Status::Error(path + ": cannot open for writing");
+  f << doc.dump() << "\n";
+  if (!f) return Status::Error(path + ": write failed");
+  return Status::Ok();
+}
+
+Status ReadWandObservationsJson(const std::string& path, WandObservations* out) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return Status::Error(path + ": cannot open");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  json doc;
+  try {
+    doc = json::parse(ss.str());
+  } catch (const json::parse_error& e) {
+    return Status::Error(path + ": not valid JSON: " + e.what());
+  }
+  const JsonFields r(path);
+  if (!doc.is_object()) return r.Fail("", "expected a JSON object");
+  std::string format;
+  MOCAP_RETURN_IF_ERROR(r.String(doc, "", "format", &format));
+  if (format != "mocap-wand-observations")
+    return r.Fail("format", "expected \"mocap-wand-observations\", got \"" + format + "\"");
+  WandObservations obs;
+  MOCAP_RETURN_IF_ERROR(r.Array(doc, "", "cameras"));
+  for (const json& id : doc["cameras"]) {
+    if (!id.is_string() || id.get<std::string>().empty())
+      return r.Fail("cameras", "expected non-empty camera id strings");
+    obs.camera_ids.push_back(id.get<std::string>());
+  }
+  if (obs.camera_ids.size() < 2) return r.Fail("cameras", "needs at least 2 cameras");
+  if (doc.contains("wand_markers_m")) {
+    obs.wand.marker_positions_m.clear();
+    const json& w = doc["wand_markers_m"];
+    if (!w.is_array()) return r.Fail("wand_markers_m", "expected 3 numbers");
+    for (const json& v : w) {
+      if (!v.is_number()) return r.Fail("wand_markers_m", "expected 3 numbers");
+      obs.wand.marker_positions_m.push_back(v.get<double>());
+    }
+  }
+  std::string error;
+  if (!obs.wand.IsValid(&error)) return r.Fail("wand_markers_m", error);
+  if (doc.contains("lframe_markers_m")) {
+    obs.lframe.markers_m.clear();
+    const json& l = doc["lframe_markers_m"];
+    if (!l.is_array()) return r.Fail("lframe_markers_m", "expected an array of [x, y, z]");
+    for (size_t i = 0; i < l.size(); ++i) {
+      Eigen::Vector3d m;
+      bool ok = l[i].is_array() && l[i].size() == 3;
+      for (int k = 0; ok && k < 3; ++k) {
+        ok = l[i][k].is_number();
+        if (ok) m[k] = l[i][k].get<double>();
+      }
+      if (!ok) return r.Fail("lframe_markers_m[" + std::to_string(i) + "]", "expected 3 numbers");
+      obs.lframe.markers_m.push_back(m);
+    }
+  }
+  if (!obs.lframe.IsValid(&error)) return r.Fail("lframe_markers_m", error);
+  const int nc = static_cast<int>(obs.camera_ids.size());
+  MOCAP_RETURN_IF_ERROR(FramesFromJson(r, doc, "wand_frames", nc, &obs.wand_frames));
+  MOCAP_RETURN_IF_ERROR(FramesFromJson(r, doc, "lframe_frames", nc, &obs.lframe_frames));
+  if (obs.wand_frames.empty()) return r.Fail("wand_frames", "no wand frames");
+  *out = std::move(obs);
   return Status::Ok();
 }
 

@@ -21,7 +21,9 @@
 #include <vector>
 
 #include "model/status.h"
+#include "reconstruction/calibration.h"
 #include "reconstruction/camera_model.h"
+#include "reconstruction/centroid.h"
 
 namespace mocap::reconstruction {
 
@@ -54,5 +56,23 @@ Status ParseCalibrationJson(const std::string& text, const std::string& name, Ca
 // calibration lacks or does not know, and a wrong count.
 Status MatchCalibrationToRig(const CalibrationFile& file, const std::vector<std::string>& rig_ids,
                              std::vector<CameraModel>* ordered);
+
+// Wand-calibration input recorded as 2D centroids, so calibration can run from a file:
+//
+//   {"format": "mocap-wand-observations", "version": 1, "cameras": ["id0", "id1", ...],
+//    "wand_markers_m": [0, 0.2, 0.5], "lframe_markers_m": [[x, y, z], ...],
+//    "wand_frames": [[[[u, v], ...] or null, ...one entry per camera], ...],
+//    "lframe_frames": [...same...]}
+//
+// Each frame lists, per camera in "cameras" order, its unlabelled centroids (pixels), or null
+// when that camera's image is missing.
+struct WandObservations {
+  std::vector<std::string> camera_ids;
+  Wand wand;
+  LFrame lframe;
+  std::vector<DetectionSet> wand_frames, lframe_frames;
+};
+Status WriteWandObservationsJson(const std::string& path, const WandObservations& obs);
+Status ReadWandObservationsJson(const std::string& path, WandObservations* obs);
 
 }  // namespace mocap::reconstruction

@@ -42,7 +42,8 @@ void WandFrame::SetDirection(const Eigen::Vector3d& direction) {
 
 WandBundleProblem::WandBundleProblem(std::vector<CameraModel> cameras, std::vector<WandFrame> frames,
                                      std::vector<double> marker_offsets_m, bool refine_intrinsics,
-                                     int fixed_camera)
+                                     int fixed_camera,
+                                     const std::vector<CameraModel>& prior_intrinsics)
     : initial_(std::move(cameras)),
       current_(initial_),
       frames_(std::move(frames)),
@@ -51,29 +52,35 @@ WandBundleProblem::WandBundleProblem(std::vector<CameraModel> cameras, std::vect
   for (const WandFrame& f : frames_) num_observations_ += static_cast<int>(f.observations.size());
   const int nc = static_cast<int>(initial_.size());
   index_.assign(nc, std::vector<int>(kPose + kIntrinsics, -1));
-  std::vector<double> weights, targets;
+  std::vector<double> weights, targets, start;
   for (int c = 0; c < nc; ++c) {
     if (c != fixed_camera)
       for (int j = 0; j < kPose; ++j) {
         index_[c][j] = shared_dim_++;
         weights.push_back(0.0);
         targets.push_back(j < 3 ? 0.0 : initial_[c].t[j - 3]);
+        start.push_back(targets.back());
       }
     if (refine_intrinsics_) {
       const CameraIntrinsics& k = initial_[c].intrinsics;
+      const CameraIntrinsics& kp =
+          prior_intrinsics.size() == initial_.size() ? prior_intrinsics[c].intrinsics : k;
       const double values[kIntrinsics] = {k.fx, k.fy, k.cx, k.cy, k.k1, k.k2};
+      const double priors[kIntrinsics] = {kp.fx, kp.fy, kp.cx, kp.cy, kp.k1, kp.k2};
       // Weak priors: 5% of the focal length, 50 px, 0.2 on the distortion coefficients.
-      const double sigmas[kIntrinsics] = {0.05 * k.fx, 0.05 * k.fy, 50, 50, 0.2, 0.2};
+      const double sigmas[kIntrinsics] = {0.05 * kp.fx, 0.05 * kp.fy, 50, 50, 0.2, 0.2};
       for (int j = 0; j < kIntrinsics; ++j) {
         index_[c][kPose + j] = shared_dim_++;
         weights.push_back(1.0 / sigmas[j]);
         ++prior_rows_;
-        targets.push_back(values[j]);
+        targets.push_back(priors[j]);
+        start.push_back(values[j]);
       }
     }
   }
   prior_weight_ = Eigen::Map<Eigen::VectorXd>(weights.data(), weights.size());
   prior_target_ = Eigen::Map<Eigen::VectorXd>(targets.data(), targets.size());
+  start_ = Eigen::Map<Eigen::VectorXd>(start.data(), start.size());
   left_jacobian_.assign(nc, Eigen::Matrix3d::Identity());
 }
 
@@ -84,7 +91,7 @@ Eigen::VectorXd WandBundleProblem::InitialState() const {
     x.segment<3>(5 * f) = frames_[f].centre;
     x[5 * f + 3] = x[5 * f + 4] = 0.0;
   }
-  x.tail(shared_dim_) = prior_target_;
+  x.tail(shared_dim_) = start_;
   return x;
 }
 

@@ -48,9 +48,11 @@ class WandBundleProblem : public solver::ArrowProblem {
  public:
   static constexpr int kPose = 6, kIntrinsics = 6;
   // marker_offsets_m: each wand marker's position along the wand relative to the wand centre.
+  // prior_intrinsics: where the weak intrinsics priors pull (the intrinsics the calibration
+  // started from, when `cameras` are already refined); empty: the cameras' own.
   WandBundleProblem(std::vector<CameraModel> cameras, std::vector<WandFrame> frames,
                     std::vector<double> marker_offsets_m, bool refine_intrinsics,
-                    int fixed_camera = 0);
+                    int fixed_camera = 0, const std::vector<CameraModel>& prior_intrinsics = {});
 
   int num_frames() const override { return static_cast<int>(frames_.size()); }
   int frame_dim() const override { return 5; }
@@ -85,7 +87,7 @@ class WandBundleProblem : public solver::ArrowProblem {
   int prior_rows_ = 0;
   std::vector<std::vector<int>> index_;  // [camera][12]
   std::vector<Eigen::Matrix3d> left_jacobian_;  // J_l(w) per camera at the last SetShared
-  Eigen::VectorXd prior_weight_, prior_target_;
+  Eigen::VectorXd prior_weight_, prior_target_, start_;
 };
 
 // Rodrigues' formula and the left Jacobian of SO(3).

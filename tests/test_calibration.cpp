@@ -5,6 +5,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 
@@ -77,7 +78,7 @@ void FrameJacobian(WandBundleProblem& problem, int f, const Eigen::VectorXd& x, 
 TEST(WandBundle, JacobiansMatchFiniteDifferences) {
   const std::vector<CameraModel> rig = TrueRig(4);
   sim::WandSimulationOptions so;
-  so.duration_s = 2;
+  so.duration_s = 6;
   so.subsample = 50;
   so.max_strays = 0;
   so.lframe_frames = 0;
@@ -210,9 +211,149 @@ TEST(WandCalibration, EightSimulatedCamerasMeetTheTargets) {
   }
   std::printf("calibration %.2f s; worst position %.3f mm, orientation %.4f deg\n", run.seconds,
               1000 * worst_pos, worst_ang * 180 / M_PI);
+  // The targets of the issue (0.1 px noise per axis gives an RMS error norm of 0.1 sqrt(2)).
   EXPECT_LE(run.summary.reprojection_rms_px, 0.15);
+  EXPECT_GE(run.summary.reprojection_rms_px, 0.12);  // below: the residuals over-fit the noise
   EXPECT_LE(run.summary.wand_length_error_mm_rms, 0.3);
+  EXPECT_LT(std::abs(run.summary.wand_length_error_mm_mean), 0.05);  // metric scale unbiased
   EXPECT_TRUE(run.summary.lab_frame_from_lframe);
+  EXPECT_LT(run.summary.lframe_residual_mm_rms, 0.2);
+  // Seeds 1-7 of `mocap calibrate --simulate` gave at most 0.85 mm and 0.011 deg.
+  EXPECT_LT(1000 * worst_pos, 1.5);
+  EXPECT_LT(worst_ang * 180 / M_PI, 0.02);
+  EXPECT_EQ(run.summary.final_solve.termination, solver::TerminationType::kConvergence);
+  EXPECT_GE(run.summary.wand_frames_used, 550);
+  EXPECT_LT(run.seconds, 10.0);
+}
+
+// Mis-identified wands — the middle centroid 4% of the wand's image length off along the line,
+// so the triple still passes as the wand, in 3% of the images — are found after the first
+// solve, dropped, and the calibration is as good as without them.
+TEST(WandCalibration, CorruptedObservationsAreRejected) {
+  const std::vector<CameraModel> truth = TrueRig(8);
+  sim::WandSimulationOptions so;
+  so.seed = 12;
+  so.duration_s = 20;
+  so.max_strays = 0;  // each image holds the wand only
+  sim::WandSimulation simulation;
+  ASSERT_TRUE(sim::SimulateWand(truth, so, &simulation).ok());
+  sim::Random rng(99);
+  int corrupted = 0;
+  for (DetectionSet& set : simulation.wand_frames)
+    for (CameraDetections& cam : set.cameras) {
+      if (cam.centroids.size() != 3 || rng.Uniform() >= 0.03) continue;
+      // The ends are the farthest pair; the other centroid is the middle one.
+      int mid = 0;
+      double longest = 0;
+      for (int i = 0; i < 3; ++i) {
+        const double d = (cam.centroids[(i + 1) % 3].pixel - cam.centroids[(i + 2) % 3].pixel).norm();
+        if (d > longest) longest = d, mid = i;
+      }
+      const Eigen::Vector2d line =
+          cam.centroids[(mid + 2) % 3].pixel - cam.centroids[(mid + 1) % 3].pixel;
+      cam.centroids[mid].pixel += (rng.Uniform() < 0.5 ? 0.04 : -0.04) * line;
+      ++corrupted;
+    }
+  std::vector<CameraModel> out;
+  WandCalibrationSummary summary;
+  const Status s = CalibrateWand(truth, simulation.wand_frames, simulation.lframe_frames, {}, &out,
+                                 &summary);
+  ASSERT_TRUE(s.ok()) << s.message();
+  std::printf("corrupted %d images; %s\n", corrupted, summary.BriefReport().c_str());
+  std::printf("rejected %d observations\n", summary.rejected_observations);
+  EXPECT_GT(corrupted, 50);
+  // Some corrupted images lose the wand altogether (the shifted ratio leaves the tolerance);
+  // those that pass as a wand must be caught: 71 of 97 here.
+  EXPECT_GT(summary.rejected_observations, corrupted / 2);
+  EXPECT_LE(summary.rejected_observations, corrupted);
+  EXPECT_LE(summary.reprojection_rms_px, 0.15);
+  EXPECT_LE(summary.wand_length_error_mm_rms, 0.35);
+  for (size_t c = 0; c < truth.size(); ++c) {
+    double pos, ang;
+    CameraPoseError(out[c], truth[c], &pos, &ang);
+    EXPECT_LT(1000 * pos, 1.5) << c;
+    EXPECT_LT(ang * 180 / M_PI, 0.02) << c;
+  }
+}
+
+// Starting focal lengths 1% wrong: with the intrinsics refined, the bundle adjustment recovers
+// them; without, the poses absorb the error (tens of mm).
+TEST(WandCalibration, RefinedIntrinsicsRecoverAWrongFocalLength) {
+  const std::vector<CameraModel> truth = TrueRig(8);
+  sim::WandSimulationOptions so;
+  so.seed = 13;
+  sim::WandSimulation simulation;
+  ASSERT_TRUE(sim::SimulateWand(truth, so, &simulation).ok());
+  std::vector<CameraModel> start = truth;
+  sim::Random rng(21);
+  for (CameraModel& c : start) {
+    c.intrinsics.fx *= 1 + 0.01 * rng.Normal();
+    c.intrinsics.fy *= 1 + 0.01 * rng.Normal();
+  }
+  for (bool refine : {false, true}) {
+    WandCalibrationOptions co;
+    co.refine_intrinsics = refine;
+    std::vector<CameraModel> out;
+    WandCalibrationSummary summary;
+    const Status s = CalibrateWand(start, simulation.wand_frames, simulation.lframe_frames, co,
+                                   &out, &summary);
+    ASSERT_TRUE(s.ok()) << s.message();
+    double worst_pos = 0, worst_f = 0, worst_c = 0;
+    for (size_t c = 0; c < truth.size(); ++c) {
+      double pos, ang;
+      CameraPoseError(out[c], truth[c], &pos, &ang);
+      worst_pos = std::max(worst_pos, pos);
+      const CameraIntrinsics &e = out[c].intrinsics, &t = truth[c].intrinsics;
+      worst_f = std::max({worst_f, std::abs(e.fx - t.fx), std::abs(e.fy - t.fy)});
+      worst_c = std::max({worst_c, std::abs(e.cx - t.cx), std::abs(e.cy - t.cy)});
+    }
+    std::printf("refine %d: %s\n  worst position %.2f mm, focal %.2f px, principal point %.2f px\n",
+                refine, summary.BriefReport().c_str(), 1000 * worst_pos, worst_f, worst_c);
+    if (!refine) {
+      EXPECT_GT(summary.reprojection_rms_px, 0.3);
+      EXPECT_GT(1000 * worst_pos, 10.0);
+    } else {
+      EXPECT_LE(summary.reprojection_rms_px, 0.15);
+      EXPECT_LE(summary.wand_length_error_mm_rms, 0.3);
+      // This seed: 0.48 px, 0.92 px, 1.98 mm. `mocap calibrate --simulate --refine-intrinsics
+      // --intrinsics-error 0.01`, seeds 1-5: focal <= 1.41 px, principal point <= 1.26 px,
+      // position <= 5.6 mm (a focal error and a camera's distance trade against each other).
+      EXPECT_LT(worst_f, 2.5);
+      EXPECT_LT(worst_c, 2.5);
+      EXPECT_LT(1000 * worst_pos, 8.0);
+    }
+  }
+}
+
+TEST(WandCalibration, ACameraThatSharesNoWandFramesIsNamed) {
+  const std::vector<CameraModel> rig = TrueRig(4);
+  sim::WandSimulationOptions so;
+  so.duration_s = 5;
+  so.lframe_frames = 0;
+  sim::WandSimulation simulation;
+  ASSERT_TRUE(sim::SimulateWand(rig, so, &simulation).ok());
+  for (DetectionSet& set : simulation.wand_frames) set.cameras[2].centroids.clear();
+  std::vector<CameraModel> out;
+  WandCalibrationSummary summary;
+  const Status s = CalibrateWand(rig, simulation.wand_frames, {}, {}, &out, &summary);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("cameras 'sim-2' (0) share too few wand frames"), std::string::npos)
+      << s.message();
+}
+
+TEST(WandCalibration, DetectionSetsOfAnotherRigAreAClearError) {
+  const std::vector<CameraModel> rig = TrueRig(4);
+  sim::WandSimulationOptions so;
+  so.duration_s = 2;
+  so.lframe_frames = 0;
+  sim::WandSimulation simulation;
+  ASSERT_TRUE(sim::SimulateWand(rig, so, &simulation).ok());
+  std::vector<CameraModel> three(rig.begin(), rig.begin() + 3), out;
+  WandCalibrationSummary summary;
+  const Status s = CalibrateWand(three, simulation.wand_frames, {}, {}, &out, &summary);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("wand frame 0 has 4 camera entries, the rig has 3"), std::string::npos)
+      << s.message();
 }
 
 TEST(WandCalibration, AWandNeverSeenByTwoCamerasIsAClearError) {
@@ -448,6 +589,55 @@ TEST(CheckerboardIntrinsics, NoBoardIsAClearError) {
   const Status s = CalibrateIntrinsics(std::vector<GrayImage>(5, blank), {}, &est, &summary);
   ASSERT_FALSE(s.ok());
   EXPECT_NE(s.message().find("board was found in 0 of 5 images"), std::string::npos) << s.message();
+}
+
+// ---- The command ----
+
+int RunTool(const std::string& command) { return std::system(command.c_str()); }
+
+TEST(CalibrateCommand, SimulatesCalibratesAndWritesAFileThatReadsBack) {
+  const std::string out = TmpPath("cli.json"), obs = TmpPath("cli_obs.json"),
+                    truth = TmpPath("cli_truth.json"), log = TmpPath("cli.log");
+  std::filesystem::remove(out);
+  ASSERT_EQ(RunTool(std::string(MOCAP_TOOL) + " calibrate --simulate --cameras 6 --seed 4 --duration 15 --quiet"
+                " --out " + out + " --save-observations " + obs + " --save-truth " + truth +
+                " > " + log + " 2>&1"), 0);
+  std::ifstream f(log);
+  const std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  EXPECT_NE(text.find("reprojection_rms_px 0.1"), std::string::npos) << text;
+  EXPECT_NE(text.find("wand_length_error_mm_rms"), std::string::npos) << text;
+  EXPECT_NE(text.find("position_error_mm_max"), std::string::npos) << text;
+  CalibrationFile file, reference;
+  ASSERT_TRUE(ReadCalibrationJson(out, &file).ok());
+  ASSERT_TRUE(ReadCalibrationJson(truth, &reference).ok());
+  ASSERT_EQ(file.cameras.size(), 6u);
+  EXPECT_EQ(file.lab_frame, "L-frame");
+  EXPECT_LE(file.reprojection_rms_px, 0.15);
+  for (size_t c = 0; c < 6; ++c) {
+    EXPECT_LT(file.cameras[c].position_error_mm, 2.0);
+    double pos, ang;
+    CameraPoseError(file.cameras[c].camera, reference.cameras[c].camera, &pos, &ang);
+    EXPECT_NEAR(1000 * pos, file.cameras[c].position_error_mm, 1e-6);
+  }
+  // The same centroids from the file give the same calibration.
+  const std::string out2 = TmpPath("cli2.json");
+  ASSERT_EQ(RunTool(std::string(MOCAP_TOOL) + " calibrate --quiet --observations " + obs +
+                " --intrinsics " + truth + " --truth " + truth + " --out " + out2 + " > " + log +
+                " 2>&1"), 0);
+  CalibrationFile again;
+  ASSERT_TRUE(ReadCalibrationJson(out2, &again).ok());
+  for (size_t c = 0; c < 6; ++c)
+    EXPECT_LT((again.cameras[c].camera.centre() - file.cameras[c].camera.centre()).norm(), 1e-9);
+  // Intrinsics of other cameras: refused, naming them.
+  CalibrationFile other = reference;
+  other.cameras.pop_back();
+  const std::string five = TmpPath("cli_five.json");
+  ASSERT_TRUE(WriteCalibrationJson(five, other).ok());
+  EXPECT_EQ(RunTool(std::string(MOCAP_TOOL) + " calibrate --quiet --observations " + obs +
+                " --intrinsics " + five + " --out " + out2 + " > " + log + " 2>&1") >> 8, 2);
+  std::ifstream g(log);
+  const std::string err((std::istreambuf_iterator<char>(g)), std::istreambuf_iterator<char>());
+  EXPECT_NE(err.find("not calibrated: 'sim-5'"), std::string::npos) << err;
 }
 
 }  // namespace
