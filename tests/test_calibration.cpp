@@ -376,6 +376,8 @@ TEST(WandCalibration, AWandNeverSeenByTwoCamerasIsAClearError) {
 
 // ---- The calibration file ----
 
+int RunTool(const std::string& command) { return std::system(command.c_str()); }
+
 std::string TmpPath(const std::string& name) {
   std::filesystem::create_directories(MOCAP_TEST_TMP);
   return std::string(MOCAP_TEST_TMP) + "/calibration_" + name;
@@ -577,6 +579,28 @@ TEST(CheckerboardIntrinsics, RecoversTheTrueIntrinsicsFromRenderedImages) {
   EXPECT_NEAR(est.cx, k.cx, 1.0);
   EXPECT_NEAR(est.cy, k.cy, 1.0);
   EXPECT_NEAR(est.k1, k.k1, 0.005);
+
+  // The same images as files through `mocap calibrate --checkerboard`.
+  std::string files;
+  for (size_t i = 0; i < images.size(); ++i) {
+    const std::string path = TmpPath("board" + std::to_string(i) + ".pgm");
+    std::ofstream f(path, std::ios::binary);
+    f << "P5\n" << images[i].width << " " << images[i].height << "\n255\n";
+    f.write(reinterpret_cast<const char*>(images[i].pixels.data()),
+            static_cast<std::streamsize>(images[i].pixels.size()));
+    files += " " + path;
+  }
+  const std::string out = TmpPath("board.json");
+  ASSERT_EQ(RunTool(std::string(MOCAP_TOOL) + " calibrate --checkerboard" + files +
+                    " --camera-id cam-7 --board 9x6 --square-mm 30 --out " + out + " > " +
+                    TmpPath("board.log") + " 2>&1"),
+            0);
+  CalibrationFile file;
+  ASSERT_TRUE(ReadCalibrationJson(out, &file).ok());
+  ASSERT_EQ(file.cameras.size(), 1u);
+  EXPECT_EQ(file.cameras[0].camera.id, "cam-7");
+  EXPECT_NEAR(file.cameras[0].camera.intrinsics.fx, est.fx, 1e-6);
+  EXPECT_NEAR(file.cameras[0].camera.intrinsics.k1, est.k1, 1e-9);
 }
 
 TEST(CheckerboardIntrinsics, NoBoardIsAClearError) {
@@ -592,8 +616,6 @@ TEST(CheckerboardIntrinsics, NoBoardIsAClearError) {
 }
 
 // ---- The command ----
-
-int RunTool(const std::string& command) { return std::system(command.c_str()); }
 
 TEST(CalibrateCommand, SimulatesCalibratesAndWritesAFileThatReadsBack) {
   const std::string out = TmpPath("cli.json"), obs = TmpPath("cli_obs.json"),

@@ -3,9 +3,13 @@
 //   mocap calibrate --simulate [--cameras N] [--seed N] --out CAL.json
 //       simulates an operator waving the wand through the true rig (sim/camera_rig.h,
 //       sim/wand.h) and laying the L-frame, calibrates, and compares with the truth.
-//   mocap calibrate --observations OBS.json --intrinsics CAMS.json --out CAL.json [--truth T.json]
+//   mocap calibrate --observations OBS.json --intrinsics CAMS.json... --out CAL.json [--truth T.json]
 //       calibrates from recorded 2D centroids (--save-observations writes that file from a
 //       simulation; --save-truth writes the true rig as a calibration file).
+//   mocap calibrate --checkerboard IMAGE... --camera-id ID [--board 9x6] [--square-mm 30]
+//       --out CAM.json
+//       one camera's intrinsics from checkerboard images (reconstruction/calibration_intrinsics.h),
+//       written as a one-camera calibration file (pose: identity) for --intrinsics.
 //
 // Prints the reprojection RMS, the wand-length error and, where the truth is known, every
 // camera's position (mm) and orientation (deg) error — in the lab frame the L-frame defines, no
@@ -19,6 +23,7 @@
 
 #include "reconstruction/calibration.h"
 #include "reconstruction/calibration_file.h"
+#include "reconstruction/calibration_intrinsics.h"
 #include "sim/camera_rig.h"
 #include "sim/random.h"
 #include "sim/wand.h"
@@ -33,7 +38,12 @@ struct CalibrateArgs {
   int cameras = 8;
   std::uint64_t seed = 1;
   std::string out;
-  std::string observations, intrinsics, truth, save_observations, save_truth;
+  std::string observations, truth, save_observations, save_truth;
+  std::vector<std::string> intrinsics;
+  std::vector<std::string> checkerboard;
+  std::string camera_id = "camera";
+  std::string board = "9x6";
+  double square_mm = 30.0;
   double noise_px = 0.1;
   double duration_s = 30.0;
   int strays = 2;
@@ -57,9 +67,60 @@ std::vector<rc::CameraModel> InCameraZeroFrame(std::vector<rc::CameraModel> rig)
   return rig;
 }
 
+int RunCheckerboard(const CalibrateArgs& args) {
+  rc::CheckerboardOptions options;
+  char x = 0;
+  if (std::sscanf(args.board.c_str(), "%d%c%d", &options.inner_corners_x, &x,
+                  &options.inner_corners_y) != 3 ||
+      x != 'x') {
+    spdlog::error("mocap calibrate: --board {}: expected inner corners as COLSxROWS, e.g. 9x6",
+                  args.board);
+    return 2;
+  }
+  options.square_m = args.square_mm / 1000.0;
+  std::string error;
+  if (!options.IsValid(&error)) {
+    spdlog::error("mocap calibrate: {}", error);
+    return 2;
+  }
+  rc::CalibratedCamera cc;
+  cc.camera.id = args.camera_id;
+  rc::IntrinsicsSummary summary;
+  if (mocap::Status s = rc::CalibrateIntrinsicsFromFiles(args.checkerboard, options,
+                                                         &cc.camera.intrinsics, &summary);
+      !s) {
+    spdlog::error("mocap calibrate: {}", s.message());
+    return 1;
+  }
+  for (int i : summary.rejected)
+    spdlog::warn("{}: no {} board found; image left out", args.checkerboard[i], args.board);
+  const rc::CameraIntrinsics& k = cc.camera.intrinsics;
+  std::printf("%s\nfx %.3f fy %.3f cx %.3f cy %.3f k1 %.6f k2 %.6f p1 %.6f p2 %.6f k3 %.6f\n",
+              summary.BriefReport().c_str(), k.fx, k.fy, k.cx, k.cy, k.k1, k.k2, k.p1, k.p2, k.k3);
+  cc.reprojection_rms_px = summary.rms_px;
+  rc::CalibrationFile file;
+  file.lab_frame = "none (intrinsics only)";
+  file.cameras.push_back(cc);
+  if (mocap::Status s = rc::WriteCalibrationJson(args.out, file); !s) {
+    spdlog::error("mocap calibrate: {}", s.message());
+    return 1;
+  }
+  spdlog::info("wrote {}", args.out);
+  return 0;
+}
+
 int RunCalibrate(const CalibrateArgs& args) {
+  if (!args.checkerboard.empty()) {
+    if (args.simulate || !args.observations.empty()) {
+      spdlog::error("mocap calibrate: --checkerboard calibrates intrinsics alone; it does not "
+                    "combine with --simulate or --observations");
+      return 2;
+    }
+    return RunCheckerboard(args);
+  }
   if (args.simulate == !args.observations.empty()) {
-    spdlog::error("mocap calibrate: give either --simulate or --observations OBS.json");
+    spdlog::error("mocap calibrate: give one of --simulate, --observations OBS.json or "
+                  "--checkerboard IMAGE...");
     return 2;
   }
   std::vector<rc::CameraModel> start, truth;
@@ -136,15 +197,29 @@ int RunCalibrate(const CalibrateArgs& args) {
       return 2;
     }
     if (args.intrinsics.empty()) {
-      spdlog::error("mocap calibrate: --observations needs --intrinsics CAMS.json (a calibration "
-                    "file whose intrinsics start the calibration)");
+      spdlog::error("mocap calibrate: --observations needs --intrinsics CAMS.json... (calibration "
+                    "files whose intrinsics start the calibration)");
       return 2;
     }
+    // The cameras of every --intrinsics file, together (one file per camera, as --checkerboard
+    // writes them, or one for the rig).
     rc::CalibrationFile intr;
-    mocap::Status s = rc::ReadCalibrationJson(args.intrinsics, &intr);
+    mocap::Status s;
+    for (const std::string& path : args.intrinsics) {
+      rc::CalibrationFile one;
+      if (s = rc::ReadCalibrationJson(path, &one); !s) break;
+      for (const rc::CalibratedCamera& c : one.cameras) {
+        for (const rc::CalibratedCamera& d : intr.cameras)
+          if (d.camera.id == c.camera.id)
+            s = mocap::Status::Error(path + ": camera '" + c.camera.id +
+                                     "' is also in an earlier --intrinsics file");
+        intr.cameras.push_back(c);
+      }
+      if (!s) break;
+    }
     if (s) s = rc::MatchCalibrationToRig(intr, obs.camera_ids, &start);
     if (!s) {
-      spdlog::error("mocap calibrate: --intrinsics {}: {}", args.intrinsics, s.message());
+      spdlog::error("mocap calibrate: --intrinsics: {}", s.message());
       return 2;
     }
     if (!args.truth.empty()) {
@@ -261,7 +336,17 @@ void SetupCalibrate(CLI::App& app, int* exit_code) {
   cmd->add_option("--observations", args->observations,
                   "Calibrate from recorded 2D centroids (mocap-wand-observations JSON)");
   cmd->add_option("--intrinsics", args->intrinsics,
-                  "Calibration file whose intrinsics start the calibration (with --observations)");
+                  "Calibration files whose intrinsics start the calibration (with --observations)");
+  cmd->add_option("--checkerboard", args->checkerboard,
+                  "Checkerboard images of one camera: calibrate its intrinsics")
+      ->check(CLI::ExistingFile);
+  cmd->add_option("--camera-id", args->camera_id, "With --checkerboard: the camera's id")
+      ->capture_default_str();
+  cmd->add_option("--board", args->board, "With --checkerboard: inner corners, COLSxROWS")
+      ->capture_default_str();
+  cmd->add_option("--square-mm", args->square_mm, "With --checkerboard: square size (mm)")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   cmd->add_option("--truth", args->truth,
                   "Calibration file to compare with (with --observations)");
   cmd->add_option("--save-observations", args->save_observations,
