@@ -541,10 +541,10 @@ Status CalibrateWand(const std::vector<CameraModel>& cameras,
         int most = 0;
         for (int a = 0; a < nc; ++a)
           if (in_tree[a]) most = std::max(most, shared(a, c));
-        missing += (missing.empty() ? "" : ", ") + ("'" + cameras[c].id + "' (" +
-                                                    std::to_string(most) + ")");
+        missing += (missing.empty() ? "" : ", ") + ("'" + cameras[c].id + "' (at most " +
+                                                    std::to_string(most) + " shared)");
       }
-      return fail("cameras " + missing + " share too few wand frames with camera '" +
+      return fail("camera(s) " + missing + " share too few wand frames with camera '" +
                   cameras[0].id + "' and the cameras linked to it (need " +
                   std::to_string(options.min_shared_frames) +
                   " with one of them): wave the wand where their views overlap");

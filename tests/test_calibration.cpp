@@ -337,7 +337,25 @@ TEST(WandCalibration, ACameraThatSharesNoWandFramesIsNamed) {
   WandCalibrationSummary summary;
   const Status s = CalibrateWand(rig, simulation.wand_frames, {}, {}, &out, &summary);
   ASSERT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("cameras 'sim-2' (0) share too few wand frames"), std::string::npos)
+  EXPECT_NE(s.message().find("camera(s) 'sim-2' (at most 0 shared) share too few wand frames"), std::string::npos)
+      << s.message();
+}
+
+// An L-frame whose markers are not where the options say: refused, not silently misaligned.
+TEST(WandCalibration, AnLFrameOfTheWrongLayoutIsAClearError) {
+  const std::vector<CameraModel> rig = TrueRig(8);
+  sim::WandSimulationOptions so;
+  so.duration_s = 10;
+  so.lframe.markers_m = {{0, 0, 0}, {0.25, 0, 0}, {0.6, 0, 0}, {0, 0.4, 0}};  // 0.25, not 0.2
+  sim::WandSimulation simulation;
+  ASSERT_TRUE(sim::SimulateWand(rig, so, &simulation).ok());
+  std::vector<CameraModel> out;
+  WandCalibrationSummary summary;
+  const Status s = CalibrateWand(rig, simulation.wand_frames, simulation.lframe_frames, {}, &out,
+                                 &summary);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("L-frame: no 4 of the 4 reconstructed points match its marker layout"),
+            std::string::npos)
       << s.message();
 }
 
@@ -469,6 +487,46 @@ TEST(CalibrationFile, BadFilesGetClearErrors) {
   const Status missing = ReadCalibrationJson(TmpPath("does_not_exist.json"), &f);
   ASSERT_FALSE(missing.ok());
   EXPECT_NE(missing.message().find("cannot open"), std::string::npos);
+}
+
+TEST(CalibrationFile, WandObservationsRoundTripAndBadOnesAreNamed) {
+  const std::vector<CameraModel> rig = TrueRig(3);
+  sim::WandSimulationOptions so;
+  so.duration_s = 1;
+  so.lframe_frames = 2;
+  so.dropout = 0.3;
+  sim::WandSimulation simulation;
+  ASSERT_TRUE(sim::SimulateWand(rig, so, &simulation).ok());
+  WandObservations obs;
+  obs.camera_ids = {"a", "b", "c"};
+  obs.wand_frames = simulation.wand_frames;
+  obs.lframe_frames = simulation.lframe_frames;
+  const std::string path = TmpPath("obs.json");
+  ASSERT_TRUE(WriteWandObservationsJson(path, obs).ok());
+  WandObservations back;
+  const Status s = ReadWandObservationsJson(path, &back);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ASSERT_EQ(back.wand_frames.size(), obs.wand_frames.size());
+  ASSERT_EQ(back.lframe_frames.size(), 2u);
+  int absent = 0;
+  for (size_t f = 0; f < obs.wand_frames.size(); ++f)
+    for (int c = 0; c < 3; ++c) {
+      EXPECT_EQ(back.wand_frames[f].present[c], obs.wand_frames[f].present[c]);
+      absent += !obs.wand_frames[f].present[c];
+      ASSERT_EQ(back.wand_frames[f].cameras[c].centroids.size(),
+                obs.wand_frames[f].cameras[c].centroids.size());
+      for (size_t i = 0; i < obs.wand_frames[f].cameras[c].centroids.size(); ++i)
+        EXPECT_EQ(back.wand_frames[f].cameras[c].centroids[i].pixel,
+                  obs.wand_frames[f].cameras[c].centroids[i].pixel);
+    }
+  EXPECT_GT(absent, 0);
+  const std::string bad = TmpPath("obs_bad.json");
+  std::ofstream(bad) << R"({"format": "mocap-wand-observations", "version": 1, "cameras": ["a", "b"],
+    "wand_frames": [[[[1, 2]], null], [[[1, 2]]]]})";
+  const Status e = ReadWandObservationsJson(bad, &back);
+  ASSERT_FALSE(e.ok());
+  EXPECT_NE(e.message().find("wand_frames[1]: expected one entry per camera (2)"), std::string::npos)
+      << e.message();
 }
 
 TEST(CalibrationFile, ACalibrationOfOtherCamerasIsRefused) {
