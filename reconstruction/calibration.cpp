@@ -2,9 +2,9 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
-#include <array>
 #include <cstdio>
 #include <functional>
 #include <memory>
@@ -38,7 +38,8 @@ bool Wand::IsValid(std::string* error) const {
   if (marker_positions_m.size() != 3) return fail("needs exactly 3 markers");
   for (double v : marker_positions_m)
     if (!std::isfinite(v)) return fail("a marker position is not finite");
-  if (!(marker_positions_m[0] < marker_positions_m[1] && marker_positions_m[1] < marker_positions_m[2]))
+  if (!(marker_positions_m[0] < marker_positions_m[1] &&
+        marker_positions_m[1] < marker_positions_m[2]))
     return fail("marker positions must increase along the wand");
   if (!(length_m() > 0.05 && length_m() < 5.0)) return fail("length must be in (0.05, 5) m");
   const double r = middle_ratio();
@@ -75,8 +76,9 @@ bool WandIdentificationOptions::IsValid(std::string* error) const {
   if (!(collinearity_px > 0) || !(ratio_tolerance > 0 && ratio_tolerance < 0.2) ||
       !(min_separation_px >= 0)) {
     if (error)
-      *error = "wand identification: need collinearity_px > 0, ratio_tolerance in (0, 0.2), "
-               "min_separation_px >= 0";
+      *error =
+          "wand identification: need collinearity_px > 0, ratio_tolerance in (0, 0.2), "
+          "min_separation_px >= 0";
     return false;
   }
   return true;
@@ -216,15 +218,16 @@ double RigidAlign(const std::vector<Eigen::Vector3d>& a, const std::vector<Eigen
 bool PairPose(const CameraModel& ca, const CameraModel& cb,
               const std::vector<std::array<Eigen::Vector2d, 3>>& xa,
               const std::vector<std::array<Eigen::Vector2d, 3>>& xb, const Wand& wand,
-              double ransac_threshold_px, Eigen::Matrix3d* r, Eigen::Vector3d* t, std::string* why) {
+              double ransac_threshold_px, Eigen::Matrix3d* r, Eigen::Vector3d* t,
+              std::string* why) {
   std::vector<cv::Point2d> pa, pb;
   for (size_t f = 0; f < xa.size(); ++f)
     for (int k = 0; k < 3; ++k) {
       pa.emplace_back(xa[f][k].x(), xa[f][k].y());
       pb.emplace_back(xb[f][k].x(), xb[f][k].y());
     }
-  const double focal = 0.25 * (ca.intrinsics.fx + ca.intrinsics.fy + cb.intrinsics.fx +
-                               cb.intrinsics.fy);
+  const double focal =
+      0.25 * (ca.intrinsics.fx + ca.intrinsics.fy + cb.intrinsics.fx + cb.intrinsics.fy);
   cv::Mat mask;
   cv::Mat e = cv::findEssentialMat(pa, pb, 1.0, cv::Point2d(0, 0), cv::RANSAC, 0.9999,
                                    ransac_threshold_px / focal, mask);
@@ -411,15 +414,16 @@ double TotalRms(const std::vector<ObsStats>& s) {
 
 std::string WandCalibrationSummary::BriefReport() const {
   char buf[512];
-  std::snprintf(buf, sizeof(buf),
-                "Wand calibration: %s, %d cameras, %d/%d wand frames used, reprojection RMS %.4f px "
-                "(initial %.2f px), wand length error RMS %.4f mm (mean %+.4f mm), lab frame: %s, "
-                "%.2f s%s%s",
-                termination == CalibrationTermination::kSuccess ? "SUCCESS" : "FAILURE",
-                static_cast<int>(cameras.size()), wand_frames_used, wand_frames_total,
-                reprojection_rms_px, initial_reprojection_rms_px, wand_length_error_mm_rms,
-                wand_length_error_mm_mean, lab_frame_from_lframe ? "L-frame" : "camera 0",
-                seconds, message.empty() ? "" : ": ", message.c_str());
+  std::snprintf(
+      buf, sizeof(buf),
+      "Wand calibration: %s, %d cameras, %d/%d wand frames used, reprojection RMS %.4f px "
+      "(initial %.2f px), wand length error RMS %.4f mm (mean %+.4f mm), lab frame: %s, "
+      "%.2f s%s%s",
+      termination == CalibrationTermination::kSuccess ? "SUCCESS" : "FAILURE",
+      static_cast<int>(cameras.size()), wand_frames_used, wand_frames_total, reprojection_rms_px,
+      initial_reprojection_rms_px, wand_length_error_mm_rms, wand_length_error_mm_mean,
+      lab_frame_from_lframe ? "L-frame" : "camera 0", seconds, message.empty() ? "" : ": ",
+      message.c_str());
   return buf;
 }
 
@@ -512,8 +516,8 @@ Status CalibrateWand(const std::vector<CameraModel>& cameras,
     int once = 0;
     for (int v : seen_once) once += v;
     return fail("the wand was never seen by two cameras at once in " +
-                std::to_string(wand_frames.size()) + " wand frames (identified by a single camera in " +
-                std::to_string(once) +
+                std::to_string(wand_frames.size()) +
+                " wand frames (identified by a single camera in " + std::to_string(once) +
                 " frames): wave it where the cameras' views overlap");
   }
 
@@ -541,8 +545,8 @@ Status CalibrateWand(const std::vector<CameraModel>& cameras,
         int most = 0;
         for (int a = 0; a < nc; ++a)
           if (in_tree[a]) most = std::max(most, shared(a, c));
-        missing += (missing.empty() ? "" : ", ") + ("'" + cameras[c].id + "' (at most " +
-                                                    std::to_string(most) + " shared)");
+        missing += (missing.empty() ? "" : ", ") +
+                   ("'" + cameras[c].id + "' (at most " + std::to_string(most) + " shared)");
       }
       return fail("camera(s) " + missing + " share too few wand frames with camera '" +
                   cameras[0].id + "' and the cameras linked to it (need " +
@@ -643,9 +647,8 @@ Status CalibrateWand(const std::vector<CameraModel>& cameras,
   auto solve = [&](std::vector<CameraModel> start_cams, std::vector<WandFrame> fr,
                    solver::LmSummary* lm, Eigen::VectorXd* x_out,
                    std::unique_ptr<WandBundleProblem>* out) -> bool {
-    auto problem = std::make_unique<WandBundleProblem>(std::move(start_cams), std::move(fr),
-                                                       offsets, options.refine_intrinsics, 0,
-                                                       cameras);
+    auto problem = std::make_unique<WandBundleProblem>(
+        std::move(start_cams), std::move(fr), offsets, options.refine_intrinsics, 0, cameras);
     Eigen::VectorXd x = problem->InitialState();
     solver::ArrowSchurProblem schur(problem.get(), options.num_threads);
     *lm = solver::Solve(options.lm, &schur, &x);
@@ -737,8 +740,10 @@ Status CalibrateWand(const std::vector<CameraModel>& cameras,
     const std::vector<Eigen::Vector3d>& model = options.lframe.markers_m;
     const int m = static_cast<int>(model.size()), np = static_cast<int>(points.size());
     if (np < m)
-      return fail("L-frame: " + std::to_string(np) + " points reconstructed (seen by >= 3 cameras), "
-                  "the L-frame has " + std::to_string(m) + " markers");
+      return fail("L-frame: " + std::to_string(np) +
+                  " points reconstructed (seen by >= 3 cameras), "
+                  "the L-frame has " +
+                  std::to_string(m) + " markers");
     if (np > 10)
       return fail("L-frame: " + std::to_string(np) +
                   " points reconstructed, more than 10: the static frames must show the L-frame "

@@ -77,9 +77,9 @@ struct LFrame {
 // Finds the wand in one image's centroids. Returns false if no triple, or more than one, matches
 // (ambiguous: the image is better left out). *markers gets the wand's markers in Wand order.
 struct WandIdentificationOptions {
-  double collinearity_px = 2.0;   // distance of the middle centroid from the line of the ends
-  double ratio_tolerance = 0.06;  // |measured middle ratio - wand's|
-  double min_separation_px = 4.0; // centroids closer than this may be merged blobs
+  double collinearity_px = 2.0;    // distance of the middle centroid from the line of the ends
+  double ratio_tolerance = 0.06;   // |measured middle ratio - wand's|
+  double min_separation_px = 4.0;  // centroids closer than this may be merged blobs
   bool IsValid(std::string* error) const;
 };
 bool IdentifyWand(const std::vector<Centroid>& centroids, const Wand& wand,
@@ -91,7 +91,7 @@ struct WandCalibrationOptions {
   WandIdentificationOptions identification;
   // Pairs sharing fewer wand frames get no essential matrix of their own.
   int min_shared_frames = 12;
-  double ransac_threshold_px = 1.0;     // essential-matrix RANSAC, in pixels (of the mean focal)
+  double ransac_threshold_px = 1.0;  // essential-matrix RANSAC, in pixels (of the mean focal)
   // After the first solve, observations with a marker error above
   // max(outlier_min_px, outlier_sigmas * RMS) are dropped and the problem is solved again.
   double outlier_min_px = 1.0;
@@ -113,9 +113,9 @@ struct WandCalibrationOptions {
 // One camera's share of the result.
 struct CameraCalibrationStats {
   std::string id;
-  int wand_frames = 0;            // wand frames in which it took part in the final solve
-  int rejected = 0;               // its observations dropped as outliers
-  double reprojection_rms_px = 0; // RMS of the 2D reprojection error norm, final solve
+  int wand_frames = 0;             // wand frames in which it took part in the final solve
+  int rejected = 0;                // its observations dropped as outliers
+  double reprojection_rms_px = 0;  // RMS of the 2D reprojection error norm, final solve
 };
 
 enum class CalibrationTermination { kSuccess, kFailure };
@@ -132,12 +132,12 @@ struct WandCalibrationSummary {
   std::vector<int> tree_shared_frames;    // shared frames on each edge
   solver::LmSummary first_solve, final_solve;
   std::vector<CameraCalibrationStats> cameras;
-  double reprojection_rms_px = 0;         // RMS of 2D error norm over every observation
-  double initial_reprojection_rms_px = 0; // before the bundle adjustment (chained poses)
-  double wand_length_error_mm_rms = 0;    // free triangulation, end-to-end distance - true length
+  double reprojection_rms_px = 0;          // RMS of 2D error norm over every observation
+  double initial_reprojection_rms_px = 0;  // before the bundle adjustment (chained poses)
+  double wand_length_error_mm_rms = 0;     // free triangulation, end-to-end distance - true length
   double wand_length_error_mm_mean = 0;
-  bool lab_frame_from_lframe = false;     // false: the frame of camera 0
-  double lframe_residual_mm_rms = 0;      // triangulated L-frame vs its model, after alignment
+  bool lab_frame_from_lframe = false;  // false: the frame of camera 0
+  double lframe_residual_mm_rms = 0;   // triangulated L-frame vs its model, after alignment
   double seconds = 0;
 
   std::string BriefReport() const;

@@ -39,8 +39,8 @@ Status WriteCalibrationJson(const std::string& path, const CalibrationFile& file
     const CameraModel& c = cc.camera;
     const CameraIntrinsics& k = c.intrinsics;
     json j = {{"id", c.id}, {"width", k.width}, {"height", k.height}, {"fx", k.fx},
-              {"fy", k.fy}, {"cx", k.cx},         {"cy", k.cy},         {"k1", k.k1},
-              {"k2", k.k2}, {"p1", k.p1},         {"p2", k.p2},         {"k3", k.k3}};
+              {"fy", k.fy}, {"cx", k.cx},       {"cy", k.cy},         {"k1", k.k1},
+              {"k2", k.k2}, {"p1", k.p1},       {"p2", k.p2},         {"k3", k.k3}};
     json r = json::array();
     for (int i = 0; i < 3; ++i) r.push_back({c.R(i, 0), c.R(i, 1), c.R(i, 2)});
     j["R"] = r;
@@ -67,7 +67,8 @@ Status ReadCalibrationJson(const std::string& path, CalibrationFile* file) {
   return ParseCalibrationJson(ss.str(), path, file);
 }
 
-Status ParseCalibrationJson(const std::string& text, const std::string& name, CalibrationFile* out) {
+Status ParseCalibrationJson(const std::string& text, const std::string& name,
+                            CalibrationFile* out) {
   json doc;
   try {
     doc = json::parse(text);
@@ -140,9 +141,8 @@ Status ParseCalibrationJson(const std::string& text, const std::string& name, Ca
     const double orth = (c.R.transpose() * c.R - Eigen::Matrix3d::Identity()).norm();
     if (orth > 1e-6 || c.R.determinant() < 0) {
       char buf[128];
-      std::snprintf(buf, sizeof(buf),
-                    "not a rotation matrix (|R^T R - I| = %.3g, det = %.6f)", orth,
-                    c.R.determinant());
+      std::snprintf(buf, sizeof(buf), "not a rotation matrix (|R^T R - I| = %.3g, det = %.6f)",
+                    orth, c.R.determinant());
       return r.Fail(path + ".R", buf);
     }
     MOCAP_RETURN_IF_ERROR(r.Vec3(j, path, "t", &c.t));
@@ -202,7 +202,8 @@ json FramesToJson(const std::vector<DetectionSet>& frames) {
         continue;
       }
       json pts = json::array();
-      for (const Centroid& ct : set.cameras[c].centroids) pts.push_back({ct.pixel.x(), ct.pixel.y()});
+      for (const Centroid& ct : set.cameras[c].centroids)
+        pts.push_back({ct.pixel.x(), ct.pixel.y()});
       cams.push_back(pts);
     }
     out.push_back(cams);
@@ -250,7 +251,9 @@ Status FramesFromJson(const JsonFields& r, const json& doc, const char* key, int
 }  // namespace
 
 Status WriteWandObservationsJson(const std::string& path, const WandObservations& obs) {
-  json doc = {{"format", "mocap-wand-observations"}, {"version", 1}, {"cameras", obs.camera_ids},
+  json doc = {{"format", "mocap-wand-observations"},
+              {"version", 1},
+              {"cameras", obs.camera_ids},
               {"wand_markers_m", obs.wand.marker_positions_m}};
   json lf = json::array();
   for (const Eigen::Vector3d& m : obs.lframe.markers_m) lf.push_back({m.x(), m.y(), m.z()});

@@ -3,9 +3,9 @@
 // it. JSON:
 //
 //   {"format": "mocap-calibration", "version": 1, "lab_frame": "L-frame" | "camera 0",
-//    "reprojection_rms_px": 0.13, "wand_length_error_mm_rms": 0.26, "wand_length_error_mm_mean": 0.0,
-//    "wand_markers_m": [0, 0.2, 0.5],
-//    "cameras": [{"id": "sim-0", "width": 1280, "height": 1024, "fx": .., "fy": .., "cx": ..,
+//    "reprojection_rms_px": 0.13, "wand_length_error_mm_rms": 0.26, "wand_length_error_mm_mean":
+//    0.0, "wand_markers_m": [0, 0.2, 0.5], "cameras": [{"id": "sim-0", "width": 1280, "height":
+//    1024, "fx": .., "fy": .., "cx": ..,
 //                 "cy": .., "k1": .., "k2": .., "p1": .., "p2": .., "k3": ..,
 //                 "R": [[..], [..], [..]], "t": [.., .., ..],
 //                 "reprojection_rms_px": .., "wand_frames": ..,
@@ -32,7 +32,7 @@ struct CalibratedCamera {
   static constexpr double kNone = std::numeric_limits<double>::quiet_NaN();
   double reprojection_rms_px = kNone;  // NaN: not known (not written)
   int wand_frames = 0;
-  double position_error_mm = kNone;    // against the truth, simulations only
+  double position_error_mm = kNone;  // against the truth, simulations only
   double orientation_error_deg = kNone;
 };
 
@@ -50,7 +50,8 @@ struct CalibrationFile {
 Status WriteCalibrationJson(const std::string& path, const CalibrationFile& file);
 Status ReadCalibrationJson(const std::string& path, CalibrationFile* file);
 // Parses a document already in memory; `name` stands for the file in error messages.
-Status ParseCalibrationJson(const std::string& text, const std::string& name, CalibrationFile* file);
+Status ParseCalibrationJson(const std::string& text, const std::string& name,
+                            CalibrationFile* file);
 
 // Orders the calibrated cameras as `rig_ids` (the cameras present). Errors name the cameras the
 // calibration lacks or does not know, and a wrong count.

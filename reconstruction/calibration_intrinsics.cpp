@@ -71,8 +71,8 @@ Status CalibrateIntrinsics(const std::vector<GrayImage>& images, const Checkerbo
   summary->images_used = static_cast<int>(corners.size());
   if (summary->images_used < options.min_images)
     return Status::Error("checkerboard intrinsics: the " + std::to_string(options.inner_corners_x) +
-                         " x " + std::to_string(options.inner_corners_y) +
-                         " board was found in " + std::to_string(summary->images_used) + " of " +
+                         " x " + std::to_string(options.inner_corners_y) + " board was found in " +
+                         std::to_string(summary->images_used) + " of " +
                          std::to_string(images.size()) + " images, need " +
                          std::to_string(options.min_images));
   int flags = 0;
@@ -80,8 +80,8 @@ Status CalibrateIntrinsics(const std::vector<GrayImage>& images, const Checkerbo
   if (options.fix_tangential) flags |= cv::CALIB_ZERO_TANGENT_DIST;
   cv::Mat k, dist;
   std::vector<cv::Mat> rvecs, tvecs;
-  summary->rms_px = cv::calibrateCamera(objects, corners, cv::Size(w, h), k, dist, rvecs, tvecs,
-                                        flags);
+  summary->rms_px =
+      cv::calibrateCamera(objects, corners, cv::Size(w, h), k, dist, rvecs, tvecs, flags);
   CameraIntrinsics out;
   out.width = w;
   out.height = h;
@@ -95,7 +95,8 @@ Status CalibrateIntrinsics(const std::vector<GrayImage>& images, const Checkerbo
   out.p1 = d[2];
   out.p2 = d[3];
   out.k3 = dist.total() > 4 ? d[4] : 0.0;
-  if (!out.IsValid(&error)) return Status::Error("checkerboard intrinsics: result invalid: " + error);
+  if (!out.IsValid(&error))
+    return Status::Error("checkerboard intrinsics: result invalid: " + error);
   *intrinsics = out;
   return Status::Ok();
 }

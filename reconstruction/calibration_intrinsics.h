@@ -3,10 +3,12 @@
 // of the image gradient), then Zhang's method — a closed-form start from the homographies of the
 // planar board, refined by Levenberg–Marquardt over intrinsics, distortion and every board pose
 // (Z. Zhang, "A flexible new technique for camera calibration", IEEE PAMI 22(11), 2000; through
-// cv::calibrateCamera). The result is in OpenCV's parameters, which camera_model.h uses as they are.
+// cv::calibrateCamera). The result is in OpenCV's parameters, which camera_model.h uses as they
+// are.
 //
 // The board must fill much of the image in some views and be tilted in others: a fronto-parallel
-// board leaves the focal length and the board's distance interchangeable (Zhang §3.3).
+// board leaves the focal length and the board's distance interchangeable (Zhang's degenerate
+// configurations).
 #pragma once
 
 #include <cstdint>
@@ -25,12 +27,12 @@ struct GrayImage {
 };
 
 struct CheckerboardOptions {
-  int inner_corners_x = 9;     // inner corners along a row (squares - 1)
+  int inner_corners_x = 9;  // inner corners along a row (squares - 1)
   int inner_corners_y = 6;
   double square_m = 0.03;
-  int subpixel_window = 5;     // half size of cornerSubPix's window, pixels
-  bool fix_k3 = true;          // k3 is rarely determined by a board and then absorbs noise
-  bool fix_tangential = false; // p1 = p2 = 0
+  int subpixel_window = 5;      // half size of cornerSubPix's window, pixels
+  bool fix_k3 = true;           // k3 is rarely determined by a board and then absorbs noise
+  bool fix_tangential = false;  // p1 = p2 = 0
   int min_images = 5;
 
   bool IsValid(std::string* error) const;

@@ -40,7 +40,8 @@ void WandFrame::SetDirection(const Eigen::Vector3d& direction) {
   e2 = d0.cross(e1);
 }
 
-WandBundleProblem::WandBundleProblem(std::vector<CameraModel> cameras, std::vector<WandFrame> frames,
+WandBundleProblem::WandBundleProblem(std::vector<CameraModel> cameras,
+                                     std::vector<WandFrame> frames,
                                      std::vector<double> marker_offsets_m, bool refine_intrinsics,
                                      int fixed_camera,
                                      const std::vector<CameraModel>& prior_intrinsics)
@@ -148,8 +149,9 @@ class WandFrameEvaluator : public solver::FrameEvaluator {
     for (const WandFrame& f : problem.frames_)
       most = std::max(most, static_cast<int>(f.observations.size()));
     const int blocks = 3 * most;
-    const int np = problem.refine_intrinsics_ ? WandBundleProblem::kPose + WandBundleProblem::kIntrinsics
-                                              : WandBundleProblem::kPose;
+    const int np = problem.refine_intrinsics_
+                       ? WandBundleProblem::kPose + WandBundleProblem::kIntrinsics
+                       : WandBundleProblem::kPose;
     np_ = np;
     blocks_.resize(blocks);
     residual_.resize(3 * blocks);

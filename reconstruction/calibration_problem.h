@@ -16,7 +16,7 @@
 //       reprojection error in pixels (camera_model.h's OpenCV distortion).
 //
 // Jacobians are analytic: d exp(w) v / dw = -[exp(w) v]_x J_l(w), J_l the left Jacobian of SO(3)
-// (Barfoot, "State Estimation for Robotics", §7.1.3); the rest is the chain rule through
+// (Barfoot, "State Estimation for Robotics", 2017, ch. 7); the rest is the chain rule through
 // CameraModel::ProjectCameraPoint.
 #pragma once
 
@@ -85,7 +85,7 @@ class WandBundleProblem : public solver::ArrowProblem {
   int num_observations_ = 0;
   int shared_dim_ = 0;
   int prior_rows_ = 0;
-  std::vector<std::vector<int>> index_;  // [camera][12]
+  std::vector<std::vector<int>> index_;         // [camera][12]
   std::vector<Eigen::Matrix3d> left_jacobian_;  // J_l(w) per camera at the last SetShared
   Eigen::VectorXd prior_weight_, prior_target_, start_;
 };

@@ -64,7 +64,8 @@ reconstruction::CameraDetections Detect(const reconstruction::CameraModel& cam, 
       }
     blobs.push_back(sum / n);
   }
-  for (Eigen::Vector2d& b : blobs) b += o.noise_px * Eigen::Vector2d(noise.Normal(), noise.Normal());
+  for (Eigen::Vector2d& b : blobs)
+    b += o.noise_px * Eigen::Vector2d(noise.Normal(), noise.Normal());
   const int ns = o.max_strays > 0 ? strays.UniformInt(0, o.max_strays) : 0;
   for (int s = 0; s < ns; ++s)
     blobs.emplace_back(strays.Uniform(0, cam.intrinsics.width - 1),

@@ -26,14 +26,14 @@ namespace mocap::sim {
 struct WandSimulationOptions {
   double duration_s = 30.0;
   double rate_hz = 100.0;
-  int subsample = 5;               // keep every n-th frame (30 s at 100 Hz -> 600 frames)
+  int subsample = 5;  // keep every n-th frame (30 s at 100 Hz -> 600 frames)
   Eigen::Vector3d volume_centre_m = {0.0, 0.0, 1.0};
   Eigen::Vector3d volume_half_size_m = {1.0, 1.0, 0.8};  // the wand centre stays inside
-  double noise_px = 0.1;           // centroid noise, standard deviation per image axis
-  double merge_px = 3.0;           // marker images closer than this merge into one centroid
-  double dropout = 0.01;           // probability that a camera's image of a frame is lost
-  int max_strays = 2;              // stray centroids per image: uniform in [0, max_strays]
-  int lframe_frames = 50;          // static frames of the L-frame (0: none)
+  double noise_px = 0.1;   // centroid noise, standard deviation per image axis
+  double merge_px = 3.0;   // marker images closer than this merge into one centroid
+  double dropout = 0.01;   // probability that a camera's image of a frame is lost
+  int max_strays = 2;      // stray centroids per image: uniform in [0, max_strays]
+  int lframe_frames = 50;  // static frames of the L-frame (0: none)
   reconstruction::Wand wand;
   reconstruction::LFrame lframe;
   std::uint64_t seed = 1;

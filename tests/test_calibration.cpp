@@ -100,7 +100,8 @@ TEST(WandBundle, JacobiansMatchFiniteDifferences) {
     }
     if (fr.observations.size() < 2) continue;
     const auto& tm = simulation.wand_markers[f];
-    fr.SetDirection(tm[2] - tm[0] + 0.05 * Eigen::Vector3d(rng.Normal(), rng.Normal(), rng.Normal()));
+    fr.SetDirection(tm[2] - tm[0] +
+                    0.05 * Eigen::Vector3d(rng.Normal(), rng.Normal(), rng.Normal()));
     fr.centre = (tm[0] + tm[1] + tm[2]) / 3.0;
     frames.push_back(fr);
   }
@@ -111,7 +112,8 @@ TEST(WandBundle, JacobiansMatchFiniteDifferences) {
     // Away from the start: non-zero chart coordinates and rotation vectors.
     for (int i = 0; i < x.size() - problem.shared_dim(); ++i) x[i] += 0.01 * rng.Normal();
     for (int c = 1; c < 4; ++c)
-      for (int j = 0; j < 3; ++j) x[x.size() - problem.shared_dim() + problem.shared_index(c, j)] += 0.05 * rng.Normal();
+      for (int j = 0; j < 3; ++j)
+        x[x.size() - problem.shared_dim() + problem.shared_index(c, j)] += 0.05 * rng.Normal();
     for (int f = 0; f < problem.num_frames(); ++f) {
       Eigen::MatrixXd ja, jn;
       Eigen::VectorXd ra, rn;
@@ -246,7 +248,8 @@ TEST(WandCalibration, CorruptedObservationsAreRejected) {
       int mid = 0;
       double longest = 0;
       for (int i = 0; i < 3; ++i) {
-        const double d = (cam.centroids[(i + 1) % 3].pixel - cam.centroids[(i + 2) % 3].pixel).norm();
+        const double d =
+            (cam.centroids[(i + 1) % 3].pixel - cam.centroids[(i + 2) % 3].pixel).norm();
         if (d > longest) longest = d, mid = i;
       }
       const Eigen::Vector2d line =
@@ -256,8 +259,8 @@ TEST(WandCalibration, CorruptedObservationsAreRejected) {
     }
   std::vector<CameraModel> out;
   WandCalibrationSummary summary;
-  const Status s = CalibrateWand(truth, simulation.wand_frames, simulation.lframe_frames, {}, &out,
-                                 &summary);
+  const Status s =
+      CalibrateWand(truth, simulation.wand_frames, simulation.lframe_frames, {}, &out, &summary);
   ASSERT_TRUE(s.ok()) << s.message();
   std::printf("corrupted %d images; %s\n", corrupted, summary.BriefReport().c_str());
   std::printf("rejected %d observations\n", summary.rejected_observations);
@@ -295,8 +298,8 @@ TEST(WandCalibration, RefinedIntrinsicsRecoverAWrongFocalLength) {
     co.refine_intrinsics = refine;
     std::vector<CameraModel> out;
     WandCalibrationSummary summary;
-    const Status s = CalibrateWand(start, simulation.wand_frames, simulation.lframe_frames, co,
-                                   &out, &summary);
+    const Status s =
+        CalibrateWand(start, simulation.wand_frames, simulation.lframe_frames, co, &out, &summary);
     ASSERT_TRUE(s.ok()) << s.message();
     double worst_pos = 0, worst_f = 0, worst_c = 0;
     for (size_t c = 0; c < truth.size(); ++c) {
@@ -337,7 +340,8 @@ TEST(WandCalibration, ACameraThatSharesNoWandFramesIsNamed) {
   WandCalibrationSummary summary;
   const Status s = CalibrateWand(rig, simulation.wand_frames, {}, {}, &out, &summary);
   ASSERT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("camera(s) 'sim-2' (at most 0 shared) share too few wand frames"), std::string::npos)
+  EXPECT_NE(s.message().find("camera(s) 'sim-2' (at most 0 shared) share too few wand frames"),
+            std::string::npos)
       << s.message();
 }
 
@@ -351,8 +355,8 @@ TEST(WandCalibration, AnLFrameOfTheWrongLayoutIsAClearError) {
   ASSERT_TRUE(sim::SimulateWand(rig, so, &simulation).ok());
   std::vector<CameraModel> out;
   WandCalibrationSummary summary;
-  const Status s = CalibrateWand(rig, simulation.wand_frames, simulation.lframe_frames, {}, &out,
-                                 &summary);
+  const Status s =
+      CalibrateWand(rig, simulation.wand_frames, simulation.lframe_frames, {}, &out, &summary);
   ASSERT_FALSE(s.ok());
   EXPECT_NE(s.message().find("L-frame: no 4 of the 4 reconstructed points match its marker layout"),
             std::string::npos)
@@ -389,7 +393,8 @@ TEST(WandCalibration, AWandNeverSeenByTwoCamerasIsAClearError) {
   WandCalibrationSummary summary;
   const Status s = CalibrateWand(rig, simulation.wand_frames, {}, {}, &out, &summary);
   ASSERT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("never seen by two cameras at once"), std::string::npos) << s.message();
+  EXPECT_NE(s.message().find("never seen by two cameras at once"), std::string::npos)
+      << s.message();
 }
 
 // ---- The calibration file ----
@@ -466,7 +471,8 @@ TEST(CalibrationFile, BadFilesGetClearErrors) {
   ASSERT_TRUE(ParseCalibrationJson(OneCamera(), "cal.json", &f).ok());
   ExpectError("{\"format\": \"mocap-calibration\", ", "not valid JSON");
   ExpectError("[1, 2]", "expected a JSON object");
-  ExpectError(OneCamera("mocap-calibration", "mocap-model"), "format: expected \"mocap-calibration\"");
+  ExpectError(OneCamera("mocap-calibration", "mocap-model"),
+              "format: expected \"mocap-calibration\"");
   ExpectError(OneCamera("\"version\": 1", "\"version\": 7"), "version: unsupported");
   ExpectError(OneCamera("\"fx\": 1000", "\"fx\": \"big\""), "cameras[0].fx: expected a number");
   ExpectError(OneCamera("\"fy\": 1000", "\"fy\": -3"), "cameras[0]: fx and fy must be positive");
@@ -521,11 +527,13 @@ TEST(CalibrationFile, WandObservationsRoundTripAndBadOnesAreNamed) {
     }
   EXPECT_GT(absent, 0);
   const std::string bad = TmpPath("obs_bad.json");
-  std::ofstream(bad) << R"({"format": "mocap-wand-observations", "version": 1, "cameras": ["a", "b"],
+  std::ofstream(bad)
+      << R"({"format": "mocap-wand-observations", "version": 1, "cameras": ["a", "b"],
     "wand_frames": [[[[1, 2]], null], [[[1, 2]]]]})";
   const Status e = ReadWandObservationsJson(bad, &back);
   ASSERT_FALSE(e.ok());
-  EXPECT_NE(e.message().find("wand_frames[1]: expected one entry per camera (2)"), std::string::npos)
+  EXPECT_NE(e.message().find("wand_frames[1]: expected one entry per camera (2)"),
+            std::string::npos)
       << e.message();
 }
 
@@ -567,10 +575,12 @@ GrayImage RenderBoard(const CameraModel& cam, const std::vector<Eigen::Vector2f>
         double v = 90;  // background
         if (std::abs(dn) > 1e-9 && nt / dn > 0) {
           const Eigen::Vector3d b = rb.transpose() * (nt / dn * d - tb);
-          if (b.x() > -2 * sq && b.x() < (nx + 1) * sq && b.y() > -2 * sq && b.y() < (ny + 1) * sq) {
+          if (b.x() > -2 * sq && b.x() < (nx + 1) * sq && b.y() > -2 * sq &&
+              b.y() < (ny + 1) * sq) {
             v = 220;  // white margin
             if (b.x() > -sq && b.x() < nx * sq && b.y() > -sq && b.y() < ny * sq) {
-              const int i = static_cast<int>(std::floor(b.x() / sq)), j = static_cast<int>(std::floor(b.y() / sq));
+              const int i = static_cast<int>(std::floor(b.x() / sq)),
+                        j = static_cast<int>(std::floor(b.y() / sq));
               if (((i + j) & 1) == 0) v = 30;
             }
           }
@@ -578,7 +588,8 @@ GrayImage RenderBoard(const CameraModel& cam, const std::vector<Eigen::Vector2f>
         sum += v;
       }
       const double g = sum / (ss * ss) + 2.0 * rng.Normal();
-      im.pixels[static_cast<size_t>(y) * w + x] = static_cast<std::uint8_t>(std::clamp(g, 0.0, 255.0));
+      im.pixels[static_cast<size_t>(y) * w + x] =
+          static_cast<std::uint8_t>(std::clamp(g, 0.0, 255.0));
     }
   return im;
 }
@@ -602,7 +613,8 @@ TEST(CheckerboardIntrinsics, RecoversTheTrueIntrinsicsFromRenderedImages) {
     for (int x = 0; x < k.width; ++x)
       for (int s = 0; s < ss * ss; ++s) {
         const Eigen::Vector2d px(x + ((s % ss) + 0.5) / ss - 0.5, y + ((s / ss) + 0.5) / ss - 0.5);
-        rays[(static_cast<size_t>(y) * k.width + x) * ss * ss + s] = cam.Undistort(px).cast<float>();
+        rays[(static_cast<size_t>(y) * k.width + x) * ss * ss + s] =
+            cam.Undistort(px).cast<float>();
       }
   CheckerboardOptions opt;  // 9 x 6 inner corners, 30 mm
   const double sq = opt.square_m;
@@ -617,19 +629,22 @@ TEST(CheckerboardIntrinsics, RecoversTheTrueIntrinsicsFromRenderedImages) {
          Eigen::AngleAxisd(tilt, Eigen::Vector3d(std::cos(axis_angle), std::sin(axis_angle), 0)))
             .toRotationMatrix();
     const double z = rng.Uniform(0.45, 0.7);
-    const Eigen::Vector3d centre(rng.Uniform(-0.12, 0.12) * z / 0.6, rng.Uniform(-0.08, 0.08) * z / 0.6, z);
+    const Eigen::Vector3d centre(rng.Uniform(-0.12, 0.12) * z / 0.6,
+                                 rng.Uniform(-0.08, 0.08) * z / 0.6, z);
     const Eigen::Vector3d board_centre(4 * sq, 2.5 * sq, 0);
     const Eigen::Vector3d tb = centre - rb * board_centre;
-    images.push_back(RenderBoard(cam, rays, rb, tb, opt.inner_corners_x, opt.inner_corners_y, sq, rng));
+    images.push_back(
+        RenderBoard(cam, rays, rb, tb, opt.inner_corners_x, opt.inner_corners_y, sq, rng));
   }
   CameraIntrinsics est;
   IntrinsicsSummary summary;
   const Status s = CalibrateIntrinsics(images, opt, &est, &summary);
   ASSERT_TRUE(s.ok()) << s.message();
-  std::printf("%s\n  fx %.3f (%.3f) fy %.3f (%.3f) cx %.3f (%.3f) cy %.3f (%.3f) k1 %.5f (%.5f) "
-              "k2 %.5f (%.5f)\n",
-              summary.BriefReport().c_str(), est.fx, k.fx, est.fy, k.fy, est.cx, k.cx, est.cy, k.cy,
-              est.k1, k.k1, est.k2, k.k2);
+  std::printf(
+      "%s\n  fx %.3f (%.3f) fy %.3f (%.3f) cx %.3f (%.3f) cy %.3f (%.3f) k1 %.5f (%.5f) "
+      "k2 %.5f (%.5f)\n",
+      summary.BriefReport().c_str(), est.fx, k.fx, est.fy, k.fy, est.cx, k.cx, est.cy, k.cy, est.k1,
+      k.k1, est.k2, k.k2);
   EXPECT_GE(summary.images_used, 10);
   EXPECT_LT(summary.rms_px, 0.1);
   EXPECT_NEAR(est.fx, k.fx, 1.5);  // 0.25 %; measured 0.6 px
@@ -679,9 +694,12 @@ TEST(CalibrateCommand, SimulatesCalibratesAndWritesAFileThatReadsBack) {
   const std::string out = TmpPath("cli.json"), obs = TmpPath("cli_obs.json"),
                     truth = TmpPath("cli_truth.json"), log = TmpPath("cli.log");
   std::filesystem::remove(out);
-  ASSERT_EQ(RunTool(std::string(MOCAP_TOOL) + " calibrate --simulate --cameras 6 --seed 4 --duration 15 --quiet"
-                " --out " + out + " --save-observations " + obs + " --save-truth " + truth +
-                " > " + log + " 2>&1"), 0);
+  ASSERT_EQ(RunTool(std::string(MOCAP_TOOL) +
+                    " calibrate --simulate --cameras 6 --seed 4 --duration 15 --quiet"
+                    " --out " +
+                    out + " --save-observations " + obs + " --save-truth " + truth + " > " + log +
+                    " 2>&1"),
+            0);
   std::ifstream f(log);
   const std::string text((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
   EXPECT_NE(text.find("reprojection_rms_px 0.1"), std::string::npos) << text;
@@ -702,8 +720,9 @@ TEST(CalibrateCommand, SimulatesCalibratesAndWritesAFileThatReadsBack) {
   // The same centroids from the file give the same calibration.
   const std::string out2 = TmpPath("cli2.json");
   ASSERT_EQ(RunTool(std::string(MOCAP_TOOL) + " calibrate --quiet --observations " + obs +
-                " --intrinsics " + truth + " --truth " + truth + " --out " + out2 + " > " + log +
-                " 2>&1"), 0);
+                    " --intrinsics " + truth + " --truth " + truth + " --out " + out2 + " > " +
+                    log + " 2>&1"),
+            0);
   CalibrationFile again;
   ASSERT_TRUE(ReadCalibrationJson(out2, &again).ok());
   for (size_t c = 0; c < 6; ++c)
@@ -714,7 +733,9 @@ TEST(CalibrateCommand, SimulatesCalibratesAndWritesAFileThatReadsBack) {
   const std::string five = TmpPath("cli_five.json");
   ASSERT_TRUE(WriteCalibrationJson(five, other).ok());
   EXPECT_EQ(RunTool(std::string(MOCAP_TOOL) + " calibrate --quiet --observations " + obs +
-                " --intrinsics " + five + " --out " + out2 + " > " + log + " 2>&1") >> 8, 2);
+                    " --intrinsics " + five + " --out " + out2 + " > " + log + " 2>&1") >>
+                8,
+            2);
   std::ifstream g(log);
   const std::string err((std::istreambuf_iterator<char>(g)), std::istreambuf_iterator<char>());
   EXPECT_NE(err.find("not calibrated: 'sim-5'"), std::string::npos) << err;

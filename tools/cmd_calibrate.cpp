@@ -3,7 +3,8 @@
 //   mocap calibrate --simulate [--cameras N] [--seed N] --out CAL.json
 //       simulates an operator waving the wand through the true rig (sim/camera_rig.h,
 //       sim/wand.h) and laying the L-frame, calibrates, and compares with the truth.
-//   mocap calibrate --observations OBS.json --intrinsics CAMS.json... --out CAL.json [--truth T.json]
+//   mocap calibrate --observations OBS.json --intrinsics CAMS.json... --out CAL.json [--truth
+//   T.json]
 //       calibrates from recorded 2D centroids (--save-observations writes that file from a
 //       simulation; --save-truth writes the true rig as a calibration file).
 //   mocap calibrate --checkerboard IMAGE... --camera-id ID [--board 9x6] [--square-mm 30]
@@ -112,15 +113,17 @@ int RunCheckerboard(const CalibrateArgs& args) {
 int RunCalibrate(const CalibrateArgs& args) {
   if (!args.checkerboard.empty()) {
     if (args.simulate || !args.observations.empty()) {
-      spdlog::error("mocap calibrate: --checkerboard calibrates intrinsics alone; it does not "
-                    "combine with --simulate or --observations");
+      spdlog::error(
+          "mocap calibrate: --checkerboard calibrates intrinsics alone; it does not "
+          "combine with --simulate or --observations");
       return 2;
     }
     return RunCheckerboard(args);
   }
   if (args.simulate == !args.observations.empty()) {
-    spdlog::error("mocap calibrate: give one of --simulate, --observations OBS.json or "
-                  "--checkerboard IMAGE...");
+    spdlog::error(
+        "mocap calibrate: give one of --simulate, --observations OBS.json or "
+        "--checkerboard IMAGE...");
     return 2;
   }
   std::vector<rc::CameraModel> start, truth;
@@ -163,10 +166,11 @@ int RunCalibrate(const CalibrateArgs& args) {
         c.intrinsics.fy *= 1 + args.intrinsics_error * rng.Normal();
       }
     }
-    spdlog::info("simulated {} cameras (seed {}), {} wand frames over {:.0f} s, {} L-frame frames, "
-                 "noise {} px",
-                 truth.size(), args.seed, wand_frames.size(), args.duration_s, lframe_frames.size(),
-                 args.noise_px);
+    spdlog::info(
+        "simulated {} cameras (seed {}), {} wand frames over {:.0f} s, {} L-frame frames, "
+        "noise {} px",
+        truth.size(), args.seed, wand_frames.size(), args.duration_s, lframe_frames.size(),
+        args.noise_px);
     if (!args.save_observations.empty()) {
       rc::WandObservations obs;
       for (const rc::CameraModel& c : truth) obs.camera_ids.push_back(c.id);
@@ -197,8 +201,9 @@ int RunCalibrate(const CalibrateArgs& args) {
       return 2;
     }
     if (args.intrinsics.empty()) {
-      spdlog::error("mocap calibrate: --observations needs --intrinsics CAMS.json... (calibration "
-                    "files whose intrinsics start the calibration)");
+      spdlog::error(
+          "mocap calibrate: --observations needs --intrinsics CAMS.json... (calibration "
+          "files whose intrinsics start the calibration)");
       return 2;
     }
     // The cameras of every --intrinsics file, together (one file per camera, as --checkerboard
@@ -248,8 +253,8 @@ int RunCalibrate(const CalibrateArgs& args) {
     });
   std::vector<rc::CameraModel> calibrated;
   rc::WandCalibrationSummary summary;
-  if (mocap::Status s = rc::CalibrateWand(start, wand_frames, lframe_frames, options, &calibrated,
-                                          &summary);
+  if (mocap::Status s =
+          rc::CalibrateWand(start, wand_frames, lframe_frames, options, &calibrated, &summary);
       !s) {
     spdlog::error("mocap calibrate: {}", s.message());
     return 1;
@@ -295,9 +300,10 @@ int RunCalibrate(const CalibrateArgs& args) {
       worst_a = std::max(worst_a, a * 180 / M_PI);
       ss_p += 1e6 * p * p;
     }
-    std::printf("position_error_mm_max %.3f\nposition_error_mm_rms %.3f\norientation_error_deg_max "
-                "%.4f\n",
-                worst_p, std::sqrt(ss_p / e.size()), worst_a);
+    std::printf(
+        "position_error_mm_max %.3f\nposition_error_mm_rms %.3f\norientation_error_deg_max "
+        "%.4f\n",
+        worst_p, std::sqrt(ss_p / e.size()), worst_a);
   }
   if (mocap::Status s = rc::WriteCalibrationJson(args.out, file); !s) {
     spdlog::error("mocap calibrate: {}", s.message());
@@ -310,7 +316,8 @@ int RunCalibrate(const CalibrateArgs& args) {
 void SetupCalibrate(CLI::App& app, int* exit_code) {
   auto args = std::make_shared<CalibrateArgs>();
   CLI::App* cmd = app.add_subcommand(
-      "calibrate", "Calibrate the camera rig by wand waving (simulated or from recorded centroids)");
+      "calibrate",
+      "Calibrate the camera rig by wand waving (simulated or from recorded centroids)");
   cmd->add_option("--out", args->out, "Calibration file to write (JSON)")->required();
   cmd->add_flag("--simulate", args->simulate,
                 "Simulate the wand waving through a simulated rig and compare with its truth");
@@ -347,14 +354,12 @@ void SetupCalibrate(CLI::App& app, int* exit_code) {
   cmd->add_option("--square-mm", args->square_mm, "With --checkerboard: square size (mm)")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
-  cmd->add_option("--truth", args->truth,
-                  "Calibration file to compare with (with --observations)");
+  cmd->add_option("--truth", args->truth, "Calibration file to compare with (with --observations)");
   cmd->add_option("--save-observations", args->save_observations,
                   "Simulation: also write the 2D centroids (input of --observations)");
   cmd->add_option("--save-truth", args->save_truth,
                   "Simulation: also write the true rig as a calibration file");
-  cmd->add_flag("--no-lframe", args->no_lframe,
-                "Ignore the L-frame: the lab frame is camera 0's");
+  cmd->add_flag("--no-lframe", args->no_lframe, "Ignore the L-frame: the lab frame is camera 0's");
   cmd->add_flag("--refine-intrinsics", args->refine_intrinsics,
                 "Also refine fx, fy, cx, cy, k1, k2 of every camera in the bundle adjustment");
   cmd->add_option("--threads", args->threads, "Threads of the bundle adjustment")
