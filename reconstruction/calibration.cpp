@@ -666,6 +666,8 @@ Status CalibrateWand(const std::vector<CameraModel>& cameras,
   Eigen::VectorXd x;
   if (!solve(init, started, &summary->first_solve, &x, &problem))
     return fail("bundle adjustment failed: " + summary->first_solve.message);
+  if (summary->first_solve.termination == solver::TerminationType::kUserCancelled)
+    return fail("cancelled during the bundle adjustment");
   ObservationErrors(*problem, x, &worst, &per_camera);
   const double rms1 = TotalRms(per_camera);
   const double threshold = std::max(options.outlier_min_px, options.outlier_sigmas * rms1);
@@ -692,6 +694,8 @@ Status CalibrateWand(const std::vector<CameraModel>& cameras,
   std::vector<CameraModel> solved = problem->cameras();
   if (!solve(solved, std::move(kept), &summary->final_solve, &x, &problem))
     return fail("bundle adjustment failed: " + summary->final_solve.message);
+  if (summary->final_solve.termination == solver::TerminationType::kUserCancelled)
+    return fail("cancelled during the bundle adjustment");
   ObservationErrors(*problem, x, &worst, &per_camera);
   std::vector<CameraModel> result = problem->cameras();
 

@@ -98,6 +98,8 @@ struct WandCalibrationOptions {
   double outlier_sigmas = 6.0;
   // Also refine each camera's fx, fy, cx, cy, k1, k2 (from intrinsics that are close already).
   bool refine_intrinsics = false;
+  // The bundle adjustment's solver options; its callbacks report progress, and one returning
+  // false cancels the calibration (an error saying so).
   solver::LmOptions lm = DefaultLm();
   int num_threads = 1;
 

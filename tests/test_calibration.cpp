@@ -345,6 +345,24 @@ TEST(WandCalibration, ACameraThatSharesNoWandFramesIsNamed) {
       << s.message();
 }
 
+TEST(WandCalibration, ACallbackCancelsIt) {
+  const std::vector<CameraModel> rig = TrueRig(4);
+  sim::WandSimulationOptions so;
+  so.duration_s = 10;
+  so.lframe_frames = 0;
+  sim::WandSimulation simulation;
+  ASSERT_TRUE(sim::SimulateWand(rig, so, &simulation).ok());
+  WandCalibrationOptions co;
+  int calls = 0;
+  co.lm.callbacks.push_back([&](const solver::IterationSummary&) { return ++calls < 2; });
+  std::vector<CameraModel> out;
+  WandCalibrationSummary summary;
+  const Status s = CalibrateWand(rig, simulation.wand_frames, {}, co, &out, &summary);
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(calls, 2);
+  EXPECT_NE(s.message().find("cancelled"), std::string::npos) << s.message();
+}
+
 // An L-frame whose markers are not where the options say: refused, not silently misaligned.
 TEST(WandCalibration, AnLFrameOfTheWrongLayoutIsAClearError) {
   const std::vector<CameraModel> rig = TrueRig(8);
