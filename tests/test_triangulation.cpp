@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <functional>
 #include <new>
 #include <numeric>
 
@@ -77,6 +78,8 @@ struct SceneOptions {
   double hide = 0.0;  // fraction of 2D observations hidden
   int strays = 3;     // stray reflections per camera, uniform over the image
   std::uint64_t seed = 1;
+  // If set, whether marker m may be seen by camera c at all (before hiding).
+  std::function<bool(int camera, int marker)> visible;
 };
 
 // One frame set: every marker projected through every camera (dropped behind the camera or
@@ -108,6 +111,7 @@ Scene MakeScene(const std::vector<CameraModel>& rig, const std::vector<Eigen::Ve
         continue;
       }
       if (rng.Uniform() < o.hide) continue;
+      if (o.visible && !o.visible(c, static_cast<int>(m))) continue;
       Centroid k;
       k.pixel = uv + o.noise_px * Eigen::Vector2d(rng.Normal(), rng.Normal());
       k.sigma_px = std::max(o.noise_px, 0.01);
@@ -346,6 +350,250 @@ TEST(Triangulation, SimulatedSubjectMeetsTargets) { ExpectTargets(0.0, "all obse
 
 TEST(Triangulation, SimulatedSubjectWithOcclusionMeetsTargets) {
   ExpectTargets(0.2, "20% hidden");
+}
+
+// A marker seen by exactly two cameras is reconstructed from them, for every pair of the rig,
+// among the other markers and the strays.
+TEST(Triangulation, MarkerSeenByTwoCamerasIsReconstructed) {
+  const auto rig = Rig();
+  const auto t = Make(rig, LabOptions());
+  TriangulationWorkspace ws;
+  std::vector<TriangulatedPoint> points;
+  const auto& frames = SubjectFrames();
+  const int nc = static_cast<int>(rig.size());
+  int cases = 0;
+  for (int a = 0; a < nc; ++a) {
+    for (int b = a + 1; b < nc; ++b) {
+      for (int marker : {3, 17, 30}) {
+        const size_t f = (a * nc + b) * 5 % frames.size();
+        SceneOptions so;
+        so.visible = [&](int c, int m) { return m != marker || c == a || c == b; };
+        const Scene scene = MakeScene(rig, frames[f], so, f + 1000);
+        if (scene.observed[marker].size() != 2) continue;  // outside one of the two images
+        ++cases;
+        ASSERT_TRUE(t->Triangulate(scene.set, &ws, &points).ok());
+        const TriangulatedPoint* found = nullptr;
+        for (const TriangulatedPoint& p : points) {
+          if ((p.position - frames[f][marker]).norm() < 5e-3) found = &p;
+        }
+        ASSERT_NE(found, nullptr) << "marker " << marker << " cameras " << a << ", " << b;
+        EXPECT_EQ(found->camera_count, 2);
+        EXPECT_EQ(found->views[0].camera, a);
+        EXPECT_EQ(found->views[1].camera, b);
+        EXPECT_EQ(scene.label[a][found->views[0].centroid], marker);
+        EXPECT_EQ(scene.label[b][found->views[1].centroid], marker);
+      }
+    }
+  }
+  EXPECT_GT(cases, 70);
+}
+
+// An absent camera's detections are not looked at: the result is the one without them, and no
+// point has a view in it (even when they hold garbage, or NaN).
+TEST(Triangulation, AbsentCameraIsIgnored) {
+  const auto rig = Rig();
+  const auto t = Make(rig, LabOptions());
+  TriangulationWorkspace ws;
+  std::vector<TriangulatedPoint> with_garbage, without;
+  TriangulationSummary summary;
+  const auto& frames = SubjectFrames();
+  for (size_t f = 0; f < frames.size(); f += 40) {
+    Scene scene = MakeScene(rig, frames[f], SceneOptions{}, f);
+    const int absent = static_cast<int>(f % rig.size());
+    Scene empty = scene;
+    empty.set.cameras[absent].centroids.clear();
+    ASSERT_TRUE(t->Triangulate(empty.set, &ws, &without).ok());
+    scene.set.present[absent] = false;
+    for (Centroid& k : scene.set.cameras[absent].centroids) k.pixel += Eigen::Vector2d(0.3, -0.2);
+    scene.set.cameras[absent].centroids[0].pixel.x() = std::nan("");
+    const Status s = t->Triangulate(scene.set, &ws, &with_garbage, &summary);
+    ASSERT_TRUE(s.ok()) << s.message();
+    EXPECT_EQ(summary.cameras_used, static_cast<int>(rig.size()) - 1);
+    ASSERT_EQ(with_garbage.size(), without.size());
+    for (size_t i = 0; i < without.size(); ++i) {
+      EXPECT_EQ(with_garbage[i].position, without[i].position);
+      for (int v = 0; v < with_garbage[i].camera_count; ++v) {
+        EXPECT_NE(with_garbage[i].views[v].camera, absent);
+      }
+    }
+  }
+}
+
+// Two centroids whose rays meet behind one of the cameras are not a point (the epipolar
+// constraint cannot tell: it holds for the lines, not the half-lines).
+TEST(Triangulation, PointBehindACameraIsNotProduced) {
+  const auto rig = Rig();
+  const auto t = Make(rig);
+  TriangulationWorkspace ws;
+  std::vector<TriangulatedPoint> points;
+  TriangulationSummary summary;
+  int cases = 0, controls = 0;
+  for (int b = 0; b < static_cast<int>(rig.size()); ++b) {
+    // 1.5 m behind camera b, where its pinhole still maps it inside the image (flipped).
+    const Eigen::Vector3d behind_c(0.15, 0.1, -1.5);
+    const Eigen::Vector3d x = rig[b].R.transpose() * (behind_c - rig[b].t);
+    const Eigen::Vector2d uv_b = rig[b].ProjectCameraPoint(behind_c);
+    ASSERT_TRUE(uv_b.x() > 0 && uv_b.x() < 1279 && uv_b.y() > 0 && uv_b.y() < 1023);
+    for (int a = 0; a < static_cast<int>(rig.size()); ++a) {
+      Eigen::Vector2d uv_a;
+      if (a == b || !rig[a].Project(x, &uv_a)) continue;
+      if (uv_a.x() < 0 || uv_a.x() > 1279 || uv_a.y() < 0 || uv_a.y() > 1023) continue;
+      ++cases;
+      DetectionSet set;
+      set.cameras.resize(rig.size());
+      set.present.assign(rig.size(), true);
+      Centroid k;
+      k.pixel = uv_a;
+      set.cameras[a].centroids.push_back(k);
+      k.pixel = uv_b;
+      set.cameras[b].centroids.push_back(k);
+      ASSERT_TRUE(t->Triangulate(set, &ws, &points, &summary).ok());
+      EXPECT_TRUE(points.empty()) << "cameras " << a << ", " << b;
+      EXPECT_EQ(summary.candidates, 0);
+      EXPECT_EQ(summary.unmatched_centroids, 2);
+      // The control: the point in front of camera b with the same image there, where camera a
+      // also sees it, is produced from two centroids alike.
+      const Eigen::Vector3d front = rig[b].R.transpose() * (-behind_c - rig[b].t);
+      Eigen::Vector2d uv_front;
+      if (!rig[a].Project(front, &uv_front)) continue;
+      set.cameras[a].centroids[0].pixel = uv_front;
+      set.cameras[b].centroids[0].pixel = rig[b].ProjectCameraPoint(-behind_c);
+      ASSERT_TRUE(t->Triangulate(set, &ws, &points, &summary).ok());
+      ASSERT_EQ(points.size(), 1u) << "cameras " << a << ", " << b;
+      EXPECT_LT((points[0].position - front).norm(), 1e-9);
+      ++controls;
+    }
+  }
+  EXPECT_GT(cases, 0);
+  EXPECT_GT(controls, 0);
+}
+
+TEST(Triangulation, BadInputGetsAClearStatus) {
+  const auto rig = Rig();
+  const auto t = Make(rig);
+  TriangulationWorkspace ws;
+  std::vector<TriangulatedPoint> points;
+  const Scene scene = MakeScene(rig, SubjectFrames()[0], SceneOptions{}, 0);
+  auto expect_error = [&](const DetectionSet& set, const std::string& words) {
+    const Status s = t->Triangulate(set, &ws, &points);
+    ASSERT_FALSE(s.ok()) << words;
+    EXPECT_NE(s.message().find(words), std::string::npos) << s.message();
+    const Status f = reconstruction::Triangulate(set, rig, TriangulationOptions{}, &points);
+    EXPECT_EQ(f.message(), s.message());
+  };
+  {
+    DetectionSet set = scene.set;
+    set.cameras.pop_back();
+    set.present.pop_back();
+    expect_error(set, "the detection set has 7 cameras but the rig has 8");
+  }
+  {
+    DetectionSet set = scene.set;
+    set.present.pop_back();
+    expect_error(set, "7 present flags for 8 cameras");
+  }
+  {
+    DetectionSet set = scene.set;
+    set.cameras[3].centroids[2].pixel.y() = std::nan("");
+    expect_error(set, "camera 3 centroid 2: pixel");
+  }
+  {
+    DetectionSet set = scene.set;
+    set.cameras[5].centroids[0].sigma_px = 0;
+    expect_error(set, "camera 5 centroid 0: sigma_px");
+  }
+  {
+    DetectionSet set = scene.set;
+    set.cameras[2].camera = 6;
+    expect_error(set, "cameras[2] holds camera 6");
+  }
+  EXPECT_FALSE(t->Triangulate(scene.set, nullptr, &points).ok());
+
+  auto expect_create_error = [&](const std::vector<CameraModel>& r, const TriangulationOptions& o,
+                                 const std::string& words) {
+    std::unique_ptr<Triangulator> tr;
+    const Status s = Triangulator::Create(r, o, &tr);
+    ASSERT_FALSE(s.ok()) << words;
+    EXPECT_EQ(tr, nullptr);
+    EXPECT_NE(s.message().find(words), std::string::npos) << s.message();
+  };
+  {
+    auto bad = rig;
+    bad[3].intrinsics.fx = -1;
+    expect_create_error(bad, {}, "rig camera 3 (sim-3): camera intrinsics: fx and fy must be positive");
+  }
+  {
+    auto bad = rig;
+    bad[4].R *= 2.0;
+    expect_create_error(bad, {}, "rig camera 4 (sim-4): R is not a rotation");
+  }
+  {
+    auto bad = rig;
+    bad[1].t.x() = std::numeric_limits<double>::infinity();
+    expect_create_error(bad, {}, "rig camera 1 (sim-1): R or t is not finite");
+  }
+  expect_create_error({rig[0]}, {}, "the rig has 1 cameras; at least 2 are needed");
+  TriangulationOptions o;
+  o.min_views = 1;
+  expect_create_error(rig, o, "min_views");
+  o = {};
+  o.volume_min.x() = 3.0;
+  o.volume_max.x() = 2.0;
+  expect_create_error(rig, o, "volume_min must be below volume_max");
+}
+
+// The summary accounts for every centroid; an overfull camera is ignored and counted.
+TEST(Triangulation, SummaryAccountsForEveryCentroid) {
+  const auto rig = Rig();
+  TriangulationOptions o = LabOptions();
+  o.max_centroids_per_camera = 60;
+  const auto t = Make(rig, o);
+  TriangulationWorkspace ws;
+  std::vector<TriangulatedPoint> points;
+  TriangulationSummary summary;
+  SceneOptions so;
+  so.hide = 0.2;
+  Scene scene = MakeScene(rig, SubjectFrames()[10], so, 10);
+  for (int k = 0; k < 61; ++k) scene.set.cameras[6].centroids.push_back(Centroid{});
+  ASSERT_TRUE(t->Triangulate(scene.set, &ws, &points, &summary).ok());
+  EXPECT_EQ(summary.cameras_used, 7);
+  EXPECT_EQ(summary.cameras_overfull, 1);
+  EXPECT_EQ(summary.accepted, static_cast<int>(points.size()));
+  int centroids = 0, views = 0;
+  for (int c = 0; c < 8; ++c) centroids += c == 6 ? 0 : scene.set.cameras[c].centroids.size();
+  for (const TriangulatedPoint& p : points) {
+    views += p.camera_count;
+    for (int v = 0; v < p.camera_count; ++v) EXPECT_NE(p.views[v].camera, 6);
+    for (int v = 1; v < p.camera_count; ++v) EXPECT_LT(p.views[v - 1].camera, p.views[v].camera);
+  }
+  EXPECT_EQ(summary.centroids, centroids);
+  EXPECT_EQ(summary.unmatched_centroids, centroids - views);
+  EXPECT_GE(summary.candidates, summary.accepted);
+  EXPECT_GT(summary.accepted, 30);
+}
+
+// After a warm-up over the frame sets, triangulating them again allocates nothing: no Eigen
+// temporaries, no vector growth.
+TEST(Triangulation, NoHeapAllocationAfterWarmUp) {
+  const auto rig = Rig();
+  const auto t = Make(rig, LabOptions());
+  TriangulationWorkspace ws;
+  std::vector<TriangulatedPoint> points;
+  TriangulationSummary summary;
+  SceneOptions so;
+  so.hide = 0.2;
+  std::vector<Scene> scenes;
+  const auto& frames = SubjectFrames();
+  for (size_t f = 0; f < frames.size(); f += 20) scenes.push_back(MakeScene(rig, frames[f], so, f));
+  const long cold = g_allocations.load();
+  for (const Scene& s : scenes) ASSERT_TRUE(t->Triangulate(s.set, &ws, &points, &summary).ok());
+  EXPECT_GT(g_allocations.load() - cold, 0);  // the counter counts: a cold workspace allocates
+  const long before = g_allocations.load();
+  Eigen::internal::set_is_malloc_allowed(false);
+  for (const Scene& s : scenes) t->Triangulate(s.set, &ws, &points, &summary);
+  Eigen::internal::set_is_malloc_allowed(true);
+  EXPECT_EQ(g_allocations.load() - before, 0);
+  EXPECT_GT(points.size(), 30u);
 }
 
 }  // namespace
