@@ -4,6 +4,7 @@
 #include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <string>
@@ -48,23 +49,27 @@ inline bool InVolume(const TriangulationOptions& o, const Eigen::Vector3d& x) {
   return (x.array() >= o.volume_min.array()).all() && (x.array() <= o.volume_max.array()).all();
 }
 
-// Sum of squared whitened residuals, with the Gauss–Newton normal equations if asked; +inf when
-// a view is closer than min_depth to (or behind) its camera.
+// Sum of squared whitened residuals, with the Gauss–Newton normal equations and each view's
+// squared pixel error if asked; +inf when a view is closer than min_depth to (or behind) its
+// camera.
 double Evaluate(const std::vector<CameraModel>& rig, std::span<const PointObservation> obs,
                 const Eigen::Vector3d& x, double min_depth, Eigen::Matrix3d* H,
-                Eigen::Vector3d* g) {
+                Eigen::Vector3d* g, double* view_e2) {
   double cost = 0;
   if (H) {
     H->setZero();
     g->setZero();
   }
-  for (const PointObservation& o : obs) {
+  for (size_t v = 0; v < obs.size(); ++v) {
+    const PointObservation& o = obs[v];
     const CameraModel& cam = rig[o.camera];
     const Eigen::Vector3d pc = cam.R * x + cam.t;
     if (!(pc.z() >= min_depth)) return std::numeric_limits<double>::infinity();
     const double inv_sigma = 1.0 / o.sigma_px;
     Eigen::Matrix<double, 2, 3> jc;
-    const Eigen::Vector2d r = (cam.ProjectCameraPoint(pc, H ? &jc : nullptr) - o.pixel) * inv_sigma;
+    const Eigen::Vector2d e = cam.ProjectCameraPoint(pc, H ? &jc : nullptr) - o.pixel;
+    if (view_e2) view_e2[v] = e.squaredNorm();
+    const Eigen::Vector2d r = e * inv_sigma;
     cost += r.squaredNorm();
     if (H) {
       const Eigen::Matrix<double, 2, 3> j = inv_sigma * jc * cam.R;
@@ -73,6 +78,49 @@ double Evaluate(const std::vector<CameraModel>& rig, std::span<const PointObserv
     }
   }
   return cost;
+}
+
+// Levenberg–Marquardt on 3 unknowns: the damped normal equations (H + lambda diag(H)) dx = -g,
+// lambda divided by 10 after a step that lowers the cost and multiplied by 10 otherwise. From the
+// DLT it is Gauss–Newton in all but name: the residuals are tiny next to the projection's scale,
+// so it converges in 2-3 steps; it stops after a step below kStepTolerance (0.1 um, far below
+// any centroid noise: the next step would be smaller still by the convergence rate). Writes each
+// view's squared pixel error at the solution into view_e2 (obs.size() entries) if given.
+constexpr double kStepTolerance = 1e-7;  // metres
+
+bool Refine(const std::vector<CameraModel>& rig, std::span<const PointObservation> obs,
+            int max_iterations, double min_depth, Eigen::Vector3d* x, double* view_e2) {
+  std::array<double, kMaxPointViews> trial_e2;
+  double* trial = view_e2 && obs.size() <= trial_e2.size() ? trial_e2.data() : nullptr;
+  Eigen::Matrix3d H, Hn;
+  Eigen::Vector3d g, gn;
+  double cost = Evaluate(rig, obs, *x, min_depth, &H, &g, trial);
+  if (!std::isfinite(cost)) return false;
+  if (trial) std::copy(trial, trial + obs.size(), view_e2);
+  double lambda = 1e-6;
+  for (int it = 0; it < max_iterations; ++it) {
+    Eigen::Matrix3d damped = H;
+    damped.diagonal() *= 1.0 + lambda;
+    Eigen::LDLT<Eigen::Matrix3d> ldlt(damped);
+    if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return false;
+    const Eigen::Vector3d dx = ldlt.solve(-g);
+    if (!dx.allFinite()) return false;
+    const Eigen::Vector3d xn = *x + dx;
+    const double cn = Evaluate(rig, obs, xn, min_depth, &Hn, &gn, trial);
+    if (cn <= cost) {
+      *x = xn;
+      cost = cn;
+      H = Hn;
+      g = gn;
+      if (trial) std::copy(trial, trial + obs.size(), view_e2);
+      lambda = std::max(lambda * 0.1, 1e-12);
+      if (dx.norm() < kStepTolerance) break;
+    } else {
+      lambda *= 10;
+      if (lambda > 1e8) break;
+    }
+  }
+  return true;
 }
 
 // RMS of the pixel reprojection error's norm over the views.
@@ -84,40 +132,6 @@ double RmsPixelResidual(const std::vector<CameraModel>& rig, std::span<const Poi
     sum += (cam.ProjectCameraPoint(cam.R * x + cam.t) - o.pixel).squaredNorm();
   }
   return std::sqrt(sum / static_cast<double>(obs.size()));
-}
-
-// Levenberg–Marquardt on 3 unknowns: the damped normal equations (H + lambda diag(H)) dx = -g,
-// lambda divided by 10 after a step that lowers the cost and multiplied by 10 otherwise. From the
-// DLT it is Gauss–Newton in all but name (2-3 steps).
-bool Refine(const std::vector<CameraModel>& rig, std::span<const PointObservation> obs,
-            int max_iterations, double min_depth, Eigen::Vector3d* x) {
-  Eigen::Matrix3d H, Hn;
-  Eigen::Vector3d g, gn;
-  double cost = Evaluate(rig, obs, *x, min_depth, &H, &g);
-  if (!std::isfinite(cost)) return false;
-  double lambda = 1e-6;
-  for (int it = 0; it < max_iterations; ++it) {
-    Eigen::Matrix3d damped = H;
-    damped.diagonal() *= 1.0 + lambda;
-    Eigen::LDLT<Eigen::Matrix3d> ldlt(damped);
-    if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return false;
-    const Eigen::Vector3d dx = ldlt.solve(-g);
-    if (!dx.allFinite()) return false;
-    const Eigen::Vector3d xn = *x + dx;
-    const double cn = Evaluate(rig, obs, xn, min_depth, &Hn, &gn);
-    if (cn <= cost) {
-      *x = xn;
-      cost = cn;
-      H = Hn;
-      g = gn;
-      lambda = std::max(lambda * 0.1, 1e-12);
-      if (dx.norm() < 1e-11 * (1.0 + x->norm())) break;
-    } else {
-      lambda *= 10;
-      if (lambda > 1e8) break;
-    }
-  }
-  return true;
 }
 
 }  // namespace
@@ -190,7 +204,7 @@ bool RefinePosition(const std::vector<CameraModel>& rig,
     }
   }
   constexpr double kMinDepth = 1e-9;
-  const bool ok = Refine(rig, observations, max_iterations, kMinDepth, position);
+  const bool ok = Refine(rig, observations, max_iterations, kMinDepth, position, nullptr);
   if (residual_px) *residual_px = RmsPixelResidual(rig, observations, *position);
   return ok;
 }
@@ -347,16 +361,15 @@ bool Triangulator::Solve(const DetectionSet& set, int min_views, internal::Hypot
 
   // Refine, drop the worst view while it is an outlier, then look for views the hypothesis
   // missed (once) and check again.
+  std::array<double, kMaxPointViews> view_e2;  // squared pixel error per view at x
   for (int sweep = 0; sweep < 2; ++sweep) {
     load();
-    if (!Refine(rig_, obs, o.max_iterations, o.min_depth_m, &x)) return false;
+    if (!Refine(rig_, obs, o.max_iterations, o.min_depth_m, &x, view_e2.data())) return false;
     for (;;) {
       int worst = -1;
       double worst_e2 = o.outlier_gate_sigmas * o.outlier_gate_sigmas;
       for (int v = 0; v < h->view_count; ++v) {
-        const CameraModel& cam = rig_[obs[v].camera];
-        const double e2 = (cam.ProjectCameraPoint(cam.R * x + cam.t) - obs[v].pixel).squaredNorm() /
-                          (obs[v].sigma_px * obs[v].sigma_px + calibration_sigma2_);
+        const double e2 = view_e2[v] / (obs[v].sigma_px * obs[v].sigma_px + calibration_sigma2_);
         if (e2 > worst_e2) {
           worst_e2 = e2;
           worst = v;
@@ -367,7 +380,7 @@ bool Triangulator::Solve(const DetectionSet& set, int min_views, internal::Hypot
       --h->view_count;
       if (h->view_count < min_views) return false;
       load();
-      if (!Refine(rig_, obs, o.max_iterations, o.min_depth_m, &x)) return false;
+      if (!Refine(rig_, obs, o.max_iterations, o.min_depth_m, &x, view_e2.data())) return false;
     }
     if (sweep == 1) break;
     int added = 0;
@@ -392,7 +405,9 @@ bool Triangulator::Solve(const DetectionSet& set, int min_views, internal::Hypot
     // the rays.
     if (std::abs(ra.dot(rb)) > cos_min_two_view_angle_) return false;
   }
-  const double rms = RmsPixelResidual(rig_, obs, x);
+  double sum_e2 = 0;
+  for (int v = 0; v < h->view_count; ++v) sum_e2 += view_e2[v];
+  const double rms = std::sqrt(sum_e2 / h->view_count);
   if (!(rms <= o.max_residual_px)) return false;
 
   point->position = x;
