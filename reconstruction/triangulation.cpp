@@ -146,6 +146,7 @@ bool TriangulationOptions::IsValid(std::string* error) const {
     return fail("calibration_sigma_px must be finite and >= 0");
   }
   if (!positive(epipolar_gate_sigmas)) return fail("epipolar_gate_sigmas must be > 0");
+  if (!positive(two_view_gate_sigmas)) return fail("two_view_gate_sigmas must be > 0");
   if (!positive(support_gate_sigmas)) return fail("support_gate_sigmas must be > 0");
   if (!positive(outlier_gate_sigmas)) return fail("outlier_gate_sigmas must be > 0");
   if (!positive(max_residual_px)) return fail("max_residual_px must be > 0");
@@ -174,7 +175,9 @@ bool TriangulateLinear(const std::vector<CameraModel>& rig,
   Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
   Eigen::Vector3d b = Eigen::Vector3d::Zero();
   for (const PointObservation& o : observations) {
-    if (o.camera < 0 || o.camera >= static_cast<int>(rig.size())) return false;
+    if (o.camera < 0 || o.camera >= static_cast<int>(rig.size()) || !(o.sigma_px > 0)) {
+      return false;
+    }
     const CameraModel& cam = rig[o.camera];
     const double focal = std::sqrt(cam.intrinsics.fx * cam.intrinsics.fy);
     AddDltView(cam.R, cam.t, cam.Undistort(o.pixel), focal / o.sigma_px, &A, &b);
@@ -424,7 +427,8 @@ void Triangulator::RunPass(const DetectionSet& set, int min_views, Triangulation
                            TriangulationSummary* summary) const {
   const TriangulationOptions& o = options_;
   const int n_cameras = static_cast<int>(rig_.size());
-  const double k2 = o.epipolar_gate_sigmas * o.epipolar_gate_sigmas;
+  const double k = min_views == 2 ? o.two_view_gate_sigmas : o.epipolar_gate_sigmas;
+  const double k2 = k * k;
   for (const CameraPair& pair : pairs_) {
     TriangulationWorkspace::CameraScratch& sa = ws->cameras_[pair.a];
     TriangulationWorkspace::CameraScratch& sb = ws->cameras_[pair.b];
