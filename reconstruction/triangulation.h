@@ -24,8 +24,8 @@
 //      distance); a centroid belongs to at most one point, so a hypothesis whose pair centroids an
 //      earlier one took is dropped (superseded) and a taken supporting view is ignored.
 //   4. For an accepted hypothesis: multi-view linear triangulation (the DLT of H&Z §12.2 in its
-//      inhomogeneous form, X = (x, y, z, 1): marker points are never at infinity, and a 3x3 solve
-//      is ten times cheaper than the 4x4 eigen-decomposition), then Levenberg–Marquardt on the
+//      inhomogeneous form, X = (x, y, z, 1): marker points are never at infinity, and its 3x3
+//      normal equations are cheaper than the SVD of the homogeneous 2n x 4 system), then Levenberg–Marquardt on the
 //      reprojection error in pixels, each view weighted by 1 / its centroid's sigma (the maximum
 //      likelihood estimate for Gaussian centroid noise, H&Z §12.3), with the camera model's
 //      analytic Jacobian (distortion included). A view whose residual exceeds
@@ -41,16 +41,22 @@
 //   seen by exactly two cameras is still reconstructed, but cannot steal the centroids of a
 //   better-supported point. Two unrelated centroids (say two stray reflections) that happen to
 //   satisfy the epipolar constraint are indistinguishable from such a marker in one frame set:
-//   about 1 in 250 points on the simulated rig with 3 strays per camera (bench/triangulate);
-//   bounding the capture volume removes a third of those, and the tracker's prediction the rest.
+//   with 3 uniform strays per camera on the simulated rig, 0.45% of the points are such ghosts,
+//   0.30% with the capture volume bounded (bench/triangulate); their number grows with the
+//   square of the strays per camera (3% at 10 per camera). The tracker, which labels points
+//   against its predicted markers, is what ignores them.
 //
 // Gates are in units of sigma, the centroid's sigma_px combined with `calibration_sigma_px` (the
 // rig's calibration error, which the centroid noise does not include), so they follow the
 // detector's own uncertainty.
 //
 // Threads: a Triangulator is immutable after Create and may be shared; each thread passes its
-// own TriangulationWorkspace. After a warm-up frame set of the same size no heap memory is
+// own TriangulationWorkspace. Once the workspace has seen frame sets as large, no heap memory is
 // allocated (the output vector keeps its capacity too).
+//
+// Accuracy (bench/triangulate, 8 cameras at 4 m, f = 1000 px, sigma 0.1 px): the refined points
+// reach the Cramer-Rao bound of the views they use (RMS 3D error 0.323 mm against a bound of
+// 0.322 mm); the DLT alone is 1.5% above it.
 #pragma once
 #include <Eigen/Core>
 #include <array>
