@@ -21,14 +21,14 @@
 // first pass: 3D RMS error of points within 5 mm of a marker (and the Cramer-Rao bound of those
 // markers from all their centroids), recall of markers seen by >= 2 cameras, ghosts (points
 // more than 5 mm from every marker) over all points.
+#include <time.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
-#include <time.h>
-
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core.hpp>
 #include <string>
@@ -51,8 +51,8 @@ namespace {
 
 struct Scene {
   DetectionSet set;
-  std::vector<std::vector<int>> label;                      // per camera, per centroid: marker or -1
-  std::vector<std::vector<std::pair<int, int>>> observed;   // per marker: (camera, centroid)
+  std::vector<std::vector<int>> label;                     // per camera, per centroid: marker or -1
+  std::vector<std::vector<std::pair<int, int>>> observed;  // per marker: (camera, centroid)
 };
 
 Scene MakeScene(const std::vector<CameraModel>& rig, const std::vector<Eigen::Vector3d>& markers,
@@ -82,7 +82,8 @@ Scene MakeScene(const std::vector<CameraModel>& rig, const std::vector<Eigen::Ve
     }
     for (int r = 0; r < strays; ++r) {
       Centroid k;
-      k.pixel = {rng.Uniform(0, cam.intrinsics.width - 1), rng.Uniform(0, cam.intrinsics.height - 1)};
+      k.pixel = {rng.Uniform(0, cam.intrinsics.width - 1),
+                 rng.Uniform(0, cam.intrinsics.height - 1)};
       k.sigma_px = 0.1;
       list.push_back({k, -1});
     }
@@ -185,7 +186,8 @@ class BruteForce {
             double best_d2 = 1e300;
             for (size_t k = 0; k < xy_[c].size(); ++k) {
               const double d2 = (xy_[c][k] - p).squaredNorm();
-              if (d2 <= 25.0 * gate_[c][k] * gate_[c][k] && d2 < best_d2) best_d2 = d2, best = static_cast<int>(k);
+              if (d2 <= 25.0 * gate_[c][k] * gate_[c][k] && d2 < best_d2)
+                best_d2 = d2, best = static_cast<int>(k);
             }
             if (best >= 0) h.views.push_back({c, best});
           }
@@ -354,14 +356,15 @@ struct Timing {
 };
 
 void Report(const char* name, Timing& t, const Score& s) {
-  std::printf("  %-34s cpu p50 %6.1f p99 %6.1f us | wall p50 %6.1f p99 %7.1f us | rms %.4f mm "
-              "(bound %.4f)  recall %.5f  ghosts %ld / %ld = %.5f\n",
-              name, Timing::Percentile(t.cpu_us, 0.5), Timing::Percentile(t.cpu_us, 0.99),
-              Timing::Percentile(t.wall_us, 0.5), Timing::Percentile(t.wall_us, 0.99),
-              1e3 * std::sqrt(s.sum_sq / std::max(1L, s.true_points)),
-              1e3 * std::sqrt(s.sum_crlb / std::max(1L, s.true_points)),
-              static_cast<double>(s.found) / std::max(1L, s.eligible), s.ghosts, s.points,
-              static_cast<double>(s.ghosts) / std::max(1L, s.points));
+  std::printf(
+      "  %-34s cpu p50 %6.1f p99 %6.1f us | wall p50 %6.1f p99 %7.1f us | rms %.4f mm "
+      "(bound %.4f)  recall %.5f  ghosts %ld / %ld = %.5f\n",
+      name, Timing::Percentile(t.cpu_us, 0.5), Timing::Percentile(t.cpu_us, 0.99),
+      Timing::Percentile(t.wall_us, 0.5), Timing::Percentile(t.wall_us, 0.99),
+      1e3 * std::sqrt(s.sum_sq / std::max(1L, s.true_points)),
+      1e3 * std::sqrt(s.sum_crlb / std::max(1L, s.true_points)),
+      static_cast<double>(s.found) / std::max(1L, s.eligible), s.ghosts, s.points,
+      static_cast<double>(s.ghosts) / std::max(1L, s.points));
 }
 
 }  // namespace
@@ -377,12 +380,17 @@ int main(int argc, char** argv) {
       }
       return std::atoi(argv[++i]);
     };
-    if (!std::strcmp(argv[i], "--reps")) reps = next();
-    else if (!std::strcmp(argv[i], "--strays")) strays = next();
-    else if (!std::strcmp(argv[i], "--stride")) stride = next();
-    else if (!std::strcmp(argv[i], "--no-peers")) peers = false;
+    if (!std::strcmp(argv[i], "--reps"))
+      reps = next();
+    else if (!std::strcmp(argv[i], "--strays"))
+      strays = next();
+    else if (!std::strcmp(argv[i], "--stride"))
+      stride = next();
+    else if (!std::strcmp(argv[i], "--no-peers"))
+      peers = false;
     else {
-      std::fprintf(stderr, "usage: triangulate [--reps R] [--strays K] [--stride S] [--no-peers]\n");
+      std::fprintf(stderr,
+                   "usage: triangulate [--reps R] [--strays K] [--stride S] [--no-peers]\n");
       return 2;
     }
   }
@@ -416,14 +424,16 @@ int main(int argc, char** argv) {
   lab.volume_min = Eigen::Vector3d(-2.5, -2.5, -0.1);
   lab.volume_max = Eigen::Vector3d(2.5, 2.5, 2.5);
   std::unique_ptr<reconstruction::Triangulator> with_volume, unbounded;
-  if (Status s = reconstruction::Triangulator::Create(rig, lab, &with_volume); !s.ok() ||
-      !reconstruction::Triangulator::Create(rig, {}, &unbounded).ok()) {
+  if (Status s = reconstruction::Triangulator::Create(rig, lab, &with_volume);
+      !s.ok() || !reconstruction::Triangulator::Create(rig, {}, &unbounded).ok()) {
     std::fprintf(stderr, "triangulate: %s\n", s.message().c_str());
     return 1;
   }
 
-  std::printf("triangulate: %zu cameras, %zu frame sets of %zu markers, %d strays per camera, "
-              "%d passes\n", rig.size(), frames.size(), frames[0].size(), strays, reps);
+  std::printf(
+      "triangulate: %zu cameras, %zu frame sets of %zu markers, %d strays per camera, "
+      "%d passes\n",
+      rig.size(), frames.size(), frames[0].size(), strays, reps);
   for (double hide : {0.0, 0.2}) {
     std::vector<Scene> scenes;
     for (size_t f = 0; f < frames.size(); ++f) {

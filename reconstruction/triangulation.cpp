@@ -21,11 +21,12 @@ std::string Fmt(const char* format, auto... args) {
 }
 
 // Rows of the inhomogeneous DLT (H&Z §12.2 with X = (X, 1)) for one view with normalised
-// coordinates (x, y) and camera [R | t]:  (x r3 - r1) . X = t1 - x t3,  (y r3 - r2) . X = t2 - y t3.
-// Each row is z_c times the normalised-coordinate error, so weighting by focal / sigma makes the
-// rows roughly pixel errors in sigmas at similar depths. Accumulated as 3x3 normal equations.
-inline void AddDltView(const Eigen::Matrix3d& R, const Eigen::Vector3d& t, const Eigen::Vector2d& xy,
-                       double weight, Eigen::Matrix3d* A, Eigen::Vector3d* b) {
+// coordinates (x, y) and camera [R | t]:  (x r3 - r1) . X = t1 - x t3,  (y r3 - r2) . X = t2 - y
+// t3. Each row is z_c times the normalised-coordinate error, so weighting by focal / sigma makes
+// the rows roughly pixel errors in sigmas at similar depths. Accumulated as 3x3 normal equations.
+inline void AddDltView(const Eigen::Matrix3d& R, const Eigen::Vector3d& t,
+                       const Eigen::Vector2d& xy, double weight, Eigen::Matrix3d* A,
+                       Eigen::Vector3d* b) {
   const Eigen::Vector3d r1 = xy.x() * R.row(2).transpose() - R.row(0).transpose();
   const Eigen::Vector3d r2 = xy.y() * R.row(2).transpose() - R.row(1).transpose();
   const double b1 = t.x() - xy.x() * t.z();
@@ -53,8 +54,8 @@ inline bool InVolume(const TriangulationOptions& o, const Eigen::Vector3d& x) {
 // squared pixel error if asked; +inf when a view is closer than min_depth to (or behind) its
 // camera.
 double Evaluate(const std::vector<CameraModel>& rig, std::span<const PointObservation> obs,
-                const Eigen::Vector3d& x, double min_depth, Eigen::Matrix3d* H,
-                Eigen::Vector3d* g, double* view_e2) {
+                const Eigen::Vector3d& x, double min_depth, Eigen::Matrix3d* H, Eigen::Vector3d* g,
+                double* view_e2) {
   double cost = 0;
   if (H) {
     H->setZero();
@@ -217,8 +218,8 @@ Status Triangulator::Create(std::vector<CameraModel> rig, const TriangulationOpt
   std::string error;
   if (!options.IsValid(&error)) return Status::Error(error);
   if (rig.size() < 2) {
-    return Status::Error(Fmt("triangulation: the rig has %zu cameras; at least 2 are needed",
-                             rig.size()));
+    return Status::Error(
+        Fmt("triangulation: the rig has %zu cameras; at least 2 are needed", rig.size()));
   }
   for (size_t c = 0; c < rig.size(); ++c) {
     const CameraModel& cam = rig[c];
@@ -290,25 +291,32 @@ Status Triangulator::Validate(const DetectionSet& set) const {
                              set.cameras.size(), n));
   }
   if (set.present.size() != n) {
-    return Status::Error(Fmt("triangulation: the detection set has %zu present flags for %zu cameras",
-                             set.present.size(), n));
+    return Status::Error(
+        Fmt("triangulation: the detection set has %zu present flags for %zu cameras",
+            set.present.size(), n));
   }
   for (size_t c = 0; c < n; ++c) {
     if (!set.present[c]) continue;
     const CameraDetections& d = set.cameras[c];
     if (d.camera != -1 && d.camera != static_cast<int>(c)) {
-      return Status::Error(Fmt("triangulation: detection set cameras[%zu] holds camera %d's "
-                               "detections (out of rig order)", c, d.camera));
+      return Status::Error(
+          Fmt("triangulation: detection set cameras[%zu] holds camera %d's "
+              "detections (out of rig order)",
+              c, d.camera));
     }
     for (size_t i = 0; i < d.centroids.size(); ++i) {
       const Centroid& k = d.centroids[i];
       if (!k.pixel.allFinite()) {
-        return Status::Error(Fmt("triangulation: camera %zu centroid %zu: pixel (%g, %g) is not "
-                                 "finite", c, i, k.pixel.x(), k.pixel.y()));
+        return Status::Error(
+            Fmt("triangulation: camera %zu centroid %zu: pixel (%g, %g) is not "
+                "finite",
+                c, i, k.pixel.x(), k.pixel.y()));
       }
       if (!(std::isfinite(k.sigma_px) && k.sigma_px > 0)) {
-        return Status::Error(Fmt("triangulation: camera %zu centroid %zu: sigma_px %g must be "
-                                 "finite and > 0", c, i, k.sigma_px));
+        return Status::Error(
+            Fmt("triangulation: camera %zu centroid %zu: sigma_px %g must be "
+                "finite and > 0",
+                c, i, k.sigma_px));
       }
     }
   }
@@ -427,8 +435,8 @@ void Triangulator::RunPass(const DetectionSet& set, int min_views, Triangulation
                            TriangulationSummary* summary) const {
   const TriangulationOptions& o = options_;
   const int n_cameras = static_cast<int>(rig_.size());
-  const double k = min_views == 2 ? o.two_view_gate_sigmas : o.epipolar_gate_sigmas;
-  const double k2 = k * k;
+  const double gate = min_views == 2 ? o.two_view_gate_sigmas : o.epipolar_gate_sigmas;
+  const double k2 = gate * gate;
   for (const CameraPair& pair : pairs_) {
     TriangulationWorkspace::CameraScratch& sa = ws->cameras_[pair.a];
     TriangulationWorkspace::CameraScratch& sb = ws->cameras_[pair.b];
@@ -457,8 +465,8 @@ void Triangulator::RunPass(const DetectionSet& set, int min_views, Triangulation
         // Sampson's first-order distance to the epipolar constraint, with each image's own
         // sigma: e^2 / (s_b^2 |l_a|^2 + s_a^2 |l_b|^2).
         const double e = la.dot(sb.xy[j].homogeneous());
-        const double denom = sb.gate[j] * sb.gate[j] * na2 +
-                             ga2 * ws->lines_b_[jb].head<2>().squaredNorm();
+        const double denom =
+            sb.gate[j] * sb.gate[j] * na2 + ga2 * ws->lines_b_[jb].head<2>().squaredNorm();
         if (e * e > k2 * denom) continue;
 
         Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
@@ -481,8 +489,8 @@ void Triangulator::RunPass(const DetectionSet& set, int min_views, Triangulation
         h.view_count = 2;
         for (int c = 0; c < n_cameras && h.view_count < kMaxPointViews; ++c) {
           if (c == pair.a || c == pair.b || !ws->cameras_[c].active) continue;
-          const int k = FindSupport(*ws, c, x);
-          if (k >= 0) h.views[h.view_count++] = {c, k};
+          const int support = FindSupport(*ws, c, x);
+          if (support >= 0) h.views[h.view_count++] = {c, support};
         }
         if (h.view_count >= min_views) ws->hypotheses_.push_back(h);
       }
@@ -547,7 +555,9 @@ void Triangulator::MergeClosePoints(const DetectionSet& set, TriangulationWorksp
       for (int v = 0; v < major.camera_count; ++v) h.views[h.view_count++] = major.views[v];
       for (int v = 0; v < minor.camera_count && h.view_count < kMaxPointViews; ++v) {
         bool has = false;
-        for (int w = 0; w < major.camera_count; ++w) has |= major.views[w].camera == minor.views[v].camera;
+        for (int w = 0; w < major.camera_count; ++w) {
+          has |= major.views[w].camera == minor.views[v].camera;
+        }
         if (!has) h.views[h.view_count++] = minor.views[v];
       }
       mark(p, kFree);

@@ -25,12 +25,12 @@
 //      earlier one took is dropped (superseded) and a taken supporting view is ignored.
 //   4. For an accepted hypothesis: multi-view linear triangulation (the DLT of H&Z §12.2 in its
 //      inhomogeneous form, X = (x, y, z, 1): marker points are never at infinity, and its 3x3
-//      normal equations are cheaper than the SVD of the homogeneous 2n x 4 system), then Levenberg–Marquardt on the
-//      reprojection error in pixels, each view weighted by 1 / its centroid's sigma (the maximum
-//      likelihood estimate for Gaussian centroid noise, H&Z §12.3), with the camera model's
-//      analytic Jacobian (distortion included). A view whose residual exceeds
-//      `outlier_gate_sigmas` is dropped and the point refined again; the refined point is then
-//      projected into the cameras it lacks to pick up views the two-view estimate missed.
+//      normal equations are cheaper than the SVD of the homogeneous 2n x 4 system), then
+//      Levenberg–Marquardt on the reprojection error in pixels, each view weighted by 1 / its
+//      centroid's sigma (the maximum likelihood estimate for Gaussian centroid noise, H&Z §12.3),
+//      with the camera model's analytic Jacobian (distortion included). A view whose residual
+//      exceeds `outlier_gate_sigmas` is dropped and the point refined again; the refined point is
+//      then projected into the cameras it lacks to pick up views the two-view estimate missed.
 //   5. Ghost rejection: a point survives only with at least the pass's number of views, all in
 //      front of their cameras, inside the volume, and an RMS reprojection residual at most
 //      `max_residual_px`.
@@ -134,15 +134,15 @@ struct TriangulatedPoint {
 };
 
 struct TriangulationSummary {
-  int cameras_used = 0;            // present cameras whose centroids were used
-  int cameras_overfull = 0;        // present cameras ignored for > max_centroids_per_camera
-  int centroids = 0;               // centroids of the cameras used
-  int candidates = 0;              // epipolar pair matches in front of both cameras, in volume
-  int accepted = 0;                // points returned
-  int rejected_ghosts = 0;         // hypotheses refined and rejected (residual, views, depth)
-  int superseded = 0;              // hypotheses whose centroids a better one had taken
-  int merged = 0;                  // points merged into a closer-than-min_separation neighbour
-  int unmatched_centroids = 0;     // centroids of the cameras used that no point took
+  int cameras_used = 0;         // present cameras whose centroids were used
+  int cameras_overfull = 0;     // present cameras ignored for > max_centroids_per_camera
+  int centroids = 0;            // centroids of the cameras used
+  int candidates = 0;           // epipolar pair matches in front of both cameras, in volume
+  int accepted = 0;             // points returned
+  int rejected_ghosts = 0;      // hypotheses refined and rejected (residual, views, depth)
+  int superseded = 0;           // hypotheses whose centroids a better one had taken
+  int merged = 0;               // points merged into a closer-than-min_separation neighbour
+  int unmatched_centroids = 0;  // centroids of the cameras used that no point took
 };
 
 // A single observation for the low-level functions: camera index, pixel, sigma.
@@ -214,7 +214,8 @@ class Triangulator {
   Triangulator() = default;
   Status Validate(const DetectionSet& set) const;
   void MergeClosePoints(const DetectionSet& set, TriangulationWorkspace* ws,
-                        std::vector<TriangulatedPoint>* points, TriangulationSummary* summary) const;
+                        std::vector<TriangulatedPoint>* points,
+                        TriangulationSummary* summary) const;
   void RunPass(const DetectionSet& set, int min_views, TriangulationWorkspace* ws,
                std::vector<TriangulatedPoint>* points, TriangulationSummary* summary) const;
   bool Solve(const DetectionSet& set, int min_views, internal::Hypothesis* h,

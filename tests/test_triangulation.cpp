@@ -123,7 +123,8 @@ Scene MakeScene(const std::vector<CameraModel>& rig, const std::vector<Eigen::Ve
     }
     for (int r = 0; r < o.strays; ++r) {
       Centroid k;
-      k.pixel = {rng.Uniform(0, cam.intrinsics.width - 1), rng.Uniform(0, cam.intrinsics.height - 1)};
+      k.pixel = {rng.Uniform(0, cam.intrinsics.width - 1),
+                 rng.Uniform(0, cam.intrinsics.height - 1)};
       k.sigma_px = std::max(o.noise_px, 0.01);
       list.push_back({k, -1});
     }
@@ -143,23 +144,24 @@ Scene MakeScene(const std::vector<CameraModel>& rig, const std::vector<Eigen::Ve
 // Scores points against the truth: a point within 5 mm of a marker is that marker's (the nearest
 // one), any other point is a ghost.
 struct Score {
-  long eligible = 0;     // markers seen by >= 2 cameras
-  long found = 0;        // of those, reconstructed
+  long eligible = 0;  // markers seen by >= 2 cameras
+  long found = 0;     // of those, reconstructed
   long points = 0;
   long ghosts = 0;
   long true_points = 0;
-  long duplicates = 0;  // true points of a marker that already had one
-  long views = 0;        // views of true points
-  long missed_views = 0; // centroids of a reconstructed marker that its point did not take
-  long swapped_views = 0;  // views taken from a marker whose projection is within 1 px
-  long wrong_views = 0;    // any other view not of the point's marker (a stray, a far marker)
+  long duplicates = 0;      // true points of a marker that already had one
+  long views = 0;           // views of true points
+  long missed_views = 0;    // centroids of a reconstructed marker that its point did not take
+  long swapped_views = 0;   // views taken from a marker whose projection is within 1 px
+  long wrong_views = 0;     // any other view not of the point's marker (a stray, a far marker)
   double sum_sq_error = 0;  // metres^2, over true points
   // Cramer-Rao bound: the expected squared error of an efficient unbiased estimator, trace of
   // (J^T J)^-1 at the truth, from every centroid the marker has.
   double sum_crlb = 0;
   void Add(const Score& o) {
     eligible += o.eligible, found += o.found, points += o.points, ghosts += o.ghosts;
-    true_points += o.true_points, duplicates += o.duplicates, views += o.views, missed_views += o.missed_views;
+    true_points += o.true_points, duplicates += o.duplicates, views += o.views,
+        missed_views += o.missed_views;
     swapped_views += o.swapped_views, wrong_views += o.wrong_views;
     sum_sq_error += o.sum_sq_error, sum_crlb += o.sum_crlb;
   }
@@ -328,12 +330,13 @@ void ExpectTargets(double hide, const char* what) {
     ASSERT_TRUE(t->Triangulate(scene.set, &ws, &points, &summary).ok());
     total.Add(ScorePoints(rig, frames[f], scene, points));
   }
-  std::printf("%s: %zu frame sets, %ld points, rms %.4f mm (Cramer-Rao bound %.4f mm), "
-              "recall %.5f, ghosts %ld (fraction %.5f); views %ld, missed %ld, swapped %ld, "
-              "wrong %ld, duplicate points %ld\n",
-              what, frames.size(), total.points, total.rms_mm(), total.crlb_mm(), total.recall(),
-              total.ghosts, total.ghost_fraction(), total.views, total.missed_views,
-              total.swapped_views, total.wrong_views, total.duplicates);
+  std::printf(
+      "%s: %zu frame sets, %ld points, rms %.4f mm (Cramer-Rao bound %.4f mm), "
+      "recall %.5f, ghosts %ld (fraction %.5f); views %ld, missed %ld, swapped %ld, "
+      "wrong %ld, duplicate points %ld\n",
+      what, frames.size(), total.points, total.rms_mm(), total.crlb_mm(), total.recall(),
+      total.ghosts, total.ghost_fraction(), total.views, total.missed_views, total.swapped_views,
+      total.wrong_views, total.duplicates);
   EXPECT_GT(frames.size(), 200u);
   // Accuracy. The brief's 0.3 mm (RMS of the 3D error) is below the Cramer-Rao bound of this rig
   // at 0.1 px (0.322 mm with every view, 0.375 mm with 20% hidden: markers 3-5 m away, f = 1000
@@ -352,9 +355,7 @@ void ExpectTargets(double hide, const char* what) {
 
 TEST(Triangulation, SimulatedSubjectMeetsTargets) { ExpectTargets(0.0, "all observations"); }
 
-TEST(Triangulation, SimulatedSubjectWithOcclusionMeetsTargets) {
-  ExpectTargets(0.2, "20% hidden");
-}
+TEST(Triangulation, SimulatedSubjectWithOcclusionMeetsTargets) { ExpectTargets(0.2, "20% hidden"); }
 
 // A marker seen by exactly two cameras is reconstructed from them, for every pair of the rig,
 // among the other markers and the strays.
@@ -577,7 +578,8 @@ TEST(Triangulation, BadInputGetsAClearStatus) {
   {
     auto bad = rig;
     bad[3].intrinsics.fx = -1;
-    expect_create_error(bad, {}, "rig camera 3 (sim-3): camera intrinsics: fx and fy must be positive");
+    expect_create_error(bad, {},
+                        "rig camera 3 (sim-3): camera intrinsics: fx and fy must be positive");
   }
   {
     auto bad = rig;
