@@ -1,0 +1,52 @@
+#include "sim/reconstruction_score.h"
+
+#include <algorithm>
+#include <cmath>
+#include <tuple>
+
+namespace mocap::sim {
+
+double ReconstructionScore::rms_mm() const {
+  return matched ? 1e3 * std::sqrt(sum_squared_error_m2 / matched) : 0.0;
+}
+
+void ReconstructionScore::Add(const ReconstructionScore& o) {
+  true_visible += o.true_visible;
+  recovered += o.recovered;
+  reconstructed += o.reconstructed;
+  ghosts += o.ghosts;
+  sum_squared_error_m2 += o.sum_squared_error_m2;
+  matched += o.matched;
+}
+
+void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<bool>& seen_by_two,
+                const std::vector<Eigen::Vector3d>& points, double match_radius_m,
+                ReconstructionScore* score) {
+  const double r2 = match_radius_m * match_radius_m;
+  std::vector<std::tuple<double, int, int>> pairs;  // (squared distance, point, marker)
+  for (int p = 0; p < static_cast<int>(points.size()); ++p) {
+    for (int m = 0; m < static_cast<int>(truth.size()); ++m) {
+      if (!truth[m].allFinite()) continue;
+      const double d2 = (points[p] - truth[m]).squaredNorm();
+      if (d2 <= r2) pairs.emplace_back(d2, p, m);
+    }
+  }
+  std::sort(pairs.begin(), pairs.end());
+  std::vector<bool> point_used(points.size(), false), marker_used(truth.size(), false);
+  for (const auto& [d2, p, m] : pairs) {
+    if (point_used[p] || marker_used[m]) continue;
+    point_used[p] = marker_used[m] = true;
+    score->sum_squared_error_m2 += d2;
+    ++score->matched;
+  }
+  for (int m = 0; m < static_cast<int>(truth.size()); ++m) {
+    if (m < static_cast<int>(seen_by_two.size()) && seen_by_two[m] && truth[m].allFinite()) {
+      ++score->true_visible;
+      score->recovered += marker_used[m];
+    }
+  }
+  score->reconstructed += static_cast<std::int64_t>(points.size());
+  for (bool used : point_used) score->ghosts += !used;
+}
+
+}  // namespace mocap::sim

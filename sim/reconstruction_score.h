@@ -1,0 +1,35 @@
+// Scores reconstructed (unlabelled) 3D points against the simulated truth, the way the capture
+// targets are stated:
+//   recall          fraction of true markers seen by >= 2 cameras that were reconstructed;
+//   rms_3d_mm       RMS distance of reconstructed points to the true markers they match;
+//   ghost_fraction  reconstructed points that match no true marker / all reconstructed points.
+// Matching is one-to-one and greedy by distance (closest pairs first) within a radius: with
+// markers centimetres apart and errors of a fraction of a millimetre, greedy equals optimal.
+#pragma once
+#include <Eigen/Core>
+#include <cstdint>
+#include <vector>
+
+namespace mocap::sim {
+
+struct ReconstructionScore {
+  std::int64_t true_visible = 0;   // true markers seen by >= 2 cameras
+  std::int64_t recovered = 0;      // ... of which a reconstructed point matched
+  std::int64_t reconstructed = 0;  // reconstructed points
+  std::int64_t ghosts = 0;         // reconstructed points matching no true marker
+  double sum_squared_error_m2 = 0; // over every matched point
+  std::int64_t matched = 0;
+
+  double recall() const { return true_visible ? double(recovered) / true_visible : 1.0; }
+  double ghost_fraction() const { return reconstructed ? double(ghosts) / reconstructed : 0.0; }
+  double rms_mm() const;
+  void Add(const ReconstructionScore& other);
+};
+
+// Adds one frame set. `truth` holds every true marker (NaN rows for markers that do not exist
+// in this frame); `seen_by_two[m]` whether marker m was visible in >= 2 cameras.
+void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<bool>& seen_by_two,
+                const std::vector<Eigen::Vector3d>& points, double match_radius_m,
+                ReconstructionScore* score);
+
+}  // namespace mocap::sim
