@@ -437,6 +437,7 @@ void Triangulator::RunPass(const DetectionSet& set, int min_views, Triangulation
   const int n_cameras = static_cast<int>(rig_.size());
   const double gate = min_views == 2 ? o.two_view_gate_sigmas : o.epipolar_gate_sigmas;
   const double k2 = gate * gate;
+  ws->hypotheses_.clear();
   for (const CameraPair& pair : pairs_) {
     TriangulationWorkspace::CameraScratch& sa = ws->cameras_[pair.a];
     TriangulationWorkspace::CameraScratch& sb = ws->cameras_[pair.b];
@@ -454,7 +455,6 @@ void Triangulator::RunPass(const DetectionSet& set, int min_views, Triangulation
     }
     if (ws->unused_a_.empty() || ws->unused_b_.empty()) continue;
 
-    ws->hypotheses_.clear();
     const int nb = static_cast<int>(ws->unused_b_.size());
     for (int i : ws->unused_a_) {
       const Eigen::Vector3d la = pair.essential * sa.xy[i].homogeneous();  // epipolar line in b
@@ -495,43 +495,57 @@ void Triangulator::RunPass(const DetectionSet& set, int min_views, Triangulation
         if (h.view_count >= min_views) ws->hypotheses_.push_back(h);
       }
     }
-    if (ws->hypotheses_.empty()) continue;
-
-    ws->order_.resize(ws->hypotheses_.size());
-    for (int k = 0; k < static_cast<int>(ws->order_.size()); ++k) ws->order_[k] = k;
-    const auto& hyps = ws->hypotheses_;
-    std::sort(ws->order_.begin(), ws->order_.end(), [&](int p, int q) {
-      if (hyps[p].view_count != hyps[q].view_count) return hyps[p].view_count > hyps[q].view_count;
-      return hyps[p].epipolar_cost < hyps[q].epipolar_cost;
-    });
-    for (int k : ws->order_) {
-      internal::Hypothesis& h = ws->hypotheses_[k];
-      if (sa.state[h.views[0].centroid] != kFree || sb.state[h.views[1].centroid] != kFree) {
-        ++summary->superseded;
-        continue;
-      }
-      int kept = 2;
-      for (int v = 2; v < h.view_count; ++v) {
-        if (ws->cameras_[h.views[v].camera].state[h.views[v].centroid] == kFree) {
-          h.views[kept++] = h.views[v];
-        }
-      }
-      h.view_count = kept;
-      if (h.view_count < min_views) {
-        ++summary->superseded;
-        continue;
-      }
-      TriangulatedPoint point;
-      if (!Solve(set, min_views, &h, ws, &point)) {
-        ++summary->rejected_ghosts;
-        continue;
-      }
-      for (int v = 0; v < point.camera_count; ++v) {
-        ws->cameras_[point.views[v].camera].state[point.views[v].centroid] = kTaken;
-      }
-      points->push_back(point);
-    }
+    // With three or more views, accept this pair's hypotheses before the next pair is visited:
+    // the points accepted take their centroids out of every later pair's matching, which keeps
+    // the search small. Two-view hypotheses have no third camera to tell a true match from a
+    // coincidence, so they are all collected first and accepted best (smallest epipolar
+    // distance) first over the whole set: a centroid goes to its most consistent partner, not to
+    // whichever pair happened to be visited first.
+    if (min_views >= 3) AcceptHypotheses(set, min_views, ws, points, summary);
   }
+  if (min_views < 3) AcceptHypotheses(set, min_views, ws, points, summary);
+}
+
+void Triangulator::AcceptHypotheses(const DetectionSet& set, int min_views,
+                                    TriangulationWorkspace* ws,
+                                    std::vector<TriangulatedPoint>* points,
+                                    TriangulationSummary* summary) const {
+  ws->order_.resize(ws->hypotheses_.size());
+  for (int k = 0; k < static_cast<int>(ws->order_.size()); ++k) ws->order_[k] = k;
+  const auto& hyps = ws->hypotheses_;
+  std::sort(ws->order_.begin(), ws->order_.end(), [&](int p, int q) {
+    if (hyps[p].view_count != hyps[q].view_count) return hyps[p].view_count > hyps[q].view_count;
+    return hyps[p].epipolar_cost < hyps[q].epipolar_cost;
+  });
+  auto is_free = [&](const PointView& v) {
+    return ws->cameras_[v.camera].state[v.centroid] == kFree;
+  };
+  for (int k : ws->order_) {
+    internal::Hypothesis& h = ws->hypotheses_[k];
+    if (!is_free(h.views[0]) || !is_free(h.views[1])) {
+      ++summary->superseded;
+      continue;
+    }
+    int kept = 2;
+    for (int v = 2; v < h.view_count; ++v) {
+      if (is_free(h.views[v])) h.views[kept++] = h.views[v];
+    }
+    h.view_count = kept;
+    if (h.view_count < min_views) {
+      ++summary->superseded;
+      continue;
+    }
+    TriangulatedPoint point;
+    if (!Solve(set, min_views, &h, ws, &point)) {
+      ++summary->rejected_ghosts;
+      continue;
+    }
+    for (int v = 0; v < point.camera_count; ++v) {
+      ws->cameras_[point.views[v].camera].state[point.views[v].centroid] = kTaken;
+    }
+    points->push_back(point);
+  }
+  ws->hypotheses_.clear();
 }
 
 void Triangulator::MergeClosePoints(const DetectionSet& set, TriangulationWorkspace* ws,

@@ -22,7 +22,10 @@
 //      camera and collect, per camera, the nearest unused centroid within `support_gate_sigmas`.
 //   3. Accept greedily, the hypotheses with the most views first (then the smallest epipolar
 //      distance); a centroid belongs to at most one point, so a hypothesis whose pair centroids an
-//      earlier one took is dropped (superseded) and a taken supporting view is ignored.
+//      earlier one took is dropped (superseded) and a taken supporting view is ignored. Pair by
+//      pair for hypotheses of 3+ views (each pair's points leave the later pairs less to match);
+//      over all pairs at once for two-view hypotheses, which have no third camera to vouch for
+//      them, so that a centroid goes to its most consistent partner.
 //   4. For an accepted hypothesis: multi-view linear triangulation (the DLT of H&Z §12.2 in its
 //      inhomogeneous form, X = (x, y, z, 1): marker points are never at infinity, and its 3x3
 //      normal equations are cheaper than the SVD of the homogeneous 2n x 4 system), then
@@ -218,6 +221,9 @@ class Triangulator {
                         TriangulationSummary* summary) const;
   void RunPass(const DetectionSet& set, int min_views, TriangulationWorkspace* ws,
                std::vector<TriangulatedPoint>* points, TriangulationSummary* summary) const;
+  void AcceptHypotheses(const DetectionSet& set, int min_views, TriangulationWorkspace* ws,
+                        std::vector<TriangulatedPoint>* points,
+                        TriangulationSummary* summary) const;
   bool Solve(const DetectionSet& set, int min_views, internal::Hypothesis* h,
              TriangulationWorkspace* ws, TriangulatedPoint* point) const;
   int FindSupport(const TriangulationWorkspace& ws, int camera, const Eigen::Vector3d& x) const;
