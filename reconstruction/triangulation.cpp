@@ -593,8 +593,8 @@ Status Triangulator::Triangulate(const DetectionSet& set, TriangulationWorkspace
   if (ws == nullptr || points == nullptr) {
     return Status::Error("triangulation: workspace and points must not be null");
   }
+  points->clear();  // a failed call leaves no stale points behind
   MOCAP_RETURN_IF_ERROR(Validate(set));
-  points->clear();
   TriangulationSummary local;
   TriangulationSummary& s = summary ? *summary : local;
   s = TriangulationSummary{};

@@ -583,8 +583,11 @@ TEST(Triangulation, BadInputGetsAClearStatus) {
   std::vector<TriangulatedPoint> points;
   const Scene scene = MakeScene(rig, SubjectFrames()[0], SceneOptions{}, 0);
   auto expect_error = [&](const DetectionSet& set, const std::string& words) {
+    ASSERT_TRUE(t->Triangulate(scene.set, &ws, &points).ok());
+    ASSERT_FALSE(points.empty());
     const Status s = t->Triangulate(set, &ws, &points);
     ASSERT_FALSE(s.ok()) << words;
+    EXPECT_TRUE(points.empty()) << "stale points after: " << words;
     EXPECT_NE(s.message().find(words), std::string::npos) << s.message();
     const Status f = reconstruction::Triangulate(set, rig, TriangulationOptions{}, &points);
     EXPECT_EQ(f.message(), s.message());
