@@ -1,0 +1,234 @@
+// The Aravis backend against Aravis's own in-process fake cameras (drivers/aravis_fake.h): the
+// real arv_camera / arv_stream code paths, images from our generator.
+#include <arv.h>
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <chrono>
+#include <thread>
+#include <vector>
+
+#include "drivers/aravis_camera.h"
+#include "drivers/aravis_fake.h"
+#include "tests/aravis_test_util.h"
+
+namespace mocap::drivers {
+namespace {
+
+using testing::CheckPattern;
+using testing::DrawPattern;
+using testing::GvId;
+
+FakeRigOptions SmallRig(int n) {
+  FakeRigOptions o;
+  o.cameras = n;
+  o.width = 320;
+  o.height = 256;
+  return o;
+}
+
+TEST(AravisFake, CamerasStreamWithSettingsReadBackAndWrappingIds) {
+  AravisFakeRig rig(SmallRig(4), DrawPattern);
+  CameraSettings s;
+  s.exposure_us = 800;
+  s.gain_db = 2;
+  s.frame_rate_hz = 500;
+  s.roi_x = 16;
+  s.roi_y = 8;
+  s.roi_width = 256;
+  s.roi_height = 192;
+  s.pixel_format = PixelFormat::kMono16;
+  s.buffer_count = 8;
+  std::vector<std::unique_ptr<AravisCamera>> cams;
+  for (int i = 0; i < rig.size(); ++i) {
+    cams.push_back(rig.MakeCamera(i));
+    ASSERT_TRUE(cams.back()->Open(s).ok()) << cams.back()->Open(s).message();
+    const AppliedSettings& a = cams.back()->Applied();
+    EXPECT_DOUBLE_EQ(a.exposure_us, 800);
+    EXPECT_DOUBLE_EQ(a.gain_db, 2);
+    EXPECT_NEAR(a.frame_rate_hz, 500, 1.0);  // the fake stores the period in whole us
+    EXPECT_EQ(a.roi_x, 16);
+    EXPECT_EQ(a.roi_y, 8);
+    EXPECT_EQ(a.width, 256);
+    EXPECT_EQ(a.height, 192);
+    EXPECT_EQ(a.pixel_format, PixelFormat::kMono16);
+    EXPECT_EQ(a.trigger_source, "");
+  }
+  // 200 frames per camera: the fakes' ids start at 65401, so every camera wraps.
+  constexpr int kFrames = 200;
+  std::vector<std::thread> threads;
+  std::vector<int> bad(rig.size(), 0), wraps(rig.size(), 0), gaps(rig.size(), 0),
+      got(rig.size(), 0);
+  for (int i = 0; i < rig.size(); ++i) {
+    ASSERT_TRUE(cams[i]->Start().ok());
+    threads.emplace_back([&, i] {
+      AravisCamera& cam = *cams[i];
+      std::uint64_t last_seq = 0, last_ts = 0;
+      std::uint16_t last_id = 0;
+      for (int k = 0; got[i] < kFrames && k < 4 * kFrames; ++k) {
+        Frame f;
+        if (cam.Grab(&f) != GrabResult::kFrame) continue;
+        std::uint64_t stamped = 0;
+        if (f.camera != i || f.image.width != 256 || f.image.height != 192 ||
+            f.image.format != PixelFormat::kMono16 || !CheckPattern(f, &stamped) ||
+            GvId(stamped) != f.frame_id) {
+          ++bad[i];
+        }
+        if (got[i] > 0) {
+          if (f.sequence <= last_seq || f.device_timestamp_ns <= last_ts) ++bad[i];
+          if (f.sequence != last_seq + 1) ++gaps[i];
+          if (f.frame_id < last_id) {
+            ++wraps[i];
+            EXPECT_EQ(last_id, 65535);
+            EXPECT_EQ(f.frame_id, 1);
+          }
+        }
+        last_seq = f.sequence;
+        last_ts = f.device_timestamp_ns;
+        last_id = f.frame_id;
+        ++got[i];
+        cam.Release(f);
+      }
+    });
+  }
+  for (auto& t : threads) t.join();
+  for (int i = 0; i < rig.size(); ++i) {
+    cams[i]->Stop();
+    EXPECT_EQ(got[i], kFrames) << "camera " << i;
+    EXPECT_EQ(bad[i], 0) << "camera " << i;
+    EXPECT_EQ(wraps[i], 1) << "camera " << i;
+    EXPECT_EQ(gaps[i], 0) << "camera " << i;
+    EXPECT_EQ(cams[i]->Counters().complete.load(), static_cast<std::uint64_t>(kFrames));
+  }
+}
+
+TEST(AravisFake, SoftwareTriggerMono8) {
+  AravisFakeRig rig(SmallRig(1), DrawPattern);
+  auto cam = rig.MakeCamera(0);
+  CameraSettings s;
+  s.trigger = TriggerMode::kSoftware;
+  s.frame_rate_hz = 100;
+  s.timeout_ms = 300;
+  ASSERT_TRUE(cam->Open(s).ok());
+  EXPECT_EQ(cam->Applied().trigger_source, "Software");
+  ASSERT_TRUE(cam->Start().ok());
+  Frame f;
+  for (int k = 0; k < 3; ++k) {
+    ASSERT_TRUE(cam->Trigger().ok());
+    ASSERT_EQ(cam->Grab(&f), GrabResult::kFrame);
+    std::uint64_t stamped;
+    EXPECT_TRUE(CheckPattern(f, &stamped));
+    EXPECT_EQ(f.image.format, PixelFormat::kMono8);
+    EXPECT_EQ(f.image.width, 320);
+    cam->Release(f);
+  }
+  cam->Stop();
+  // Free-run cameras refuse Trigger().
+  auto free_cam = rig.MakeCamera(0);
+  ASSERT_TRUE(free_cam->Open(CameraSettings{}).ok());
+  Status t = free_cam->Trigger();
+  EXPECT_FALSE(t.ok());
+  EXPECT_NE(t.message().find("kSoftware"), std::string::npos) << t.message();
+}
+
+TEST(AravisFake, BadSettingsGiveClearErrors) {
+  AravisFakeRig rig(SmallRig(1), DrawPattern);
+  auto cam = rig.MakeCamera(0);
+  auto expect_error = [&](CameraSettings s, const std::vector<std::string>& words) {
+    Status st = cam->Open(s);
+    ASSERT_FALSE(st.ok());
+    for (const std::string& w : words) {
+      EXPECT_NE(st.message().find(w), std::string::npos) << st.message() << " lacks " << w;
+    }
+  };
+  CameraSettings s;
+  s.gain_db = 20;  // the fake's gain is 0..10
+  expect_error(s, {"MOCAPSIM0", "gain 20", "0..10"});
+  s = {};
+  s.roi_width = 400;  // sensor is 320 wide
+  expect_error(s, {"ROI", "320x256 sensor"});
+  s = {};
+  s.pixel_format = PixelFormat::kMono12;
+  expect_error(s, {"Mono12", "not supported", "Mono16"});
+  s = {};
+  s.frame_rate_hz = 4000;
+  s.exposure_us = 100;
+  expect_error(s, {"frame rate 4000", "0.1..1000"});
+  s = {};
+  s.trigger = TriggerMode::kHardwareLine;
+  s.trigger_line = 5;
+  expect_error(s, {"Line5", "Line0"});
+  s = {};
+  s.exposure_us = -1;
+  expect_error(s, {"exposure_us"});
+  // And a good one still opens afterwards.
+  EXPECT_TRUE(cam->Open(CameraSettings{}).ok());
+}
+
+// Frames of the wrong pixel format or size (the device changed behind the backend's back) are
+// counted and never delivered; good frames flow again once the device is back to the settings.
+TEST(AravisFake, WrongFormatAndSizeCountedNotDelivered) {
+  AravisFakeRig rig(SmallRig(1), DrawPattern);
+  auto cam = rig.MakeCamera(0);
+  CameraSettings s;
+  s.pixel_format = PixelFormat::kMono16;
+  s.frame_rate_hz = 500;
+  s.timeout_ms = 200;
+  ASSERT_TRUE(cam->Open(s).ok());
+  ASSERT_TRUE(cam->Start().ok());
+  auto grab_n = [&](int n, int* frames) {
+    for (int k = 0; k < n; ++k) {
+      Frame f;
+      if (cam->Grab(&f) == GrabResult::kFrame) {
+        ++*frames;
+        std::uint64_t stamped;
+        EXPECT_TRUE(CheckPattern(f, &stamped));
+        EXPECT_EQ(f.image.format, PixelFormat::kMono16);
+        EXPECT_EQ(f.image.width, 320);
+        cam->Release(f);
+      }
+    }
+  };
+  int frames = 0;
+  grab_n(10, &frames);
+  EXPECT_EQ(frames, 10);
+  ArvFakeCamera* fake = rig.FakeCamera(0);
+  ASSERT_NE(fake, nullptr);
+
+  arv_fake_camera_write_register(fake, ARV_FAKE_CAMERA_REGISTER_PIXEL_FORMAT,
+                                 ARV_PIXEL_FORMAT_MONO_8);
+  std::this_thread::sleep_for(std::chrono::milliseconds(30));
+  const CameraCounters& c = cam->Counters();
+  auto wrong_before = static_cast<int>(c.wrong_format.load());
+  frames = 0;
+  grab_n(30, &frames);
+  // At most the buffers already filled before the change (the pool) come out as frames; every
+  // other grab is a counted wrong-format buffer.
+  EXPECT_LE(frames, s.buffer_count);
+  EXPECT_EQ(static_cast<int>(c.wrong_format.load()) - wrong_before, 30 - frames);
+
+  arv_fake_camera_write_register(fake, ARV_FAKE_CAMERA_REGISTER_PIXEL_FORMAT,
+                                 ARV_PIXEL_FORMAT_MONO_16);
+  arv_fake_camera_write_register(fake, ARV_FAKE_CAMERA_REGISTER_WIDTH, 288);
+  std::this_thread::sleep_for(std::chrono::milliseconds(30));
+  const auto size_before = static_cast<int>(c.size_mismatches.load());
+  wrong_before = static_cast<int>(c.wrong_format.load());
+  frames = 0;
+  grab_n(30, &frames);
+  EXPECT_LE(frames, s.buffer_count);
+  // Buffers filled while the format was still wrong count as such; the rest as size mismatches.
+  EXPECT_EQ(static_cast<int>(c.size_mismatches.load()) - size_before +
+                static_cast<int>(c.wrong_format.load()) - wrong_before,
+            30 - frames);
+  EXPECT_GE(static_cast<int>(c.size_mismatches.load()) - size_before, 30 - s.buffer_count);
+
+  arv_fake_camera_write_register(fake, ARV_FAKE_CAMERA_REGISTER_WIDTH, 320);
+  std::this_thread::sleep_for(std::chrono::milliseconds(30));
+  frames = 0;
+  grab_n(40, &frames);
+  EXPECT_GE(frames, 40 - s.buffer_count);
+  cam->Stop();
+}
+
+}  // namespace
+}  // namespace mocap::drivers
