@@ -2,6 +2,15 @@
 
 #include <arv.h>
 
+#include <fcntl.h>
+#include <sys/file.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <chrono>
+#include <cstring>
+#include <thread>
+
 namespace mocap::drivers {
 namespace {
 
@@ -147,16 +156,41 @@ GvFakeCamera::GvFakeCamera(std::string serial, int camera_index, ImageGenerator 
   context_.generator = std::move(generator);
 }
 
-GvFakeCamera::~GvFakeCamera() { Destroy(); }
+GvFakeCamera::~GvFakeCamera() {
+  Destroy();
+  if (lock_fd_ >= 0) ::close(lock_fd_);  // releases the flock
+}
 
-Status GvFakeCamera::Create() {
+Status GvFakeCamera::Create(double wait_s) {
   if (gv_ != nullptr) return Status::Ok();
-  gv_ = arv_gv_fake_camera_new("127.0.0.1", serial_.c_str());
-  if (gv_ == nullptr || !arv_gv_fake_camera_is_running(gv_)) {
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(wait_s);
+  if (lock_fd_ < 0) {
+    const char* path = "/tmp/mocap-gv-fake-127.0.0.1.lock";
+    lock_fd_ = ::open(path, O_RDWR | O_CREAT | O_CLOEXEC, 0666);
+    if (lock_fd_ < 0) {
+      return Status::Error("GigE fake camera " + serial_ + ": cannot open " + path + ": " +
+                           std::strerror(errno));
+    }
+    while (::flock(lock_fd_, LOCK_EX | LOCK_NB) != 0) {
+      if (std::chrono::steady_clock::now() >= end) {
+        ::close(lock_fd_);
+        lock_fd_ = -1;
+        return Status::Error("GigE fake camera " + serial_ +
+                             ": another GigE fake holds 127.0.0.1 (" + path + ")");
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+  }
+  for (;;) {
+    gv_ = arv_gv_fake_camera_new("127.0.0.1", serial_.c_str());
+    if (gv_ != nullptr && arv_gv_fake_camera_is_running(gv_)) break;
     if (gv_ != nullptr) g_object_unref(gv_);
     gv_ = nullptr;
-    return Status::Error("GigE fake camera " + serial_ +
-                         ": cannot start on 127.0.0.1 (another one running there?)");
+    if (std::chrono::steady_clock::now() >= end) {
+      return Status::Error("GigE fake camera " + serial_ +
+                           ": cannot start on 127.0.0.1 (another GigE fake running there?)");
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
   ArvFakeCamera* fake = arv_gv_fake_camera_get_fake_camera(gv_);
   SetSensor(fake, width_, height_);

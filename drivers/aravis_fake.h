@@ -100,7 +100,11 @@ class GvFakeCamera {
   GvFakeCamera(const GvFakeCamera&) = delete;
   GvFakeCamera& operator=(const GvFakeCamera&) = delete;
 
-  Status Create();    // starts the fake (again)
+  // Starts the fake (again). Only one GigE fake may run on an address (two would both answer
+  // GVCP on port 3956): the first Create() takes an exclusive lock on
+  // /tmp/mocap-gv-fake-127.0.0.1.lock, kept until destruction (so a Destroy()/Create() cycle
+  // keeps the address), waiting up to `wait_s` seconds for another process to release it.
+  Status Create(double wait_s = 0.0);
   void Destroy();     // the camera vanishes: no more answers on GVCP, no more packets
   bool running() const { return gv_ != nullptr; }
   std::string device_id() const { return "Aravis-" + serial_; }
@@ -114,6 +118,7 @@ class GvFakeCamera {
   double loss_ratio_ = 0.0;
   FakeFillContext context_;
   ArvGvFakeCamera* gv_ = nullptr;
+  int lock_fd_ = -1;
 };
 
 }  // namespace mocap::drivers
