@@ -357,8 +357,17 @@ Status AravisCamera::CreateStreamAndPool() {
   return Status::Ok();
 }
 
+std::uint64_t AravisCamera::StreamUnderruns() const {
+  if (stream_ == nullptr) return 0;
+  guint64 completed = 0, failures = 0, underruns = 0;
+  arv_stream_get_statistics(stream_, &completed, &failures, &underruns);
+  return underruns;
+}
+
 void AravisCamera::TearDown(bool device_gone) {
   GError* e = nullptr;
+  underrun_base_ += StreamUnderruns();
+  counters_.underruns = underrun_base_;
   if (camera_ != nullptr && acquiring_ && !device_gone) {
     arv_camera_stop_acquisition(camera_, &e);
     g_clear_error(&e);
@@ -482,6 +491,8 @@ GrabResult AravisCamera::Grab(Frame* frame) {
     counters_.timeouts++;
     return GrabResult::kTimeout;
   }
+  // Images that found no free buffer in the stream are Aravis's to count: mirror them.
+  counters_.underruns = underrun_base_ + StreamUnderruns();
   Slot* slot = nullptr;
   const GrabResult r = Classify(buffer, frame, &slot);
   if (r != GrabResult::kFrame) {

@@ -139,6 +139,7 @@ class AravisCamera final : public CameraSource {
   void TearDown(bool device_gone);
   void MarkLost();
   GrabResult Classify(ArvBuffer* buffer, Frame* frame, Slot** slot);
+  std::uint64_t StreamUnderruns() const;
 
   std::string id_;
   ArvCameraFactory factory_;
@@ -169,6 +170,7 @@ class AravisCamera final : public CameraSource {
   std::atomic<bool> lost_flag_{false};
   std::atomic<bool> arrived_flag_{false};
   std::chrono::steady_clock::time_point last_reopen_attempt_{};
+  std::uint64_t underrun_base_ = 0;  // Aravis's underruns of the streams before this one
   CameraCounters counters_;
 };
 

@@ -288,7 +288,7 @@ Renderer::Renderer(std::vector<reconstruction::CameraModel> cameras,
     }
   }
   Profile();  // build the table now, not in the first frame
-  NoiseTable(options_.seed);
+  noise_ = &NoiseTable(options_.seed);
   const int n = scene_ ? scene_->marker_count() : 0;
   for (std::size_t c = 0; c < cameras_.size(); ++c) {
     auto st = std::make_unique<CameraState>();
@@ -433,7 +433,7 @@ void Renderer::Render(int camera, std::uint64_t sequence, std::uint8_t* data, in
   // 3. Draw each blob's rectangle: background + every blob reaching the pixel + noise.
   const double s = o.psf_sigma_px, inv_s = 1.0 / s;
   const bool noisy = o.read_noise > 0 || o.shot_noise > 0;
-  const std::vector<float>& noise = NoiseTable(o.seed);
+  const std::vector<float>& noise = *noise_;
   const std::uint64_t noise_key = Key(SubSeed(o.seed, Stream::kImageNoise), camera, sequence);
   const double read2 = o.read_noise * o.read_noise, shot2 = o.shot_noise * o.shot_noise;
   const int n = static_cast<int>(st.blobs.size());

@@ -167,6 +167,7 @@ class Renderer {
   RendererOptions options_;
   Status status_;
   std::vector<std::unique_ptr<CameraState>> states_;
+  const std::vector<float>* noise_ = nullptr;  // standard normal variates, shared per seed
 };
 
 }  // namespace mocap::sim

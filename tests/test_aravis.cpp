@@ -235,6 +235,78 @@ TEST(AravisFake, WrongFormatAndSizeCountedNotDelivered) {
   cam->Stop();
 }
 
+// A caller holding every buffer starves the stream: Aravis counts the images it could not
+// store, and the backend reports them as underruns.
+TEST(AravisFake, UnderrunsWhenTheCallerHoldsEveryBuffer) {
+  AravisFakeRig rig(SmallRig(1), DrawPattern);
+  auto cam = rig.MakeCamera(0);
+  CameraSettings s;
+  s.frame_rate_hz = 500;
+  s.buffer_count = 2;
+  s.timeout_ms = 200;
+  ASSERT_TRUE(cam->Open(s).ok());
+  ASSERT_TRUE(cam->Start().ok());
+  Frame a, b, c;
+  ASSERT_EQ(cam->Grab(&a), GrabResult::kFrame);
+  ASSERT_EQ(cam->Grab(&b), GrabResult::kFrame);
+  std::this_thread::sleep_for(std::chrono::milliseconds(60));  // ~30 frame periods, no buffer
+  cam->Release(a);
+  cam->Release(b);
+  ASSERT_EQ(cam->Grab(&c), GrabResult::kFrame);
+  cam->Release(c);
+  EXPECT_GE(cam->Counters().underruns.load(), 10u);
+  cam->Stop();
+}
+
+// The other ways in: an ArvCamera made by the caller, a serial number, a hardware trigger line.
+TEST(AravisFake, AdoptedCameraSerialLookupAndHardwareTrigger) {
+  GError* e = nullptr;
+  ArvDevice* device = arv_fake_device_new("ADOPTED1", &e);
+  ASSERT_NE(device, nullptr);
+  ArvCamera* arv_cam = arv_camera_new_with_device(device, &e);
+  ASSERT_NE(arv_cam, nullptr);
+  g_object_unref(device);
+  {
+    AravisCamera cam("ADOPTED1", arv_cam);
+    CameraSettings s;
+    s.roi_width = 128;
+    s.roi_height = 64;
+    s.frame_rate_hz = 200;
+    ASSERT_TRUE(cam.Open(s).ok());
+    ASSERT_TRUE(cam.Start().ok());
+    Frame f;
+    ASSERT_EQ(cam.Grab(&f), GrabResult::kFrame);  // the fake's own test pattern
+    EXPECT_EQ(f.image.width, 128);
+    EXPECT_EQ(f.image.height, 64);
+    cam.Release(f);
+    cam.Stop();
+    Status st = cam.Reopen();  // no factory: says so
+    ASSERT_FALSE(st.ok());
+    EXPECT_NE(st.message().find("factory"), std::string::npos) << st.message();
+  }
+  g_object_unref(arv_cam);
+
+  // Aravis's Fake interface lists one fake camera: id "Fake_1", serial "1".
+  arv_enable_interface("Fake");
+  std::unique_ptr<AravisCamera> by_serial;
+  ASSERT_TRUE(AravisCamera::FromSerial("1", {}, &by_serial).ok());
+  EXPECT_EQ(by_serial->id(), "Fake_1");
+  CameraSettings s;
+  s.trigger = TriggerMode::kHardwareLine;
+  s.trigger_line = 0;
+  s.roi_width = 64;
+  s.roi_height = 64;
+  Status st = by_serial->Open(s);
+  ASSERT_TRUE(st.ok()) << st.message();
+  EXPECT_EQ(by_serial->Applied().trigger_source, "Line0");
+  std::unique_ptr<AravisCamera> none;
+  st = AravisCamera::FromSerial("NOSUCHCAM", {}, &none);
+  ASSERT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("NOSUCHCAM"), std::string::npos);
+  EXPECT_NE(st.message().find("(found: 1)"), std::string::npos) << st.message();  // what was
+  arv_disable_interface("Fake");
+}
+
 // What `mocap capture` runs in simulation: the full rig (8 cameras, 1280x1024, 200 Hz) of Aravis
 // fake cameras drawing the simulated subject with the renderer. Every checked frame shows the
 // truth's blobs; the delivered rate and the CPU it costs are printed (not asserted: the machine
