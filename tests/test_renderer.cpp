@@ -299,8 +299,10 @@ TEST(Renderer, SessionSceneAndCost) {
   std::printf("render: %.1f us per 1280x1024 image (%.1f blobs per image); 8 cameras x 200 Hz "
               "need %.0f%% of one core\n", us, blobs / 8.0, us * 1600 / 1e4);
   EXPECT_GT(blobs / 8.0, 20);
-  // A renderer that cleared whole images would need >= ~100 us (1.3 MB memset) per image.
-  EXPECT_LT(us, 250.0);
+  // The real-time budget: 8 x 200 = 1600 images/s in at most 2/3 of one core (detection needs
+  // the rest of the two) is 416 us per image. (That it never touches every pixel is tested by
+  // the canary in DirtyRectanglesLeaveNoStaleBlob.)
+  EXPECT_LT(us, 400.0);
 }
 
 }  // namespace
