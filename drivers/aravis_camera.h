@@ -123,6 +123,10 @@ class AravisCamera final : public CameraSource {
   // Tries once to reopen a lost camera with the settings of the last Open(); Ok if streaming.
   Status Reopen();
   const std::string& LastError() const { return last_error_; }
+  // The sequence the next delivered frame gets after a reopen (last delivered + 1), or 0 if
+  // none was delivered yet. The fake rig's factory reads it (from the reopening thread) so the
+  // images it draws are numbered like the frames the caller receives.
+  std::uint64_t ResumeSequence() const { return delivered_any_ ? last_sequence_ + 1 : 0; }
 
  private:
   struct Slot {

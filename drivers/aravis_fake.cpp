@@ -33,7 +33,11 @@ void FillHook(ArvBuffer* buffer, void* data, guint32 /*exposure_us*/, guint32 /*
     std::lock_guard<std::mutex> lock(ctx->mutex);
     const std::uint64_t raw = ctx->unwrapper.Next(id);
     if (ctx->restart) {
-      ctx->offset = ctx->any ? static_cast<std::int64_t>(ctx->last_sequence + 1 - raw) : 0;
+      if (ctx->resume != 0) {
+        ctx->offset = static_cast<std::int64_t>(ctx->resume - raw);
+      } else {
+        ctx->offset = ctx->any ? static_cast<std::int64_t>(ctx->last_sequence + 1 - raw) : 0;
+      }
       ctx->restart = false;
     }
     sequence = raw + static_cast<std::uint64_t>(ctx->offset);
@@ -52,10 +56,11 @@ void SetSensor(ArvFakeCamera* fake, int width, int height) {
   arv_fake_camera_write_register(fake, ARV_FAKE_CAMERA_REGISTER_HEIGHT, height);
 }
 
-void Restart(FakeFillContext* ctx) {
+void Restart(FakeFillContext* ctx, std::uint64_t resume = 0) {
   std::lock_guard<std::mutex> lock(ctx->mutex);
   ctx->unwrapper = FrameIdUnwrapper(true);
   ctx->restart = true;
+  ctx->resume = resume;
 }
 
 }  // namespace
@@ -112,7 +117,8 @@ std::uint64_t AravisFakeRig::FramesDrawn(int camera) const {
   return camera >= 0 && camera < options_.cameras ? contexts_[camera]->drawn.load() : 0;
 }
 
-ArvCamera* AravisFakeRig::NewDevice(int camera, std::string* error) {
+ArvCamera* AravisFakeRig::NewDevice(int camera, std::uint64_t resume_sequence,
+                                    std::string* error) {
   const std::string sn = serial(camera);
   if (!present_[camera].load()) {
     *error = "fake camera " + sn + ": device not found (unplugged)";
@@ -127,7 +133,7 @@ ArvCamera* AravisFakeRig::NewDevice(int camera, std::string* error) {
   }
   ArvFakeCamera* fake = arv_fake_device_get_fake_camera(ARV_FAKE_DEVICE(device));
   SetSensor(fake, options_.width, options_.height);
-  Restart(contexts_[camera].get());
+  Restart(contexts_[camera].get(), resume_sequence);
   arv_fake_camera_set_fill_pattern(fake, FillHook, contexts_[camera].get());
   ArvCamera* cam = arv_camera_new_with_device(device, &e);
   g_object_unref(device);  // the camera holds its own reference
@@ -144,9 +150,17 @@ ArvCamera* AravisFakeRig::NewDevice(int camera, std::string* error) {
 std::unique_ptr<AravisCamera> AravisFakeRig::MakeCamera(int camera, AravisCameraOptions options) {
   if (camera < 0 || camera >= options_.cameras) return nullptr;
   options.camera_index = camera;
-  return std::make_unique<AravisCamera>(
-      serial(camera), [this, camera](std::string* error) { return NewDevice(camera, error); },
+  // The factory runs in the camera's own Open()/Reopen(): it may ask the camera where its
+  // sequence resumes.
+  auto owner = std::make_shared<AravisCamera*>(nullptr);
+  auto cam = std::make_unique<AravisCamera>(
+      serial(camera),
+      [this, camera, owner](std::string* error) {
+        return NewDevice(camera, *owner ? (*owner)->ResumeSequence() : 0, error);
+      },
       options);
+  *owner = cam.get();
+  return cam;
 }
 
 GvFakeCamera::GvFakeCamera(std::string serial, int camera_index, ImageGenerator generator,

@@ -14,7 +14,9 @@
 // The fill hook gets the buffer's geometry and pixel format; Aravis's fake reports a data size of
 // 0 there, so the image size is width x height x bytes per pixel. The generator's `sequence` is
 // the fake's 16-bit frame id unwrapped (the fakes count 65401, ..., 65535, 1, ...: they wrap
-// within the first 135 frames), continued across a re-created device.
+// within the first 135 frames), continued across a re-created device: for the rig's cameras at
+// the sequence the AravisCamera resumes with (AravisCamera::ResumeSequence), so the renderer's
+// truth for (camera, frame.sequence) stays the image the caller got, also after a reopen.
 //
 // Usage (the lead's `mocap capture`, with the renderer of sim/renderer.h):
 //   sim::Renderer renderer(rig, scene, render_options);
@@ -55,6 +57,7 @@ struct FakeFillContext {
   std::mutex mutex;
   FrameIdUnwrapper unwrapper{true};
   bool restart = true;              // a new device: re-anchor the sequence
+  std::uint64_t resume = 0;         // ... at this sequence if non-zero, else after the last one
   std::int64_t offset = 0;
   std::uint64_t last_sequence = 0;
   bool any = false;
@@ -82,7 +85,7 @@ class AravisFakeRig {
   std::uint64_t FramesDrawn(int camera) const;
 
  private:
-  ArvCamera* NewDevice(int camera, std::string* error);
+  ArvCamera* NewDevice(int camera, std::uint64_t resume_sequence, std::string* error);
 
   FakeRigOptions options_;
   std::vector<std::unique_ptr<FakeFillContext>> contexts_;
