@@ -307,6 +307,18 @@ TEST(AravisFake, AdoptedCameraSerialLookupAndHardwareTrigger) {
   arv_disable_interface("Fake");
 }
 
+TEST(AravisFake, MissingDeviceNamesIt) {
+  AravisCamera cam("NoSuchVendor-NoSuchModel-000");
+  Status st = cam.Open(CameraSettings{});
+  ASSERT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("cannot open camera 'NoSuchVendor-NoSuchModel-000'"),
+            std::string::npos)
+      << st.message();
+  Frame f;
+  EXPECT_EQ(cam.Grab(&f), GrabResult::kStopped);
+  EXPECT_FALSE(cam.Start().ok());
+}
+
 // What `mocap capture` runs in simulation: the full rig (8 cameras, 1280x1024, 200 Hz) of Aravis
 // fake cameras drawing the simulated subject with the renderer. Every checked frame shows the
 // truth's blobs; the delivered rate and the CPU it costs are printed (not asserted: the machine
