@@ -247,13 +247,26 @@ Status AravisCamera::ApplySettings() {
     if (e) return fail(std::string("cannot read ") + name + " back");
     return Status::Ok();
   };
-  if (arv_camera_is_exposure_time_available(camera_, &e)) {
-    MOCAP_RETURN_IF_ERROR(set_float("exposure", s.exposure_us, "us",
-                                    arv_camera_get_exposure_time_bounds,
-                                    arv_camera_set_exposure_time, arv_camera_get_exposure_time,
-                                    &applied_.exposure_us));
+  // Real cameras bound the exposure by the frame period and the frame rate by the exposure:
+  // lengthening the exposure beyond the CURRENT period must wait for the new frame rate, and
+  // the new frame rate may need the new (shorter) exposure first.
+  auto set_exposure = [&]() -> Status {
+    if (arv_camera_is_exposure_time_available(camera_, &e)) {
+      MOCAP_RETURN_IF_ERROR(set_float("exposure", s.exposure_us, "us",
+                                      arv_camera_get_exposure_time_bounds,
+                                      arv_camera_set_exposure_time, arv_camera_get_exposure_time,
+                                      &applied_.exposure_us));
+    }
+    g_clear_error(&e);
+    return Status::Ok();
+  };
+  bool exposure_first = true;
+  if (s.trigger == TriggerMode::kFreeRun && arv_camera_is_frame_rate_available(camera_, &e)) {
+    const double current_hz = arv_camera_get_frame_rate(camera_, &e);
+    if (current_hz > 0 && s.exposure_us > 1e6 / current_hz) exposure_first = false;
   }
   g_clear_error(&e);
+  if (exposure_first) MOCAP_RETURN_IF_ERROR(set_exposure());
   if (arv_camera_is_gain_available(camera_, &e)) {
     MOCAP_RETURN_IF_ERROR(set_float("gain", s.gain_db, "dB", arv_camera_get_gain_bounds,
                                     arv_camera_set_gain, arv_camera_get_gain,
@@ -299,6 +312,7 @@ Status AravisCamera::ApplySettings() {
     applied_.trigger_source = source;
     applied_.frame_rate_hz = s.frame_rate_hz;
   }
+  if (!exposure_first) MOCAP_RETURN_IF_ERROR(set_exposure());
 
   ArvPixelFormat got_format = arv_camera_get_pixel_format(camera_, &e);
   if (e) return fail("cannot read the pixel format back");

@@ -166,8 +166,20 @@ TEST(AravisFake, BadSettingsGiveClearErrors) {
   s = {};
   s.exposure_us = -1;
   expect_error(s, {"exposure_us"});
-  // And a good one still opens afterwards.
-  EXPECT_TRUE(cam->Open(CameraSettings{}).ok());
+  // And good ones still open afterwards, through both orders of exposure and frame rate: 60 ms
+  // is longer than the period of the fresh fake (25 Hz: 40 ms), so the rate goes first; 400 us
+  // is not. (The fake does not enforce the dependency a real camera has; this runs both paths.)
+  s = {};
+  s.exposure_us = 60000;
+  s.frame_rate_hz = 10;
+  ASSERT_TRUE(cam->Open(s).ok());
+  EXPECT_DOUBLE_EQ(cam->Applied().exposure_us, 60000);
+  EXPECT_NEAR(cam->Applied().frame_rate_hz, 10, 0.01);
+  s.exposure_us = 400;
+  s.frame_rate_hz = 500;
+  ASSERT_TRUE(cam->Open(s).ok());
+  EXPECT_DOUBLE_EQ(cam->Applied().exposure_us, 400);
+  EXPECT_NEAR(cam->Applied().frame_rate_hz, 500, 1);
 }
 
 // Frames of the wrong pixel format or size (the device changed behind the backend's back) are
