@@ -19,6 +19,7 @@
 // truth for (camera, frame.sequence) stays the image the caller got, also after a reopen.
 //
 // Usage (the lead's `mocap capture`, with the renderer of sim/renderer.h):
+//   render_options.sequence_origin = drivers::kAravisFakeFirstFrameId;  // scene time 0 first
 //   sim::Renderer renderer(rig, scene, render_options);
 //   drivers::FakeRigOptions fo;  fo.cameras = rig.size();  fo.width = 1280;  fo.height = 1024;
 //   drivers::AravisFakeRig fakes(fo, renderer.Generator());
@@ -40,6 +41,11 @@ typedef struct _ArvFakeCamera ArvFakeCamera;
 typedef struct _ArvGvFakeCamera ArvGvFakeCamera;
 
 namespace mocap::drivers {
+
+// The first frame id (and so the first sequence) of Aravis 0.8's fake cameras: they start near
+// the end of the 16-bit range so that every test sees the wrap. A renderer that should start at
+// the beginning of its scene uses it as RendererOptions::sequence_origin.
+constexpr std::uint64_t kAravisFakeFirstFrameId = 65401;
 
 struct FakeRigOptions {
   int cameras = 8;
