@@ -131,7 +131,7 @@ Status AravisCamera::Open(const CameraSettings& settings) {
   opened_ = true;
   acquiring_ = false;
   state_ = CameraState::kClosed;
-  unwrapper_ = FrameIdUnwrapper(zero_reserved_ids_);
+  unwrapper_ = FrameIdUnwrapper();
   delivered_any_ = false;
   resume_sequence_ = false;
   sequence_offset_ = 0;
@@ -148,8 +148,6 @@ Status AravisCamera::Connect() {
   ArvDevice* device = arv_camera_get_device(camera_);
   control_lost_handler_ =
       g_signal_connect(device, "control-lost", G_CALLBACK(&AravisCamera::OnControlLost), this);
-  // USB3 Vision block ids are 64 bit (0 included); GigE Vision 1.x and the fakes skip 0.
-  zero_reserved_ids_ = !ARV_IS_UV_DEVICE(device);
   return ApplySettings();
 }
 
@@ -468,7 +466,7 @@ Status AravisCamera::Reopen() {
     state_ = CameraState::kLost;
     return s;
   }
-  unwrapper_ = FrameIdUnwrapper(zero_reserved_ids_);
+  unwrapper_ = FrameIdUnwrapper();
   resume_sequence_ = delivered_any_;
   counters_.reopens++;
   state_ = acquiring_ ? CameraState::kStreaming : CameraState::kClosed;

@@ -12,11 +12,14 @@
 //     CameraCounters and pushed straight back (GrabResult::kIncomplete); its pixels are never
 //     read. Aravis's fake path reports a data size of 0, so the expected size is
 //     width x height x bytes per pixel, and a non-zero reported size must cover it.
-//   - Frame ids. GigE Vision 1.x block ids are 16 bit and skip 0 (as the fakes do); USB3 Vision
-//     ids are 64 bit, of which the low 16 bits are kept: Frame::frame_id is always 16 bit and
-//     Frame::sequence its unwrapped, monotonic extension. After a reopen the device restarts its
-//     ids; the sequence continues from the last one delivered (sync must then re-align this
-//     camera on timestamps).
+//   - Frame ids. GigE Vision 1.x block ids are 16 bit; USB3 Vision ids are 64 bit, of which the
+//     low 16 bits are kept: Frame::frame_id is always 16 bit and Frame::sequence its unwrapped,
+//     monotonic extension (FrameIdUnwrapper), whose low 16 bits ARE the id — frame sync
+//     (reconstruction/frame_sync.h) relies on that to line up cameras that started on either
+//     side of a wrap. GigE Vision 1.x never uses id 0 (nor do the fakes: 65535 is followed by 1),
+//     so there the sequence skips one value per wrap (65535 -> 65537). After a reopen the device
+//     restarts its ids; the sequence continues from the last one delivered (sync must then
+//     re-align this camera, e.g. FrameSync::ResyncCamera on timestamps).
 //   - Loss. Aravis emits `control-lost` from its heartbeat thread (GigE: some seconds after the
 //     camera stops answering). The handler only sets a flag; the acquisition thread, in Grab(),
 //     marks the camera lost (State() == kLost, counters.losses), drops the stream and the device
@@ -155,7 +158,6 @@ class AravisCamera final : public CameraSource {
   ArvCamera* camera_ = nullptr;
   ArvStream* stream_ = nullptr;
   unsigned long control_lost_handler_ = 0;
-  bool zero_reserved_ids_ = true;
   bool acquiring_ = false;
   bool opened_ = false;
 

@@ -58,7 +58,7 @@ void SetSensor(ArvFakeCamera* fake, int width, int height) {
 
 void Restart(FakeFillContext* ctx, std::uint64_t resume = 0) {
   std::lock_guard<std::mutex> lock(ctx->mutex);
-  ctx->unwrapper = FrameIdUnwrapper(true);
+  ctx->unwrapper = FrameIdUnwrapper();
   ctx->restart = true;
   ctx->resume = resume;
 }

@@ -13,8 +13,8 @@
 //
 // The fill hook gets the buffer's geometry and pixel format; Aravis's fake reports a data size of
 // 0 there, so the image size is width x height x bytes per pixel. The generator's `sequence` is
-// the fake's 16-bit frame id unwrapped (the fakes count 65401, ..., 65535, 1, ...: they wrap
-// within the first 135 frames), continued across a re-created device: for the rig's cameras at
+// the fake's 16-bit frame id unwrapped as AravisCamera does (the fakes count 65401, ..., 65535,
+// 1, ...: they wrap within the first 135 frames, and the sequence goes 65535 -> 65537), continued across a re-created device: for the rig's cameras at
 // the sequence the AravisCamera resumes with (AravisCamera::ResumeSequence), so the renderer's
 // truth for (camera, frame.sequence) stays the image the caller got, also after a reopen.
 //
@@ -61,7 +61,7 @@ struct FakeFillContext {
   int camera = 0;
   ImageGenerator generator;
   std::mutex mutex;
-  FrameIdUnwrapper unwrapper{true};
+  FrameIdUnwrapper unwrapper;
   bool restart = true;              // a new device: re-anchor the sequence
   std::uint64_t resume = 0;         // ... at this sequence if non-zero, else after the last one
   std::int64_t offset = 0;

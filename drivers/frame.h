@@ -63,47 +63,30 @@ struct Frame {
 // Extends 16-bit frame ids to a monotonic 64-bit sequence. A step back of more than half the
 // range is a wrap; a smaller step back (a stale or repeated id) returns the sequence it maps to
 // without advancing.
-//
-// GigE Vision 1.x reserves block id 0: the ids run 1..65535 and then 1 again (Aravis's fake
-// cameras do the same). With `zero_reserved` the cycle is 65,535 long, so 65535 -> 1 is ONE step
-// (sequence +1), not two: otherwise every wrap would look like a dropped frame to sync. USB3
-// Vision block ids are 64 bit and include 0: use the default.
 class FrameIdUnwrapper {
  public:
-  FrameIdUnwrapper() = default;
-  explicit FrameIdUnwrapper(bool zero_reserved) : zero_reserved_(zero_reserved) {}
-
   std::uint64_t Next(std::uint16_t id) {
-    const std::uint32_t cycle = zero_reserved_ ? 0xFFFFu : 0x10000u;
-    const std::uint32_t p = Position(id);
     if (!started_) {
       started_ = true;
-      last_ = p;
+      last_ = id;
       base_ = 0;
       return id;
     }
-    const std::uint32_t delta = (p + cycle - last_) % cycle;
-    if (delta < cycle / 2) {
-      if (p < last_) base_ += cycle;
-      last_ = p;
-      return base_ + Id(p);
+    const std::uint16_t delta = static_cast<std::uint16_t>(id - last_);
+    if (delta < 0x8000u) {
+      if (id < last_) base_ += 0x10000u;
+      last_ = id;
+      return base_ + id;
     }
     // A step backwards: place it before the last id without moving the base.
-    const std::uint64_t last_seq = base_ + Id(last_);
-    const std::uint64_t back = (last_ + cycle - p) % cycle;
+    const std::uint64_t last_seq = base_ + last_;
+    const std::uint64_t back = static_cast<std::uint16_t>(last_ - id);
     return last_seq >= back ? last_seq - back : 0;
   }
-  void Reset() { started_ = false; }
 
  private:
-  std::uint32_t Position(std::uint16_t id) const {
-    return zero_reserved_ ? (id == 0 ? 0u : id - 1u) : id;
-  }
-  std::uint32_t Id(std::uint32_t p) const { return zero_reserved_ ? p + 1u : p; }
-
-  bool zero_reserved_ = false;
   bool started_ = false;
-  std::uint32_t last_ = 0;  // position in the cycle of the last id
+  std::uint16_t last_ = 0;
   std::uint64_t base_ = 0;
 };
 

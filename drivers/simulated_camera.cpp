@@ -58,7 +58,7 @@ Status SimulatedCamera::Open(const CameraSettings& settings) {
   slots_.resize(settings.buffer_count);
   for (Slot& s : slots_) s.memory.reset(new std::uint8_t[static_cast<std::size_t>(stride_) * h]());
   first_sequence_ = options_.first_frame_id;
-  if (options_.zero_reserved_ids && first_sequence_ == 0) first_sequence_ = 1;
+  if (options_.skip_zero_ids && first_sequence_ == 0) first_sequence_ = 1;
   opened_ = true;
   started_ = false;
   pending_triggers_ = 0;
@@ -100,7 +100,6 @@ void SimulatedCamera::FailFrames(int n, FrameStatus status) {
 }
 
 std::uint16_t SimulatedCamera::IdOf(std::uint64_t sequence) const {
-  if (options_.zero_reserved_ids) return static_cast<std::uint16_t>((sequence - 1) % 65535 + 1);
   return static_cast<std::uint16_t>(sequence & 0xFFFFu);
 }
 
@@ -144,6 +143,7 @@ GrabResult SimulatedCamera::Grab(Frame* frame) {
     }
   }
   for (;;) {
+    if (options_.skip_zero_ids && (next_sequence_ & 0xFFFFu) == 0) ++next_sequence_;  // no id 0
     const std::uint64_t seq = next_sequence_;
     if (settings_.trigger == TriggerMode::kSoftware) {
       std::unique_lock<std::mutex> lock(mutex_);

@@ -5,9 +5,11 @@
 //   - pacing: frame n is due at start + n / frame rate (steady clock) and Grab() waits for it;
 //     `unpaced` hands frames out as fast as they are asked for (tests). In software-trigger mode
 //     a frame is made per Trigger(); a Grab() without one times out.
-//   - ids: 16-bit frame ids that wrap (GigE style 1..65535 when `zero_reserved_ids`, else
-//     0..65535), starting at `first_frame_id` so a test sees the wrap after a few frames; the
-//     sequence is their unwrapped extension and time = sequence / frame rate for the generator.
+//   - ids: 16-bit frame ids that wrap, starting at `first_frame_id` so a test sees the wrap after
+//     a few frames; the sequence is their unwrapped extension (its low 16 bits are the id, as
+//     FrameIdUnwrapper gives on Aravis) and time = sequence / frame rate for the generator. With
+//     `skip_zero_ids` (GigE Vision 1.x never uses block id 0) the sequences whose id would be 0
+//     are never made: 65535 is followed by 1, the sequence by +2.
 //   - the ring: Grab() needs a free image; when the caller holds them all the frame is lost and
 //     counted as an underrun, as a real stream would.
 //   - faults, injectable from any thread: DropFrames(n) (frames that never arrive: the sequence
@@ -40,7 +42,7 @@ struct SimulatedCameraOptions {
   int height = 1024;
   bool unpaced = false;                 // frames as fast as Grab() asks (tests)
   std::uint16_t first_frame_id = 1;
-  bool zero_reserved_ids = true;        // ids 1..65535 (GigE Vision 1.x); false: 0..65535
+  bool skip_zero_ids = true;            // ids 1..65535 (GigE Vision 1.x); false: 0..65535
   std::uint64_t device_clock_origin_ns = 0;
 
   bool IsValid(std::string* error) const;

@@ -47,9 +47,9 @@ inline bool CheckPattern(const Frame& f, std::uint64_t* stamped) {
   return true;
 }
 
-// The 16-bit GigE Vision 1.x block id (1..65535) of an unwrapped sequence.
-inline std::uint16_t GvId(std::uint64_t sequence) {
-  return static_cast<std::uint16_t>((sequence - 1) % 65535 + 1);
+// The 16-bit frame id of an unwrapped sequence (its low 16 bits, as FrameIdUnwrapper keeps them).
+inline std::uint16_t IdOf(std::uint64_t sequence) {
+  return static_cast<std::uint16_t>(sequence & 0xFFFFu);
 }
 
 }  // namespace mocap::drivers::testing

@@ -22,7 +22,7 @@ namespace {
 
 using testing::CheckPattern;
 using testing::DrawPattern;
-using testing::GvId;
+using testing::IdOf;
 
 FakeRigOptions SmallRig(int n) {
   FakeRigOptions o;
@@ -76,12 +76,13 @@ TEST(AravisFake, CamerasStreamWithSettingsReadBackAndWrappingIds) {
         std::uint64_t stamped = 0;
         if (f.camera != i || f.image.width != 256 || f.image.height != 192 ||
             f.image.format != PixelFormat::kMono16 || !CheckPattern(f, &stamped) ||
-            GvId(stamped) != f.frame_id) {
+            IdOf(stamped) != f.frame_id || IdOf(f.sequence) != f.frame_id) {
           ++bad[i];
         }
         if (got[i] > 0) {
           if (f.sequence <= last_seq || f.device_timestamp_ns <= last_ts) ++bad[i];
-          if (f.sequence != last_seq + 1) ++gaps[i];
+          // GigE-style ids skip 0: across the wrap the sequence steps by 2 (65535 -> 65537).
+          if (f.sequence != last_seq + (f.frame_id < last_id ? 2 : 1)) ++gaps[i];
           if (f.frame_id < last_id) {
             ++wraps[i];
             EXPECT_EQ(last_id, 65535);
