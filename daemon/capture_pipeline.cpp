@@ -33,6 +33,9 @@ bool CapturePipelineOptions::IsValid(std::string* error) const {
   if (detection_threads < 1 || detection_threads > 64) {
     return fail("detection_threads must be in [1, 64]");
   }
+  if (!(device_clock_rate_hz >= 0) || device_clock_rate_hz > 100000) {
+    return fail("device_clock_rate_hz must be in [0, 100000]");
+  }
   if (frame_queue_capacity < 1 || detection_queue_capacity < 1 || point_queue_capacity < 1) {
     return fail("queue capacities must be >= 1");
   }
@@ -61,6 +64,10 @@ Status CapturePipeline::Start() {
   if (cameras_.empty()) return Status::Error("capture pipeline: no cameras");
   if (!triangulate_) return Status::Error("capture pipeline: no triangulation stage");
   options_.sync.num_cameras = static_cast<int>(cameras_.size());
+  if (options_.device_clock_rate_hz > 0) {
+    options_.sync.mode = reconstruction::FrameSyncOptions::Mode::kSequence;
+    options_.sync.sequence_bits = 64;
+  }
   MOCAP_RETURN_IF_ERROR(sync_.Reset(options_.sync));
 
   // Consumers first, so that nothing a producer emits waits for a stage that does not exist.
@@ -139,7 +146,11 @@ void CapturePipeline::DetectLoop(int worker) {
     if (job.frame.handle == nullptr && job.frame.image.data == nullptr) continue;
     reconstruction::CameraDetections d;
     d.camera = job.frame.camera;
-    d.sequence = job.frame.sequence;
+    d.sequence = options_.device_clock_rate_hz > 0
+                     ? static_cast<std::uint64_t>(static_cast<long double>(
+                                                      job.frame.device_timestamp_ns) *
+                                                  options_.device_clock_rate_hz / 1e9L)
+                     : job.frame.sequence;
     d.device_timestamp_ns = job.frame.device_timestamp_ns;
     d.host_timestamp_ns = job.frame.host_timestamp_ns;
     const auto t0 = std::chrono::steady_clock::now();
@@ -170,7 +181,10 @@ void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
   const auto t1 = std::chrono::steady_clock::now();
   std::uint64_t first = UINT64_MAX;
   for (std::size_t c = 0; c < set.cameras.size(); ++c) {
-    if (set.present[c]) first = std::min(first, set.cameras[c].host_timestamp_ns);
+    if (!set.present[c]) continue;
+    if (c < 64) out.present_mask |= std::uint64_t{1} << c;
+    if (out.device_timestamp_ns == 0) out.device_timestamp_ns = set.cameras[c].device_timestamp_ns;
+    first = std::min(first, set.cameras[c].host_timestamp_ns);
   }
   const std::uint64_t now = MonotonicNs();
   out.latency_ms = first <= now ? (now - first) * 1e-6 : 0.0;

@@ -38,8 +38,10 @@ namespace mocap::daemon {
 // The points of one frame set.
 struct PointFrame {
   std::uint64_t sequence = 0;
-  std::uint64_t timestamp_ns = 0;
+  std::uint64_t timestamp_ns = 0;         // the set's time (reconstruction/frame_sync.h)
+  std::uint64_t device_timestamp_ns = 0;  // raw device time of its first present camera
   int cameras_present = 0;
+  std::uint64_t present_mask = 0;         // bit c: camera c's image is in the set (c < 64)
   std::vector<Eigen::Vector3d> points;
   std::vector<float> residual_px;
   std::vector<std::uint8_t> camera_count;
@@ -55,6 +57,12 @@ struct CapturePipelineOptions {
   int frame_queue_capacity = 64;      // frames waiting for detection (all cameras)
   int detection_queue_capacity = 64;  // detections waiting for sync
   int point_queue_capacity = 256;     // point frames waiting for the caller
+  // > 0: cameras whose clocks are one clock (PTP, IEEE 1588, on GigE Vision 2.0 rigs; Aravis's
+  // fake cameras share the host's) and that expose on the ticks of that clock at this rate: a
+  // frame's sequence becomes its tick, floor(device timestamp x rate), which is the same for
+  // every camera at one instant whatever each camera's own frame count, and the sync runs on
+  // it (kSequence, 64 bits). 0: frame ids as the cameras number them (hardware trigger).
+  double device_clock_rate_hz = 0;
   reconstruction::DetectionOptions detection;
   reconstruction::FrameSyncOptions sync;  // num_cameras is set from the sources
 

@@ -29,7 +29,9 @@ void FillHook(ArvBuffer* buffer, void* data, guint32 /*exposure_us*/, guint32 /*
   if (pixels == nullptr || w <= 0 || h <= 0) return;
   const auto id = static_cast<std::uint16_t>(arv_buffer_get_frame_id(buffer) & 0xFFFFu);
   std::uint64_t sequence;
-  {
+  if (ctx->clock_sequence_rate_hz > 0) {
+    sequence = SequenceOfTimestamp(arv_buffer_get_timestamp(buffer), ctx->clock_sequence_rate_hz);
+  } else {
     std::lock_guard<std::mutex> lock(ctx->mutex);
     const std::uint64_t raw = ctx->unwrapper.Next(id);
     if (ctx->restart) {
@@ -74,6 +76,9 @@ bool FakeRigOptions::IsValid(std::string* error) const {
   if (width < 1 || height < 1 || width > 2048 || height > 2048) {
     return fail("width and height must be in 1..2048 (the fake's sensor limit)");
   }
+  if (!(clock_sequence_rate_hz >= 0) || clock_sequence_rate_hz > 10000) {
+    return fail("clock_sequence_rate_hz must be in [0, 10000]");
+  }
   if (serial_prefix.empty() || serial_prefix.size() > 20) {
     return fail("serial_prefix must have 1..20 characters");
   }
@@ -90,6 +95,7 @@ AravisFakeRig::AravisFakeRig(const FakeRigOptions& options, ImageGenerator gener
     auto ctx = std::make_unique<FakeFillContext>();
     ctx->camera = i;
     ctx->generator = generator;
+    ctx->clock_sequence_rate_hz = options_.clock_sequence_rate_hz;
     contexts_.push_back(std::move(ctx));
   }
 }

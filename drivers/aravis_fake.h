@@ -52,9 +52,22 @@ struct FakeRigOptions {
   std::string serial_prefix = "MOCAPSIM";  // serials <prefix><index>, e.g. MOCAPSIM0
   int width = 1280;                          // the sensor (the fake's default is 2048 x 2048)
   int height = 1024;
+  // > 0: the generator's `sequence` is the index of the frame-period tick the image was taken
+  // at, floor(device timestamp x rate), instead of the camera's own frame count. Aravis's fakes
+  // wake on the same ticks of the host's real-time clock (a multiple of the frame period), so
+  // this makes N fakes behave as a hardware-synchronised rig: images with the same tick show the
+  // same instant, whenever each camera was started. Sync the rig by timestamp in that mode, and
+  // find an image's tick from Frame::device_timestamp_ns (SequenceOfTimestamp). Set it to the
+  // cameras' frame rate.
+  double clock_sequence_rate_hz = 0;
 
   bool IsValid(std::string* error) const;
 };
+
+// The tick index of a device timestamp at `rate_hz` (FakeRigOptions::clock_sequence_rate_hz).
+inline std::uint64_t SequenceOfTimestamp(std::uint64_t timestamp_ns, double rate_hz) {
+  return static_cast<std::uint64_t>(static_cast<long double>(timestamp_ns) * rate_hz / 1e9L);
+}
 
 // What the fill hook needs for one camera; lives as long as the rig (or GvFakeCamera).
 struct FakeFillContext {
@@ -68,6 +81,7 @@ struct FakeFillContext {
   std::uint64_t last_sequence = 0;
   bool any = false;
   std::atomic<std::uint64_t> drawn{0};
+  double clock_sequence_rate_hz = 0;  // FakeRigOptions
 };
 
 class AravisFakeRig {

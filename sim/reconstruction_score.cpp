@@ -4,6 +4,8 @@
 #include <cmath>
 #include <tuple>
 
+#include "sim/renderer.h"
+
 namespace mocap::sim {
 
 double ReconstructionScore::rms_mm() const {
@@ -47,6 +49,31 @@ void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<boo
   }
   score->reconstructed += static_cast<std::int64_t>(points.size());
   for (bool used : point_used) score->ghosts += !used;
+}
+
+void ScoreRenderedFrame(const Renderer& renderer, const Scene& scene, std::uint64_t sequence,
+                        std::uint64_t present_mask, const std::vector<Eigen::Vector3d>& points,
+                        double match_radius_m, ReconstructionScore* score) {
+  const int nm = scene.marker_count();
+  std::vector<Eigen::Vector3d> truth(nm);
+  std::vector<int> views(nm, 0);
+  FrameTruth ft;
+  double time_s = 0;
+  bool any = false;
+  for (int c = 0; c < renderer.camera_count() && c < 64; ++c) {
+    if (!(present_mask >> c & 1)) continue;
+    renderer.Truth(c, sequence, &ft);
+    time_s = ft.time_s;
+    any = true;
+    for (const BlobTruth& b : ft.blobs) {
+      if (b.marker >= 0 && b.marker < nm) ++views[b.marker];
+    }
+  }
+  if (!any) return;
+  scene.Positions(time_s, truth.data());
+  std::vector<bool> seen_by_two(nm);
+  for (int m = 0; m < nm; ++m) seen_by_two[m] = views[m] >= 2;
+  ScoreFrame(truth, seen_by_two, points, match_radius_m, score);
 }
 
 }  // namespace mocap::sim

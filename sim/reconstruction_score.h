@@ -12,6 +12,9 @@
 
 namespace mocap::sim {
 
+class Renderer;
+class Scene;
+
 struct ReconstructionScore {
   std::int64_t true_visible = 0;   // true markers seen by >= 2 cameras
   std::int64_t recovered = 0;      // ... of which a reconstructed point matched
@@ -31,5 +34,12 @@ struct ReconstructionScore {
 void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<bool>& seen_by_two,
                 const std::vector<Eigen::Vector3d>& points, double match_radius_m,
                 ReconstructionScore* score);
+
+// Adds one frame set of rendered cameras: the truth is what `renderer` drew for `sequence` in
+// the cameras of `present_mask` (bit c: camera c's image is in the set; a missing image saw
+// nothing), and the scene's markers at that image's time.
+void ScoreRenderedFrame(const Renderer& renderer, const Scene& scene, std::uint64_t sequence,
+                        std::uint64_t present_mask, const std::vector<Eigen::Vector3d>& points,
+                        double match_radius_m, ReconstructionScore* score);
 
 }  // namespace mocap::sim
