@@ -80,7 +80,7 @@ struct Tracker::Impl {
   // Online marker offsets (see tracker.h): per marker, in its segment's frame, and how many
   // frames have contributed since the last (re)initialisation.
   std::vector<Eigen::Vector3d> offset;
-  std::vector<int> offset_count;
+  std::vector<double> offset_unknown;  // (1 - gain)^frames seen: the part still unknown
   // The root joint, for placing hypotheses: its rotations as signed coordinate axes (for an
   // Euler decomposition) and its translations before any rotation (moving along fixed axes).
   bool root_euler = false;
@@ -122,12 +122,15 @@ struct Tracker::Impl {
   // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
   double MeasurementVariance(int m) const {
     const double s0 = options.marker_offset_sigma, s1 = options.marker_offset_floor;
-    return marker_variance[m] + s0 * s0 / (1.0 + offset_count[m]) + s1 * s1;
+    return marker_variance[m] + s0 * s0 * offset_unknown[m] + s1 * s1;
+  }
+  double OffsetGain() const {
+    return 1.0 / std::max(1.0, options.marker_offset_time_constant_s * options.rate_hz);
   }
   void LearnOffsets(const Eigen::VectorXd& dz);
   void ClearOffsets(int count) {
     std::fill(offset.begin(), offset.end(), Eigen::Vector3d::Zero());
-    std::fill(offset_count.begin(), offset_count.end(), count);
+    std::fill(offset_unknown.begin(), offset_unknown.end(), std::pow(1.0 - OffsetGain(), count));
   }
   void SetModel(std::shared_ptr<const Model> m);
   void Allocate();
@@ -184,7 +187,7 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   for (int k = 0; k < nm; ++k)
     marker_variance[k] = options.sigma_m * options.sigma_m / md.markers()[k].weight;
   offset.assign(nm, Eigen::Vector3d::Zero());
-  offset_count.assign(nm, 0);
+  offset_unknown.assign(nm, 1.0);
 
   // Depths (joints are parents first).
   std::vector<int> segment_depth(md.num_segments(), 0);
@@ -376,18 +379,19 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
 }
 
 // Each labelled marker's residual after the update (linearised: nu - J_m dz), in its segment's
-// frame, moves its offset by 1/n (a running mean over the first n frames), then by a constant
-// rate 1/(time constant x rate): a slowly adapting correction of the model's marker positions.
+// frame, moves its offset by a small constant gain (an exponential average over the time
+// constant): slow, so that the pose converges first and the offsets take only what the pose
+// cannot explain -- a gain of 1 on the first frame would freeze an initial pose error into the
+// offsets for good.
 void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
-  const double floor_gain = 1.0 / std::max(1.0, options.marker_offset_time_constant_s * options.rate_hz);
+  const double k = OffsetGain();
   for (int m = 0; m < nm; ++m) {
     if (row_to_col[m] < 0) continue;
     const std::vector<int>& cols = model->marker_coordinates(m);
     Eigen::Vector3d r = points.col(row_to_col[m]) - predicted.col(m);
     for (size_t a = 0; a < cols.size(); ++a) r -= jac[m].col(a) * dzv[cols[a]];
-    const double k = std::max(floor_gain, 1.0 / (offset_count[m] + 1.0));
     offset[m] += k * (data.segment_rotation[model->markers()[m].segment].transpose() * r);
-    if (offset_count[m] < 1000000) ++offset_count[m];
+    offset_unknown[m] *= 1.0 - k;
   }
 }
 
@@ -835,6 +839,7 @@ const Model& Tracker::model() const { return *impl_->model; }
 const TrackerOptions& Tracker::options() const { return impl_->options; }
 const TrackOutput& Tracker::output() const { return impl_->out; }
 const InitialisationSummary& Tracker::initialisation() const { return impl_->init; }
+const Eigen::Matrix3Xd& Tracker::predicted_markers() const { return impl_->predicted; }
 const Eigen::MatrixXd& Tracker::covariance() const { return impl_->P; }
 Eigen::VectorXd Tracker::velocities() const { return impl_->x.segment(impl_->nz, impl_->nz); }
 Eigen::VectorXd Tracker::accelerations() const { return impl_->x.tail(impl_->nz); }
