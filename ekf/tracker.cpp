@@ -112,6 +112,7 @@ struct Tracker::Impl {
   Eigen::Matrix<double, 3, Eigen::Dynamic> jp;
   std::vector<Eigen::Matrix3d> s_inv;
   std::vector<double> reject_sq;
+  std::vector<int> gated_by;  // per point: how many markers' gates hold it
   Eigen::MatrixXd cost;
   std::vector<int> row_to_col;
   LinearAssignment lap;
@@ -248,6 +249,7 @@ void Tracker::Impl::Allocate() {
   jp.resize(3, std::max(1, model->max_chain_coordinates()));
   s_inv.resize(nm);
   reject_sq.resize(nm);
+  gated_by.resize(mp);
   cost.resize(nm, mp + nm);
   row_to_col.resize(nm);
   lap.Reserve(nm, mp + nm);
@@ -318,17 +320,34 @@ void Tracker::Impl::LabelByGating(int np) {
     reject_sq[m] = gate * S.trace();
   }
   auto C = cost.topLeftCorner(nm, np + nm);
+  std::fill(gated_by.begin(), gated_by.begin() + np, 0);
+  bool contested = false;
   for (int m = 0; m < nm; ++m) {
     const Eigen::Vector3d p = predicted.col(m);
+    double best = gate;
+    int best_k = np + m;  // its own "missing" column
     for (int k = 0; k < np; ++k) {
       const Eigen::Vector3d e = points.col(k) - p;
       double d2 = kForbidden;
       if (e.squaredNorm() < reject_sq[m]) {
         const double q = e.dot(s_inv[m] * e);
-        if (q < gate) d2 = q;
+        if (q < gate) {
+          d2 = q;
+          contested |= ++gated_by[k] > 1;
+          if (q < best) {
+            best = q;
+            best_k = k;
+          }
+        }
       }
       C(m, k) = d2;
     }
+    row_to_col[m] = best_k;
+  }
+  // When no point lies in two gates, each marker's nearest gated point is the optimum; only
+  // contested frames (markers crossing, a ghost between two markers) need the assignment.
+  if (!contested) return;
+  for (int m = 0; m < nm; ++m) {
     C.row(m).tail(nm).setConstant(kForbidden);
     C(m, np + m) = gate;
   }
