@@ -107,7 +107,7 @@ bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b,
   LowerInverse(L_, &Linv_);
   LowerInverse(LB_, &LBinv_);
   auto Vw = V_.topRows(nw);
-  Vw.noalias() = P.bottomLeftCorner(nw, nz) * Linv_.transpose();
+  Vw.noalias() = P.bottomLeftCorner(nw, nz) * Linv_.transpose().triangularView<Eigen::Upper>();
   // dx = V B^-1 L^T b.
   lb_.noalias() = L_.transpose().triangularView<Eigen::Upper>() * b;
   lbb_.noalias() = LBinv_.triangularView<Eigen::Lower>() * lb_;
@@ -120,9 +120,9 @@ bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b,
   //   U_z = L L_B^-T (X), U_w = V_w L_B^-T,
   //   P_zz = X X^T, P_wz = U_w X^T, P_ww = P_ww - V_w V_w^T + U_w U_w^T.
   Eigen::MatrixXd& X = tmp_;  // reused
-  X.noalias() = L_ * LBinv_.transpose();
+  X.noalias() = L_.triangularView<Eigen::Lower>() * LBinv_.transpose();
   auto Uw = U_.topRows(nw);
-  Uw.noalias() = Vw * LBinv_.transpose();
+  Uw.noalias() = Vw * LBinv_.transpose().triangularView<Eigen::Upper>();
   auto Pww = P.bottomRightCorner(nw, nw);
   Pww.selfadjointView<Eigen::Lower>().rankUpdate(Vw, -1.0);
   Pww.selfadjointView<Eigen::Lower>().rankUpdate(Uw, 1.0);

@@ -187,19 +187,6 @@ RunStats TrackRun(ekf::Tracker* tracker, const sim::SimulatedTrial& trial, const
     if (out.state != ekf::TrackState::kTracking) continue;
     if (s.first_tracked < 0) s.first_tracked = f;
     ++s.tracked_frames;
-    if (getenv("EKF_DEBUG") && f == s.first_tracked) {
-      for (size_t k = 0; k < fr.truth.size(); ++k)
-        if (out.marker_of_point[k] != fr.truth[k])
-          std::printf("  point %zu truth %s labelled %s\n", k,
-                      fr.truth[k] >= 0 ? model.markers()[fr.truth[k]].name.c_str() : "ghost",
-                      out.marker_of_point[k] >= 0 ? model.markers()[out.marker_of_point[k]].name.c_str() : "-");
-      const Eigen::VectorXd zt = sim::TrueCoordinates(model, trial.coordinates, f);
-      const auto& in = tracker->initialisation();
-      std::printf("  init best %.3g runner %.3g rms %.2f mm\n", in.best_score, in.runner_up_score, 1e3 * in.rms_m);
-      for (int c = 0; c < model.num_coordinates(); ++c)
-        if (std::abs(std::remainder(out.z[c] - zt[c], 2 * M_PI)) > 0.05)
-          std::printf("  %s %.1f true %.1f\n", model.coordinates()[c].name.c_str(), out.z[c] / kDeg, zt[c] / kDeg);
-    }
     Score(fr, out, &s);
     if (f >= s.first_tracked + settle_frames && !scene.transform)
       ScoreAngles(model, out.z, sim::TrueCoordinates(model, trial.coordinates, f), &s);
@@ -519,12 +506,6 @@ TEST(EkfTracker, DetectsDivergenceAndReinitialisesAfterATeleport) {
     if (f < jump) ASSERT_EQ(out.state, ekf::TrackState::kTracking) << f;
     if (f >= jump && lost_at < 0 && out.state == ekf::TrackState::kLost) lost_at = f;
     if (f >= jump && back_at < 0 && out.reinitialised) back_at = f;
-    if (getenv("EKF_DEBUG") && f >= jump && f < jump + 40) {
-      const auto& in = tracker.initialisation();
-      std::printf("f %d state %s labelled %d nis %.1f/%d init: hyps %d best %.3g runner %.3g rms %.1f mm labelled %d %s\n", f,
-                  ekf::ToString(out.state), out.labelled, out.nis, out.nis_dof, in.hypotheses, in.best_score,
-                  in.runner_up_score, 1e3 * in.rms_m, in.labelled, in.reason.c_str());
-    }
     if (back_at >= 0) {
       for (size_t k = 0; k < fr.truth.size(); ++k)
         if (fr.truth[k] >= 0) {
@@ -659,10 +640,6 @@ TEST(EkfTracker, UpdateAllocatesNothingWhileTracking) {
     for (size_t k = 0; k < frames[f].truth.size(); ++k) {
       total += frames[f].truth[k] >= 0;
       correct += frames[f].truth[k] >= 0 && out.marker_of_point[k] == frames[f].truth[k];
-      if (getenv("EKF_DEBUG") && frames[f].truth[k] >= 0 && out.marker_of_point[k] != frames[f].truth[k])
-        std::printf("f %d %s -> %d nis %.1f/%d  predicted %.1f mm away\n", f, session.nominal.markers()[frames[f].truth[k]].name.c_str(),
-                    out.marker_of_point[k], out.nis, out.nis_dof,
-                    1e3 * (tracker.predicted_markers().col(frames[f].truth[k]) - frames[f].points.col(k)).norm());
     }
   }
   EXPECT_EQ(g_allocations.load(), 0);
