@@ -41,6 +41,12 @@ void LowerInverse(const Eigen::MatrixXd& L, Eigen::MatrixXd* inverse) {
 
 void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eigen::VectorXd* x,
                                  Eigen::MatrixXd* Pp) {
+  PredictConstantAcceleration(dt, jerk_psd, 1.0, 1.0, x, Pp);
+}
+
+void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, double velocity_decay,
+                                 double acceleration_decay, Eigen::VectorXd* x,
+                                 Eigen::MatrixXd* Pp) {
   const int nz = static_cast<int>(jerk_psd.size());
   Eigen::MatrixXd& P = *Pp;
   const double h = 0.5 * dt * dt;
@@ -49,12 +55,22 @@ void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eig
   auto a = x->tail(nz);
   z += dt * v + h * a;
   v += dt * a;
+  v *= velocity_decay;
+  a *= acceleration_decay;
   // F P F^T on the 3 x 3 grid of n_z blocks: block rows first, then block columns, in place
   // (each update reads only blocks not yet written).
   P.topRows(nz) += dt * P.middleRows(nz, nz) + h * P.bottomRows(nz);
   P.middleRows(nz, nz) += dt * P.bottomRows(nz);
   P.leftCols(nz) += dt * P.middleCols(nz, nz) + h * P.rightCols(nz);
   P.middleCols(nz, nz) += dt * P.rightCols(nz);
+  if (velocity_decay != 1.0) {
+    P.middleRows(nz, nz) *= velocity_decay;
+    P.middleCols(nz, nz) *= velocity_decay;
+  }
+  if (acceleration_decay != 1.0) {
+    P.bottomRows(nz) *= acceleration_decay;
+    P.rightCols(nz) *= acceleration_decay;
+  }
   const double d2 = dt * dt, d3 = d2 * dt, d4 = d3 * dt, d5 = d4 * dt;
   for (int i = 0; i < nz; ++i) {
     const double q = jerk_psd[i];

@@ -83,6 +83,12 @@ struct TrackerOptions {
   // (rad^2/s^5 for rotations, m^2/s^5 for translations).
   double jerk_psd_rotational = 4.0e4;
   double jerk_psd_translational = 4.0e2;
+  // Decay of the velocities and accelerations between frames (exp(-dt / tau)): a coordinate that
+  // the markers stop observing (a foot whose toe marker is hidden, so that only the heel marker
+  // holds its two angles) coasts to a stop instead of running away on its last acceleration and
+  // leaving the toe marker's gate. Long against a frame (5 ms), so observed motion is not lagged.
+  double velocity_time_constant_s = 0.5;
+  double acceleration_time_constant_s = 0.1;
   // Measurement noise: standard deviation of a marker coordinate (metres). It covers the
   // triangulation noise AND the model's own error (skin motion, a nominal model before the fit),
   // which is why it is larger than the cameras' noise.

@@ -256,9 +256,22 @@ TEST(EkfFilter, PredictionMatchesDenseConstantAccelerationModel) {
       for (int b = 0; b < 3; ++b) Q(a * nz + i, b * nz + i) = q[i] * q1(a, b);
   const Eigen::VectorXd x_ref = F * x;
   const Eigen::MatrixXd P_ref = F * P * F.transpose() + Q;
+  const Eigen::VectorXd x0 = x;
+  const Eigen::MatrixXd P0 = P;
   ekf::PredictConstantAcceleration(dt, q, &x, &P);
   EXPECT_LT((x - x_ref).cwiseAbs().maxCoeff(), 1e-14);
   EXPECT_LT((P - P_ref).cwiseAbs().maxCoeff(), 1e-12 * P_ref.cwiseAbs().maxCoeff());
+  // With decays: F = diag(1, beta, alpha) F.
+  const double beta = 0.99, alpha = 0.95;
+  Eigen::VectorXd d(n);
+  d << Eigen::VectorXd::Ones(nz), Eigen::VectorXd::Constant(nz, beta), Eigen::VectorXd::Constant(nz, alpha);
+  const Eigen::MatrixXd Fd = d.asDiagonal() * F;
+  const Eigen::MatrixXd Pd_ref = Fd * P0 * Fd.transpose() + Q;
+  x = x0;
+  P = P0;
+  ekf::PredictConstantAcceleration(dt, q, beta, alpha, &x, &P);
+  EXPECT_LT((x - Fd * x0).cwiseAbs().maxCoeff(), 1e-14);
+  EXPECT_LT((P - Pd_ref).cwiseAbs().maxCoeff(), 1e-12 * Pd_ref.cwiseAbs().maxCoeff());
 }
 
 // The information-form update equals the textbook Kalman update K = P H^T S^-1 with
@@ -400,6 +413,46 @@ TEST(EkfTracker, TracksTheProtocolWithTheNominalModel) {
               total.ghosts_labelled, total.ghosts, total.angle_rms_deg());
   EXPECT_GE(total.accuracy(), 0.9995);
   EXPECT_EQ(total.ghosts_labelled, 0);
+}
+
+// The simulator's own occlusions (5 % of the samples lost in gaps of 5-30 frames at random
+// markers and times) with the nominal model: markers come and go, the labels stay right.
+// KNOWN FAILURE, disabled: 0.9982 of the labels (not 0.9995), 72 ghosts labelled. A foot left
+// with its heel marker alone can settle on a wrong branch of its two angles and then miss its toe
+// marker when it returns; a missing marker's gate, wide while its offset is unknown, can take a
+// ghost. Needs a local re-initialisation of a limb whose markers stay unlabelled.
+TEST(EkfTracker, DISABLED_TracksThroughOcclusions) {
+  sim::SimulatedSession session;
+  sim::SimulationOptions o;
+  o.rate_hz = 200;
+  o.noise_mm = 0.5;
+  o.missing = 0.05;
+  o.seed = 13;
+  ASSERT_TRUE(sim::SimulateSession(o, &session).ok());
+  auto nominal = Share(session.nominal);
+  RunStats total;
+  SceneOptions scene;
+  scene.ghosts = 5;
+  for (size_t t = 0; t < session.trials.size(); ++t) {
+    const auto& trial = session.trials[t];
+    ekf::Tracker tracker(nominal);
+    const RunStats s = TrackRun(&tracker, trial, scene, 0, trial.markers.num_frames(), 400 + t);
+    std::printf("%-28s tracked from %3d  labels %.6f wrong %ld ghosts labelled %ld reinit %d\n",
+                trial.markers.name.c_str(), s.first_tracked, s.accuracy(), s.wrong,
+                s.ghosts_labelled, s.reinitialisations);
+    EXPECT_LE(s.first_tracked, 2) << trial.markers.name;
+    EXPECT_EQ(s.reinitialisations, 1) << trial.markers.name;
+    total.marker_points += s.marker_points;
+    total.correct += s.correct;
+    total.wrong += s.wrong;
+    total.ghosts_labelled += s.ghosts_labelled;
+  }
+  std::printf("occlusions, NOMINAL model: label accuracy %.6f (%ld/%ld), wrong %ld, ghosts "
+              "labelled %ld\n",
+              total.accuracy(), total.correct, total.marker_points, total.wrong,
+              total.ghosts_labelled);
+  EXPECT_GE(total.accuracy(), 0.9995);
+  EXPECT_LE(total.wrong, total.marker_points / 10000);
 }
 
 // The subject in the static pose, turned to random headings and placed anywhere in the volume:
