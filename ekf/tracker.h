@@ -47,13 +47,26 @@
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (options.up), from the static pose (and,
-// after a loss, from the last good pose): each hypothesis is refined ICP-like (assign markers to
-// points by distance, Gauss-Newton on the pose with a weak prior towards the start, reassign,
-// first the root alone, then the whole body) and the best one is accepted when its residual is
-// small, enough markers are labelled, and no hypothesis with a different labelling comes close.
+// after a loss, from the last good pose). Each hypothesis is refined ICP-like (assign markers to
+// points by distance with the optimal assignment, one damped Gauss-Newton step on the pose with a
+// weak prior towards the start and the model's joint ranges, reassign), placing the body from the
+// root outwards: stage d frees the joints at depth <= d of the tree and pairs only the markers
+// they carry, so a distal marker is paired once its parents are in place. Then a few restarts
+// from the best placement (the static pose bent towards the middle of the joint ranges, and
+// random perturbations). The best score wins when its residual is small, enough markers are
+// labelled, and every differently labelled hypothesis is worse by a log-likelihood margin.
+// Tracker::initialisation() says what the last search did and why it refused.
 // The track is declared lost when too few markers are labelled, or the NIS per measured
 // coordinate is too high, for `divergence_frames` consecutive frames; the tracker then
 // re-initialises automatically from the incoming frames.
+//
+// Model error. A nominal model (before the global fit) misplaces markers by 1-4 cm; each marker
+// carries a slowly learnt offset in its segment's frame, and its measurement variance is inflated
+// by what is not yet known of it (TrackerOptions::marker_offset_*). SwapModel clears them.
+//
+// Unobserved coordinates. Velocities and accelerations decay between frames (time constants in
+// the options), and coordinates are kept in the model's ranges, so a segment that loses markers
+// coasts instead of running away on its last acceleration.
 //
 // Angles. A coordinate that only drives identity rotations and whose range covers a full turn
 // (the pelvis heading of the default model) is kept in (-pi, pi]: h is 2 pi-periodic in it, the
