@@ -1,0 +1,879 @@
+#include "ekf/tracker.h"
+
+#include <Eigen/Cholesky>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <random>
+
+#include "ekf/assignment.h"
+#include "ekf/filter.h"
+
+namespace mocap::ekf {
+
+namespace {
+constexpr double kForbidden = 1e9;  // cost of a pair the gate excludes (finite: see assignment.h)
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+bool Fail(std::string* error, const char* message) {
+  if (error) *error = message;
+  return false;
+}
+}  // namespace
+
+bool TrackerOptions::IsValid(std::string* error) const {
+  if (!(rate_hz > 0) || !std::isfinite(rate_hz)) return Fail(error, "rate_hz must be > 0");
+  if (!(jerk_psd_rotational > 0) || !(jerk_psd_translational > 0))
+    return Fail(error, "jerk_psd_rotational and jerk_psd_translational must be > 0");
+  if (!(sigma_m > 0)) return Fail(error, "sigma_m must be > 0");
+  if (!(velocity_time_constant_s > 0) || !(acceleration_time_constant_s > 0))
+    return Fail(error, "velocity_time_constant_s and acceleration_time_constant_s must be > 0");
+  if (!(gate_chi2 > 0)) return Fail(error, "gate_chi2 must be > 0");
+  if (!(marker_offset_sigma >= 0) || !(marker_offset_floor >= 0))
+    return Fail(error, "marker_offset_sigma and marker_offset_floor must be >= 0");
+  if (!(marker_offset_time_constant_s > 0))
+    return Fail(error, "marker_offset_time_constant_s must be > 0");
+  if (swap_offset_count < 0) return Fail(error, "swap_offset_count must be >= 0");
+  if (max_points < 1) return Fail(error, "max_points must be >= 1");
+  if (divergence_frames < 1) return Fail(error, "divergence_frames must be >= 1");
+  if (!(min_labelled_fraction >= 0 && min_labelled_fraction <= 1))
+    return Fail(error, "min_labelled_fraction must be in [0, 1]");
+  if (!(max_nis_per_dof > 0)) return Fail(error, "max_nis_per_dof must be > 0");
+  if (!(up.norm() > 0.5) || !up.allFinite()) return Fail(error, "up must be a non-zero vector");
+  if (init_headings < 1) return Fail(error, "init_headings must be >= 1");
+  if (init_variants < 0 || !(init_variant_rad >= 0))
+    return Fail(error, "init_variants and init_variant_rad must be >= 0");
+  if (init_iterations < 3) return Fail(error, "init_iterations must be >= 3");
+  if (!(init_max_rms_m > 0)) return Fail(error, "init_max_rms_m must be > 0");
+  if (!(init_min_fraction > 0 && init_min_fraction <= 1))
+    return Fail(error, "init_min_fraction must be in (0, 1]");
+  if (!(init_ambiguity_ratio >= 1)) return Fail(error, "init_ambiguity_ratio must be >= 1");
+  if (!(init_ambiguity_margin >= 0)) return Fail(error, "init_ambiguity_margin must be >= 0");
+  if (!(init_radius_m > 0)) return Fail(error, "init_radius_m must be > 0");
+  if (!static_pose.allFinite()) return Fail(error, "static_pose must be finite");
+  for (double s : {init_sigma_rotational, init_sigma_translational, init_sigma_velocity_rotational,
+                   init_sigma_velocity_translational, init_sigma_acceleration_rotational,
+                   init_sigma_acceleration_translational})
+    if (!(s > 0)) return Fail(error, "the init_sigma_* must be > 0");
+  if (!(swap_inflation_rotational >= 0) || !(swap_inflation_translational >= 0))
+    return Fail(error, "swap_inflation_* must be >= 0");
+  return true;
+}
+
+const char* ToString(TrackState state) {
+  switch (state) {
+    case TrackState::kInitialising: return "initialising";
+    case TrackState::kTracking: return "tracking";
+    case TrackState::kLost: return "lost";
+  }
+  return "unknown";
+}
+
+struct Tracker::Impl {
+  // --- model ---
+  std::shared_ptr<const Model> model;
+  TrackerOptions options;
+  Geometry geometry;
+  ModelData data;
+  int nz = 0, nm = 0;
+  std::vector<char> rotational, wraps;
+  Eigen::VectorXd marker_variance;  // sigma_m^2 / w_m
+  // Online marker offsets (see tracker.h): per marker, in its segment's frame, and how many
+  // frames have contributed since the last (re)initialisation.
+  std::vector<Eigen::Vector3d> offset;
+  std::vector<double> offset_unknown;  // (1 - gain)^frames seen: the part still unknown
+  // The root joint, for placing hypotheses: its rotations as signed coordinate axes (for an
+  // Euler decomposition) and its translations before any rotation (moving along fixed axes).
+  bool root_euler = false;
+  int root_rot_coord[3] = {-1, -1, -1}, root_rot_axis[3] = {0, 0, 0};
+  double root_rot_sign[3] = {1, 1, 1};
+  std::vector<std::pair<int, Eigen::Vector3d>> root_translations;
+  std::vector<char> root_free;
+  // Depth in the tree (root joint 0) of each coordinate's joint and each marker's segment.
+  std::vector<int> coordinate_depth, marker_depth;
+  int max_depth = 0;
+
+  // --- state ---
+  Eigen::VectorXd x;  // [z; z'; z'']
+  Eigen::MatrixXd P;
+  Eigen::VectorXd jerk_psd;
+  double last_time = kNaN;
+  bool had_track = false;
+  Eigen::VectorXd z_good;  // last pose that passed the divergence test
+  int bad_frames = 0;
+  TrackOutput out;
+  InitialisationSummary init;
+
+  // --- per-frame workspace (sized in Allocate) ---
+  std::vector<int> valid;  // input indices of the finite points, compacted
+  Eigen::Matrix3Xd points;
+  Eigen::VectorXd zbuf, dz;
+  Eigen::Matrix3Xd predicted;
+  std::vector<Eigen::Matrix<double, 3, Eigen::Dynamic>> jac;
+  Eigen::Matrix<double, 3, Eigen::Dynamic> jp;
+  std::vector<Eigen::Matrix3d> s_inv;
+  std::vector<double> reject_sq;
+  std::vector<int> gated_by;  // per point: how many markers' gates hold it
+  Eigen::MatrixXd cost;
+  std::vector<int> row_to_col;
+  LinearAssignment lap;
+  Eigen::MatrixXd A;
+  Eigen::VectorXd b;
+  CoordinateUpdate update;
+
+  // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
+  double MeasurementVariance(int m) const {
+    const double s0 = options.marker_offset_sigma, s1 = options.marker_offset_floor;
+    return marker_variance[m] + s0 * s0 * offset_unknown[m] + s1 * s1;
+  }
+  double OffsetGain() const {
+    return 1.0 / std::max(1.0, options.marker_offset_time_constant_s * options.rate_hz);
+  }
+  void LearnOffsets(const Eigen::VectorXd& dz);
+  void ClearOffsets(int count) {
+    std::fill(offset.begin(), offset.end(), Eigen::Vector3d::Zero());
+    std::fill(offset_unknown.begin(), offset_unknown.end(), std::pow(1.0 - OffsetGain(), count));
+  }
+  void SetModel(std::shared_ptr<const Model> m);
+  void Allocate();
+  void ResetState();
+  double Dt(double time_s) const;
+  void Predict(double dt);
+  void Linearise(const Eigen::VectorXd& z);
+  void LabelByGating(int np);
+  int ApplyLabels(int np);
+  bool FilterUpdate(double* nis);
+  void Wrap(Eigen::VectorXd* z) const;
+  bool TryInitialise(int np);
+
+  // Initialisation pieces.
+  struct Hypothesis {
+    double score = std::numeric_limits<double>::infinity();
+    double rms = 0;
+    int labelled = 0;
+    std::vector<int> assignment;  // per marker: compact point index or -1
+    Eigen::VectorXd z;
+  };
+  bool PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3d& turn,
+                 const Eigen::Vector3d& centroid, Eigen::VectorXd* z);
+  Hypothesis Icp(Eigen::VectorXd z, int np);
+};
+
+void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
+  model = std::move(m);
+  const Model& md = *model;
+  nz = md.num_coordinates();
+  nm = md.num_markers();
+  geometry = Geometry(md);
+  data = ModelData(md);
+  rotational.assign(nz, 0);
+  wraps.assign(nz, 0);
+  for (int i = 0; i < nz; ++i) rotational[i] = md.coordinates()[i].rotational;
+  // Wrapped: drives only identity rotations and its range covers a full turn.
+  std::vector<char> only_identity_rotation(nz, 1), drives(nz, 0);
+  for (const Joint& j : md.joints())
+    for (const JointElement& e : j.elements) {
+      if (e.coordinate < 0) continue;
+      drives[e.coordinate] = 1;
+      if (e.kind != ElementKind::kRotation || !e.function.IsIdentity())
+        only_identity_rotation[e.coordinate] = 0;
+    }
+  for (const DerivedCoordinate& d : md.derived_coordinates())
+    if (d.source >= 0) only_identity_rotation[d.source] = 0;
+  for (int i = 0; i < nz; ++i) {
+    const Coordinate& co = md.coordinates()[i];
+    wraps[i] = drives[i] && only_identity_rotation[i] && co.rotational &&
+               co.max_value - co.min_value >= 2 * M_PI - 1e-9;
+  }
+  marker_variance.resize(nm);
+  for (int k = 0; k < nm; ++k)
+    marker_variance[k] = options.sigma_m * options.sigma_m / md.markers()[k].weight;
+  offset.assign(nm, Eigen::Vector3d::Zero());
+  offset_unknown.assign(nm, 1.0);
+
+  // Depths (joints are parents first).
+  std::vector<int> segment_depth(md.num_segments(), 0);
+  max_depth = 0;
+  for (const Joint& j : md.joints()) {
+    const int d = j.parent < 0 ? 0 : segment_depth[j.parent] + 1;
+    segment_depth[j.child] = d;
+    max_depth = std::max(max_depth, d);
+  }
+  coordinate_depth.assign(nz, 0);
+  for (int i = 0; i < nz; ++i) {
+    const int j = md.coordinates()[i].joint;
+    coordinate_depth[i] = j >= 0 ? segment_depth[md.joints()[j].child] : 0;
+  }
+  marker_depth.resize(nm);
+  for (int k = 0; k < nm; ++k) marker_depth[k] = segment_depth[md.markers()[k].segment];
+
+  // Root placement.
+  const Joint& root = md.joints()[0];
+  root_translations.clear();
+  root_free.assign(nz, 0);
+  int nrot = 0;
+  bool euler = true, rotations_started = false;
+  for (const JointElement& e : root.elements) {
+    if (e.coordinate >= 0) root_free[e.coordinate] = 1;
+    if (e.kind == ElementKind::kTranslation) {
+      if (!rotations_started && e.coordinate >= 0 && e.function.IsIdentity())
+        root_translations.emplace_back(e.coordinate, root.orientation * e.axis);
+      continue;
+    }
+    rotations_started = true;
+    if (nrot >= 3 || e.coordinate < 0 || !e.function.IsIdentity()) {
+      euler = false;
+      continue;
+    }
+    Eigen::Index k;
+    const double largest = e.axis.cwiseAbs().maxCoeff(&k);
+    if (std::abs(largest - 1.0) > 1e-12) euler = false;
+    root_rot_coord[nrot] = e.coordinate;
+    root_rot_axis[nrot] = static_cast<int>(k);
+    root_rot_sign[nrot] = e.axis[k] > 0 ? 1.0 : -1.0;
+    ++nrot;
+  }
+  root_euler = euler && nrot == 3 && root_rot_axis[0] != root_rot_axis[1] &&
+               root_rot_axis[1] != root_rot_axis[2];
+}
+
+void Tracker::Impl::Allocate() {
+  const int mp = options.max_points;
+  valid.clear();
+  valid.reserve(mp);
+  points.resize(3, mp);
+  zbuf.resize(nz);
+  dz.resize(nz);
+  predicted.resize(3, nm);
+  jac.resize(nm);
+  for (int k = 0; k < nm; ++k) jac[k].resize(3, model->marker_coordinates(k).size());
+  jp.resize(3, std::max(1, model->max_chain_coordinates()));
+  s_inv.resize(nm);
+  reject_sq.resize(nm);
+  gated_by.resize(mp);
+  cost.resize(nm, mp + nm);
+  row_to_col.resize(nm);
+  lap.Reserve(nm, mp + nm);
+  A.resize(nz, nz);
+  b.resize(nz);
+  update.Resize(nz);
+  out.marker_of_point.reserve(mp);
+  out.point_of_marker.reserve(nm);
+  jerk_psd.resize(nz);
+  for (int i = 0; i < nz; ++i)
+    jerk_psd[i] = rotational[i] ? options.jerk_psd_rotational : options.jerk_psd_translational;
+}
+
+void Tracker::Impl::ResetState() {
+  x = Eigen::VectorXd::Zero(3 * nz);
+  P = Eigen::MatrixXd::Identity(3 * nz, 3 * nz);
+  const Eigen::VectorXd start =
+      options.static_pose.size() == nz ? options.static_pose : model->DefaultCoordinates();
+  x.head(nz) = start;
+  z_good = start;
+  had_track = false;
+  bad_frames = 0;
+  last_time = kNaN;
+  out.state = TrackState::kInitialising;
+  init = InitialisationSummary();
+  out.z = start;
+  out.labelled = 0;
+  out.reinitialised = false;
+  out.nis = 0;
+  out.nis_dof = 0;
+}
+
+double Tracker::Impl::Dt(double time_s) const {
+  const double nominal = 1.0 / options.rate_hz;
+  if (!std::isfinite(last_time) || !std::isfinite(time_s)) return nominal;
+  const double dt = time_s - last_time;
+  return dt > 0 ? dt : nominal;
+}
+
+void Tracker::Impl::Predict(double dt) {
+  PredictConstantAcceleration(dt, jerk_psd, std::exp(-dt / options.velocity_time_constant_s),
+                              std::exp(-dt / options.acceleration_time_constant_s), &x, &P);
+}
+
+// Marker predictions and Jacobians at z.
+void Tracker::Impl::Linearise(const Eigen::VectorXd& z) {
+  ForwardKinematics(*model, geometry, z, &data);
+  for (int m = 0; m < nm; ++m) {
+    predicted.col(m) = MarkerPosition(*model, geometry, data, m) +
+                       data.segment_rotation[model->markers()[m].segment] * offset[m];
+    MarkerJacobian(*model, geometry, data, m, &jac[m], static_cast<Eigen::Matrix3Xd*>(nullptr));
+  }
+}
+
+// Mahalanobis gating with S_m = J_m P_zz J_m^T + R_m and the optimal assignment.
+void Tracker::Impl::LabelByGating(int np) {
+  const double gate = options.gate_chi2;
+  for (int m = 0; m < nm; ++m) {
+    const std::vector<int>& cols = model->marker_coordinates(m);
+    const int k = static_cast<int>(cols.size());
+    const auto& J = jac[m];
+    auto JP = jp.leftCols(k);
+    for (int bcol = 0; bcol < k; ++bcol) {
+      JP.col(bcol).setZero();
+      for (int a = 0; a < k; ++a) JP.col(bcol) += J.col(a) * P(cols[a], cols[bcol]);
+    }
+    Eigen::Matrix3d S = JP.lazyProduct(J.transpose());  // 3 x k x 3: no GEMM machinery
+    S.diagonal().array() += MeasurementVariance(m);
+    s_inv[m] = S.inverse();
+    // d^2 >= |e|^2 / lambda_max(S) >= |e|^2 / trace(S): a cheap test before the quadratic form.
+    reject_sq[m] = gate * S.trace();
+  }
+  auto C = cost.topLeftCorner(nm, np + nm);
+  std::fill(gated_by.begin(), gated_by.begin() + np, 0);
+  bool contested = false;
+  for (int m = 0; m < nm; ++m) {
+    const Eigen::Vector3d p = predicted.col(m);
+    double best = gate;
+    int best_k = np + m;  // its own "missing" column
+    for (int k = 0; k < np; ++k) {
+      const Eigen::Vector3d e = points.col(k) - p;
+      double d2 = kForbidden;
+      if (e.squaredNorm() < reject_sq[m]) {
+        const double q = e.dot(s_inv[m] * e);
+        if (q < gate) {
+          d2 = q;
+          contested |= ++gated_by[k] > 1;
+          if (q < best) {
+            best = q;
+            best_k = k;
+          }
+        }
+      }
+      C(m, k) = d2;
+    }
+    row_to_col[m] = best_k;
+  }
+  // When no point lies in two gates, each marker's nearest gated point is the optimum; only
+  // contested frames (markers crossing, a ghost between two markers) need the assignment.
+  if (!contested) return;
+  for (int m = 0; m < nm; ++m) {
+    C.row(m).tail(nm).setConstant(kForbidden);
+    C(m, np + m) = gate;
+  }
+  lap.Solve(C, row_to_col.data());
+}
+
+// Turns row_to_col (columns < np are points) into the output labels; returns the count.
+int Tracker::Impl::ApplyLabels(int np) {
+  int labelled = 0;
+  for (int m = 0; m < nm; ++m) {
+    const int col = row_to_col[m];
+    if (col < 0 || col >= np) {
+      row_to_col[m] = -1;
+      continue;
+    }
+    const int input = valid[col];
+    out.point_of_marker[m] = input;
+    out.marker_of_point[input] = m;
+    ++labelled;
+  }
+  out.labelled = labelled;
+  return labelled;
+}
+
+// The information-form update of tracker.h with the labelled markers of row_to_col (Linearise
+// already called at the predicted z).
+bool Tracker::Impl::FilterUpdate(double* nis) {
+  A.setZero();
+  b.setZero();
+  double nu_r_nu = 0;
+  for (int m = 0; m < nm; ++m) {
+    if (row_to_col[m] < 0) continue;
+    const double w = 1.0 / MeasurementVariance(m);
+    const Eigen::Vector3d nu = points.col(row_to_col[m]) - predicted.col(m);
+    nu_r_nu += w * nu.squaredNorm();
+    const std::vector<int>& cols = model->marker_coordinates(m);
+    const auto& J = jac[m];
+    for (size_t a = 0; a < cols.size(); ++a) {
+      b[cols[a]] += w * J.col(a).dot(nu);
+      for (size_t k = 0; k <= a; ++k) A(cols[a], cols[k]) += w * J.col(a).dot(J.col(k));
+    }
+  }
+  A.triangularView<Eigen::StrictlyUpper>() = A.transpose();
+  if (!update.Apply(A, b, nu_r_nu, &x, &P, nis)) return false;
+  dz = x.head(nz) - zbuf;
+  LearnOffsets(dz);
+  return true;
+}
+
+// Each labelled marker's residual after the update (linearised: nu - J_m dz), in its segment's
+// frame, moves its offset by a small constant gain (an exponential average over the time
+// constant): slow, so that the pose converges first and the offsets take only what the pose
+// cannot explain -- a gain of 1 on the first frame would freeze an initial pose error into the
+// offsets for good.
+void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
+  const double k = OffsetGain();
+  for (int m = 0; m < nm; ++m) {
+    if (row_to_col[m] < 0) continue;
+    const std::vector<int>& cols = model->marker_coordinates(m);
+    Eigen::Vector3d r = points.col(row_to_col[m]) - predicted.col(m);
+    for (size_t a = 0; a < cols.size(); ++a) r -= jac[m].col(a) * dzv[cols[a]];
+    offset[m] += k * (data.segment_rotation[model->markers()[m].segment].transpose() * r);
+    offset_unknown[m] *= 1.0 - k;
+  }
+}
+
+// Wraps the full-turn coordinates and keeps the others inside the model's ranges: a segment
+// left with one marker (a foot with its toe marker hidden) can otherwise swing into a pose no
+// subject takes, fit the remaining marker there, and never meet the hidden one again.
+void Tracker::Impl::Wrap(Eigen::VectorXd* z) const {
+  const auto& co = model->coordinates();
+  for (int i = 0; i < nz; ++i) {
+    if (wraps[i])
+      (*z)[i] = std::remainder((*z)[i], 2 * M_PI);
+    else
+      (*z)[i] = std::clamp((*z)[i], co[i].min_value, co[i].max_value);
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Initialisation
+
+// z = start with the root turned by `turn` (world, about the root's origin) and shifted so that
+// the model's marker centroid lands on `centroid`.
+bool Tracker::Impl::PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3d& turn,
+                              const Eigen::Vector3d& centroid, Eigen::VectorXd* z) {
+  *z = start;
+  const Joint& root = model->joints()[0];
+  if (!turn.isIdentity(1e-12)) {
+    if (!root_euler) return false;
+    ForwardKinematics(*model, geometry, *z, &data);
+    const Eigen::Matrix3d target = turn * data.segment_rotation[root.child];
+    // The root's rotation elements compose root.orientation * R(a0) R(a1) R(a2); earlier
+    // translations do not rotate.
+    const Eigen::Vector3d angles = (root.orientation.transpose() * target)
+                                       .eulerAngles(root_rot_axis[0], root_rot_axis[1],
+                                                    root_rot_axis[2]);
+    // Two angle triples give the same rotation, (a0, a1, a2) and (a0 + pi, pi - a1, a2 + pi)
+    // ((a0 + pi, -a1, a2 + pi) for a proper Euler sequence); Eigen returns a0 in [0, pi]. Take
+    // the one nearer the start, or a subject facing the other half of the room would be tracked
+    // upside down in its root angles (same markers, tilt and list near pi).
+    const bool proper = root_rot_axis[0] == root_rot_axis[2];
+    Eigen::Vector3d other(angles[0] + M_PI, proper ? -angles[1] : M_PI - angles[1],
+                          angles[2] + M_PI);
+    double da = 0, db = 0;
+    for (int i = 0; i < 3; ++i) {
+      const double s0 = start[root_rot_coord[i]] * root_rot_sign[i];
+      da += std::pow(std::remainder(angles[i] - s0, 2 * M_PI), 2);
+      db += std::pow(std::remainder(other[i] - s0, 2 * M_PI), 2);
+    }
+    const Eigen::Vector3d& chosen = db < da ? other : angles;
+    for (int i = 0; i < 3; ++i)
+      (*z)[root_rot_coord[i]] =
+          root_rot_sign[i] * std::remainder(chosen[i], 2 * M_PI);
+  }
+  ForwardKinematics(*model, geometry, *z, &data);
+  Eigen::Vector3d mc = Eigen::Vector3d::Zero();
+  for (int m = 0; m < nm; ++m) mc += MarkerPosition(*model, geometry, data, m);
+  const Eigen::Vector3d shift = centroid - mc / nm;
+  for (const auto& [coord, axis] : root_translations) (*z)[coord] += axis.dot(shift);
+  return true;
+}
+
+// ICP-like search from z: assign markers to points by distance (optimal assignment), one damped
+// Gauss-Newton step on the pose, reassign. The body is placed from the root outwards: stage d
+// frees the joints at depth <= d of the tree and assigns only the markers they carry, so a
+// distal marker is paired only once its parent segments are in place (the two wrist markers,
+// 7 cm apart, would otherwise cross while the arm is still beside the body, and the forearm turn
+// half a revolution into a mirrored local minimum). A final stage refines everything with a
+// radius shrinking to 4 cm.
+Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
+  const Eigen::VectorXd start = z;
+  // Weak prior towards the start (metres^2 per rad^2 / per m^2): pins what the markers leave free.
+  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
+  const int stages = max_depth + 1, per_stage = 3;
+  const int iters = stages * per_stage + options.init_iterations;
+  Eigen::MatrixXd N(nz, nz), Nd(nz, nz);
+  Eigen::VectorXd g(nz), step(nz), trial(nz);
+  Eigen::LLT<Eigen::MatrixXd> llt(nz);
+  std::vector<int> assign(nm, -1), previous(nm, -2);
+  std::vector<char> free(nz, 1), active(nm, 1);
+  Eigen::VectorXd lower(nz), upper(nz);
+  for (int i = 0; i < nz; ++i) {
+    // The start itself may be outside (a user's static pose): never clamp it back.
+    lower[i] = std::min(model->coordinates()[i].min_value, z[i]);
+    upper[i] = std::max(model->coordinates()[i].max_value, z[i]);
+  }
+  auto Cost = [&](const Eigen::VectorXd& zz) {
+    ForwardKinematics(*model, geometry, zz, &data);
+    double s = 0;
+    for (int m = 0; m < nm; ++m)
+      if (assign[m] >= 0)
+        s += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
+    for (int i = 0; i < nz; ++i)
+      if (free[i])
+        s += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) * (zz[i] - start[i]);
+    return s;
+  };
+  double radius = 0.25;
+  double lambda = 1e-3;
+  for (int it = 0; it < iters; ++it) {
+    const int stage = it / per_stage;  // >= stages: the final stage
+    const bool final_stage = stage >= stages;
+    const int depth = final_stage ? max_depth : stage;
+    for (int i = 0; i < nz; ++i) free[i] = coordinate_depth[i] <= depth;
+    for (int m = 0; m < nm; ++m) active[m] = marker_depth[m] <= depth;
+    radius = stage == 0 ? 0.25
+             : !final_stage ? 0.15
+                            : std::max(options.init_radius_m,
+                                       0.12 - 0.02 * (it - stages * per_stage));
+    Linearise(z);
+    auto C = cost.topLeftCorner(nm, np + nm);
+    const double r2 = radius * radius;
+    for (int m = 0; m < nm; ++m) {
+      for (int k = 0; k < np; ++k) {
+        const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
+        C(m, k) = active[m] && d2 < r2 ? d2 : kForbidden;
+      }
+      C.row(m).tail(nm).setConstant(kForbidden);
+      C(m, np + m) = r2;
+    }
+    lap.Solve(C, row_to_col.data());
+    for (int m = 0; m < nm; ++m) assign[m] = row_to_col[m] < np ? row_to_col[m] : -1;
+    const bool same = assign == previous;
+    previous = assign;
+
+    // Normal equations of the assigned markers + prior.
+    N.setZero();
+    g.setZero();
+    for (int m = 0; m < nm; ++m) {
+      if (assign[m] < 0) continue;
+      const Eigen::Vector3d r = predicted.col(m) - points.col(assign[m]);
+      const std::vector<int>& cols = model->marker_coordinates(m);
+      const auto& J = jac[m];
+      for (size_t a = 0; a < cols.size(); ++a) {
+        g[cols[a]] += J.col(a).dot(r);
+        for (size_t k = 0; k < cols.size(); ++k) N(cols[a], cols[k]) += J.col(a).dot(J.col(k));
+      }
+    }
+    for (int i = 0; i < nz; ++i) {
+      const double w = rotational[i] ? prior_rot : prior_trans;
+      N(i, i) += w;
+      g[i] += w * (z[i] - start[i]);
+      if (!free[i]) {
+        N.row(i).setZero();
+        N.col(i).setZero();
+        N(i, i) = 1;
+        g[i] = 0;
+      }
+    }
+    const double c0 = Cost(z);
+    bool accepted = false;
+    for (int tries = 0; tries < 6 && !accepted; ++tries) {
+      Nd = N;
+      Nd.diagonal() += lambda * N.diagonal();
+      llt.compute(Nd);
+      if (llt.info() != Eigen::Success) {
+        lambda *= 10;
+        continue;
+      }
+      step = -llt.solve(g);
+      trial = z + step;
+      // Within the model's joint ranges: a foot turned 120 degrees can match heel and toe
+      // markers to each other's points, a pose no subject takes.
+      for (int i = 0; i < nz; ++i)
+        if (!wraps[i]) trial[i] = std::clamp(trial[i], lower[i], upper[i]);
+      if (Cost(trial) < c0) {
+        z = trial;
+        lambda = std::max(1e-7, lambda * 0.3);
+        accepted = true;
+      } else {
+        lambda *= 10;
+      }
+    }
+    if (final_stage && same && (!accepted || step.norm() < 1e-6) && radius <= options.init_radius_m)
+      break;
+  }
+  // Final assignment at the final pose and its score.
+  Hypothesis h;
+  Linearise(z);
+  const double r2 = radius * radius;
+  auto C = cost.topLeftCorner(nm, np + nm);
+  for (int m = 0; m < nm; ++m) {
+    for (int k = 0; k < np; ++k) {
+      const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
+      C(m, k) = d2 < r2 ? d2 : kForbidden;
+    }
+    C.row(m).tail(nm).setConstant(kForbidden);
+    C(m, np + m) = r2;
+  }
+  h.score = lap.Solve(C, row_to_col.data());
+  h.assignment.assign(nm, -1);
+  double sum = 0;
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] < np) {
+      h.assignment[m] = row_to_col[m];
+      sum += C(m, row_to_col[m]);
+      ++h.labelled;
+    }
+  h.rms = h.labelled > 0 ? std::sqrt(sum / h.labelled) : std::numeric_limits<double>::infinity();
+  Wrap(&z);
+  h.z = z;
+  return h;
+}
+
+bool Tracker::Impl::TryInitialise(int np) {
+  ++init.attempts;
+  init.accepted = false;
+  init.hypotheses = 0;
+  init.best_score = init.runner_up_score = init.rms_m = 0;
+  init.labelled = 0;
+  if (np < options.init_min_fraction * nm) {
+    init.reason = "too few points";
+    return false;
+  }
+  ClearOffsets(0);
+  const Eigen::Vector3d centroid = points.leftCols(np).rowwise().mean();
+  std::vector<Eigen::VectorXd> starts;
+  starts.push_back(options.static_pose.size() == nz ? options.static_pose
+                                                    : model->DefaultCoordinates());
+  if (had_track) starts.push_back(z_good);
+  const Eigen::Vector3d up = options.up.normalized();
+  std::vector<Hypothesis> hyps;
+  for (const Eigen::VectorXd& s : starts) {
+    const int headings = root_euler ? options.init_headings : 1;
+    for (int k = 0; k < headings; ++k) {
+      const Eigen::Matrix3d turn =
+          Eigen::AngleAxisd(2 * M_PI * k / headings, up).toRotationMatrix();
+      Eigen::VectorXd z;
+      if (!PlaceRoot(s, turn, centroid, &z)) continue;
+      hyps.push_back(Icp(z, np));
+    }
+  }
+  if (hyps.empty()) {
+    init.reason = "the root cannot be placed";
+    return false;
+  }
+  auto Best = [&] {
+    int b = 0;
+    for (size_t i = 1; i < hyps.size(); ++i)
+      if (hyps[i].score < hyps[b].score) b = static_cast<int>(i);
+    return b;
+  };
+  // Variants: the best placement with the joints of the static pose perturbed. A few limbs can
+  // settle in a wrong but self-consistent configuration (a ghost standing in for a wrist
+  // marker); starting them elsewhere lets the right configuration win on its score.
+  {
+    const Eigen::VectorXd base = hyps[Best()].z;
+    const Eigen::VectorXd& pose = starts[0];
+    // First the static pose blended towards the middle of each joint's range (bent elbows and
+    // knees: the wrist markers of a straight arm sit, 7 cm apart, along the very direction in
+    // which a 15 degree elbow flexion moves them, so a straight start pairs each with the
+    // other's point), then random perturbations.
+    std::mt19937 rng(12345);
+    std::uniform_real_distribution<double> u(-1.0, 1.0);
+    const double blends[] = {0.1, 0.2, 0.3};
+    const int blend_count = options.init_variants > 0 ? 3 : 0;
+    for (int v = 0; v < blend_count + options.init_variants; ++v) {
+      Eigen::VectorXd z = pose;
+      for (int i = 0; i < nz; ++i) {
+        const Coordinate& co = model->coordinates()[i];
+        if (root_free[i]) {
+          z[i] = base[i];
+        } else if (!rotational[i]) {
+          continue;
+        } else if (v < blend_count) {
+          if (co.max_value - co.min_value < 2 * M_PI)
+            z[i] += blends[v] * (0.5 * (co.min_value + co.max_value) - z[i]);
+        } else {
+          z[i] += options.init_variant_rad * u(rng);
+        }
+      }
+      hyps.push_back(Icp(z, np));
+    }
+  }
+  init.hypotheses = static_cast<int>(hyps.size());
+  const int best = Best();
+  const Hypothesis& h = hyps[best];
+  init.best_score = h.score;
+  init.rms_m = h.rms;
+  init.labelled = h.labelled;
+  // Unambiguous: no hypothesis that labels >= 3 markers differently comes close.
+  double runner_up = std::numeric_limits<double>::infinity();
+  for (const Hypothesis& o : hyps) {
+    int differ = 0;
+    for (int m = 0; m < nm; ++m) differ += o.assignment[m] != h.assignment[m];
+    if (differ >= 3) runner_up = std::min(runner_up, o.score);
+  }
+  init.runner_up_score = std::isfinite(runner_up) ? runner_up : 0.0;
+  if (h.labelled < options.init_min_fraction * nm) {
+    init.reason = "too few markers labelled";
+    return false;
+  }
+  if (!(h.rms <= options.init_max_rms_m)) {
+    init.reason = "residual too large";
+    return false;
+  }
+  const double variance = std::max(h.rms * h.rms / 3.0, 1e-6);
+  if (runner_up < options.init_ambiguity_ratio * h.score ||
+      runner_up - h.score < options.init_ambiguity_margin * variance) {
+    init.reason = "ambiguous";
+    return false;
+  }
+
+  // Start the filter at the found pose, at rest, and update it with the found labels.
+  x.setZero();
+  x.head(nz) = h.z;
+  P.setZero();
+  for (int i = 0; i < nz; ++i) {
+    const bool r = rotational[i];
+    const double s0 = r ? options.init_sigma_rotational : options.init_sigma_translational;
+    const double s1 =
+        r ? options.init_sigma_velocity_rotational : options.init_sigma_velocity_translational;
+    const double s2 = r ? options.init_sigma_acceleration_rotational
+                        : options.init_sigma_acceleration_translational;
+    P(i, i) = s0 * s0;
+    P(nz + i, nz + i) = s1 * s1;
+    P(2 * nz + i, 2 * nz + i) = s2 * s2;
+  }
+  zbuf = x.head(nz);
+  Linearise(zbuf);
+  for (int m = 0; m < nm; ++m) row_to_col[m] = h.assignment[m];
+  ApplyLabels(np);
+  double nis = 0;
+  if (!FilterUpdate(&nis)) {
+    init.reason = "the first update failed";
+    return false;
+  }
+  zbuf = x.head(nz);
+  Wrap(&zbuf);
+  x.head(nz) = zbuf;
+  out.nis = nis;
+  out.nis_dof = 3 * out.labelled;
+  init.accepted = true;
+  init.reason.clear();
+  return true;
+}
+
+// ---------------------------------------------------------------------------------------------
+
+Tracker::Tracker(std::shared_ptr<const Model> model, TrackerOptions options) : impl_(new Impl) {
+  impl_->options = std::move(options);
+  impl_->SetModel(std::move(model));
+  impl_->Allocate();
+  impl_->ResetState();
+}
+
+Tracker::~Tracker() = default;
+
+const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::Matrix3Xd>& pts) {
+  Impl& s = *impl_;
+  TrackOutput& out = s.out;
+  const int nin = static_cast<int>(pts.cols());
+  out.marker_of_point.assign(nin, -1);
+  out.point_of_marker.assign(s.nm, -1);
+  out.labelled = 0;
+  out.reinitialised = false;
+  out.nis = 0;
+  out.nis_dof = 0;
+  s.valid.clear();
+  for (int k = 0; k < nin && static_cast<int>(s.valid.size()) < s.options.max_points; ++k)
+    if (pts.col(k).allFinite()) {
+      s.points.col(s.valid.size()) = pts.col(k);
+      s.valid.push_back(k);
+    }
+  const int np = static_cast<int>(s.valid.size());
+  const double dt = s.Dt(time_s);
+  s.last_time = time_s;
+
+  if (out.state == TrackState::kTracking) {
+    s.Predict(dt);
+    s.zbuf = s.x.head(s.nz);
+    s.Linearise(s.zbuf);
+    s.LabelByGating(np);
+    const int labelled = s.ApplyLabels(np);
+    double nis = 0;
+    bool ok = labelled == 0 || s.FilterUpdate(&nis);
+    if (ok) {
+      s.zbuf = s.x.head(s.nz);
+      s.Wrap(&s.zbuf);
+      s.x.head(s.nz) = s.zbuf;
+      ok = s.x.allFinite();
+    }
+    out.nis = nis;
+    out.nis_dof = 3 * labelled;
+    const bool bad = !ok || labelled < s.options.min_labelled_fraction * s.nm ||
+                     (labelled > 0 && nis > s.options.max_nis_per_dof * out.nis_dof);
+    if (ok && !bad) {
+      s.bad_frames = 0;
+      s.z_good = s.x.head(s.nz);
+    } else if (++s.bad_frames >= s.options.divergence_frames || !ok) {
+      out.state = TrackState::kLost;
+      s.init.attempts = 0;
+    }
+  }
+  if (out.state != TrackState::kTracking) {
+    std::fill(out.marker_of_point.begin(), out.marker_of_point.end(), -1);
+    std::fill(out.point_of_marker.begin(), out.point_of_marker.end(), -1);
+    out.labelled = 0;
+    if (s.TryInitialise(np)) {
+      out.state = TrackState::kTracking;
+      out.reinitialised = true;
+      s.had_track = true;
+      s.bad_frames = 0;
+      s.z_good = s.x.head(s.nz);
+    } else {
+      std::fill(out.marker_of_point.begin(), out.marker_of_point.end(), -1);
+      std::fill(out.point_of_marker.begin(), out.point_of_marker.end(), -1);
+      out.labelled = 0;
+      out.nis = 0;
+      out.nis_dof = 0;
+    }
+  }
+  if (out.state == TrackState::kTracking)
+    out.z = s.x.head(s.nz);
+  else
+    out.z = s.z_good;
+  return out;
+}
+
+Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
+  if (!model) return Status::Error("SwapModel: no model");
+  Impl& s = *impl_;
+  const Model& old = *s.model;
+  if (model->num_coordinates() != old.num_coordinates())
+    return Status::Error("SwapModel: the new model has " +
+                         std::to_string(model->num_coordinates()) + " coordinates, the tracker " +
+                         std::to_string(old.num_coordinates()));
+  if (model->num_markers() != old.num_markers())
+    return Status::Error("SwapModel: the new model has " + std::to_string(model->num_markers()) +
+                         " markers, the tracker " + std::to_string(old.num_markers()));
+  for (int i = 0; i < old.num_coordinates(); ++i)
+    if (model->coordinates()[i].name != old.coordinates()[i].name)
+      return Status::Error("SwapModel: coordinate " + std::to_string(i) + " is '" +
+                           model->coordinates()[i].name + "', the tracker's is '" +
+                           old.coordinates()[i].name + "'");
+  for (int i = 0; i < old.num_markers(); ++i)
+    if (model->markers()[i].name != old.markers()[i].name)
+      return Status::Error("SwapModel: marker " + std::to_string(i) + " is '" +
+                           model->markers()[i].name + "', the tracker's is '" +
+                           old.markers()[i].name + "'");
+  s.SetModel(std::move(model));
+  s.Allocate();
+  // The new model's markers are where the fit put them: forget the old model's corrections, but
+  // trust the new positions more than a nominal model's.
+  s.ClearOffsets(s.options.swap_offset_count);
+  for (int i = 0; i < s.nz; ++i)
+    s.P(i, i) += s.rotational[i] ? s.options.swap_inflation_rotational
+                                 : s.options.swap_inflation_translational;
+  return Status::Ok();
+}
+
+TrackState Tracker::state() const { return impl_->out.state; }
+void Tracker::Reset() { impl_->ResetState(); }
+const Model& Tracker::model() const { return *impl_->model; }
+const TrackerOptions& Tracker::options() const { return impl_->options; }
+const TrackOutput& Tracker::output() const { return impl_->out; }
+const InitialisationSummary& Tracker::initialisation() const { return impl_->init; }
+const Eigen::Matrix3Xd& Tracker::predicted_markers() const { return impl_->predicted; }
+const Eigen::MatrixXd& Tracker::covariance() const { return impl_->P; }
+Eigen::VectorXd Tracker::velocities() const { return impl_->x.segment(impl_->nz, impl_->nz); }
+Eigen::VectorXd Tracker::accelerations() const { return impl_->x.tail(impl_->nz); }
+
+}  // namespace mocap::ekf
