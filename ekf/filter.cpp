@@ -1,0 +1,85 @@
+#include "ekf/filter.h"
+
+namespace mocap::ekf {
+
+void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eigen::VectorXd* x,
+                                 Eigen::MatrixXd* Pp) {
+  const int nz = static_cast<int>(jerk_psd.size());
+  Eigen::MatrixXd& P = *Pp;
+  const double h = 0.5 * dt * dt;
+  auto z = x->head(nz);
+  auto v = x->segment(nz, nz);
+  auto a = x->tail(nz);
+  z += dt * v + h * a;
+  v += dt * a;
+  // F P F^T on the 3 x 3 grid of n_z blocks: block rows first, then block columns, in place
+  // (each update reads only blocks not yet written).
+  P.topRows(nz) += dt * P.middleRows(nz, nz) + h * P.bottomRows(nz);
+  P.middleRows(nz, nz) += dt * P.bottomRows(nz);
+  P.leftCols(nz) += dt * P.middleCols(nz, nz) + h * P.rightCols(nz);
+  P.middleCols(nz, nz) += dt * P.rightCols(nz);
+  const double d2 = dt * dt, d3 = d2 * dt, d4 = d3 * dt, d5 = d4 * dt;
+  for (int i = 0; i < nz; ++i) {
+    const double q = jerk_psd[i];
+    const int i1 = nz + i, i2 = 2 * nz + i;
+    P(i, i) += q * d5 / 20;
+    P(i1, i1) += q * d3 / 3;
+    P(i2, i2) += q * dt;
+    P(i, i1) += q * d4 / 8;
+    P(i1, i) += q * d4 / 8;
+    P(i, i2) += q * d3 / 6;
+    P(i2, i) += q * d3 / 6;
+    P(i1, i2) += q * d2 / 2;
+    P(i2, i1) += q * d2 / 2;
+  }
+}
+
+void CoordinateUpdate::Resize(int nz) {
+  nz_ = nz;
+  L_.resize(nz, nz);
+  B_.resize(nz, nz);
+  tmp_.resize(nz, nz);
+  V_.resize(3 * nz, nz);
+  U_.resize(3 * nz, nz);
+  c_.resize(nz);
+  lb_.resize(nz);
+  dx_.resize(3 * nz);
+  llt_p_ = Eigen::LLT<Eigen::MatrixXd>(nz);
+  llt_b_ = Eigen::LLT<Eigen::MatrixXd>(nz);
+}
+
+bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b, double nu_r_nu,
+                             Eigen::VectorXd* x, Eigen::MatrixXd* Pp, double* nis) {
+  const int nz = nz_, nw = 2 * nz;
+  Eigen::MatrixXd& P = *Pp;
+  // P_zz = L L^T, B = I + L^T A L = L_B L_B^T.
+  llt_p_.compute(P.topLeftCorner(nz, nz));
+  if (llt_p_.info() != Eigen::Success) return false;
+  L_ = llt_p_.matrixL();
+  tmp_.noalias() = A * L_.triangularView<Eigen::Lower>();
+  B_.noalias() = L_.transpose().triangularView<Eigen::Upper>() * tmp_;
+  B_.diagonal().array() += 1.0;
+  llt_b_.compute(B_);
+  if (llt_b_.info() != Eigen::Success) return false;
+  // V = P_{:,z} L^-T (its top block is L itself); dx = V B^-1 L^T b.
+  V_ = P.leftCols(nz);
+  L_.transpose().triangularView<Eigen::Upper>().solveInPlace<Eigen::OnTheRight>(V_);
+  lb_.noalias() = L_.transpose().triangularView<Eigen::Upper>() * b;
+  c_ = lb_;
+  llt_b_.solveInPlace(c_);
+  dx_.noalias() = V_ * c_;
+  if (!dx_.allFinite()) return false;
+  *nis = nu_r_nu - lb_.dot(c_);  // nu^T S^-1 nu by Woodbury
+  // P+ = [0 0; 0 P_ww - V_w V_w^T] + U U^T, U = V L_B^-T: two positive semi-definite terms.
+  U_ = V_;
+  llt_b_.matrixU().solveInPlace<Eigen::OnTheRight>(U_);
+  P.bottomRightCorner(nw, nw).selfadjointView<Eigen::Lower>().rankUpdate(V_.bottomRows(nw), -1.0);
+  P.leftCols(nz).setZero();
+  P.topRows(nz).setZero();
+  P.selfadjointView<Eigen::Lower>().rankUpdate(U_, 1.0);
+  P.triangularView<Eigen::StrictlyUpper>() = P.transpose();
+  *x += dx_;
+  return true;
+}
+
+}  // namespace mocap::ekf

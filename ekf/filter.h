@@ -1,0 +1,38 @@
+// The two linear-algebra halves of the tracker's Kalman filter (the model-specific parts, the
+// marker predictions and Jacobians, are in tracker.cpp). See ekf/tracker.h for the equations and
+// why they are arranged this way; tests/test_ekf.cpp checks both against the dense textbook
+// formulas.
+//
+// The state is x = [z; z'; z''] with n_z coordinates each, the covariance P is 3 n_z x 3 n_z.
+#pragma once
+
+#include <Eigen/Cholesky>
+#include <Eigen/Core>
+
+namespace mocap::ekf {
+
+// x <- F x, P <- F P F^T + Q for independent constant-acceleration (white-jerk) coordinates,
+// jerk_psd[i] the jerk spectral density of coordinate i. F's block structure makes this O(n_z^2)
+// and in place; allocation-free.
+void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eigen::VectorXd* x,
+                                 Eigen::MatrixXd* P);
+
+// The measurement update for measurements of the coordinates only (H = [J 0 0]), in information
+// form on the observed block, from the accumulated A = J^T R^-1 J (n_z x n_z, full symmetric),
+// b = J^T R^-1 nu and nu^T R^-1 nu. Keeps its workspace: allocation-free after Resize.
+class CoordinateUpdate {
+ public:
+  void Resize(int nz);
+  // Updates x and P; returns false (x and P untouched) when P_zz is not positive-definite or
+  // the step is not finite. *nis receives nu^T S^-1 nu.
+  bool Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b, double nu_r_nu,
+             Eigen::VectorXd* x, Eigen::MatrixXd* P, double* nis);
+
+ private:
+  int nz_ = 0;
+  Eigen::MatrixXd L_, B_, V_, U_, tmp_;
+  Eigen::VectorXd c_, lb_, dx_;
+  Eigen::LLT<Eigen::MatrixXd> llt_p_, llt_b_;
+};
+
+}  // namespace mocap::ekf

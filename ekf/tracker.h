@@ -1,0 +1,173 @@
+// The real-time skeleton tracker: an Extended Kalman Filter on the body model's coordinates that
+// labels the unlabelled 3D points of every camera frame, after Cuadrado, Michaud, Lugrís & Soto,
+// "Using accelerometer data to tune the parameters of an Extended Kalman Filter for optical motion
+// capture", Sensors 21:427 (2021), the filter whose output starts the global fit of Lugrís et al.
+// (2024).
+//
+// State. x = [z; z'; z''] (3 n_z: coordinates, velocities, accelerations), each coordinate an
+// independent constant-acceleration (white-jerk) process, as in Cuadrado et al.: without a
+// dynamic model of the body (no masses, no muscles) the only prior on motion is smoothness, and
+// carrying the acceleration lets the prediction follow the curved paths of limbs swinging at
+// 200 Hz with a process noise small enough to keep ghosts out of the gates; a constant-velocity
+// model needs a noise large enough for the accelerations, which widens the gates. The
+// discretisation over dt is exact for white jerk of spectral density q per coordinate:
+//     F = [1 dt dt^2/2; 0 1 dt; 0 0 1],
+//     Q = q [dt^5/20 dt^4/8 dt^3/6; dt^4/8 dt^3/3 dt^2/2; dt^3/6 dt^2/2 dt]    (per coordinate)
+// so the covariance prediction F P F^T + Q is done on the 3 x 3 grid of n_z x n_z blocks in
+// O(n_z^2) instead of a dense (3 n_z)^3 product.
+//
+// Measurement. The labelled markers' positions y_m = h_m(z, p) + v_m, v_m ~ N(0, sigma_m^2 I /
+// w_m) (w_m the marker's weight), through the SAME forward kinematics and analytic Jacobian dh/dz
+// as the global fit (model/kinematics.h). H = [J 0 0]: only the coordinates are observed.
+//
+// Update (information form on the observed block). With P_zz = L L^T, A = J^T R^-1 J and
+// b = J^T R^-1 nu (both accumulated marker by marker over the few coordinates of each marker's
+// chain), B = I + L^T A L (eigenvalues >= 1, well conditioned for any marker precision),
+// V = P_{:,z} L^-T:
+//     dx  = V B^-1 L^T b                          (= K nu)
+//     P+  = [0 0; 0 P_ww - V_w V_w^T] + (V L_B^-T)(V L_B^-T)^T
+//     NIS = nu^T R^-1 nu - (L^T b)^T B^-1 (L^T b)   (= nu^T S^-1 nu, Woodbury)
+// The first term of P+ is the covariance of the velocities and accelerations given the
+// coordinates (a Schur complement the measurement does not change), the second the posterior of
+// the coordinates carried to all states; both are positive semi-definite by construction, so P
+// stays symmetric positive-definite where the textbook P - K S K^T can lose definiteness when the
+// markers are much more precise than the prediction. It costs O(n_z^2 (3 n_z)) whatever the number
+// of markers (the innovation covariance S, up to 117 x 117, is never formed or factored), about
+// a third of the textbook update and a tenth of Joseph's form on the full state.
+//
+// Labelling. Each predicted marker m gates the points by its Mahalanobis distance with the 3 x 3
+// innovation covariance S_m = J_m P_zz J_m^T + R_m; a globally optimal assignment (ekf/assignment.h)
+// of markers to gated points, where each marker may also stay unassigned at the price of the gate,
+// so two labels never take one point and a marker takes a point only when it is the best use of
+// that point. Unassigned points are ghosts or strays (label -1). A marker missing for a while has a
+// growing S_m and is picked up again when it reappears inside its gate.
+//
+// Initialisation and recovery. Without any labels, the subject is searched for around the
+// cloud's centroid at several headings about the vertical (options.up), from the static pose (and,
+// after a loss, from the last good pose): each hypothesis is refined ICP-like (assign markers to
+// points by distance, Gauss-Newton on the pose with a weak prior towards the start, reassign,
+// first the root alone, then the whole body) and the best one is accepted when its residual is
+// small, enough markers are labelled, and no hypothesis with a different labelling comes close.
+// The track is declared lost when too few markers are labelled, or the NIS per measured
+// coordinate is too high, for `divergence_frames` consecutive frames; the tracker then
+// re-initialises automatically from the incoming frames.
+//
+// Angles. A coordinate that only drives identity rotations and whose range covers a full turn
+// (the pelvis heading of the default model) is kept in (-pi, pi]: h is 2 pi-periodic in it, the
+// innovations are in marker space, so wrapping it changes nothing but keeps z bounded.
+//
+// Shape (after Pinocchio): the Model is immutable and shared; the Tracker owns its workspace,
+// sized at construction, so Update allocates nothing while tracking (tests/test_ekf.cpp checks it
+// with EIGEN_RUNTIME_NO_MALLOC). Initialisation frames (searching for the subject) may allocate.
+// A Tracker is not thread-safe; use one per stream.
+#pragma once
+
+#include <Eigen/Core>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "model/kinematics.h"
+#include "model/model.h"
+#include "model/status.h"
+
+namespace mocap::ekf {
+
+struct TrackerOptions {
+  // Nominal frame rate: the time step when a frame's time does not advance.
+  double rate_hz = 200.0;
+  // Process noise: spectral density of the white jerk of each coordinate
+  // (rad^2/s^5 for rotations, m^2/s^5 for translations).
+  double jerk_psd_rotational = 4.0e4;
+  double jerk_psd_translational = 4.0e2;
+  // Measurement noise: standard deviation of a marker coordinate (metres). It covers the
+  // triangulation noise AND the model's own error (skin motion, a nominal model before the fit),
+  // which is why it is larger than the cameras' noise.
+  double sigma_m = 0.004;
+  // Gate: chi-square (3 degrees of freedom) of a marker-to-point Mahalanobis distance beyond which
+  // a point cannot be that marker. 16.27 is the 99.9 % quantile.
+  double gate_chi2 = 16.27;
+  // Largest number of input points handled without allocation (more are accepted but allocate).
+  int max_points = 256;
+
+  // Divergence: the track is lost after `divergence_frames` consecutive frames in which fewer
+  // than `min_labelled_fraction` of the markers seen in the last good frames are labelled, or the
+  // NIS per measured coordinate exceeds `max_nis_per_dof`.
+  int divergence_frames = 10;
+  double min_labelled_fraction = 0.5;
+  double max_nis_per_dof = 10.0;
+
+  // Initialisation: number of headings tried about `up`; acceptance thresholds.
+  Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
+  int init_headings = 12;
+  int init_iterations = 30;          // ICP iterations per hypothesis
+  double init_max_rms_m = 0.015;     // RMS distance of the labelled markers
+  double init_min_fraction = 0.8;    // of the model's markers labelled
+  double init_ambiguity_ratio = 2.0; // a differently labelled hypothesis must cost this much more
+  // Starting pose of the search (empty: the model's default pose).
+  Eigen::VectorXd static_pose;
+  // Standard deviations of the state right after an initialisation.
+  double init_sigma_rotational = 0.05;          // rad
+  double init_sigma_translational = 0.01;       // m
+  double init_sigma_velocity_rotational = 1.0;  // rad/s
+  double init_sigma_velocity_translational = 0.3;   // m/s
+  double init_sigma_acceleration_rotational = 20.0; // rad/s^2
+  double init_sigma_acceleration_translational = 5.0;  // m/s^2
+
+  // SwapModel: added to the coordinates' variance (rad^2 / m^2) when the model changes, since the
+  // old pose is only approximately the new model's pose.
+  double swap_inflation_rotational = 0.02 * 0.02;
+  double swap_inflation_translational = 0.01 * 0.01;
+
+  bool IsValid(std::string* error) const;
+};
+
+enum class TrackState { kInitialising, kTracking, kLost };
+const char* ToString(TrackState state);
+
+struct TrackOutput {             // valid until the next Update
+  TrackState state = TrackState::kInitialising;
+  Eigen::VectorXd z;             // model coordinates (radians/metres); never NaN (last good pose when lost)
+  std::vector<int> marker_of_point;  // per input point: model marker index, or -1 (ghost/stray/NaN)
+  std::vector<int> point_of_marker;  // per model marker: input point index, or -1 (not seen)
+  int labelled = 0;
+  bool reinitialised = false;    // this frame started a new track
+  double nis = 0;                // normalised innovation squared of this update
+  int nis_dof = 0;               // its degrees of freedom (3 x labelled markers)
+};
+
+class Tracker {
+ public:
+  Tracker(std::shared_ptr<const Model> model, TrackerOptions options = {});
+  ~Tracker();
+  Tracker(const Tracker&) = delete;
+  Tracker& operator=(const Tracker&) = delete;
+
+  // One camera frame: predict, label, update. `points` are unlabelled 3D points in metres,
+  // columns; NaN columns are ignored. Allocation-free while tracking (for up to
+  // options.max_points points).
+  const TrackOutput& Update(double time_s, const Eigen::Ref<const Eigen::Matrix3Xd>& points);
+
+  // Replace the model (e.g. the global fit's result) between two frames without losing the
+  // track: z and its velocities are kept, the coordinates' covariance is inflated. The new model
+  // must have the same coordinates and markers (names, order).
+  Status SwapModel(std::shared_ptr<const Model> model);
+
+  TrackState state() const;
+  void Reset();
+
+  const Model& model() const;
+  const TrackerOptions& options() const;
+  const TrackOutput& output() const;
+  // The full state covariance (3 n_z x 3 n_z: coordinates, velocities, accelerations).
+  const Eigen::MatrixXd& covariance() const;
+  // Velocities and accelerations of the coordinates.
+  Eigen::VectorXd velocities() const;
+  Eigen::VectorXd accelerations() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace mocap::ekf
