@@ -630,6 +630,56 @@ Status MakeTrackingScene(const TrackingSceneOptions& o, TrackingScene* scene) {
   return Status::Ok();
 }
 
+LabelScorer::LabelScorer(int num_markers) : run_(num_markers, 0), wrong_now_(num_markers, 0) {}
+
+LabelScore LabelScorer::Add(const std::vector<int>& truth, const std::vector<int>& given) {
+  LabelScore frame;
+  std::fill(wrong_now_.begin(), wrong_now_.end(), 0);
+  const size_t n = std::min(truth.size(), given.size());
+  for (int t : truth) frame.samples += t >= 0;
+  for (size_t i = 0; i < n; ++i) {
+    const int g = given[i], t = truth[i];
+    if (g < 0) continue;
+    if (g == t) {
+      ++frame.correct;
+      continue;
+    }
+    ++frame.wrong;
+    if (t == kSecondPersonLabel) ++frame.wrong_on_second_person;
+    else if (t < 0) ++frame.wrong_on_ghosts;
+    if (g < static_cast<int>(wrong_now_.size())) wrong_now_[g] = 1;
+  }
+  for (size_t m = 0; m < run_.size(); ++m) {
+    if (wrong_now_[m]) ++run_[m];
+    else Close(static_cast<int>(m));
+  }
+  total_.samples += frame.samples;
+  total_.correct += frame.correct;
+  total_.wrong += frame.wrong;
+  total_.wrong_on_ghosts += frame.wrong_on_ghosts;
+  total_.wrong_on_second_person += frame.wrong_on_second_person;
+  return frame;
+}
+
+void LabelScorer::Close(int m) {
+  if (run_[m] > 5) ++total_.swaps_longer_than_5_frames;
+  total_.longest_wrong_run = std::max(total_.longest_wrong_run, run_[m]);
+  run_[m] = 0;
+}
+
+LabelScore LabelScorer::Finish() {
+  for (size_t m = 0; m < run_.size(); ++m) Close(static_cast<int>(m));
+  return total_;
+}
+
+std::vector<int> SceneMarkerOf(const Model& model, const TrackingScene& scene) {
+  std::vector<int> out(model.num_markers(), -1);
+  for (int m = 0; m < model.num_markers(); ++m)
+    for (int k = 0; k < scene.num_markers(); ++k)
+      if (scene.marker_names[k] == model.markers()[m].name) out[m] = k;
+  return out;
+}
+
 Model MismatchedModel(const Model& model, std::uint64_t seed, double displacement_m,
                       const std::string& prefix) {
   std::vector<Marker> markers = model.markers();

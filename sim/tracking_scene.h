@@ -136,6 +136,39 @@ struct TrackingScene {
 // Builds the scene. Errors name the option (an unknown movement, a fraction out of range).
 Status MakeTrackingScene(const TrackingSceneOptions& options, TrackingScene* scene);
 
+// Label accuracy against the scene's truth, frame by frame, in the terms of the tracking targets.
+struct LabelScore {
+  long samples = 0;             // subject marker samples present among the points
+  long correct = 0;             // ... given their own marker's label
+  long wrong = 0;               // points given a label that is not theirs
+  long wrong_on_ghosts = 0;     // ... of which ghosts or NaN points
+  long wrong_on_second_person = 0;
+  // A swap: marker m labelled on a point that is not m in consecutive frames. Runs longer than
+  // 5 frames, and the longest run.
+  int swaps_longer_than_5_frames = 0;
+  int longest_wrong_run = 0;
+  double accuracy() const { return samples > 0 ? static_cast<double>(correct) / samples : 1.0; }
+};
+
+class LabelScorer {
+ public:
+  explicit LabelScorer(int num_markers);
+  // truth: the scene's labels of the frame's points; given[i]: the scene marker index the tracker
+  // gave point i, or -1. Returns this frame's counts (runs are only counted by Finish).
+  LabelScore Add(const std::vector<int>& truth, const std::vector<int>& given);
+  // The totals, with the runs still open at the end closed.
+  LabelScore Finish();
+
+ private:
+  void Close(int marker);
+  LabelScore total_;
+  std::vector<int> run_;
+  std::vector<char> wrong_now_;
+};
+
+// Scene marker index of each of `model`'s markers, by name (-1 when the scene has no such marker).
+std::vector<int> SceneMarkerOf(const Model& model, const TrackingScene& scene);
+
 // A model whose markers do not match the subject's: `model` with every marker moved by
 // displacement_m on its segment in a random direction (seeded), and its markers renamed with
 // `prefix` when not empty. What a lab gets when the wrong subject's model or marker set is loaded.
