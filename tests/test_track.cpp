@@ -5,12 +5,15 @@
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <set>
 #include <vector>
 
 #include "formats/mot.h"
+#include "model/default_model.h"
+#include "model/model_io.h"
 #include "formats/trc.h"
 #include "sim/simulate.h"
 #include "sim/tracking_scene.h"
@@ -287,6 +290,262 @@ TEST(TrackingScene, BadOptionsAreNamed) {
   st = mocap::sim::MakeTrackingScene(o, &s);
   ASSERT_FALSE(st.ok());
   EXPECT_NE(st.message().find("does not fit"), std::string::npos) << st.message();
+}
+
+// --- mocap track end to end ---------------------------------------------------------------
+
+class TrackCli : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = fs::path(MOCAP_TEST_TMP) / "track_cli" / std::to_string(::getpid());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+    // The nominal and true models exactly as `mocap sim --seed 11` writes them.
+    const CommandResult r = Mocap("sim --out " + P("sim") + " --seed 11 --duration-scale 0.2");
+    ASSERT_EQ(r.status, 0) << r.output;
+  }
+  static void TearDownTestSuite() { fs::remove_all(dir_); }
+  static std::string P(const std::string& rel) { return (dir_ / rel).string(); }
+  static nlohmann::json Stats(const std::string& rel) {
+    std::ifstream in(dir_ / rel / "stats.json");
+    return nlohmann::json::parse(in);
+  }
+  // The scene of the targets: static pose, squats, shoulder circles, then the swap traps; four
+  // ghosts per frame, 2 % of the samples occluded.
+  static std::string Scene() {
+    return "track --simulate --seed 11 --movements static,squats,shoulder_circles_l "
+           "--duration-scale 0.6 --ghosts 4 --occlusion 0.02 --swap-traps";
+  }
+  static void ExpectTargets(const nlohmann::json& s) {
+    for (const char* key : {"frames", "label_accuracy", "wrong_labels", "swaps_longer_than_5_frames",
+                            "reinitialisations", "update_us_p50", "update_us_p99", "marker_rms_mm",
+                            "joint_angle_rms_deg", "trap_moments", "first_tracking_frame"})
+      ASSERT_TRUE(s.contains(key)) << key;
+    const long samples = s["marker_samples"].get<long>();
+    EXPECT_GT(samples, 100000);
+    EXPECT_GE(s["trap_moments"].get<int>(), 8);
+    EXPECT_GE(s["label_accuracy"].get<double>(), 0.9995) << s.dump(1);
+    EXPECT_LE(s["wrong_labels"].get<double>(), 1e-4 * samples) << s.dump(1);
+    EXPECT_EQ(s["swaps_longer_than_5_frames"].get<int>(), 0);
+    EXPECT_EQ(s["nan_poses"].get<int>(), 0);
+    // Automatic initialisation from the static pose: tracking within its first 0.1 s, once.
+    EXPECT_GE(s["first_tracking_frame"].get<int>(), 0);
+    EXPECT_LT(s["first_tracking_frame"].get<int>(), 20);
+    EXPECT_EQ(s["reinitialisations"].get<int>(), 0);
+    EXPECT_GT(s["update_us_p50"].get<double>(), 0.0);
+    EXPECT_GE(s["update_us_p99"].get<double>(), s["update_us_p50"].get<double>());
+  }
+  static inline fs::path dir_;
+};
+
+TEST_F(TrackCli, NominalModelMeetsTheLabellingTargets) {
+  const CommandResult r = Mocap(Scene() + " --model " + P("sim/nominal.model.json") + " --out " + P("nominal"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("frame "), std::string::npos) << "progress lines";
+  const nlohmann::json s = Stats("nominal");
+  std::printf("nominal model: %s\n", s.dump().c_str());
+  ExpectTargets(s);
+  // The outputs: labelled markers and coordinates, one row per frame.
+  mocap::formats::MarkerTrial labelled;
+  ASSERT_TRUE(mocap::formats::ReadTrc(P("nominal/labelled.trc"), &labelled).ok());
+  EXPECT_EQ(labelled.num_frames(), s["frames"].get<int>());
+  EXPECT_EQ(labelled.num_markers(), 39);
+  mocap::formats::CoordinateTable angles;
+  ASSERT_TRUE(mocap::formats::ReadMot(P("nominal/coordinates.mot"), &angles).ok());
+  EXPECT_EQ(angles.num_frames(), s["frames"].get<int>());
+  EXPECT_TRUE(angles.in_degrees);
+  EXPECT_GE(angles.FindColumn("knee_angle_r"), 0);
+}
+
+TEST_F(TrackCli, TrueModelMeetsTheTargetsAndTheAnglesAreWithinADegree) {
+  const CommandResult r = Mocap(Scene() + " --model " + P("sim/truth.model.json") + " --out " + P("truth"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json s = Stats("truth");
+  std::printf("true model: %s\n", s.dump().c_str());
+  ExpectTargets(s);
+  EXPECT_LE(s["joint_angle_rms_deg"].get<double>(), 1.0);
+  EXPECT_LT(s["marker_rms_mm"].get<double>(), 2.0);
+}
+
+// The points written by --write-points, read back as TRC and as C3D, give the same labels.
+TEST_F(TrackCli, PointsFilesTrackLikeTheSimulation) {
+  const std::string scene =
+      "track --simulate --seed 11 --movements static,squats --duration-scale 0.4 --ghosts 2 --model " +
+      P("sim/nominal.model.json");
+  CommandResult r = Mocap(scene + " --write-points --out " + P("pts_sim"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = Mocap("convert " + P("pts_sim/points.trc") + " " + P("pts_sim/points.c3d"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  mocap::formats::MarkerTrial reference;
+  ASSERT_TRUE(mocap::formats::ReadTrc(P("pts_sim/labelled.trc"), &reference).ok());
+  for (const char* ext : {"trc", "c3d"}) {
+    const std::string out = std::string("pts_") + ext;
+    r = Mocap("track --points " + P("pts_sim/points.") + ext + " --model " + P("sim/nominal.model.json") +
+              " --out " + P(out));
+    ASSERT_EQ(r.status, 0) << r.output;
+    const nlohmann::json s = Stats(out);
+    EXPECT_EQ(s["frames"], reference.num_frames());
+    EXPECT_FALSE(s.contains("label_accuracy")) << "no truth with a points file";
+    mocap::formats::MarkerTrial labelled;
+    ASSERT_TRUE(mocap::formats::ReadTrc(P(out + "/labelled.trc"), &labelled).ok());
+    ASSERT_EQ(labelled.num_frames(), reference.num_frames());
+    long same = 0, total = 0;
+    for (int f = 0; f < labelled.num_frames(); ++f)
+      for (int m = 0; m < 39; ++m) {
+        if (!reference.Has(f, m)) continue;
+        ++total;
+        same += labelled.Has(f, m) && (labelled.At(f, m) - reference.At(f, m)).norm() < 1e-6;
+      }
+    EXPECT_GT(total, 0);
+    EXPECT_GE(static_cast<double>(same), 0.999 * total) << ext;
+  }
+}
+
+TEST_F(TrackCli, BadInputGetsAClearError) {
+  struct Case {
+    std::string args, expect;
+  };
+  fs::create_directories(P("bad"));
+  std::ofstream(P("bad/garbage.trc")) << "not a trc file\n";
+  mocap::Model renamed = mocap::sim::MismatchedModel(mocap::DefaultFullBodyModel(), 1, 0.0, "X_");
+  ASSERT_TRUE(mocap::SaveModelJson(P("bad/renamed.json"), renamed).ok());
+  const std::string sim = "track --simulate --duration-scale 0.3 ";
+  const std::vector<Case> cases = {
+      {"track --out " + P("bad/o"), "either --simulate or --points"},
+      {sim + "--points " + P("bad/garbage.trc") + " --out " + P("bad/o"), "either --simulate or --points"},
+      {"track --points " + P("bad/none.trc") + " --out " + P("bad/o"), "none.trc"},
+      {"track --points " + P("bad/garbage.trc") + " --out " + P("bad/o"), "garbage.trc"},
+      {"track --points " + P("bad/garbage.trc") + " --model nominal --out " + P("bad/o"), "garbage.trc"},
+      {sim + "--movements static --fault meteor --out " + P("bad/o"), "--fault meteor"},
+      {sim + "--movements static,cartwheel --out " + P("bad/o"), "cartwheel"},
+      {sim + "--movements static --occlusion 0.9 --out " + P("bad/o"), "occlusion"},
+      {sim + "--movements static --model " + P("bad/renamed.json") + " --out " + P("bad/o"), "none of the simulated subject's"},
+      {sim + "--movements static --model " + P("bad/missing.json") + " --out " + P("bad/o"), "missing.json"},
+  };
+  for (const Case& c : cases) {
+    const CommandResult r = Mocap(c.args);
+    EXPECT_NE(r.status, 0) << c.args;
+    EXPECT_NE(r.output.find(c.expect), std::string::npos) << c.args << "\n" << r.output;
+    EXPECT_EQ(r.output.find("terminate"), std::string::npos) << r.output;
+  }
+}
+
+// --- mocap fit --initial ---------------------------------------------------------------------
+
+class FitInitial : public TrackCli {};
+
+std::map<std::string, nlohmann::json> Parameters(const nlohmann::json& report) {
+  std::map<std::string, nlohmann::json> out;
+  for (const auto& p : report["parameters"]) out[p["name"].get<std::string>()] = p;
+  return out;
+}
+
+// The same fitted model whether the fit starts from per-frame IK or from given poses: the
+// problem has one minimum near the truth, and both starts reach it. Both runs stop when an
+// iteration lowers the cost by less than 1e-6 of it, which leaves the slowest directions (a
+// weakly excited ankle) a fraction of their standard deviation apart: every determined parameter
+// must agree to half its standard deviation, and marker and joint-centre positions to 0.5 mm.
+void ExpectSameFit(const nlohmann::json& a, const nlohmann::json& b) {
+  ASSERT_TRUE(a["converged"].get<bool>());
+  ASSERT_TRUE(b["converged"].get<bool>());
+  const double ca = a["final_cost"].get<double>(), cb = b["final_cost"].get<double>();
+  EXPECT_LT(std::abs(ca - cb), 1e-5 * ca) << ca << " vs " << cb;
+  const auto pa = Parameters(a), pb = Parameters(b);
+  ASSERT_EQ(pa.size(), pb.size());
+  double worst = 0;
+  std::string which;
+  for (const auto& [name, p] : pa) {
+    if (!p["determined"].get<bool>()) continue;
+    const double d = std::abs(p["value"].get<double>() - pb.at(name)["value"].get<double>()) /
+                     std::max(p["std"].get<double>(), 1e-12);
+    if (d > worst) worst = d, which = name;
+    const std::string group = p["group"].get<std::string>();
+    if (group == "centres" || group == "markers")
+      EXPECT_LT(std::abs(p["value"].get<double>() - pb.at(name)["value"].get<double>()), 5e-4) << name;
+  }
+  EXPECT_LT(worst, 0.5) << "determined parameter " << which << " differs by " << worst << " standard deviations";
+  std::printf("same fit: final cost %.3f vs %.3f, largest difference %.3f std (%s)\n", ca, cb, worst, which.c_str());
+}
+
+TEST_F(FitInitial, TrueCoordinatesStartGivesTheSameModelAsIk) {
+  const std::string trials = P("sim/static.trc") + " " + P("sim/squats.trc") + " " + P("sim/hip_star_arc_l.trc");
+  const std::string fit = "fit --threads 2 --model " + P("sim/nominal.model.json") + " " + trials;
+  CommandResult r = Mocap(fit + " --out " + P("fit_ik/fit.json") + " --report " + P("fit_ik/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = Mocap(fit + " --initial " + P("sim/static.mot") + " " + P("sim/squats.mot") + " " +
+            P("sim/hip_star_arc_l.mot") + " --out " + P("fit_init/fit.json") + " --report " + P("fit_init/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("starting poses from"), std::string::npos) << r.output;
+  std::ifstream a(P("fit_ik/r.json")), b(P("fit_init/r.json"));
+  const nlohmann::json ra = nlohmann::json::parse(a), rb = nlohmann::json::parse(b);
+  // Started from the true poses, the fit starts closer than IK with the nominal model does.
+  EXPECT_LT(rb["iterations"].get<int>(), ra["iterations"].get<int>());
+  ExpectSameFit(ra, rb);
+}
+
+// The tracker's output is a fit's input: labelled.trc the trial, coordinates.mot its start.
+TEST_F(FitInitial, TrackerOutputStartsTheFit) {
+  const CommandResult t = Mocap("track --simulate --seed 11 --movements static,squats,hip_star_arc_l "
+                                "--duration-scale 0.5 --model " + P("sim/nominal.model.json") +
+                                " --out " + P("fit_track"));
+  ASSERT_EQ(t.status, 0) << t.output;
+  const std::string fit = "fit --threads 2 --model " + P("sim/nominal.model.json") + " " + P("fit_track/labelled.trc");
+  CommandResult r = Mocap(fit + " --out " + P("fit_track/ik/fit.json") + " --report " + P("fit_track/ik/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = Mocap(fit + " --initial " + P("fit_track/coordinates.mot") + " --out " + P("fit_track/init/fit.json") +
+            " --report " + P("fit_track/init/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  std::ifstream a(P("fit_track/ik/r.json")), b(P("fit_track/init/r.json"));
+  ExpectSameFit(nlohmann::json::parse(a), nlohmann::json::parse(b));
+}
+
+TEST_F(FitInitial, BadInitialPosesGetAClearError) {
+  // Tables derived from a good one: a column dropped, a foreign column, a frame cut, a row half NaN.
+  mocap::formats::CoordinateTable good;
+  ASSERT_TRUE(mocap::formats::ReadMot(P("sim/static.mot"), &good).ok());
+  fs::create_directories(P("bad_init"));
+  auto write = [&](const std::string& name, mocap::formats::CoordinateTable t) {
+    EXPECT_TRUE(mocap::formats::WriteMot(P("bad_init/" + name), t).ok());
+    return P("bad_init/" + name);
+  };
+  mocap::formats::CoordinateTable dropped = good;
+  const int knee = dropped.FindColumn("knee_angle_r");
+  dropped.column_names.erase(dropped.column_names.begin() + knee);
+  mocap::formats::RowMatrix v(good.num_frames(), good.values.cols() - 1);
+  v << good.values.leftCols(knee), good.values.rightCols(good.values.cols() - knee - 1);
+  dropped.values = v;
+  mocap::formats::CoordinateTable foreign = good;
+  foreign.column_names[knee] = "knee_flexion_right";
+  mocap::formats::CoordinateTable cut = good;
+  cut.values.conservativeResize(good.num_frames() - 5, Eigen::NoChange);
+  cut.times.resize(good.num_frames() - 5);
+  mocap::formats::CoordinateTable half = good;
+  half.values(3, knee) = std::nan("");
+  mocap::formats::CoordinateTable none = good;
+  none.values.setConstant(std::nan(""));
+  const std::string fit = "fit --model " + P("sim/nominal.model.json") + " " + P("sim/static.trc") +
+                          " --out " + P("bad_init/fit.json") + " --initial ";
+  struct Case {
+    std::string initial, expect;
+  };
+  const std::vector<Case> cases = {
+      {write("dropped.mot", dropped), "no column for 1 coordinate(s) of model"},
+      {write("foreign.mot", foreign), "'knee_flexion_right' is not a coordinate"},
+      {write("cut.mot", cut), "frames, its trial has"},
+      {write("half.mot", half), "frame 4 are partly missing"},
+      {write("none.mot", none), "no frame has a pose"},
+      {P("bad_init/absent.mot"), "absent.mot"},
+      {P("sim/static.mot") + " " + P("sim/squats.mot"), "2 .mot file(s) for 1 trial(s)"},
+  };
+  for (const Case& c : cases) {
+    const CommandResult r = Mocap(fit + c.initial);
+    EXPECT_NE(r.status, 0) << c.initial;
+    EXPECT_NE(r.output.find(c.expect), std::string::npos) << c.initial << "\n" << r.output;
+  }
+  // A squats .mot for the static trial: the frame counts differ, and the message says so.
+  const CommandResult r = Mocap(fit + P("sim/squats.mot"));
+  EXPECT_NE(r.status, 0);
+  EXPECT_NE(r.output.find("squats.mot (for " + P("sim/static.trc") + "): has"), std::string::npos) << r.output;
 }
 
 }  // namespace
