@@ -108,6 +108,25 @@ void ExpectTrackingBefore(const TrackRun& run, int fault_begin) {
   EXPECT_GE(before.accuracy(), 0.999);
 }
 
+// Automatic initialisation from the static pose, whoever the subject (seed) and wherever it
+// faces: tracking, with every visible marker labelled right, within the first 0.1 s.
+TEST(TrackFaults, InitialisesFromTheStaticPoseOfAnySubject) {
+  for (std::uint64_t seed : {1, 2, 5, 11}) {
+    mocap::sim::TrackingSceneOptions o;
+    o.seed = seed;
+    o.movements = {"static"};
+    o.duration_scale = 0.1;  // 0.3 s
+    TrackingScene scene;
+    ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &scene).ok());
+    auto tracker = MakeTracker(scene.nominal);
+    const TrackRun run = Track(scene, tracker.get());
+    EXPECT_EQ(run.nan_poses, 0);
+    const int start = Recovered(run, 0);
+    EXPECT_GE(start, 0) << "seed " << seed << ": not tracking after " << scene.num_frames() << " frames";
+    EXPECT_LT(start, 20) << "seed " << seed;
+  }
+}
+
 TEST(TrackFaults, AllMarkersOccludedForASecond) {
   TrackingScene scene;
   ASSERT_TRUE(mocap::sim::MakeTrackingScene(FaultScene(SceneFault::kAllOccluded), &scene).ok());
