@@ -481,6 +481,21 @@ TEST_F(FitInitial, TrueCoordinatesStartGivesTheSameModelAsIk) {
   // Started from the true poses, the fit starts closer than IK with the nominal model does.
   EXPECT_LT(rb["iterations"].get<int>(), ra["iterations"].get<int>());
   ExpectSameFit(ra, rb);
+
+  // Frames without a pose (NaN rows, as where the tracker was not tracking): solved by IK.
+  mocap::formats::CoordinateTable squats;
+  ASSERT_TRUE(mocap::formats::ReadMot(P("sim/squats.mot"), &squats).ok());
+  ASSERT_GT(squats.num_frames(), 80);
+  squats.values.topRows(10).setConstant(std::nan(""));
+  squats.values.middleRows(40, 30).setConstant(std::nan(""));
+  fs::create_directories(P("fit_gaps"));
+  ASSERT_TRUE(mocap::formats::WriteMot(P("fit_gaps/squats.mot"), squats).ok());
+  r = Mocap(fit + " --initial " + P("sim/static.mot") + " " + P("fit_gaps/squats.mot") + " " +
+            P("sim/hip_star_arc_l.mot") + " --out " + P("fit_gaps/fit.json") + " --report " + P("fit_gaps/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("40 frames without one: by IK"), std::string::npos) << r.output;
+  std::ifstream c(P("fit_gaps/r.json"));
+  ExpectSameFit(ra, nlohmann::json::parse(c));
 }
 
 // The tracker's output is a fit's input: labelled.trc the trial, coordinates.mot its start.
