@@ -630,18 +630,25 @@ Status MakeTrackingScene(const TrackingSceneOptions& o, TrackingScene* scene) {
   return Status::Ok();
 }
 
-LabelScorer::LabelScorer(int num_markers) : run_(num_markers, 0), wrong_now_(num_markers, 0) {}
+LabelScorer::LabelScorer(int num_markers)
+    : run_(num_markers, 0), wrong_now_(num_markers, 0), marker_samples_(num_markers, 0),
+      marker_correct_(num_markers, 0) {}
 
 LabelScore LabelScorer::Add(const std::vector<int>& truth, const std::vector<int>& given) {
   LabelScore frame;
   std::fill(wrong_now_.begin(), wrong_now_.end(), 0);
   const size_t n = std::min(truth.size(), given.size());
-  for (int t : truth) frame.samples += t >= 0;
+  for (int t : truth) {
+    if (t < 0) continue;
+    ++frame.samples;
+    if (t < static_cast<int>(marker_samples_.size())) ++marker_samples_[t];
+  }
   for (size_t i = 0; i < n; ++i) {
     const int g = given[i], t = truth[i];
     if (g < 0) continue;
     if (g == t) {
       ++frame.correct;
+      if (t < static_cast<int>(marker_correct_.size())) ++marker_correct_[t];
       continue;
     }
     ++frame.wrong;

@@ -158,12 +158,16 @@ class LabelScorer {
   LabelScore Add(const std::vector<int>& truth, const std::vector<int>& given);
   // The totals, with the runs still open at the end closed.
   LabelScore Finish();
+  // Per scene marker: its samples present, and those given its label.
+  const std::vector<long>& marker_samples() const { return marker_samples_; }
+  const std::vector<long>& marker_correct() const { return marker_correct_; }
 
  private:
   void Close(int marker);
   LabelScore total_;
   std::vector<int> run_;
   std::vector<char> wrong_now_;
+  std::vector<long> marker_samples_, marker_correct_;
 };
 
 // Scene marker index of each of `model`'s markers, by name (-1 when the scene has no such marker).

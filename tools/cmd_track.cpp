@@ -306,6 +306,11 @@ int RunTrack(const TrackArgs& args) {
     j["swaps_longer_than_5_frames"] = score.swaps_longer_than_5_frames;
     j["longest_wrong_run_frames"] = score.longest_wrong_run;
     j["trap_moments"] = scene.traps.size();
+    j["per_marker_accuracy"] = nlohmann::json::object();
+    for (int k = 0; k < scene.num_markers(); ++k)
+      if (scorer.marker_samples()[k] > 0)
+        j["per_marker_accuracy"][scene.marker_names[k]] =
+            static_cast<double>(scorer.marker_correct()[k]) / scorer.marker_samples()[k];
 
     // Against the true poses, in the frames the tracker was tracking: the model's markers (forward
     // kinematics of the tracked z with the tracker's model) against the true markers, and the
