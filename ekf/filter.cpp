@@ -32,6 +32,8 @@ void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eig
     P(i1, i2) += q * d2 / 2;
     P(i2, i1) += q * d2 / 2;
   }
+  // Row-then-column rounding differs between (i,j) and (j,i): keep P exactly symmetric.
+  P.triangularView<Eigen::StrictlyUpper>() = P.transpose();
 }
 
 void CoordinateUpdate::Resize(int nz) {

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <random>
 
 #include "ekf/assignment.h"
 #include "ekf/filter.h"
@@ -27,6 +28,11 @@ bool TrackerOptions::IsValid(std::string* error) const {
     return Fail(error, "jerk_psd_rotational and jerk_psd_translational must be > 0");
   if (!(sigma_m > 0)) return Fail(error, "sigma_m must be > 0");
   if (!(gate_chi2 > 0)) return Fail(error, "gate_chi2 must be > 0");
+  if (!(marker_offset_sigma >= 0) || !(marker_offset_floor >= 0))
+    return Fail(error, "marker_offset_sigma and marker_offset_floor must be >= 0");
+  if (!(marker_offset_time_constant_s > 0))
+    return Fail(error, "marker_offset_time_constant_s must be > 0");
+  if (swap_offset_count < 0) return Fail(error, "swap_offset_count must be >= 0");
   if (max_points < 1) return Fail(error, "max_points must be >= 1");
   if (divergence_frames < 1) return Fail(error, "divergence_frames must be >= 1");
   if (!(min_labelled_fraction >= 0 && min_labelled_fraction <= 1))
@@ -34,11 +40,15 @@ bool TrackerOptions::IsValid(std::string* error) const {
   if (!(max_nis_per_dof > 0)) return Fail(error, "max_nis_per_dof must be > 0");
   if (!(up.norm() > 0.5) || !up.allFinite()) return Fail(error, "up must be a non-zero vector");
   if (init_headings < 1) return Fail(error, "init_headings must be >= 1");
+  if (init_variants < 0 || !(init_variant_rad >= 0))
+    return Fail(error, "init_variants and init_variant_rad must be >= 0");
   if (init_iterations < 3) return Fail(error, "init_iterations must be >= 3");
   if (!(init_max_rms_m > 0)) return Fail(error, "init_max_rms_m must be > 0");
   if (!(init_min_fraction > 0 && init_min_fraction <= 1))
     return Fail(error, "init_min_fraction must be in (0, 1]");
   if (!(init_ambiguity_ratio >= 1)) return Fail(error, "init_ambiguity_ratio must be >= 1");
+  if (!(init_ambiguity_margin >= 0)) return Fail(error, "init_ambiguity_margin must be >= 0");
+  if (!(init_radius_m > 0)) return Fail(error, "init_radius_m must be > 0");
   if (!static_pose.allFinite()) return Fail(error, "static_pose must be finite");
   for (double s : {init_sigma_rotational, init_sigma_translational, init_sigma_velocity_rotational,
                    init_sigma_velocity_translational, init_sigma_acceleration_rotational,
@@ -66,7 +76,11 @@ struct Tracker::Impl {
   ModelData data;
   int nz = 0, nm = 0;
   std::vector<char> rotational, wraps;
-  Eigen::VectorXd marker_weight;  // w_m / sigma_m^2
+  Eigen::VectorXd marker_variance;  // sigma_m^2 / w_m
+  // Online marker offsets (see tracker.h): per marker, in its segment's frame, and how many
+  // frames have contributed since the last (re)initialisation.
+  std::vector<Eigen::Vector3d> offset;
+  std::vector<int> offset_count;
   // The root joint, for placing hypotheses: its rotations as signed coordinate axes (for an
   // Euler decomposition) and its translations before any rotation (moving along fixed axes).
   bool root_euler = false;
@@ -74,6 +88,9 @@ struct Tracker::Impl {
   double root_rot_sign[3] = {1, 1, 1};
   std::vector<std::pair<int, Eigen::Vector3d>> root_translations;
   std::vector<char> root_free;
+  // Depth in the tree (root joint 0) of each coordinate's joint and each marker's segment.
+  std::vector<int> coordinate_depth, marker_depth;
+  int max_depth = 0;
 
   // --- state ---
   Eigen::VectorXd x;  // [z; z'; z'']
@@ -84,11 +101,12 @@ struct Tracker::Impl {
   Eigen::VectorXd z_good;  // last pose that passed the divergence test
   int bad_frames = 0;
   TrackOutput out;
+  InitialisationSummary init;
 
   // --- per-frame workspace (sized in Allocate) ---
   std::vector<int> valid;  // input indices of the finite points, compacted
   Eigen::Matrix3Xd points;
-  Eigen::VectorXd zbuf;
+  Eigen::VectorXd zbuf, dz;
   Eigen::Matrix3Xd predicted;
   std::vector<Eigen::Matrix<double, 3, Eigen::Dynamic>> jac;
   Eigen::Matrix<double, 3, Eigen::Dynamic> jp;
@@ -101,6 +119,16 @@ struct Tracker::Impl {
   Eigen::VectorXd b;
   CoordinateUpdate update;
 
+  // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
+  double MeasurementVariance(int m) const {
+    const double s0 = options.marker_offset_sigma, s1 = options.marker_offset_floor;
+    return marker_variance[m] + s0 * s0 / (1.0 + offset_count[m]) + s1 * s1;
+  }
+  void LearnOffsets(const Eigen::VectorXd& dz);
+  void ClearOffsets(int count) {
+    std::fill(offset.begin(), offset.end(), Eigen::Vector3d::Zero());
+    std::fill(offset_count.begin(), offset_count.end(), count);
+  }
   void SetModel(std::shared_ptr<const Model> m);
   void Allocate();
   void ResetState();
@@ -152,9 +180,27 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
     wraps[i] = drives[i] && only_identity_rotation[i] && co.rotational &&
                co.max_value - co.min_value >= 2 * M_PI - 1e-9;
   }
-  marker_weight.resize(nm);
+  marker_variance.resize(nm);
   for (int k = 0; k < nm; ++k)
-    marker_weight[k] = md.markers()[k].weight / (options.sigma_m * options.sigma_m);
+    marker_variance[k] = options.sigma_m * options.sigma_m / md.markers()[k].weight;
+  offset.assign(nm, Eigen::Vector3d::Zero());
+  offset_count.assign(nm, 0);
+
+  // Depths (joints are parents first).
+  std::vector<int> segment_depth(md.num_segments(), 0);
+  max_depth = 0;
+  for (const Joint& j : md.joints()) {
+    const int d = j.parent < 0 ? 0 : segment_depth[j.parent] + 1;
+    segment_depth[j.child] = d;
+    max_depth = std::max(max_depth, d);
+  }
+  coordinate_depth.assign(nz, 0);
+  for (int i = 0; i < nz; ++i) {
+    const int j = md.coordinates()[i].joint;
+    coordinate_depth[i] = j >= 0 ? segment_depth[md.joints()[j].child] : 0;
+  }
+  marker_depth.resize(nm);
+  for (int k = 0; k < nm; ++k) marker_depth[k] = segment_depth[md.markers()[k].segment];
 
   // Root placement.
   const Joint& root = md.joints()[0];
@@ -192,6 +238,7 @@ void Tracker::Impl::Allocate() {
   valid.reserve(mp);
   points.resize(3, mp);
   zbuf.resize(nz);
+  dz.resize(nz);
   predicted.resize(3, nm);
   jac.resize(nm);
   for (int k = 0; k < nm; ++k) jac[k].resize(3, model->marker_coordinates(k).size());
@@ -222,6 +269,7 @@ void Tracker::Impl::ResetState() {
   bad_frames = 0;
   last_time = kNaN;
   out.state = TrackState::kInitialising;
+  init = InitialisationSummary();
   out.z = start;
   out.labelled = 0;
   out.reinitialised = false;
@@ -242,7 +290,8 @@ void Tracker::Impl::Predict(double dt) { PredictConstantAcceleration(dt, jerk_ps
 void Tracker::Impl::Linearise(const Eigen::VectorXd& z) {
   ForwardKinematics(*model, geometry, z, &data);
   for (int m = 0; m < nm; ++m) {
-    predicted.col(m) = MarkerPosition(*model, geometry, data, m);
+    predicted.col(m) = MarkerPosition(*model, geometry, data, m) +
+                       data.segment_rotation[model->markers()[m].segment] * offset[m];
     MarkerJacobian(*model, geometry, data, m, &jac[m], static_cast<Eigen::Matrix3Xd*>(nullptr));
   }
 }
@@ -260,7 +309,7 @@ void Tracker::Impl::LabelByGating(int np) {
       for (int a = 0; a < k; ++a) JP.col(bcol) += J.col(a) * P(cols[a], cols[bcol]);
     }
     Eigen::Matrix3d S = JP * J.transpose();
-    S.diagonal().array() += 1.0 / marker_weight[m];
+    S.diagonal().array() += MeasurementVariance(m);
     s_inv[m] = S.inverse();
     // d^2 >= |e|^2 / lambda_max(S) >= |e|^2 / trace(S): a cheap test before the quadratic form.
     reject_sq[m] = gate * S.trace();
@@ -309,7 +358,7 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
   double nu_r_nu = 0;
   for (int m = 0; m < nm; ++m) {
     if (row_to_col[m] < 0) continue;
-    const double w = marker_weight[m];
+    const double w = 1.0 / MeasurementVariance(m);
     const Eigen::Vector3d nu = points.col(row_to_col[m]) - predicted.col(m);
     nu_r_nu += w * nu.squaredNorm();
     const std::vector<int>& cols = model->marker_coordinates(m);
@@ -320,7 +369,26 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
     }
   }
   A.triangularView<Eigen::StrictlyUpper>() = A.transpose();
-  return update.Apply(A, b, nu_r_nu, &x, &P, nis);
+  if (!update.Apply(A, b, nu_r_nu, &x, &P, nis)) return false;
+  dz = x.head(nz) - zbuf;
+  LearnOffsets(dz);
+  return true;
+}
+
+// Each labelled marker's residual after the update (linearised: nu - J_m dz), in its segment's
+// frame, moves its offset by 1/n (a running mean over the first n frames), then by a constant
+// rate 1/(time constant x rate): a slowly adapting correction of the model's marker positions.
+void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
+  const double floor_gain = 1.0 / std::max(1.0, options.marker_offset_time_constant_s * options.rate_hz);
+  for (int m = 0; m < nm; ++m) {
+    if (row_to_col[m] < 0) continue;
+    const std::vector<int>& cols = model->marker_coordinates(m);
+    Eigen::Vector3d r = points.col(row_to_col[m]) - predicted.col(m);
+    for (size_t a = 0; a < cols.size(); ++a) r -= jac[m].col(a) * dzv[cols[a]];
+    const double k = std::max(floor_gain, 1.0 / (offset_count[m] + 1.0));
+    offset[m] += k * (data.segment_rotation[model->markers()[m].segment].transpose() * r);
+    if (offset_count[m] < 1000000) ++offset_count[m];
+  }
 }
 
 void Tracker::Impl::Wrap(Eigen::VectorXd* z) const {
@@ -346,7 +414,23 @@ bool Tracker::Impl::PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3
     const Eigen::Vector3d angles = (root.orientation.transpose() * target)
                                        .eulerAngles(root_rot_axis[0], root_rot_axis[1],
                                                     root_rot_axis[2]);
-    for (int i = 0; i < 3; ++i) (*z)[root_rot_coord[i]] = root_rot_sign[i] * angles[i];
+    // Two angle triples give the same rotation, (a0, a1, a2) and (a0 + pi, pi - a1, a2 + pi)
+    // ((a0 + pi, -a1, a2 + pi) for a proper Euler sequence); Eigen returns a0 in [0, pi]. Take
+    // the one nearer the start, or a subject facing the other half of the room would be tracked
+    // upside down in its root angles (same markers, tilt and list near pi).
+    const bool proper = root_rot_axis[0] == root_rot_axis[2];
+    Eigen::Vector3d other(angles[0] + M_PI, proper ? -angles[1] : M_PI - angles[1],
+                          angles[2] + M_PI);
+    double da = 0, db = 0;
+    for (int i = 0; i < 3; ++i) {
+      const double s0 = start[root_rot_coord[i]] * root_rot_sign[i];
+      da += std::pow(std::remainder(angles[i] - s0, 2 * M_PI), 2);
+      db += std::pow(std::remainder(other[i] - s0, 2 * M_PI), 2);
+    }
+    const Eigen::Vector3d& chosen = db < da ? other : angles;
+    for (int i = 0; i < 3; ++i)
+      (*z)[root_rot_coord[i]] =
+          root_rot_sign[i] * std::remainder(chosen[i], 2 * M_PI);
   }
   ForwardKinematics(*model, geometry, *z, &data);
   Eigen::Vector3d mc = Eigen::Vector3d::Zero();
@@ -356,41 +440,60 @@ bool Tracker::Impl::PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3
   return true;
 }
 
-// ICP-like search from z: assign markers to points by distance (optimal assignment with a
-// shrinking radius), one damped Gauss-Newton step on the pose (first the root alone), reassign.
+// ICP-like search from z: assign markers to points by distance (optimal assignment), one damped
+// Gauss-Newton step on the pose, reassign. The body is placed from the root outwards: stage d
+// frees the joints at depth <= d of the tree and assigns only the markers they carry, so a
+// distal marker is paired only once its parent segments are in place (the two wrist markers,
+// 7 cm apart, would otherwise cross while the arm is still beside the body, and the forearm turn
+// half a revolution into a mirrored local minimum). A final stage refines everything with a
+// radius shrinking to 4 cm.
 Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
   const Eigen::VectorXd start = z;
-  const int iters = options.init_iterations;
-  const int root_only = iters / 3;
   // Weak prior towards the start (metres^2 per rad^2 / per m^2): pins what the markers leave free.
-  constexpr double kPriorRot = 0.01 * 0.01 / (0.5 * 0.5), kPriorTrans = 0.01 * 0.01 / (1.0 * 1.0);
+  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
+  const int stages = max_depth + 1, per_stage = 3;
+  const int iters = stages * per_stage + options.init_iterations;
   Eigen::MatrixXd N(nz, nz), Nd(nz, nz);
   Eigen::VectorXd g(nz), step(nz), trial(nz);
   Eigen::LLT<Eigen::MatrixXd> llt(nz);
   std::vector<int> assign(nm, -1), previous(nm, -2);
-  auto Cost = [&](const Eigen::VectorXd& zz, const std::vector<char>* free) {
+  std::vector<char> free(nz, 1), active(nm, 1);
+  Eigen::VectorXd lower(nz), upper(nz);
+  for (int i = 0; i < nz; ++i) {
+    // The start itself may be outside (a user's static pose): never clamp it back.
+    lower[i] = std::min(model->coordinates()[i].min_value, z[i]);
+    upper[i] = std::max(model->coordinates()[i].max_value, z[i]);
+  }
+  auto Cost = [&](const Eigen::VectorXd& zz) {
     ForwardKinematics(*model, geometry, zz, &data);
     double s = 0;
     for (int m = 0; m < nm; ++m)
       if (assign[m] >= 0)
         s += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
     for (int i = 0; i < nz; ++i)
-      if (!free || (*free)[i])
-        s += (rotational[i] ? kPriorRot : kPriorTrans) * (zz[i] - start[i]) * (zz[i] - start[i]);
+      if (free[i])
+        s += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) * (zz[i] - start[i]);
     return s;
   };
   double radius = 0.25;
   double lambda = 1e-3;
   for (int it = 0; it < iters; ++it) {
-    const bool root_stage = it < root_only;
-    radius = root_stage ? 0.25 : std::max(0.04, 0.12 - 0.02 * (it - root_only));
+    const int stage = it / per_stage;  // >= stages: the final stage
+    const bool final_stage = stage >= stages;
+    const int depth = final_stage ? max_depth : stage;
+    for (int i = 0; i < nz; ++i) free[i] = coordinate_depth[i] <= depth;
+    for (int m = 0; m < nm; ++m) active[m] = marker_depth[m] <= depth;
+    radius = stage == 0 ? 0.25
+             : !final_stage ? 0.15
+                            : std::max(options.init_radius_m,
+                                       0.12 - 0.02 * (it - stages * per_stage));
     Linearise(z);
     auto C = cost.topLeftCorner(nm, np + nm);
     const double r2 = radius * radius;
     for (int m = 0; m < nm; ++m) {
       for (int k = 0; k < np; ++k) {
         const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
-        C(m, k) = d2 < r2 ? d2 : kForbidden;
+        C(m, k) = active[m] && d2 < r2 ? d2 : kForbidden;
       }
       C.row(m).tail(nm).setConstant(kForbidden);
       C(m, np + m) = r2;
@@ -401,7 +504,6 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
     previous = assign;
 
     // Normal equations of the assigned markers + prior.
-    const std::vector<char>* free = root_stage ? &root_free : nullptr;
     N.setZero();
     g.setZero();
     for (int m = 0; m < nm; ++m) {
@@ -415,17 +517,17 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
       }
     }
     for (int i = 0; i < nz; ++i) {
-      const double w = rotational[i] ? kPriorRot : kPriorTrans;
+      const double w = rotational[i] ? prior_rot : prior_trans;
       N(i, i) += w;
       g[i] += w * (z[i] - start[i]);
-      if (free && !(*free)[i]) {
+      if (!free[i]) {
         N.row(i).setZero();
         N.col(i).setZero();
         N(i, i) = 1;
         g[i] = 0;
       }
     }
-    const double c0 = Cost(z, free);
+    const double c0 = Cost(z);
     bool accepted = false;
     for (int tries = 0; tries < 6 && !accepted; ++tries) {
       Nd = N;
@@ -437,7 +539,11 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
       }
       step = -llt.solve(g);
       trial = z + step;
-      if (Cost(trial, free) < c0) {
+      // Within the model's joint ranges: a foot turned 120 degrees can match heel and toe
+      // markers to each other's points, a pose no subject takes.
+      for (int i = 0; i < nz; ++i)
+        if (!wraps[i]) trial[i] = std::clamp(trial[i], lower[i], upper[i]);
+      if (Cost(trial) < c0) {
         z = trial;
         lambda = std::max(1e-7, lambda * 0.3);
         accepted = true;
@@ -445,7 +551,8 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
         lambda *= 10;
       }
     }
-    if (!root_stage && same && (!accepted || step.norm() < 1e-6) && radius <= 0.04) break;
+    if (final_stage && same && (!accepted || step.norm() < 1e-6) && radius <= options.init_radius_m)
+      break;
   }
   // Final assignment at the final pose and its score.
   Hypothesis h;
@@ -476,7 +583,16 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
 }
 
 bool Tracker::Impl::TryInitialise(int np) {
-  if (np < options.init_min_fraction * nm) return false;
+  ++init.attempts;
+  init.accepted = false;
+  init.hypotheses = 0;
+  init.best_score = init.runner_up_score = init.rms_m = 0;
+  init.labelled = 0;
+  if (np < options.init_min_fraction * nm) {
+    init.reason = "too few points";
+    return false;
+  }
+  ClearOffsets(0);
   const Eigen::Vector3d centroid = points.leftCols(np).rowwise().mean();
   std::vector<Eigen::VectorXd> starts;
   starts.push_back(options.static_pose.size() == nz ? options.static_pose
@@ -494,18 +610,75 @@ bool Tracker::Impl::TryInitialise(int np) {
       hyps.push_back(Icp(z, np));
     }
   }
-  if (hyps.empty()) return false;
-  int best = 0;
-  for (size_t i = 1; i < hyps.size(); ++i)
-    if (hyps[i].score < hyps[best].score) best = static_cast<int>(i);
-  const Hypothesis& h = hyps[best];
-  if (h.labelled < options.init_min_fraction * nm || !(h.rms <= options.init_max_rms_m))
+  if (hyps.empty()) {
+    init.reason = "the root cannot be placed";
     return false;
+  }
+  auto Best = [&] {
+    int b = 0;
+    for (size_t i = 1; i < hyps.size(); ++i)
+      if (hyps[i].score < hyps[b].score) b = static_cast<int>(i);
+    return b;
+  };
+  // Variants: the best placement with the joints of the static pose perturbed. A few limbs can
+  // settle in a wrong but self-consistent configuration (a ghost standing in for a wrist
+  // marker); starting them elsewhere lets the right configuration win on its score.
+  {
+    const Eigen::VectorXd base = hyps[Best()].z;
+    const Eigen::VectorXd& pose = starts[0];
+    // First the static pose blended towards the middle of each joint's range (bent elbows and
+    // knees: the wrist markers of a straight arm sit, 7 cm apart, along the very direction in
+    // which a 15 degree elbow flexion moves them, so a straight start pairs each with the
+    // other's point), then random perturbations.
+    std::mt19937 rng(12345);
+    std::uniform_real_distribution<double> u(-1.0, 1.0);
+    const double blends[] = {0.1, 0.2, 0.3};
+    const int blend_count = options.init_variants > 0 ? 3 : 0;
+    for (int v = 0; v < blend_count + options.init_variants; ++v) {
+      Eigen::VectorXd z = pose;
+      for (int i = 0; i < nz; ++i) {
+        const Coordinate& co = model->coordinates()[i];
+        if (root_free[i]) {
+          z[i] = base[i];
+        } else if (!rotational[i]) {
+          continue;
+        } else if (v < blend_count) {
+          if (co.max_value - co.min_value < 2 * M_PI)
+            z[i] += blends[v] * (0.5 * (co.min_value + co.max_value) - z[i]);
+        } else {
+          z[i] += options.init_variant_rad * u(rng);
+        }
+      }
+      hyps.push_back(Icp(z, np));
+    }
+  }
+  init.hypotheses = static_cast<int>(hyps.size());
+  const int best = Best();
+  const Hypothesis& h = hyps[best];
+  init.best_score = h.score;
+  init.rms_m = h.rms;
+  init.labelled = h.labelled;
   // Unambiguous: no hypothesis that labels >= 3 markers differently comes close.
+  double runner_up = std::numeric_limits<double>::infinity();
   for (const Hypothesis& o : hyps) {
     int differ = 0;
     for (int m = 0; m < nm; ++m) differ += o.assignment[m] != h.assignment[m];
-    if (differ >= 3 && o.score < options.init_ambiguity_ratio * h.score) return false;
+    if (differ >= 3) runner_up = std::min(runner_up, o.score);
+  }
+  init.runner_up_score = std::isfinite(runner_up) ? runner_up : 0.0;
+  if (h.labelled < options.init_min_fraction * nm) {
+    init.reason = "too few markers labelled";
+    return false;
+  }
+  if (!(h.rms <= options.init_max_rms_m)) {
+    init.reason = "residual too large";
+    return false;
+  }
+  const double variance = std::max(h.rms * h.rms / 3.0, 1e-6);
+  if (runner_up < options.init_ambiguity_ratio * h.score ||
+      runner_up - h.score < options.init_ambiguity_margin * variance) {
+    init.reason = "ambiguous";
+    return false;
   }
 
   // Start the filter at the found pose, at rest, and update it with the found labels.
@@ -528,12 +701,17 @@ bool Tracker::Impl::TryInitialise(int np) {
   for (int m = 0; m < nm; ++m) row_to_col[m] = h.assignment[m];
   ApplyLabels(np);
   double nis = 0;
-  if (!FilterUpdate(&nis)) return false;
+  if (!FilterUpdate(&nis)) {
+    init.reason = "the first update failed";
+    return false;
+  }
   zbuf = x.head(nz);
   Wrap(&zbuf);
   x.head(nz) = zbuf;
   out.nis = nis;
   out.nis_dof = 3 * out.labelled;
+  init.accepted = true;
+  init.reason.clear();
   return true;
 }
 
@@ -591,6 +769,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
       s.z_good = s.x.head(s.nz);
     } else if (++s.bad_frames >= s.options.divergence_frames || !ok) {
       out.state = TrackState::kLost;
+      s.init.attempts = 0;
     }
   }
   if (out.state != TrackState::kTracking) {
@@ -641,6 +820,9 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
                            old.markers()[i].name + "'");
   s.SetModel(std::move(model));
   s.Allocate();
+  // The new model's markers are where the fit put them: forget the old model's corrections, but
+  // trust the new positions more than a nominal model's.
+  s.ClearOffsets(s.options.swap_offset_count);
   for (int i = 0; i < s.nz; ++i)
     s.P(i, i) += s.rotational[i] ? s.options.swap_inflation_rotational
                                  : s.options.swap_inflation_translational;
@@ -652,6 +834,7 @@ void Tracker::Reset() { impl_->ResetState(); }
 const Model& Tracker::model() const { return *impl_->model; }
 const TrackerOptions& Tracker::options() const { return impl_->options; }
 const TrackOutput& Tracker::output() const { return impl_->out; }
+const InitialisationSummary& Tracker::initialisation() const { return impl_->init; }
 const Eigen::MatrixXd& Tracker::covariance() const { return impl_->P; }
 Eigen::VectorXd Tracker::velocities() const { return impl_->x.segment(impl_->nz, impl_->nz); }
 Eigen::VectorXd Tracker::accelerations() const { return impl_->x.tail(impl_->nz); }

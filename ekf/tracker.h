@@ -84,6 +84,19 @@ struct TrackerOptions {
   // triangulation noise AND the model's own error (skin motion, a nominal model before the fit),
   // which is why it is larger than the cameras' noise.
   double sigma_m = 0.004;
+  // Online marker offsets. A model before the global fit (the nominal model scaled to the
+  // subject's height) puts markers 1-4 cm from where the subject wears them; a gate wide enough
+  // for that would also take ghosts. So each marker carries an offset in its segment's frame,
+  // learnt from its residuals after each update (a running mean, then an exponential average
+  // with this time constant), and its measurement variance is inflated by what is not yet known
+  // of it: sigma^2 = sigma_m^2 / w_m + marker_offset_sigma^2 / (1 + frames seen) +
+  // marker_offset_floor^2 (the floor: model errors that change with the pose, skin motion).
+  // The offsets are a filter-side stand-in for the marker parameters that the global fit
+  // identifies properly; they are cleared at every initialisation and by SwapModel.
+  double marker_offset_sigma = 0.025;
+  double marker_offset_floor = 0.002;
+  double marker_offset_time_constant_s = 0.5;
+  int swap_offset_count = 8;  // SwapModel: as if the new positions had been seen this many frames
   // Gate: chi-square (3 degrees of freedom) of a marker-to-point Mahalanobis distance beyond which
   // a point cannot be that marker. 16.27 is the 99.9 % quantile.
   double gate_chi2 = 16.27;
@@ -100,10 +113,23 @@ struct TrackerOptions {
   // Initialisation: number of headings tried about `up`; acceptance thresholds.
   Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
   int init_headings = 12;
+  // Then restarts from the best placement: the static pose blended 10, 20 and 30 % towards the
+  // middle of each joint's range, and init_variants more with the joint angles perturbed by up
+  // to init_variant_rad (a fixed pseudo-random sequence: deterministic). 0: no restarts.
+  int init_variants = 3;
+  double init_variant_rad = 0.3;
   int init_iterations = 30;          // ICP iterations per hypothesis
-  double init_max_rms_m = 0.015;     // RMS distance of the labelled markers
+  double init_max_rms_m = 0.03;      // RMS distance of the labelled markers (nominal model: ~2 cm)
   double init_min_fraction = 0.8;    // of the model's markers labelled
-  double init_ambiguity_ratio = 2.0; // a differently labelled hypothesis must cost this much more
+  // Unambiguous: every hypothesis that labels 3 or more markers differently must cost at least
+  // init_ambiguity_ratio x the best one's score, and more than the best by init_ambiguity_margin
+  // times the best one's residual variance per coordinate (a log-likelihood-ratio test: with a
+  // nominal model the residuals are model error, ~2 cm, and a plain ratio of scores would call a
+  // clear winner ambiguous).
+  double init_ambiguity_ratio = 1.0;
+  double init_ambiguity_margin = 20.0;
+  // Final matching radius of the search (markers farther from every point stay unlabelled).
+  double init_radius_m = 0.05;
   // Starting pose of the search (empty: the model's default pose).
   Eigen::VectorXd static_pose;
   // Standard deviations of the state right after an initialisation.
@@ -136,6 +162,18 @@ struct TrackOutput {             // valid until the next Update
   int nis_dof = 0;               // its degrees of freedom (3 x labelled markers)
 };
 
+// What the last attempt to find the subject without labels did (Tracker::initialisation()).
+struct InitialisationSummary {
+  int attempts = 0;             // frames searched since the last track started or was lost
+  int hypotheses = 0;           // starting placements refined in the last attempt
+  double best_score = 0;        // truncated sum of squared distances (m^2) of the best one
+  double runner_up_score = 0;   // best differently labelled hypothesis (0: none)
+  double rms_m = 0;             // RMS distance of the best one's labelled markers
+  int labelled = 0;             // markers the best one labelled
+  bool accepted = false;
+  std::string reason;           // why it was refused (empty when accepted)
+};
+
 class Tracker {
  public:
   Tracker(std::shared_ptr<const Model> model, TrackerOptions options = {});
@@ -159,6 +197,7 @@ class Tracker {
   const Model& model() const;
   const TrackerOptions& options() const;
   const TrackOutput& output() const;
+  const InitialisationSummary& initialisation() const;
   // The full state covariance (3 n_z x 3 n_z: coordinates, velocities, accelerations).
   const Eigen::MatrixXd& covariance() const;
   // Velocities and accelerations of the coordinates.

@@ -1,0 +1,666 @@
+// The real-time tracker (ekf/): its linear algebra against the dense textbook formulas, the
+// optimal assignment against brute force, and tracking of the simulated protocol (sim/) against
+// the truth: each frame's true marker positions are shuffled into unlabelled points (plus ghosts
+// and NaNs) and the permutation is the label truth.
+#include <gtest/gtest.h>
+
+#include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <atomic>
+#include <cstdlib>
+#include <new>
+#include <cmath>
+#include <cstdio>
+#include <functional>
+#include <memory>
+#include <numeric>
+#include <random>
+
+#include "ekf/assignment.h"
+#include "ekf/filter.h"
+#include "ekf/tracker.h"
+#include "model/kinematics.h"
+#include "sim/simulate.h"
+
+using namespace mocap;
+
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
+
+Eigen::MatrixXd RandomSpd(int n, std::mt19937& rng, double scale = 1.0) {
+  std::normal_distribution<double> g(0, 1);
+  Eigen::MatrixXd a(n, n);
+  for (int i = 0; i < a.size(); ++i) a.data()[i] = g(rng);
+  return scale * (a * a.transpose() + 0.1 * Eigen::MatrixXd::Identity(n, n));
+}
+
+double MinEigenvalue(const Eigen::MatrixXd& p) {
+  return Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(p, Eigen::EigenvaluesOnly).eigenvalues()[0];
+}
+
+// The simulated protocol at 200 Hz with 0.5 mm noise, built once.
+const sim::SimulatedSession& Session() {
+  static const sim::SimulatedSession* session = [] {
+    auto* s = new sim::SimulatedSession;
+    sim::SimulationOptions o;
+    o.rate_hz = 200;
+    o.noise_mm = 0.5;
+    o.seed = 11;
+    const Status st = sim::SimulateSession(o, s);
+    if (!st.ok()) std::fprintf(stderr, "SimulateSession: %s\n", st.message().c_str());
+    return s;
+  }();
+  return *session;
+}
+
+int TrialIndex(const std::string& name) {
+  const auto& trials = Session().trials;
+  for (size_t i = 0; i < trials.size(); ++i)
+    if (trials[i].markers.name == name) return static_cast<int>(i);
+  ADD_FAILURE() << "no trial " << name;
+  return 0;
+}
+
+// One frame of unlabelled points and its label truth (per point: model marker or -1).
+struct Frame {
+  Eigen::Matrix3Xd points;
+  std::vector<int> truth;
+};
+
+// A scene built from a trial: the markers present at frame f, optionally transformed, shuffled,
+// with `ghosts` points inside the body's bounding box (grown by 10 cm) but at least
+// `ghost_clearance` from every true marker, and `nans` NaN columns.
+struct SceneOptions {
+  int ghosts = 0;
+  double ghost_clearance = 0.04;
+  int nans = 0;
+  std::function<bool(int frame, int marker)> drop;  // true: marker not seen
+  std::function<Eigen::Vector3d(int frame, const Eigen::Vector3d&)> transform;
+};
+
+Frame MakeFrame(const formats::MarkerTrial& trial, int f, const SceneOptions& o, std::mt19937& rng) {
+  const int nm = trial.num_markers();
+  std::vector<Eigen::Vector3d> pts;
+  std::vector<int> truth;
+  Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e9), hi = -lo;
+  std::vector<Eigen::Vector3d> all;
+  for (int m = 0; m < nm; ++m) {
+    if (!trial.Has(f, m)) continue;
+    Eigen::Vector3d p = trial.At(f, m);
+    if (o.transform) p = o.transform(f, p);
+    all.push_back(p);
+    lo = lo.cwiseMin(p);
+    hi = hi.cwiseMax(p);
+    if (o.drop && o.drop(f, m)) continue;
+    pts.push_back(p);
+    truth.push_back(m);
+  }
+  lo.array() -= 0.1;
+  hi.array() += 0.1;
+  std::uniform_real_distribution<double> u(0, 1);
+  for (int g = 0; g < o.ghosts; ++g) {
+    for (int tries = 0; tries < 1000; ++tries) {
+      const Eigen::Vector3d p = lo + (hi - lo).cwiseProduct(Eigen::Vector3d(u(rng), u(rng), u(rng)));
+      bool clear = true;
+      for (const auto& q : all) clear = clear && (p - q).norm() >= o.ghost_clearance;
+      if (!clear) continue;
+      pts.push_back(p);
+      truth.push_back(-1);
+      break;
+    }
+  }
+  for (int k = 0; k < o.nans; ++k) {
+    pts.push_back(Eigen::Vector3d::Constant(std::numeric_limits<double>::quiet_NaN()));
+    truth.push_back(-1);
+  }
+  std::vector<int> order(pts.size());
+  std::iota(order.begin(), order.end(), 0);
+  std::shuffle(order.begin(), order.end(), rng);
+  Frame fr;
+  fr.points.resize(3, pts.size());
+  fr.truth.resize(pts.size());
+  for (size_t k = 0; k < order.size(); ++k) {
+    fr.points.col(k) = pts[order[k]];
+    fr.truth[k] = truth[order[k]];
+  }
+  return fr;
+}
+
+// Label and angle statistics of a tracked run.
+struct RunStats {
+  long marker_points = 0;   // true marker points seen while tracking
+  long correct = 0;         // of those, labelled with their marker
+  long wrong = 0;           // points given a wrong marker (including ghosts given one)
+  long ghosts = 0, ghosts_labelled = 0;
+  long tracked_frames = 0, frames = 0;
+  int reinitialisations = 0;
+  int first_tracked = -1;
+  double angle_sq = 0;
+  long angle_n = 0;
+  double max_asymmetry = 0;
+  double min_eigenvalue = 1e300;
+  double accuracy() const { return marker_points ? double(correct) / marker_points : 0.0; }
+  double angle_rms_deg() const { return angle_n ? std::sqrt(angle_sq / angle_n) / kDeg : 1e9; }
+};
+
+void Score(const Frame& fr, const ekf::TrackOutput& out, RunStats* s) {
+  for (size_t k = 0; k < fr.truth.size(); ++k) {
+    const int t = fr.truth[k], l = out.marker_of_point[k];
+    if (t >= 0) {
+      ++s->marker_points;
+      s->correct += l == t;
+    } else if (std::isfinite(fr.points(0, k))) {
+      ++s->ghosts;
+      s->ghosts_labelled += l >= 0;
+    }
+    if (l >= 0 && l != t) ++s->wrong;
+  }
+}
+
+// Rotational coordinates' error against the truth, wrapped.
+void ScoreAngles(const Model& model, const Eigen::VectorXd& z, const Eigen::VectorXd& truth,
+                 RunStats* s) {
+  for (int c = 0; c < model.num_coordinates(); ++c) {
+    if (!model.coordinates()[c].rotational) continue;
+    const double e = std::remainder(z[c] - truth[c], 2 * M_PI);
+    s->angle_sq += e * e;
+    ++s->angle_n;
+  }
+}
+
+// Tracks frames [begin, end) of a trial with a fresh tracker.
+RunStats TrackRun(ekf::Tracker* tracker, const sim::SimulatedTrial& trial, const SceneOptions& scene,
+             int begin, int end, unsigned seed, int settle_frames = 20,
+             const std::function<void(int, ekf::Tracker*)>& hook = {}) {
+  std::mt19937 rng(seed);
+  RunStats s;
+  const Model& model = tracker->model();
+  for (int f = begin; f < end; ++f) {
+    if (hook) hook(f, tracker);
+    const Frame fr = MakeFrame(trial.markers, f, scene, rng);
+    const ekf::TrackOutput& out = tracker->Update(trial.markers.times[f], fr.points);
+    ++s.frames;
+    s.reinitialisations += out.reinitialised;
+    if (out.state != ekf::TrackState::kTracking) continue;
+    if (s.first_tracked < 0) s.first_tracked = f;
+    ++s.tracked_frames;
+    if (getenv("EKF_DEBUG") && f == s.first_tracked) {
+      for (size_t k = 0; k < fr.truth.size(); ++k)
+        if (out.marker_of_point[k] != fr.truth[k])
+          std::printf("  point %zu truth %s labelled %s\n", k,
+                      fr.truth[k] >= 0 ? model.markers()[fr.truth[k]].name.c_str() : "ghost",
+                      out.marker_of_point[k] >= 0 ? model.markers()[out.marker_of_point[k]].name.c_str() : "-");
+      const Eigen::VectorXd zt = sim::TrueCoordinates(model, trial.coordinates, f);
+      const auto& in = tracker->initialisation();
+      std::printf("  init best %.3g runner %.3g rms %.2f mm\n", in.best_score, in.runner_up_score, 1e3 * in.rms_m);
+      for (int c = 0; c < model.num_coordinates(); ++c)
+        if (std::abs(std::remainder(out.z[c] - zt[c], 2 * M_PI)) > 0.05)
+          std::printf("  %s %.1f true %.1f\n", model.coordinates()[c].name.c_str(), out.z[c] / kDeg, zt[c] / kDeg);
+    }
+    Score(fr, out, &s);
+    if (f >= s.first_tracked + settle_frames && !scene.transform)
+      ScoreAngles(model, out.z, sim::TrueCoordinates(model, trial.coordinates, f), &s);
+  }
+  const Eigen::MatrixXd& P = tracker->covariance();
+  s.max_asymmetry = (P - P.transpose()).cwiseAbs().maxCoeff();
+  s.min_eigenvalue = MinEigenvalue(P);
+  return s;
+}
+
+std::shared_ptr<const Model> Share(const Model& m) { return std::make_shared<const Model>(m); }
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Linear algebra
+
+TEST(EkfAssignment, MatchesBruteForce) {
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(0, 10);
+  std::bernoulli_distribution forbid(0.3);
+  ekf::LinearAssignment lap;
+  lap.Reserve(5, 8);
+  for (int trial = 0; trial < 300; ++trial) {
+    const int rows = 1 + trial % 5, cols = rows + trial % 4;
+    Eigen::MatrixXd c(rows, cols);
+    for (int i = 0; i < c.size(); ++i) c.data()[i] = forbid(rng) ? 1e9 : u(rng);
+    // Brute force over injective maps rows -> cols.
+    std::vector<int> perm(cols);
+    std::iota(perm.begin(), perm.end(), 0);
+    double best = 1e300;
+    do {
+      double s = 0;
+      for (int r = 0; r < rows; ++r) s += c(r, perm[r]);
+      best = std::min(best, s);
+    } while (std::next_permutation(perm.begin(), perm.end()));
+    std::vector<int> got(rows);
+    const double total = lap.Solve(c, got.data());
+    EXPECT_NEAR(total, best, 1e-9 * std::max(1.0, best)) << "case " << trial;
+    std::vector<int> sorted = got;
+    std::sort(sorted.begin(), sorted.end());
+    EXPECT_EQ(std::unique(sorted.begin(), sorted.end()), sorted.end()) << "a column taken twice";
+    double s = 0;
+    for (int r = 0; r < rows; ++r) s += c(r, got[r]);
+    EXPECT_NEAR(s, total, 1e-9 * std::max(1.0, total));
+  }
+}
+
+TEST(EkfFilter, PredictionMatchesDenseConstantAccelerationModel) {
+  std::mt19937 rng(4);
+  const int nz = 4, n = 3 * nz;
+  const double dt = 0.005;
+  Eigen::VectorXd q(nz);
+  q << 1e4, 2e3, 5e2, 1.0;
+  Eigen::MatrixXd P = RandomSpd(n, rng);
+  Eigen::VectorXd x = Eigen::VectorXd::Random(n);
+  Eigen::MatrixXd F = Eigen::MatrixXd::Identity(n, n), Q = Eigen::MatrixXd::Zero(n, n);
+  F.block(0, nz, nz, nz).diagonal().setConstant(dt);
+  F.block(nz, 2 * nz, nz, nz).diagonal().setConstant(dt);
+  F.block(0, 2 * nz, nz, nz).diagonal().setConstant(dt * dt / 2);
+  Eigen::Matrix3d q1;
+  q1 << std::pow(dt, 5) / 20, std::pow(dt, 4) / 8, std::pow(dt, 3) / 6,  //
+      std::pow(dt, 4) / 8, std::pow(dt, 3) / 3, dt * dt / 2,               //
+      std::pow(dt, 3) / 6, dt * dt / 2, dt;
+  for (int i = 0; i < nz; ++i)
+    for (int a = 0; a < 3; ++a)
+      for (int b = 0; b < 3; ++b) Q(a * nz + i, b * nz + i) = q[i] * q1(a, b);
+  const Eigen::VectorXd x_ref = F * x;
+  const Eigen::MatrixXd P_ref = F * P * F.transpose() + Q;
+  ekf::PredictConstantAcceleration(dt, q, &x, &P);
+  EXPECT_LT((x - x_ref).cwiseAbs().maxCoeff(), 1e-14);
+  EXPECT_LT((P - P_ref).cwiseAbs().maxCoeff(), 1e-12 * P_ref.cwiseAbs().maxCoeff());
+}
+
+// The information-form update equals the textbook Kalman update K = P H^T S^-1 with
+// H = [J 0 0], and stays positive-definite where the textbook form does not.
+TEST(EkfFilter, UpdateMatchesTextbookKalmanUpdate) {
+  std::mt19937 rng(5);
+  std::normal_distribution<double> g(0, 1);
+  const int nz = 5, n = 3 * nz, nmeas = 9;
+  for (int trial = 0; trial < 20; ++trial) {
+    Eigen::MatrixXd P = RandomSpd(n, rng, 0.1);
+    Eigen::VectorXd x = Eigen::VectorXd::Random(n);
+    Eigen::MatrixXd J(nmeas, nz);
+    for (int i = 0; i < J.size(); ++i) J.data()[i] = g(rng);
+    if (trial % 2) J.col(trial % nz).setZero();  // a coordinate no measurement sees
+    Eigen::VectorXd rinv(nmeas);
+    for (int i = 0; i < nmeas; ++i) rinv[i] = 1.0 / (0.01 + 0.1 * std::abs(g(rng)));
+    Eigen::VectorXd nu(nmeas);
+    for (int i = 0; i < nmeas; ++i) nu[i] = g(rng);
+
+    Eigen::MatrixXd H = Eigen::MatrixXd::Zero(nmeas, n);
+    H.leftCols(nz) = J;
+    const Eigen::MatrixXd S = H * P * H.transpose() + Eigen::MatrixXd(rinv.cwiseInverse().asDiagonal());
+    const Eigen::MatrixXd K = P * H.transpose() * S.inverse();
+    const Eigen::VectorXd x_ref = x + K * nu;
+    const Eigen::MatrixXd P_ref = P - K * S * K.transpose();
+    const double nis_ref = nu.dot(S.ldlt().solve(nu));
+
+    const Eigen::MatrixXd A = J.transpose() * rinv.asDiagonal() * J;
+    const Eigen::VectorXd b = J.transpose() * rinv.asDiagonal() * nu;
+    const double nrn = nu.dot(rinv.asDiagonal() * nu);
+    ekf::CoordinateUpdate update;
+    update.Resize(nz);
+    double nis = 0;
+    ASSERT_TRUE(update.Apply(A, b, nrn, &x, &P, &nis));
+    EXPECT_LT((x - x_ref).cwiseAbs().maxCoeff(), 1e-10) << trial;
+    EXPECT_LT((P - P_ref).cwiseAbs().maxCoeff(), 1e-10) << trial;
+    EXPECT_NEAR(nis, nis_ref, 1e-9 * nis_ref) << trial;
+    EXPECT_EQ((P - P.transpose()).cwiseAbs().maxCoeff(), 0.0);
+  }
+  // Markers a million times more precise than the prediction, repeatedly: P stays symmetric
+  // positive-definite.
+  Eigen::MatrixXd P = RandomSpd(n, rng, 1.0);
+  Eigen::VectorXd x = Eigen::VectorXd::Zero(n), q = Eigen::VectorXd::Constant(nz, 1e-6);
+  ekf::CoordinateUpdate update;
+  update.Resize(nz);
+  for (int k = 0; k < 1000; ++k) {
+    Eigen::MatrixXd J(nmeas, nz);
+    for (int i = 0; i < J.size(); ++i) J.data()[i] = g(rng);
+    const Eigen::MatrixXd A = 1e12 * J.transpose() * J;
+    double nis;
+    ASSERT_TRUE(update.Apply(A, Eigen::VectorXd::Zero(nz), 0.0, &x, &P, &nis)) << k;
+    ekf::PredictConstantAcceleration(0.005, q, &x, &P);
+  }
+  EXPECT_EQ((P - P.transpose()).cwiseAbs().maxCoeff(), 0.0);
+  EXPECT_GT(MinEigenvalue(P), 0.0);
+}
+
+TEST(EkfOptions, InvalidOptionsAreNamed) {
+  ekf::TrackerOptions o;
+  std::string error;
+  EXPECT_TRUE(o.IsValid(&error));
+  o.sigma_m = 0;
+  EXPECT_FALSE(o.IsValid(&error));
+  EXPECT_NE(error.find("sigma_m"), std::string::npos);
+  o = ekf::TrackerOptions();
+  o.gate_chi2 = -1;
+  EXPECT_FALSE(o.IsValid(&error));
+  EXPECT_NE(error.find("gate_chi2"), std::string::npos);
+  EXPECT_STREQ(ekf::ToString(ekf::TrackState::kLost), "lost");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Tracking the simulated protocol
+
+TEST(EkfTracker, TracksTheProtocolWithTheTrueModel) {
+  const auto& session = Session();
+  ASSERT_FALSE(session.trials.empty());
+  auto truth = Share(session.truth);
+  RunStats total;
+  SceneOptions scene;
+  scene.ghosts = 5;
+  scene.nans = 1;
+  for (size_t t = 0; t < session.trials.size(); ++t) {
+    const auto& trial = session.trials[t];
+    ekf::Tracker tracker(truth);
+    const RunStats s = TrackRun(&tracker, trial, scene, 0, trial.markers.num_frames(), 100 + t);
+    std::printf("%-28s frames %5ld tracked from %3d  labels %.6f wrong %ld ghosts labelled %ld  "
+                "angle RMS %.3f deg  reinit %d\n",
+                trial.markers.name.c_str(), s.frames, s.first_tracked, s.accuracy(), s.wrong,
+                s.ghosts_labelled, s.angle_rms_deg(), s.reinitialisations);
+    EXPECT_EQ(s.first_tracked, 0) << trial.markers.name << ": not initialised on the first frame";
+    EXPECT_EQ(s.reinitialisations, 1) << trial.markers.name;
+    EXPECT_EQ(s.max_asymmetry, 0.0);
+    EXPECT_GT(s.min_eigenvalue, 0.0);
+    total.marker_points += s.marker_points;
+    total.correct += s.correct;
+    total.wrong += s.wrong;
+    total.ghosts += s.ghosts;
+    total.ghosts_labelled += s.ghosts_labelled;
+    total.angle_sq += s.angle_sq;
+    total.angle_n += s.angle_n;
+  }
+  std::printf("TRUE model: label accuracy %.6f (%ld/%ld), wrong %ld, ghosts labelled %ld/%ld, "
+              "angle RMS %.3f deg\n",
+              total.accuracy(), total.correct, total.marker_points, total.wrong,
+              total.ghosts_labelled, total.ghosts, total.angle_rms_deg());
+  EXPECT_GE(total.accuracy(), 0.9995);
+  EXPECT_LE(total.angle_rms_deg(), 1.0);
+  EXPECT_EQ(total.ghosts_labelled, 0);
+}
+
+TEST(EkfTracker, TracksTheProtocolWithTheNominalModel) {
+  const auto& session = Session();
+  auto nominal = Share(session.nominal);
+  RunStats total;
+  SceneOptions scene;
+  scene.ghosts = 5;
+  for (size_t t = 0; t < session.trials.size(); ++t) {
+    const auto& trial = session.trials[t];
+    ekf::Tracker tracker(nominal);
+    const RunStats s = TrackRun(&tracker, trial, scene, 0, trial.markers.num_frames(), 200 + t);
+    std::printf("%-28s tracked from %3d  labels %.6f wrong %ld ghosts labelled %ld  angle RMS "
+                "%.3f deg  reinit %d\n",
+                trial.markers.name.c_str(), s.first_tracked, s.accuracy(), s.wrong,
+                s.ghosts_labelled, s.angle_rms_deg(), s.reinitialisations);
+    EXPECT_EQ(s.first_tracked, 0) << trial.markers.name;
+    EXPECT_EQ(s.reinitialisations, 1) << trial.markers.name;
+    total.marker_points += s.marker_points;
+    total.correct += s.correct;
+    total.wrong += s.wrong;
+    total.ghosts += s.ghosts;
+    total.ghosts_labelled += s.ghosts_labelled;
+    total.angle_sq += s.angle_sq;
+    total.angle_n += s.angle_n;
+  }
+  std::printf("NOMINAL model: label accuracy %.6f (%ld/%ld), wrong %ld, ghosts labelled %ld/%ld, "
+              "angle RMS %.3f deg\n",
+              total.accuracy(), total.correct, total.marker_points, total.wrong,
+              total.ghosts_labelled, total.ghosts, total.angle_rms_deg());
+  EXPECT_GE(total.accuracy(), 0.9995);
+  EXPECT_EQ(total.ghosts_labelled, 0);
+}
+
+// The subject in the static pose, turned to random headings and placed anywhere in the volume:
+// the first frame finds the labels and the pose without any help.
+TEST(EkfTracker, InitialisesFromTheStaticPoseFacingAnyDirection) {
+  const auto& session = Session();
+  const auto& trial = session.trials[TrialIndex("static")];
+  std::mt19937 rng(21);
+  std::uniform_real_distribution<double> heading(-M_PI, M_PI), place(-2.0, 2.0);
+  for (const Model* model : {&session.nominal, &session.truth}) {
+    auto shared = Share(*model);
+    for (int k = 0; k < 8; ++k) {
+      const Eigen::Matrix3d turn =
+          Eigen::AngleAxisd(heading(rng), Eigen::Vector3d::UnitZ()).toRotationMatrix();
+      const Eigen::Vector3d shift(place(rng), place(rng), 0.0);
+      const Eigen::Vector3d pivot = trial.markers.At(0, 0);
+      SceneOptions scene;
+      scene.ghosts = 3;
+      scene.transform = [&](int, const Eigen::Vector3d& p) { return turn * (p - pivot) + pivot + shift; };
+      ekf::Tracker tracker(shared);
+      const RunStats s = TrackRun(&tracker, trial, scene, 0, 100, 300 + k);
+      EXPECT_EQ(s.first_tracked, 0) << (model == &session.nominal ? "nominal" : "truth") << " " << k;
+      EXPECT_EQ(s.correct, s.marker_points) << k;
+      EXPECT_EQ(s.wrong, 0) << k;
+    }
+  }
+}
+
+// A marker hidden for 20 frames (100 ms) is picked up again on its first frame back, and while it
+// is away a ghost at 5 cm from where it would be is not given its label.
+TEST(EkfTracker, PicksUpAMarkerAfterAGap) {
+  const auto& session = Session();
+  const auto& trial = session.trials[TrialIndex("shoulder_circles_l")];
+  const Model& model = session.nominal;
+  for (const char* name : {"LWRA", "LELB", "RKNE", "LFHD"}) {
+    const int m = model.FindMarker(name);
+    ASSERT_GE(m, 0) << name;
+    const int gap_begin = 300, gap_end = 320;
+    SceneOptions scene;
+    scene.ghosts = 2;
+    scene.drop = [&](int f, int marker) { return marker == m && f >= gap_begin && f < gap_end; };
+    ekf::Tracker tracker(Share(model));
+    std::mt19937 rng(4);
+    for (int f = 0; f < 400; ++f) {
+      const Frame fr = MakeFrame(trial.markers, f, scene, rng);
+      const ekf::TrackOutput& out = tracker.Update(trial.markers.times[f], fr.points);
+      ASSERT_EQ(out.state, ekf::TrackState::kTracking) << name << " frame " << f;
+      if (f >= gap_begin && f < gap_end) {
+        EXPECT_EQ(out.point_of_marker[m], -1) << name << " frame " << f;
+      } else if (f >= gap_end) {
+        ASSERT_GE(out.point_of_marker[m], 0) << name << " not picked up at frame " << f;
+        EXPECT_EQ(fr.truth[out.point_of_marker[m]], m) << name << " frame " << f;
+      }
+    }
+  }
+}
+
+TEST(EkfTracker, IgnoresNaNPointsAndLeavesGhostsNearTheBodyUnlabelled) {
+  const auto& session = Session();
+  const auto& trial = session.trials[TrialIndex("squats")];
+  SceneOptions scene;
+  scene.ghosts = 20;
+  scene.ghost_clearance = 0.05;
+  scene.nans = 6;
+  ekf::Tracker tracker(Share(session.nominal));
+  const RunStats s = TrackRun(&tracker, trial, scene, 0, trial.markers.num_frames(), 9);
+  EXPECT_EQ(s.first_tracked, 0);
+  EXPECT_GT(s.ghosts, 20 * 1000);
+  EXPECT_EQ(s.ghosts_labelled, 0);
+  EXPECT_GE(s.accuracy(), 0.9995);
+  // Only NaNs, or nothing at all: no labels, no NaN in z.
+  Eigen::Matrix3Xd nan(3, 4);
+  nan.setConstant(std::numeric_limits<double>::quiet_NaN());
+  const ekf::TrackOutput& out = tracker.Update(1000.0, nan);
+  EXPECT_EQ(out.labelled, 0);
+  EXPECT_TRUE(out.z.allFinite());
+  EXPECT_EQ(out.marker_of_point, std::vector<int>(4, -1));
+  EXPECT_TRUE(tracker.Update(1000.005, Eigen::Matrix3Xd(3, 0)).z.allFinite());
+}
+
+// The subject jumps 1.5 m and turns 90 degrees between two frames: the innovation tests declare
+// the track lost within the divergence window and the tracker re-initialises on its own.
+TEST(EkfTracker, DetectsDivergenceAndReinitialisesAfterATeleport) {
+  const auto& session = Session();
+  const auto& trial = session.trials[TrialIndex("knee_flexion_l")];
+  const int jump = 250;
+  const Eigen::Matrix3d turn = Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  const Eigen::Vector3d pivot = trial.markers.At(0, 0);
+  SceneOptions scene;
+  scene.ghosts = 3;
+  scene.transform = [&](int f, const Eigen::Vector3d& p) -> Eigen::Vector3d {
+    if (f < jump) return p;
+    return turn * (p - pivot) + pivot + Eigen::Vector3d(1.5, 0.5, 0);
+  };
+  ekf::TrackerOptions options;
+  ekf::Tracker tracker(Share(session.nominal), options);
+  std::mt19937 rng(5);
+  int lost_at = -1, back_at = -1;
+  long correct_after = 0, points_after = 0;
+  for (int f = 0; f < 500; ++f) {
+    const Frame fr = MakeFrame(trial.markers, f, scene, rng);
+    const ekf::TrackOutput& out = tracker.Update(trial.markers.times[f], fr.points);
+    EXPECT_TRUE(out.z.allFinite());
+    if (f < jump) ASSERT_EQ(out.state, ekf::TrackState::kTracking) << f;
+    if (f >= jump && lost_at < 0 && out.state == ekf::TrackState::kLost) lost_at = f;
+    if (f >= jump && back_at < 0 && out.reinitialised) back_at = f;
+    if (getenv("EKF_DEBUG") && f >= jump && f < jump + 40) {
+      const auto& in = tracker.initialisation();
+      std::printf("f %d state %s labelled %d nis %.1f/%d init: hyps %d best %.3g runner %.3g rms %.1f mm labelled %d %s\n", f,
+                  ekf::ToString(out.state), out.labelled, out.nis, out.nis_dof, in.hypotheses, in.best_score,
+                  in.runner_up_score, 1e3 * in.rms_m, in.labelled, in.reason.c_str());
+    }
+    if (back_at >= 0) {
+      for (size_t k = 0; k < fr.truth.size(); ++k)
+        if (fr.truth[k] >= 0) {
+          ++points_after;
+          correct_after += out.marker_of_point[k] == fr.truth[k];
+        }
+    }
+  }
+  std::printf("teleport at %d: re-initialised at %d\n", jump, back_at);
+  // Lost, or re-initialised in the very frame it was declared lost, within the window.
+  ASSERT_GE(back_at, jump);
+  EXPECT_LE(back_at, jump + options.divergence_frames);
+  EXPECT_GE(double(correct_after) / points_after, 0.9995);
+  (void)lost_at;
+}
+
+// SwapModel mid-trial, nominal -> true: the labels stay right and the joint angles improve.
+TEST(EkfTracker, SwapModelKeepsTheTrackAndImprovesTheAngles) {
+  const auto& session = Session();
+  const auto& trial = session.trials[TrialIndex("hip_star_arc_l")];
+  const int swap = trial.markers.num_frames() / 3, n = trial.markers.num_frames();
+  SceneOptions scene;
+  scene.ghosts = 3;
+  auto nominal = Share(session.nominal), truth = Share(session.truth);
+  // Reference: the nominal model throughout.
+  ekf::Tracker stay(nominal);
+  RunStats before;
+  TrackRun(&stay, trial, scene, 0, swap, 7);
+  const RunStats nominal_after = TrackRun(&stay, trial, scene, swap, n, 8, 40);
+  // Swapped.
+  ekf::Tracker swapped(nominal);
+  TrackRun(&swapped, trial, scene, 0, swap, 7);
+  ASSERT_EQ(swapped.state(), ekf::TrackState::kTracking);
+  ASSERT_TRUE(swapped.SwapModel(truth).ok());
+  EXPECT_EQ(&swapped.model(), truth.get());
+  const RunStats swapped_after = TrackRun(&swapped, trial, scene, swap, n, 8, 40);
+  std::printf("after the swap: angle RMS %.3f deg (nominal kept: %.3f deg), labels %.6f\n",
+              swapped_after.angle_rms_deg(), nominal_after.angle_rms_deg(), swapped_after.accuracy());
+  EXPECT_EQ(swapped_after.reinitialisations, 0);
+  EXPECT_EQ(swapped_after.tracked_frames, n - swap);
+  EXPECT_GE(swapped_after.accuracy(), 0.9995);
+  EXPECT_LT(swapped_after.angle_rms_deg(), 0.8 * nominal_after.angle_rms_deg());
+  EXPECT_LE(swapped_after.angle_rms_deg(), 1.0);
+  // A model with other markers is refused, the track kept.
+  const Model fewer = session.nominal.WithMarkers({0, 1, 2, 3});
+  const Status bad = swapped.SwapModel(Share(fewer));
+  EXPECT_FALSE(bad.ok());
+  EXPECT_NE(bad.message().find("markers"), std::string::npos);
+  EXPECT_EQ(&swapped.model(), truth.get());
+}
+
+// A subject turning on the spot (1.5 rad/s about the vertical) through +-pi: the heading stays in
+// (-pi, pi] and the labels stay right.
+TEST(EkfTracker, WrapsTheHeading) {
+  const auto& session = Session();
+  const auto& trial = session.trials[TrialIndex("static")];
+  const Eigen::Vector3d pivot = trial.markers.At(0, session.nominal.FindMarker("LASI"));
+  SceneOptions scene;
+  scene.transform = [&](int f, const Eigen::Vector3d& p) -> Eigen::Vector3d {
+    const double a = 1.5 * trial.markers.times[f];
+    return Eigen::AngleAxisd(a, Eigen::Vector3d::UnitZ()) * (p - pivot) + pivot;
+  };
+  ekf::Tracker tracker(Share(session.nominal));
+  std::mt19937 rng(6);
+  const int heading = session.nominal.FindCoordinate("pelvis_rotation");
+  double lo = 10, hi = -10;
+  long correct = 0, total = 0;
+  for (int f = 0; f < trial.markers.num_frames(); ++f) {
+    const Frame fr = MakeFrame(trial.markers, f, scene, rng);
+    const ekf::TrackOutput& out = tracker.Update(trial.markers.times[f], fr.points);
+    ASSERT_EQ(out.state, ekf::TrackState::kTracking) << f;
+    lo = std::min(lo, out.z[heading]);
+    hi = std::max(hi, out.z[heading]);
+    for (size_t k = 0; k < fr.truth.size(); ++k) {
+      total += fr.truth[k] >= 0;
+      correct += fr.truth[k] >= 0 && out.marker_of_point[k] == fr.truth[k];
+    }
+  }
+  EXPECT_GE(lo, -M_PI);
+  EXPECT_LE(hi, M_PI);
+  EXPECT_GT(hi - lo, 6.0);  // it did go all the way round (1.5 rad/s x 3 s)
+  EXPECT_EQ(correct, total);
+}
+
+// ---------------------------------------------------------------------------------------------
+// No heap allocation per frame: Eigen's own check (EIGEN_RUNTIME_NO_MALLOC) for its matrices,
+// and a counting global operator new for everything else (std::vector growth, strings, ...).
+
+namespace {
+std::atomic<bool> g_count_allocations{false};
+std::atomic<long> g_allocations{0};
+}  // namespace
+
+void* operator new(std::size_t n) {
+  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1);
+  if (void* p = std::malloc(n ? n : 1)) return p;
+  throw std::bad_alloc();
+}
+void* operator new[](std::size_t n) {
+  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1);
+  if (void* p = std::malloc(n ? n : 1)) return p;
+  throw std::bad_alloc();
+}
+void operator delete(void* p) noexcept { std::free(p); }
+void operator delete[](void* p) noexcept { std::free(p); }
+void operator delete(void* p, std::size_t) noexcept { std::free(p); }
+void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
+
+TEST(EkfTracker, UpdateAllocatesNothingWhileTracking) {
+  const auto& session = Session();
+  const auto& trial = session.trials[TrialIndex("shoulder_circles_l")];
+  SceneOptions scene;
+  scene.ghosts = 5;
+  scene.nans = 2;
+  // Gaps, so the frames have different point counts.
+  scene.drop = [](int f, int m) { return (f / 15 + m) % 11 == 0; };
+  std::mt19937 rng(8);
+  std::vector<Frame> frames;
+  for (int f = 0; f < 600; ++f) frames.push_back(MakeFrame(trial.markers, f, scene, rng));
+  ekf::Tracker tracker(Share(session.nominal));
+  ASSERT_EQ(tracker.Update(trial.markers.times[0], frames[0].points).state,
+            ekf::TrackState::kTracking);
+  long correct = 0, total = 0;
+  g_allocations = 0;
+  for (int f = 1; f < 600; ++f) {
+    g_count_allocations = true;
+    Eigen::internal::set_is_malloc_allowed(false);
+    const ekf::TrackOutput& out = tracker.Update(trial.markers.times[f], frames[f].points);
+    Eigen::internal::set_is_malloc_allowed(true);
+    g_count_allocations = false;
+    ASSERT_EQ(out.state, ekf::TrackState::kTracking) << f;
+    for (size_t k = 0; k < frames[f].truth.size(); ++k) {
+      total += frames[f].truth[k] >= 0;
+      correct += frames[f].truth[k] >= 0 && out.marker_of_point[k] == frames[f].truth[k];
+    }
+  }
+  EXPECT_EQ(g_allocations.load(), 0);
+  EXPECT_EQ(correct, total);
+}
