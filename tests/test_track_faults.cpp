@@ -207,11 +207,15 @@ TEST(TrackFaults, AFrameOfNaNPoints) {
 // state and never gives NaN; given the right model (SwapModel, as after a fit) it tracks.
 TEST(TrackFaults, AModelWhoseMarkersDoNotMatchTheData) {
   mocap::sim::TrackingSceneOptions o = FaultScene(SceneFault::kNone);
+  // The right model arrives while the subject moves (squatting), not in the static pose.
+  o.movements = {"squats", "trunk_rom"};
   TrackingScene scene;
   ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &scene).ok());
   const mocap::Model wrong = mocap::sim::MismatchedModel(scene.nominal, 3, 0.05);
   auto tracker = MakeTracker(wrong);
-  const int swap = scene.num_frames() / 2;
+  // Half a second with the wrong model (each frame of a failing search for the subject is slow),
+  // then the right one.
+  const int swap = 100;
   mocap::Status swapped;
   const TrackRun run = Track(scene, tracker.get(), [&](int f) {
     if (f == swap) swapped = tracker->SwapModel(std::make_shared<const mocap::Model>(scene.nominal));
