@@ -367,6 +367,24 @@ TEST_F(TrackCli, TrueModelMeetsTheTargetsAndTheAnglesAreWithinADegree) {
   EXPECT_LT(s["marker_rms_mm"].get<double>(), 2.0);
 }
 
+// The whole protocol as `mocap sim` makes it (75 s at 200 Hz, 4 ghosts, 2 % occluded, the swap
+// traps), with the true model: every movement, not only the short take above.
+TEST_F(TrackCli, WholeProtocolWithTheTrueModel) {
+  const CommandResult r = Mocap("track --simulate --seed 1 --ghosts 4 --occlusion 0.02 --swap-traps "
+                                "--model truth --out " + P("whole"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json s = Stats("whole");
+  EXPECT_GT(s["frames"].get<int>(), 14000);
+  std::printf("whole protocol, true model: accuracy %.6f, wrong %d, swaps %d, angles %.3f deg, "
+              "markers below 0.999: ", s["label_accuracy"].get<double>(), s["wrong_labels"].get<int>(),
+              s["swaps_longer_than_5_frames"].get<int>(), s["joint_angle_rms_deg"].get<double>());
+  for (const auto& [name, a] : s["per_marker_accuracy"].items())
+    if (a.get<double>() < 0.999) std::printf("%s %.3f ", name.c_str(), a.get<double>());
+  std::printf("\n");
+  ExpectTargets(s);
+  EXPECT_LE(s["joint_angle_rms_deg"].get<double>(), 1.0);
+}
+
 // The points written by --write-points, read back as TRC and as C3D, give the same labels.
 TEST_F(TrackCli, PointsFilesTrackLikeTheSimulation) {
   const std::string scene =
