@@ -41,6 +41,8 @@ void CoordinateUpdate::Resize(int nz) {
   L_.resize(nz, nz);
   B_.resize(nz, nz);
   tmp_.resize(nz, nz);
+  Linv_.resize(nz, nz);
+  LBinv_.resize(nz, nz);
   V_.resize(3 * nz, nz);
   U_.resize(3 * nz, nz);
   c_.resize(nz);
@@ -63,22 +65,37 @@ bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b,
   B_.diagonal().array() += 1.0;
   llt_b_.compute(B_);
   if (llt_b_.info() != Eigen::Success) return false;
-  // V = P_{:,z} L^-T (its top block is L itself); dx = V B^-1 L^T b.
-  V_ = P.leftCols(nz);
-  L_.transpose().triangularView<Eigen::Upper>().solveInPlace<Eigen::OnTheRight>(V_);
+  // V = P_{:,z} L^-T: its top block is L itself, only V_w = P_wz L^-T is computed. The
+  // triangular inverses are formed explicitly (n_z^3 / 6 each) so that the products with the
+  // 2 n_z rows run as plain matrix products, several times faster here than Eigen's
+  // right-hand triangular solves.
+  Linv_.setIdentity();
+  L_.triangularView<Eigen::Lower>().solveInPlace(Linv_);
+  LBinv_.setIdentity();
+  llt_b_.matrixL().solveInPlace(LBinv_);
+  auto Vw = V_.topRows(nw);
+  Vw.noalias() = P.bottomLeftCorner(nw, nz) * Linv_.transpose();
+  // dx = V B^-1 L^T b.
   lb_.noalias() = L_.transpose().triangularView<Eigen::Upper>() * b;
   c_ = lb_;
   llt_b_.solveInPlace(c_);
-  dx_.noalias() = V_ * c_;
+  dx_.head(nz).noalias() = L_.triangularView<Eigen::Lower>() * c_;
+  dx_.tail(nw).noalias() = Vw * c_;
   if (!dx_.allFinite()) return false;
   *nis = nu_r_nu - lb_.dot(c_);  // nu^T S^-1 nu by Woodbury
-  // P+ = [0 0; 0 P_ww - V_w V_w^T] + U U^T, U = V L_B^-T: two positive semi-definite terms.
-  U_ = V_;
-  llt_b_.matrixU().solveInPlace<Eigen::OnTheRight>(U_);
-  P.bottomRightCorner(nw, nw).selfadjointView<Eigen::Lower>().rankUpdate(V_.bottomRows(nw), -1.0);
-  P.leftCols(nz).setZero();
-  P.topRows(nz).setZero();
-  P.selfadjointView<Eigen::Lower>().rankUpdate(U_, 1.0);
+  // P+ = [0 0; 0 P_ww - V_w V_w^T] + U U^T with U = V L_B^-T, block by block:
+  //   U_z = L L_B^-T (X), U_w = V_w L_B^-T,
+  //   P_zz = X X^T, P_wz = U_w X^T, P_ww = P_ww - V_w V_w^T + U_w U_w^T.
+  Eigen::MatrixXd& X = tmp_;  // reused
+  X.noalias() = L_ * LBinv_.transpose();
+  auto Uw = U_.topRows(nw);
+  Uw.noalias() = Vw * LBinv_.transpose();
+  auto Pww = P.bottomRightCorner(nw, nw);
+  Pww.selfadjointView<Eigen::Lower>().rankUpdate(Vw, -1.0);
+  Pww.selfadjointView<Eigen::Lower>().rankUpdate(Uw, 1.0);
+  P.bottomLeftCorner(nw, nz).noalias() = Uw * X.transpose();
+  P.topLeftCorner(nz, nz).setZero();
+  P.topLeftCorner(nz, nz).selfadjointView<Eigen::Lower>().rankUpdate(X, 1.0);
   P.triangularView<Eigen::StrictlyUpper>() = P.transpose();
   *x += dx_;
   return true;

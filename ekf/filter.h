@@ -30,7 +30,7 @@ class CoordinateUpdate {
 
  private:
   int nz_ = 0;
-  Eigen::MatrixXd L_, B_, V_, U_, tmp_;
+  Eigen::MatrixXd L_, B_, V_, U_, tmp_, Linv_, LBinv_;
   Eigen::VectorXd c_, lb_, dx_;
   Eigen::LLT<Eigen::MatrixXd> llt_p_, llt_b_;
 };

@@ -80,7 +80,7 @@ struct Tracker::Impl {
   // Online marker offsets (see tracker.h): per marker, in its segment's frame, and how many
   // frames have contributed since the last (re)initialisation.
   std::vector<Eigen::Vector3d> offset;
-  std::vector<int> offset_count;
+  std::vector<double> offset_unknown;  // (1 - gain)^frames seen: the part still unknown
   // The root joint, for placing hypotheses: its rotations as signed coordinate axes (for an
   // Euler decomposition) and its translations before any rotation (moving along fixed axes).
   bool root_euler = false;
@@ -112,6 +112,7 @@ struct Tracker::Impl {
   Eigen::Matrix<double, 3, Eigen::Dynamic> jp;
   std::vector<Eigen::Matrix3d> s_inv;
   std::vector<double> reject_sq;
+  std::vector<int> gated_by;  // per point: how many markers' gates hold it
   Eigen::MatrixXd cost;
   std::vector<int> row_to_col;
   LinearAssignment lap;
@@ -122,12 +123,15 @@ struct Tracker::Impl {
   // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
   double MeasurementVariance(int m) const {
     const double s0 = options.marker_offset_sigma, s1 = options.marker_offset_floor;
-    return marker_variance[m] + s0 * s0 / (1.0 + offset_count[m]) + s1 * s1;
+    return marker_variance[m] + s0 * s0 * offset_unknown[m] + s1 * s1;
+  }
+  double OffsetGain() const {
+    return 1.0 / std::max(1.0, options.marker_offset_time_constant_s * options.rate_hz);
   }
   void LearnOffsets(const Eigen::VectorXd& dz);
   void ClearOffsets(int count) {
     std::fill(offset.begin(), offset.end(), Eigen::Vector3d::Zero());
-    std::fill(offset_count.begin(), offset_count.end(), count);
+    std::fill(offset_unknown.begin(), offset_unknown.end(), std::pow(1.0 - OffsetGain(), count));
   }
   void SetModel(std::shared_ptr<const Model> m);
   void Allocate();
@@ -184,7 +188,7 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   for (int k = 0; k < nm; ++k)
     marker_variance[k] = options.sigma_m * options.sigma_m / md.markers()[k].weight;
   offset.assign(nm, Eigen::Vector3d::Zero());
-  offset_count.assign(nm, 0);
+  offset_unknown.assign(nm, 1.0);
 
   // Depths (joints are parents first).
   std::vector<int> segment_depth(md.num_segments(), 0);
@@ -245,6 +249,7 @@ void Tracker::Impl::Allocate() {
   jp.resize(3, std::max(1, model->max_chain_coordinates()));
   s_inv.resize(nm);
   reject_sq.resize(nm);
+  gated_by.resize(mp);
   cost.resize(nm, mp + nm);
   row_to_col.resize(nm);
   lap.Reserve(nm, mp + nm);
@@ -315,17 +320,34 @@ void Tracker::Impl::LabelByGating(int np) {
     reject_sq[m] = gate * S.trace();
   }
   auto C = cost.topLeftCorner(nm, np + nm);
+  std::fill(gated_by.begin(), gated_by.begin() + np, 0);
+  bool contested = false;
   for (int m = 0; m < nm; ++m) {
     const Eigen::Vector3d p = predicted.col(m);
+    double best = gate;
+    int best_k = np + m;  // its own "missing" column
     for (int k = 0; k < np; ++k) {
       const Eigen::Vector3d e = points.col(k) - p;
       double d2 = kForbidden;
       if (e.squaredNorm() < reject_sq[m]) {
         const double q = e.dot(s_inv[m] * e);
-        if (q < gate) d2 = q;
+        if (q < gate) {
+          d2 = q;
+          contested |= ++gated_by[k] > 1;
+          if (q < best) {
+            best = q;
+            best_k = k;
+          }
+        }
       }
       C(m, k) = d2;
     }
+    row_to_col[m] = best_k;
+  }
+  // When no point lies in two gates, each marker's nearest gated point is the optimum; only
+  // contested frames (markers crossing, a ghost between two markers) need the assignment.
+  if (!contested) return;
+  for (int m = 0; m < nm; ++m) {
     C.row(m).tail(nm).setConstant(kForbidden);
     C(m, np + m) = gate;
   }
@@ -376,18 +398,19 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
 }
 
 // Each labelled marker's residual after the update (linearised: nu - J_m dz), in its segment's
-// frame, moves its offset by 1/n (a running mean over the first n frames), then by a constant
-// rate 1/(time constant x rate): a slowly adapting correction of the model's marker positions.
+// frame, moves its offset by a small constant gain (an exponential average over the time
+// constant): slow, so that the pose converges first and the offsets take only what the pose
+// cannot explain -- a gain of 1 on the first frame would freeze an initial pose error into the
+// offsets for good.
 void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
-  const double floor_gain = 1.0 / std::max(1.0, options.marker_offset_time_constant_s * options.rate_hz);
+  const double k = OffsetGain();
   for (int m = 0; m < nm; ++m) {
     if (row_to_col[m] < 0) continue;
     const std::vector<int>& cols = model->marker_coordinates(m);
     Eigen::Vector3d r = points.col(row_to_col[m]) - predicted.col(m);
     for (size_t a = 0; a < cols.size(); ++a) r -= jac[m].col(a) * dzv[cols[a]];
-    const double k = std::max(floor_gain, 1.0 / (offset_count[m] + 1.0));
     offset[m] += k * (data.segment_rotation[model->markers()[m].segment].transpose() * r);
-    if (offset_count[m] < 1000000) ++offset_count[m];
+    offset_unknown[m] *= 1.0 - k;
   }
 }
 
@@ -835,6 +858,7 @@ const Model& Tracker::model() const { return *impl_->model; }
 const TrackerOptions& Tracker::options() const { return impl_->options; }
 const TrackOutput& Tracker::output() const { return impl_->out; }
 const InitialisationSummary& Tracker::initialisation() const { return impl_->init; }
+const Eigen::Matrix3Xd& Tracker::predicted_markers() const { return impl_->predicted; }
 const Eigen::MatrixXd& Tracker::covariance() const { return impl_->P; }
 Eigen::VectorXd Tracker::velocities() const { return impl_->x.segment(impl_->nz, impl_->nz); }
 Eigen::VectorXd Tracker::accelerations() const { return impl_->x.tail(impl_->nz); }

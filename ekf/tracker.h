@@ -87,16 +87,17 @@ struct TrackerOptions {
   // Online marker offsets. A model before the global fit (the nominal model scaled to the
   // subject's height) puts markers 1-4 cm from where the subject wears them; a gate wide enough
   // for that would also take ghosts. So each marker carries an offset in its segment's frame,
-  // learnt from its residuals after each update (a running mean, then an exponential average
-  // with this time constant), and its measurement variance is inflated by what is not yet known
-  // of it: sigma^2 = sigma_m^2 / w_m + marker_offset_sigma^2 / (1 + frames seen) +
-  // marker_offset_floor^2 (the floor: model errors that change with the pose, skin motion).
+  // learnt from its residuals after each update (an exponential average with this time
+  // constant), and its measurement variance is inflated by what is not yet known of it:
+  // sigma^2 = sigma_m^2 / w_m + marker_offset_sigma^2 (1 - g)^(frames seen) + marker_offset_floor^2,
+  // g = 1 / (time constant x rate) (the floor: model errors that change with the pose, skin
+  // motion).
   // The offsets are a filter-side stand-in for the marker parameters that the global fit
   // identifies properly; they are cleared at every initialisation and by SwapModel.
   double marker_offset_sigma = 0.025;
   double marker_offset_floor = 0.002;
   double marker_offset_time_constant_s = 0.5;
-  int swap_offset_count = 8;  // SwapModel: as if the new positions had been seen this many frames
+  int swap_offset_count = 400;  // SwapModel: as if the new positions had been seen this many frames
   // Gate: chi-square (3 degrees of freedom) of a marker-to-point Mahalanobis distance beyond which
   // a point cannot be that marker. 16.27 is the 99.9 % quantile.
   double gate_chi2 = 16.27;
@@ -200,6 +201,9 @@ class Tracker {
   const InitialisationSummary& initialisation() const;
   // The full state covariance (3 n_z x 3 n_z: coordinates, velocities, accelerations).
   const Eigen::MatrixXd& covariance() const;
+  // Where the last Update predicted each model marker (3 x n_markers, before its update; the
+  // learnt offsets included).
+  const Eigen::Matrix3Xd& predicted_markers() const;
   // Velocities and accelerations of the coordinates.
   Eigen::VectorXd velocities() const;
   Eigen::VectorXd accelerations() const;

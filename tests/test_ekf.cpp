@@ -659,6 +659,10 @@ TEST(EkfTracker, UpdateAllocatesNothingWhileTracking) {
     for (size_t k = 0; k < frames[f].truth.size(); ++k) {
       total += frames[f].truth[k] >= 0;
       correct += frames[f].truth[k] >= 0 && out.marker_of_point[k] == frames[f].truth[k];
+      if (getenv("EKF_DEBUG") && frames[f].truth[k] >= 0 && out.marker_of_point[k] != frames[f].truth[k])
+        std::printf("f %d %s -> %d nis %.1f/%d  predicted %.1f mm away\n", f, session.nominal.markers()[frames[f].truth[k]].name.c_str(),
+                    out.marker_of_point[k], out.nis, out.nis_dof,
+                    1e3 * (tracker.predicted_markers().col(frames[f].truth[k]) - frames[f].points.col(k)).norm());
     }
   }
   EXPECT_EQ(g_allocations.load(), 0);

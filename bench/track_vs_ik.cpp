@@ -1,0 +1,253 @@
+// track_vs_ik: the cost of one live frame, side by side in one run —
+//   EkfUpdate: ekf::Tracker::Update, one full predict + label (Mahalanobis gating + optimal
+//              assignment) + update of the default full-body model (38 coordinates, 39 markers)
+//              with 5 ghost points in the frame;
+//   IkNearest: what a tracker without a filter does (OpenSim's IK, frame by frame): label each
+//              model marker by the nearest point to where the previous frame's pose puts it, then
+//              Levenberg–Marquardt inverse kinematics (solver/inverse_kinematics.h) warm-started
+//              from the previous frame.
+// Both see the same frames: the simulated protocol's shoulder_circles_l and squats at 200 Hz with
+// 0.5 mm noise (sim::SimulateSession, seed 1), the points shuffled, with 5 ghosts near the body.
+// Each iteration is timed alone (steady_clock); the counters give its p50/p99 in microseconds
+// and the share of the frame's marker points that got their true label.
+//
+//   track_vs_ik [--benchmark_repetitions=N ...]     (Google Benchmark flags)
+#include <benchmark/benchmark.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <memory>
+#include <numeric>
+#include <random>
+#include <vector>
+
+#include "ekf/filter.h"
+#include "ekf/tracker.h"
+#include "model/kinematics.h"
+#include "sim/simulate.h"
+#include "solver/inverse_kinematics.h"
+
+using namespace mocap;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+struct Frame {
+  double time = 0;
+  Eigen::Matrix3Xd points;
+  std::vector<int> truth;  // per point: marker or -1 (ghost)
+};
+
+struct Data {
+  std::shared_ptr<const Model> model;
+  std::vector<std::vector<Frame>> trials;
+};
+
+const Data& Scenes() {
+  static const Data* data = [] {
+    auto* d = new Data;
+    sim::SimulationOptions o;
+    o.rate_hz = 200;
+    o.noise_mm = 0.5;
+    o.seed = 1;
+    sim::SimulatedSession session;
+    if (!sim::SimulateSession(o, &session).ok()) std::abort();
+    d->model = std::make_shared<const Model>(session.nominal);
+    std::mt19937 rng(2);
+    for (const auto& trial : session.trials) {
+      if (trial.markers.name != "shoulder_circles_l" && trial.markers.name != "squats") continue;
+      std::vector<Frame> frames;
+      const auto& mt = trial.markers;
+      for (int f = 0; f < mt.num_frames(); ++f) {
+        std::vector<Eigen::Vector3d> pts;
+        std::vector<int> truth;
+        Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e9), hi = -lo;
+        for (int m = 0; m < mt.num_markers(); ++m) {
+          if (!mt.Has(f, m)) continue;
+          pts.push_back(mt.At(f, m));
+          truth.push_back(m);
+          lo = lo.cwiseMin(pts.back());
+          hi = hi.cwiseMax(pts.back());
+        }
+        std::uniform_real_distribution<double> u(0, 1);
+        const size_t markers = pts.size();
+        while (pts.size() < markers + 5) {  // ghosts in the body's box, >= 4 cm from any marker
+          const Eigen::Vector3d p =
+              lo + (hi - lo).cwiseProduct(Eigen::Vector3d(u(rng), u(rng), u(rng)));
+          bool clear = true;
+          for (size_t k = 0; k < markers; ++k) clear = clear && (p - pts[k]).norm() > 0.04;
+          if (clear) {
+            pts.push_back(p);
+            truth.push_back(-1);
+          }
+        }
+        std::vector<int> order(pts.size());
+        std::iota(order.begin(), order.end(), 0);
+        std::shuffle(order.begin(), order.end(), rng);
+        Frame fr;
+        fr.time = mt.times[f];
+        fr.points.resize(3, pts.size());
+        for (size_t k = 0; k < order.size(); ++k) {
+          fr.points.col(k) = pts[order[k]];
+          fr.truth.push_back(truth[order[k]]);
+        }
+        frames.push_back(std::move(fr));
+      }
+      d->trials.push_back(std::move(frames));
+    }
+    return d;
+  }();
+  return *data;
+}
+
+void Report(benchmark::State& state, std::vector<double>& us, long correct, long total) {
+  std::sort(us.begin(), us.end());
+  if (us.empty()) return;
+  auto pct = [&](double p) { return us[std::min(us.size() - 1, size_t(p * us.size()))]; };
+  state.counters["p50_us"] = pct(0.50);
+  state.counters["p99_us"] = pct(0.99);
+  state.counters["max_us"] = us.back();
+  state.counters["label_accuracy"] = total ? double(correct) / total : 0.0;
+}
+
+void EkfUpdate(benchmark::State& state) {
+  const Data& d = Scenes();
+  ekf::Tracker tracker(d.model);
+  std::vector<double> us;
+  us.reserve(1 << 20);
+  size_t trial = 0, f = 0;
+  long correct = 0, total = 0;
+  auto restart = [&] {
+    tracker.Reset();
+    tracker.Update(d.trials[trial][0].time, d.trials[trial][0].points);  // initialisation
+    f = 1;
+  };
+  restart();
+  for (auto _ : state) {
+    if (f >= d.trials[trial].size()) {
+      trial = (trial + 1) % d.trials.size();
+      restart();
+    }
+    const Frame& fr = d.trials[trial][f++];
+    const auto t0 = Clock::now();
+    const ekf::TrackOutput& out = tracker.Update(fr.time, fr.points);
+    const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
+    state.SetIterationTime(dt);
+    us.push_back(1e6 * dt);
+    for (size_t k = 0; k < fr.truth.size(); ++k)
+      if (fr.truth[k] >= 0) {
+        ++total;
+        correct += out.marker_of_point[k] == fr.truth[k];
+      }
+  }
+  Report(state, us, correct, total);
+}
+
+void IkNearest(benchmark::State& state) {
+  const Data& d = Scenes();
+  const Model& model = *d.model;
+  const Geometry geometry(model);
+  solver::InverseKinematics ik(model, geometry);
+  ModelData data(model);
+  const int nm = model.num_markers();
+  Eigen::Matrix3Xd measured(3, nm), predicted(3, nm);
+  std::vector<int> label_of_marker(nm);
+  Eigen::VectorXd z;
+  std::vector<double> us;
+  us.reserve(1 << 20);
+  size_t trial = 0, f = 0;
+  long correct = 0, total = 0;
+  auto restart = [&] {
+    // Start from the labelled first frame (the truth), as if someone had clicked the labels.
+    const Frame& fr = d.trials[trial][0];
+    measured.setConstant(NAN);
+    for (size_t k = 0; k < fr.truth.size(); ++k)
+      if (fr.truth[k] >= 0) measured.col(fr.truth[k]) = fr.points.col(k);
+    ik.Initialise(measured, &z);
+    f = 1;
+  };
+  restart();
+  for (auto _ : state) {
+    if (f >= d.trials[trial].size()) {
+      trial = (trial + 1) % d.trials.size();
+      restart();
+    }
+    const Frame& fr = d.trials[trial][f++];
+    const auto t0 = Clock::now();
+    ForwardKinematics(model, geometry, z, &data);
+    MarkerPositions(model, geometry, data, &predicted);
+    for (int m = 0; m < nm; ++m) {
+      int best = -1;
+      double best_d = 0.05 * 0.05;  // nothing farther than 5 cm
+      for (int k = 0; k < fr.points.cols(); ++k) {
+        const double dd = (fr.points.col(k) - predicted.col(m)).squaredNorm();
+        if (dd < best_d) {
+          best_d = dd;
+          best = k;
+        }
+      }
+      label_of_marker[m] = best;
+      if (best >= 0)
+        measured.col(m) = fr.points.col(best);
+      else
+        measured.col(m).setConstant(NAN);
+    }
+    ik.Solve(measured, &z);
+    const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
+    state.SetIterationTime(dt);
+    us.push_back(1e6 * dt);
+    for (int m = 0; m < nm; ++m)
+      if (label_of_marker[m] >= 0) {
+        // a point labelled m counts as correct when it is m's point
+        correct += fr.truth[label_of_marker[m]] == m;
+      }
+    for (int t : fr.truth) total += t >= 0;
+  }
+  Report(state, us, correct, total);
+}
+
+// The pieces of EkfUpdate's linear algebra alone, at its size (38 coordinates, 39 markers).
+void FilterPredictOnly(benchmark::State& state) {
+  const int nz = 38, n = 3 * nz;
+  Eigen::MatrixXd a = Eigen::MatrixXd::Random(n, n);
+  Eigen::MatrixXd P = a * a.transpose() * 1e-3 + Eigen::MatrixXd::Identity(n, n);
+  const Eigen::MatrixXd P0 = P;
+  Eigen::VectorXd x = Eigen::VectorXd::Zero(n), q = Eigen::VectorXd::Constant(nz, 1e3);
+  for (auto _ : state) {
+    ekf::PredictConstantAcceleration(0.005, q, &x, &P);
+    benchmark::DoNotOptimize(P.data());
+    state.PauseTiming();
+    P = P0;
+    state.ResumeTiming();
+  }
+}
+
+void FilterUpdateOnly(benchmark::State& state) {
+  const int nz = 38, n = 3 * nz, meas = 117;
+  Eigen::MatrixXd a = Eigen::MatrixXd::Random(n, n);
+  Eigen::MatrixXd P = a * a.transpose() * 1e-3 + Eigen::MatrixXd::Identity(n, n);
+  const Eigen::MatrixXd P0 = P;
+  const Eigen::MatrixXd J = Eigen::MatrixXd::Random(meas, nz);
+  const Eigen::MatrixXd A = 1e4 * J.transpose() * J;
+  const Eigen::VectorXd b = Eigen::VectorXd::Random(nz);
+  Eigen::VectorXd x = Eigen::VectorXd::Zero(n);
+  ekf::CoordinateUpdate update;
+  update.Resize(nz);
+  double nis;
+  for (auto _ : state) {
+    update.Apply(A, b, 1.0, &x, &P, &nis);
+    benchmark::DoNotOptimize(P.data());
+    state.PauseTiming();
+    P = P0;
+    state.ResumeTiming();
+  }
+}
+
+}  // namespace
+
+BENCHMARK(FilterPredictOnly)->Unit(benchmark::kMicrosecond);
+BENCHMARK(FilterUpdateOnly)->Unit(benchmark::kMicrosecond);
+BENCHMARK(EkfUpdate)->UseManualTime()->Unit(benchmark::kMicrosecond)->Iterations(4000);
+BENCHMARK(IkNearest)->UseManualTime()->Unit(benchmark::kMicrosecond)->Iterations(4000);
+BENCHMARK_MAIN();
