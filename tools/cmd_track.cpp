@@ -75,6 +75,16 @@ double Percentile(std::vector<double> v, double q) {
   return v[k];
 }
 
+// TrackingSceneOptions::IsValid names the field; the user typed the flag.
+std::string FlagOf(const std::string& message) {
+  static const std::pair<const char*, const char*> flags[] = {
+      {"rate_hz", "--rate"},         {"noise_mm", "--noise-mm"}, {"duration_scale", "--duration-scale"},
+      {"ghosts", "--ghosts"},        {"occlusion", "--occlusion"}, {"fault_time_s", "--fault-time"}};
+  for (const auto& [field, flag] : flags)
+    if (message.rfind(field, 0) == 0) return std::string(flag) + ": ";
+  return "";
+}
+
 double WrapAngle(double a) { return std::remainder(a, 2.0 * M_PI); }
 
 int RunTrack(const TrackArgs& args) {
@@ -95,7 +105,7 @@ int RunTrack(const TrackArgs& args) {
     }
     std::string why;
     if (!o.IsValid(&why)) {
-      spdlog::error("mocap track: {}", why);
+      spdlog::error("mocap track: {}{}", FlagOf(why), why);
       return 2;
     }
     spdlog::info("simulating: seed {}, {} Hz, {} ghosts per frame, occlusion {}, swap traps {}, "
