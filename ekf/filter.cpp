@@ -1,6 +1,43 @@
 #include "ekf/filter.h"
 
+#include <cmath>
+
 namespace mocap::ekf {
+
+namespace {
+// In-place lower Cholesky factor of a small SPD matrix (left-looking, column by column; the
+// strict upper triangle is zeroed). False when not positive-definite.
+bool CholeskyInPlace(Eigen::MatrixXd* a) {
+  Eigen::MatrixXd& m = *a;
+  const int n = static_cast<int>(m.rows());
+  for (int j = 0; j < n; ++j) {
+    if (j > 0)
+      m.col(j).tail(n - j).noalias() -=
+          m.block(j, 0, n - j, j) * m.row(j).head(j).transpose();
+    const double d = m(j, j);
+    if (!(d > 0) || !std::isfinite(d)) return false;
+    const double r = std::sqrt(d);
+    m(j, j) = r;
+    m.col(j).tail(n - j - 1) /= r;
+  }
+  m.triangularView<Eigen::StrictlyUpper>().setZero();
+  return true;
+}
+
+// inverse = L^-1 for a lower-triangular L (forward substitution, column by column).
+void LowerInverse(const Eigen::MatrixXd& L, Eigen::MatrixXd* inverse) {
+  Eigen::MatrixXd& x = *inverse;
+  const int n = static_cast<int>(L.rows());
+  x.setZero();
+  for (int j = 0; j < n; ++j) {
+    x(j, j) = 1.0;
+    for (int i = j; i < n; ++i) {
+      x(i, j) /= L(i, i);
+      if (i + 1 < n) x.col(j).segment(i + 1, n - i - 1) -= L.col(i).segment(i + 1, n - i - 1) * x(i, j);
+    }
+  }
+}
+}  // namespace
 
 void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eigen::VectorXd* x,
                                  Eigen::MatrixXd* Pp) {
@@ -48,37 +85,33 @@ void CoordinateUpdate::Resize(int nz) {
   c_.resize(nz);
   lb_.resize(nz);
   dx_.resize(3 * nz);
-  llt_p_ = Eigen::LLT<Eigen::MatrixXd>(nz);
-  llt_b_ = Eigen::LLT<Eigen::MatrixXd>(nz);
+  LB_.resize(nz, nz);
+  lbb_.resize(nz);
 }
 
 bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b, double nu_r_nu,
                              Eigen::VectorXd* x, Eigen::MatrixXd* Pp, double* nis) {
   const int nz = nz_, nw = 2 * nz;
   Eigen::MatrixXd& P = *Pp;
-  // P_zz = L L^T, B = I + L^T A L = L_B L_B^T.
-  llt_p_.compute(P.topLeftCorner(nz, nz));
-  if (llt_p_.info() != Eigen::Success) return false;
-  L_ = llt_p_.matrixL();
+  // P_zz = L L^T, B = I + L^T A L = L_B L_B^T (small dense Cholesky factors, own loops: Eigen's
+  // blocked LLT and triangular solves cost more than the arithmetic at n_z = 38). The
+  // triangular inverses are formed explicitly (n_z^3 / 6 each) so that the products with the
+  // 2 n_z rows of velocities and accelerations run as plain matrix products.
+  L_ = P.topLeftCorner(nz, nz);
+  if (!CholeskyInPlace(&L_)) return false;
   tmp_.noalias() = A * L_.triangularView<Eigen::Lower>();
   B_.noalias() = L_.transpose().triangularView<Eigen::Upper>() * tmp_;
   B_.diagonal().array() += 1.0;
-  llt_b_.compute(B_);
-  if (llt_b_.info() != Eigen::Success) return false;
-  // V = P_{:,z} L^-T: its top block is L itself, only V_w = P_wz L^-T is computed. The
-  // triangular inverses are formed explicitly (n_z^3 / 6 each) so that the products with the
-  // 2 n_z rows run as plain matrix products, several times faster here than Eigen's
-  // right-hand triangular solves.
-  Linv_.setIdentity();
-  L_.triangularView<Eigen::Lower>().solveInPlace(Linv_);
-  LBinv_.setIdentity();
-  llt_b_.matrixL().solveInPlace(LBinv_);
+  LB_ = B_;
+  if (!CholeskyInPlace(&LB_)) return false;
+  LowerInverse(L_, &Linv_);
+  LowerInverse(LB_, &LBinv_);
   auto Vw = V_.topRows(nw);
   Vw.noalias() = P.bottomLeftCorner(nw, nz) * Linv_.transpose();
   // dx = V B^-1 L^T b.
   lb_.noalias() = L_.transpose().triangularView<Eigen::Upper>() * b;
-  c_ = lb_;
-  llt_b_.solveInPlace(c_);
+  lbb_.noalias() = LBinv_.triangularView<Eigen::Lower>() * lb_;
+  c_.noalias() = LBinv_.transpose().triangularView<Eigen::Upper>() * lbb_;  // B^-1 L^T b
   dx_.head(nz).noalias() = L_.triangularView<Eigen::Lower>() * c_;
   dx_.tail(nw).noalias() = Vw * c_;
   if (!dx_.allFinite()) return false;

@@ -30,9 +30,8 @@ class CoordinateUpdate {
 
  private:
   int nz_ = 0;
-  Eigen::MatrixXd L_, B_, V_, U_, tmp_, Linv_, LBinv_;
-  Eigen::VectorXd c_, lb_, dx_;
-  Eigen::LLT<Eigen::MatrixXd> llt_p_, llt_b_;
+  Eigen::MatrixXd L_, B_, LB_, V_, U_, tmp_, Linv_, LBinv_;
+  Eigen::VectorXd c_, lb_, lbb_, dx_;
 };
 
 }  // namespace mocap::ekf

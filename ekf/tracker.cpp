@@ -313,7 +313,7 @@ void Tracker::Impl::LabelByGating(int np) {
       JP.col(bcol).setZero();
       for (int a = 0; a < k; ++a) JP.col(bcol) += J.col(a) * P(cols[a], cols[bcol]);
     }
-    Eigen::Matrix3d S = JP * J.transpose();
+    Eigen::Matrix3d S = JP.lazyProduct(J.transpose());  // 3 x k x 3: no GEMM machinery
     S.diagonal().array() += MeasurementVariance(m);
     s_inv[m] = S.inverse();
     // d^2 >= |e|^2 / lambda_max(S) >= |e|^2 / trace(S): a cheap test before the quadratic form.
