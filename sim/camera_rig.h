@@ -17,7 +17,7 @@ struct CameraRigOptions {
   int width = 1280;
   int height = 1024;
   double focal_px = 1000.0;     // about 65 x 54 degrees at 1280 x 1024
-  double ring_radius_m = 4.0;
+  double ring_radius_m = 3.5;
   double low_height_m = 1.6;    // even cameras
   double high_height_m = 2.8;   // odd cameras
   double aim_height_m = 0.9;

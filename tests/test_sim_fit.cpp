@@ -100,18 +100,13 @@ void ExpectAccurate(const Outcome& o, double centre_mm, double axis_deg, double 
     EXPECT_LE(jd.centre_error_mm, centre_mm) << jd.joint << " via " << jd.basis;
     for (size_t k = 0; k < jd.axes.size(); ++k) {
       if (!AxisDetermined(r, jd.joint, static_cast<int>(k))) continue;
-      // The bound holds where the data pin the axis to a third of it. The talocrural axis behind
-      // the two-marker Plug-in Gait foot is determined to about 0.45 deg (1 sigma) by this
-      // protocol: there the estimate must agree with the truth within 3 of its own sigmas, and
-      // no other axis may fall short of the bound.
-      const double sigma = AxisSigmaDeg(r, jd.joint, static_cast<int>(k));
-      if (3 * sigma <= axis_deg) {
-        EXPECT_LE(jd.axes[k].error_deg, axis_deg) << jd.joint << " axis " << k;
-      } else {
-        EXPECT_TRUE(jd.joint.rfind("ankle_", 0) == 0 && k == 0) << jd.joint << " axis " << k << " sigma " << sigma;
-        EXPECT_LE(jd.axes[k].error_deg, 3 * sigma) << jd.joint << " axis " << k;
-        std::printf("  short of the %.2f deg target: %s axis %zu, error %.3f deg, sigma %.3f deg\n", axis_deg,
-                    jd.joint.c_str(), k, jd.axes[k].error_deg, sigma);
+      // Every axis the data determine meets the bound. The protocol's ankle circles (9 s, ankle
+      // -30..40 deg) are what pin the talocrural axis behind the two-marker Plug-in Gait foot:
+      // its sigma is printed so that a protocol that excites the ankle less shows up here.
+      EXPECT_LE(jd.axes[k].error_deg, axis_deg) << jd.joint << " axis " << k;
+      if (jd.joint.rfind("ankle_", 0) == 0 && k == 0) {
+        std::printf("  %s talocrural axis: error %.3f deg, sigma %.3f deg\n", jd.joint.c_str(),
+                    jd.axes[k].error_deg, AxisSigmaDeg(r, jd.joint, static_cast<int>(k)));
       }
     }
   }

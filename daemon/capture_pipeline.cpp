@@ -1,0 +1,237 @@
+#include "daemon/capture_pipeline.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <ctime>
+
+namespace mocap::daemon {
+namespace {
+
+std::uint64_t MonotonicNs() {
+  timespec ts;
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return static_cast<std::uint64_t>(ts.tv_sec) * 1'000'000'000ull + ts.tv_nsec;
+}
+
+}  // namespace
+
+double Percentile(std::vector<double>* values, double p) {
+  if (values->empty()) return 0.0;
+  const std::size_t n = values->size();
+  std::size_t k = static_cast<std::size_t>(std::ceil(p / 100.0 * n));
+  k = std::clamp<std::size_t>(k, 1, n) - 1;
+  std::nth_element(values->begin(), values->begin() + k, values->end());
+  return (*values)[k];
+}
+
+bool CapturePipelineOptions::IsValid(std::string* error) const {
+  auto fail = [&](const std::string& what) {
+    if (error) *error = "capture pipeline: " + what;
+    return false;
+  };
+  if (detection_threads < 1 || detection_threads > 64) {
+    return fail("detection_threads must be in [1, 64]");
+  }
+  if (frame_queue_capacity < 1 || detection_queue_capacity < 1 || point_queue_capacity < 1) {
+    return fail("queue capacities must be >= 1");
+  }
+  std::string sub;
+  if (!detection.IsValid(&sub)) return fail(sub);
+  return true;
+}
+
+CapturePipeline::CapturePipeline(std::vector<std::unique_ptr<drivers::CameraSource>> cameras,
+                                 TriangulateFn triangulate, CapturePipelineOptions options)
+    : cameras_(std::move(cameras)),
+      triangulate_(std::move(triangulate)),
+      options_(std::move(options)),
+      frames_(options_.frame_queue_capacity),
+      detections_(options_.detection_queue_capacity),
+      points_(options_.point_queue_capacity) {
+  stats_.camera_losses.assign(cameras_.size(), 0);
+}
+
+CapturePipeline::~CapturePipeline() { Stop(); }
+
+Status CapturePipeline::Start() {
+  if (started_) return Status::Error("capture pipeline: already started");
+  std::string error;
+  if (!options_.IsValid(&error)) return Status::Error(error);
+  if (cameras_.empty()) return Status::Error("capture pipeline: no cameras");
+  if (!triangulate_) return Status::Error("capture pipeline: no triangulation stage");
+  options_.sync.num_cameras = static_cast<int>(cameras_.size());
+  MOCAP_RETURN_IF_ERROR(sync_.Reset(options_.sync));
+
+  // Consumers first, so that nothing a producer emits waits for a stage that does not exist.
+  sync_thread_ = std::thread(&CapturePipeline::SyncLoop, this);
+  detectors_running_ = options_.detection_threads;
+  for (int w = 0; w < options_.detection_threads; ++w) {
+    detect_threads_.emplace_back(&CapturePipeline::DetectLoop, this, w);
+  }
+  started_ = true;
+  grabbing_ = true;
+  for (std::size_t c = 0; c < cameras_.size(); ++c) {
+    if (Status s = cameras_[c]->Start(); !s) {
+      Stop();
+      return Status::Error("camera " + cameras_[c]->id() + ": " + s.message());
+    }
+  }
+  for (std::size_t c = 0; c < cameras_.size(); ++c) {
+    grab_threads_.emplace_back(&CapturePipeline::GrabLoop, this, static_cast<int>(c));
+  }
+  return Status::Ok();
+}
+
+void CapturePipeline::Stop() {
+  if (!started_) return;
+  started_ = false;
+  // Reverse order: cameras, then each queue closed after its producers are gone.
+  grabbing_ = false;
+  for (auto& cam : cameras_) cam->Stop();
+  for (auto& t : grab_threads_) t.join();
+  grab_threads_.clear();
+  frames_.Close();
+  for (auto& t : detect_threads_) t.join();
+  detect_threads_.clear();
+  detections_.Close();
+  if (sync_thread_.joinable()) sync_thread_.join();
+  points_.Close();
+}
+
+void CapturePipeline::GrabLoop(int c) {
+  drivers::CameraSource& cam = *cameras_[c];
+  bool was_lost = false;
+  while (grabbing_) {
+    FrameJob job;
+    const drivers::GrabResult r = cam.Grab(&job.frame);
+    if (r == drivers::GrabResult::kFrame) {
+      was_lost = false;
+      job.frame.camera = c;
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.frames_grabbed;
+      if (!frames_.TryPush(std::move(job))) {
+        ++stats_.frames_dropped;
+        cam.Release(job.frame);
+      }
+    } else if (r == drivers::GrabResult::kIncomplete) {
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.frames_incomplete;
+    } else if (r == drivers::GrabResult::kLost) {
+      if (!was_lost) {
+        std::lock_guard<std::mutex> lock(stats_mutex_);
+        ++stats_.camera_losses[c];
+      }
+      was_lost = true;
+      // The source reopens a lost camera by itself; poll it without spinning.
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    } else if (r == drivers::GrabResult::kStopped) {
+      break;
+    }
+  }
+}
+
+void CapturePipeline::DetectLoop(int worker) {
+  reconstruction::DetectionWorkspace workspace;
+  std::vector<double> times;
+  FrameJob job;
+  while (frames_.Pop(&job, std::chrono::milliseconds(50)) || !frames_.closed()) {
+    if (job.frame.handle == nullptr && job.frame.image.data == nullptr) continue;
+    reconstruction::CameraDetections d;
+    d.camera = job.frame.camera;
+    d.sequence = job.frame.sequence;
+    d.device_timestamp_ns = job.frame.device_timestamp_ns;
+    d.host_timestamp_ns = job.frame.host_timestamp_ns;
+    const auto t0 = std::chrono::steady_clock::now();
+    const Status s = reconstruction::DetectMarkers(job.frame.image, options_.detection, nullptr,
+                                                   &workspace, &d.centroids);
+    const double ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    cameras_[job.frame.camera]->Release(job.frame);
+    job = FrameJob{};
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    detect_ms_.push_back(ms);
+    if (!s) {
+      ++stats_.detection_errors;
+      d.centroids.clear();  // the set still learns that this camera saw nothing usable
+    }
+    if (!detections_.TryPush(std::move(d))) ++stats_.detections_dropped;
+  }
+  --detectors_running_;
+}
+
+void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
+  PointFrame out;
+  out.sequence = set.sequence;
+  out.timestamp_ns = set.timestamp_ns;
+  out.cameras_present = set.present_count();
+  const auto t0 = std::chrono::steady_clock::now();
+  const Status s = triangulate_(set, &out);
+  const auto t1 = std::chrono::steady_clock::now();
+  std::uint64_t first = UINT64_MAX;
+  for (std::size_t c = 0; c < set.cameras.size(); ++c) {
+    if (set.present[c]) first = std::min(first, set.cameras[c].host_timestamp_ns);
+  }
+  const std::uint64_t now = MonotonicNs();
+  out.latency_ms = first <= now ? (now - first) * 1e-6 : 0.0;
+
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  triangulate_ms_.push_back(std::chrono::duration<double, std::milli>(t1 - t0).count());
+  if (!s) ++stats_.triangulation_errors;
+  if (any_emitted_ && set.sequence > last_emitted_sequence_ + 1) {
+    stats_.dropped_frame_sets += set.sequence - last_emitted_sequence_ - 1;
+  }
+  if (!any_emitted_ || set.sequence > last_emitted_sequence_) last_emitted_sequence_ = set.sequence;
+  any_emitted_ = true;
+  latency_ms_.push_back(out.latency_ms);
+  if (out.cameras_present < static_cast<int>(cameras_.size())) ++stats_.incomplete_sets;
+  if (points_.TryPush(std::move(out))) {
+    ++stats_.frame_sets;
+  } else {
+    ++stats_.dropped_frame_sets;
+  }
+}
+
+void CapturePipeline::SyncLoop() {
+  std::vector<reconstruction::DetectionSet> ready;
+  reconstruction::CameraDetections d;
+  for (;;) {
+    const bool got = detections_.Pop(&d, std::chrono::milliseconds(5));
+    ready.clear();
+    if (got) {
+      if (!sync_.Add(std::move(d), &ready)) {
+        std::lock_guard<std::mutex> lock(stats_mutex_);
+        ++stats_.detection_errors;
+      }
+    }
+    sync_.Poll(MonotonicNs(), &ready);
+    for (const auto& set : ready) EmitSet(set);
+    if (!got && detections_.closed() && detections_.size() == 0) break;
+  }
+  ready.clear();
+  sync_.Flush(&ready);
+  for (const auto& set : ready) EmitSet(set);
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.late_frames = sync_.counters().late;
+}
+
+bool CapturePipeline::PopPoints(PointFrame* out, int timeout_ms) {
+  return points_.Pop(out, std::chrono::milliseconds(timeout_ms));
+}
+
+CapturePipelineStats CapturePipeline::Stats() const {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  CapturePipelineStats s = stats_;
+  std::vector<double> v = detect_ms_;
+  s.detect_ms_p50 = Percentile(&v, 50);
+  s.detect_ms_p99 = Percentile(&v, 99);
+  v = triangulate_ms_;
+  s.triangulate_ms_p50 = Percentile(&v, 50);
+  s.triangulate_ms_p99 = Percentile(&v, 99);
+  v = latency_ms_;
+  s.latency_ms_p50 = Percentile(&v, 50);
+  s.latency_ms_p99 = Percentile(&v, 99);
+  return s;
+}
+
+}  // namespace mocap::daemon

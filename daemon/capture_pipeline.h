@@ -1,0 +1,137 @@
+// The capture pipeline: camera frames in, unlabelled 3D points out, in real time.
+//
+//   grab (one thread per camera) --frames--> detection (a pool of workers) --detections-->
+//   sync + triangulation (one thread) --point frames--> the caller (PopPoints)
+//
+// Stages are joined by BoundedQueues (daemon/bounded_queue.h). Nothing waits for a slow stage:
+// when a queue is full the frame (or point frame) is dropped and counted, the camera's buffer
+// goes straight back to its pool, and the frame set it belonged to goes on incomplete or is
+// counted as dropped. A camera that is lost stops contributing; its sets are emitted incomplete
+// by the sync's timeout while the other cameras go on (the source reopens it: drivers/).
+//
+// Stages start in dependency order (consumers first: output, triangulation, detection, then the
+// cameras) and stop in reverse (cameras first, then each queue is closed and drained), so no
+// frame is left in a queue and no buffer is lost at Stop().
+//
+// Latency is measured from the host time the first image of a set was handed over by its
+// camera (Frame::host_timestamp_ns, CLOCK_MONOTONIC) to the moment its points are ready.
+#pragma once
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "daemon/bounded_queue.h"
+#include "drivers/camera_source.h"
+#include "model/status.h"
+#include "reconstruction/centroid.h"
+#include "reconstruction/detection.h"
+#include "reconstruction/frame_sync.h"
+
+namespace mocap::daemon {
+
+// The points of one frame set.
+struct PointFrame {
+  std::uint64_t sequence = 0;
+  std::uint64_t timestamp_ns = 0;
+  int cameras_present = 0;
+  std::vector<Eigen::Vector3d> points;
+  std::vector<float> residual_px;
+  std::vector<std::uint8_t> camera_count;
+  double latency_ms = 0;
+};
+
+// Turns one set of detections into 3D points (reconstruction/triangulation.h, wired by the
+// caller). Called from the one triangulation thread only, so it may keep its workspace.
+using TriangulateFn = std::function<Status(const reconstruction::DetectionSet&, PointFrame*)>;
+
+struct CapturePipelineOptions {
+  int detection_threads = 2;
+  int frame_queue_capacity = 64;      // frames waiting for detection (all cameras)
+  int detection_queue_capacity = 64;  // detections waiting for sync
+  int point_queue_capacity = 256;     // point frames waiting for the caller
+  reconstruction::DetectionOptions detection;
+  reconstruction::FrameSyncOptions sync;  // num_cameras is set from the sources
+
+  bool IsValid(std::string* error) const;
+};
+
+// Per-stage figures. Timings in milliseconds; percentiles over the whole run.
+struct CapturePipelineStats {
+  std::uint64_t frames_grabbed = 0;
+  std::uint64_t frames_incomplete = 0;   // buffers the cameras counted as incomplete
+  std::uint64_t frames_dropped = 0;      // the detection queue was full
+  std::uint64_t detection_errors = 0;
+  std::uint64_t detections_dropped = 0;  // the sync queue was full
+  std::uint64_t frame_sets = 0;          // point frames handed to the caller
+  std::uint64_t incomplete_sets = 0;     // ... of which with a camera missing
+  std::uint64_t dropped_frame_sets = 0;  // sets that never came out (sequence gaps, full queue)
+  std::uint64_t late_frames = 0;
+  std::uint64_t triangulation_errors = 0;
+  std::vector<std::uint64_t> camera_losses;  // per camera
+  double detect_ms_p50 = 0, detect_ms_p99 = 0;
+  double triangulate_ms_p50 = 0, triangulate_ms_p99 = 0;
+  double latency_ms_p50 = 0, latency_ms_p99 = 0;
+};
+
+class CapturePipeline {
+ public:
+  CapturePipeline(std::vector<std::unique_ptr<drivers::CameraSource>> cameras,
+                  TriangulateFn triangulate, CapturePipelineOptions options = {});
+  ~CapturePipeline();
+  CapturePipeline(const CapturePipeline&) = delete;
+  CapturePipeline& operator=(const CapturePipeline&) = delete;
+
+  // Starts the stages and the cameras (which must be open). Fails, with nothing left running,
+  // on invalid options or a camera that does not start.
+  Status Start();
+  // Stops the cameras, drains every queue, joins every thread. Idempotent.
+  void Stop();
+  // The next point frame, waiting up to timeout_ms. False on timeout or once stopped and empty.
+  bool PopPoints(PointFrame* out, int timeout_ms);
+  // Figures so far (percentiles over every sample so far).
+  CapturePipelineStats Stats() const;
+  drivers::CameraSource& camera(int c) { return *cameras_[c]; }
+  int num_cameras() const { return static_cast<int>(cameras_.size()); }
+
+ private:
+  struct FrameJob {
+    drivers::Frame frame;
+  };
+  void GrabLoop(int camera);
+  void DetectLoop(int worker);
+  void SyncLoop();
+  void EmitSet(const reconstruction::DetectionSet& set);
+
+  std::vector<std::unique_ptr<drivers::CameraSource>> cameras_;
+  TriangulateFn triangulate_;
+  CapturePipelineOptions options_;
+
+  BoundedQueue<FrameJob> frames_;
+  BoundedQueue<reconstruction::CameraDetections> detections_;
+  BoundedQueue<PointFrame> points_;
+
+  std::atomic<bool> grabbing_{false};
+  std::atomic<int> detectors_running_{0};
+  std::vector<std::thread> grab_threads_, detect_threads_;
+  std::thread sync_thread_;
+  bool started_ = false;
+
+  reconstruction::FrameSync sync_;  // the sync thread's
+
+  mutable std::mutex stats_mutex_;
+  CapturePipelineStats stats_;
+  std::vector<double> detect_ms_, triangulate_ms_, latency_ms_;
+  bool any_emitted_ = false;
+  std::uint64_t last_emitted_sequence_ = 0;
+};
+
+// The p-th percentile (0..100) of `values` (nearest rank); 0 when empty. Reorders `values`.
+double Percentile(std::vector<double>* values, double p);
+
+}  // namespace mocap::daemon

@@ -1,0 +1,188 @@
+// The Aravis backend: one GenICam camera (GigE Vision, USB3 Vision, or one of Aravis's own fake
+// devices) as a CameraSource.
+//
+// Why it is shaped this way:
+//   - Pool. Open() allocates `buffer_count` image buffers once, in memory this object owns, and
+//     wraps each in an ArvBuffer pushed to the stream. Grab() pops a filled buffer, Release()
+//     pushes it back: no allocation per frame. The memory outlives streams, so a reopen after a
+//     loss re-wraps the same blocks (a buffer the caller still holds is re-wrapped only when it
+//     is released, so its pixels are never overwritten under the reader).
+//   - Only complete frames reach the caller. Every buffer whose Aravis status is not SUCCESS, or
+//     whose geometry or pixel format differs from what was configured, is counted in
+//     CameraCounters and pushed straight back (GrabResult::kIncomplete); its pixels are never
+//     read. Aravis's fake path reports a data size of 0, so the expected size is
+//     width x height x bytes per pixel, and a non-zero reported size must cover it.
+//   - Frame ids. GigE Vision 1.x block ids are 16 bit; USB3 Vision ids are 64 bit, of which the
+//     low 16 bits are kept: Frame::frame_id is always 16 bit and Frame::sequence its unwrapped,
+//     monotonic extension (FrameIdUnwrapper), whose low 16 bits ARE the id — frame sync
+//     (reconstruction/frame_sync.h) relies on that to line up cameras that started on either
+//     side of a wrap. GigE Vision 1.x never uses id 0 (nor do the fakes: 65535 is followed by 1),
+//     so there the sequence skips one value per wrap (65535 -> 65537). After a reopen the device
+//     restarts its ids; the sequence continues from the last one delivered (sync must then
+//     re-align this camera, e.g. FrameSync::ResyncCamera on timestamps).
+//   - Loss. Aravis emits `control-lost` from its heartbeat thread (GigE: some seconds after the
+//     camera stops answering). The handler only sets a flag; the acquisition thread, in Grab(),
+//     marks the camera lost (State() == kLost, counters.losses), drops the stream and the device
+//     without talking to them, and from then on tries to reopen every `reopen_interval_ms`
+//     (GigE has no arrival event) or at once after NotifyArrived() (USB hot-plug,
+//     drivers/usb_hotplug.h). NotifyRemoved() is the same loss, reported by hot-plug. A loss
+//     touches only this camera: the other cameras' threads go on.
+//   - Devices are made by a factory, so a reopen makes a fresh one: by default
+//     arv_camera_new(id); the fake rig (drivers/aravis_fake.h) passes one that builds an
+//     ArvFakeDevice with our image generator.
+//
+// Threading: Open/Start/Stop/Grab/Reopen from the camera's acquisition thread; Release may come
+// from another thread (it takes a short lock); Counters/State/NotifyRemoved/NotifyArrived from
+// any thread.
+//
+// Usage:
+//   drivers::AravisCamera cam("Basler-acA1300-21812345");   // or AravisCamera::FromSerial(...)
+//   drivers::CameraSettings s;  s.frame_rate_hz = 200;  s.exposure_us = 400;
+//   if (Status st = cam.Open(s); !st.ok()) ...;             // names the setting and its bounds
+//   cam.Start();
+//   drivers::Frame f;
+//   while (running) {
+//     if (cam.Grab(&f) == drivers::GrabResult::kFrame) { Detect(f.image); cam.Release(f); }
+//   }
+#pragma once
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include "drivers/camera_source.h"
+
+typedef struct _ArvCamera ArvCamera;
+typedef struct _ArvStream ArvStream;
+typedef struct _ArvBuffer ArvBuffer;
+typedef struct _ArvDevice ArvDevice;
+
+namespace mocap::drivers {
+
+struct AravisCameraOptions {
+  int camera_index = -1;            // Frame::camera
+  // GigE Vision: receive with ordinary sockets instead of Aravis's packet socket (needed without
+  // CAP_NET_RAW, and for the loopback fake camera).
+  bool disable_packet_socket = false;
+  // GigE Vision: size the socket receive buffer to one payload (Aravis's "auto"), which avoids
+  // most missing-packet frames on a busy host.
+  bool auto_socket_buffer = true;
+  bool auto_reopen = true;          // Grab() retries a lost camera by itself
+  int reopen_interval_ms = 500;
+
+  bool IsValid(std::string* error) const;
+};
+
+// Builds a fresh ArvCamera (for the first open and every reopen). Returns nullptr and sets
+// *error (a message naming the device) when the device is not there.
+using ArvCameraFactory = std::function<ArvCamera*(std::string* error)>;
+
+// What the device accepted after Open(), read back from it.
+struct AppliedSettings {
+  double exposure_us = 0, gain_db = 0, frame_rate_hz = 0;
+  int roi_x = 0, roi_y = 0, width = 0, height = 0;
+  PixelFormat pixel_format = PixelFormat::kMono8;
+  std::string trigger_source;  // "" for free run, else "Software" / "Line<n>"
+  std::size_t payload_bytes = 0;
+};
+
+class AravisCamera final : public CameraSource {
+ public:
+  // By Aravis device id (arv_camera_new's name: "<vendor>-<model>-<serial>", "Aravis-<serial>"
+  // for the GigE fake, or an IP address).
+  explicit AravisCamera(std::string device_id, AravisCameraOptions options = {});
+  // With a factory (fake devices); `id` names the camera in messages.
+  AravisCamera(std::string id, ArvCameraFactory factory, AravisCameraOptions options = {});
+  // Adopts an already created camera (a reference is taken); it is used for the first Open().
+  // Without a factory a lost camera cannot be reopened.
+  AravisCamera(std::string id, ArvCamera* camera, ArvCameraFactory factory = nullptr,
+               AravisCameraOptions options = {});
+  ~AravisCamera() override;
+  AravisCamera(const AravisCamera&) = delete;
+  AravisCamera& operator=(const AravisCamera&) = delete;
+
+  // Looks the serial number up among the connected devices (arv_update_device_list).
+  static Status FromSerial(const std::string& serial, AravisCameraOptions options,
+                           std::unique_ptr<AravisCamera>* camera);
+
+  const std::string& id() const override { return id_; }
+  Status Open(const CameraSettings& settings) override;
+  Status Start() override;
+  void Stop() override;
+  GrabResult Grab(Frame* frame) override;
+  void Release(const Frame& frame) override;
+  Status Trigger() override;
+  CameraState State() const override { return state_.load(); }
+  const CameraCounters& Counters() const override { return counters_; }
+
+  const AppliedSettings& Applied() const { return applied_; }
+  // Hot-plug: the device left (same as control-lost) / arrived (reopen at the next Grab).
+  void NotifyRemoved() { lost_flag_.store(true); }
+  void NotifyArrived() { arrived_flag_.store(true); }
+  // Tries once to reopen a lost camera with the settings of the last Open(); Ok if streaming.
+  Status Reopen();
+  const std::string& LastError() const { return last_error_; }
+  // The sequence the next delivered frame gets after a reopen (last delivered + 1), or 0 if
+  // none was delivered yet. The fake rig's factory reads it (from the reopening thread) so the
+  // images it draws are numbered like the frames the caller receives.
+  std::uint64_t ResumeSequence() const { return delivered_any_ ? last_sequence_ + 1 : 0; }
+
+ private:
+  struct Slot {
+    std::unique_ptr<std::uint8_t[]> memory;
+    ArvBuffer* buffer = nullptr;  // wraps memory for the current stream generation
+    int generation = -1;
+    bool outstanding = false;     // held by the caller
+  };
+  static void OnControlLost(ArvDevice* device, void* self);
+
+  Status Connect();              // factory -> camera_, apply settings
+  Status ApplySettings();
+  Status CreateStreamAndPool();  // stream_, slots wrapped and pushed
+  void TearDown(bool device_gone);
+  void MarkLost();
+  GrabResult Classify(ArvBuffer* buffer, Frame* frame, Slot** slot);
+  std::uint64_t StreamUnderruns() const;
+
+  std::string id_;
+  ArvCameraFactory factory_;
+  AravisCameraOptions options_;
+  CameraSettings settings_;
+  AppliedSettings applied_;
+  std::string last_error_;
+
+  ArvCamera* camera_ = nullptr;
+  ArvStream* stream_ = nullptr;
+  unsigned long control_lost_handler_ = 0;
+  bool acquiring_ = false;
+  bool opened_ = false;
+
+  std::mutex pool_mutex_;  // slots_ and stream_ against Release from another thread
+  std::vector<Slot> slots_;
+  std::size_t slot_bytes_ = 0;
+  int generation_ = 0;
+
+  FrameIdUnwrapper unwrapper_;
+  std::uint64_t sequence_offset_ = 0;
+  std::uint64_t last_sequence_ = 0;
+  bool delivered_any_ = false;
+  bool resume_sequence_ = false;
+
+  std::atomic<CameraState> state_{CameraState::kClosed};
+  std::atomic<bool> lost_flag_{false};
+  std::atomic<bool> arrived_flag_{false};
+  std::chrono::steady_clock::time_point last_reopen_attempt_{};
+  std::uint64_t underrun_base_ = 0;  // Aravis's underruns of the streams before this one
+  CameraCounters counters_;
+};
+
+// The pixel format as Aravis names it (ARV_PIXEL_FORMAT_MONO_8, ...), and back (false for
+// formats the pipeline does not take).
+std::uint32_t ToArvPixelFormat(PixelFormat format);
+bool FromArvPixelFormat(std::uint32_t arv_format, PixelFormat* format);
+
+}  // namespace mocap::drivers

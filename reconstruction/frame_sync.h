@@ -1,0 +1,137 @@
+// Frame-set sync: groups the per-camera detections of one instant into a DetectionSet.
+//
+// Two ways to say "the same instant":
+//
+//  * kSequence: by frame id. With a hardware trigger and acquisition started together, every
+//    camera numbers the same trigger pulse alike. Device ids wrap (16 bit on GigE Vision), and each
+//    source unwraps its own ids, so two sources that started on either side of a wrap disagree on
+//    the unwrapped value by 65,536. The sync therefore keeps only the low `sequence_bits` bits of
+//    CameraDetections::sequence and unwraps them itself, once for the whole rig, against the
+//    newest id seen: id = newest + (low - newest) taken modulo 2^bits into [-2^(bits-1), 2^(bits-1)).
+//    Cameras whose counters were NOT reset together are not handled by this mode (use kTimestamp).
+//
+//  * kTimestamp: by device timestamp. Camera clocks are not one clock: each camera c has an
+//    offset o_c (its clock's epoch) that is estimated, not assumed. For the first
+//    `offset_warmup_frames` frames of a camera, o_c = min over its frames of (device - host
+//    arrival time): the host clock is common to all cameras and the transport only ever adds
+//    latency, so the minimum picks the fastest delivery and the cameras' corrected times
+//    t = device - o_c agree to within the difference of their best latencies (which must stay
+//    below the tolerance: cameras on like links). After the warm-up, every emitted set refines
+//    each present camera's offset by gain x (t_c - median of the set's t), which follows the
+//    slow relative drift of the camera clocks (tens of ppm) without reacting to single-frame
+//    jitter. A frame joins the pending set whose reference time (the running mean of its
+//    members' t) is within `tolerance_ns` of its own t. With PTP-synchronised cameras (GigE
+//    Vision 2.0), set estimate_offsets = false and give the known offsets (or none: zeros).
+//    A set's sequence is then the sequence of its lowest-numbered present camera, and its
+//    timestamp_ns the median of its members' CORRECTED times (device - o_c: the rig's common
+//    timeline, which runs with the host clock, offset by the fastest delivery latency).
+//
+// Emission, in order of sequence (or time): a set is emitted as soon as every camera has
+// contributed (complete). A pending set older than one that completes is emitted first, as
+// INCOMPLETE (cameras deliver their own frames in order, so a camera that already delivered a
+// later frame will not deliver this one). A set is also emitted incomplete when it is the oldest
+// and the window holds more than `max_pending_sets`, or when `timeout_ns` of host time passed
+// since its first image arrived (checked on every Add, with the arriving frame's host time, and
+// on Poll). An incomplete set has present[c] = false and an empty CameraDetections for each
+// missing camera. A frame for a set already emitted (or older) is LATE: counted and dropped. A
+// second frame of the same camera for the same pending set is a DUPLICATE: counted and dropped
+// (the first is kept).
+//
+// Memory is bounded: at most max_pending_sets sets are held. Threading: NOT thread-safe; the
+// pipeline funnels every camera's detections through one queue into one sync thread.
+#pragma once
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "model/status.h"
+#include "reconstruction/centroid.h"
+
+namespace mocap::reconstruction {
+
+struct FrameSyncOptions {
+  enum class Mode { kSequence, kTimestamp };
+
+  int num_cameras = 0;
+  Mode mode = Mode::kSequence;
+  // kSequence: how many low bits of the frame sequence are meaningful (16 for GigE Vision block
+  // ids; 64 when the sources' sequences are already consistent across the rig).
+  int sequence_bits = 16;
+  // Window: pending (not yet emitted) sets held at most.
+  int max_pending_sets = 8;
+  // Host time after the first image of a set arrived at which it is emitted incomplete
+  // (0: never; the window and later complete sets still emit it).
+  std::uint64_t timeout_ns = 100'000'000;
+
+  // kTimestamp: frames of one set lie within this of the set's reference time; keep it below half
+  // the frame period.
+  std::uint64_t tolerance_ns = 1'000'000;
+  bool estimate_offsets = true;
+  int offset_warmup_frames = 20;
+  double offset_tracking_gain = 0.05;
+  // Known per-camera clock offsets (device - common time), used as given when estimate_offsets is
+  // false; empty means zeros. Ignored when estimating.
+  std::vector<std::int64_t> camera_offsets_ns;
+
+  bool IsValid(std::string* error) const;
+};
+
+struct FrameSyncCounters {
+  std::uint64_t frames = 0;      // detections offered to Add
+  std::uint64_t complete = 0;    // sets emitted with every camera
+  std::uint64_t incomplete = 0;  // sets emitted with a camera missing
+  std::uint64_t late = 0;        // frames for a set already emitted, dropped
+  std::uint64_t duplicate = 0;   // second frame of a camera for the same set, dropped
+  std::vector<std::uint64_t> missing;  // per camera: emitted sets without it
+};
+
+class FrameSync {
+ public:
+  FrameSync() = default;
+  // Validates the options and starts empty (counters zeroed). Must succeed before Add.
+  Status Reset(const FrameSyncOptions& options);
+
+  // Takes one camera's detections; appends to `ready` every set this completes or releases, in
+  // order. Errors: not Reset, camera index outside the rig, null `ready`.
+  Status Add(CameraDetections detections, std::vector<DetectionSet>* ready);
+  // Emits the sets whose timeout has passed at host time `host_now_ns`.
+  void Poll(std::uint64_t host_now_ns, std::vector<DetectionSet>* ready);
+  // Emits every pending set (at the end of a recording).
+  void Flush(std::vector<DetectionSet>* ready);
+  // A camera came back (unplugged and reconnected, restarted): its clock and its frame ids
+  // started again. kTimestamp: its offset is estimated afresh from its next frames (the warm-up
+  // above). kSequence: an error, as the new ids cannot be placed against the rig's without a
+  // common trigger count; run such rigs in kTimestamp mode.
+  Status ResyncCamera(int camera);
+
+  const FrameSyncCounters& counters() const { return counters_; }
+  int pending() const { return static_cast<int>(pending_.size()); }
+  // kTimestamp: the current clock offset of camera c (device - common time), in ns.
+  std::int64_t offset_ns(int camera) const;
+
+ private:
+  struct Pending {
+    std::int64_t key = 0;  // kSequence: rig-unwrapped id; kTimestamp: reference time (running mean)
+    int count = 0;
+    std::vector<std::int64_t> times;  // corrected (kTimestamp) or device time per camera
+    DetectionSet set;
+  };
+
+  std::int64_t UnwrapSequence(std::uint64_t sequence);
+  void EmitFront(std::vector<DetectionSet>* ready);
+  void EmitTimedOut(std::uint64_t host_now_ns, std::vector<DetectionSet>* ready);
+
+  bool initialised_ = false;
+  FrameSyncOptions options_;
+  FrameSyncCounters counters_;
+  std::vector<Pending> pending_;  // sorted by key, oldest first
+  bool emitted_any_ = false;
+  std::int64_t last_emitted_key_ = 0;
+  bool seen_any_ = false;
+  std::int64_t newest_key_ = 0;
+  std::vector<std::int64_t> offsets_;
+  std::vector<int> offset_frames_;
+  std::vector<std::int64_t> scratch_;
+};
+
+}  // namespace mocap::reconstruction

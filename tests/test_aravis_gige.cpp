@@ -1,0 +1,174 @@
+// The Aravis backend over real GigE Vision sockets: Aravis's GigE fake camera on 127.0.0.1
+// (drivers/aravis_fake.h: GvFakeCamera), opened as "Aravis-<serial>" with the packet socket
+// disabled. One GigE fake per IP address: the tests run one after the other.
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <chrono>
+#include <thread>
+#include <vector>
+
+#include "drivers/aravis_camera.h"
+#include "drivers/aravis_fake.h"
+#include "tests/aravis_test_util.h"
+
+namespace mocap::drivers {
+namespace {
+
+using testing::CheckPattern;
+using testing::DrawPattern;
+
+// ctest may run these tests in parallel processes: wait for the address rather than fail.
+constexpr double kWaitForAddress = 30.0;
+
+AravisCameraOptions GvOptions(int index = 0) {
+  AravisCameraOptions o;
+  o.camera_index = index;
+  o.disable_packet_socket = true;
+  o.reopen_interval_ms = 300;
+  return o;
+}
+
+template <typename Pred>
+bool WaitFor(Pred pred, double seconds) {
+  const auto end = std::chrono::steady_clock::now() + std::chrono::duration<double>(seconds);
+  while (!pred() && std::chrono::steady_clock::now() < end) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  return pred();
+}
+
+TEST(AravisGigE, SoftwareTrigger) {
+  GvFakeCamera fake("MOCAPGV1", 0, DrawPattern, 256, 192);
+  ASSERT_TRUE(fake.Create(kWaitForAddress).ok());
+  AravisCamera cam(fake.device_id(), GvOptions());
+  CameraSettings s;
+  s.trigger = TriggerMode::kSoftware;
+  s.timeout_ms = 300;
+  Status st = cam.Open(s);
+  ASSERT_TRUE(st.ok()) << st.message();
+  EXPECT_EQ(cam.Applied().trigger_source, "Software");
+  EXPECT_EQ(cam.Applied().width, 256);
+  ASSERT_TRUE(cam.Start().ok());
+  Frame f;
+  EXPECT_EQ(cam.Grab(&f), GrabResult::kTimeout);  // no trigger, no frame
+  int frames = 0;
+  for (int k = 0; k < 5; ++k) {
+    ASSERT_TRUE(cam.Trigger().ok());
+    const GrabResult r = cam.Grab(&f);
+    if (r != GrabResult::kFrame) continue;  // a busy host may lose a packet: counted, not here
+    std::uint64_t stamped;
+    EXPECT_TRUE(CheckPattern(f, &stamped));
+    ++frames;
+    cam.Release(f);
+  }
+  EXPECT_GE(frames, 3);
+  EXPECT_EQ(cam.Counters().complete.load() + cam.Counters().missing_packets.load() +
+                cam.Counters().other_errors.load(),
+            5u);
+  cam.Stop();
+}
+
+// Packets dropped by the fake: frames with missing packets are counted and never delivered;
+// every delivered frame is the exact image that was drawn.
+TEST(AravisGigE, PacketLossCountedNeverDelivered) {
+  GvFakeCamera fake("MOCAPGV2", 0, DrawPattern, 256, 192);
+  ASSERT_TRUE(fake.Create(kWaitForAddress).ok());
+  fake.SetPacketLossRatio(0.05);  // ~35 packets per frame: most frames lose one
+  AravisCamera cam(fake.device_id(), GvOptions());
+  CameraSettings s;
+  s.frame_rate_hz = 100;
+  s.timeout_ms = 300;
+  ASSERT_TRUE(cam.Open(s).ok());
+  ASSERT_TRUE(cam.Start().ok());
+  int frames = 0, incomplete = 0, bad = 0;
+  for (int k = 0; k < 100; ++k) {
+    Frame f;
+    const GrabResult r = cam.Grab(&f);
+    if (r == GrabResult::kIncomplete) ++incomplete;
+    if (r != GrabResult::kFrame) continue;
+    std::uint64_t stamped;
+    if (!CheckPattern(f, &stamped)) ++bad;
+    ++frames;
+    cam.Release(f);
+  }
+  cam.Stop();
+  const CameraCounters& c = cam.Counters();
+  std::printf("packet loss 5%%: %d frames delivered, %d incomplete (missing packets %llu)\n",
+              frames, incomplete, static_cast<unsigned long long>(c.missing_packets.load()));
+  EXPECT_EQ(bad, 0);
+  EXPECT_GE(c.missing_packets.load(), 10u);
+  EXPECT_EQ(static_cast<int>(c.complete.load()), frames);
+}
+
+// The GigE camera vanishes mid-stream (the fake destroyed): Aravis's heartbeat reports
+// control-lost, the camera is marked lost while two other cameras go on; when the fake comes back
+// the camera is reopened by itself and streams again.
+TEST(AravisGigE, DeviceLossAndReturn) {
+  GvFakeCamera fake("MOCAPGV3", 0, DrawPattern, 256, 192);
+  ASSERT_TRUE(fake.Create(kWaitForAddress).ok());
+  FakeRigOptions ro;
+  ro.cameras = 2;
+  ro.width = 160;
+  ro.height = 128;
+  AravisFakeRig others(ro, DrawPattern);
+  std::vector<std::unique_ptr<AravisCamera>> cams;
+  cams.push_back(std::make_unique<AravisCamera>(fake.device_id(), GvOptions(0)));
+  cams.push_back(others.MakeCamera(0));
+  cams.push_back(others.MakeCamera(1));
+  CameraSettings s;
+  s.frame_rate_hz = 100;
+  s.timeout_ms = 200;
+  for (auto& c : cams) {
+    Status st = c->Open(s);
+    ASSERT_TRUE(st.ok()) << st.message();
+    ASSERT_TRUE(c->Start().ok());
+  }
+  std::atomic<bool> stop{false};
+  std::atomic<int> frames[3] = {0, 0, 0};
+  std::atomic<int> bad{0};
+  std::vector<std::thread> threads;
+  for (int i = 0; i < 3; ++i) {
+    threads.emplace_back([&, i] {
+      std::uint64_t last = 0;
+      bool any = false;
+      while (!stop.load()) {
+        Frame f;
+        if (cams[i]->Grab(&f) != GrabResult::kFrame) continue;
+        std::uint64_t stamped;
+        if (!CheckPattern(f, &stamped) || (any && f.sequence <= last)) ++bad;
+        last = f.sequence;
+        any = true;
+        ++frames[i];
+        cams[i]->Release(f);
+      }
+    });
+  }
+  ASSERT_TRUE(WaitFor([&] { return frames[0] > 10 && frames[1] > 10 && frames[2] > 10; }, 5));
+  fake.Destroy();
+  const auto t_gone = std::chrono::steady_clock::now();
+  ASSERT_TRUE(WaitFor([&] { return cams[0]->State() == CameraState::kLost; }, 15));
+  const double detect_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t_gone).count();
+  EXPECT_EQ(cams[0]->Counters().losses.load(), 1u);
+  const int others_at = frames[1] + frames[2];
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  EXPECT_GE(frames[1] + frames[2] - others_at, 20);  // ~60 expected: the others go on
+
+  ASSERT_TRUE(fake.Create(kWaitForAddress).ok());
+  const int lost_at = frames[0];
+  ASSERT_TRUE(WaitFor([&] { return frames[0] > lost_at + 10; }, 10));
+  const double back_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t_gone).count();
+  stop = true;
+  for (auto& t : threads) t.join();
+  std::printf("GigE loss detected after %.1f s; streaming again %.1f s after the loss\n",
+              detect_s, back_s);
+  EXPECT_EQ(cams[0]->State(), CameraState::kStreaming);
+  EXPECT_EQ(cams[0]->Counters().reopens.load(), 1u);
+  EXPECT_EQ(cams[1]->Counters().losses.load() + cams[2]->Counters().losses.load(), 0u);
+  EXPECT_EQ(bad.load(), 0);
+}
+
+}  // namespace
+}  // namespace mocap::drivers

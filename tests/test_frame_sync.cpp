@@ -1,0 +1,318 @@
+// Frame-set sync across cameras (reconstruction/frame_sync.h): wrapping ids, missing cameras,
+// late and duplicate frames, the window bound, timeouts, and timestamps with per-camera clock
+// offsets, drift and jitter.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <random>
+#include <vector>
+
+#include "drivers/frame.h"
+#include "reconstruction/frame_sync.h"
+
+namespace mocap::reconstruction {
+namespace {
+
+constexpr std::uint64_t kMs = 1'000'000;
+
+CameraDetections Det(int camera, std::uint64_t sequence, std::uint64_t host_ns,
+                     std::uint64_t device_ns = 0) {
+  CameraDetections d;
+  d.camera = camera;
+  d.sequence = sequence;
+  d.host_timestamp_ns = host_ns;
+  d.device_timestamp_ns = device_ns;
+  Centroid c;
+  c.pixel = Eigen::Vector2d(camera, static_cast<double>(sequence));  // identifies the frame
+  d.centroids.push_back(c);
+  return d;
+}
+
+FrameSyncOptions SeqOptions(int cameras) {
+  FrameSyncOptions o;
+  o.num_cameras = cameras;
+  o.mode = FrameSyncOptions::Mode::kSequence;
+  o.timeout_ns = 0;
+  return o;
+}
+
+TEST(FrameSync, WrappingIdsFromSourcesThatUnwrappedDifferently) {
+  // Three cameras, 16-bit ids through the wrap. Camera 2 starts two frames late, after the wrap,
+  // so its own unwrapper calls id 0 sequence 0 while the others call it 65,536.
+  FrameSync sync;
+  ASSERT_TRUE(sync.Reset(SeqOptions(3)).ok());
+  drivers::FrameIdUnwrapper unwrap[3];
+  std::vector<DetectionSet> out;
+  std::uint16_t id = 65530;
+  for (int f = 0; f < 20; ++f, ++id) {
+    for (int c = 0; c < 3; ++c) {
+      if (c == 2 && f < 6) continue;  // camera 2 not started yet (first id 0)
+      ASSERT_TRUE(sync.Add(Det(c, unwrap[c].Next(id), f * 5 * kMs), &out).ok());
+    }
+  }
+  sync.Flush(&out);
+  ASSERT_EQ(out.size(), 20u);
+  for (std::size_t i = 0; i < out.size(); ++i) {
+    EXPECT_EQ(out[i].sequence, 65530u + i);  // rig-unwrapped, increasing across the wrap
+    EXPECT_EQ(out[i].present_count(), i < 6 ? 2 : 3);
+    for (int c = 0; c < 3; ++c) {
+      if (!out[i].present[c]) continue;
+      // Every member has the same 16-bit id.
+      EXPECT_EQ(out[i].cameras[c].sequence & 0xFFFF, (65530u + i) & 0xFFFF);
+    }
+  }
+  EXPECT_EQ(sync.counters().complete, 14u);
+  EXPECT_EQ(sync.counters().incomplete, 6u);
+  EXPECT_EQ(sync.counters().missing[2], 6u);
+  EXPECT_EQ(sync.counters().late, 0u);
+}
+
+TEST(FrameSync, MissingCameraGivesAnIncompleteSetReleasedByTheNextCompleteOne) {
+  FrameSync sync;
+  ASSERT_TRUE(sync.Reset(SeqOptions(3)).ok());
+  std::vector<DetectionSet> out;
+  for (std::uint64_t s = 100; s < 103; ++s)
+    for (int c = 0; c < 3; ++c) {
+      if (s == 101 && c == 1) continue;  // camera 1 lost frame 101
+      ASSERT_TRUE(sync.Add(Det(c, s, s * kMs), &out).ok());
+      if (s == 101) EXPECT_EQ(out.size(), 1u);  // 101 waits for camera 1
+    }
+  ASSERT_EQ(out.size(), 3u);
+  EXPECT_EQ(out[1].sequence, 101u);
+  EXPECT_FALSE(out[1].present[1]);
+  EXPECT_TRUE(out[1].present[0] && out[1].present[2]);
+  EXPECT_TRUE(out[1].cameras[1].centroids.empty());
+  EXPECT_EQ(out[1].cameras[1].camera, 1);
+  EXPECT_EQ(out[1].cameras[2].centroids[0].pixel.y(), 101);
+  EXPECT_EQ(out[2].sequence, 102u);
+  EXPECT_EQ(out[2].present_count(), 3);
+  EXPECT_EQ(sync.counters().complete, 2u);
+  EXPECT_EQ(sync.counters().incomplete, 1u);
+  EXPECT_EQ(sync.counters().missing[1], 1u);
+  EXPECT_EQ(sync.pending(), 0);
+}
+
+TEST(FrameSync, LateAndDuplicateFramesAreCountedAndDropped) {
+  FrameSync sync;
+  ASSERT_TRUE(sync.Reset(SeqOptions(2)).ok());
+  std::vector<DetectionSet> out;
+  ASSERT_TRUE(sync.Add(Det(0, 10, 0), &out).ok());
+  ASSERT_TRUE(sync.Add(Det(0, 10, 1), &out).ok());  // duplicate, set 10 still pending
+  EXPECT_EQ(sync.counters().duplicate, 1u);
+  ASSERT_TRUE(sync.Add(Det(0, 11, 2), &out).ok());
+  ASSERT_TRUE(sync.Add(Det(1, 11, 3), &out).ok());  // 11 complete: 10 goes out incomplete
+  ASSERT_EQ(out.size(), 2u);
+  ASSERT_TRUE(sync.Add(Det(1, 10, 4), &out).ok());  // camera 1's frame 10 arrives too late
+  ASSERT_TRUE(sync.Add(Det(1, 11, 5), &out).ok());  // and a repeat of an emitted set: late too
+  EXPECT_EQ(sync.counters().late, 2u);
+  EXPECT_EQ(out.size(), 2u);
+  EXPECT_EQ(out[0].cameras[0].centroids.size(), 1u);  // the first copy was kept
+  EXPECT_EQ(sync.counters().frames, 6u);
+  EXPECT_EQ(sync.counters().complete, 1u);
+  EXPECT_EQ(sync.counters().incomplete, 1u);
+}
+
+TEST(FrameSync, WindowBoundsMemoryWhenACameraDies) {
+  FrameSyncOptions o = SeqOptions(3);
+  o.max_pending_sets = 4;
+  FrameSync sync;
+  ASSERT_TRUE(sync.Reset(o).ok());
+  std::vector<DetectionSet> out;
+  for (std::uint64_t s = 0; s < 50; ++s)
+    for (int c = 0; c < 2; ++c) {  // camera 2 is gone
+      ASSERT_TRUE(sync.Add(Det(c, s, s * kMs), &out).ok());
+      EXPECT_LE(sync.pending(), 4);
+    }
+  EXPECT_EQ(out.size(), 46u);
+  sync.Flush(&out);
+  ASSERT_EQ(out.size(), 50u);
+  for (std::size_t i = 0; i < out.size(); ++i) {
+    EXPECT_EQ(out[i].sequence, i);
+    EXPECT_EQ(out[i].present_count(), 2);
+  }
+  EXPECT_EQ(sync.counters().incomplete, 50u);
+  EXPECT_EQ(sync.counters().missing[2], 50u);
+}
+
+TEST(FrameSync, TimeoutReleasesAStalledSet) {
+  FrameSyncOptions o = SeqOptions(2);
+  o.timeout_ns = 20 * kMs;
+  FrameSync sync;
+  ASSERT_TRUE(sync.Reset(o).ok());
+  std::vector<DetectionSet> out;
+  ASSERT_TRUE(sync.Add(Det(0, 5, 100 * kMs), &out).ok());
+  sync.Poll(119 * kMs, &out);
+  EXPECT_TRUE(out.empty());
+  sync.Poll(120 * kMs, &out);
+  ASSERT_EQ(out.size(), 1u);
+  EXPECT_EQ(out[0].present_count(), 1);
+  EXPECT_EQ(out[0].first_arrival_ns, 100 * kMs);
+  // The camera that stalled delivers later: late.
+  ASSERT_TRUE(sync.Add(Det(1, 5, 125 * kMs), &out).ok());
+  EXPECT_EQ(sync.counters().late, 1u);
+  // A frame's own arrival time also expires older sets.
+  ASSERT_TRUE(sync.Add(Det(0, 6, 130 * kMs), &out).ok());
+  ASSERT_TRUE(sync.Add(Det(1, 7, 151 * kMs), &out).ok());
+  ASSERT_EQ(out.size(), 2u);
+  EXPECT_EQ(out[1].sequence, 6u);
+}
+
+TEST(FrameSync, TimestampModeWithOffsetsDriftJitterAndDrops) {
+  // Four cameras at 200 Hz. Each device clock has its own epoch (seconds apart); camera 3 runs
+  // 150 ppm fast (3 ms over the run: beyond the 2 ms tolerance unless the offset tracks it);
+  // exposure timestamps jitter by 20 us; images reach the host 1-1.8 ms later, in an order
+  // shuffled by that latency. Some frames are lost. Every emitted set must hold frames of one
+  // trigger only; a lost frame gives exactly one incomplete set.
+  const int n = 4;
+  const std::int64_t epoch[n] = {0, 3'200'000'000LL, 1'700'000'000LL, 123'456'789LL};
+  const double rate[n] = {1.0, 1.0, 1.0, 1.0 + 150e-6};
+  const std::uint64_t period = 5 * kMs;
+  std::mt19937 rng(4);
+  std::normal_distribution<double> jitter(0, 20'000);
+  std::uniform_real_distribution<double> latency(1.0 * kMs, 1.8 * kMs);
+  struct Arrival {
+    std::uint64_t host;
+    CameraDetections d;
+  };
+  std::vector<Arrival> arrivals;
+  const int frames = 4000;  // 20 s
+  std::vector<std::pair<int, int>> lost = {{2, 50}, {0, 1200}, {3, 3000}};
+  for (int f = 0; f < frames; ++f) {
+    const std::uint64_t t = 10'000 * kMs + f * period;  // common (true) time
+    for (int c = 0; c < n; ++c) {
+      if (std::find(lost.begin(), lost.end(), std::make_pair(c, f)) != lost.end()) continue;
+      const auto device = static_cast<std::uint64_t>(epoch[c] + rate[c] * t + jitter(rng));
+      const auto host = static_cast<std::uint64_t>(t + latency(rng));
+      // The sequence carries the true frame index so the test can check the grouping.
+      arrivals.push_back({host, Det(c, f, host, device)});
+    }
+  }
+  std::stable_sort(arrivals.begin(), arrivals.end(),
+                   [](const Arrival& a, const Arrival& b) { return a.host < b.host; });
+  FrameSyncOptions o;
+  o.num_cameras = n;
+  o.mode = FrameSyncOptions::Mode::kTimestamp;
+  o.tolerance_ns = 2 * kMs;
+  o.timeout_ns = 50 * kMs;
+  FrameSync sync;
+  ASSERT_TRUE(sync.Reset(o).ok());
+  std::vector<DetectionSet> out;
+  for (Arrival& a : arrivals) ASSERT_TRUE(sync.Add(std::move(a.d), &out).ok());
+  sync.Flush(&out);
+  ASSERT_EQ(out.size(), static_cast<std::size_t>(frames));
+  int incomplete = 0;
+  for (int f = 0; f < frames; ++f) {
+    const DetectionSet& s = out[f];
+    for (int c = 0; c < n; ++c)
+      if (s.present[c]) ASSERT_EQ(s.cameras[c].sequence, static_cast<std::uint64_t>(f)) << "set " << f;
+    if (s.present_count() < n) {
+      ++incomplete;
+      bool expected = false;
+      for (int c = 0; c < n; ++c)
+        expected |= std::find(lost.begin(), lost.end(), std::make_pair(c, f)) != lost.end();
+      EXPECT_TRUE(expected)
+          << "set " << f;
+    }
+  }
+  EXPECT_EQ(incomplete, 3);
+  EXPECT_EQ(sync.counters().complete, static_cast<std::uint64_t>(frames - 3));
+  EXPECT_EQ(sync.counters().late + sync.counters().duplicate, 0u);
+  // The offsets found the epochs (relative to camera 0) to within the latency spread and tracked
+  // camera 3's drift.
+  for (int c = 1; c < 3; ++c)
+    EXPECT_NEAR(sync.offset_ns(c) - sync.offset_ns(0), epoch[c], 0.5 * kMs) << c;
+}
+
+TEST(FrameSync, ACameraThatRestartsIsResynchronisedInTimestampMode) {
+  // Two cameras at 100 Hz; after frame 100 camera 1 is re-plugged: its clock restarts at zero.
+  FrameSyncOptions o;
+  o.num_cameras = 2;
+  o.mode = FrameSyncOptions::Mode::kTimestamp;
+  o.tolerance_ns = 2 * kMs;
+  o.timeout_ns = 0;
+  o.offset_warmup_frames = 5;
+  FrameSync sync;
+  ASSERT_TRUE(sync.Reset(o).ok());
+  std::vector<DetectionSet> out;
+  const std::uint64_t period = 10 * kMs;
+  auto run = [&](int from, int to, std::int64_t epoch1) {
+    for (int f = from; f < to; ++f) {
+      const std::uint64_t t = 1000 * kMs + f * period;
+      ASSERT_TRUE(sync.Add(Det(0, f, t + kMs, t + 5'000 * kMs), &out).ok());
+      ASSERT_TRUE(sync.Add(Det(1, f, t + kMs, t + epoch1), &out).ok());
+    }
+  };
+  run(0, 100, 77 * kMs);
+  ASSERT_EQ(sync.counters().complete, 100u);
+  ASSERT_TRUE(sync.ResyncCamera(1).ok());
+  // The restarted clock reads about -1 s against the old offset: without the resync its frames
+  // would all be late.
+  run(100, 200, -static_cast<std::int64_t>(1000 * kMs) - 100 * static_cast<std::int64_t>(period));
+  sync.Flush(&out);
+  EXPECT_EQ(sync.counters().late, 0u);
+  EXPECT_EQ(sync.counters().complete, 200u);
+  for (const DetectionSet& s : out) ASSERT_EQ(s.cameras[0].sequence, s.cameras[1].sequence);
+  // Sequence mode refuses, naming why.
+  ASSERT_TRUE(sync.Reset(SeqOptions(2)).ok());
+  const Status s = sync.ResyncCamera(1);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("sequence mode"), std::string::npos);
+}
+
+TEST(FrameSync, TimestampModeWithKnownOffsets) {
+  FrameSyncOptions o;
+  o.num_cameras = 2;
+  o.mode = FrameSyncOptions::Mode::kTimestamp;
+  o.estimate_offsets = false;
+  o.camera_offsets_ns = {0, 7 * kMs};
+  o.tolerance_ns = kMs;
+  o.timeout_ns = 0;
+  FrameSync sync;
+  ASSERT_TRUE(sync.Reset(o).ok());
+  std::vector<DetectionSet> out;
+  ASSERT_TRUE(sync.Add(Det(0, 1, 0, 100 * kMs), &out).ok());
+  ASSERT_TRUE(sync.Add(Det(1, 9, 0, 107 * kMs + 300'000), &out).ok());
+  ASSERT_EQ(out.size(), 1u);
+  EXPECT_EQ(out[0].present_count(), 2);
+  EXPECT_EQ(out[0].sequence, 1u);  // the lowest-numbered camera's
+  // A frame near an emitted set is late; a duplicate within tolerance of a pending one counted.
+  ASSERT_TRUE(sync.Add(Det(0, 2, 0, 100 * kMs + 500'000), &out).ok());
+  EXPECT_EQ(sync.counters().late, 1u);
+  ASSERT_TRUE(sync.Add(Det(0, 3, 0, 105 * kMs), &out).ok());
+  ASSERT_TRUE(sync.Add(Det(0, 3, 0, 105 * kMs + 200'000), &out).ok());
+  EXPECT_EQ(sync.counters().duplicate, 1u);
+}
+
+TEST(FrameSync, BadOptionsAndCamerasAreErrors) {
+  FrameSync sync;
+  std::vector<DetectionSet> out;
+  Status s = sync.Add(Det(0, 0, 0), &out);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("Reset"), std::string::npos);
+  FrameSyncOptions o;
+  s = sync.Reset(o);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("num_cameras 0"), std::string::npos) << s.message();
+  o = SeqOptions(2);
+  o.max_pending_sets = 0;
+  s = sync.Reset(o);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("max_pending_sets"), std::string::npos) << s.message();
+  o = SeqOptions(2);
+  o.mode = FrameSyncOptions::Mode::kTimestamp;
+  o.estimate_offsets = false;
+  o.camera_offsets_ns = {1, 2, 3};
+  s = sync.Reset(o);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("3 entries for 2 cameras"), std::string::npos) << s.message();
+  ASSERT_TRUE(sync.Reset(SeqOptions(2)).ok());
+  s = sync.Add(Det(2, 0, 0), &out);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("camera 2 is outside the rig's 2 cameras"), std::string::npos);
+  s = sync.Add(Det(-1, 0, 0), &out);
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(sync.counters().frames, 0u);
+}
+
+}  // namespace
+}  // namespace mocap::reconstruction
