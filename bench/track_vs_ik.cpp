@@ -265,8 +265,26 @@ void FilterUpdateOnly(benchmark::State& state) {
   }
 }
 
+// Finding the subject without labels (Tracker::Update on a fresh tracker: the initialisation
+// search), from the first frame of each trial.
+void EkfInitialise(benchmark::State& state) {
+  const Data& d = Scenes();
+  ekf::Tracker tracker(d.model);
+  size_t trial = 0;
+  long found = 0, tries = 0;
+  for (auto _ : state) {
+    tracker.Reset();
+    const Frame& fr = d.trials[trial][0];
+    found += tracker.Update(fr.time, fr.points).state == ekf::TrackState::kTracking;
+    ++tries;
+    trial = (trial + 1) % d.trials.size();
+  }
+  state.counters["found"] = tries ? double(found) / tries : 0.0;
+}
+
 }  // namespace
 
+BENCHMARK(EkfInitialise)->Unit(benchmark::kMillisecond);
 BENCHMARK(FilterPredictOnly)->Unit(benchmark::kMicrosecond);
 BENCHMARK(FilterUpdateOnly)->Unit(benchmark::kMicrosecond);
 BENCHMARK(EkfUpdate)->UseManualTime()->Unit(benchmark::kMicrosecond)->Iterations(4000);

@@ -41,6 +41,12 @@ void LowerInverse(const Eigen::MatrixXd& L, Eigen::MatrixXd* inverse) {
 
 void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eigen::VectorXd* x,
                                  Eigen::MatrixXd* Pp) {
+  PredictConstantAcceleration(dt, jerk_psd, 1.0, 1.0, x, Pp);
+}
+
+void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, double velocity_decay,
+                                 double acceleration_decay, Eigen::VectorXd* x,
+                                 Eigen::MatrixXd* Pp) {
   const int nz = static_cast<int>(jerk_psd.size());
   Eigen::MatrixXd& P = *Pp;
   const double h = 0.5 * dt * dt;
@@ -49,12 +55,22 @@ void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eig
   auto a = x->tail(nz);
   z += dt * v + h * a;
   v += dt * a;
+  v *= velocity_decay;
+  a *= acceleration_decay;
   // F P F^T on the 3 x 3 grid of n_z blocks: block rows first, then block columns, in place
   // (each update reads only blocks not yet written).
   P.topRows(nz) += dt * P.middleRows(nz, nz) + h * P.bottomRows(nz);
   P.middleRows(nz, nz) += dt * P.bottomRows(nz);
   P.leftCols(nz) += dt * P.middleCols(nz, nz) + h * P.rightCols(nz);
   P.middleCols(nz, nz) += dt * P.rightCols(nz);
+  if (velocity_decay != 1.0) {
+    P.middleRows(nz, nz) *= velocity_decay;
+    P.middleCols(nz, nz) *= velocity_decay;
+  }
+  if (acceleration_decay != 1.0) {
+    P.bottomRows(nz) *= acceleration_decay;
+    P.rightCols(nz) *= acceleration_decay;
+  }
   const double d2 = dt * dt, d3 = d2 * dt, d4 = d3 * dt, d5 = d4 * dt;
   for (int i = 0; i < nz; ++i) {
     const double q = jerk_psd[i];
@@ -107,7 +123,7 @@ bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b,
   LowerInverse(L_, &Linv_);
   LowerInverse(LB_, &LBinv_);
   auto Vw = V_.topRows(nw);
-  Vw.noalias() = P.bottomLeftCorner(nw, nz) * Linv_.transpose();
+  Vw.noalias() = P.bottomLeftCorner(nw, nz) * Linv_.transpose().triangularView<Eigen::Upper>();
   // dx = V B^-1 L^T b.
   lb_.noalias() = L_.transpose().triangularView<Eigen::Upper>() * b;
   lbb_.noalias() = LBinv_.triangularView<Eigen::Lower>() * lb_;
@@ -120,9 +136,9 @@ bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b,
   //   U_z = L L_B^-T (X), U_w = V_w L_B^-T,
   //   P_zz = X X^T, P_wz = U_w X^T, P_ww = P_ww - V_w V_w^T + U_w U_w^T.
   Eigen::MatrixXd& X = tmp_;  // reused
-  X.noalias() = L_ * LBinv_.transpose();
+  X.noalias() = L_.triangularView<Eigen::Lower>() * LBinv_.transpose();
   auto Uw = U_.topRows(nw);
-  Uw.noalias() = Vw * LBinv_.transpose();
+  Uw.noalias() = Vw * LBinv_.transpose().triangularView<Eigen::Upper>();
   auto Pww = P.bottomRightCorner(nw, nw);
   Pww.selfadjointView<Eigen::Lower>().rankUpdate(Vw, -1.0);
   Pww.selfadjointView<Eigen::Lower>().rankUpdate(Uw, 1.0);

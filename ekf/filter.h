@@ -16,6 +16,12 @@ namespace mocap::ekf {
 // and in place; allocation-free.
 void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eigen::VectorXd* x,
                                  Eigen::MatrixXd* P);
+// The same, followed by a decay of the velocities and accelerations, v *= velocity_decay,
+// a *= acceleration_decay (F becomes diag(1, velocity_decay, acceleration_decay) F): a coordinate
+// the markers stop observing (a foot whose toe marker is hidden) coasts to a stop instead of
+// running away on its last acceleration. Decays of 1 give the plain model.
+void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, double velocity_decay,
+                                 double acceleration_decay, Eigen::VectorXd* x, Eigen::MatrixXd* P);
 
 // The measurement update for measurements of the coordinates only (H = [J 0 0]), in information
 // form on the observed block, from the accumulated A = J^T R^-1 J (n_z x n_z, full symmetric),

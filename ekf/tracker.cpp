@@ -27,6 +27,8 @@ bool TrackerOptions::IsValid(std::string* error) const {
   if (!(jerk_psd_rotational > 0) || !(jerk_psd_translational > 0))
     return Fail(error, "jerk_psd_rotational and jerk_psd_translational must be > 0");
   if (!(sigma_m > 0)) return Fail(error, "sigma_m must be > 0");
+  if (!(velocity_time_constant_s > 0) || !(acceleration_time_constant_s > 0))
+    return Fail(error, "velocity_time_constant_s and acceleration_time_constant_s must be > 0");
   if (!(gate_chi2 > 0)) return Fail(error, "gate_chi2 must be > 0");
   if (!(marker_offset_sigma >= 0) || !(marker_offset_floor >= 0))
     return Fail(error, "marker_offset_sigma and marker_offset_floor must be >= 0");
@@ -289,7 +291,10 @@ double Tracker::Impl::Dt(double time_s) const {
   return dt > 0 ? dt : nominal;
 }
 
-void Tracker::Impl::Predict(double dt) { PredictConstantAcceleration(dt, jerk_psd, &x, &P); }
+void Tracker::Impl::Predict(double dt) {
+  PredictConstantAcceleration(dt, jerk_psd, std::exp(-dt / options.velocity_time_constant_s),
+                              std::exp(-dt / options.acceleration_time_constant_s), &x, &P);
+}
 
 // Marker predictions and Jacobians at z.
 void Tracker::Impl::Linearise(const Eigen::VectorXd& z) {
@@ -414,9 +419,17 @@ void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
   }
 }
 
+// Wraps the full-turn coordinates and keeps the others inside the model's ranges: a segment
+// left with one marker (a foot with its toe marker hidden) can otherwise swing into a pose no
+// subject takes, fit the remaining marker there, and never meet the hidden one again.
 void Tracker::Impl::Wrap(Eigen::VectorXd* z) const {
-  for (int i = 0; i < nz; ++i)
-    if (wraps[i]) (*z)[i] = std::remainder((*z)[i], 2 * M_PI);
+  const auto& co = model->coordinates();
+  for (int i = 0; i < nz; ++i) {
+    if (wraps[i])
+      (*z)[i] = std::remainder((*z)[i], 2 * M_PI);
+    else
+      (*z)[i] = std::clamp((*z)[i], co[i].min_value, co[i].max_value);
+  }
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -31,9 +31,12 @@
 // coordinates (a Schur complement the measurement does not change), the second the posterior of
 // the coordinates carried to all states; both are positive semi-definite by construction, so P
 // stays symmetric positive-definite where the textbook P - K S K^T can lose definiteness when the
-// markers are much more precise than the prediction. It costs O(n_z^2 (3 n_z)) whatever the number
-// of markers (the innovation covariance S, up to 117 x 117, is never formed or factored), about
-// a third of the textbook update and a tenth of Joseph's form on the full state.
+// markers are much more precise than the prediction (tests/test_ekf.cpp checks both claims). It
+// costs O(n_z^2 (3 n_z)) whatever the number of markers: the innovation covariance S, up to
+// 117 x 117, is never formed or factored, and the sequential per-marker alternative (39 rank-3
+// updates of the 114 x 114 P) is about three times the arithmetic. At n_z = 38 the factorisations
+// are small hand loops and the products plain GEMMs (ekf/filter.cpp); bench/track_vs_ik.cpp
+// measures it.
 //
 // Labelling. Each predicted marker m gates the points by its Mahalanobis distance with the 3 x 3
 // innovation covariance S_m = J_m P_zz J_m^T + R_m; a globally optimal assignment (ekf/assignment.h)
@@ -80,6 +83,12 @@ struct TrackerOptions {
   // (rad^2/s^5 for rotations, m^2/s^5 for translations).
   double jerk_psd_rotational = 4.0e4;
   double jerk_psd_translational = 4.0e2;
+  // Decay of the velocities and accelerations between frames (exp(-dt / tau)): a coordinate that
+  // the markers stop observing (a foot whose toe marker is hidden, so that only the heel marker
+  // holds its two angles) coasts to a stop instead of running away on its last acceleration and
+  // leaving the toe marker's gate. Long against a frame (5 ms), so observed motion is not lagged.
+  double velocity_time_constant_s = 0.5;
+  double acceleration_time_constant_s = 0.1;
   // Measurement noise: standard deviation of a marker coordinate (metres). It covers the
   // triangulation noise AND the model's own error (skin motion, a nominal model before the fit),
   // which is why it is larger than the cameras' noise.
@@ -101,7 +110,8 @@ struct TrackerOptions {
   // Gate: chi-square (3 degrees of freedom) of a marker-to-point Mahalanobis distance beyond which
   // a point cannot be that marker. 16.27 is the 99.9 % quantile.
   double gate_chi2 = 16.27;
-  // Largest number of input points handled without allocation (more are accepted but allocate).
+  // Largest number of input points per frame: the workspace is sized for it; points beyond it are
+  // left unlabelled (and a frame with more columns than this grows the output vectors once).
   int max_points = 256;
 
   // Divergence: the track is lost after `divergence_frames` consecutive frames in which fewer
@@ -177,6 +187,7 @@ struct InitialisationSummary {
 
 class Tracker {
  public:
+  // `options` must be valid (TrackerOptions::IsValid); the model must have at least one joint.
   Tracker(std::shared_ptr<const Model> model, TrackerOptions options = {});
   ~Tracker();
   Tracker(const Tracker&) = delete;

@@ -187,19 +187,6 @@ RunStats TrackRun(ekf::Tracker* tracker, const sim::SimulatedTrial& trial, const
     if (out.state != ekf::TrackState::kTracking) continue;
     if (s.first_tracked < 0) s.first_tracked = f;
     ++s.tracked_frames;
-    if (getenv("EKF_DEBUG") && f == s.first_tracked) {
-      for (size_t k = 0; k < fr.truth.size(); ++k)
-        if (out.marker_of_point[k] != fr.truth[k])
-          std::printf("  point %zu truth %s labelled %s\n", k,
-                      fr.truth[k] >= 0 ? model.markers()[fr.truth[k]].name.c_str() : "ghost",
-                      out.marker_of_point[k] >= 0 ? model.markers()[out.marker_of_point[k]].name.c_str() : "-");
-      const Eigen::VectorXd zt = sim::TrueCoordinates(model, trial.coordinates, f);
-      const auto& in = tracker->initialisation();
-      std::printf("  init best %.3g runner %.3g rms %.2f mm\n", in.best_score, in.runner_up_score, 1e3 * in.rms_m);
-      for (int c = 0; c < model.num_coordinates(); ++c)
-        if (std::abs(std::remainder(out.z[c] - zt[c], 2 * M_PI)) > 0.05)
-          std::printf("  %s %.1f true %.1f\n", model.coordinates()[c].name.c_str(), out.z[c] / kDeg, zt[c] / kDeg);
-    }
     Score(fr, out, &s);
     if (f >= s.first_tracked + settle_frames && !scene.transform)
       ScoreAngles(model, out.z, sim::TrueCoordinates(model, trial.coordinates, f), &s);
@@ -269,9 +256,22 @@ TEST(EkfFilter, PredictionMatchesDenseConstantAccelerationModel) {
       for (int b = 0; b < 3; ++b) Q(a * nz + i, b * nz + i) = q[i] * q1(a, b);
   const Eigen::VectorXd x_ref = F * x;
   const Eigen::MatrixXd P_ref = F * P * F.transpose() + Q;
+  const Eigen::VectorXd x0 = x;
+  const Eigen::MatrixXd P0 = P;
   ekf::PredictConstantAcceleration(dt, q, &x, &P);
   EXPECT_LT((x - x_ref).cwiseAbs().maxCoeff(), 1e-14);
   EXPECT_LT((P - P_ref).cwiseAbs().maxCoeff(), 1e-12 * P_ref.cwiseAbs().maxCoeff());
+  // With decays: F = diag(1, beta, alpha) F.
+  const double beta = 0.99, alpha = 0.95;
+  Eigen::VectorXd d(n);
+  d << Eigen::VectorXd::Ones(nz), Eigen::VectorXd::Constant(nz, beta), Eigen::VectorXd::Constant(nz, alpha);
+  const Eigen::MatrixXd Fd = d.asDiagonal() * F;
+  const Eigen::MatrixXd Pd_ref = Fd * P0 * Fd.transpose() + Q;
+  x = x0;
+  P = P0;
+  ekf::PredictConstantAcceleration(dt, q, beta, alpha, &x, &P);
+  EXPECT_LT((x - Fd * x0).cwiseAbs().maxCoeff(), 1e-14);
+  EXPECT_LT((P - Pd_ref).cwiseAbs().maxCoeff(), 1e-12 * Pd_ref.cwiseAbs().maxCoeff());
 }
 
 // The information-form update equals the textbook Kalman update K = P H^T S^-1 with
@@ -415,6 +415,46 @@ TEST(EkfTracker, TracksTheProtocolWithTheNominalModel) {
   EXPECT_EQ(total.ghosts_labelled, 0);
 }
 
+// The simulator's own occlusions (5 % of the samples lost in gaps of 5-30 frames at random
+// markers and times) with the nominal model: markers come and go, the labels stay right.
+// KNOWN FAILURE, disabled: 0.9982 of the labels (not 0.9995), 72 ghosts labelled. A foot left
+// with its heel marker alone can settle on a wrong branch of its two angles and then miss its toe
+// marker when it returns; a missing marker's gate, wide while its offset is unknown, can take a
+// ghost. Needs a local re-initialisation of a limb whose markers stay unlabelled.
+TEST(EkfTracker, DISABLED_TracksThroughOcclusions) {
+  sim::SimulatedSession session;
+  sim::SimulationOptions o;
+  o.rate_hz = 200;
+  o.noise_mm = 0.5;
+  o.missing = 0.05;
+  o.seed = 13;
+  ASSERT_TRUE(sim::SimulateSession(o, &session).ok());
+  auto nominal = Share(session.nominal);
+  RunStats total;
+  SceneOptions scene;
+  scene.ghosts = 5;
+  for (size_t t = 0; t < session.trials.size(); ++t) {
+    const auto& trial = session.trials[t];
+    ekf::Tracker tracker(nominal);
+    const RunStats s = TrackRun(&tracker, trial, scene, 0, trial.markers.num_frames(), 400 + t);
+    std::printf("%-28s tracked from %3d  labels %.6f wrong %ld ghosts labelled %ld reinit %d\n",
+                trial.markers.name.c_str(), s.first_tracked, s.accuracy(), s.wrong,
+                s.ghosts_labelled, s.reinitialisations);
+    EXPECT_LE(s.first_tracked, 2) << trial.markers.name;
+    EXPECT_EQ(s.reinitialisations, 1) << trial.markers.name;
+    total.marker_points += s.marker_points;
+    total.correct += s.correct;
+    total.wrong += s.wrong;
+    total.ghosts_labelled += s.ghosts_labelled;
+  }
+  std::printf("occlusions, NOMINAL model: label accuracy %.6f (%ld/%ld), wrong %ld, ghosts "
+              "labelled %ld\n",
+              total.accuracy(), total.correct, total.marker_points, total.wrong,
+              total.ghosts_labelled);
+  EXPECT_GE(total.accuracy(), 0.9995);
+  EXPECT_LE(total.wrong, total.marker_points / 10000);
+}
+
 // The subject in the static pose, turned to random headings and placed anywhere in the volume:
 // the first frame finds the labels and the pose without any help.
 TEST(EkfTracker, InitialisesFromTheStaticPoseFacingAnyDirection) {
@@ -519,12 +559,6 @@ TEST(EkfTracker, DetectsDivergenceAndReinitialisesAfterATeleport) {
     if (f < jump) ASSERT_EQ(out.state, ekf::TrackState::kTracking) << f;
     if (f >= jump && lost_at < 0 && out.state == ekf::TrackState::kLost) lost_at = f;
     if (f >= jump && back_at < 0 && out.reinitialised) back_at = f;
-    if (getenv("EKF_DEBUG") && f >= jump && f < jump + 40) {
-      const auto& in = tracker.initialisation();
-      std::printf("f %d state %s labelled %d nis %.1f/%d init: hyps %d best %.3g runner %.3g rms %.1f mm labelled %d %s\n", f,
-                  ekf::ToString(out.state), out.labelled, out.nis, out.nis_dof, in.hypotheses, in.best_score,
-                  in.runner_up_score, 1e3 * in.rms_m, in.labelled, in.reason.c_str());
-    }
     if (back_at >= 0) {
       for (size_t k = 0; k < fr.truth.size(); ++k)
         if (fr.truth[k] >= 0) {
@@ -659,10 +693,6 @@ TEST(EkfTracker, UpdateAllocatesNothingWhileTracking) {
     for (size_t k = 0; k < frames[f].truth.size(); ++k) {
       total += frames[f].truth[k] >= 0;
       correct += frames[f].truth[k] >= 0 && out.marker_of_point[k] == frames[f].truth[k];
-      if (getenv("EKF_DEBUG") && frames[f].truth[k] >= 0 && out.marker_of_point[k] != frames[f].truth[k])
-        std::printf("f %d %s -> %d nis %.1f/%d  predicted %.1f mm away\n", f, session.nominal.markers()[frames[f].truth[k]].name.c_str(),
-                    out.marker_of_point[k], out.nis, out.nis_dof,
-                    1e3 * (tracker.predicted_markers().col(frames[f].truth[k]) - frames[f].points.col(k)).norm());
     }
   }
   EXPECT_EQ(g_allocations.load(), 0);
