@@ -15,7 +15,80 @@ namespace mocap::solver {
 namespace {
 using Clock = std::chrono::steady_clock;
 double Since(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
+
+// Rows of `z` that are all NaN (frames without a given pose) solved by IK, each warm-started from
+// the previous frame's pose (the first given pose, backwards, for leading rows); a warm start
+// worse than restart_rms_m re-initialises. A frame with fewer than 3 markers keeps the
+// neighbour's pose. FitModel has checked that some row is given.
+void FillMissingPoses(const Eigen::Ref<const formats::RowMatrix>& measured, const IkOptions& options,
+                      InverseKinematics* ik, Eigen::MatrixXd* z) {
+  const int nf = static_cast<int>(z->rows());
+  const int nm = static_cast<int>(measured.cols() / 3);
+  auto missing = [&](int f) { return z->row(f).array().isNaN().all(); };
+  int first = 0;
+  while (first < nf && missing(first)) ++first;
+  if (first == nf) return;
+  Eigen::Matrix3Xd frame(3, nm);
+  auto solve = [&](int f, const Eigen::VectorXd& from) {
+    frame = Eigen::Map<const Eigen::Matrix3Xd>(measured.row(f).data(), 3, nm);
+    int present = 0;
+    for (int m = 0; m < nm; ++m) present += std::isfinite(frame(0, m)) ? 1 : 0;
+    Eigen::VectorXd pose = from;
+    if (present >= 3) {
+      const IkFrameResult r = ik->Solve(frame, &pose);
+      if (r.rms_m > options.restart_rms_m) {
+        Eigen::VectorXd fresh;
+        if (ik->Initialise(frame, &fresh).rms_m < r.rms_m) pose = fresh;
+      }
+    }
+    z->row(f) = pose.transpose();
+  };
+  for (int f = first - 1; f >= 0; --f) solve(f, z->row(f + 1).transpose());
+  for (int f = first + 1; f < nf; ++f)
+    if (missing(f)) solve(f, z->row(f - 1).transpose());
+}
 }  // namespace
+
+Status InitialCoordinatesFromTable(const Model& model, const formats::CoordinateTable& table,
+                                   int num_frames, const std::string& source, Eigen::MatrixXd* z) {
+  if (table.num_frames() != num_frames)
+    return Status::Error(source + ": has " + std::to_string(table.num_frames()) +
+                         " frames, its trial has " + std::to_string(num_frames));
+  if (table.values.cols() != static_cast<Eigen::Index>(table.column_names.size()))
+    return Status::Error(source + ": the table's columns do not match its labels");
+  std::vector<int> column(model.num_coordinates(), -1);
+  for (size_t k = 0; k < table.column_names.size(); ++k) {
+    const std::string& name = table.column_names[k];
+    const int c = model.FindCoordinate(name);
+    if (c >= 0) {
+      if (column[c] >= 0) return Status::Error(source + ": column '" + name + "' appears twice");
+      column[c] = static_cast<int>(k);
+      continue;
+    }
+    bool derived = false;
+    for (const DerivedCoordinate& d : model.derived_coordinates()) derived |= d.name == name;
+    if (!derived)
+      return Status::Error(source + ": column '" + name + "' is not a coordinate of model '" +
+                           model.name() + "' (angles of another model?)");
+  }
+  std::string absent;
+  int n_absent = 0;
+  for (int c = 0; c < model.num_coordinates(); ++c)
+    if (column[c] < 0) {
+      if (n_absent < 5) absent += (absent.empty() ? "" : ", ") + model.coordinates()[c].name;
+      ++n_absent;
+    }
+  if (n_absent > 0)
+    return Status::Error(source + ": no column for " + std::to_string(n_absent) +
+                         " coordinate(s) of model '" + model.name() + "': " + absent +
+                         (n_absent > 5 ? ", ..." : ""));
+  z->resize(num_frames, model.num_coordinates());
+  for (int c = 0; c < model.num_coordinates(); ++c) {
+    const double k = model.coordinates()[c].rotational && table.in_degrees ? M_PI / 180.0 : 1.0;
+    z->col(c) = table.values.col(column[c]) * k;
+  }
+  return Status::Ok();
+}
 
 bool FitOptions::IsValid(std::string* error) const {
   auto fail = [&](const std::string& what) {
@@ -114,8 +187,17 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
       return Status::Error(name + ": starting coordinates are " + std::to_string(z0.rows()) + "x" +
                            std::to_string(z0.cols()) + ", expected " +
                            std::to_string(trial.num_frames()) + "x" + std::to_string(nz));
-    if (z0.size() > 0 && !z0.allFinite())
-      return Status::Error(name + ": starting coordinates are not finite");
+    if (z0.size() > 0) {
+      int given = 0;
+      for (int f = 0; f < z0.rows(); ++f) {
+        const bool nan_row = z0.row(f).array().isNaN().all();
+        if (!nan_row && !z0.row(f).allFinite())
+          return Status::Error(name + ": starting coordinates of frame " + std::to_string(f + 1) +
+                               " are partly missing or infinite (a frame's pose is all or nothing)");
+        given += nan_row ? 0 : 1;
+      }
+      if (given == 0) return Status::Error(name + ": the starting coordinates have no frame with a pose");
+    }
     total_frames += trial.num_frames();
   }
   report.unmatched_trial_markers.assign(unmatched.begin(), unmatched.end());
@@ -167,6 +249,8 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
         Eigen::MatrixXd z;
         if (keep_given && trials[t].initial_coordinates.size() > 0) {
           z = trials[t].initial_coordinates;
+          FillMissingPoses(problem.measurements().middleRows(first_frame[t], trials[t].markers.num_frames()),
+                           options.ik, &ik, &z);
         } else {
           status[t] = ik.SolveTrial(
               problem.measurements().middleRows(first_frame[t], trials[t].markers.num_frames()), &z);

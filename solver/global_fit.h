@@ -62,11 +62,23 @@ struct FitOptions {
 };
 
 // One trial: labelled markers (metres) and, optionally, a starting pose per frame (from the live
-// filter, or a .mot); without it the fit runs per-frame inverse kinematics first.
+// filter, or a .mot); without it the fit runs per-frame inverse kinematics first. A row that is
+// entirely NaN (a frame the filter was not tracking) is solved by IK, warm-started from the
+// nearest given pose before it (after it, for leading rows); a row with only some NaN entries is
+// an error, as is a trial with no given row at all.
 struct FitTrial {
   formats::MarkerTrial markers;
   Eigen::MatrixXd initial_coordinates;  // frames x n_coordinates, or empty
 };
+
+// Starting poses of one trial from a table of coordinates (a .mot of `mocap track`, `mocap ik`,
+// or the simulator's truth), in the model's coordinate order, radians and metres (rotational
+// columns converted from degrees when table.in_degrees). Checked, with errors naming `source`:
+// the table has `num_frames` rows; every coordinate of the model has a column; every column is a
+// coordinate or a derived coordinate of the model (another model's angles are refused rather
+// than half used). NaN entries are kept (see FitTrial).
+Status InitialCoordinatesFromTable(const Model& model, const formats::CoordinateTable& table,
+                                   int num_frames, const std::string& source, Eigen::MatrixXd* z);
 
 struct ParameterEstimate {
   std::string name;

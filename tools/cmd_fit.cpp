@@ -7,6 +7,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 
+#include "formats/mot.h"
 #include "formats/osim.h"
 #include "formats/trc.h"
 #include "model/kinematics.h"
@@ -28,6 +29,7 @@ struct FitArgs {
   int threads = 0;
   std::string groups = "scales,centres,axes,markers";
   int max_iterations = 50;
+  std::vector<std::string> initial;  // one .mot per trial: starting poses instead of IK
 };
 
 formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerTrial& trial,
@@ -72,6 +74,36 @@ int RunFit(const FitArgs& args) {
   options.lm.max_iterations = args.max_iterations;
   std::vector<solver::FitTrial> trials;
   for (auto& t : inputs.trials) trials.push_back({std::move(t), {}});
+  if (!args.initial.empty()) {
+    if (args.initial.size() != trials.size()) {
+      spdlog::error("--initial: {} .mot file(s) for {} trial(s): give one per trial, in the same order",
+                    args.initial.size(), trials.size());
+      return 2;
+    }
+    for (size_t t = 0; t < trials.size(); ++t) {
+      formats::CoordinateTable table;
+      if (Status s = formats::ReadMot(args.initial[t], &table); !s) {
+        spdlog::error("--initial: {}", s.message());
+        return 2;
+      }
+      if (Status s = solver::InitialCoordinatesFromTable(model, table, trials[t].markers.num_frames(),
+                                                         args.initial[t] + " (for " + args.in.trials[t] + ")",
+                                                         &trials[t].initial_coordinates);
+          !s) {
+        spdlog::error("--initial: {}", s.message());
+        return 2;
+      }
+      int missing = 0;
+      for (int f = 0; f < trials[t].initial_coordinates.rows(); ++f)
+        missing += trials[t].initial_coordinates.row(f).array().isNaN().all() ? 1 : 0;
+      if (missing == trials[t].initial_coordinates.rows()) {
+        spdlog::error("--initial: {}: no frame has a pose (all NaN)", args.initial[t]);
+        return 2;
+      }
+      spdlog::info("{}: starting poses from {}{}", args.in.trials[t], args.initial[t],
+                   missing > 0 ? " (" + std::to_string(missing) + " frames without one: by IK)" : "");
+    }
+  }
   options.lm.callbacks.push_back([](const solver::IterationSummary& it) {
     spdlog::info("iteration {:3d}  cost {:.6e}  change {:.3e}  |gradient| {:.3e}  |step| {:.3e}  "
                  "lambda {:.2e}  {:.2f} s",
@@ -173,6 +205,9 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
   cmd->add_option("--threads", args->threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);
   cmd->add_option("--fit", args->groups, "parameter groups: scales,centres,axes,markers (or all, none)");
   cmd->add_option("--max-iterations", args->max_iterations, "iteration limit")->check(CLI::PositiveNumber);
+  cmd->add_option("--initial", args->initial,
+                  "starting poses: one .mot per trial, same order (e.g. coordinates.mot of `mocap "
+                  "track`), instead of per-frame IK; NaN rows are solved by IK");
   cmd->callback([args, exit_code] { *exit_code = RunFit(*args); });
 });
 

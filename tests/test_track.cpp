@@ -1,0 +1,587 @@
+// The tracking scene (sim/tracking_scene.h) against its own truth, and `mocap track` end to end
+// against the tracking targets of issue 5, with the nominal and with the true model.
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <set>
+#include <vector>
+
+#include "formats/mot.h"
+#include "model/default_model.h"
+#include "model/model_io.h"
+#include "formats/trc.h"
+#include "sim/simulate.h"
+#include "sim/tracking_scene.h"
+#include "tests/file_test_util.h"
+
+namespace fs = std::filesystem;
+using mocap::sim::TrackingScene;
+using mocap::sim::TrackingSceneOptions;
+using mocap::testutil::CommandResult;
+using mocap::testutil::Mocap;
+
+namespace {
+
+TrackingSceneOptions ShortScene() {
+  TrackingSceneOptions o;
+  o.seed = 11;
+  o.movements = {"static", "squats"};
+  o.duration_scale = 0.6;
+  return o;
+}
+
+double Dist(const TrackingScene& s, int f, int a, int b) {
+  return (s.true_markers.row(f).segment<3>(3 * a) - s.true_markers.row(f).segment<3>(3 * b)).norm();
+}
+
+TEST(TrackingScene, LabelsNameTheTrueMarkerOfEveryPoint) {
+  TrackingSceneOptions o = ShortScene();
+  o.ghosts = 6;
+  o.occlusion = 0.05;
+  TrackingScene s;
+  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &s).ok());
+  ASSERT_GT(s.num_frames(), 500);
+  EXPECT_EQ(s.num_markers(), 39);
+  const double bound = 6 * 0.5e-3 * std::sqrt(3.0);  // 6 sigma of 0.5 mm noise, 3D
+  long ghosts = 0, markers = 0, persistent_repeats = 0;
+  int bad_ghost = 0;
+  for (int f = 0; f < s.num_frames(); ++f) {
+    ASSERT_EQ(s.points[f].cols(), static_cast<long>(s.labels[f].size()));
+    std::set<int> seen;
+    int frame_ghosts = 0;
+    for (int i = 0; i < s.points[f].cols(); ++i) {
+      const int m = s.labels[f][i];
+      const Eigen::Vector3d p = s.points[f].col(i);
+      ASSERT_TRUE(p.allFinite());
+      if (m >= 0) {
+        EXPECT_TRUE(seen.insert(m).second) << "marker " << m << " twice in frame " << f;
+        EXPECT_LT((p - s.true_markers.row(f).segment<3>(3 * m).transpose()).norm(), bound);
+        ++markers;
+        continue;
+      }
+      EXPECT_EQ(m, mocap::sim::kGhostLabel);
+      ++frame_ghosts;
+      double nearest = 1e9;
+      for (int k = 0; k < s.num_markers(); ++k)
+        nearest = std::min(nearest, (p - s.true_markers.row(f).segment<3>(3 * k).transpose()).norm());
+      if (nearest > o.ghost_radius_m + 0.01) ++bad_ghost;
+      // A reflection that stays: the same ghost point in the previous frame (lab-fixed ones).
+      if (f > 0)
+        for (int j = 0; j < s.points[f - 1].cols(); ++j)
+          if (s.labels[f - 1][j] < 0 && (s.points[f - 1].col(j) - p).norm() < 0.004) ++persistent_repeats;
+    }
+    EXPECT_EQ(frame_ghosts, o.ghosts) << "frame " << f;
+    ghosts += frame_ghosts;
+  }
+  EXPECT_EQ(bad_ghost, 0) << "ghosts farther than ghost_radius_m from every marker";
+  EXPECT_EQ(markers, s.visible_samples());
+  EXPECT_EQ(markers + s.occluded_samples + s.hidden_samples, static_cast<long>(s.num_frames()) * 39);
+  // About a quarter of the ghosts are lab-fixed reflections (half persistent, half of those fixed).
+  EXPECT_GT(persistent_repeats, ghosts / 10);
+  // Shuffled: the first point is not always the same marker.
+  std::set<int> first;
+  for (int f = 0; f < s.num_frames(); ++f) first.insert(s.labels[f][0]);
+  EXPECT_GT(first.size(), 10u);
+}
+
+TEST(TrackingScene, OcclusionsRemoveTheFractionAskedInGaps) {
+  TrackingSceneOptions o = ShortScene();
+  o.occlusion = 0.08;
+  TrackingScene s;
+  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &s).ok());
+  const long total = static_cast<long>(s.num_frames()) * s.num_markers();
+  EXPECT_NEAR(static_cast<double>(s.occluded_samples) / total, 0.08, 0.001);
+  EXPECT_EQ(s.visible_samples(), total - s.occluded_samples);
+  // Gaps, not scattered samples: runs of missing frames are 5 frames or longer (bar the last
+  // gap drawn, which stops when the fraction is reached).
+  int short_runs = 0, runs = 0;
+  for (int m = 0; m < s.num_markers(); ++m) {
+    int run = 0;
+    for (int f = 0; f <= s.num_frames(); ++f) {
+      bool present = f == s.num_frames();
+      if (!present)
+        for (int l : s.labels[f]) present |= l == m;
+      if (!present) {
+        ++run;
+      } else if (run > 0) {
+        ++runs;
+        short_runs += run < 5;
+        run = 0;
+      }
+    }
+  }
+  EXPECT_GT(runs, 20);
+  EXPECT_LE(short_runs, 1);
+}
+
+TEST(TrackingScene, SwapTrapsBringMarkersWithin15mm) {
+  TrackingSceneOptions o = ShortScene();
+  TrackingScene plain, trapped;
+  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &plain).ok());
+  o.swap_traps = true;
+  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &trapped).ok());
+  ASSERT_EQ(trapped.segments.back().name, "swap_traps");
+  const mocap::sim::SceneSegment& seg = trapped.segments.back();
+  std::set<std::pair<std::string, std::string>> pairs;
+  int in_traps = 0;
+  for (const mocap::sim::TrapMoment& t : trapped.traps) {
+    // The listed distance is the truth's.
+    EXPECT_NEAR(Dist(trapped, t.frame, t.marker_a, t.marker_b), t.distance_m, 1e-12);
+    EXPECT_LT(t.distance_m, 0.015);
+    if (t.frame >= seg.begin && t.frame < seg.end) {
+      ++in_traps;
+      pairs.insert({trapped.marker_names[t.marker_a], trapped.marker_names[t.marker_b]});
+    }
+  }
+  // Four planned traps, each passed on the way out and on the way back.
+  EXPECT_GE(in_traps, 8);
+  // The four planned pairs (the scene's marker order: pelvis, thigh before the arms), and the
+  // neighbours that come close with them (the other wrist and forearm markers of meeting hands).
+  for (const auto& planned : std::vector<std::pair<std::string, std::string>>{
+           {"RTHI", "RFIN"}, {"LTHI", "LFIN"}, {"LWRA", "RWRA"}, {"RASI", "RWRB"}})
+    EXPECT_TRUE(pairs.count(planned)) << planned.first << "-" << planned.second;
+  // The planned closest approach is 8 mm: the passes come close to it.
+  double closest = 1.0;
+  for (const auto& t : trapped.traps) closest = std::min(closest, t.distance_m);
+  EXPECT_LT(closest, 0.010);
+  // Every run of frames within 15 mm was found: scan the truth independently at the trap segment.
+  int frames_close = 0;
+  for (int f = seg.begin; f < seg.end; ++f)
+    for (int a = 0; a < 39; ++a)
+      for (int b = a + 1; b < 39; ++b) frames_close += Dist(trapped, f, a, b) < 0.015;
+  EXPECT_GT(frames_close, in_traps);
+  std::printf("swap traps: %d trap moments in the trap movement, %zu in the scene without it, "
+              "closest %.1f mm\n", in_traps, plain.traps.size(), 1000 * closest);
+}
+
+TEST(TrackingScene, SameSeedSameSceneAndTheSubjectOfMocapSim) {
+  TrackingSceneOptions o = ShortScene();
+  o.ghosts = 3;
+  o.occlusion = 0.02;
+  o.swap_traps = true;
+  TrackingScene a, b, c;
+  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &a).ok());
+  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &b).ok());
+  ASSERT_EQ(a.num_frames(), b.num_frames());
+  for (int f = 0; f < a.num_frames(); ++f) {
+    ASSERT_EQ(a.labels[f], b.labels[f]);
+    ASSERT_TRUE(a.points[f] == b.points[f]) << "frame " << f;
+  }
+  o.seed = 12;
+  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &c).ok());
+  EXPECT_NE(a.height_m, c.height_m);
+
+  // The subject and the first movement are those of `mocap sim --seed 11`.
+  mocap::sim::SimulationOptions so;
+  so.seed = 11;
+  so.rate_hz = 200;
+  so.duration_scale = 0.6;
+  mocap::sim::SimulatedSession session;
+  ASSERT_TRUE(mocap::sim::SimulateSession(so, &session).ok());
+  EXPECT_EQ(a.height_m, session.height_m);
+  ASSERT_EQ(a.segments.front().name, "static");
+  const auto& st = session.trials.front();
+  ASSERT_EQ(a.segments.front().end, st.markers.num_frames());
+  for (int f = 0; f < st.markers.num_frames(); f += 17)
+    for (int m = 0; m < 39; ++m)
+      EXPECT_NEAR((a.true_markers.row(f).segment<3>(3 * m) - st.markers.positions.row(f).segment<3>(3 * m)).norm(),
+                  0.0, 5e-3)  // the simulator's markers carry 0.5 mm noise
+          << "frame " << f << " marker " << a.marker_names[m];
+}
+
+TEST(TrackingScene, ContinuousAcrossMovements) {
+  TrackingSceneOptions o = ShortScene();
+  o.movements = {"static", "squats", "shoulder_circles_l"};
+  TrackingScene s;
+  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &s).ok());
+  ASSERT_EQ(s.segments.size(), 5u);  // static, transition, squats, transition, shoulder circles
+  // Where movements are joined no marker jumps: at 200 Hz a step of 5 mm is 1 m/s, what a
+  // transition between two near-neutral poses does not reach.
+  auto step = [&](int f) {
+    double worst = 0;
+    for (int m = 0; m < 39; ++m)
+      worst = std::max(worst, (s.true_markers.row(f).segment<3>(3 * m) -
+                               s.true_markers.row(f - 1).segment<3>(3 * m)).norm());
+    return worst;
+  };
+  for (const mocap::sim::SceneSegment& g : s.segments) {
+    if (g.begin > 0) EXPECT_LT(step(g.begin), 0.005) << "entering " << g.name << " at " << g.begin;
+    if (g.name != "transition") continue;
+    for (int f = g.begin; f < g.end; ++f) EXPECT_LT(step(f), 0.005) << "transition frame " << f;
+  }
+}
+
+TEST(TrackingScene, FaultsDoWhatTheySay) {
+  using mocap::sim::SceneFault;
+  TrackingSceneOptions o = ShortScene();
+  o.movements = {"static", "squats", "trunk_rom"};
+  o.ghosts = 2;
+  {
+    o.fault = SceneFault::kAllOccluded;
+    TrackingScene s;
+    ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &s).ok());
+    EXPECT_EQ(s.fault_end - s.fault_begin, 200);
+    for (int f = s.fault_begin; f < s.fault_end; ++f)
+      for (int l : s.labels[f]) EXPECT_LT(l, 0);
+    int after = 0;
+    for (int l : s.labels[s.fault_end]) after += l >= 0;
+    EXPECT_EQ(after, 39);
+  }
+  {
+    o.fault = SceneFault::kLeaveAndReenter;
+    TrackingScene s;
+    ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &s).ok());
+    int empty = 0;
+    for (int f = s.fault_begin; f < s.fault_end; ++f) {
+      int n = 0;
+      for (int l : s.labels[f]) n += l >= 0;
+      empty += n == 0;
+    }
+    EXPECT_GE(empty, 200) << "out of the volume for at least the second asked";
+    const Eigen::Vector3d before = s.true_coordinates.row(s.fault_begin).head<3>();
+    const Eigen::Vector3d after = s.true_coordinates.row(s.fault_end).head<3>();
+    EXPECT_GT((after - before).head<2>().norm(), 1.0) << "back elsewhere";
+    int back = 0;
+    for (int l : s.labels[s.fault_end]) back += l >= 0;
+    EXPECT_EQ(back, 39);
+  }
+  {
+    o.fault = SceneFault::kSecondPerson;
+    TrackingScene s;
+    ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &s).ok());
+    int second = 0;
+    for (int l : s.labels.back()) second += l == mocap::sim::kSecondPersonLabel;
+    EXPECT_EQ(second, 39) << "the second person is in the volume at the end";
+    for (int l : s.labels[s.fault_begin - 1]) EXPECT_NE(l, mocap::sim::kSecondPersonLabel);
+  }
+  {
+    o.fault = SceneFault::kNanFrame;
+    TrackingScene s;
+    ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &s).ok());
+    EXPECT_TRUE(s.points[s.fault_begin].array().isNaN().all());
+    const Eigen::Matrix3Xd& mixed = s.points[s.fault_end - 1];
+    int nan = 0, real = 0;
+    for (int i = 0; i < mixed.cols(); ++i) (mixed.col(i).allFinite() ? real : nan)++;
+    EXPECT_GT(nan, 10);
+    EXPECT_EQ(real, 41);
+  }
+}
+
+TEST(TrackingScene, BadOptionsAreNamed) {
+  TrackingSceneOptions o = ShortScene();
+  TrackingScene s;
+  o.movements = {"static", "cartwheel"};
+  mocap::Status st = mocap::sim::MakeTrackingScene(o, &s);
+  ASSERT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("cartwheel"), std::string::npos) << st.message();
+  o = ShortScene();
+  o.occlusion = 0.7;
+  st = mocap::sim::MakeTrackingScene(o, &s);
+  ASSERT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("occlusion"), std::string::npos) << st.message();
+  o = ShortScene();
+  o.fault = mocap::sim::SceneFault::kLeaveAndReenter;
+  o.fault_time_s = 3.0;  // the scene is about 5 s long: no room to leave and come back
+  st = mocap::sim::MakeTrackingScene(o, &s);
+  ASSERT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("does not fit"), std::string::npos) << st.message();
+}
+
+// --- mocap track end to end ---------------------------------------------------------------
+
+class TrackCli : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = fs::path(MOCAP_TEST_TMP) / "track_cli" / std::to_string(::getpid());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+    // The nominal and true models exactly as `mocap sim --seed 11` writes them.
+    const CommandResult r = Mocap("sim --out " + P("sim") + " --seed 11 --duration-scale 0.2");
+    ASSERT_EQ(r.status, 0) << r.output;
+  }
+  static void TearDownTestSuite() { fs::remove_all(dir_); }
+  static std::string P(const std::string& rel) { return (dir_ / rel).string(); }
+  static nlohmann::json Stats(const std::string& rel) {
+    std::ifstream in(dir_ / rel / "stats.json");
+    return nlohmann::json::parse(in);
+  }
+  // The scene of the targets: static pose, squats, shoulder circles, then the swap traps; four
+  // ghosts per frame, 2 % of the samples occluded.
+  static std::string Scene() {
+    return "track --simulate --seed 11 --movements static,squats,shoulder_circles_l "
+           "--duration-scale 0.6 --ghosts 4 --occlusion 0.02 --swap-traps";
+  }
+  static void ExpectTargets(const nlohmann::json& s) {
+    for (const char* key : {"frames", "label_accuracy", "wrong_labels", "swaps_longer_than_5_frames",
+                            "reinitialisations", "update_us_p50", "update_us_p99", "marker_rms_mm",
+                            "joint_angle_rms_deg", "trap_moments", "first_tracking_frame"})
+      ASSERT_TRUE(s.contains(key)) << key;
+    const long samples = s["marker_samples"].get<long>();
+    EXPECT_GT(samples, 100000);
+    EXPECT_GE(s["trap_moments"].get<int>(), 8);
+    EXPECT_GE(s["label_accuracy"].get<double>(), 0.9995) << s.dump(1);
+    EXPECT_LE(s["wrong_labels"].get<double>(), 1e-4 * samples) << s.dump(1);
+    EXPECT_EQ(s["swaps_longer_than_5_frames"].get<int>(), 0);
+    EXPECT_EQ(s["nan_poses"].get<int>(), 0);
+    // Automatic initialisation from the static pose: tracking within its first 0.1 s, once.
+    EXPECT_GE(s["first_tracking_frame"].get<int>(), 0);
+    EXPECT_LT(s["first_tracking_frame"].get<int>(), 20);
+    EXPECT_EQ(s["reinitialisations"].get<int>(), 0);
+    EXPECT_GT(s["update_us_p50"].get<double>(), 0.0);
+    EXPECT_GE(s["update_us_p99"].get<double>(), s["update_us_p50"].get<double>());
+  }
+  static inline fs::path dir_;
+};
+
+TEST_F(TrackCli, NominalModelMeetsTheLabellingTargets) {
+  const CommandResult r = Mocap(Scene() + " --model " + P("sim/nominal.model.json") + " --out " + P("nominal"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("frame "), std::string::npos) << "progress lines";
+  const nlohmann::json s = Stats("nominal");
+  std::printf("nominal model: %s\n", s.dump().c_str());
+  ExpectTargets(s);
+  // The outputs: labelled markers and coordinates, one row per frame.
+  mocap::formats::MarkerTrial labelled;
+  ASSERT_TRUE(mocap::formats::ReadTrc(P("nominal/labelled.trc"), &labelled).ok());
+  EXPECT_EQ(labelled.num_frames(), s["frames"].get<int>());
+  EXPECT_EQ(labelled.num_markers(), 39);
+  mocap::formats::CoordinateTable angles;
+  ASSERT_TRUE(mocap::formats::ReadMot(P("nominal/coordinates.mot"), &angles).ok());
+  EXPECT_EQ(angles.num_frames(), s["frames"].get<int>());
+  EXPECT_TRUE(angles.in_degrees);
+  EXPECT_GE(angles.FindColumn("knee_angle_r"), 0);
+}
+
+TEST_F(TrackCli, TrueModelMeetsTheTargetsAndTheAnglesAreWithinADegree) {
+  const CommandResult r = Mocap(Scene() + " --model " + P("sim/truth.model.json") + " --out " + P("truth"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json s = Stats("truth");
+  std::printf("true model: %s\n", s.dump().c_str());
+  ExpectTargets(s);
+  EXPECT_LE(s["joint_angle_rms_deg"].get<double>(), 1.0);
+  EXPECT_LT(s["marker_rms_mm"].get<double>(), 2.0);
+}
+
+// The whole protocol as `mocap sim` makes it (75 s at 200 Hz, 4 ghosts, 2 % occluded, the swap
+// traps), with the true model: every movement, not only the short take above.
+TEST_F(TrackCli, WholeProtocolWithTheTrueModel) {
+  const CommandResult r = Mocap("track --simulate --seed 1 --ghosts 4 --occlusion 0.02 --swap-traps "
+                                "--model truth --out " + P("whole"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json s = Stats("whole");
+  EXPECT_GT(s["frames"].get<int>(), 14000);
+  std::printf("whole protocol, true model: accuracy %.6f, wrong %d, swaps %d, angles %.3f deg, "
+              "markers below 0.999: ", s["label_accuracy"].get<double>(), s["wrong_labels"].get<int>(),
+              s["swaps_longer_than_5_frames"].get<int>(), s["joint_angle_rms_deg"].get<double>());
+  for (const auto& [name, a] : s["per_marker_accuracy"].items())
+    if (a.get<double>() < 0.999) std::printf("%s %.3f ", name.c_str(), a.get<double>());
+  std::printf("\n");
+  ExpectTargets(s);
+  EXPECT_LE(s["joint_angle_rms_deg"].get<double>(), 1.0);
+}
+
+// The points written by --write-points, read back as TRC and as C3D, give the same labels.
+TEST_F(TrackCli, PointsFilesTrackLikeTheSimulation) {
+  const std::string scene =
+      "track --simulate --seed 11 --movements static,squats --duration-scale 0.4 --ghosts 2 --model " +
+      P("sim/nominal.model.json");
+  CommandResult r = Mocap(scene + " --write-points --out " + P("pts_sim"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = Mocap("convert " + P("pts_sim/points.trc") + " " + P("pts_sim/points.c3d"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  mocap::formats::MarkerTrial reference;
+  ASSERT_TRUE(mocap::formats::ReadTrc(P("pts_sim/labelled.trc"), &reference).ok());
+  for (const char* ext : {"trc", "c3d"}) {
+    const std::string out = std::string("pts_") + ext;
+    r = Mocap("track --points " + P("pts_sim/points.") + ext + " --model " + P("sim/nominal.model.json") +
+              " --out " + P(out));
+    ASSERT_EQ(r.status, 0) << r.output;
+    const nlohmann::json s = Stats(out);
+    EXPECT_EQ(s["frames"], reference.num_frames());
+    EXPECT_FALSE(s.contains("label_accuracy")) << "no truth with a points file";
+    mocap::formats::MarkerTrial labelled;
+    ASSERT_TRUE(mocap::formats::ReadTrc(P(out + "/labelled.trc"), &labelled).ok());
+    ASSERT_EQ(labelled.num_frames(), reference.num_frames());
+    long same = 0, total = 0;
+    for (int f = 0; f < labelled.num_frames(); ++f)
+      for (int m = 0; m < 39; ++m) {
+        if (!reference.Has(f, m)) continue;
+        ++total;
+        same += labelled.Has(f, m) && (labelled.At(f, m) - reference.At(f, m)).norm() < 1e-6;
+      }
+    EXPECT_GT(total, 0);
+    EXPECT_GE(static_cast<double>(same), 0.999 * total) << ext;
+  }
+}
+
+TEST_F(TrackCli, BadInputGetsAClearError) {
+  struct Case {
+    std::string args, expect;
+  };
+  fs::create_directories(P("bad"));
+  std::ofstream(P("bad/garbage.trc")) << "not a trc file\n";
+  mocap::Model renamed = mocap::sim::MismatchedModel(mocap::DefaultFullBodyModel(), 1, 0.0, "X_");
+  ASSERT_TRUE(mocap::SaveModelJson(P("bad/renamed.json"), renamed).ok());
+  const std::string sim = "track --simulate --duration-scale 0.3 ";
+  const std::vector<Case> cases = {
+      {"track --out " + P("bad/o"), "either --simulate or --points"},
+      {sim + "--points " + P("bad/garbage.trc") + " --out " + P("bad/o"), "either --simulate or --points"},
+      {"track --points " + P("bad/none.trc") + " --out " + P("bad/o"), "none.trc"},
+      {"track --points " + P("bad/garbage.trc") + " --out " + P("bad/o"), "garbage.trc"},
+      {"track --points " + P("bad/garbage.trc") + " --model nominal --out " + P("bad/o"), "garbage.trc"},
+      {sim + "--movements static --fault meteor --out " + P("bad/o"), "--fault meteor"},
+      {sim + "--movements static,cartwheel --out " + P("bad/o"), "cartwheel"},
+      {sim + "--movements static --occlusion 0.9 --out " + P("bad/o"), "occlusion"},
+      {sim + "--movements static --model " + P("bad/renamed.json") + " --out " + P("bad/o"), "none of the simulated subject's"},
+      {sim + "--movements static --model " + P("bad/missing.json") + " --out " + P("bad/o"), "missing.json"},
+  };
+  for (const Case& c : cases) {
+    const CommandResult r = Mocap(c.args);
+    EXPECT_NE(r.status, 0) << c.args;
+    EXPECT_NE(r.output.find(c.expect), std::string::npos) << c.args << "\n" << r.output;
+    EXPECT_EQ(r.output.find("terminate"), std::string::npos) << r.output;
+  }
+}
+
+// --- mocap fit --initial ---------------------------------------------------------------------
+
+class FitInitial : public TrackCli {};
+
+std::map<std::string, nlohmann::json> Parameters(const nlohmann::json& report) {
+  std::map<std::string, nlohmann::json> out;
+  for (const auto& p : report["parameters"]) out[p["name"].get<std::string>()] = p;
+  return out;
+}
+
+// The same fitted model whether the fit starts from per-frame IK or from given poses: the
+// problem has one minimum near the truth, and both starts reach it. Both runs stop when an
+// iteration lowers the cost by less than 1e-6 of it, which leaves the slowest directions (a
+// weakly excited ankle) a fraction of their standard deviation apart: every determined parameter
+// must agree to half its standard deviation, and marker and joint-centre positions to 0.5 mm.
+void ExpectSameFit(const nlohmann::json& a, const nlohmann::json& b) {
+  ASSERT_TRUE(a["converged"].get<bool>());
+  ASSERT_TRUE(b["converged"].get<bool>());
+  // The stopping rule (an iteration gaining less than 1e-6 of the cost) can end one run in a
+  // slow valley a few 1e-4 of the cost above the other: what must agree is the model, and the fit
+  // quality to a hundredth of a millimetre of marker RMS.
+  const double ca = a["final_cost"].get<double>(), cb = b["final_cost"].get<double>();
+  EXPECT_NEAR(a["marker_rms_mm"].get<double>(), b["marker_rms_mm"].get<double>(), 0.01);
+  const auto pa = Parameters(a), pb = Parameters(b);
+  ASSERT_EQ(pa.size(), pb.size());
+  double worst = 0;
+  std::string which;
+  for (const auto& [name, p] : pa) {
+    if (!p["determined"].get<bool>()) continue;
+    const double d = std::abs(p["value"].get<double>() - pb.at(name)["value"].get<double>()) /
+                     std::max(p["std"].get<double>(), 1e-12);
+    if (d > worst) worst = d, which = name;
+    const std::string group = p["group"].get<std::string>();
+    if (group == "centres" || group == "markers")
+      EXPECT_LT(std::abs(p["value"].get<double>() - pb.at(name)["value"].get<double>()), 5e-4) << name;
+  }
+  EXPECT_LT(worst, 0.5) << "determined parameter " << which << " differs by " << worst << " standard deviations";
+  std::printf("same fit: final cost %.3f vs %.3f, largest difference %.3f std (%s)\n", ca, cb, worst, which.c_str());
+}
+
+TEST_F(FitInitial, TrueCoordinatesStartGivesTheSameModelAsIk) {
+  const std::string trials = P("sim/static.trc") + " " + P("sim/squats.trc") + " " + P("sim/hip_star_arc_l.trc");
+  const std::string fit = "fit --threads 2 --model " + P("sim/nominal.model.json") + " " + trials;
+  CommandResult r = Mocap(fit + " --out " + P("fit_ik/fit.json") + " --report " + P("fit_ik/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = Mocap(fit + " --initial " + P("sim/static.mot") + " " + P("sim/squats.mot") + " " +
+            P("sim/hip_star_arc_l.mot") + " --out " + P("fit_init/fit.json") + " --report " + P("fit_init/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("starting poses from"), std::string::npos) << r.output;
+  std::ifstream a(P("fit_ik/r.json")), b(P("fit_init/r.json"));
+  const nlohmann::json ra = nlohmann::json::parse(a), rb = nlohmann::json::parse(b);
+  // Started from the true poses, the fit starts closer than IK with the nominal model does.
+  EXPECT_LT(rb["iterations"].get<int>(), ra["iterations"].get<int>());
+  ExpectSameFit(ra, rb);
+
+  // Frames without a pose (NaN rows, as where the tracker was not tracking): solved by IK.
+  mocap::formats::CoordinateTable squats;
+  ASSERT_TRUE(mocap::formats::ReadMot(P("sim/squats.mot"), &squats).ok());
+  ASSERT_GT(squats.num_frames(), 80);
+  squats.values.topRows(10).setConstant(std::nan(""));
+  squats.values.middleRows(40, 30).setConstant(std::nan(""));
+  fs::create_directories(P("fit_gaps"));
+  ASSERT_TRUE(mocap::formats::WriteMot(P("fit_gaps/squats.mot"), squats).ok());
+  r = Mocap(fit + " --initial " + P("sim/static.mot") + " " + P("fit_gaps/squats.mot") + " " +
+            P("sim/hip_star_arc_l.mot") + " --out " + P("fit_gaps/fit.json") + " --report " + P("fit_gaps/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("40 frames without one: by IK"), std::string::npos) << r.output;
+  std::ifstream c(P("fit_gaps/r.json"));
+  ExpectSameFit(ra, nlohmann::json::parse(c));
+}
+
+// The tracker's output is a fit's input: labelled.trc the trial, coordinates.mot its start.
+TEST_F(FitInitial, TrackerOutputStartsTheFit) {
+  const CommandResult t = Mocap("track --simulate --seed 11 --movements static,squats,hip_star_arc_l "
+                                "--duration-scale 0.5 --model " + P("sim/nominal.model.json") +
+                                " --out " + P("fit_track"));
+  ASSERT_EQ(t.status, 0) << t.output;
+  const std::string fit = "fit --threads 2 --model " + P("sim/nominal.model.json") + " " + P("fit_track/labelled.trc");
+  CommandResult r = Mocap(fit + " --out " + P("fit_track/ik/fit.json") + " --report " + P("fit_track/ik/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = Mocap(fit + " --initial " + P("fit_track/coordinates.mot") + " --out " + P("fit_track/init/fit.json") +
+            " --report " + P("fit_track/init/r.json"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  std::ifstream a(P("fit_track/ik/r.json")), b(P("fit_track/init/r.json"));
+  ExpectSameFit(nlohmann::json::parse(a), nlohmann::json::parse(b));
+}
+
+TEST_F(FitInitial, BadInitialPosesGetAClearError) {
+  // Tables derived from a good one: a column dropped, a foreign column, a frame cut, a row half NaN.
+  mocap::formats::CoordinateTable good;
+  ASSERT_TRUE(mocap::formats::ReadMot(P("sim/static.mot"), &good).ok());
+  fs::create_directories(P("bad_init"));
+  auto write = [&](const std::string& name, mocap::formats::CoordinateTable t) {
+    EXPECT_TRUE(mocap::formats::WriteMot(P("bad_init/" + name), t).ok());
+    return P("bad_init/" + name);
+  };
+  mocap::formats::CoordinateTable dropped = good;
+  const int knee = dropped.FindColumn("knee_angle_r");
+  dropped.column_names.erase(dropped.column_names.begin() + knee);
+  mocap::formats::RowMatrix v(good.num_frames(), good.values.cols() - 1);
+  v << good.values.leftCols(knee), good.values.rightCols(good.values.cols() - knee - 1);
+  dropped.values = v;
+  mocap::formats::CoordinateTable foreign = good;
+  foreign.column_names[knee] = "knee_flexion_right";
+  mocap::formats::CoordinateTable cut = good;
+  cut.values.conservativeResize(good.num_frames() - 5, Eigen::NoChange);
+  cut.times.resize(good.num_frames() - 5);
+  mocap::formats::CoordinateTable half = good;
+  half.values(3, knee) = std::nan("");
+  mocap::formats::CoordinateTable none = good;
+  none.values.setConstant(std::nan(""));
+  const std::string fit = "fit --model " + P("sim/nominal.model.json") + " " + P("sim/static.trc") +
+                          " --out " + P("bad_init/fit.json") + " --initial ";
+  struct Case {
+    std::string initial, expect;
+  };
+  const std::vector<Case> cases = {
+      {write("dropped.mot", dropped), "no column for 1 coordinate(s) of model"},
+      {write("foreign.mot", foreign), "'knee_flexion_right' is not a coordinate"},
+      {write("cut.mot", cut), "frames, its trial has"},
+      {write("half.mot", half), "frame 4 are partly missing"},
+      {write("none.mot", none), "no frame has a pose"},
+      {P("bad_init/absent.mot"), "absent.mot"},
+      {P("sim/static.mot") + " " + P("sim/squats.mot"), "2 .mot file(s) for 1 trial(s)"},
+  };
+  for (const Case& c : cases) {
+    const CommandResult r = Mocap(fit + c.initial);
+    EXPECT_NE(r.status, 0) << c.initial;
+    EXPECT_NE(r.output.find(c.expect), std::string::npos) << c.initial << "\n" << r.output;
+  }
+  // A squats .mot for the static trial: the frame counts differ, and the message says so.
+  const CommandResult r = Mocap(fit + P("sim/squats.mot"));
+  EXPECT_NE(r.status, 0);
+  EXPECT_NE(r.output.find("squats.mot (for " + P("sim/static.trc") + "): has"), std::string::npos) << r.output;
+}
+
+}  // namespace

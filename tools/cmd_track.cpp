@@ -1,0 +1,459 @@
+// `mocap track`: the real-time tracker (ekf/tracker.h) run offline over unlabelled 3D points —
+// a simulated scene with known truth (sim/tracking_scene.h), or a file of unlabelled points as
+// `mocap capture` writes them (TRC or C3D, generic names such as P1..Pn, NaN for empty slots).
+//
+// Writes, in --out DIR:
+//   labelled.trc     the model's markers: the point the tracker gave each marker, per frame
+//                    (empty where none). It is a labelled trial: `mocap fit` reads it.
+//   coordinates.mot  the tracked coordinates (rotations in degrees), NaN in frames where the
+//                    tracker was not tracking; `mocap fit --initial` takes it as its start.
+//   stats.json       frames, state counts, (re)initialisations, update time percentiles, and with
+//                    --simulate the scores against the truth: label_accuracy, wrong_labels,
+//                    swaps_longer_than_5_frames, marker_rms_mm, joint_angle_rms_deg, ...
+//   truth.mot, nominal.model.json, truth.model.json, points.trc
+//                    with --simulate: the true coordinates, the subject's nominal and true models
+//                    (as `mocap sim` writes them), and (--write-points) the unlabelled points as a
+//                    --points file.
+//
+// The model: --model FILE (.json or .osim). With --simulate, also `nominal` (the default: the
+// default model scaled to the subject's height, what `mocap sim` writes as nominal.model.json)
+// or `truth` (the subject's true model, truth.model.json). With --points the default is the
+// default full-body model scaled to --height.
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "ekf/tracker.h"
+#include "formats/marker_file.h"
+#include "formats/mot.h"
+#include "formats/trc.h"
+#include "model/default_model.h"
+#include "model/kinematics.h"
+#include "model/model_io.h"
+#include "sim/tracking_scene.h"
+#include "tools/command.h"
+#include "tools/trial_inputs.h"
+
+namespace mocap::tools {
+namespace {
+
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+struct TrackArgs {
+  std::string model;
+  bool simulate = false;
+  sim::TrackingSceneOptions scene;
+  std::string movements;  // comma-separated
+  std::string fault = "none";
+  std::string points;
+  double height_m = 1.75;
+  std::string out;
+  bool write_points = false;
+};
+
+std::vector<std::string> SplitList(const std::string& list) {
+  std::vector<std::string> out;
+  std::stringstream ss(list);
+  std::string item;
+  while (std::getline(ss, item, ','))
+    if (!item.empty()) out.push_back(item);
+  return out;
+}
+
+double Percentile(std::vector<double> v, double q) {
+  if (v.empty()) return 0.0;
+  const size_t k = std::min(v.size() - 1, static_cast<size_t>(q * (v.size() - 1) + 0.5));
+  std::nth_element(v.begin(), v.begin() + static_cast<long>(k), v.end());
+  return v[k];
+}
+
+// TrackingSceneOptions::IsValid names the field; the user typed the flag.
+std::string FlagOf(const std::string& message) {
+  static const std::pair<const char*, const char*> flags[] = {
+      {"rate_hz", "--rate"},         {"noise_mm", "--noise-mm"}, {"duration_scale", "--duration-scale"},
+      {"ghosts", "--ghosts"},        {"occlusion", "--occlusion"}, {"fault_time_s", "--fault-time"}};
+  for (const auto& [field, flag] : flags)
+    if (message.rfind(field, 0) == 0) return std::string(flag) + ": ";
+  return "";
+}
+
+double WrapAngle(double a) { return std::remainder(a, 2.0 * M_PI); }
+
+int RunTrack(const TrackArgs& args) {
+  if (args.simulate == !args.points.empty()) {
+    spdlog::error("mocap track: give either --simulate or --points FILE");
+    return 2;
+  }
+  // --- the input: a scene with truth, or a file of points ---
+  sim::TrackingScene scene;
+  formats::MarkerTrial file;
+  if (args.simulate) {
+    sim::TrackingSceneOptions o = args.scene;
+    o.movements = SplitList(args.movements);
+    if (!sim::ParseSceneFault(args.fault, &o.fault)) {
+      spdlog::error("mocap track: --fault {}: expected none, all_occluded, leave_reenter, "
+                    "second_person or nan_frame", args.fault);
+      return 2;
+    }
+    std::string why;
+    if (!o.IsValid(&why)) {
+      spdlog::error("mocap track: {}{}", FlagOf(why), why);
+      return 2;
+    }
+    spdlog::info("simulating: seed {}, {} Hz, {} ghosts per frame, occlusion {}, swap traps {}, "
+                 "fault {}", o.seed, o.rate_hz, o.ghosts, o.occlusion, o.swap_traps ? "on" : "off",
+                 sim::ToString(o.fault));
+    if (Status s = sim::MakeTrackingScene(o, &scene); !s) {
+      spdlog::error("mocap track: {}", s.message());
+      return 2;
+    }
+  } else {
+    if (Status s = formats::ReadMarkerFile(args.points, &file); !s) {
+      spdlog::error("mocap track: {}", s.message());
+      return 2;
+    }
+    if (file.num_frames() == 0) {
+      spdlog::error("mocap track: {}: no frames", args.points);
+      return 2;
+    }
+    if (!(file.rate_hz > 0.0) && file.times.size() < 2) {
+      spdlog::error("mocap track: {}: no frame rate and no times", args.points);
+      return 2;
+    }
+    if (file.times.size() != static_cast<size_t>(file.num_frames())) {
+      file.times.resize(file.num_frames());
+      for (int f = 0; f < file.num_frames(); ++f) file.times[f] = f / file.rate_hz;
+    }
+    for (int f = 1; f < file.num_frames(); ++f)
+      if (!(file.times[f] > file.times[f - 1])) {
+        spdlog::error("mocap track: {}: frame {} does not come after frame {} in time ({} s, {} s)",
+                      args.points, f + 1, f, file.times[f], file.times[f - 1]);
+        return 2;
+      }
+  }
+
+  // --- the model ---
+  ModelInput input;
+  if (args.model.empty() || args.model == "nominal" || args.model == "truth") {
+    if (args.simulate) {
+      input.path = args.model.empty() ? "nominal" : args.model;
+      input.model = args.model == "truth" ? scene.truth : scene.nominal;
+    } else if (args.model.empty()) {
+      input.path = "default";
+      input.model = DefaultFullBodyModel(args.height_m);
+    } else {
+      spdlog::error("mocap track: --model {}: only with --simulate (give a model file)", args.model);
+      return 2;
+    }
+  } else if (Status s = LoadModelInput(args.model, "", &input); !s) {
+    spdlog::error("mocap track: {}", s.message());
+    return 2;
+  }
+  const Model& model = input.model;
+  if (model.num_markers() < 4) {
+    spdlog::error("mocap track: model '{}' ({}) has {} markers: the tracker needs at least 4",
+                  model.name(), input.path, model.num_markers());
+    return 2;
+  }
+  std::vector<int> scene_marker;  // per model marker
+  if (args.simulate) {
+    scene_marker = sim::SceneMarkerOf(model, scene);
+    const int matched = static_cast<int>(std::count_if(scene_marker.begin(), scene_marker.end(),
+                                                       [](int k) { return k >= 0; }));
+    if (matched == 0) {
+      spdlog::error("mocap track: model '{}' ({}) has none of the simulated subject's {} markers "
+                    "({}, {}, ...): its labels cannot be scored", model.name(), input.path,
+                    scene.num_markers(), scene.marker_names[0], scene.marker_names[1]);
+      return 2;
+    }
+    if (matched < model.num_markers() || matched < scene.num_markers())
+      spdlog::warn("model '{}' shares {} marker names with the simulated subject's {} ({} in the "
+                   "model)", model.name(), matched, scene.num_markers(), model.num_markers());
+  }
+
+  ekf::TrackerOptions topt;
+  topt.rate_hz = args.simulate ? scene.options.rate_hz
+                               : (file.rate_hz > 0 ? file.rate_hz
+                                                   : 1.0 / (file.times[1] - file.times[0]));
+  std::string why;
+  if (!topt.IsValid(&why)) {
+    spdlog::error("mocap track: tracker options: {}", why);
+    return 2;
+  }
+  std::error_code ec;
+  fs::create_directories(args.out, ec);
+  if (ec || !fs::is_directory(args.out)) {
+    spdlog::error("mocap track: cannot create output directory '{}': {}", args.out,
+                  ec ? ec.message() : "not a directory");
+    return 1;
+  }
+  const fs::path dir(args.out);
+
+  // --- tracking ---
+  const int nf = args.simulate ? scene.num_frames() : file.num_frames();
+  const int nm = model.num_markers(), nz = model.num_coordinates();
+  auto shared = std::make_shared<const Model>(model);
+  ekf::Tracker tracker(shared, topt);
+  formats::MarkerTrial labelled;
+  labelled.name = "labelled";
+  labelled.rate_hz = topt.rate_hz;
+  for (const Marker& m : model.markers()) labelled.marker_names.push_back(m.name);
+  labelled.positions.setConstant(nf, 3 * nm, std::nan(""));
+  Eigen::MatrixXd z_out = Eigen::MatrixXd::Constant(nf, nz, std::nan(""));
+  std::vector<double> update_us;
+  update_us.reserve(nf);
+  std::vector<ekf::TrackState> states(nf);
+  int initialisations = 0, nan_poses = 0, first_tracking = -1;
+  int state_count[3] = {0, 0, 0};
+  sim::LabelScorer scorer(args.simulate ? scene.num_markers() : 0);
+  std::vector<int> given;
+  std::vector<sim::LabelScore> frame_scores(args.simulate ? nf : 0);
+  Eigen::Matrix3Xd points;
+  double max_points = 0, sum_points = 0;
+  const int progress_every = std::max(1, nf / 10);
+  for (int f = 0; f < nf; ++f) {
+    double t;
+    if (args.simulate) {
+      points = scene.points[f];
+      t = scene.times[f];
+    } else {
+      points.resize(3, file.num_markers());
+      for (int i = 0; i < file.num_markers(); ++i) points.col(i) = file.At(f, i);
+      t = file.times[f] - file.times[0];
+    }
+    sum_points += static_cast<double>(points.cols());
+    max_points = std::max(max_points, static_cast<double>(points.cols()));
+    const auto start = Clock::now();
+    const ekf::TrackOutput& o = tracker.Update(t, points);
+    update_us.push_back(std::chrono::duration<double, std::micro>(Clock::now() - start).count());
+    states[f] = o.state;
+    ++state_count[static_cast<int>(o.state)];
+    if (o.reinitialised) ++initialisations;
+    if (!o.z.allFinite() || o.z.size() != nz) ++nan_poses;
+    if (o.state == ekf::TrackState::kTracking) {
+      if (first_tracking < 0) first_tracking = f;
+      if (o.z.size() == nz) z_out.row(f) = o.z.transpose();
+    }
+    for (int m = 0; m < nm && m < static_cast<int>(o.point_of_marker.size()); ++m) {
+      const int i = o.point_of_marker[m];
+      if (i >= 0 && i < points.cols())
+        labelled.positions.row(f).segment<3>(3 * m) = points.col(i).transpose();
+    }
+    if (args.simulate) {
+      given.assign(points.cols(), -1);
+      for (int i = 0; i < points.cols() && i < static_cast<int>(o.marker_of_point.size()); ++i) {
+        const int m = o.marker_of_point[i];
+        if (m >= 0 && m < nm) given[i] = scene_marker[m];
+      }
+      frame_scores[f] = scorer.Add(scene.labels[f], given);
+    }
+    if ((f + 1) % progress_every == 0 || f + 1 == nf)
+      spdlog::info("frame {}/{} ({:.0f}%): {}, {}/{} markers labelled, {} points, {:.0f} us",
+                   f + 1, nf, 100.0 * (f + 1) / nf, ekf::ToString(o.state), o.labelled, nm,
+                   points.cols(), update_us.back());
+  }
+  labelled.times.resize(nf);
+  labelled.frame_numbers.resize(nf);
+  for (int f = 0; f < nf; ++f) {
+    labelled.times[f] = args.simulate ? scene.times[f] : file.times[f] - file.times[0];
+    labelled.frame_numbers[f] = f + 1;
+  }
+
+  // --- outputs ---
+  if (Status s = formats::WriteTrc((dir / "labelled.trc").string(), labelled); !s) {
+    spdlog::error("mocap track: {}", s.message());
+    return 1;
+  }
+  if (Status s = WriteAngles((dir / "coordinates.mot").string(), input, model, labelled, z_out); !s) {
+    spdlog::error("mocap track: {}", s.message());
+    return 1;
+  }
+  nlohmann::ordered_json j;
+  j["frames"] = nf;
+  j["model"] = input.path;
+  j["model_markers"] = nm;
+  j["rate_hz"] = topt.rate_hz;
+  j["points_per_frame_mean"] = sum_points / std::max(1, nf);
+  j["points_per_frame_max"] = max_points;
+  j["frames_tracking"] = state_count[static_cast<int>(ekf::TrackState::kTracking)];
+  j["frames_initialising"] = state_count[static_cast<int>(ekf::TrackState::kInitialising)];
+  j["frames_lost"] = state_count[static_cast<int>(ekf::TrackState::kLost)];
+  j["first_tracking_frame"] = first_tracking;
+  j["initialisations"] = initialisations;
+  j["reinitialisations"] = std::max(0, initialisations - 1);
+  j["nan_poses"] = nan_poses;
+  j["update_us_p50"] = Percentile(update_us, 0.50);
+  j["update_us_p99"] = Percentile(update_us, 0.99);
+  j["update_us_max"] = update_us.empty() ? 0.0 : *std::max_element(update_us.begin(), update_us.end());
+
+  if (args.simulate) {
+    const sim::LabelScore score = scorer.Finish();
+    j["seed"] = scene.options.seed;
+    j["scene"] = {{"ghosts", scene.options.ghosts},
+                  {"occlusion", scene.options.occlusion},
+                  {"swap_traps", scene.options.swap_traps},
+                  {"fault", sim::ToString(scene.options.fault)},
+                  {"fault_begin_frame", scene.fault_begin},
+                  {"fault_end_frame", scene.fault_end},
+                  {"movements", nlohmann::json::array()}};
+    for (const sim::SceneSegment& s : scene.segments)
+      j["scene"]["movements"].push_back({{"name", s.name}, {"begin", s.begin}, {"end", s.end}});
+    j["marker_samples"] = score.samples;
+    j["label_accuracy"] = score.accuracy();
+    j["labelled_correctly"] = score.correct;
+    j["wrong_labels"] = score.wrong;
+    j["wrong_label_fraction"] = score.samples > 0 ? static_cast<double>(score.wrong) / score.samples : 0.0;
+    j["wrong_labels_on_ghosts"] = score.wrong_on_ghosts;
+    j["wrong_labels_on_second_person"] = score.wrong_on_second_person;
+    j["swaps_longer_than_5_frames"] = score.swaps_longer_than_5_frames;
+    j["longest_wrong_run_frames"] = score.longest_wrong_run;
+    j["trap_moments"] = scene.traps.size();
+    j["per_marker_accuracy"] = nlohmann::json::object();
+    for (int k = 0; k < scene.num_markers(); ++k)
+      if (scorer.marker_samples()[k] > 0)
+        j["per_marker_accuracy"][scene.marker_names[k]] =
+            static_cast<double>(scorer.marker_correct()[k]) / scorer.marker_samples()[k];
+
+    // Against the true poses, in the frames the tracker was tracking: the model's markers (forward
+    // kinematics of the tracked z with the tracker's model) against the true markers, and the
+    // joint angles (rotational coordinates of non-root joints, by name) against the true ones.
+    const Geometry geometry(model);
+    ModelData data(model);
+    std::vector<int> truth_coordinate(nz, -1);
+    for (int c = 0; c < nz; ++c) {
+      const Coordinate& coord = model.coordinates()[c];
+      const bool root = coord.joint >= 0 && model.joints()[coord.joint].parent < 0;
+      if (coord.rotational && !root) truth_coordinate[c] = scene.truth.FindCoordinate(coord.name);
+    }
+    double marker_sq = 0, angle_sq = 0;
+    long marker_n = 0, angle_n = 0;
+    nlohmann::ordered_json per_coordinate = nlohmann::json::object();
+    std::vector<double> coord_sq(nz, 0.0);
+    std::vector<long> coord_n(nz, 0);
+    for (int f = 0; f < nf; ++f) {
+      if (states[f] != ekf::TrackState::kTracking || !z_out.row(f).allFinite()) continue;
+      const Eigen::VectorXd z = z_out.row(f).transpose();
+      ForwardKinematics(model, geometry, z, &data);
+      for (int m = 0; m < nm; ++m) {
+        if (scene_marker[m] < 0) continue;
+        const Eigen::Vector3d truth = scene.true_markers.row(f).segment<3>(3 * scene_marker[m]).transpose();
+        marker_sq += (MarkerPosition(model, geometry, data, m) - truth).squaredNorm();
+        ++marker_n;
+      }
+      for (int c = 0; c < nz; ++c) {
+        if (truth_coordinate[c] < 0) continue;
+        const double e = WrapAngle(z[c] - scene.true_coordinates(f, truth_coordinate[c]));
+        angle_sq += e * e;
+        ++angle_n;
+        coord_sq[c] += e * e;
+        ++coord_n[c];
+      }
+    }
+    for (int c = 0; c < nz; ++c)
+      if (coord_n[c] > 0)
+        per_coordinate[model.coordinates()[c].name] = std::sqrt(coord_sq[c] / coord_n[c]) * 180.0 / M_PI;
+    // null when the tracker never tracked (nothing to compare).
+    j["marker_rms_mm"] = nullptr;
+    j["joint_angle_rms_deg"] = nullptr;
+    if (marker_n > 0) j["marker_rms_mm"] = 1000.0 * std::sqrt(marker_sq / marker_n);
+    if (angle_n > 0) j["joint_angle_rms_deg"] = std::sqrt(angle_sq / angle_n) * 180.0 / M_PI;
+    j["per_coordinate_rms_deg"] = per_coordinate;
+    // Recovery after a fault: frames from the fault's end until the tracker tracks again with
+    // 90 % of the visible markers correctly labelled and no wrong label.
+    if (scene.fault_end > 0 && scene.fault_end < nf) {
+      j["recovery_frames"] = nullptr;
+      for (int f = scene.fault_end; f < nf; ++f) {
+        const sim::LabelScore& fs = frame_scores[f];
+        if (states[f] == ekf::TrackState::kTracking && fs.wrong == 0 &&
+            fs.correct >= 0.9 * static_cast<double>(fs.samples)) {
+          j["recovery_frames"] = f - scene.fault_end;
+          break;
+        }
+      }
+    }
+    if (Status s = SaveModelJson((dir / "nominal.model.json").string(), scene.nominal); !s) {
+      spdlog::error("mocap track: {}", s.message());
+      return 1;
+    }
+    if (Status s = SaveModelJson((dir / "truth.model.json").string(), scene.truth); !s) {
+      spdlog::error("mocap track: {}", s.message());
+      return 1;
+    }
+    if (Status s = formats::WriteMot((dir / "truth.mot").string(), scene.TrueCoordinateTable()); !s) {
+      spdlog::error("mocap track: {}", s.message());
+      return 1;
+    }
+    if (args.write_points)
+      if (Status s = formats::WriteTrc((dir / "points.trc").string(), scene.PointsTrial()); !s) {
+        spdlog::error("mocap track: {}", s.message());
+        return 1;
+      }
+    std::printf("mocap track: %d frames, label accuracy %.6f, %ld wrong labels (%.4f%%), %d swaps > 5 "
+                "frames, %d reinitialisations, marker RMS %.2f mm, joint angles RMS %.3f deg, update "
+                "p50 %.0f us p99 %.0f us -> %s\n",
+                nf, score.accuracy(), score.wrong,
+                100.0 * j["wrong_label_fraction"].get<double>(), score.swaps_longer_than_5_frames,
+                j["reinitialisations"].get<int>(),
+                j["marker_rms_mm"].is_number() ? j["marker_rms_mm"].get<double>() : std::nan(""),
+                j["joint_angle_rms_deg"].is_number() ? j["joint_angle_rms_deg"].get<double>() : std::nan(""),
+                j["update_us_p50"].get<double>(), j["update_us_p99"].get<double>(), args.out.c_str());
+  } else {
+    std::printf("mocap track: %d frames, %d tracking, %d reinitialisations, update p50 %.0f us p99 "
+                "%.0f us -> %s\n", nf, j["frames_tracking"].get<int>(),
+                j["reinitialisations"].get<int>(), j["update_us_p50"].get<double>(),
+                j["update_us_p99"].get<double>(), args.out.c_str());
+  }
+  {
+    std::ofstream f(dir / "stats.json");
+    f << j.dump(2) << "\n";
+    if (!f) {
+      spdlog::error("mocap track: cannot write {}", (dir / "stats.json").string());
+      return 1;
+    }
+  }
+  return 0;
+}
+
+const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code) {
+  auto args = std::make_shared<TrackArgs>();
+  CLI::App* cmd = app.add_subcommand(
+      "track", "run the real-time tracker (EKF) over unlabelled 3D points: a simulated scene with "
+               "truth, or a points file; labelled markers, coordinates and stats out");
+  cmd->add_option("--model", args->model,
+                  "model (.json/.osim); with --simulate also 'nominal' (default) or 'truth'; with "
+                  "--points the default is the default model scaled to --height");
+  cmd->add_flag("--simulate", args->simulate, "track a simulated scene (sim/tracking_scene.h)");
+  cmd->add_option("--seed", args->scene.seed, "simulation: the subject and movements of `mocap sim --seed N`")
+      ->check(CLI::NonNegativeNumber);
+  cmd->add_option("--ghosts", args->scene.ghosts, "simulation: ghost points per frame")
+      ->check(CLI::NonNegativeNumber);
+  cmd->add_option("--occlusion", args->scene.occlusion,
+                  "simulation: fraction of marker samples occluded (gaps of 5..30 frames)");
+  cmd->add_flag("--swap-traps", args->scene.swap_traps,
+                "simulation: append a movement where markers pass within 15 mm of each other");
+  cmd->add_option("--movements", args->movements,
+                  "simulation: protocol movements, comma-separated (default: all, from 'static')");
+  cmd->add_option("--duration-scale", args->scene.duration_scale, "simulation: scales each movement's duration");
+  cmd->add_option("--noise-mm", args->scene.noise_mm, "simulation: marker noise per coordinate (mm)");
+  cmd->add_option("--rate", args->scene.rate_hz, "simulation: frame rate (Hz)");
+  cmd->add_option("--fault", args->fault,
+                  "simulation: none, all_occluded, leave_reenter, second_person, nan_frame");
+  cmd->add_option("--fault-time", args->scene.fault_time_s, "simulation: when the fault starts (s; default 40 % in)");
+  cmd->add_flag("--write-points", args->write_points, "simulation: also write the points as DIR/points.trc");
+  cmd->add_option("--points", args->points, "unlabelled points (.trc or .c3d, NaN for empty slots)");
+  cmd->add_option("--height", args->height_m, "with --points and no --model: subject height (m)")
+      ->check(CLI::Range(0.5, 3.0));
+  cmd->add_option("--out", args->out, "output directory (created)")->required();
+  cmd->callback([args, exit_code] { *exit_code = RunTrack(*args); });
+});
+
+}  // namespace
+}  // namespace mocap::tools
