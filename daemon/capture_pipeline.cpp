@@ -186,6 +186,7 @@ void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
     if (out.device_timestamp_ns == 0) out.device_timestamp_ns = set.cameras[c].device_timestamp_ns;
     first = std::min(first, set.cameras[c].host_timestamp_ns);
   }
+  if (options_.keep_detections) out.detections = set.cameras;
   const std::uint64_t now = MonotonicNs();
   out.latency_ms = first <= now ? (now - first) * 1e-6 : 0.0;
 

@@ -46,6 +46,9 @@ struct PointFrame {
   std::vector<float> residual_px;
   std::vector<std::uint8_t> camera_count;
   double latency_ms = 0;
+  // The 2D detections the points came from (CapturePipelineOptions::keep_detections), per camera
+  // of the rig; empty otherwise.
+  std::vector<reconstruction::CameraDetections> detections;
 };
 
 // Turns one set of detections into 3D points (reconstruction/triangulation.h, wired by the
@@ -63,6 +66,7 @@ struct CapturePipelineOptions {
   // every camera at one instant whatever each camera's own frame count, and the sync runs on
   // it (kSequence, 64 bits). 0: frame ids as the cameras number them (hardware trigger).
   double device_clock_rate_hz = 0;
+  bool keep_detections = false;  // hand each set's 2D detections out with its points
   reconstruction::DetectionOptions detection;
   reconstruction::FrameSyncOptions sync;  // num_cameras is set from the sources
 

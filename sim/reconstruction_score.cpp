@@ -19,6 +19,7 @@ void ReconstructionScore::Add(const ReconstructionScore& o) {
   ghosts += o.ghosts;
   sum_squared_error_m2 += o.sum_squared_error_m2;
   matched += o.matched;
+  matched_beyond_1mm += o.matched_beyond_1mm;
 }
 
 void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<bool>& seen_by_two,
@@ -40,6 +41,7 @@ void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<boo
     point_used[p] = marker_used[m] = true;
     score->sum_squared_error_m2 += d2;
     ++score->matched;
+    if (d2 > 1e-6) ++score->matched_beyond_1mm;
   }
   for (int m = 0; m < static_cast<int>(truth.size()); ++m) {
     if (m < static_cast<int>(seen_by_two.size()) && seen_by_two[m] && truth[m].allFinite()) {
@@ -49,6 +51,33 @@ void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<boo
   }
   score->reconstructed += static_cast<std::int64_t>(points.size());
   for (bool used : point_used) score->ghosts += !used;
+}
+
+double CentroidScore::rms_px_per_axis() const {
+  return matched ? std::sqrt(sum_squared_px2 / (2.0 * matched)) : 0.0;
+}
+
+void ScoreCentroids(const Renderer& renderer, int camera, std::uint64_t sequence,
+                    const std::vector<Eigen::Vector2d>& centroids, double radius_px,
+                    CentroidScore* score) {
+  FrameTruth ft;
+  renderer.Truth(camera, sequence, &ft);
+  std::vector<std::tuple<double, int, int>> pairs;  // (squared distance, centroid, blob)
+  const double r2 = radius_px * radius_px;
+  for (int c = 0; c < static_cast<int>(centroids.size()); ++c) {
+    for (int b = 0; b < static_cast<int>(ft.blobs.size()); ++b) {
+      const double d2 = (centroids[c] - ft.blobs[b].projected).squaredNorm();
+      if (d2 <= r2) pairs.emplace_back(d2, c, b);
+    }
+  }
+  std::sort(pairs.begin(), pairs.end());
+  std::vector<bool> used_c(centroids.size(), false), used_b(ft.blobs.size(), false);
+  for (const auto& [d2, c, b] : pairs) {
+    if (used_c[c] || used_b[b]) continue;
+    used_c[c] = used_b[b] = true;
+    score->sum_squared_px2 += d2;
+    ++score->matched;
+  }
 }
 
 void ScoreRenderedFrame(const Renderer& renderer, const Scene& scene, std::uint64_t sequence,

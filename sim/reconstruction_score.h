@@ -22,6 +22,7 @@ struct ReconstructionScore {
   std::int64_t ghosts = 0;         // reconstructed points matching no true marker
   double sum_squared_error_m2 = 0; // over every matched point
   std::int64_t matched = 0;
+  std::int64_t matched_beyond_1mm = 0;  // matched points more than 1 mm from their marker
 
   double recall() const { return true_visible ? double(recovered) / true_visible : 1.0; }
   double ghost_fraction() const { return reconstructed ? double(ghosts) / reconstructed : 0.0; }
@@ -34,6 +35,19 @@ struct ReconstructionScore {
 void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<bool>& seen_by_two,
                 const std::vector<Eigen::Vector3d>& points, double match_radius_m,
                 ReconstructionScore* score);
+
+// Centroid error of detections against what the renderer drew: each centroid within
+// `radius_px` of a visible marker's projected centre is matched to the nearest (one-to-one, as
+// ScoreFrame). The error is the pipeline's whole 2D error: the renderer's centroid jitter plus
+// the detector's own.
+struct CentroidScore {
+  std::int64_t matched = 0;
+  double sum_squared_px2 = 0;  // over both axes
+  double rms_px_per_axis() const;
+};
+void ScoreCentroids(const Renderer& renderer, int camera, std::uint64_t sequence,
+                    const std::vector<Eigen::Vector2d>& centroids, double radius_px,
+                    CentroidScore* score);
 
 // Adds one frame set of rendered cameras: the truth is what `renderer` drew for `sequence` in
 // the cameras of `present_mask` (bit c: camera c's image is in the set; a missing image saw

@@ -45,6 +45,7 @@ struct CaptureArgs {
   int height = 1024;
   int threads = 2;
   std::string calibration;  // empty: triangulate with the true rig
+  double centroid_noise_px = 0.1;  // the renderer's centroid jitter
   std::string out;
 };
 
@@ -94,6 +95,11 @@ int RunCapture(const CaptureArgs& a) {
   }
   if (!(a.rate_hz >= 1) || a.rate_hz > 2000) {
     spdlog::error("mocap capture: --rate must be in [1, 2000] Hz, got {}", a.rate_hz);
+    return 2;
+  }
+  if (!(a.centroid_noise_px >= 0) || a.centroid_noise_px > 5) {
+    spdlog::error("mocap capture: --centroid-noise-px must be in [0, 5], got {}",
+                  a.centroid_noise_px);
     return 2;
   }
   if (a.threads < 1 || a.threads > 64) {
@@ -149,6 +155,7 @@ int RunCapture(const CaptureArgs& a) {
   sim::RendererOptions render_options;
   render_options.frame_rate_hz = a.rate_hz;
   render_options.seed = a.seed;
+  render_options.centroid_noise_px = a.centroid_noise_px;
   // Scene time 0 (the protocol's static pose) is the tick at which the capture starts.
   render_options.sequence_origin = drivers::SequenceOfTimestamp(
       static_cast<std::uint64_t>(std::chrono::duration_cast<std::chrono::nanoseconds>(
@@ -206,11 +213,16 @@ int RunCapture(const CaptureArgs& a) {
 
   daemon::CapturePipelineOptions pipeline_options;
   pipeline_options.detection_threads = a.threads;
+  pipeline_options.keep_detections = true;  // to score the centroids against the truth
   // The fakes share the host clock and expose on its frame ticks, but each counts frames from its
   // own start: sets are gathered by tick (a PTP-synchronised rig).
   pipeline_options.device_clock_rate_hz = a.rate_hz;
   // The renderer's dark level is 3 % of full scale and a marker peaks near 90 %.
   pipeline_options.detection.threshold = 60;
+  // Each centroid's uncertainty floor is the 2D error the rig actually has beyond the pixel
+  // noise the detector models (on a real rig: the calibration's reprojection RMS); here the
+  // renderer's jitter. Without it triangulation weighs cameras by blob size alone.
+  pipeline_options.detection.sigma_floor_px = std::max(0.01, a.centroid_noise_px);
   daemon::CapturePipeline pipeline(std::move(sources), triangulate, pipeline_options);
   std::printf("mocap capture: %d simulated Aravis cameras %dx%d at %g Hz, subject seed %llu, "
               "%g s\n",
@@ -251,9 +263,19 @@ int RunCapture(const CaptureArgs& a) {
 
   // Score against the truth: the scene at the time each camera drew its image.
   sim::ReconstructionScore score;
-  for (const daemon::PointFrame& pf : frames) {
+  sim::CentroidScore centroid_score;
+  std::vector<Eigen::Vector2d> pixels;
+  for (daemon::PointFrame& pf : frames) {
     sim::ScoreRenderedFrame(renderer, *scene, pf.sequence, pf.present_mask, pf.points,
                             kMatchRadiusM, &score);
+    for (const reconstruction::CameraDetections& d : pf.detections) {
+      if (d.camera < 0 || !(pf.present_mask >> d.camera & 1)) continue;
+      pixels.clear();
+      for (const auto& c : d.centroids) pixels.push_back(c.pixel);
+      sim::ScoreCentroids(renderer, d.camera, pf.sequence, pixels, 1.0, &centroid_score);
+    }
+    pf.detections.clear();
+    pf.detections.shrink_to_fit();
   }
 
   const fs::path dir(a.out);
@@ -287,9 +309,12 @@ int RunCapture(const CaptureArgs& a) {
   j["late_frames"] = st.late_frames;
   j["camera_losses"] = st.camera_losses;
   j["real_time"] = real_time;
+  j["centroid_noise_px"] = a.centroid_noise_px;
+  j["centroid_error_px_rms"] = centroid_score.rms_px_per_axis();
   j["recall"] = score.recall();
   j["rms_3d_mm"] = score.rms_mm();
   j["ghost_fraction"] = score.ghost_fraction();
+  j["points_beyond_1mm"] = score.matched_beyond_1mm;
   j["true_markers_seen_by_two"] = score.true_visible;
   j["points"] = score.reconstructed;
   j["detect_ms_p50"] = st.detect_ms_p50;
@@ -336,6 +361,9 @@ void SetupCapture(CLI::App& app, int* exit_code) {
   cmd->add_option("--width", args->width, "Image width (px)")->capture_default_str();
   cmd->add_option("--height", args->height, "Image height (px)")->capture_default_str();
   cmd->add_option("--threads", args->threads, "Detection threads")->capture_default_str();
+  cmd->add_option("--centroid-noise-px", args->centroid_noise_px,
+                  "Centroid jitter the renderer adds (px per axis), on top of the detector's own")
+      ->capture_default_str();
   cmd->add_option("--calibration", args->calibration,
                   "Calibration file (mocap calibrate) to triangulate with, instead of the true rig");
   cmd->add_option("--out", args->out, "Output directory: points.c3d, stats.json")->required();
