@@ -36,6 +36,7 @@
 
 #include "reconstruction/triangulation.h"
 #include "sim/camera_rig.h"
+#include "sim/centroid_scene.h"
 #include "sim/random.h"
 #include "sim/simulate.h"
 
@@ -49,55 +50,15 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
-struct Scene {
-  DetectionSet set;
-  std::vector<std::vector<int>> label;                     // per camera, per centroid: marker or -1
-  std::vector<std::vector<std::pair<int, int>>> observed;  // per marker: (camera, centroid)
-};
+using Scene = sim::CentroidScene;
 
+// The triangulation test's scene (sim/centroid_scene.h): 0.1 px noise, seed 1.
 Scene MakeScene(const std::vector<CameraModel>& rig, const std::vector<Eigen::Vector3d>& markers,
                 double hide, int strays, std::uint64_t frame) {
-  sim::Random rng(1, sim::Stream::kImageNoise, frame);
-  Scene s;
-  const int nc = static_cast<int>(rig.size());
-  s.set.cameras.resize(nc);
-  s.set.present.assign(nc, true);
-  s.label.resize(nc);
-  s.observed.assign(markers.size(), {});
-  for (int c = 0; c < nc; ++c) {
-    const CameraModel& cam = rig[c];
-    std::vector<std::pair<Centroid, int>> list;
-    for (size_t m = 0; m < markers.size(); ++m) {
-      Eigen::Vector2d uv;
-      if (!cam.Project(markers[m], &uv)) continue;
-      if (uv.x() < 0 || uv.y() < 0 || uv.x() > cam.intrinsics.width - 1 ||
-          uv.y() > cam.intrinsics.height - 1) {
-        continue;
-      }
-      if (rng.Uniform() < hide) continue;
-      Centroid k;
-      k.pixel = uv + 0.1 * Eigen::Vector2d(rng.Normal(), rng.Normal());
-      k.sigma_px = 0.1;
-      list.push_back({k, static_cast<int>(m)});
-    }
-    for (int r = 0; r < strays; ++r) {
-      Centroid k;
-      k.pixel = {rng.Uniform(0, cam.intrinsics.width - 1),
-                 rng.Uniform(0, cam.intrinsics.height - 1)};
-      k.sigma_px = 0.1;
-      list.push_back({k, -1});
-    }
-    for (int i = static_cast<int>(list.size()) - 1; i > 0; --i) {
-      std::swap(list[i], list[rng.UniformInt(0, i)]);
-    }
-    s.set.cameras[c].camera = c;
-    for (const auto& [k, m] : list) {
-      if (m >= 0) s.observed[m].push_back({c, static_cast<int>(s.label[c].size())});
-      s.set.cameras[c].centroids.push_back(k);
-      s.label[c].push_back(m);
-    }
-  }
-  return s;
+  sim::CentroidSceneOptions o;
+  o.hide = hide;
+  o.strays = strays;
+  return sim::MakeCentroidScene(rig, markers, o, frame);
 }
 
 struct Score {

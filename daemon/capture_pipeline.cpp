@@ -6,15 +6,8 @@
 #include <ctime>
 
 namespace mocap::daemon {
-namespace {
 
-std::uint64_t MonotonicNs() {
-  timespec ts;
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return static_cast<std::uint64_t>(ts.tv_sec) * 1'000'000'000ull + ts.tv_nsec;
-}
-
-}  // namespace
+using drivers::MonotonicNs;
 
 double Percentile(std::vector<double>* values, double p) {
   if (values->empty()) return 0.0;

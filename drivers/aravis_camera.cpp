@@ -11,12 +11,6 @@
 namespace mocap::drivers {
 namespace {
 
-std::uint64_t MonotonicNs() {
-  timespec ts;
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return static_cast<std::uint64_t>(ts.tv_sec) * 1000000000ull + ts.tv_nsec;
-}
-
 // Takes the message out of a GError (and frees it).
 std::string Take(GError** e) {
   if (*e == nullptr) return {};

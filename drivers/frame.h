@@ -10,6 +10,7 @@
 #pragma once
 #include <cstddef>
 #include <cstdint>
+#include <ctime>
 
 namespace mocap::drivers {
 
@@ -48,6 +49,13 @@ struct ImageView {
     return reinterpret_cast<const std::uint16_t*>(data + stride * y);
   }
 };
+
+// The host clock of Frame::host_timestamp_ns and of every latency figure: CLOCK_MONOTONIC, ns.
+inline std::uint64_t MonotonicNs() {
+  timespec ts;
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return static_cast<std::uint64_t>(ts.tv_sec) * 1000000000ull + ts.tv_nsec;
+}
 
 struct Frame {
   int camera = -1;                  // index of the camera in the rig

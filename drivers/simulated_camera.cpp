@@ -6,16 +6,6 @@
 #include <thread>
 
 namespace mocap::drivers {
-namespace {
-
-std::uint64_t MonotonicNs() {
-  timespec ts;
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return static_cast<std::uint64_t>(ts.tv_sec) * 1000000000ull + ts.tv_nsec;
-}
-
-}  // namespace
-
 bool SimulatedCameraOptions::IsValid(std::string* error) const {
   if (width < 1 || height < 1) {
     if (error) *error = "simulated camera options: width and height must be >= 1";

@@ -18,6 +18,7 @@
 
 #include "reconstruction/triangulation.h"
 #include "sim/camera_rig.h"
+#include "sim/centroid_scene.h"
 #include "sim/random.h"
 #include "sim/reconstruction_score.h"
 #include "sim/simulate.h"
@@ -78,68 +79,12 @@ const std::vector<std::vector<Eigen::Vector3d>>& SubjectFrames() {
   return frames;
 }
 
-struct SceneOptions {
-  double noise_px = 0.1;
-  double hide = 0.0;  // fraction of 2D observations hidden
-  int strays = 3;     // stray reflections per camera, uniform over the image
-  std::uint64_t seed = 1;
-  // If set, whether marker m may be seen by camera c at all (before hiding).
-  std::function<bool(int camera, int marker)> visible;
-};
-
-// One frame set: every marker projected through every camera (dropped behind the camera or
-// outside the image), noise, hidden observations and strays added, each camera's centroids
-// shuffled. label[c][i] is the marker of centroid i of camera c, or -1 for a stray.
-struct Scene {
-  DetectionSet set;
-  std::vector<std::vector<int>> label;
-  std::vector<std::vector<std::pair<int, int>>> observed;  // per marker: (camera, centroid)
-};
+using SceneOptions = sim::CentroidSceneOptions;
+using Scene = sim::CentroidScene;
 
 Scene MakeScene(const std::vector<CameraModel>& rig, const std::vector<Eigen::Vector3d>& markers,
                 const SceneOptions& o, std::uint64_t frame) {
-  sim::Random rng(o.seed, sim::Stream::kImageNoise, frame);
-  Scene s;
-  const int nc = static_cast<int>(rig.size());
-  s.set.cameras.resize(nc);
-  s.set.present.assign(nc, true);
-  s.label.resize(nc);
-  s.observed.assign(markers.size(), {});
-  for (int c = 0; c < nc; ++c) {
-    const CameraModel& cam = rig[c];
-    std::vector<std::pair<Centroid, int>> list;
-    for (size_t m = 0; m < markers.size(); ++m) {
-      Eigen::Vector2d uv;
-      if (!cam.Project(markers[m], &uv)) continue;
-      if (uv.x() < 0 || uv.y() < 0 || uv.x() > cam.intrinsics.width - 1 ||
-          uv.y() > cam.intrinsics.height - 1) {
-        continue;
-      }
-      if (rng.Uniform() < o.hide) continue;
-      if (o.visible && !o.visible(c, static_cast<int>(m))) continue;
-      Centroid k;
-      k.pixel = uv + o.noise_px * Eigen::Vector2d(rng.Normal(), rng.Normal());
-      k.sigma_px = std::max(o.noise_px, 0.01);
-      list.push_back({k, static_cast<int>(m)});
-    }
-    for (int r = 0; r < o.strays; ++r) {
-      Centroid k;
-      k.pixel = {rng.Uniform(0, cam.intrinsics.width - 1),
-                 rng.Uniform(0, cam.intrinsics.height - 1)};
-      k.sigma_px = std::max(o.noise_px, 0.01);
-      list.push_back({k, -1});
-    }
-    for (int i = static_cast<int>(list.size()) - 1; i > 0; --i) {
-      std::swap(list[i], list[rng.UniformInt(0, i)]);
-    }
-    s.set.cameras[c].camera = c;
-    for (const auto& [k, m] : list) {
-      if (m >= 0) s.observed[m].push_back({c, static_cast<int>(s.label[c].size())});
-      s.set.cameras[c].centroids.push_back(k);
-      s.label[c].push_back(m);
-    }
-  }
-  return s;
+  return sim::MakeCentroidScene(rig, markers, o, frame);
 }
 
 // Scores points against the truth: a point within 5 mm of a marker is that marker's (the nearest
