@@ -165,9 +165,18 @@ struct Tracker::Impl {
   std::vector<int> unlabelled_run, marker_limb;
   std::vector<std::vector<char>> limb_coord;
   std::vector<std::vector<int>> limb_markers;
-  Eigen::MatrixXd lN, lNd;
-  Eigen::VectorXd lg, lstep, ltrial, lz, lstart, lbest, lz0;
-  Eigen::LLT<Eigen::MatrixXd> lllt;
+  static constexpr int kMaxLimbCoords = 12;  // larger subtrees are left to the global search
+  using LimbMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, kMaxLimbCoords,
+                                   kMaxLimbCoords>;
+  using LimbVector = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kMaxLimbCoords, 1>;
+  LimbMatrix lN, lNd;
+  LimbVector lg, lstep;
+  Eigen::Matrix3Xd lsaved;  // predicted, kept across a search (predicted_markers())
+  Eigen::VectorXd ltrial, lz, lstart, lbest, lz0;
+  Eigen::LLT<LimbMatrix> lllt;
+  std::vector<std::vector<int>> limb_coord_list;
+  std::vector<int> llocal;  // per coordinate: its index among the limb's, or -1
+  void LineariseLimb(int joint, const Eigen::VectorXd& z);
   std::vector<int> lcand, lassign, lbest_assign, lrow_to_col;
   std::vector<char> ltaken;
   void Reacquire(int np);
@@ -244,6 +253,10 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
         if (in[md.markers()[k].segment]) limb_markers[j].push_back(k);
     }
   }
+  limb_coord_list.assign(nj, {});
+  for (int j = 0; j < nj; ++j)
+    for (int i = 0; i < nz; ++i)
+      if (limb_coord[j][i]) limb_coord_list[j].push_back(i);
   marker_limb.assign(nm, -1);
   for (int k = 0; k < nm; ++k) {
     int j = md.segments()[md.markers()[k].segment].joint;
@@ -255,7 +268,8 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
       const int parent = md.joints()[j].parent;
       j = parent >= 0 ? md.segments()[parent].joint : -1;
     }
-    marker_limb[k] = j > 0 ? j : -1;  // the root is the global search's business
+    // The root is the global search's business, and so are subtrees too large for a local one.
+    marker_limb[k] = j > 0 && static_cast<int>(limb_coord_list[j].size()) <= kMaxLimbCoords ? j : -1;
   }
 
   // Root placement.
@@ -311,16 +325,13 @@ void Tracker::Impl::Allocate() {
   out.marker_of_point.reserve(mp);
   out.point_of_marker.reserve(nm);
   unlabelled_run.assign(nm, 0);
-  lN.resize(nz, nz);
-  lNd.resize(nz, nz);
-  lg.resize(nz);
-  lstep.resize(nz);
+  llocal.assign(nz, -1);
+  lsaved.resize(3, nm);
   ltrial.resize(nz);
   lz.resize(nz);
   lstart.resize(nz);
   lbest.resize(nz);
   lz0.resize(nz);
-  lllt = Eigen::LLT<Eigen::MatrixXd>(nz);
   lcand.assign(mp, 0);
   lassign.assign(nm, -1);
   lbest_assign.assign(nm, -1);
@@ -833,12 +844,23 @@ constexpr int kLimbFrames = 20;        // 0.1 s at 200 Hz
 constexpr int kLimbIterations = 15;
 constexpr double kLimbFinalRadius = 0.05;
 constexpr double kLimbMaxRms = 0.03;
+constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
 }  // namespace
 
 // Assigns the limb's markers among the candidate points by distance at z (within radius);
 // lassign receives compact point indices (or -1); returns the truncated cost.
+// Predictions and Jacobians of the limb's markers only.
+void Tracker::Impl::LineariseLimb(int joint, const Eigen::VectorXd& z) {
+  ForwardKinematics(*model, geometry, z, &data);
+  for (int m : limb_markers[joint]) {
+    predicted.col(m) = MarkerPosition(*model, geometry, data, m) +
+                       data.segment_rotation[model->markers()[m].segment] * offset[m];
+    MarkerJacobian(*model, geometry, data, m, &jac[m], static_cast<Eigen::Matrix3Xd*>(nullptr));
+  }
+}
+
 double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius) {
-  Linearise(z);
+  LineariseLimb(joint, z);
   const std::vector<int>& rows = limb_markers[joint];
   const int ns = static_cast<int>(rows.size());
   auto C = cost.topLeftCorner(ns, nc + ns);
@@ -862,7 +884,19 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
   const std::vector<int>& rows = limb_markers[joint];
   const std::vector<char>& freec = limb_coord[joint];
   const int ns = static_cast<int>(rows.size());
-  if (ns < 2) return false;
+  const std::vector<int>& lcoords = limb_coord_list[joint];
+  const int nl = static_cast<int>(lcoords.size());
+  if (ns < 2 || nl < 1 || nl > kMaxLimbCoords) return false;
+  for (int l = 0; l < nl; ++l) llocal[lcoords[l]] = l;
+  lsaved = predicted;
+  struct Restore {  // llocal back to all -1 and the predictions back, on every return
+    Impl& s;
+    const std::vector<int>& c;
+    ~Restore() {
+      for (int i : c) s.llocal[i] = -1;
+      s.predicted = s.lsaved;
+    }
+  } restore{*this, lcoords};
   // Candidates: the points no marker outside the limb took.
   std::fill(ltaken.begin(), ltaken.begin() + np, 0);
   for (int m = 0; m < nm; ++m)
@@ -918,28 +952,26 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
     for (int it = 0; it < kLimbIterations; ++it) {
       const double radius = std::max(kLimbFinalRadius, 0.15 - 0.01 * it);
       LimbAssign(joint, lz, nc, radius);
-      lN.setZero();
-      lg.setZero();
+      lN.setZero(nl, nl);
+      lg.setZero(nl);
       for (int m : rows) {
         if (lassign[m] < 0) continue;
         const Eigen::Vector3d r = predicted.col(m) - points.col(lassign[m]);
         const std::vector<int>& cols = model->marker_coordinates(m);
         const auto& J = jac[m];
         for (size_t a = 0; a < cols.size(); ++a) {
-          if (!freec[cols[a]]) continue;
-          lg[cols[a]] += J.col(a).dot(r);
+          const int la = llocal[cols[a]];
+          if (la < 0) continue;
+          lg[la] += J.col(a).dot(r);
           for (size_t k = 0; k < cols.size(); ++k)
-            if (freec[cols[k]]) lN(cols[a], cols[k]) += J.col(a).dot(J.col(k));
+            if (llocal[cols[k]] >= 0) lN(la, llocal[cols[k]]) += J.col(a).dot(J.col(k));
         }
       }
-      for (int i = 0; i < nz; ++i) {
-        if (!freec[i]) {
-          lN(i, i) = 1;
-          continue;
-        }
+      for (int l = 0; l < nl; ++l) {
+        const int i = lcoords[l];
         const double w = rotational[i] ? prior_rot : prior_trans;
-        lN(i, i) += w;
-        lg[i] += w * (lz[i] - lstart[i]);
+        lN(l, l) += w;
+        lg[l] += w * (lz[i] - lstart[i]);
       }
       const double c0 = Cost(lz);
       bool accepted = false;
@@ -952,7 +984,8 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
           continue;
         }
         lstep = lllt.solve(lg);
-        ltrial = lz - lstep;
+        ltrial = lz;
+        for (int l = 0; l < nl; ++l) ltrial[lcoords[l]] -= lstep[l];
         Wrap(&ltrial);
         if (Cost(ltrial) < c0) {
           lz = ltrial;
@@ -1015,11 +1048,24 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
 
 void Tracker::Impl::Reacquire(int np) {
   for (int m = 0; m < nm; ++m) unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
-  // One search per frame: the largest limb (nearest the root) among those due.
+  // One search per frame: the largest limb (nearest the root) among those due, and only when an
+  // unclaimed point lies near the marker's prediction (a hidden marker costs nothing).
   int joint = -1;
+  bool claimed_known = false;
   for (int m = 0; m < nm; ++m) {
     const int run = unlabelled_run[m];
     if (run < kLimbFrames || run % kLimbFrames != 0 || marker_limb[m] < 0) continue;
+    if (!claimed_known) {
+      std::fill(ltaken.begin(), ltaken.begin() + np, 0);
+      for (int k = 0; k < nm; ++k)
+        if (row_to_col[k] >= 0) ltaken[row_to_col[k]] = 1;
+      claimed_known = true;
+    }
+    bool near = false;
+    for (int k = 0; k < np && !near; ++k)
+      near = !ltaken[k] && (points.col(k) - predicted.col(m)).squaredNorm() <
+                               kLimbNearRadius * kLimbNearRadius;
+    if (!near) continue;
     if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
   }
   if (joint >= 0) ReacquireLimb(joint, np);
