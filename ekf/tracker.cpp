@@ -841,7 +841,7 @@ bool Tracker::Impl::TryInitialise(int np) {
 // accelerations zeroed and their covariance reset to the initialisation's. Allocation-free.
 namespace {
 constexpr int kLimbFrames = 20;        // 0.1 s at 200 Hz
-constexpr int kLimbIterations = 15;
+constexpr int kLimbIterations = 10;
 constexpr double kLimbFinalRadius = 0.05;
 constexpr double kLimbMaxRms = 0.03;
 constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
@@ -930,7 +930,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
   lz0 = x.head(nz);
   std::mt19937 rng(777);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
-  const int starts = 7;
+  const int starts = 5;
   double best = std::numeric_limits<double>::infinity(), runner_up = best;
   int best_labelled = 0;
   double best_sum = 0;

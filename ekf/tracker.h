@@ -66,7 +66,7 @@
 // their points again. A marker unlabelled for 20 tracking frames (re-tried every 20), with an
 // unclaimed point within 25 cm of its prediction, has the subtree of the joint that moves it
 // (up to 12 coordinates; the root and the trunk are the global search's) searched again
-// ICP-like among the points no other marker took, from its current pose and six restarts (joint
+// ICP-like among the points no other marker took, from its current pose and four restarts (joint
 // angles blended towards the middle of their ranges, fixed pseudo-random perturbations). The
 // best placement replaces the limb's coordinates (velocities and accelerations zeroed, their
 // covariance reset to the initialisation's) only when it labels more of the limb's markers than
