@@ -158,6 +158,30 @@ struct Tracker::Impl {
   bool PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3d& turn,
                  const Eigen::Vector3d& centroid, Eigen::VectorXd* z);
   Hypothesis Icp(Eigen::VectorXd z, int np);
+
+  // Local re-acquisition of a limb (see tracker.h): per marker, consecutive tracking frames
+  // without a label; per joint, the coordinates and markers of its subtree; per marker, the
+  // joint whose subtree is searched again when it stays unlabelled. Workspace sized in Allocate.
+  std::vector<int> unlabelled_run, marker_limb;
+  std::vector<std::vector<char>> limb_coord;
+  std::vector<std::vector<int>> limb_markers;
+  static constexpr int kMaxLimbCoords = 12;  // larger subtrees are left to the global search
+  using LimbMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, kMaxLimbCoords,
+                                   kMaxLimbCoords>;
+  using LimbVector = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kMaxLimbCoords, 1>;
+  LimbMatrix lN, lNd;
+  LimbVector lg, lstep;
+  Eigen::Matrix3Xd lsaved;  // predicted, kept across a search (predicted_markers())
+  Eigen::VectorXd ltrial, lz, lstart, lbest, lz0;
+  Eigen::LLT<LimbMatrix> lllt;
+  std::vector<std::vector<int>> limb_coord_list;
+  std::vector<int> llocal;  // per coordinate: its index among the limb's, or -1
+  void LineariseLimb(int joint, const Eigen::VectorXd& z);
+  std::vector<int> lcand, lassign, lbest_assign, lrow_to_col;
+  std::vector<char> ltaken;
+  void Reacquire(int np);
+  bool ReacquireLimb(int joint, int np);
+  double LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius);
 };
 
 void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
@@ -207,6 +231,46 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   }
   marker_depth.resize(nm);
   for (int k = 0; k < nm; ++k) marker_depth[k] = segment_depth[md.markers()[k].segment];
+
+  // Limbs: each joint's subtree (joints are parents first, so a joint's descendants follow it).
+  const int nj = static_cast<int>(md.joints().size());
+  limb_coord.assign(nj, std::vector<char>(nz, 0));
+  limb_markers.assign(nj, {});
+  {
+    std::vector<char> in(md.num_segments(), 0);
+    for (int j = 0; j < nj; ++j) {
+      std::fill(in.begin(), in.end(), 0);
+      in[md.joints()[j].child] = 1;
+      for (int i = j + 1; i < nj; ++i) {
+        const Joint& ji = md.joints()[i];
+        if (ji.parent >= 0 && in[ji.parent]) in[ji.child] = 1;
+      }
+      for (int i = j; i < nj; ++i)
+        if (in[md.joints()[i].child])
+          for (const JointElement& e : md.joints()[i].elements)
+            if (e.coordinate >= 0) limb_coord[j][e.coordinate] = 1;
+      for (int k = 0; k < nm; ++k)
+        if (in[md.markers()[k].segment]) limb_markers[j].push_back(k);
+    }
+  }
+  limb_coord_list.assign(nj, {});
+  for (int j = 0; j < nj; ++j)
+    for (int i = 0; i < nz; ++i)
+      if (limb_coord[j][i]) limb_coord_list[j].push_back(i);
+  marker_limb.assign(nm, -1);
+  for (int k = 0; k < nm; ++k) {
+    int j = md.segments()[md.markers()[k].segment].joint;
+    // Up to the first joint that moves something (a welded segment rides on its parent's).
+    while (j > 0) {
+      bool moves = false;
+      for (char c : limb_coord[j]) moves |= c != 0;
+      if (moves) break;
+      const int parent = md.joints()[j].parent;
+      j = parent >= 0 ? md.segments()[parent].joint : -1;
+    }
+    // The root is the global search's business, and so are subtrees too large for a local one.
+    marker_limb[k] = j > 0 && static_cast<int>(limb_coord_list[j].size()) <= kMaxLimbCoords ? j : -1;
+  }
 
   // Root placement.
   const Joint& root = md.joints()[0];
@@ -260,6 +324,19 @@ void Tracker::Impl::Allocate() {
   update.Resize(nz);
   out.marker_of_point.reserve(mp);
   out.point_of_marker.reserve(nm);
+  unlabelled_run.assign(nm, 0);
+  llocal.assign(nz, -1);
+  lsaved.resize(3, nm);
+  ltrial.resize(nz);
+  lz.resize(nz);
+  lstart.resize(nz);
+  lbest.resize(nz);
+  lz0.resize(nz);
+  lcand.assign(mp, 0);
+  lassign.assign(nm, -1);
+  lbest_assign.assign(nm, -1);
+  lrow_to_col.assign(nm, -1);
+  ltaken.assign(mp, 0);
   jerk_psd.resize(nz);
   for (int i = 0; i < nz; ++i)
     jerk_psd[i] = rotational[i] ? options.jerk_psd_rotational : options.jerk_psd_translational;
@@ -746,9 +823,252 @@ bool Tracker::Impl::TryInitialise(int np) {
   x.head(nz) = zbuf;
   out.nis = nis;
   out.nis_dof = 3 * out.labelled;
+  std::fill(unlabelled_run.begin(), unlabelled_run.end(), 0);
   init.accepted = true;
   init.reason.clear();
   return true;
+}
+
+
+// ---------------------------------------------------------------------------------------------
+// Local re-acquisition of a limb. While the rest of the body tracks, a limb can settle in a wrong
+// but self-consistent pose (a foot left with its heel marker only, a thigh turned about its long
+// axis after a re-initialisation) from which its other markers' gates never meet their points
+// again. When a marker has been unlabelled for kLimbFrames tracking frames, the subtree of the
+// joint that moves it is searched again ICP-like among the points the rest of the body did not
+// take, from its current pose and a few restarts; a clearly better, unambiguous placement that
+// keeps the limb's present labels replaces the limb's coordinates, with their velocities and
+// accelerations zeroed and their covariance reset to the initialisation's. Allocation-free.
+namespace {
+constexpr int kLimbFrames = 20;        // 0.1 s at 200 Hz
+constexpr int kLimbIterations = 10;
+constexpr double kLimbFinalRadius = 0.05;
+constexpr double kLimbMaxRms = 0.03;
+constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
+}  // namespace
+
+// Assigns the limb's markers among the candidate points by distance at z (within radius);
+// lassign receives compact point indices (or -1); returns the truncated cost.
+// Predictions and Jacobians of the limb's markers only.
+void Tracker::Impl::LineariseLimb(int joint, const Eigen::VectorXd& z) {
+  ForwardKinematics(*model, geometry, z, &data);
+  for (int m : limb_markers[joint]) {
+    predicted.col(m) = MarkerPosition(*model, geometry, data, m) +
+                       data.segment_rotation[model->markers()[m].segment] * offset[m];
+    MarkerJacobian(*model, geometry, data, m, &jac[m], static_cast<Eigen::Matrix3Xd*>(nullptr));
+  }
+}
+
+double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius) {
+  LineariseLimb(joint, z);
+  const std::vector<int>& rows = limb_markers[joint];
+  const int ns = static_cast<int>(rows.size());
+  auto C = cost.topLeftCorner(ns, nc + ns);
+  const double r2 = radius * radius;
+  for (int r = 0; r < ns; ++r) {
+    const int m = rows[r];
+    for (int c = 0; c < nc; ++c) {
+      const double d2 = (points.col(lcand[c]) - predicted.col(m)).squaredNorm();
+      C(r, c) = d2 < r2 ? d2 : kForbidden;
+    }
+    C.row(r).tail(ns).setConstant(kForbidden);
+    C(r, nc + r) = r2;
+  }
+  const double total = lap.Solve(C, lrow_to_col.data());
+  for (int r = 0; r < ns; ++r)
+    lassign[rows[r]] = lrow_to_col[r] < nc ? lcand[lrow_to_col[r]] : -1;
+  return total;
+}
+
+bool Tracker::Impl::ReacquireLimb(int joint, int np) {
+  const std::vector<int>& rows = limb_markers[joint];
+  const std::vector<char>& freec = limb_coord[joint];
+  const int ns = static_cast<int>(rows.size());
+  const std::vector<int>& lcoords = limb_coord_list[joint];
+  const int nl = static_cast<int>(lcoords.size());
+  if (ns < 2 || nl < 1 || nl > kMaxLimbCoords) return false;
+  for (int l = 0; l < nl; ++l) llocal[lcoords[l]] = l;
+  lsaved = predicted;
+  struct Restore {  // llocal back to all -1 and the predictions back, on every return
+    Impl& s;
+    const std::vector<int>& c;
+    ~Restore() {
+      for (int i : c) s.llocal[i] = -1;
+      s.predicted = s.lsaved;
+    }
+  } restore{*this, lcoords};
+  // Candidates: the points no marker outside the limb took.
+  std::fill(ltaken.begin(), ltaken.begin() + np, 0);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= 0) ltaken[row_to_col[m]] = 1;
+  int current = 0;
+  for (int m : rows)
+    if (row_to_col[m] >= 0) {
+      ltaken[row_to_col[m]] = 0;
+      ++current;
+    }
+  int nc = 0;
+  for (int k = 0; k < np; ++k)
+    if (!ltaken[k]) lcand[nc++] = k;
+  if (nc <= current) return false;
+
+  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
+  auto Cost = [&](const Eigen::VectorXd& zz) {
+    ForwardKinematics(*model, geometry, zz, &data);
+    double c = 0;
+    for (int m : rows)
+      if (lassign[m] >= 0)
+        c += (MarkerPosition(*model, geometry, data, m) +
+              data.segment_rotation[model->markers()[m].segment] * offset[m] -
+              points.col(lassign[m]))
+                 .squaredNorm();
+    for (int i = 0; i < nz; ++i)
+      if (freec[i])
+        c += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - lstart[i]) * (zz[i] - lstart[i]);
+    return c;
+  };
+  lz0 = x.head(nz);
+  std::mt19937 rng(777);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  const int starts = 5;
+  double best = std::numeric_limits<double>::infinity(), runner_up = best;
+  int best_labelled = 0;
+  double best_sum = 0;
+  for (int v = 0; v < starts; ++v) {
+    lstart = lz0;
+    for (int i = 0; i < nz; ++i) {
+      if (!freec[i] || !rotational[i]) continue;
+      const Coordinate& co = model->coordinates()[i];
+      if (v == 1 || v == 2) {
+        if (co.max_value - co.min_value < 2 * M_PI)
+          lstart[i] += (v == 1 ? 0.25 : 0.5) * (0.5 * (co.min_value + co.max_value) - lstart[i]);
+      } else if (v > 2) {
+        lstart[i] += options.init_variant_rad * u(rng);
+      }
+    }
+    Wrap(&lstart);
+    lz = lstart;
+    double lambda = 1e-3;
+    for (int it = 0; it < kLimbIterations; ++it) {
+      const double radius = std::max(kLimbFinalRadius, 0.15 - 0.01 * it);
+      LimbAssign(joint, lz, nc, radius);
+      lN.setZero(nl, nl);
+      lg.setZero(nl);
+      for (int m : rows) {
+        if (lassign[m] < 0) continue;
+        const Eigen::Vector3d r = predicted.col(m) - points.col(lassign[m]);
+        const std::vector<int>& cols = model->marker_coordinates(m);
+        const auto& J = jac[m];
+        for (size_t a = 0; a < cols.size(); ++a) {
+          const int la = llocal[cols[a]];
+          if (la < 0) continue;
+          lg[la] += J.col(a).dot(r);
+          for (size_t k = 0; k < cols.size(); ++k)
+            if (llocal[cols[k]] >= 0) lN(la, llocal[cols[k]]) += J.col(a).dot(J.col(k));
+        }
+      }
+      for (int l = 0; l < nl; ++l) {
+        const int i = lcoords[l];
+        const double w = rotational[i] ? prior_rot : prior_trans;
+        lN(l, l) += w;
+        lg[l] += w * (lz[i] - lstart[i]);
+      }
+      const double c0 = Cost(lz);
+      bool accepted = false;
+      for (int tries = 0; tries < 6 && !accepted; ++tries) {
+        lNd = lN;
+        lNd.diagonal() += lambda * lN.diagonal();
+        lllt.compute(lNd);
+        if (lllt.info() != Eigen::Success) {
+          lambda *= 10;
+          continue;
+        }
+        lstep = lllt.solve(lg);
+        ltrial = lz;
+        for (int l = 0; l < nl; ++l) ltrial[lcoords[l]] -= lstep[l];
+        Wrap(&ltrial);
+        if (Cost(ltrial) < c0) {
+          lz = ltrial;
+          lambda = std::max(1e-7, lambda * 0.3);
+          accepted = true;
+        } else {
+          lambda *= 10;
+        }
+      }
+    }
+    const double score = LimbAssign(joint, lz, nc, kLimbFinalRadius);
+    int labelled = 0;
+    double sum = 0;
+    for (int m : rows)
+      if (lassign[m] >= 0) {
+        ++labelled;
+        sum += (points.col(lassign[m]) - predicted.col(m)).squaredNorm();
+      }
+    int differ = 0;
+    if (std::isfinite(best))
+      for (int m : rows) differ += lassign[m] != lbest_assign[m];
+    if (score < best) {
+      if (differ >= 2) runner_up = best;
+      best = score;
+      best_labelled = labelled;
+      best_sum = sum;
+      lbest = lz;
+      for (int m : rows) lbest_assign[m] = lassign[m];
+    } else if (differ >= 2) {
+      runner_up = std::min(runner_up, score);
+    }
+  }
+  if (best_labelled <= current) return false;
+  const double rms = std::sqrt(best_sum / best_labelled);
+  if (!(rms <= kLimbMaxRms)) return false;
+  const double variance = std::max(rms * rms / 3.0, 1e-6);
+  if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
+    return false;
+  // Accept: the limb's coordinates at rest at the found pose, their covariance reset.
+  for (int i = 0; i < nz; ++i) {
+    if (!freec[i]) continue;
+    const bool r = rotational[i];
+    const double s[3] = {
+        r ? options.init_sigma_rotational : options.init_sigma_translational,
+        r ? options.init_sigma_velocity_rotational : options.init_sigma_velocity_translational,
+        r ? options.init_sigma_acceleration_rotational
+          : options.init_sigma_acceleration_translational};
+    x[i] = lbest[i];
+    x[nz + i] = 0;
+    x[2 * nz + i] = 0;
+    for (int blk = 0; blk < 3; ++blk) {
+      const int idx = blk * nz + i;
+      P.row(idx).setZero();
+      P.col(idx).setZero();
+      P(idx, idx) = s[blk] * s[blk];
+    }
+  }
+  return true;
+}
+
+void Tracker::Impl::Reacquire(int np) {
+  for (int m = 0; m < nm; ++m) unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
+  // One search per frame: the largest limb (nearest the root) among those due, and only when an
+  // unclaimed point lies near the marker's prediction (a hidden marker costs nothing).
+  int joint = -1;
+  bool claimed_known = false;
+  for (int m = 0; m < nm; ++m) {
+    const int run = unlabelled_run[m];
+    if (run < kLimbFrames || run % kLimbFrames != 0 || marker_limb[m] < 0) continue;
+    if (!claimed_known) {
+      std::fill(ltaken.begin(), ltaken.begin() + np, 0);
+      for (int k = 0; k < nm; ++k)
+        if (row_to_col[k] >= 0) ltaken[row_to_col[k]] = 1;
+      claimed_known = true;
+    }
+    bool near = false;
+    for (int k = 0; k < np && !near; ++k)
+      near = !ltaken[k] && (points.col(k) - predicted.col(m)).squaredNorm() <
+                               kLimbNearRadius * kLimbNearRadius;
+    if (!near) continue;
+    if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
+  }
+  if (joint >= 0) ReacquireLimb(joint, np);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -802,6 +1122,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
                      (labelled > 0 && nis > s.options.max_nis_per_dof * out.nis_dof);
     if (ok && !bad) {
       s.bad_frames = 0;
+      s.Reacquire(np);
       s.z_good = s.x.head(s.nz);
     } else if (++s.bad_frames >= s.options.divergence_frames || !ok) {
       out.state = TrackState::kLost;

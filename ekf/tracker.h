@@ -60,6 +60,20 @@
 // coordinate is too high, for `divergence_frames` consecutive frames; the tracker then
 // re-initialises automatically from the incoming frames.
 //
+// Limb re-acquisition. While the rest of the body tracks, one limb can settle in a wrong but
+// self-consistent pose (a foot left with its heel marker only; a thigh turned about its long axis
+// or a head turned after a re-initialisation) from which its other markers' gates never meet
+// their points again. A marker unlabelled for 20 tracking frames (re-tried every 20), with an
+// unclaimed point within 25 cm of its prediction, has the subtree of the joint that moves it
+// (up to 12 coordinates; the root and the trunk are the global search's) searched again
+// ICP-like among the points no other marker took, from its current pose and four restarts (joint
+// angles blended towards the middle of their ranges, fixed pseudo-random perturbations). The
+// best placement replaces the limb's coordinates (velocities and accelerations zeroed, their
+// covariance reset to the initialisation's) only when it labels more of the limb's markers than
+// the track does, their RMS distance is within init_max_rms_m and no differently labelling
+// restart comes within the init_ambiguity_margin log-likelihood margin. Allocation-free; a
+// hidden marker with no point near costs nothing.
+//
 // Model error. A nominal model (before the global fit) misplaces markers by 1-4 cm; each marker
 // carries a slowly learnt offset in its segment's frame, and its measurement variance is inflated
 // by what is not yet known of it (TrackerOptions::marker_offset_*). SwapModel clears them.
