@@ -154,7 +154,7 @@ void CapturePipeline::DetectLoop(int worker) {
     cameras_[job.frame.camera]->Release(job.frame);
     job = FrameJob{};
     std::lock_guard<std::mutex> lock(stats_mutex_);
-    detect_ms_.push_back(ms);
+    detect_ms_.Add(ms);
     if (!s) {
       ++stats_.detection_errors;
       d.centroids.clear();  // the set still learns that this camera saw nothing usable
@@ -184,14 +184,14 @@ void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
   out.latency_ms = first <= now ? (now - first) * 1e-6 : 0.0;
 
   std::lock_guard<std::mutex> lock(stats_mutex_);
-  triangulate_ms_.push_back(std::chrono::duration<double, std::milli>(t1 - t0).count());
+  triangulate_ms_.Add(std::chrono::duration<double, std::milli>(t1 - t0).count());
   if (!s) ++stats_.triangulation_errors;
   if (any_emitted_ && set.sequence > last_emitted_sequence_ + 1) {
     stats_.dropped_frame_sets += set.sequence - last_emitted_sequence_ - 1;
   }
   if (!any_emitted_ || set.sequence > last_emitted_sequence_) last_emitted_sequence_ = set.sequence;
   any_emitted_ = true;
-  latency_ms_.push_back(out.latency_ms);
+  latency_ms_.Add(out.latency_ms);
   if (out.cameras_present < static_cast<int>(cameras_.size())) ++stats_.incomplete_sets;
   if (points_.TryPush(std::move(out))) {
     ++stats_.frame_sets;
@@ -230,15 +230,12 @@ bool CapturePipeline::PopPoints(PointFrame* out, int timeout_ms) {
 CapturePipelineStats CapturePipeline::Stats() const {
   std::lock_guard<std::mutex> lock(stats_mutex_);
   CapturePipelineStats s = stats_;
-  std::vector<double> v = detect_ms_;
-  s.detect_ms_p50 = Percentile(&v, 50);
-  s.detect_ms_p99 = Percentile(&v, 99);
-  v = triangulate_ms_;
-  s.triangulate_ms_p50 = Percentile(&v, 50);
-  s.triangulate_ms_p99 = Percentile(&v, 99);
-  v = latency_ms_;
-  s.latency_ms_p50 = Percentile(&v, 50);
-  s.latency_ms_p99 = Percentile(&v, 99);
+  s.detect_ms_p50 = detect_ms_.Percentile(50);
+  s.detect_ms_p99 = detect_ms_.Percentile(99);
+  s.triangulate_ms_p50 = triangulate_ms_.Percentile(50);
+  s.triangulate_ms_p99 = triangulate_ms_.Percentile(99);
+  s.latency_ms_p50 = latency_ms_.Percentile(50);
+  s.latency_ms_p99 = latency_ms_.Percentile(99);
   return s;
 }
 

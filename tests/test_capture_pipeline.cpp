@@ -39,6 +39,15 @@ TEST(BoundedQueue, KeepsOrderRefusesWhenFullAndDrainsAfterClose) {
   EXPECT_FALSE(q.Pop(&out, std::chrono::milliseconds(10)));  // closed and drained
 }
 
+TEST(RecentSamples, KeepsTheLatestAndTakesPercentilesOfThem) {
+  daemon::RecentSamples r(4);
+  EXPECT_EQ(r.Percentile(50), 0.0);  // empty
+  for (double v : {100.0, 200.0, 1.0, 2.0, 3.0, 4.0}) r.Add(v);  // 100 and 200 fall out
+  EXPECT_EQ(r.Percentile(100), 4.0);
+  EXPECT_EQ(r.Percentile(50), 2.0);
+  EXPECT_EQ(r.Percentile(1), 1.0);
+}
+
 // A rig of simulated cameras at 100 Hz watching the simulated subject, and its pipeline.
 struct Rig {
   static constexpr double kRate = 100.0;
