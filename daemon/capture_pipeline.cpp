@@ -65,7 +65,6 @@ Status CapturePipeline::Start() {
 
   // Consumers first, so that nothing a producer emits waits for a stage that does not exist.
   sync_thread_ = std::thread(&CapturePipeline::SyncLoop, this);
-  detectors_running_ = options_.detection_threads;
   for (int w = 0; w < options_.detection_threads; ++w) {
     detect_threads_.emplace_back(&CapturePipeline::DetectLoop, this, w);
   }
@@ -103,16 +102,16 @@ void CapturePipeline::GrabLoop(int c) {
   drivers::CameraSource& cam = *cameras_[c];
   bool was_lost = false;
   while (grabbing_) {
-    FrameJob job;
-    const drivers::GrabResult r = cam.Grab(&job.frame);
+    drivers::Frame frame;
+    const drivers::GrabResult r = cam.Grab(&frame);
     if (r == drivers::GrabResult::kFrame) {
       was_lost = false;
-      job.frame.camera = c;
+      frame.camera = c;
       std::lock_guard<std::mutex> lock(stats_mutex_);
       ++stats_.frames_grabbed;
-      if (!frames_.TryPush(std::move(job))) {
+      if (!frames_.TryPush(std::move(frame))) {  // full: the frame is left to us
         ++stats_.frames_dropped;
-        cam.Release(job.frame);
+        cam.Release(frame);
       }
     } else if (r == drivers::GrabResult::kIncomplete) {
       std::lock_guard<std::mutex> lock(stats_mutex_);
@@ -133,26 +132,26 @@ void CapturePipeline::GrabLoop(int c) {
 
 void CapturePipeline::DetectLoop(int worker) {
   reconstruction::DetectionWorkspace workspace;
-  std::vector<double> times;
-  FrameJob job;
-  while (frames_.Pop(&job, std::chrono::milliseconds(50)) || !frames_.closed()) {
-    if (job.frame.handle == nullptr && job.frame.image.data == nullptr) continue;
+  drivers::Frame frame;
+  for (;;) {
+    if (!frames_.Pop(&frame, std::chrono::milliseconds(50))) {
+      if (frames_.closed()) break;  // closed and drained
+      continue;
+    }
     reconstruction::CameraDetections d;
-    d.camera = job.frame.camera;
+    d.camera = frame.camera;
     d.sequence = options_.device_clock_rate_hz > 0
-                     ? static_cast<std::uint64_t>(static_cast<long double>(
-                                                      job.frame.device_timestamp_ns) *
-                                                  options_.device_clock_rate_hz / 1e9L)
-                     : job.frame.sequence;
-    d.device_timestamp_ns = job.frame.device_timestamp_ns;
-    d.host_timestamp_ns = job.frame.host_timestamp_ns;
+                     ? drivers::SequenceOfTimestamp(frame.device_timestamp_ns,
+                                                    options_.device_clock_rate_hz)
+                     : frame.sequence;
+    d.device_timestamp_ns = frame.device_timestamp_ns;
+    d.host_timestamp_ns = frame.host_timestamp_ns;
     const auto t0 = std::chrono::steady_clock::now();
-    const Status s = reconstruction::DetectMarkers(job.frame.image, options_.detection, nullptr,
+    const Status s = reconstruction::DetectMarkers(frame.image, options_.detection, nullptr,
                                                    &workspace, &d.centroids);
     const double ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-    cameras_[job.frame.camera]->Release(job.frame);
-    job = FrameJob{};
+    cameras_[frame.camera]->Release(frame);
     std::lock_guard<std::mutex> lock(stats_mutex_);
     detect_ms_.Add(ms);
     if (!s) {
@@ -161,7 +160,6 @@ void CapturePipeline::DetectLoop(int worker) {
     }
     if (!detections_.TryPush(std::move(d))) ++stats_.detections_dropped;
   }
-  --detectors_running_;
 }
 
 void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
@@ -209,7 +207,7 @@ void CapturePipeline::SyncLoop() {
     if (got) {
       if (!sync_.Add(std::move(d), &ready)) {
         std::lock_guard<std::mutex> lock(stats_mutex_);
-        ++stats_.detection_errors;
+        ++stats_.sync_errors;
       }
     }
     sync_.Poll(MonotonicNs(), &ready);

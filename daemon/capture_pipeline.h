@@ -105,6 +105,7 @@ struct CapturePipelineStats {
   std::uint64_t frames_incomplete = 0;   // buffers the cameras counted as incomplete
   std::uint64_t frames_dropped = 0;      // the detection queue was full
   std::uint64_t detection_errors = 0;
+  std::uint64_t sync_errors = 0;         // detections the sync refused (camera index, ...)
   std::uint64_t detections_dropped = 0;  // the sync queue was full
   std::uint64_t frame_sets = 0;          // point frames handed to the caller
   std::uint64_t incomplete_sets = 0;     // ... of which with a camera missing
@@ -138,9 +139,6 @@ class CapturePipeline {
   int num_cameras() const { return static_cast<int>(cameras_.size()); }
 
  private:
-  struct FrameJob {
-    drivers::Frame frame;
-  };
   void GrabLoop(int camera);
   void DetectLoop(int worker);
   void SyncLoop();
@@ -150,12 +148,11 @@ class CapturePipeline {
   TriangulateFn triangulate_;
   CapturePipelineOptions options_;
 
-  BoundedQueue<FrameJob> frames_;
+  BoundedQueue<drivers::Frame> frames_;
   BoundedQueue<reconstruction::CameraDetections> detections_;
   BoundedQueue<PointFrame> points_;
 
   std::atomic<bool> grabbing_{false};
-  std::atomic<int> detectors_running_{0};
   std::vector<std::thread> grab_threads_, detect_threads_;
   std::thread sync_thread_;
   bool started_ = false;

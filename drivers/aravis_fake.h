@@ -64,11 +64,6 @@ struct FakeRigOptions {
   bool IsValid(std::string* error) const;
 };
 
-// The tick index of a device timestamp at `rate_hz` (FakeRigOptions::clock_sequence_rate_hz).
-inline std::uint64_t SequenceOfTimestamp(std::uint64_t timestamp_ns, double rate_hz) {
-  return static_cast<std::uint64_t>(static_cast<long double>(timestamp_ns) * rate_hz / 1e9L);
-}
-
 // What the fill hook needs for one camera; lives as long as the rig (or GvFakeCamera).
 struct FakeFillContext {
   int camera = 0;

@@ -57,6 +57,12 @@ inline std::uint64_t MonotonicNs() {
   return static_cast<std::uint64_t>(ts.tv_sec) * 1000000000ull + ts.tv_nsec;
 }
 
+// The index of the frame-period tick a device timestamp falls in, at `rate_hz`: the frame's
+// number on a rig whose cameras share one clock and expose on its ticks (PTP; Aravis's fakes).
+inline std::uint64_t SequenceOfTimestamp(std::uint64_t timestamp_ns, double rate_hz) {
+  return static_cast<std::uint64_t>(static_cast<long double>(timestamp_ns) * rate_hz / 1e9L);
+}
+
 struct Frame {
   int camera = -1;                  // index of the camera in the rig
   std::uint16_t frame_id = 0;       // as the device numbers it (wraps)

@@ -305,6 +305,7 @@ int RunCapture(const CaptureArgs& a) {
   j["frames_dropped"] = st.frames_dropped;
   j["detections_dropped"] = st.detections_dropped;
   j["detection_errors"] = st.detection_errors;
+  j["sync_errors"] = st.sync_errors;
   j["triangulation_errors"] = st.triangulation_errors;
   j["late_frames"] = st.late_frames;
   j["camera_losses"] = st.camera_losses;
