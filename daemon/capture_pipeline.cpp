@@ -32,6 +32,9 @@ bool CapturePipelineOptions::IsValid(std::string* error) const {
   if (frame_queue_capacity < 1 || detection_queue_capacity < 1 || point_queue_capacity < 1) {
     return fail("queue capacities must be >= 1");
   }
+  if (start_timeout_ms < 0 || start_timeout_ms > 600000) {
+    return fail("start_timeout_ms must be in [0, 600000]");
+  }
   std::string sub;
   if (!detection.IsValid(&sub)) return fail(sub);
   return true;
@@ -162,7 +165,28 @@ void CapturePipeline::DetectLoop(int worker) {
   }
 }
 
+bool CapturePipeline::Recording(const reconstruction::DetectionSet& set) {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  if (stats_.recording) return true;
+  const std::uint64_t now = MonotonicNs();
+  if (first_set_host_ns_ == 0) first_set_host_ns_ = now;
+  const bool complete = set.present_count() == static_cast<int>(set.present.size());
+  const bool timed_out =
+      now - first_set_host_ns_ >= static_cast<std::uint64_t>(options_.start_timeout_ms) * 1000000u;
+  if (options_.start_on_complete_set && !complete && !timed_out) {
+    ++stats_.warmup_sets;
+    return false;
+  }
+  stats_.recording = true;
+  stats_.warmup_ms = (now - first_set_host_ns_) * 1e-6;
+  for (std::size_t c = 0; c < set.present.size(); ++c) {
+    if (!set.present[c]) stats_.cameras_missing_at_start.push_back(static_cast<int>(c));
+  }
+  return true;
+}
+
 void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
+  if (!Recording(set)) return;
   PointFrame out;
   out.sequence = set.sequence;
   out.timestamp_ns = set.timestamp_ns;

@@ -13,6 +13,15 @@
 // cameras) and stop in reverse (cameras first, then each queue is closed and drained), so no
 // frame is left in a queue and no buffer is lost at Stop().
 //
+// Start-up. Cameras do not begin streaming at one instant: for the first tenths of a second after
+// Start() the sets hold whichever cameras are already running (on a loaded machine, two of eight).
+// Those are not a recording: triangulated from a couple of neighbouring cameras their points are
+// several times less precise, and a recording that starts with them starts with a transient. So
+// the recording begins at the first COMPLETE set (what Vicon and Qualisys call the rig being
+// live); the sets before it are counted as warm-up and never handed out. A camera that does not
+// stream cannot hold the rig hostage: `start_timeout_ms` after the first set, the recording
+// begins with the cameras it has, and Stats() names the ones missing at the start.
+//
 // Latency is measured from the host time the first image of a set was handed over by its
 // camera (Frame::host_timestamp_ns, CLOCK_MONOTONIC) to the moment its points are ready.
 #pragma once
@@ -92,6 +101,10 @@ struct CapturePipelineOptions {
   // it (kSequence, 64 bits). 0: frame ids as the cameras number them (hardware trigger).
   double device_clock_rate_hz = 0;
   bool keep_detections = false;  // hand each set's 2D detections out with its points
+  // The recording starts at the first set every camera contributed to, or `start_timeout_ms`
+  // after the first set (whichever comes first). false: at the first set.
+  bool start_on_complete_set = true;
+  int start_timeout_ms = 2000;
   reconstruction::DetectionOptions detection;
   reconstruction::FrameSyncOptions sync;  // num_cameras is set from the sources
 
@@ -112,6 +125,12 @@ struct CapturePipelineStats {
   std::uint64_t dropped_frame_sets = 0;  // sets that never came out (sequence gaps, full queue)
   std::uint64_t late_frames = 0;
   std::uint64_t triangulation_errors = 0;
+  // Start-up (see the header): sets before the recording began, not handed out; whether it has
+  // begun, how long after the first set, and which cameras were missing from its first set.
+  std::uint64_t warmup_sets = 0;
+  bool recording = false;
+  double warmup_ms = 0;
+  std::vector<int> cameras_missing_at_start;
   std::vector<std::uint64_t> camera_losses;  // per camera
   double detect_ms_p50 = 0, detect_ms_p99 = 0;
   double triangulate_ms_p50 = 0, triangulate_ms_p99 = 0;
@@ -143,6 +162,8 @@ class CapturePipeline {
   void DetectLoop(int worker);
   void SyncLoop();
   void EmitSet(const reconstruction::DetectionSet& set);
+  // Whether `set` belongs to the recording (start-up, see the header); counts warm-up sets.
+  bool Recording(const reconstruction::DetectionSet& set);
 
   std::vector<std::unique_ptr<drivers::CameraSource>> cameras_;
   TriangulateFn triangulate_;
@@ -166,6 +187,7 @@ class CapturePipeline {
       latency_ms_{kTimingSamples};
   bool any_emitted_ = false;
   std::uint64_t last_emitted_sequence_ = 0;
+  std::uint64_t first_set_host_ns_ = 0;  // the sync thread's: when the first set came out
 };
 
 }  // namespace mocap::daemon

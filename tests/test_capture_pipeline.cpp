@@ -179,6 +179,58 @@ TEST(CapturePipeline, LostCameraIsReportedOthersGoOnAndItComesBack) {
   EXPECT_LT(score.ghost_fraction(), 0.01);
 }
 
+TEST(CapturePipeline, RecordingStartsAtTheFirstCompleteSet) {
+  Rig rig(4);
+  // Camera 3 starts late: its first 30 frames (0.3 s) never arrive.
+  rig.sources[3]->DropFrames(30);
+  ASSERT_TRUE(rig.pipeline->Start().ok());
+  std::vector<daemon::PointFrame> frames = rig.Collect(0.8);
+  rig.pipeline->Stop();
+  for (daemon::PointFrame pf; rig.pipeline->PopPoints(&pf, 0);) frames.push_back(std::move(pf));
+  const daemon::CapturePipelineStats st = rig.pipeline->Stats();
+  ASSERT_FALSE(frames.empty());
+  EXPECT_TRUE(st.recording);
+  EXPECT_EQ(frames.front().cameras_present, 4);  // nothing before the rig was live
+  EXPECT_GE(st.warmup_sets, 25u);                // the sets camera 3 missed
+  EXPECT_LE(st.warmup_sets, 35u);
+  EXPECT_GT(st.warmup_ms, 150.0);
+  EXPECT_TRUE(st.cameras_missing_at_start.empty());
+  EXPECT_EQ(st.frame_sets, frames.size());
+  EXPECT_EQ(st.dropped_frame_sets, 0u);  // warm-up sets are not losses of the recording
+}
+
+TEST(CapturePipeline, ACameraSilentAtStartDoesNotHoldTheRecording) {
+  daemon::CapturePipelineOptions o;
+  o.start_timeout_ms = 200;
+  o.sync.timeout_ns = 30'000'000;
+  Rig rig(4, o);
+  rig.sources[1]->Lose();  // never streams
+  ASSERT_TRUE(rig.pipeline->Start().ok());
+  std::vector<daemon::PointFrame> frames = rig.Collect(0.8);
+  rig.pipeline->Stop();
+  const daemon::CapturePipelineStats st = rig.pipeline->Stats();
+  EXPECT_TRUE(st.recording);
+  EXPECT_EQ(st.cameras_missing_at_start, std::vector<int>{1});
+  EXPECT_GE(st.warmup_ms, 200.0);
+  EXPECT_GE(st.warmup_sets, 10u);
+  ASSERT_GT(frames.size(), 30u);  // the three others recorded
+  for (const auto& pf : frames) {
+    EXPECT_EQ(pf.present_mask, 0b1101u);
+    EXPECT_GT(pf.points.size(), 20u);
+  }
+
+  daemon::CapturePipelineOptions waiting_off;
+  waiting_off.start_on_complete_set = false;
+  Rig eager(3, waiting_off);
+  eager.sources[2]->DropFrames(20);
+  ASSERT_TRUE(eager.pipeline->Start().ok());
+  std::vector<daemon::PointFrame> eager_frames = eager.Collect(0.4);
+  eager.pipeline->Stop();
+  ASSERT_FALSE(eager_frames.empty());
+  EXPECT_EQ(eager_frames.front().cameras_present, 2);  // recorded from the first set
+  EXPECT_EQ(eager.pipeline->Stats().warmup_sets, 0u);
+}
+
 TEST(CapturePipeline, BadSetUpIsRefusedWithAReason) {
   daemon::CapturePipelineOptions o;
   o.detection_threads = 0;
@@ -187,6 +239,13 @@ TEST(CapturePipeline, BadSetUpIsRefusedWithAReason) {
   ASSERT_FALSE(s.ok());
   EXPECT_NE(s.message().find("detection_threads"), std::string::npos) << s.message();
   rig.pipeline->Stop();  // harmless when never started
+
+  daemon::CapturePipelineOptions t;
+  t.start_timeout_ms = -1;
+  Rig timeout_rig(2, t);
+  const Status ts = timeout_rig.pipeline->Start();
+  ASSERT_FALSE(ts.ok());
+  EXPECT_NE(ts.message().find("start_timeout_ms"), std::string::npos) << ts.message();
 
   daemon::CapturePipeline empty({}, [](const reconstruction::DetectionSet&, daemon::PointFrame*) {
     return Status::Ok();

@@ -308,6 +308,9 @@ int RunCapture(const CaptureArgs& a) {
   j["sync_errors"] = st.sync_errors;
   j["triangulation_errors"] = st.triangulation_errors;
   j["late_frames"] = st.late_frames;
+  j["warmup_sets"] = st.warmup_sets;
+  j["warmup_ms"] = st.warmup_ms;
+  j["cameras_missing_at_start"] = st.cameras_missing_at_start;
   j["camera_losses"] = st.camera_losses;
   j["real_time"] = real_time;
   j["centroid_noise_px"] = a.centroid_noise_px;
@@ -339,6 +342,16 @@ int RunCapture(const CaptureArgs& a) {
               static_cast<unsigned long long>(st.incomplete_sets), wall_s, score.recall(),
               score.rms_mm(), score.ghost_fraction(), st.detect_ms_p50, st.triangulate_ms_p50,
               st.latency_ms_p99, real_time ? "" : " (NOT real time)", a.out.c_str());
+  std::printf("mocap capture: the rig was live %.0f ms after its first frame set (%llu warm-up "
+              "sets before the recording)\n",
+              st.warmup_ms, static_cast<unsigned long long>(st.warmup_sets));
+  if (!st.cameras_missing_at_start.empty()) {
+    std::string ids;
+    for (int c : st.cameras_missing_at_start) ids += (ids.empty() ? "" : ", ") + std::to_string(c);
+    spdlog::warn("mocap capture: camera(s) {} delivered nothing in the first {} ms; the recording "
+                 "started without them",
+                 ids, pipeline_options.start_timeout_ms);
+  }
   if (!real_time) {
     spdlog::warn("mocap capture: the pipeline did not keep up: {} frame sets dropped, {} frames "
                  "dropped before detection (see {})",
