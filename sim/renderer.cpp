@@ -119,6 +119,9 @@ struct ProfileRow {
 int FullScale(PixelFormat f) {
   return f == PixelFormat::kMono8 ? 255 : (f == PixelFormat::kMono12 ? 4095 : 65535);
 }
+int FormatSlot(PixelFormat f) {
+  return f == PixelFormat::kMono8 ? 0 : (f == PixelFormat::kMono12 ? 1 : 2);
+}
 
 void FillRect(std::uint8_t* data, std::ptrdiff_t stride, PixelFormat f, int x0, int y0, int x1,
               int y1, int value) {
@@ -289,6 +292,16 @@ Renderer::Renderer(std::vector<reconstruction::CameraModel> cameras,
   }
   Profile();  // build the table now, not in the first frame
   noise_ = &NoiseTable(options_.seed);
+  for (PixelFormat f : {PixelFormat::kMono8, PixelFormat::kMono12, PixelFormat::kMono16}) {
+    std::vector<std::uint16_t>& dark = dark_[FormatSlot(f)];
+    const int full = FullScale(f);
+    const bool noisy = options_.read_noise > 0 || options_.shot_noise > 0;
+    dark.resize(noise_->size());
+    for (std::size_t i = 0; i < dark.size(); ++i) {
+      const double v = options_.background + (noisy ? options_.read_noise * (*noise_)[i] : 0.0);
+      dark[i] = static_cast<std::uint16_t>(std::clamp(static_cast<int>(v * full + 0.5), 0, full));
+    }
+  }
   const int n = scene_ ? scene_->marker_count() : 0;
   for (std::size_t c = 0; c < cameras_.size(); ++c) {
     auto st = std::make_unique<CameraState>();
@@ -434,6 +447,7 @@ void Renderer::Render(int camera, std::uint64_t sequence, std::uint8_t* data, in
   const double s = o.psf_sigma_px, inv_s = 1.0 / s;
   const bool noisy = o.read_noise > 0 || o.shot_noise > 0;
   const std::vector<float>& noise = *noise_;
+  const std::uint16_t* dark = dark_[FormatSlot(format)].data();
   const std::uint64_t noise_key = Key(SubSeed(o.seed, Stream::kImageNoise), camera, sequence);
   const double read2 = o.read_noise * o.read_noise, shot2 = o.shot_noise * o.shot_noise;
   const int n = static_cast<int>(st.blobs.size());
@@ -465,8 +479,15 @@ void Renderer::Render(int camera, std::uint64_t sequence, std::uint8_t* data, in
     }
     for (int y = r.y0; y < r.y1; ++y) {
       std::uint8_t* row = data + stride * y;
-      const std::uint64_t row_key = noise_key + (static_cast<std::uint64_t>(y) << 32);
+      // One hash a row, the row's pixels consecutive entries of the table from there: rows
+      // (and frames, cameras) start at independent places, so no two neighbouring pixels of a
+      // blob share a variate unless two rows' starts fall within a rectangle's width of each
+      // other (about 1 in 800).
+      const std::uint64_t row_start =
+          noisy ? Mix64(noise_key + (static_cast<std::uint64_t>(y) << 32)) : 0;
       for (int x = r.x0; x < r.x1; ++x) {
+        const std::size_t ni =
+            (row_start + static_cast<std::uint64_t>(x)) & ((1u << kNoiseTableBits) - 1);
         double signal = 0;
         for (int k = 0; k < nn; ++k) {
           const float dx = x - near[k].x, dy = y - near[k].y;
@@ -475,13 +496,14 @@ void Renderer::Render(int camera, std::uint64_t sequence, std::uint8_t* data, in
             signal += near[k].intensity * near[k].row(std::sqrt(d2) * inv_s);
           }
         }
-        double v = o.background + signal;
-        if (noisy) {
-          const double sigma = signal > 0 ? std::sqrt(read2 + shot2 * signal) : o.read_noise;
-          v += sigma * noise[Mix64(row_key + static_cast<std::uint64_t>(x)) &
-                             ((1u << kNoiseTableBits) - 1)];
+        int q;
+        if (signal <= 0) {
+          q = dark[ni];
+        } else {
+          double v = o.background + signal;
+          if (noisy) v += std::sqrt(read2 + shot2 * signal) * noise[ni];
+          q = std::clamp(static_cast<int>(v * full + 0.5), 0, full);
         }
-        const int q = std::clamp(static_cast<int>(v * full + 0.5), 0, full);
         if (format == PixelFormat::kMono8) {
           row[x] = static_cast<std::uint8_t>(q);
         } else {
