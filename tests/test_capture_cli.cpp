@@ -46,6 +46,9 @@ TEST(CaptureCli, SimulatedCaptureWritesPointsAndStatsAgainstTheTruth) {
                           "latency_ms_p99"}) {
     EXPECT_TRUE(s.contains(key)) << key;
   }
+  // The recording began once the rig was live, with every camera.
+  EXPECT_TRUE(s["cameras_missing_at_start"].empty()) << s["cameras_missing_at_start"];
+  EXPECT_LT(s["warmup_ms"].get<double>(), 2000.0);
   EXPECT_GE(s["frame_sets"].get<int>(), 200);
   // Shared CI cores may delay a camera now and then; far fewer than 1 % of the sets.
   EXPECT_LE(s["dropped_frame_sets"].get<int>(), 2);
