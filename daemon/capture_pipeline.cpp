@@ -45,7 +45,6 @@ CapturePipeline::CapturePipeline(std::vector<std::unique_ptr<drivers::CameraSour
     : cameras_(std::move(cameras)),
       triangulate_(std::move(triangulate)),
       options_(std::move(options)),
-      frames_(options_.frame_queue_capacity),
       detections_(options_.detection_queue_capacity),
       points_(options_.point_queue_capacity) {
   stats_.camera_losses.assign(cameras_.size(), 0);
@@ -65,6 +64,12 @@ Status CapturePipeline::Start() {
     options_.sync.sequence_bits = 64;
   }
   MOCAP_RETURN_IF_ERROR(sync_.Reset(options_.sync));
+  frames_.clear();
+  const int per_worker =
+      std::max(1, options_.frame_queue_capacity / options_.detection_threads);
+  for (int w = 0; w < options_.detection_threads; ++w) {
+    frames_.push_back(std::make_unique<BoundedQueue<drivers::Frame>>(per_worker));
+  }
 
   // Consumers first, so that nothing a producer emits waits for a stage that does not exist.
   sync_thread_ = std::thread(&CapturePipeline::SyncLoop, this);
@@ -93,7 +98,7 @@ void CapturePipeline::Stop() {
   for (auto& cam : cameras_) cam->Stop();
   for (auto& t : grab_threads_) t.join();
   grab_threads_.clear();
-  frames_.Close();
+  for (auto& q : frames_) q->Close();
   for (auto& t : detect_threads_) t.join();
   detect_threads_.clear();
   detections_.Close();
@@ -112,7 +117,8 @@ void CapturePipeline::GrabLoop(int c) {
       frame.camera = c;
       std::lock_guard<std::mutex> lock(stats_mutex_);
       ++stats_.frames_grabbed;
-      if (!frames_.TryPush(std::move(frame))) {  // full: the frame is left to us
+      BoundedQueue<drivers::Frame>& queue = *frames_[c % frames_.size()];
+      if (!queue.TryPush(std::move(frame))) {  // full: the frame is left to us
         ++stats_.frames_dropped;
         cam.Release(frame);
       }
@@ -136,9 +142,10 @@ void CapturePipeline::GrabLoop(int c) {
 void CapturePipeline::DetectLoop(int worker) {
   reconstruction::DetectionWorkspace workspace;
   drivers::Frame frame;
+  BoundedQueue<drivers::Frame>& queue = *frames_[worker];
   for (;;) {
-    if (!frames_.Pop(&frame, std::chrono::milliseconds(50))) {
-      if (frames_.closed()) break;  // closed and drained
+    if (!queue.Pop(&frame, std::chrono::milliseconds(50))) {
+      if (queue.closed()) break;  // closed and drained
       continue;
     }
     reconstruction::CameraDetections d;

@@ -3,6 +3,14 @@
 //   grab (one thread per camera) --frames--> detection (a pool of workers) --detections-->
 //   sync + triangulation (one thread) --point frames--> the caller (PopPoints)
 //
+// Each camera's frames always go to the same detection worker (camera c to worker c mod W, each
+// worker with its own queue), so that a camera's detections reach the sync in the order its frames
+// were taken. The sync relies on that order: when a newer set completes it emits the older pending
+// ones incomplete, which is right only if no camera's older frame is still being detected. With
+// one shared queue a worker descheduled in the middle of camera c's frame n lets the other
+// workers finish every camera's frame n+1 first; set n then left without camera c and its frame
+// arrived late (on a loaded machine: tens of sets in a few seconds).
+//
 // Stages are joined by BoundedQueues (daemon/bounded_queue.h). Nothing waits for a slow stage:
 // when a queue is full the frame (or point frame) is dropped and counted, the camera's buffer
 // goes straight back to its pool, and the frame set it belonged to goes on incomplete or is
@@ -91,7 +99,10 @@ using TriangulateFn = std::function<Status(const reconstruction::DetectionSet&, 
 
 struct CapturePipelineOptions {
   int detection_threads = 2;
-  int frame_queue_capacity = 64;      // frames waiting for detection (all cameras)
+  // Frames waiting for detection, all cameras and workers (each worker's queue holds its share):
+  // 128 is 80 ms of 8 cameras at 200 Hz behind one worker that the machine descheduled. A camera
+  // needs at least its share of buffers in its pool (drivers/: 32 by default).
+  int frame_queue_capacity = 128;
   int detection_queue_capacity = 64;  // detections waiting for sync
   int point_queue_capacity = 256;     // point frames waiting for the caller
   // > 0: cameras whose clocks are one clock (PTP, IEEE 1588, on GigE Vision 2.0 rigs; Aravis's
@@ -169,7 +180,8 @@ class CapturePipeline {
   TriangulateFn triangulate_;
   CapturePipelineOptions options_;
 
-  BoundedQueue<drivers::Frame> frames_;
+  // One per detection worker; camera c's frames go to frames_[c % workers].
+  std::vector<std::unique_ptr<BoundedQueue<drivers::Frame>>> frames_;
   BoundedQueue<reconstruction::CameraDetections> detections_;
   BoundedQueue<PointFrame> points_;
 

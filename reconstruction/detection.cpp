@@ -24,6 +24,8 @@ bool DetectionOptions::IsValid(std::string* error) const {
   if (max_area_px < min_area_px) return fail("max_area_px is below min_area_px");
   if (!(min_roundness >= 0 && min_roundness <= 1))
     return fail("min_roundness must be in [0, 1]");
+  if (!(overlap_roundness >= 0 && overlap_roundness <= 1))
+    return fail("overlap_roundness must be in [0, 1]");
   if (!(read_noise_dn >= 0) || !std::isfinite(read_noise_dn))
     return fail("read_noise_dn must be finite and >= 0");
   if (!(shot_noise_gain >= 0) || !std::isfinite(shot_noise_gain))
@@ -345,8 +347,9 @@ class DetectionScanner {
     const double var_y = (var_const_ * uy + gain_ * (wy2 + t1 * uy)) / (b.w * b.w);
     DetectionWorkspace::Candidate cand;
     cand.blob = i;
+    if (roundness < options_.overlap_roundness) cand.overlap_var = major - minor;
     cand.centroid.pixel = Eigen::Vector2d(cx, cy);
-    cand.centroid.sigma_px = std::sqrt(std::max(var_x, var_y) + floor2_);
+    cand.centroid.sigma_px = std::sqrt(std::max(var_x, var_y) + floor2_ + cand.overlap_var);
     cand.centroid.area_px = static_cast<float>(b.n);
     cand.centroid.roundness = static_cast<float>(roundness);
     cand.centroid.peak = static_cast<float>(b.peak);
@@ -375,7 +378,7 @@ class DetectionScanner {
       if (RefineGaussian<P>(image, ws_.blobs_[c.blob], c.s, var_const_, gain_, &x, &yc, &var_x,
                             &var_y)) {
         c.centroid.pixel = Eigen::Vector2d(x, yc);
-        c.centroid.sigma_px = std::sqrt(std::max(var_x, var_y) + floor2_);
+        c.centroid.sigma_px = std::sqrt(std::max(var_x, var_y) + floor2_ + c.overlap_var);
       }
       q[k] = q.back();
       q.pop_back();

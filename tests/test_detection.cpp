@@ -334,6 +334,43 @@ TEST(Detection, TwoTouchingBlobsMergeAndAreRejectedNotMisreported) {
   EXPECT_LT(merged->roundness, 0.6f);
 }
 
+TEST(Detection, OverlappingSpotsCarryTheirOffsetInSigma) {
+  // Two equal spots s apart that pass the roundness filter as one blob: its centre lies between
+  // them, s / 2 from either marker, and sigma_px must say about that much; a lone spot's must not.
+  for (const double sep : {2.0, 2.5, 3.0}) {
+    SCOPED_TRACE(sep);
+    Scene scene(200, 100);
+    scene.AddGaussian(50.3, 50.2, 1.5, 200);
+    scene.AddGaussian(50.3 + sep * 0.8, 50.2 + sep * 0.6, 1.5, 200);
+    scene.AddGaussian(150.6, 50.4, 1.5, 200);  // alone
+    const TestImage img = scene.Render();
+    DetectionOptions o;
+    o.threshold = 50;
+    DetectionWorkspace ws;
+    std::vector<Centroid> cs;
+    ASSERT_TRUE(DetectMarkers(img.view(), o, nullptr, &ws, &cs).ok());
+    ASSERT_EQ(cs.size(), 2u);
+    const Centroid *pair = nullptr, *lone = nullptr;
+    const double offset = Nearest(cs, 50.3, 50.2, &pair);
+    EXPECT_LT(Nearest(cs, 150.6, 50.4, &lone), 0.03);
+    EXPECT_GT(offset, 0.3 * sep);  // the merged centre is well off either marker
+    EXPECT_LT(pair->roundness, o.overlap_roundness);
+    EXPECT_GT(pair->sigma_px, 0.5 * offset) << "offset " << offset;
+    EXPECT_LT(pair->sigma_px, 2.0 * offset) << "offset " << offset;
+    EXPECT_LT(lone->sigma_px, 0.05);
+    // The term is what says it: without it the pair claims a lone spot's precision.
+    o.overlap_roundness = 0;
+    ASSERT_TRUE(DetectMarkers(img.view(), o, nullptr, &ws, &cs).ok());
+    Nearest(cs, 50.3, 50.2, &pair);
+    EXPECT_LT(pair->sigma_px, 0.05);
+  }
+  DetectionOptions bad;
+  bad.overlap_roundness = 1.5;
+  std::string error;
+  EXPECT_FALSE(bad.IsValid(&error));
+  EXPECT_NE(error.find("overlap_roundness"), std::string::npos) << error;
+}
+
 TEST(Detection, BlobsAtTheImageBorders) {
   // Width 1000 + 37: rows end in a partial 64-pixel block.
   Scene scene(1037, 203);
