@@ -2,7 +2,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <tuple>
+
+#include <Eigen/Cholesky>
 
 #include "sim/renderer.h"
 
@@ -10,6 +13,9 @@ namespace mocap::sim {
 
 double ReconstructionScore::rms_mm() const {
   return matched ? 1e3 * std::sqrt(sum_squared_error_m2 / matched) : 0.0;
+}
+double ReconstructionScore::rms_bound_mm() const {
+  return bounded ? 1e3 * std::sqrt(sum_bound_variance_m2 / bounded) : 0.0;
 }
 
 void ReconstructionScore::Add(const ReconstructionScore& o) {
@@ -20,11 +26,13 @@ void ReconstructionScore::Add(const ReconstructionScore& o) {
   sum_squared_error_m2 += o.sum_squared_error_m2;
   matched += o.matched;
   matched_beyond_1mm += o.matched_beyond_1mm;
+  sum_bound_variance_m2 += o.sum_bound_variance_m2;
+  bounded += o.bounded;
 }
 
 void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<bool>& seen_by_two,
                 const std::vector<Eigen::Vector3d>& points, double match_radius_m,
-                ReconstructionScore* score) {
+                ReconstructionScore* score, const std::vector<double>* bound_variance_m2) {
   const double r2 = match_radius_m * match_radius_m;
   std::vector<std::tuple<double, int, int>> pairs;  // (squared distance, point, marker)
   for (int p = 0; p < static_cast<int>(points.size()); ++p) {
@@ -42,6 +50,11 @@ void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<boo
     score->sum_squared_error_m2 += d2;
     ++score->matched;
     if (d2 > 1e-6) ++score->matched_beyond_1mm;
+    if (bound_variance_m2 != nullptr && m < static_cast<int>(bound_variance_m2->size()) &&
+        std::isfinite((*bound_variance_m2)[m])) {
+      score->sum_bound_variance_m2 += (*bound_variance_m2)[m];
+      ++score->bounded;
+    }
   }
   for (int m = 0; m < static_cast<int>(truth.size()); ++m) {
     if (m < static_cast<int>(seen_by_two.size()) && seen_by_two[m] && truth[m].allFinite()) {
@@ -86,6 +99,7 @@ void ScoreRenderedFrame(const Renderer& renderer, const Scene& scene, std::uint6
   const int nm = scene.marker_count();
   std::vector<Eigen::Vector3d> truth(nm);
   std::vector<int> views(nm, 0);
+  std::vector<std::vector<int>> seen_in(nm);  // cameras whose image shows marker m
   FrameTruth ft;
   double time_s = 0;
   bool any = false;
@@ -95,14 +109,37 @@ void ScoreRenderedFrame(const Renderer& renderer, const Scene& scene, std::uint6
     time_s = ft.time_s;
     any = true;
     for (const BlobTruth& b : ft.blobs) {
-      if (b.marker >= 0 && b.marker < nm) ++views[b.marker];
+      if (b.marker >= 0 && b.marker < nm) {
+        ++views[b.marker];
+        seen_in[b.marker].push_back(c);
+      }
     }
   }
   if (!any) return;
   scene.Positions(time_s, truth.data());
   std::vector<bool> seen_by_two(nm);
   for (int m = 0; m < nm; ++m) seen_by_two[m] = views[m] >= 2;
-  ScoreFrame(truth, seen_by_two, points, match_radius_m, score);
+  // The bound at the renderer's centroid noise (the detector's own error comes on top).
+  const double sigma = renderer.options().centroid_noise_px;
+  std::vector<double> bound(nm, std::numeric_limits<double>::quiet_NaN());
+  if (sigma > 0) {
+    for (int m = 0; m < nm; ++m) {
+      if (views[m] < 2 || !truth[m].allFinite()) continue;
+      Eigen::Matrix3d information = Eigen::Matrix3d::Zero();
+      for (int c : seen_in[m]) {
+        const reconstruction::CameraModel& cam = renderer.cameras()[c];
+        Eigen::Matrix<double, 2, 3> j;
+        cam.ProjectCameraPoint(cam.ToCamera(truth[m]), &j);
+        const Eigen::Matrix<double, 2, 3> jw = j * cam.R;
+        information += jw.transpose() * jw / (sigma * sigma);
+      }
+      const Eigen::LDLT<Eigen::Matrix3d> ldlt(information);
+      if (ldlt.info() == Eigen::Success && ldlt.isPositive()) {
+        bound[m] = ldlt.solve(Eigen::Matrix3d::Identity()).trace();
+      }
+    }
+  }
+  ScoreFrame(truth, seen_by_two, points, match_radius_m, score, &bound);
 }
 
 }  // namespace mocap::sim

@@ -23,18 +23,26 @@ struct ReconstructionScore {
   double sum_squared_error_m2 = 0; // over every matched point
   std::int64_t matched = 0;
   std::int64_t matched_beyond_1mm = 0;  // matched points more than 1 mm from their marker
+  // The Cramer-Rao bound of the matched points: the sum over them of trace((sum over the views
+  // of J^T J / sigma^2)^-1), J the projection's Jacobian, sigma the renderer's centroid noise.
+  // No unbiased triangulation of the same views does better (ScoreRenderedFrame fills it).
+  double sum_bound_variance_m2 = 0;
+  std::int64_t bounded = 0;
 
   double recall() const { return true_visible ? double(recovered) / true_visible : 1.0; }
   double ghost_fraction() const { return reconstructed ? double(ghosts) / reconstructed : 0.0; }
   double rms_mm() const;
+  double rms_bound_mm() const;  // 0 when no bound was computed
   void Add(const ReconstructionScore& other);
 };
 
 // Adds one frame set. `truth` holds every true marker (NaN rows for markers that do not exist
-// in this frame); `seen_by_two[m]` whether marker m was visible in >= 2 cameras.
+// in this frame); `seen_by_two[m]` whether marker m was visible in >= 2 cameras;
+// `bound_variance_m2`, if given, marker m's Cramer-Rao variance (NaN: none).
 void ScoreFrame(const std::vector<Eigen::Vector3d>& truth, const std::vector<bool>& seen_by_two,
                 const std::vector<Eigen::Vector3d>& points, double match_radius_m,
-                ReconstructionScore* score);
+                ReconstructionScore* score,
+                const std::vector<double>* bound_variance_m2 = nullptr);
 
 // Centroid error of detections against what the renderer drew: each centroid within
 // `radius_px` of a visible marker's projected centre is matched to the nearest (one-to-one, as

@@ -323,6 +323,8 @@ int RunCapture(const CaptureArgs& a) {
   j["centroid_error_px_rms"] = centroid_score.rms_px_per_axis();
   j["recall"] = score.recall();
   j["rms_3d_mm"] = score.rms_mm();
+  // No unbiased triangulation of the same views at the renderer's centroid noise does better.
+  j["rms_3d_cramer_rao_mm"] = score.rms_bound_mm();
   j["ghost_fraction"] = score.ghost_fraction();
   j["points_beyond_1mm"] = score.matched_beyond_1mm;
   j["true_markers_seen_by_two"] = score.true_visible;
