@@ -5,6 +5,8 @@
 #include <cstring>
 #include <limits>
 
+#include <Eigen/Cholesky>
+
 #include "reconstruction/reflection_mask.h"
 
 #if defined(__AVX2__)
@@ -26,6 +28,12 @@ bool DetectionOptions::IsValid(std::string* error) const {
     return fail("min_roundness must be in [0, 1]");
   if (!(overlap_roundness >= 0 && overlap_roundness <= 1))
     return fail("overlap_roundness must be in [0, 1]");
+  if (!(split_min_roundness >= 0 && split_min_roundness <= 1))
+    return fail("split_min_roundness must be in [0, 1]");
+  if (!(split_min_separation_px > 0) || !std::isfinite(split_min_separation_px))
+    return fail("split_min_separation_px must be finite and > 0");
+  if (!(split_min_gain > 0 && split_min_gain <= 1))
+    return fail("split_min_gain must be in (0, 1]");
   if (!(read_noise_dn >= 0) || !std::isfinite(read_noise_dn))
     return fail("read_noise_dn must be finite and >= 0");
   if (!(shot_noise_gain >= 0) || !std::isfinite(shot_noise_gain))
@@ -292,7 +300,9 @@ class DetectionScanner {
               [](const DetectionWorkspace::Candidate& l, const DetectionWorkspace::Candidate& r) {
                 return l.blob < r.blob;
               });
-    for (const DetectionWorkspace::Candidate& c : ws_.candidates_) out->push_back(c.centroid);
+    for (const DetectionWorkspace::Candidate& c : ws_.candidates_) {
+      if (!c.dropped) out->push_back(c.centroid);
+    }
     return Status::Ok();
   }
 
@@ -324,7 +334,12 @@ class DetectionScanner {
     const double rad = std::sqrt(0.25 * (mxx - myy) * (mxx - myy) + mxy * mxy);
     const double major = half_tr + rad, minor = std::max(half_tr - rad, 0.0);
     const double roundness = std::sqrt(minor / major);
-    if (roundness < options_.min_roundness) { ++st_.not_round; return; }
+    const bool windowed =
+        options_.centroid == DetectionOptions::CentroidMethod::kGaussianWindowed;
+    const bool try_split = windowed && options_.split_overlapping &&
+                           roundness < options_.overlap_roundness &&
+                           roundness >= options_.split_min_roundness;
+    if (roundness < options_.min_roundness && !try_split) { ++st_.not_round; return; }
     if (mask_ != nullptr && mask_->Contains(static_cast<int>(std::lround(cx)),
                                             static_cast<int>(std::lround(cy)))) {
       ++st_.masked;
@@ -348,6 +363,19 @@ class DetectionScanner {
     DetectionWorkspace::Candidate cand;
     cand.blob = i;
     if (roundness < options_.overlap_roundness) cand.overlap_var = major - minor;
+    cand.try_split = try_split;
+    cand.keep_single = roundness >= options_.min_roundness;
+    if (try_split) {
+      // The major axis and the split's starting offset along it.
+      const double angle = 0.5 * std::atan2(2 * mxy, mxx - myy);
+      const double half = std::sqrt(std::max(major - minor, 0.25));
+      cand.split_dx = half * std::cos(angle);
+      cand.split_dy = half * std::sin(angle);
+      cand.split_s2 = minor;
+      cand.split_mxx = mxx;
+      cand.split_myy = myy;
+      cand.split_mxy = mxy;
+    }
     cand.centroid.pixel = Eigen::Vector2d(cx, cy);
     cand.centroid.sigma_px = std::sqrt(std::max(var_x, var_y) + floor2_ + cand.overlap_var);
     cand.centroid.area_px = static_cast<float>(b.n);
@@ -374,15 +402,204 @@ class DetectionScanner {
         ++k;
         continue;
       }
+      q[k] = q.back();
+      q.pop_back();
+      if (c.try_split) {
+        ++st_.split_attempts;
+        Centroid second;
+        if (SplitTwo<P>(image, ws_.blobs_[c.blob], c, &c.centroid, &second)) {
+          DetectionWorkspace::Candidate other = c;  // `c` may move with the push
+          other.centroid = second;
+          other.try_split = false;
+          ws_.candidates_.push_back(other);
+          ++st_.accepted;
+          ++st_.split;
+          continue;
+        }
+        if (!c.keep_single) {
+          c.dropped = true;
+          ++st_.not_round;
+          --st_.accepted;
+          continue;
+        }
+      }
       double x = c.centroid.pixel.x(), yc = c.centroid.pixel.y(), var_x = 0, var_y = 0;
       if (RefineGaussian<P>(image, ws_.blobs_[c.blob], c.s, var_const_, gain_, &x, &yc, &var_x,
                             &var_y)) {
         c.centroid.pixel = Eigen::Vector2d(x, yc);
         c.centroid.sigma_px = std::sqrt(std::max(var_x, var_y) + floor2_ + c.overlap_var);
       }
-      q[k] = q.back();
-      q.pop_back();
     }
+  }
+
+  // Levenberg-Marquardt on sum_i (v_i - model(q, x_i, y_i))^2 over the pixels, from *q; model
+  // writes d model / d q when asked. Returns the final cost; *jtj (if given) is J^T J there.
+  // Tiny fixed-size problems (N <= 7, tens of pixels): Eigen's fixed matrices, no allocation.
+  template <int N, class Model>
+  static double FitSmallModel(int n, const double* px, const double* py, const double* pv,
+                              Eigen::Matrix<double, N, 1>* q, Model model,
+                              Eigen::Matrix<double, N, N>* jtj_out) {
+    using VecN = Eigen::Matrix<double, N, 1>;
+    using MatN = Eigen::Matrix<double, N, N>;
+    auto evaluate = [&](const VecN& at, MatN* jtj, VecN* jtr) {
+      double cost = 0;
+      if (jtj) {
+        jtj->setZero();
+        jtr->setZero();
+      }
+      VecN j;
+      for (int i = 0; i < n; ++i) {
+        const double r = pv[i] - model(at, px[i], py[i], jtj ? &j : nullptr);
+        cost += r * r;
+        if (jtj) {
+          for (int a = 0; a < N; ++a) {
+            for (int b = 0; b <= a; ++b) (*jtj)(a, b) += j[a] * j[b];
+          }
+          *jtr += j * r;
+        }
+      }
+      if (jtj) {
+        for (int a = 0; a < N; ++a) {
+          for (int b = a + 1; b < N; ++b) (*jtj)(a, b) = (*jtj)(b, a);
+        }
+      }
+      return cost;
+    };
+    MatN jtj;
+    VecN jtr;
+    double cost = evaluate(*q, &jtj, &jtr);
+    double lambda = 1e-3;
+    for (int iteration = 0; iteration < 20; ++iteration) {
+      MatN a = jtj;
+      a.diagonal() *= 1.0 + lambda;
+      a.diagonal().array() += 1e-12;
+      const VecN step = a.ldlt().solve(jtr);
+      if (!step.allFinite()) break;
+      const VecN trial = *q + step;
+      const double trial_cost = evaluate(trial, nullptr, nullptr);
+      if (trial_cost < cost) {
+        *q = trial;
+        const bool small = step.norm() < 1e-5 * (1.0 + q->norm());
+        cost = evaluate(*q, &jtj, &jtr);
+        lambda = std::max(lambda * 0.3, 1e-9);
+        if (small) break;
+      } else {
+        lambda *= 10;
+        if (lambda > 1e8) break;  // no descent left: a minimum
+      }
+    }
+    if (jtj_out) *jtj_out = jtj;
+    return cost;
+  }
+
+  // Two Gaussian spots of one width fitted to an elongated blob (detection.h, "Splitting"). True
+  // with both centroids written when the fit finds two distinct spots; false (nothing written)
+  // otherwise.
+  template <class P>
+  bool SplitTwo(const drivers::ImageView& image, const DetectionWorkspace::Blob& b,
+                const DetectionWorkspace::Candidate& cand, Centroid* first, Centroid* second) {
+    // The blob's bounding box and a ring of one pixel: where the two spots' light is.
+    const Window w{std::max(0, b.x_min - 1), std::min(width_ - 1, b.x_max + 1),
+                   std::max(0, b.y_min - 1), std::min(height_ - 1, b.y_max + 1)};
+    DetectionWorkspace& ws = ws_;
+    const std::size_t cap = static_cast<std::size_t>(w.x1 - w.x0 + 1) * (w.y1 - w.y0 + 1);
+    if (ws.split_x_.size() < cap) {
+      ws.split_x_.resize(cap);
+      ws.split_y_.resize(cap);
+      ws.split_v_.resize(cap);
+    }
+    // The usable pixels: not another blob's, not saturated (a plateau no Gaussian fits).
+    const double bg = options_.background_dn;
+    const int t = options_.threshold;
+    int n = 0;
+    double peak = 0;
+    for (int y = w.y0; y <= w.y1; ++y) {
+      const P* row = reinterpret_cast<const P*>(image.data + image.stride * y);
+      const bool inside_rows = y >= b.y_min && y <= b.y_max;
+      for (int x = w.x0; x <= w.x1; ++x) {
+        const int v = row[x];
+        if (v >= t && !(inside_rows && x >= b.x_min && x <= b.x_max)) continue;
+        if (v >= max_value_) continue;
+        ws.split_x_[n] = x;
+        ws.split_y_[n] = y;
+        ws.split_v_[n] = v - bg;
+        peak = std::max(peak, v - bg);
+        ++n;
+      }
+    }
+    if (n < 24 || !(peak > 0)) return false;
+    const double* px = ws.split_x_.data();
+    const double* py = ws.split_y_.data();
+    const double* pv = ws.split_v_.data();
+    const double cx = cand.centroid.pixel.x(), cy = cand.centroid.pixel.y();
+    // TWO round spots of one width: x1 y1 x2 y2 A1 A2 log(s^2).
+    using Vec7 = Eigen::Matrix<double, 7, 1>;
+    using Mat7 = Eigen::Matrix<double, 7, 7>;
+    Vec7 p;
+    p << cx - cand.split_dx, cy - cand.split_dy, cx + cand.split_dx, cy + cand.split_dy, peak, peak,
+        std::log(std::max(cand.split_s2, 0.25));
+    Mat7 jtj;
+    const double cost = FitSmallModel<7>(n, px, py, pv, &p, [](const Vec7& q, double x, double y,
+                                                             Vec7* j) {
+      const double inv_s2 = std::exp(-q[6]);
+      const double d1x = x - q[0], d1y = y - q[1], d2x = x - q[2], d2y = y - q[3];
+      const double r1 = d1x * d1x + d1y * d1y, r2 = d2x * d2x + d2y * d2y;
+      const double g1 = std::exp(-0.5 * r1 * inv_s2), g2 = std::exp(-0.5 * r2 * inv_s2);
+      if (j) {
+        *j << q[4] * g1 * d1x * inv_s2, q[4] * g1 * d1y * inv_s2, q[5] * g2 * d2x * inv_s2,
+            q[5] * g2 * d2y * inv_s2, g1, g2, 0.5 * inv_s2 * (q[4] * g1 * r1 + q[5] * g2 * r2);
+      }
+      return q[4] * g1 + q[5] * g2;
+    }, &jtj);
+    // Two distinct spots of comparable brightness, each within the blob (a spot the fit moved
+    // out into the margin is noise, not a marker).
+    const double a1 = p[4], a2 = p[5];
+    if (!(a1 > 0 && a2 > 0) || std::min(a1, a2) < 0.2 * std::max(a1, a2)) return false;
+    const Eigen::Vector2d c1(p[0], p[1]), c2(p[2], p[3]);
+    if ((c1 - c2).norm() < options_.split_min_separation_px) return false;
+    for (const Eigen::Vector2d& c : {c1, c2}) {
+      if (c.x() < b.x_min - 0.5 || c.x() > b.x_max + 0.5 || c.y() < b.y_min - 0.5 ||
+          c.y() > b.y_max + 0.5) {
+        return false;
+      }
+    }
+    // The alternative: ONE spot, elliptical (a marker's image stretched by motion or the lens),
+    // parameters x y A and the inverse covariance's a b c; started from the blob's moments.
+    using Vec6 = Eigen::Matrix<double, 6, 1>;
+    Vec6 e;
+    {
+      const double inv_det = 1.0 / std::max(cand.split_mxx * cand.split_myy -
+                                                cand.split_mxy * cand.split_mxy, 1e-6);
+      e << cx, cy, peak, cand.split_myy * inv_det, cand.split_mxx * inv_det,
+          -cand.split_mxy * inv_det;
+    }
+    const double ellipse_cost = FitSmallModel<6>(n, px, py, pv, &e, [](const Vec6& q, double x,
+                                                                       double y, Vec6* j) {
+      const double dx = x - q[0], dy = y - q[1];
+      const double quad = q[3] * dx * dx + q[4] * dy * dy + 2 * q[5] * dx * dy;
+      const double g = std::exp(-0.5 * quad);
+      const double ag = q[2] * g;
+      if (j) {
+        *j << ag * (q[3] * dx + q[5] * dy), ag * (q[5] * dx + q[4] * dy), g, -0.5 * ag * dx * dx,
+            -0.5 * ag * dy * dy, -ag * dx * dy;
+      }
+      return ag;
+    }, nullptr);
+    // Two spots only where they explain the blob clearly better than one oval spot does.
+    if (!(cost < options_.split_min_gain * ellipse_cost)) return false;
+    // Covariance: residual variance x (J^T J)^-1.
+    const double residual_var = cost / std::max(1, n - 7);
+    const Eigen::LDLT<Mat7> ldlt(jtj);
+    if (ldlt.info() != Eigen::Success) return false;
+    const Mat7 cov = residual_var * ldlt.solve(Mat7::Identity());
+    if (!cov.allFinite()) return false;
+    *second = *first;
+    first->pixel = c1;
+    second->pixel = c2;
+    first->sigma_px = std::sqrt(std::max(cov(0, 0), cov(1, 1)) + floor2_);
+    second->sigma_px = std::sqrt(std::max(cov(2, 2), cov(3, 3)) + floor2_);
+    // area_px, roundness and peak stay the blob's: both centroids say where they came from.
+    return true;
   }
 
   // The Gaussian-windowed centre (see detection.h), Newton's method from (*x, *y). False (and

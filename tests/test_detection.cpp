@@ -299,7 +299,7 @@ TEST(Detection, SizeAndRoundnessFiltersRejectWhatTheyShould) {
   EXPECT_EQ(cs[0].area_px, bright);
 }
 
-TEST(Detection, TwoTouchingBlobsMergeAndAreRejectedNotMisreported) {
+TEST(Detection, TouchingBlobsAreSplitIntoTheirSpotsOrRejectedNeverMisreported) {
   Scene scene(300, 120);
   // Touching: 4 px apart, sigma 1.5 (bright regions overlap) -> one elongated blob.
   scene.AddGaussian(60.2, 60.0, 1.5, 200);
@@ -317,6 +317,20 @@ TEST(Detection, TwoTouchingBlobsMergeAndAreRejectedNotMisreported) {
   DetectionWorkspace ws;
   std::vector<Centroid> cs;
   DetectionStats st;
+  // By default the two elongated blobs are fitted with two spots each, and each spot is found.
+  ASSERT_TRUE(DetectMarkers(img.view(), o, nullptr, &ws, &cs, &st).ok());
+  EXPECT_EQ(st.blobs, 4);
+  EXPECT_EQ(st.split_attempts, 2);
+  EXPECT_EQ(st.split, 2);
+  EXPECT_EQ(st.not_round, 0);
+  ASSERT_EQ(cs.size(), 6u);
+  const std::vector<Eigen::Vector2d> spots = {{60.2, 60.0}, {64.2, 60.0}, {240.5, 60.5}, {242.5, 62.5}};
+  for (const Eigen::Vector2d& t : spots) EXPECT_LT(Nearest(cs, t.x(), t.y()), 0.02) << t.transpose();
+  EXPECT_LT(Nearest(cs, 150.4, 60.3), 0.03);
+  EXPECT_LT(Nearest(cs, 159.4, 60.3), 0.03);
+
+  // Without the split, as before it: the merged pair is dropped rather than misreported.
+  o.split_overlapping = false;
   ASSERT_TRUE(DetectMarkers(img.view(), o, nullptr, &ws, &cs, &st).ok());
   EXPECT_EQ(st.blobs, 4);
   EXPECT_EQ(st.not_round, 2);  // the merged pair and the diagonal pair
@@ -335,8 +349,9 @@ TEST(Detection, TwoTouchingBlobsMergeAndAreRejectedNotMisreported) {
 }
 
 TEST(Detection, OverlappingSpotsCarryTheirOffsetInSigma) {
-  // Two equal spots s apart that pass the roundness filter as one blob: its centre lies between
-  // them, s / 2 from either marker, and sigma_px must say about that much; a lone spot's must not.
+  // Two equal spots s apart that pass the roundness filter as one blob (not split): its centre
+  // lies between them, s / 2 from either marker, and sigma_px must say about that much; a lone
+  // spot's must not.
   for (const double sep : {2.0, 2.5, 3.0}) {
     SCOPED_TRACE(sep);
     Scene scene(200, 100);
@@ -346,6 +361,7 @@ TEST(Detection, OverlappingSpotsCarryTheirOffsetInSigma) {
     const TestImage img = scene.Render();
     DetectionOptions o;
     o.threshold = 50;
+    o.split_overlapping = false;
     DetectionWorkspace ws;
     std::vector<Centroid> cs;
     ASSERT_TRUE(DetectMarkers(img.view(), o, nullptr, &ws, &cs).ok());
@@ -369,6 +385,70 @@ TEST(Detection, OverlappingSpotsCarryTheirOffsetInSigma) {
   std::string error;
   EXPECT_FALSE(bad.IsValid(&error));
   EXPECT_NE(error.find("overlap_roundness"), std::string::npos) << error;
+}
+
+TEST(Detection, SplitSpotsAreAccurateAndTheirSigmaHonest) {
+  // Pairs of overlapping markers (2.5-5 px apart, the fainter 50-100 % of the brighter, noise
+  // 3 DN) at random angles; each blob is split and each spot found, its error explained by
+  // sigma_px. A lone elongated spot (motion smear: an elliptical Gaussian) is never split.
+  std::mt19937 rng(21);
+  std::uniform_real_distribution<double> u(0, 1);
+  DetectionOptions o;
+  o.threshold = 50;
+  o.background_dn = 10;
+  o.read_noise_dn = 3;
+  o.sigma_floor_px = 0;
+  DetectionWorkspace ws;
+  std::vector<Centroid> cs;
+  DetectionStats st;
+  int found = 0, pairs = 0, splits = 0;
+  double sum_sq = 0, sum_sq_norm = 0;
+  for (int trial = 0; trial < 200; ++trial) {
+    Scene scene(64, 64, 10);
+    const double sep = 2.5 + 2.5 * u(rng), angle = 2 * M_PI * u(rng), ratio = 0.5 + 0.5 * u(rng);
+    const Eigen::Vector2d a(30 + u(rng), 30 + u(rng));
+    const Eigen::Vector2d b = a + sep * Eigen::Vector2d(std::cos(angle), std::sin(angle));
+    scene.AddGaussian(a.x(), a.y(), 1.3, 200);
+    scene.AddGaussian(b.x(), b.y(), 1.3, 200 * ratio);
+    scene.AddNoise(3, rng);
+    ASSERT_TRUE(DetectMarkers(scene.Render().view(), o, nullptr, &ws, &cs, &st).ok());
+    ++pairs;
+    splits += st.split;
+    if (cs.size() != 2) continue;
+    for (const Eigen::Vector2d& t : {a, b}) {
+      const Centroid* c = nullptr;
+      const double e = Nearest(cs, t.x(), t.y(), &c);
+      if (e > 1.0) continue;
+      ++found;
+      sum_sq += e * e;
+      sum_sq_norm += e * e / (c->sigma_px * c->sigma_px);
+    }
+  }
+  const double rms = std::sqrt(sum_sq / (2.0 * found));            // per axis
+  const double norm_rms = std::sqrt(sum_sq_norm / (2.0 * found));  // per axis, in sigmas
+  std::printf("%d of %d pairs split, %d spots found; error %.4f px RMS per axis, %.2f sigma\n",
+              splits, pairs, found, rms, norm_rms);
+  EXPECT_GE(splits, pairs * 95 / 100);
+  EXPECT_GE(found, 2 * pairs * 95 / 100);
+  EXPECT_LT(rms, 0.04);
+  EXPECT_GT(norm_rms, 0.5);  // sigma_px neither overstates...
+  EXPECT_LT(norm_rms, 2.0);  // ... nor understates the error much
+
+  // One spot smeared along a direction (an elliptical Gaussian, roundness about 0.6): one centroid.
+  for (int trial = 0; trial < 20; ++trial) {
+    Scene scene(64, 64, 10);
+    const double angle = M_PI * u(rng);
+    const double ca = std::cos(angle), sa = std::sin(angle);
+    for (int k = -6; k <= 6; ++k) {  // a streak of 13 sub-spots = a smooth oval
+      scene.AddGaussian(30.3 + 0.25 * k * ca, 30.6 + 0.25 * k * sa, 1.3, 40);
+    }
+    scene.AddNoise(3, rng);
+    ASSERT_TRUE(DetectMarkers(scene.Render().view(), o, nullptr, &ws, &cs, &st).ok());
+    EXPECT_EQ(st.split_attempts, 1) << "angle " << angle;  // elongated enough to be tried
+    EXPECT_EQ(st.split, 0) << "angle " << angle;
+    ASSERT_EQ(cs.size(), 1u);
+    EXPECT_LT(Nearest(cs, 30.3, 30.6), 0.1);
+  }
 }
 
 TEST(Detection, BlobsAtTheImageBorders) {
