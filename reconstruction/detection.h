@@ -59,33 +59,33 @@
 // Shape: the weighted second moments of the blob, each pixel counted as a unit square (adding
 // 1/12 px^2 to both variances, so that a 1- or 2-pixel blob has a finite, honest shape).
 // roundness = sqrt(minor eigenvalue / major eigenvalue) = minor / major axis, in (0, 1].
-// Two markers whose images touch merge into one elongated blob: the roundness filter drops it
-// (about a spot diameter apart: roundness < 0.6) rather than reporting a centre between them;
-// pairs closer than that look like one slightly oval marker and pass. Those are most of the
-// detector's error on a moving subject (simulated protocol, 8 cameras: 0.6 % of the centroids,
-// a neighbour within 5 px, err by 0.43 px RMS and make 98 % of the detector's squared error; the
-// rest err by 0.006 px), and their centres are pulled along the major axis. So their uncertainty
-// says so: a blob less round than `overlap_roundness` (single spots score above 0.9 but for 1 in
-// 300) adds its elongation, major - minor, to sigma_px^2: for two equal spots s apart that is
-// (s / 2)^2, the distance from either marker to the blob's centre. Triangulation then leans on
-// the other cameras' views of that marker, and the rare single spot so flagged merely loses
-// weight.
+// Two markers whose images touch merge into one elongated blob. On a moving subject those are
+// most of the detector's error (simulated protocol, 8 cameras: 0.6 % of the centroids had a
+// neighbour within 5 px, erred by 0.43 px RMS and made 98 % of the detector's squared error; the
+// rest err by 0.006 px) and 4.5 % of the markers' views. Three answers, in order:
 //
-// Splitting. Better still is to see both markers: an elongated blob (roundness below
-// overlap_roundness, and down to split_min_roundness: pairs a spot diameter apart that the
-// roundness filter would drop) is fitted by Gauss-Newton/Levenberg-Marquardt with two Gaussian
-// spots of one common width (x1, y1, x2, y2, A1, A2, s: 7 unknowns) over its window, started at
-// the centre +- sqrt(major - minor) along the major axis; saturated pixels and other blobs' pixels
-// are left out. The alternative is one elliptical spot (a marker smeared by motion or the lens, a
-// flat-topped disc that two Gaussians would also fit), fitted the same way. When the two spots
+// Splitting. An elongated blob (roundness below overlap_roundness, down to split_min_roundness,
+// so also pairs a spot diameter apart that the roundness filter would drop) is fitted by
+// Levenberg-Marquardt with two round Gaussian spots of one common width (x1, y1, x2, y2, A1, A2,
+// log s^2: 7 unknowns) over its bounding box and a one-pixel ring, started at the centre
+// +- sqrt(major - minor) along the major axis; saturated pixels and other blobs' pixels are left
+// out. The alternative is one elliptical spot (a marker smeared by motion or the lens, or a
+// flat-topped disc, which two Gaussians would also fit), fitted the same way. When the two spots
 // leave at most split_min_gain of the ellipse's squared residual, are of comparable brightness
-// (the fainter at least a fifth of the brighter) and at least split_min_separation_px apart,
-// both are reported, each
-// with sigma_px^2 from the fit's covariance (residual variance x (J^T J)^-1, which carries the
-// profile's mismatch: a marker's image is a blurred disc, not a Gaussian) plus the floor^2;
-// otherwise the blob is one centroid as above (or dropped below min_roundness). In the simulated
-// capture (8 cameras, the protocol) 4.5 % of the markers' images overlap a neighbour's; without the
-// split their views were lost to triangulation.
+// (the fainter at least a fifth of the brighter), at least split_min_separation_px apart and
+// inside the blob, both are reported, each with sigma_px^2 from the fit's covariance (residual
+// variance x (J^T J)^-1, which carries the profile's mismatch: a marker's image is a blurred
+// disc, not a Gaussian) plus the floor^2. Gaussian-windowed centres only.
+//
+// Otherwise, rejection: below min_roundness (about a spot diameter apart: < 0.6) the blob is
+// dropped rather than reported as a centre between two markers.
+//
+// Otherwise, an honest sigma: a pair closer than that looks like one slightly oval marker and
+// passes, its centre pulled along the major axis. A blob less round than `overlap_roundness`
+// (single spots score above 0.9 but for 1 in 300) adds its elongation, major - minor, to
+// sigma_px^2: for two equal spots s apart that is (s / 2)^2, the distance from either marker to
+// the blob's centre. Triangulation then leans on the other cameras' views of that marker, and
+// the rare single spot so flagged merely loses weight.
 //
 // Uncertainty sigma_px: first-order propagation of independent pixel noise through the centre,
 // var_i = read_noise^2 + 1/12 + gain * value_i (read noise, quantisation, shot noise, in the
