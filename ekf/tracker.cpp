@@ -177,9 +177,19 @@ struct Tracker::Impl {
   std::vector<std::vector<int>> limb_coord_list;
   std::vector<int> llocal;  // per coordinate: its index among the limb's, or -1
   void LineariseLimb(int joint, const Eigen::VectorXd& z);
-  std::vector<int> lcand, lassign, lbest_assign, lrow_to_col;
+  std::vector<int> lcand, lassign, lbest_assign, lrow_to_col, lfree;
   std::vector<char> ltaken;
   void Reacquire(int np);
+  // Frames tracked since the last (re)initialisation. The labels of a fresh track come from a
+  // search over one frame and can be wrong on a whole limb (self-consistently: a thigh turned
+  // about its long axis); labels that tracking has kept are not. So for the first second a limb
+  // search may relabel the limb's markers and is tried whenever any unclaimed point is near;
+  // after it, it keeps the labels the limb has and is tried only for a point at the rigid-body
+  // distances of the marker (RigidlyPlausible).
+  int tracked_frames = 0;
+  bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
+  static constexpr double kFreshTrackSeconds = 1.0;
+  bool RigidlyPlausible(int m, int k) const;
   bool ReacquireLimb(int joint, int np);
   double LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius);
 };
@@ -260,11 +270,13 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   marker_limb.assign(nm, -1);
   for (int k = 0; k < nm; ++k) {
     int j = md.segments()[md.markers()[k].segment].joint;
-    // Up to the first joint that moves something (a welded segment rides on its parent's).
+    // Up to the first joint that moves something (a welded segment rides on its parent's) and
+    // carries another marker: the limb's labelled markers hold the search (a hand with its one
+    // finger marker is searched with the forearm's).
     while (j > 0) {
       bool moves = false;
       for (char c : limb_coord[j]) moves |= c != 0;
-      if (moves) break;
+      if (moves && limb_markers[j].size() >= 2) break;
       const int parent = md.joints()[j].parent;
       j = parent >= 0 ? md.segments()[parent].joint : -1;
     }
@@ -336,6 +348,7 @@ void Tracker::Impl::Allocate() {
   lassign.assign(nm, -1);
   lbest_assign.assign(nm, -1);
   lrow_to_col.assign(nm, -1);
+  lfree.assign(nm, -1);
   ltaken.assign(mp, 0);
   jerk_psd.resize(nz);
   for (int i = 0; i < nz; ++i)
@@ -824,6 +837,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   out.nis = nis;
   out.nis_dof = 3 * out.labelled;
   std::fill(unlabelled_run.begin(), unlabelled_run.end(), 0);
+  tracked_frames = 0;
   init.accepted = true;
   init.reason.clear();
   return true;
@@ -845,6 +859,7 @@ constexpr int kLimbIterations = 10;
 constexpr double kLimbFinalRadius = 0.05;
 constexpr double kLimbMaxRms = 0.03;
 constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
+constexpr double kLimbCentreTolerance = 0.02;
 }  // namespace
 
 // Assigns the limb's markers among the candidate points by distance at z (within radius);
@@ -861,12 +876,22 @@ void Tracker::Impl::LineariseLimb(int joint, const Eigen::VectorXd& z) {
 
 double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius) {
   LineariseLimb(joint, z);
-  const std::vector<int>& rows = limb_markers[joint];
-  const int ns = static_cast<int>(rows.size());
-  auto C = cost.topLeftCorner(ns, nc + ns);
   const double r2 = radius * radius;
+  // The limb's labelled markers keep their points: only its unlabelled ones are assigned.
+  double total = 0;
+  int ns = 0;
+  for (int m : limb_markers[joint]) {
+    if (row_to_col[m] >= 0 && !FreshTrack()) {
+      lassign[m] = row_to_col[m];
+      total += std::min(r2, (points.col(row_to_col[m]) - predicted.col(m)).squaredNorm());
+    } else {
+      lfree[ns++] = m;
+    }
+  }
+  if (ns == 0) return total;
+  auto C = cost.topLeftCorner(ns, nc + ns);
   for (int r = 0; r < ns; ++r) {
-    const int m = rows[r];
+    const int m = lfree[r];
     for (int c = 0; c < nc; ++c) {
       const double d2 = (points.col(lcand[c]) - predicted.col(m)).squaredNorm();
       C(r, c) = d2 < r2 ? d2 : kForbidden;
@@ -874,9 +899,9 @@ double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, do
     C.row(r).tail(ns).setConstant(kForbidden);
     C(r, nc + r) = r2;
   }
-  const double total = lap.Solve(C, lrow_to_col.data());
+  total += lap.Solve(C, lrow_to_col.data());
   for (int r = 0; r < ns; ++r)
-    lassign[rows[r]] = lrow_to_col[r] < nc ? lcand[lrow_to_col[r]] : -1;
+    lassign[lfree[r]] = lrow_to_col[r] < nc ? lcand[lrow_to_col[r]] : -1;
   return total;
 }
 
@@ -897,20 +922,19 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
       s.predicted = s.lsaved;
     }
   } restore{*this, lcoords};
-  // Candidates: the points no marker outside the limb took.
+  // Candidates: the points no marker took (the limb's labelled markers keep theirs).
   std::fill(ltaken.begin(), ltaken.begin() + np, 0);
   for (int m = 0; m < nm; ++m)
     if (row_to_col[m] >= 0) ltaken[row_to_col[m]] = 1;
   int current = 0;
-  for (int m : rows)
-    if (row_to_col[m] >= 0) {
-      ltaken[row_to_col[m]] = 0;
-      ++current;
-    }
+  for (int m : rows) current += row_to_col[m] >= 0;
+  if (FreshTrack())
+    for (int m : rows)
+      if (row_to_col[m] >= 0) ltaken[row_to_col[m]] = 0;
   int nc = 0;
   for (int k = 0; k < np; ++k)
     if (!ltaken[k]) lcand[nc++] = k;
-  if (nc <= current) return false;
+  if (nc == 0 || current == ns) return false;
 
   const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   auto Cost = [&](const Eigen::VectorXd& zz) {
@@ -1021,6 +1045,15 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
   if (best_labelled <= current) return false;
   const double rms = std::sqrt(best_sum / best_labelled);
   if (!(rms <= kLimbMaxRms)) return false;
+  // Every marker of the placement, kept or new, within its own gate on the measurement noise
+  // alone (what it would be gated with once the limb's covariance has shrunk again): an RMS
+  // within init_max_rms_m also passes a placement that puts one marker on a ghost 3 cm away.
+  LineariseLimb(joint, lbest);
+  for (int m : rows)
+    if (lbest_assign[m] >= 0 &&
+        (points.col(lbest_assign[m]) - predicted.col(m)).squaredNorm() >
+            options.gate_chi2 * MeasurementVariance(m))
+      return false;
   const double variance = std::max(rms * rms / 3.0, 1e-6);
   if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
     return false;
@@ -1046,7 +1079,32 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
   return true;
 }
 
+// Whether point k could be marker m with m's segment anywhere: within kLimbNearRadius of its
+// prediction, and at m's distance from the segment's other labelled markers and from its joint
+// centre (rigid-body distances, whatever the pose). Ghosts near the body are nearly always within
+// the radius; few also sit on these spheres, so a hidden marker rarely sets off a search.
+bool Tracker::Impl::RigidlyPlausible(int m, int k) const {
+  const Eigen::Vector3d p = points.col(k), pm = predicted.col(m);
+  if ((p - pm).squaredNorm() >= kLimbNearRadius * kLimbNearRadius) return false;
+  const int segment = model->markers()[m].segment;
+  const double var_m = MeasurementVariance(m);
+  // The joint centre is predicted, not measured: allow for the parent's pose and for a nominal
+  // model's joint centres.
+  const Eigen::Vector3d centre = data.segment_position[segment];
+  if (std::abs((p - centre).norm() - (pm - centre).norm()) >
+      std::sqrt(options.gate_chi2 * var_m) + kLimbCentreTolerance)
+    return false;
+  for (int a = 0; a < nm; ++a) {
+    if (a == m || row_to_col[a] < 0 || model->markers()[a].segment != segment) continue;
+    const double tol = std::sqrt(options.gate_chi2 * (var_m + MeasurementVariance(a)));
+    if (std::abs((p - points.col(row_to_col[a])).norm() - (pm - predicted.col(a)).norm()) > tol)
+      return false;
+  }
+  return true;
+}
+
 void Tracker::Impl::Reacquire(int np) {
+  ++tracked_frames;
   for (int m = 0; m < nm; ++m) unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
   // One search per frame: the largest limb (nearest the root) among those due, and only when an
   // unclaimed point lies near the marker's prediction (a hidden marker costs nothing).
@@ -1063,8 +1121,9 @@ void Tracker::Impl::Reacquire(int np) {
     }
     bool near = false;
     for (int k = 0; k < np && !near; ++k)
-      near = !ltaken[k] && (points.col(k) - predicted.col(m)).squaredNorm() <
-                               kLimbNearRadius * kLimbNearRadius;
+      near = !ltaken[k] && (FreshTrack() ? (points.col(k) - predicted.col(m)).squaredNorm() <
+                                               kLimbNearRadius * kLimbNearRadius
+                                         : RigidlyPlausible(m, k));
     if (!near) continue;
     if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
   }

@@ -63,16 +63,26 @@
 // Limb re-acquisition. While the rest of the body tracks, one limb can settle in a wrong but
 // self-consistent pose (a foot left with its heel marker only; a thigh turned about its long axis
 // or a head turned after a re-initialisation) from which its other markers' gates never meet
-// their points again. A marker unlabelled for 20 tracking frames (re-tried every 20), with an
-// unclaimed point within 25 cm of its prediction, has the subtree of the joint that moves it
-// (up to 12 coordinates; the root and the trunk are the global search's) searched again
-// ICP-like among the points no other marker took, from its current pose and four restarts (joint
-// angles blended towards the middle of their ranges, fixed pseudo-random perturbations). The
-// best placement replaces the limb's coordinates (velocities and accelerations zeroed, their
-// covariance reset to the initialisation's) only when it labels more of the limb's markers than
-// the track does, their RMS distance is within init_max_rms_m and no differently labelling
-// restart comes within the init_ambiguity_margin log-likelihood margin. Allocation-free; a
-// hidden marker with no point near costs nothing.
+// their points again. A marker unlabelled for 20 tracking frames (re-tried every 20) has the
+// subtree of the joint that moves it (the nearest one whose subtree carries another marker, so a
+// hand with one finger marker goes with its forearm; up to 12 coordinates; the root and the
+// trunk are the global search's) searched again ICP-like among the points no other marker took,
+// from its current pose and four restarts (joint angles blended towards the middle of their
+// ranges, fixed pseudo-random perturbations). The search runs only when an unclaimed point could
+// be the marker: within 25 cm of its prediction and at the marker's rigid-body distances from
+// its segment's other labelled points and from the segment's joint centre -- ghosts near the
+// body are nearly always within 25 cm, rarely on those spheres. The limb's labelled markers keep
+// their points; only its unlabelled ones are placed. The best placement replaces the limb's
+// coordinates (velocities and accelerations zeroed, their covariance reset to the
+// initialisation's) only when it labels more of the limb's markers than the track does, their RMS
+// distance is within init_max_rms_m, EVERY marker of the placement lies within its gate on its
+// measurement noise alone (gate_chi2 x the marker's variance: an RMS bound alone passes a marker
+// put on a ghost 3 cm away), and no differently labelling restart comes within the
+// init_ambiguity_margin log-likelihood margin. In the first second after a (re)initialisation
+// the labels themselves are suspect (a search over one frame can label a limb wrongly but
+// consistently), so there the search may also relabel the limb's markers and runs whenever any
+// unclaimed point lies within 25 cm. Allocation-free; a hidden marker with no plausible point
+// near costs nothing.
 //
 // Model error. A nominal model (before the global fit) misplaces markers by 1-4 cm; each marker
 // carries a slowly learnt offset in its segment's frame, and its measurement variance is inflated
