@@ -13,7 +13,10 @@
 namespace mocap::ekf {
 
 namespace {
-constexpr double kForbidden = 1e9;  // cost of a pair the gate excludes (finite: see assignment.h)
+constexpr double kForbidden = 1e9;
+// A point that continues a marker's first point after a gap moves as the prediction does within
+// this (a frame is 5 ms: 1 cm is 2 m/s of unpredicted motion; random ghosts jump decimetres).
+constexpr double kProbationDistance = 0.01;  // cost of a pair the gate excludes (finite: see assignment.h)
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 bool Fail(std::string* error, const char* message) {
@@ -121,6 +124,14 @@ struct Tracker::Impl {
   Eigen::MatrixXd A;
   Eigen::VectorXd b;
   CoordinateUpdate update;
+  // Probation of a marker coming back (see tracker.h): per marker, whether this frame's update
+  // uses its label, how many consecutive frames it has been labelled, and where its point and
+  // prediction were in the last frame.
+  std::vector<char> measured;
+  std::vector<int> labelled_run;
+  Eigen::Matrix3Xd last_point, last_predicted;
+  int measured_count = 0;
+  void ChooseMeasurements();
 
   // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
   double MeasurementVariance(int m) const {
@@ -337,6 +348,10 @@ void Tracker::Impl::Allocate() {
   out.marker_of_point.reserve(mp);
   out.point_of_marker.reserve(nm);
   unlabelled_run.assign(nm, 0);
+  measured.assign(nm, 0);
+  labelled_run.assign(nm, 0);
+  last_point.setZero(3, nm);
+  last_predicted.setZero(3, nm);
   llocal.assign(nz, -1);
   lsaved.resize(3, nm);
   ltrial.resize(nz);
@@ -474,7 +489,7 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
   b.setZero();
   double nu_r_nu = 0;
   for (int m = 0; m < nm; ++m) {
-    if (row_to_col[m] < 0) continue;
+    if (row_to_col[m] < 0 || !measured[m]) continue;
     const double w = 1.0 / MeasurementVariance(m);
     const Eigen::Vector3d nu = points.col(row_to_col[m]) - predicted.col(m);
     nu_r_nu += w * nu.squaredNorm();
@@ -500,12 +515,44 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
 void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
   const double k = OffsetGain();
   for (int m = 0; m < nm; ++m) {
-    if (row_to_col[m] < 0) continue;
+    if (row_to_col[m] < 0 || !measured[m]) continue;
     const std::vector<int>& cols = model->marker_coordinates(m);
     Eigen::Vector3d r = points.col(row_to_col[m]) - predicted.col(m);
     for (size_t a = 0; a < cols.size(); ++a) r -= jac[m].col(a) * dzv[cols[a]];
     offset[m] += k * (data.segment_rotation[model->markers()[m].segment].transpose() * r);
     offset_unknown[m] *= 1.0 - k;
+  }
+}
+
+// A marker coming back after frames without a label is labelled at once but enters the update
+// only from its second consecutive frame, and only if its point moved from the first frame's
+// as its prediction did. Half of the ghosts near a body are single-frame reflections: one in the
+// gate of a hidden marker whose segment is loosely held (a toe with only the heel seen: the gate
+// is several centimetres long) would otherwise be trusted at the marker's full precision, move
+// the segment by as much, shrink its covariance there, and leave the true marker outside the
+// gate when it reappears (a limb lost for the 20 frames before its search). The next frame's
+// point of a ghost is another one or none. A true marker costs one frame of information.
+void Tracker::Impl::ChooseMeasurements() {
+  measured_count = 0;
+  for (int m = 0; m < nm; ++m) {
+    const int col = row_to_col[m];
+    if (col < 0) {
+      measured[m] = 0;
+      labelled_run[m] = 0;
+      continue;
+    }
+    const Eigen::Vector3d p = points.col(col), q = predicted.col(m);
+    if (labelled_run[m] == 1) {
+      const Eigen::Vector3d moved = (p - last_point.col(m)) - (q - last_predicted.col(m));
+      measured[m] = moved.squaredNorm() <= kProbationDistance * kProbationDistance;
+      if (!measured[m]) labelled_run[m] = 0;  // a different point: this is its first frame
+    } else {
+      measured[m] = labelled_run[m] > 1;
+    }
+    ++labelled_run[m];
+    last_point.col(m) = p;
+    last_predicted.col(m) = q;
+    measured_count += measured[m];
   }
 }
 
@@ -826,6 +873,15 @@ bool Tracker::Impl::TryInitialise(int np) {
   Linearise(zbuf);
   for (int m = 0; m < nm; ++m) row_to_col[m] = h.assignment[m];
   ApplyLabels(np);
+  // The search's labels are all measured at once (they were chosen together, not one by one).
+  for (int m = 0; m < nm; ++m) {
+    measured[m] = row_to_col[m] >= 0;
+    labelled_run[m] = measured[m] ? 2 : 0;
+    if (measured[m]) {
+      last_point.col(m) = points.col(row_to_col[m]);
+      last_predicted.col(m) = predicted.col(m);
+    }
+  }
   double nis = 0;
   if (!FilterUpdate(&nis)) {
     init.reason = "the first update failed";
@@ -1167,8 +1223,9 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     s.Linearise(s.zbuf);
     s.LabelByGating(np);
     const int labelled = s.ApplyLabels(np);
+    s.ChooseMeasurements();
     double nis = 0;
-    bool ok = labelled == 0 || s.FilterUpdate(&nis);
+    bool ok = s.measured_count == 0 || s.FilterUpdate(&nis);
     if (ok) {
       s.zbuf = s.x.head(s.nz);
       s.Wrap(&s.zbuf);
@@ -1176,7 +1233,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
       ok = s.x.allFinite();
     }
     out.nis = nis;
-    out.nis_dof = 3 * labelled;
+    out.nis_dof = 3 * s.measured_count;
     const bool bad = !ok || labelled < s.options.min_labelled_fraction * s.nm ||
                      (labelled > 0 && nis > s.options.max_nis_per_dof * out.nis_dof);
     if (ok && !bad) {

@@ -43,7 +43,13 @@
 // of markers to gated points, where each marker may also stay unassigned at the price of the gate,
 // so two labels never take one point and a marker takes a point only when it is the best use of
 // that point. Unassigned points are ghosts or strays (label -1). A marker missing for a while has a
-// growing S_m and is picked up again when it reappears inside its gate.
+// growing S_m and is picked up again when it reappears inside its gate. On probation: a marker
+// coming back is labelled at once, but its measurement enters the update only from its second
+// consecutive labelled frame, when its point moved from the first one as its prediction did
+// (within 1 cm). Half the ghosts near a body are single-frame reflections; one inside the long
+// gate of a hidden marker on a loosely held segment (a toe with only the heel seen) would
+// otherwise move the segment by centimetres at the marker's full precision and leave the true
+// marker outside its gate when it reappears.
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (options.up), from the static pose (and,
