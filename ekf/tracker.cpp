@@ -16,7 +16,13 @@ namespace {
 constexpr double kForbidden = 1e9;
 // A point that continues a marker's first point after a gap moves as the prediction does within
 // this (a frame is 5 ms: 1 cm is 2 m/s of unpredicted motion; random ghosts jump decimetres).
-constexpr double kProbationDistance = 0.01;  // cost of a pair the gate excludes (finite: see assignment.h)
+constexpr double kProbationDistance = 0.01;
+// Following a point back in time (NonRigidTrack): its largest step between frames (5 m/s at
+// 200 Hz), the frames it must have been seen to be judged, and how much its distance to a joint
+// centre may vary on a rigid segment (noise, and the predicted centre's error).
+constexpr double kTrackStep = 0.025;
+constexpr int kMinTrackFrames = 5;
+constexpr double kRigidTolerance = 0.01;  // cost of a pair the gate excludes (finite: see assignment.h)
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 bool Fail(std::string* error, const char* message) {
@@ -132,6 +138,17 @@ struct Tracker::Impl {
   Eigen::Matrix3Xd last_point, last_predicted;
   int measured_count = 0;
   void ChooseMeasurements();
+  // The last kHistory tracking frames' points and predicted joint centres (a ring), to follow a
+  // point back in time (NonRigidTrack).
+  static constexpr int kHistory = 20;
+  std::vector<Eigen::Matrix3Xd> hist_points;
+  std::vector<int> hist_count;
+  std::vector<std::vector<char>> hist_claimed;  // per frame, per point: a marker's
+  std::vector<std::vector<Eigen::Vector3d>> hist_centre;
+  std::vector<Eigen::Vector3d> centre_now;  // this frame's predicted joint centres
+  int hist_head = 0, hist_size = 0;
+  void PushHistory(int np);
+  bool NonRigidTrack(int m, const Eigen::Vector3d& p) const;
 
   // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
   double MeasurementVariance(int m) const {
@@ -350,6 +367,12 @@ void Tracker::Impl::Allocate() {
   unlabelled_run.assign(nm, 0);
   measured.assign(nm, 0);
   labelled_run.assign(nm, 0);
+  hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
+  hist_count.assign(kHistory, 0);
+  hist_claimed.assign(kHistory, std::vector<char>(mp, 0));
+  hist_centre.assign(kHistory, std::vector<Eigen::Vector3d>(model->num_segments(), Eigen::Vector3d::Zero()));
+  centre_now.assign(model->num_segments(), Eigen::Vector3d::Zero());
+  hist_head = hist_size = 0;
   last_point.setZero(3, nm);
   last_predicted.setZero(3, nm);
   llocal.assign(nz, -1);
@@ -441,7 +464,7 @@ void Tracker::Impl::LabelByGating(int np) {
       double d2 = kForbidden;
       if (e.squaredNorm() < reject_sq[m]) {
         const double q = e.dot(s_inv[m] * e);
-        if (q < gate) {
+        if (q < gate && (labelled_run[m] > 0 || !NonRigidTrack(m, points.col(k)))) {
           d2 = q;
           contested |= ++gated_by[k] > 1;
           if (q < best) {
@@ -522,6 +545,56 @@ void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
     offset[m] += k * (data.segment_rotation[model->markers()[m].segment].transpose() * r);
     offset_unknown[m] *= 1.0 - k;
   }
+}
+
+void Tracker::Impl::PushHistory(int np) {
+  hist_points[hist_head].leftCols(np) = points.leftCols(np);
+  hist_count[hist_head] = np;
+  std::vector<char>& claimed = hist_claimed[hist_head];
+  std::fill(claimed.begin(), claimed.begin() + np, 0);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= 0) claimed[row_to_col[m]] = 1;
+  for (size_t i = 0; i < centre_now.size(); ++i) hist_centre[hist_head][i] = centre_now[i];
+  hist_head = (hist_head + 1) % kHistory;
+  hist_size = std::min(hist_size + 1, kHistory);
+}
+
+// Whether point p, followed back through the last frames (the nearest unclaimed point within a
+// frame's motion), changed its distance to marker m's joint centre: a marker keeps it (rigid
+// body), a ghost does not -- a reflection fixed in the lab or riding along with another marker,
+// which can live for seconds near the body. Only a point seen for kMinTrackFrames can be judged;
+// a marker coming back from an occlusion has no past and passes (the labelled points it may
+// pass near, a hand sliding over the thigh marker, are other markers' past, not its own).
+bool Tracker::Impl::NonRigidTrack(int m, const Eigen::Vector3d& p) const {
+  // A fresh track's limb may be wrongly placed, its joint centres with it (see FreshTrack).
+  if (FreshTrack()) return false;
+  const int segment = model->markers()[m].segment;
+  Eigen::Vector3d q = p;
+  const double r0 = (p - centre_now[segment]).norm();
+  double lo = r0, hi = r0;
+  int length = 1;
+  for (int h = 1; h <= hist_size; ++h) {
+    const int slot = (hist_head - h + kHistory) % kHistory;
+    const Eigen::Matrix3Xd& pts = hist_points[slot];
+    int nearest = -1;
+    double best = kTrackStep * kTrackStep;
+    const std::vector<char>& claimed = hist_claimed[slot];
+    for (int k = 0; k < hist_count[slot]; ++k) {
+      if (claimed[k]) continue;
+      const double d2 = (pts.col(k) - q).squaredNorm();
+      if (d2 < best) {
+        best = d2;
+        nearest = k;
+      }
+    }
+    if (nearest < 0) break;
+    q = pts.col(nearest);
+    const double r = (q - hist_centre[slot][segment]).norm();
+    lo = std::min(lo, r);
+    hi = std::max(hi, r);
+    ++length;
+  }
+  return length >= kMinTrackFrames && hi - lo > kRigidTolerance;
 }
 
 // A marker coming back after frames without a label is labelled at once but enters the update
@@ -894,6 +967,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   out.nis_dof = 3 * out.labelled;
   std::fill(unlabelled_run.begin(), unlabelled_run.end(), 0);
   tracked_frames = 0;
+  hist_size = 0;
   init.accepted = true;
   init.reason.clear();
   return true;
@@ -1110,6 +1184,12 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
         (points.col(lbest_assign[m]) - predicted.col(m)).squaredNorm() >
             options.gate_chi2 * MeasurementVariance(m))
       return false;
+  // A new label on a point that has been around without keeping its distance to the marker's
+  // joint centre is a lasting ghost (a lone finger marker's two angles fit any point at the right
+  // distance from the wrist).
+  for (int m : rows)
+    if (lbest_assign[m] >= 0 && row_to_col[m] < 0 && NonRigidTrack(m, points.col(lbest_assign[m])))
+      return false;
   const double variance = std::max(rms * rms / 3.0, 1e-6);
   if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
     return false;
@@ -1221,6 +1301,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     s.Predict(dt);
     s.zbuf = s.x.head(s.nz);
     s.Linearise(s.zbuf);
+    for (size_t i = 0; i < s.centre_now.size(); ++i) s.centre_now[i] = s.data.segment_position[i];
     s.LabelByGating(np);
     const int labelled = s.ApplyLabels(np);
     s.ChooseMeasurements();
@@ -1239,6 +1320,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     if (ok && !bad) {
       s.bad_frames = 0;
       s.Reacquire(np);
+      s.PushHistory(np);
       s.z_good = s.x.head(s.nz);
     } else if (++s.bad_frames >= s.options.divergence_frames || !ok) {
       out.state = TrackState::kLost;

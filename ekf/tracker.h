@@ -49,7 +49,13 @@
 // (within 1 cm). Half the ghosts near a body are single-frame reflections; one inside the long
 // gate of a hidden marker on a loosely held segment (a toe with only the heel seen) would
 // otherwise move the segment by centimetres at the marker's full precision and leave the true
-// marker outside its gate when it reappears.
+// marker outside its gate when it reappears. Lasting ghosts (reflections fixed in the lab or
+// riding along with a marker, alive for up to seconds) are told by their past: the tracker keeps
+// the last 20 frames' points, and a point that a marker without a label in the last frame would
+// take is followed back through the unclaimed points (nearest within 2.5 cm a frame); seen for 5
+// frames or more with its distance to the marker's joint centre varying by over 1 cm, it is not
+// on that segment and stays out of the marker's gate. A marker back from an occlusion has no past
+// and is not judged.
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (options.up), from the static pose (and,
@@ -84,10 +90,13 @@
 // distance is within init_max_rms_m, EVERY marker of the placement lies within its gate on its
 // measurement noise alone (gate_chi2 x the marker's variance: an RMS bound alone passes a marker
 // put on a ghost 3 cm away), and no differently labelling restart comes within the
-// init_ambiguity_margin log-likelihood margin. In the first second after a (re)initialisation
+// init_ambiguity_margin log-likelihood margin, and no new label is on a point whose past is not
+// rigid with the marker's segment (as in the gating above; a lone finger marker's two wrist
+// angles fit any point at the right distance from the wrist). In the first second after a (re)initialisation
 // the labels themselves are suspect (a search over one frame can label a limb wrongly but
 // consistently), so there the search may also relabel the limb's markers and runs whenever any
-// unclaimed point lies within 25 cm. Allocation-free; a hidden marker with no plausible point
+// unclaimed point lies within 25 cm (and a point's past is not judged: the joint centres may be
+// wrong with the limb). Allocation-free; a hidden marker with no plausible point
 // near costs nothing.
 //
 // Model error. A nominal model (before the global fit) misplaces markers by 1-4 cm; each marker
