@@ -334,6 +334,9 @@ class TrackCli : public ::testing::Test {
     EXPECT_EQ(s["reinitialisations"].get<int>(), 0);
     EXPECT_GT(s["update_us_p50"].get<double>(), 0.0);
     EXPECT_GE(s["update_us_p99"].get<double>(), s["update_us_p50"].get<double>());
+    ASSERT_TRUE(s.contains("update_cpu_us_p50") && s.contains("update_cpu_us_p99"));
+    EXPECT_GT(s["update_cpu_us_p50"].get<double>(), 0.0);
+    EXPECT_GE(s["update_cpu_us_p99"].get<double>(), s["update_cpu_us_p50"].get<double>());
   }
   static inline fs::path dir_;
 };
