@@ -6,14 +6,16 @@
 //              model marker by the nearest point to where the previous frame's pose puts it, then
 //              Levenberg–Marquardt inverse kinematics (solver/inverse_kinematics.h) warm-started
 //              from the previous frame.
-//   EkfUpdateIssueScene: Tracker::Update over issue 5's own scene (`mocap track --simulate --seed 1
-//              --ghosts 5 --occlusion 0.1 --swap-traps`, nominal model: 14,880 frames, with the
-//              limb searches that its occlusions set off), replayed 3 times from a fresh tracker. The tracker is deterministic, so each frame does the same
-//              work in every replay: min3_cpu_* are the percentiles of each frame's least CPU
-//              time over the replays (the tracker's work, without what a busy machine adds to a
-//              frame now and then), cpu_* those of the first replay alone.
-// EkfUpdate and IkNearest see the same frames: the simulated protocol's shoulder_circles_l and squats at 200 Hz with
-// 0.5 mm noise (sim::SimulateSession, seed 1), the points shuffled, with 5 ghosts near the body.
+//   EkfUpdateIssueScene: Tracker::Update over issue 5's own scene (`mocap track --simulate
+//              --seed 1 --ghosts 5 --occlusion 0.1 --swap-traps`, nominal model: 14,880 frames,
+//              with the limb searches its occlusions set off), replayed 3 times from a fresh
+//              tracker. The tracker is deterministic, so each frame does the same work in every
+//              replay: min3_cpu_* are the percentiles of each frame's least CPU time over the
+//              replays (the tracker's work, without what a busy machine adds to a frame now and
+//              then), cpu_* those of the first replay alone.
+// EkfUpdate and IkNearest see the same frames: the simulated protocol's shoulder_circles_l and
+// squats at 200 Hz with 0.5 mm noise (sim::SimulateSession, seed 1), the points shuffled, with 5
+// ghosts near the body.
 // Each iteration is timed alone: p50_us/p99_us from steady_clock (wall), cpu_p50_us/cpu_p99_us
 // from the thread's CPU clock (what it costs on one core, without the time a shared machine
 // gives to other processes), and label_accuracy, the share of the frames' marker points that got
