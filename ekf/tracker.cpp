@@ -370,7 +370,8 @@ void Tracker::Impl::Allocate() {
   hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
   hist_count.assign(kHistory, 0);
   hist_claimed.assign(kHistory, std::vector<char>(mp, 0));
-  hist_centre.assign(kHistory, std::vector<Eigen::Vector3d>(model->num_segments(), Eigen::Vector3d::Zero()));
+  hist_centre.assign(kHistory,
+                     std::vector<Eigen::Vector3d>(model->num_segments(), Eigen::Vector3d::Zero()));
   centre_now.assign(model->num_segments(), Eigen::Vector3d::Zero());
   hist_head = hist_size = 0;
   last_point.setZero(3, nm);
@@ -1177,7 +1178,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
   if (!(rms <= kLimbMaxRms)) return false;
   // Every marker of the placement, kept or new, within its own gate on the measurement noise
   // alone (what it would be gated with once the limb's covariance has shrunk again): an RMS
-  // within init_max_rms_m also passes a placement that puts one marker on a ghost 3 cm away.
+  // within kLimbMaxRms also passes a placement that puts one marker on a ghost 3 cm away.
   LineariseLimb(joint, lbest);
   for (int m : rows)
     if (lbest_assign[m] >= 0 &&

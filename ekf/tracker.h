@@ -87,17 +87,17 @@
 // their points; only its unlabelled ones are placed. The best placement replaces the limb's
 // coordinates (velocities and accelerations zeroed, their covariance reset to the
 // initialisation's) only when it labels more of the limb's markers than the track does, their RMS
-// distance is within init_max_rms_m, EVERY marker of the placement lies within its gate on its
-// measurement noise alone (gate_chi2 x the marker's variance: an RMS bound alone passes a marker
-// put on a ghost 3 cm away), and no differently labelling restart comes within the
-// init_ambiguity_margin log-likelihood margin, and no new label is on a point whose past is not
-// rigid with the marker's segment (as in the gating above; a lone finger marker's two wrist
-// angles fit any point at the right distance from the wrist). In the first second after a (re)initialisation
-// the labels themselves are suspect (a search over one frame can label a limb wrongly but
+// distance is within 3 cm, EVERY marker of the placement lies within its gate on its measurement
+// noise alone (gate_chi2 x the marker's variance: an RMS bound alone passes a marker put on a
+// ghost 3 cm away), no differently labelling restart comes within the init_ambiguity_margin
+// log-likelihood margin, and no new label is on a point whose past is not rigid with the
+// marker's segment (as in the gating above: a lone finger marker's two wrist angles fit any point
+// at the right distance from the wrist). In the first second after a (re)initialisation the
+// labels themselves are suspect (a search over one frame can label a limb wrongly but
 // consistently), so there the search may also relabel the limb's markers and runs whenever any
-// unclaimed point lies within 25 cm (and a point's past is not judged: the joint centres may be
-// wrong with the limb). Allocation-free; a hidden marker with no plausible point
-// near costs nothing.
+// unclaimed point lies within 25 cm, and no point's past is judged, here or in the gating (the
+// joint centres may be wrong with the limb). Allocation-free; a hidden marker with no plausible
+// point near costs nothing.
 //
 // Model error. A nominal model (before the global fit) misplaces markers by 1-4 cm; each marker
 // carries a slowly learnt offset in its segment's frame, and its measurement variance is inflated
