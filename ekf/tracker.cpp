@@ -13,7 +13,16 @@
 namespace mocap::ekf {
 
 namespace {
-constexpr double kForbidden = 1e9;  // cost of a pair the gate excludes (finite: see assignment.h)
+constexpr double kForbidden = 1e9;
+// A point that continues a marker's first point after a gap moves as the prediction does within
+// this (a frame is 5 ms: 1 cm is 2 m/s of unpredicted motion; random ghosts jump decimetres).
+constexpr double kProbationDistance = 0.01;
+// Following a point back in time (NonRigidTrack): its largest step between frames (5 m/s at
+// 200 Hz), the frames it must have been seen to be judged, and how much its distance to a joint
+// centre may vary on a rigid segment (noise, and the predicted centre's error).
+constexpr double kTrackStep = 0.025;
+constexpr int kMinTrackFrames = 5;
+constexpr double kRigidTolerance = 0.01;  // cost of a pair the gate excludes (finite: see assignment.h)
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 bool Fail(std::string* error, const char* message) {
@@ -121,6 +130,25 @@ struct Tracker::Impl {
   Eigen::MatrixXd A;
   Eigen::VectorXd b;
   CoordinateUpdate update;
+  // Probation of a marker coming back (see tracker.h): per marker, whether this frame's update
+  // uses its label, how many consecutive frames it has been labelled, and where its point and
+  // prediction were in the last frame.
+  std::vector<char> measured;
+  std::vector<int> labelled_run;
+  Eigen::Matrix3Xd last_point, last_predicted;
+  int measured_count = 0;
+  void ChooseMeasurements();
+  // The last kHistory tracking frames' points and predicted joint centres (a ring), to follow a
+  // point back in time (NonRigidTrack).
+  static constexpr int kHistory = 20;
+  std::vector<Eigen::Matrix3Xd> hist_points;
+  std::vector<int> hist_count;
+  std::vector<std::vector<char>> hist_claimed;  // per frame, per point: a marker's
+  std::vector<std::vector<Eigen::Vector3d>> hist_centre;
+  std::vector<Eigen::Vector3d> centre_now;  // this frame's predicted joint centres
+  int hist_head = 0, hist_size = 0;
+  void PushHistory(int np);
+  bool NonRigidTrack(int m, const Eigen::Vector3d& p) const;
 
   // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
   double MeasurementVariance(int m) const {
@@ -177,9 +205,19 @@ struct Tracker::Impl {
   std::vector<std::vector<int>> limb_coord_list;
   std::vector<int> llocal;  // per coordinate: its index among the limb's, or -1
   void LineariseLimb(int joint, const Eigen::VectorXd& z);
-  std::vector<int> lcand, lassign, lbest_assign, lrow_to_col;
+  std::vector<int> lcand, lassign, lbest_assign, lrow_to_col, lfree;
   std::vector<char> ltaken;
   void Reacquire(int np);
+  // Frames tracked since the last (re)initialisation. The labels of a fresh track come from a
+  // search over one frame and can be wrong on a whole limb (self-consistently: a thigh turned
+  // about its long axis); labels that tracking has kept are not. So for the first second a limb
+  // search may relabel the limb's markers and is tried whenever any unclaimed point is near;
+  // after it, it keeps the labels the limb has and is tried only for a point at the rigid-body
+  // distances of the marker (RigidlyPlausible).
+  int tracked_frames = 0;
+  bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
+  static constexpr double kFreshTrackSeconds = 1.0;
+  bool RigidlyPlausible(int m, int k) const;
   bool ReacquireLimb(int joint, int np);
   double LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius);
 };
@@ -260,11 +298,13 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   marker_limb.assign(nm, -1);
   for (int k = 0; k < nm; ++k) {
     int j = md.segments()[md.markers()[k].segment].joint;
-    // Up to the first joint that moves something (a welded segment rides on its parent's).
+    // Up to the first joint that moves something (a welded segment rides on its parent's) and
+    // carries another marker: the limb's labelled markers hold the search (a hand with its one
+    // finger marker is searched with the forearm's).
     while (j > 0) {
       bool moves = false;
       for (char c : limb_coord[j]) moves |= c != 0;
-      if (moves) break;
+      if (moves && limb_markers[j].size() >= 2) break;
       const int parent = md.joints()[j].parent;
       j = parent >= 0 ? md.segments()[parent].joint : -1;
     }
@@ -325,6 +365,17 @@ void Tracker::Impl::Allocate() {
   out.marker_of_point.reserve(mp);
   out.point_of_marker.reserve(nm);
   unlabelled_run.assign(nm, 0);
+  measured.assign(nm, 0);
+  labelled_run.assign(nm, 0);
+  hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
+  hist_count.assign(kHistory, 0);
+  hist_claimed.assign(kHistory, std::vector<char>(mp, 0));
+  hist_centre.assign(kHistory,
+                     std::vector<Eigen::Vector3d>(model->num_segments(), Eigen::Vector3d::Zero()));
+  centre_now.assign(model->num_segments(), Eigen::Vector3d::Zero());
+  hist_head = hist_size = 0;
+  last_point.setZero(3, nm);
+  last_predicted.setZero(3, nm);
   llocal.assign(nz, -1);
   lsaved.resize(3, nm);
   ltrial.resize(nz);
@@ -336,6 +387,7 @@ void Tracker::Impl::Allocate() {
   lassign.assign(nm, -1);
   lbest_assign.assign(nm, -1);
   lrow_to_col.assign(nm, -1);
+  lfree.assign(nm, -1);
   ltaken.assign(mp, 0);
   jerk_psd.resize(nz);
   for (int i = 0; i < nz; ++i)
@@ -413,7 +465,7 @@ void Tracker::Impl::LabelByGating(int np) {
       double d2 = kForbidden;
       if (e.squaredNorm() < reject_sq[m]) {
         const double q = e.dot(s_inv[m] * e);
-        if (q < gate) {
+        if (q < gate && (labelled_run[m] > 0 || !NonRigidTrack(m, points.col(k)))) {
           d2 = q;
           contested |= ++gated_by[k] > 1;
           if (q < best) {
@@ -461,7 +513,7 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
   b.setZero();
   double nu_r_nu = 0;
   for (int m = 0; m < nm; ++m) {
-    if (row_to_col[m] < 0) continue;
+    if (row_to_col[m] < 0 || !measured[m]) continue;
     const double w = 1.0 / MeasurementVariance(m);
     const Eigen::Vector3d nu = points.col(row_to_col[m]) - predicted.col(m);
     nu_r_nu += w * nu.squaredNorm();
@@ -487,12 +539,94 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
 void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
   const double k = OffsetGain();
   for (int m = 0; m < nm; ++m) {
-    if (row_to_col[m] < 0) continue;
+    if (row_to_col[m] < 0 || !measured[m]) continue;
     const std::vector<int>& cols = model->marker_coordinates(m);
     Eigen::Vector3d r = points.col(row_to_col[m]) - predicted.col(m);
     for (size_t a = 0; a < cols.size(); ++a) r -= jac[m].col(a) * dzv[cols[a]];
     offset[m] += k * (data.segment_rotation[model->markers()[m].segment].transpose() * r);
     offset_unknown[m] *= 1.0 - k;
+  }
+}
+
+void Tracker::Impl::PushHistory(int np) {
+  hist_points[hist_head].leftCols(np) = points.leftCols(np);
+  hist_count[hist_head] = np;
+  std::vector<char>& claimed = hist_claimed[hist_head];
+  std::fill(claimed.begin(), claimed.begin() + np, 0);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= 0) claimed[row_to_col[m]] = 1;
+  for (size_t i = 0; i < centre_now.size(); ++i) hist_centre[hist_head][i] = centre_now[i];
+  hist_head = (hist_head + 1) % kHistory;
+  hist_size = std::min(hist_size + 1, kHistory);
+}
+
+// Whether point p, followed back through the last frames (the nearest unclaimed point within a
+// frame's motion), changed its distance to marker m's joint centre: a marker keeps it (rigid
+// body), a ghost does not -- a reflection fixed in the lab or riding along with another marker,
+// which can live for seconds near the body. Only a point seen for kMinTrackFrames can be judged;
+// a marker coming back from an occlusion has no past and passes (the labelled points it may
+// pass near, a hand sliding over the thigh marker, are other markers' past, not its own).
+bool Tracker::Impl::NonRigidTrack(int m, const Eigen::Vector3d& p) const {
+  // A fresh track's limb may be wrongly placed, its joint centres with it (see FreshTrack).
+  if (FreshTrack()) return false;
+  const int segment = model->markers()[m].segment;
+  Eigen::Vector3d q = p;
+  const double r0 = (p - centre_now[segment]).norm();
+  double lo = r0, hi = r0;
+  int length = 1;
+  for (int h = 1; h <= hist_size; ++h) {
+    const int slot = (hist_head - h + kHistory) % kHistory;
+    const Eigen::Matrix3Xd& pts = hist_points[slot];
+    int nearest = -1;
+    double best = kTrackStep * kTrackStep;
+    const std::vector<char>& claimed = hist_claimed[slot];
+    for (int k = 0; k < hist_count[slot]; ++k) {
+      if (claimed[k]) continue;
+      const double d2 = (pts.col(k) - q).squaredNorm();
+      if (d2 < best) {
+        best = d2;
+        nearest = k;
+      }
+    }
+    if (nearest < 0) break;
+    q = pts.col(nearest);
+    const double r = (q - hist_centre[slot][segment]).norm();
+    lo = std::min(lo, r);
+    hi = std::max(hi, r);
+    ++length;
+  }
+  return length >= kMinTrackFrames && hi - lo > kRigidTolerance;
+}
+
+// A marker coming back after frames without a label is labelled at once but enters the update
+// only from its second consecutive frame, and only if its point moved from the first frame's
+// as its prediction did. Half of the ghosts near a body are single-frame reflections: one in the
+// gate of a hidden marker whose segment is loosely held (a toe with only the heel seen: the gate
+// is several centimetres long) would otherwise be trusted at the marker's full precision, move
+// the segment by as much, shrink its covariance there, and leave the true marker outside the
+// gate when it reappears (a limb lost for the 20 frames before its search). The next frame's
+// point of a ghost is another one or none. A true marker costs one frame of information.
+void Tracker::Impl::ChooseMeasurements() {
+  measured_count = 0;
+  for (int m = 0; m < nm; ++m) {
+    const int col = row_to_col[m];
+    if (col < 0) {
+      measured[m] = 0;
+      labelled_run[m] = 0;
+      continue;
+    }
+    const Eigen::Vector3d p = points.col(col), q = predicted.col(m);
+    if (labelled_run[m] == 1) {
+      const Eigen::Vector3d moved = (p - last_point.col(m)) - (q - last_predicted.col(m));
+      measured[m] = moved.squaredNorm() <= kProbationDistance * kProbationDistance;
+      if (!measured[m]) labelled_run[m] = 0;  // a different point: this is its first frame
+    } else {
+      measured[m] = labelled_run[m] > 1;
+    }
+    ++labelled_run[m];
+    last_point.col(m) = p;
+    last_predicted.col(m) = q;
+    measured_count += measured[m];
   }
 }
 
@@ -813,6 +947,15 @@ bool Tracker::Impl::TryInitialise(int np) {
   Linearise(zbuf);
   for (int m = 0; m < nm; ++m) row_to_col[m] = h.assignment[m];
   ApplyLabels(np);
+  // The search's labels are all measured at once (they were chosen together, not one by one).
+  for (int m = 0; m < nm; ++m) {
+    measured[m] = row_to_col[m] >= 0;
+    labelled_run[m] = measured[m] ? 2 : 0;
+    if (measured[m]) {
+      last_point.col(m) = points.col(row_to_col[m]);
+      last_predicted.col(m) = predicted.col(m);
+    }
+  }
   double nis = 0;
   if (!FilterUpdate(&nis)) {
     init.reason = "the first update failed";
@@ -824,6 +967,8 @@ bool Tracker::Impl::TryInitialise(int np) {
   out.nis = nis;
   out.nis_dof = 3 * out.labelled;
   std::fill(unlabelled_run.begin(), unlabelled_run.end(), 0);
+  tracked_frames = 0;
+  hist_size = 0;
   init.accepted = true;
   init.reason.clear();
   return true;
@@ -845,6 +990,7 @@ constexpr int kLimbIterations = 10;
 constexpr double kLimbFinalRadius = 0.05;
 constexpr double kLimbMaxRms = 0.03;
 constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
+constexpr double kLimbCentreTolerance = 0.02;
 }  // namespace
 
 // Assigns the limb's markers among the candidate points by distance at z (within radius);
@@ -861,12 +1007,22 @@ void Tracker::Impl::LineariseLimb(int joint, const Eigen::VectorXd& z) {
 
 double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius) {
   LineariseLimb(joint, z);
-  const std::vector<int>& rows = limb_markers[joint];
-  const int ns = static_cast<int>(rows.size());
-  auto C = cost.topLeftCorner(ns, nc + ns);
   const double r2 = radius * radius;
+  // The limb's labelled markers keep their points: only its unlabelled ones are assigned.
+  double total = 0;
+  int ns = 0;
+  for (int m : limb_markers[joint]) {
+    if (row_to_col[m] >= 0 && !FreshTrack()) {
+      lassign[m] = row_to_col[m];
+      total += std::min(r2, (points.col(row_to_col[m]) - predicted.col(m)).squaredNorm());
+    } else {
+      lfree[ns++] = m;
+    }
+  }
+  if (ns == 0) return total;
+  auto C = cost.topLeftCorner(ns, nc + ns);
   for (int r = 0; r < ns; ++r) {
-    const int m = rows[r];
+    const int m = lfree[r];
     for (int c = 0; c < nc; ++c) {
       const double d2 = (points.col(lcand[c]) - predicted.col(m)).squaredNorm();
       C(r, c) = d2 < r2 ? d2 : kForbidden;
@@ -874,9 +1030,9 @@ double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, do
     C.row(r).tail(ns).setConstant(kForbidden);
     C(r, nc + r) = r2;
   }
-  const double total = lap.Solve(C, lrow_to_col.data());
+  total += lap.Solve(C, lrow_to_col.data());
   for (int r = 0; r < ns; ++r)
-    lassign[rows[r]] = lrow_to_col[r] < nc ? lcand[lrow_to_col[r]] : -1;
+    lassign[lfree[r]] = lrow_to_col[r] < nc ? lcand[lrow_to_col[r]] : -1;
   return total;
 }
 
@@ -897,20 +1053,19 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
       s.predicted = s.lsaved;
     }
   } restore{*this, lcoords};
-  // Candidates: the points no marker outside the limb took.
+  // Candidates: the points no marker took (the limb's labelled markers keep theirs).
   std::fill(ltaken.begin(), ltaken.begin() + np, 0);
   for (int m = 0; m < nm; ++m)
     if (row_to_col[m] >= 0) ltaken[row_to_col[m]] = 1;
   int current = 0;
-  for (int m : rows)
-    if (row_to_col[m] >= 0) {
-      ltaken[row_to_col[m]] = 0;
-      ++current;
-    }
+  for (int m : rows) current += row_to_col[m] >= 0;
+  if (FreshTrack())
+    for (int m : rows)
+      if (row_to_col[m] >= 0) ltaken[row_to_col[m]] = 0;
   int nc = 0;
   for (int k = 0; k < np; ++k)
     if (!ltaken[k]) lcand[nc++] = k;
-  if (nc <= current) return false;
+  if (nc == 0 || current == ns) return false;
 
   const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   auto Cost = [&](const Eigen::VectorXd& zz) {
@@ -1021,6 +1176,21 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
   if (best_labelled <= current) return false;
   const double rms = std::sqrt(best_sum / best_labelled);
   if (!(rms <= kLimbMaxRms)) return false;
+  // Every marker of the placement, kept or new, within its own gate on the measurement noise
+  // alone (what it would be gated with once the limb's covariance has shrunk again): an RMS
+  // within kLimbMaxRms also passes a placement that puts one marker on a ghost 3 cm away.
+  LineariseLimb(joint, lbest);
+  for (int m : rows)
+    if (lbest_assign[m] >= 0 &&
+        (points.col(lbest_assign[m]) - predicted.col(m)).squaredNorm() >
+            options.gate_chi2 * MeasurementVariance(m))
+      return false;
+  // A new label on a point that has been around without keeping its distance to the marker's
+  // joint centre is a lasting ghost (a lone finger marker's two angles fit any point at the right
+  // distance from the wrist).
+  for (int m : rows)
+    if (lbest_assign[m] >= 0 && row_to_col[m] < 0 && NonRigidTrack(m, points.col(lbest_assign[m])))
+      return false;
   const double variance = std::max(rms * rms / 3.0, 1e-6);
   if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
     return false;
@@ -1046,7 +1216,32 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
   return true;
 }
 
+// Whether point k could be marker m with m's segment anywhere: within kLimbNearRadius of its
+// prediction, and at m's distance from the segment's other labelled markers and from its joint
+// centre (rigid-body distances, whatever the pose). Ghosts near the body are nearly always within
+// the radius; few also sit on these spheres, so a hidden marker rarely sets off a search.
+bool Tracker::Impl::RigidlyPlausible(int m, int k) const {
+  const Eigen::Vector3d p = points.col(k), pm = predicted.col(m);
+  if ((p - pm).squaredNorm() >= kLimbNearRadius * kLimbNearRadius) return false;
+  const int segment = model->markers()[m].segment;
+  const double var_m = MeasurementVariance(m);
+  // The joint centre is predicted, not measured: allow for the parent's pose and for a nominal
+  // model's joint centres.
+  const Eigen::Vector3d centre = data.segment_position[segment];
+  if (std::abs((p - centre).norm() - (pm - centre).norm()) >
+      std::sqrt(options.gate_chi2 * var_m) + kLimbCentreTolerance)
+    return false;
+  for (int a = 0; a < nm; ++a) {
+    if (a == m || row_to_col[a] < 0 || model->markers()[a].segment != segment) continue;
+    const double tol = std::sqrt(options.gate_chi2 * (var_m + MeasurementVariance(a)));
+    if (std::abs((p - points.col(row_to_col[a])).norm() - (pm - predicted.col(a)).norm()) > tol)
+      return false;
+  }
+  return true;
+}
+
 void Tracker::Impl::Reacquire(int np) {
+  ++tracked_frames;
   for (int m = 0; m < nm; ++m) unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
   // One search per frame: the largest limb (nearest the root) among those due, and only when an
   // unclaimed point lies near the marker's prediction (a hidden marker costs nothing).
@@ -1063,8 +1258,9 @@ void Tracker::Impl::Reacquire(int np) {
     }
     bool near = false;
     for (int k = 0; k < np && !near; ++k)
-      near = !ltaken[k] && (points.col(k) - predicted.col(m)).squaredNorm() <
-                               kLimbNearRadius * kLimbNearRadius;
+      near = !ltaken[k] && (FreshTrack() ? (points.col(k) - predicted.col(m)).squaredNorm() <
+                                               kLimbNearRadius * kLimbNearRadius
+                                         : RigidlyPlausible(m, k));
     if (!near) continue;
     if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
   }
@@ -1106,10 +1302,12 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     s.Predict(dt);
     s.zbuf = s.x.head(s.nz);
     s.Linearise(s.zbuf);
+    for (size_t i = 0; i < s.centre_now.size(); ++i) s.centre_now[i] = s.data.segment_position[i];
     s.LabelByGating(np);
     const int labelled = s.ApplyLabels(np);
+    s.ChooseMeasurements();
     double nis = 0;
-    bool ok = labelled == 0 || s.FilterUpdate(&nis);
+    bool ok = s.measured_count == 0 || s.FilterUpdate(&nis);
     if (ok) {
       s.zbuf = s.x.head(s.nz);
       s.Wrap(&s.zbuf);
@@ -1117,12 +1315,13 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
       ok = s.x.allFinite();
     }
     out.nis = nis;
-    out.nis_dof = 3 * labelled;
+    out.nis_dof = 3 * s.measured_count;
     const bool bad = !ok || labelled < s.options.min_labelled_fraction * s.nm ||
                      (labelled > 0 && nis > s.options.max_nis_per_dof * out.nis_dof);
     if (ok && !bad) {
       s.bad_frames = 0;
       s.Reacquire(np);
+      s.PushHistory(np);
       s.z_good = s.x.head(s.nz);
     } else if (++s.bad_frames >= s.options.divergence_frames || !ok) {
       out.state = TrackState::kLost;

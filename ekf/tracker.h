@@ -43,7 +43,19 @@
 // of markers to gated points, where each marker may also stay unassigned at the price of the gate,
 // so two labels never take one point and a marker takes a point only when it is the best use of
 // that point. Unassigned points are ghosts or strays (label -1). A marker missing for a while has a
-// growing S_m and is picked up again when it reappears inside its gate.
+// growing S_m and is picked up again when it reappears inside its gate. On probation: a marker
+// coming back is labelled at once, but its measurement enters the update only from its second
+// consecutive labelled frame, when its point moved from the first one as its prediction did
+// (within 1 cm). Half the ghosts near a body are single-frame reflections; one inside the long
+// gate of a hidden marker on a loosely held segment (a toe with only the heel seen) would
+// otherwise move the segment by centimetres at the marker's full precision and leave the true
+// marker outside its gate when it reappears. Lasting ghosts (reflections fixed in the lab or
+// riding along with a marker, alive for up to seconds) are told by their past: the tracker keeps
+// the last 20 frames' points, and a point that a marker without a label in the last frame would
+// take is followed back through the unclaimed points (nearest within 2.5 cm a frame); seen for 5
+// frames or more with its distance to the marker's joint centre varying by over 1 cm, it is not
+// on that segment and stays out of the marker's gate. A marker back from an occlusion has no past
+// and is not judged.
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (options.up), from the static pose (and,
@@ -63,16 +75,29 @@
 // Limb re-acquisition. While the rest of the body tracks, one limb can settle in a wrong but
 // self-consistent pose (a foot left with its heel marker only; a thigh turned about its long axis
 // or a head turned after a re-initialisation) from which its other markers' gates never meet
-// their points again. A marker unlabelled for 20 tracking frames (re-tried every 20), with an
-// unclaimed point within 25 cm of its prediction, has the subtree of the joint that moves it
-// (up to 12 coordinates; the root and the trunk are the global search's) searched again
-// ICP-like among the points no other marker took, from its current pose and four restarts (joint
-// angles blended towards the middle of their ranges, fixed pseudo-random perturbations). The
-// best placement replaces the limb's coordinates (velocities and accelerations zeroed, their
-// covariance reset to the initialisation's) only when it labels more of the limb's markers than
-// the track does, their RMS distance is within init_max_rms_m and no differently labelling
-// restart comes within the init_ambiguity_margin log-likelihood margin. Allocation-free; a
-// hidden marker with no point near costs nothing.
+// their points again. A marker unlabelled for 20 tracking frames (re-tried every 20) has the
+// subtree of the joint that moves it (the nearest one whose subtree carries another marker, so a
+// hand with one finger marker goes with its forearm; up to 12 coordinates; the root and the
+// trunk are the global search's) searched again ICP-like among the points no other marker took,
+// from its current pose and four restarts (joint angles blended towards the middle of their
+// ranges, fixed pseudo-random perturbations). The search runs only when an unclaimed point could
+// be the marker: within 25 cm of its prediction and at the marker's rigid-body distances from
+// its segment's other labelled points and from the segment's joint centre -- ghosts near the
+// body are nearly always within 25 cm, rarely on those spheres. The limb's labelled markers keep
+// their points; only its unlabelled ones are placed. The best placement replaces the limb's
+// coordinates (velocities and accelerations zeroed, their covariance reset to the
+// initialisation's) only when it labels more of the limb's markers than the track does, their RMS
+// distance is within 3 cm, EVERY marker of the placement lies within its gate on its measurement
+// noise alone (gate_chi2 x the marker's variance: an RMS bound alone passes a marker put on a
+// ghost 3 cm away), no differently labelling restart comes within the init_ambiguity_margin
+// log-likelihood margin, and no new label is on a point whose past is not rigid with the
+// marker's segment (as in the gating above: a lone finger marker's two wrist angles fit any point
+// at the right distance from the wrist). In the first second after a (re)initialisation the
+// labels themselves are suspect (a search over one frame can label a limb wrongly but
+// consistently), so there the search may also relabel the limb's markers and runs whenever any
+// unclaimed point lies within 25 cm, and no point's past is judged, here or in the gating (the
+// joint centres may be wrong with the limb). Allocation-free; a hidden marker with no plausible
+// point near costs nothing.
 //
 // Model error. A nominal model (before the global fit) misplaces markers by 1-4 cm; each marker
 // carries a slowly learnt offset in its segment's frame, and its measurement variance is inflated

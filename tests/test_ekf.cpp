@@ -417,10 +417,14 @@ TEST(EkfTracker, TracksTheProtocolWithTheNominalModel) {
 
 // The simulator's own occlusions (5 % of the samples lost in gaps of 5-30 frames at random
 // markers and times) with the nominal model: markers come and go, the labels stay right.
-// KNOWN FAILURE, disabled: 0.9982 of the labels (not 0.9995), 72 ghosts labelled. A foot left
-// with its heel marker alone can settle on a wrong branch of its two angles and then miss its toe
-// marker when it returns; a missing marker's gate, wide while its offset is unknown, can take a
-// ghost. Needs a local re-initialisation of a limb whose markers stay unlabelled.
+// KNOWN FAILURE, disabled: 0.99921 of the labels (not 0.9995), 70 ghosts labelled (0.9982 and 72
+// before the limb search was made to keep a track's labels and ghosts were put on probation).
+// 56 of the 70 fall in the first second of a trial: every trial starts a fresh tracker, whose
+// nominal-model gates are ~10 cm wide until the marker offsets are learnt (marker_offset_sigma),
+// and this scene's ghosts are new every frame anywhere in the body's box, so a returning marker's
+// wide gate takes one now and then (labelled, though no longer measured: see the probation in
+// ekf/tracker.h). One continuous session (TrackCli.IssueConditions* in test_track.cpp, 10 %
+// occluded) has that first second once and meets the targets.
 TEST(EkfTracker, DISABLED_TracksThroughOcclusions) {
   sim::SimulatedSession session;
   sim::SimulationOptions o;

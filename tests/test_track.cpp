@@ -334,6 +334,9 @@ class TrackCli : public ::testing::Test {
     EXPECT_EQ(s["reinitialisations"].get<int>(), 0);
     EXPECT_GT(s["update_us_p50"].get<double>(), 0.0);
     EXPECT_GE(s["update_us_p99"].get<double>(), s["update_us_p50"].get<double>());
+    ASSERT_TRUE(s.contains("update_cpu_us_p50") && s.contains("update_cpu_us_p99"));
+    EXPECT_GT(s["update_cpu_us_p50"].get<double>(), 0.0);
+    EXPECT_GE(s["update_cpu_us_p99"].get<double>(), s["update_cpu_us_p50"].get<double>());
   }
   static inline fs::path dir_;
 };
@@ -381,6 +384,42 @@ TEST_F(TrackCli, WholeProtocolWithTheTrueModel) {
   for (const auto& [name, a] : s["per_marker_accuracy"].items())
     if (a.get<double>() < 0.999) std::printf("%s %.3f ", name.c_str(), a.get<double>());
   std::printf("\n");
+  ExpectTargets(s);
+  EXPECT_LE(s["joint_angle_rms_deg"].get<double>(), 1.0);
+}
+
+// Issue 5's own conditions, its exact commands: the whole protocol as one take (14,880 frames at
+// 200 Hz), 5 ghosts per frame, 10 % of the marker samples occluded in gaps of 5-30 frames, the
+// swap traps; the nominal and the true model. About 5 s each. The update time is printed but not
+// asserted: on a shared machine its wall-clock p99 is the scheduler's (bench/track_vs_ik.cpp
+// measures the CPU time).
+TEST_F(TrackCli, IssueConditionsNominalModel) {
+  const CommandResult r = Mocap("track --simulate --seed 1 --ghosts 5 --occlusion 0.1 --swap-traps "
+                                "--model nominal --out " + P("issue_nominal"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json s = Stats("issue_nominal");
+  std::printf("issue conditions, nominal model: accuracy %.6f, wrong %d, swaps %d, angles %.3f deg, "
+              "update p50 %.0f us p99 %.0f us\n", s["label_accuracy"].get<double>(),
+              s["wrong_labels"].get<int>(), s["swaps_longer_than_5_frames"].get<int>(),
+              s["joint_angle_rms_deg"].get<double>(), s["update_us_p50"].get<double>(),
+              s["update_us_p99"].get<double>());
+  EXPECT_EQ(s["frames"].get<int>(), 14880);
+  EXPECT_GT(s["marker_samples"].get<long>(), 500000);
+  ExpectTargets(s);
+}
+
+TEST_F(TrackCli, IssueConditionsTrueModelAnglesWithinADegree) {
+  const CommandResult r = Mocap("track --simulate --seed 1 --ghosts 5 --occlusion 0.1 --swap-traps "
+                                "--model truth --out " + P("issue_truth"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json s = Stats("issue_truth");
+  std::printf("issue conditions, true model: accuracy %.6f, wrong %d, swaps %d, angles %.3f deg, "
+              "update p50 %.0f us p99 %.0f us\n", s["label_accuracy"].get<double>(),
+              s["wrong_labels"].get<int>(), s["swaps_longer_than_5_frames"].get<int>(),
+              s["joint_angle_rms_deg"].get<double>(), s["update_us_p50"].get<double>(),
+              s["update_us_p99"].get<double>());
+  EXPECT_EQ(s["frames"].get<int>(), 14880);
+  EXPECT_GT(s["marker_samples"].get<long>(), 500000);
   ExpectTargets(s);
   EXPECT_LE(s["joint_angle_rms_deg"].get<double>(), 1.0);
 }
