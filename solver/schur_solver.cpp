@@ -14,7 +14,9 @@ constexpr int kStackFrames = 16;
 
 }  // namespace
 
-struct ArrowSchurProblem::ThreadState {
+// Cache-line aligned: each thread's accumulators are written for every residual block, and two
+// states sharing a line would make the threads invalidate each other's cache.
+struct alignas(64) ArrowSchurProblem::ThreadState {
   std::unique_ptr<FrameEvaluator> evaluator;
   Eigen::MatrixXd u, s;  // u: U_f, then its factor L_f, in the lower triangle (pattern only)
   Eigen::MatrixXd s_v;   // this thread's share of V (lower)
@@ -27,6 +29,7 @@ struct ArrowSchurProblem::ThreadState {
   // Stacked columns awaiting a rank update, and what they have been applied to: per block kind
   // (J_p^T, for V) and per row group (Y_g^T, for S).
   std::vector<Eigen::MatrixXd> v_stack, v_acc, g_stack, g_acc;
+  std::vector<Eigen::VectorXd> g_rhs;  // per row group: Y_g^T v_g over its own columns
   std::vector<int> v_count, g_count;
   double cost = 0;
   bool ok = true;
@@ -75,6 +78,7 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
       const int n = static_cast<int>(g.columns.size());
       ts->g_stack.emplace_back(n, g.num_rows * kStackFrames);
       ts->g_acc.emplace_back(g.full ? 0 : n, g.full ? 0 : n);
+      ts->g_rhs.emplace_back(n);
     }
     ts->g_count.assign(groups_.size(), 0);
     threads_.push_back(std::move(ts));
@@ -183,9 +187,14 @@ void ArrowSchurProblem::Analyse() {
       if (!coupled) continue;
       RowGroup::Child child;
       child.group = static_cast<int>(hi);
-      for (int p : h.columns) {
-        auto it = std::lower_bound(g.columns.begin(), g.columns.end(), p);
-        child.map.push_back(static_cast<int>(it - g.columns.begin()));  // present by construction
+      // Where each of the child's columns sits among ours, as runs of consecutive columns.
+      int last = -2;
+      for (int c = 0; c < static_cast<int>(h.columns.size()); ++c) {
+        auto it = std::lower_bound(g.columns.begin(), g.columns.end(), h.columns[c]);
+        const int at = static_cast<int>(it - g.columns.begin());  // present by construction
+        if (at == last + 1) ++child.runs.back().length;
+        else child.runs.push_back({c, at, 1});
+        last = at;
       }
       g.children.push_back(std::move(child));
     }
@@ -529,6 +538,7 @@ void ArrowSchurProblem::BeginReduction(ThreadState& ts) const {
   ts.s.setZero();
   ts.rhs.setZero();
   for (Eigen::MatrixXd& acc : ts.g_acc) acc.setZero();
+  for (Eigen::VectorXd& rhs : ts.g_rhs) rhs.setZero();
   std::fill(ts.g_count.begin(), ts.g_count.end(), 0);
 }
 
@@ -552,7 +562,6 @@ void ArrowSchurProblem::ReduceFrame(ThreadState& ts, int f) {
     for (const RowGroup::Child& child : g.children) {
       const RowGroup& h = groups_[child.group];
       const int hn = static_cast<int>(h.columns.size());
-      const int* map = child.map.data();
       auto sum = ts.child_sum.head(hn);
       for (int r = 0; r < g.num_rows; ++r) {
         // L_gh row r times Y_h, formed densely over the child's columns (vectorised), then
@@ -568,7 +577,8 @@ void ArrowSchurProblem::ReduceFrame(ThreadState& ts, int f) {
         }
         if (!any) continue;
         double* dst = yg + r * n;
-        for (int c = 0; c < hn; ++c) dst[map[c]] -= sum[c];
+        for (const RowGroup::Run& run : child.runs)
+          Eigen::Map<Eigen::VectorXd>(dst + run.to, run.length) -= sum.segment(run.from, run.length);
       }
     }
     for (int r = 0; r < g.num_rows; ++r) {
@@ -576,8 +586,7 @@ void ArrowSchurProblem::ReduceFrame(ThreadState& ts, int f) {
       for (int q = 0; q < r; ++q)
         row -= l(g.first_row + r, g.first_row + q) * Eigen::Map<const Eigen::VectorXd>(yg + q * n, n);
       row /= l(g.first_row + r, g.first_row + r);
-      const double vr = ts.v[g.first_row + r];
-      for (int c = 0; c < n; ++c) ts.rhs[g.columns[c]] += row[c] * vr;
+      ts.g_rhs[gi] += ts.v[g.first_row + r] * row;
     }
     // Stack the group's rows (as columns) for its rank update.
     int& count = ts.g_count[gi];
@@ -593,6 +602,7 @@ void ArrowSchurProblem::EndReduction(ThreadState& ts) const {
   for (size_t gi = 0; gi < groups_.size(); ++gi) {
     FlushGroup(ts, static_cast<int>(gi));
     const RowGroup& g = groups_[gi];
+    for (size_t c = 0; c < g.columns.size(); ++c) ts.rhs[g.columns[c]] += ts.g_rhs[gi][c];
     if (g.full) continue;
     const Eigen::MatrixXd& acc = ts.g_acc[gi];
     const int n = static_cast<int>(g.columns.size());

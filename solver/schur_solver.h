@@ -17,7 +17,10 @@
 //    parameters that move the subtree below coordinate i, and an ancestor's set contains its
 //    descendants'. Rows with one pattern form a row group; W_f and Y_f are stored compactly, each
 //    group as a dense block over its own columns (a fifth of the dense 38 x 200 matrix for the
-//    full body), and the forward substitution runs group by group with precomputed column maps.
+//    full body), and the forward substitution runs group by group, a child group's columns
+//    subtracted from ours as precomputed runs of consecutive columns (2-10 per child: vector
+//    operations, not an indexed scatter); each group's share of the reduced right-hand side is
+//    summed over its own columns and scattered once per thread.
 //  * S -= Y^T Y is then a sum of one dense outer product per group. Each group's rows are
 //    stacked over many frames and applied as one tall rank update (a matrix product near peak
 //    speed) into a per-group accumulator, scattered into S once per thread; only the root's rows
@@ -89,9 +92,12 @@ class ArrowSchurProblem : public LmProblem {
     bool full;                  // reaches every shared column (the root): columns == 0..np-1
     bool contiguous;            // columns == [columns.front(), columns.back()]
     int offset;                 // of its block (num_rows x columns.size(), row-major) in W_f, Y_f
+    struct Run {
+      int from, to, length;     // the child's columns from..from+length-1 are ours to..
+    };
     struct Child {
       int group;
-      std::vector<int> map;     // position of each of the child's columns among ours
+      std::vector<Run> runs;    // where the child's columns sit among ours (2-10 runs each)
     };
     std::vector<Child> children;  // earlier groups with a non-zero block of L_f in our rows
   };
