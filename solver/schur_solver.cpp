@@ -204,7 +204,12 @@ void ArrowSchurProblem::Analyse() {
   for (size_t b = 0; b < ycols.size(); ++b) {
     BlockKind& kind = kinds_[b];
     kind.num_y = static_cast<int>(ycols[b].size());
-    for (int y : ycols[b]) kind.y_position.push_back(position_[y]);
+    // Columns latest-eliminated first: a column's U entries in the lower triangle are then those
+    // of the columns after it (a contiguous range, no test per pair).
+    for (int a = 0; a < kind.num_y; ++a) kind.y_order.push_back(a);
+    std::sort(kind.y_order.begin(), kind.y_order.end(),
+              [&](int a, int c) { return position_[ycols[b][a]] > position_[ycols[b][c]]; });
+    for (int a : kind.y_order) kind.y_position.push_back(position_[ycols[b][a]]);
     for (size_t c = 0; c < pcols[b].size(); ++c)
       if (pcols[b][c] >= 0) {
         kind.free_local.push_back(static_cast<int>(c));
@@ -444,8 +449,9 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
       return false;
     const BlockKind& kind = kinds_[blk.kind];
     const int rows = blk.rows, nyb = blk.num_y, np = static_cast<int>(kind.free_p.size());
+    const int* yorder = kind.y_order.data();
     for (int a = 0; a < nyb; ++a)
-      for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[a * kMaxBlockRows + r] : 0.0;
+      for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[yorder[a] * kMaxBlockRows + r] : 0.0;
     // jp as three rows of np values (row r at jp + r * np), so a W row is three axpys.
     for (int c = 0; c < np; ++c)
       for (int r = 0; r < 3; ++r)
@@ -458,12 +464,9 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     const int* woff = kind.w_offset.data();
     for (int a = 0; a < nyb; ++a) {
       const double a0 = jy[3 * a], a1 = jy[3 * a + 1], a2 = jy[3 * a + 2];
-      double* ucol = u;
-      const int pa = ypos[a];
-      for (int c = 0; c < nyb; ++c) {
-        if (ypos[c] > pa) continue;
-        ucol[pa + static_cast<size_t>(ypos[c]) * ny_] += a0 * jy[3 * c] + a1 * jy[3 * c + 1] + a2 * jy[3 * c + 2];
-      }
+      double* ucol = u + ypos[a];  // row ypos[a], columns ypos[c] <= ypos[a] (c >= a)
+      for (int c = a; c < nyb; ++c)
+        ucol[static_cast<size_t>(ypos[c]) * ny_] += a0 * jy[3 * c] + a1 * jy[3 * c + 1] + a2 * jy[3 * c + 2];
       for (int c = 0; c < np; ++c) wrow[c] = a0 * jp0[c] + a1 * jp1[c] + a2 * jp2[c];
       const int* wo = woff + a * np;
       for (int c = 0; c < np; ++c) w[wo[c]] += wrow[c];
@@ -473,7 +476,7 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     for (int r = 0; r < rows; ++r) res[r] = blk.residual[r];
     ts.cost += res[0] * res[0] + res[1] * res[1] + res[2] * res[2];
     for (int a = 0; a < nyb; ++a)
-      ts.gyi[blk.y_index[a]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
+      ts.gyi[blk.y_index[yorder[a]]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
     for (int c = 0; c < np; ++c)
       ts.gp[kind.free_p[c]] += jp0[c] * res[0] + jp1[c] * res[1] + jp2[c] * res[2];
     if (np > 0) {

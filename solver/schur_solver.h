@@ -107,7 +107,8 @@ class ArrowSchurProblem : public LmProblem {
   // Where one residual-block kind's products go.
   struct BlockKind {
     int num_y = 0;
-    std::vector<int> y_position;  // elimination position of each y column
+    std::vector<int> y_order;     // block y columns, latest-eliminated first
+    std::vector<int> y_position;  // their elimination positions (descending)
     std::vector<int> free_local;  // block columns with a free shared parameter
     std::vector<int> free_p;      // their shared indices
     std::vector<int> w_offset;    // num_y x free: offset in compact W (-1 none), row-major
