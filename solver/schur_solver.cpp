@@ -14,7 +14,9 @@ constexpr int kStackFrames = 16;
 
 }  // namespace
 
-struct ArrowSchurProblem::ThreadState {
+// Cache-line aligned: each thread's accumulators are written for every residual block, and two
+// states sharing a line would make the threads invalidate each other's cache.
+struct alignas(64) ArrowSchurProblem::ThreadState {
   std::unique_ptr<FrameEvaluator> evaluator;
   Eigen::MatrixXd u, s;  // u: U_f, then its factor L_f, in the lower triangle (pattern only)
   Eigen::MatrixXd s_v;   // this thread's share of V (lower)
@@ -27,6 +29,7 @@ struct ArrowSchurProblem::ThreadState {
   // Stacked columns awaiting a rank update, and what they have been applied to: per block kind
   // (J_p^T, for V) and per row group (Y_g^T, for S).
   std::vector<Eigen::MatrixXd> v_stack, v_acc, g_stack, g_acc;
+  std::vector<Eigen::VectorXd> g_rhs;  // per row group: Y_g^T v_g over its own columns
   std::vector<int> v_count, g_count;
   double cost = 0;
   bool ok = true;
@@ -75,6 +78,7 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
       const int n = static_cast<int>(g.columns.size());
       ts->g_stack.emplace_back(n, g.num_rows * kStackFrames);
       ts->g_acc.emplace_back(g.full ? 0 : n, g.full ? 0 : n);
+      ts->g_rhs.emplace_back(n);
     }
     ts->g_count.assign(groups_.size(), 0);
     threads_.push_back(std::move(ts));
@@ -183,9 +187,14 @@ void ArrowSchurProblem::Analyse() {
       if (!coupled) continue;
       RowGroup::Child child;
       child.group = static_cast<int>(hi);
-      for (int p : h.columns) {
-        auto it = std::lower_bound(g.columns.begin(), g.columns.end(), p);
-        child.map.push_back(static_cast<int>(it - g.columns.begin()));  // present by construction
+      // Where each of the child's columns sits among ours, as runs of consecutive columns.
+      int last = -2;
+      for (int c = 0; c < static_cast<int>(h.columns.size()); ++c) {
+        auto it = std::lower_bound(g.columns.begin(), g.columns.end(), h.columns[c]);
+        const int at = static_cast<int>(it - g.columns.begin());  // present by construction
+        if (at == last + 1) ++child.runs.back().length;
+        else child.runs.push_back({c, at, 1});
+        last = at;
       }
       g.children.push_back(std::move(child));
     }
@@ -195,7 +204,12 @@ void ArrowSchurProblem::Analyse() {
   for (size_t b = 0; b < ycols.size(); ++b) {
     BlockKind& kind = kinds_[b];
     kind.num_y = static_cast<int>(ycols[b].size());
-    for (int y : ycols[b]) kind.y_position.push_back(position_[y]);
+    // Columns latest-eliminated first: a column's U entries in the lower triangle are then those
+    // of the columns after it (a contiguous range, no test per pair).
+    for (int a = 0; a < kind.num_y; ++a) kind.y_order.push_back(a);
+    std::sort(kind.y_order.begin(), kind.y_order.end(),
+              [&](int a, int c) { return position_[ycols[b][a]] > position_[ycols[b][c]]; });
+    for (int a : kind.y_order) kind.y_position.push_back(position_[ycols[b][a]]);
     for (size_t c = 0; c < pcols[b].size(); ++c)
       if (pcols[b][c] >= 0) {
         kind.free_local.push_back(static_cast<int>(c));
@@ -435,8 +449,9 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
       return false;
     const BlockKind& kind = kinds_[blk.kind];
     const int rows = blk.rows, nyb = blk.num_y, np = static_cast<int>(kind.free_p.size());
+    const int* yorder = kind.y_order.data();
     for (int a = 0; a < nyb; ++a)
-      for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[a * kMaxBlockRows + r] : 0.0;
+      for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[yorder[a] * kMaxBlockRows + r] : 0.0;
     // jp as three rows of np values (row r at jp + r * np), so a W row is three axpys.
     for (int c = 0; c < np; ++c)
       for (int r = 0; r < 3; ++r)
@@ -449,12 +464,9 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     const int* woff = kind.w_offset.data();
     for (int a = 0; a < nyb; ++a) {
       const double a0 = jy[3 * a], a1 = jy[3 * a + 1], a2 = jy[3 * a + 2];
-      double* ucol = u;
-      const int pa = ypos[a];
-      for (int c = 0; c < nyb; ++c) {
-        if (ypos[c] > pa) continue;
-        ucol[pa + static_cast<size_t>(ypos[c]) * ny_] += a0 * jy[3 * c] + a1 * jy[3 * c + 1] + a2 * jy[3 * c + 2];
-      }
+      double* ucol = u + ypos[a];  // row ypos[a], columns ypos[c] <= ypos[a] (c >= a)
+      for (int c = a; c < nyb; ++c)
+        ucol[static_cast<size_t>(ypos[c]) * ny_] += a0 * jy[3 * c] + a1 * jy[3 * c + 1] + a2 * jy[3 * c + 2];
       for (int c = 0; c < np; ++c) wrow[c] = a0 * jp0[c] + a1 * jp1[c] + a2 * jp2[c];
       const int* wo = woff + a * np;
       for (int c = 0; c < np; ++c) w[wo[c]] += wrow[c];
@@ -464,7 +476,7 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     for (int r = 0; r < rows; ++r) res[r] = blk.residual[r];
     ts.cost += res[0] * res[0] + res[1] * res[1] + res[2] * res[2];
     for (int a = 0; a < nyb; ++a)
-      ts.gyi[blk.y_index[a]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
+      ts.gyi[blk.y_index[yorder[a]]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
     for (int c = 0; c < np; ++c)
       ts.gp[kind.free_p[c]] += jp0[c] * res[0] + jp1[c] * res[1] + jp2[c] * res[2];
     if (np > 0) {
@@ -529,6 +541,7 @@ void ArrowSchurProblem::BeginReduction(ThreadState& ts) const {
   ts.s.setZero();
   ts.rhs.setZero();
   for (Eigen::MatrixXd& acc : ts.g_acc) acc.setZero();
+  for (Eigen::VectorXd& rhs : ts.g_rhs) rhs.setZero();
   std::fill(ts.g_count.begin(), ts.g_count.end(), 0);
 }
 
@@ -552,7 +565,6 @@ void ArrowSchurProblem::ReduceFrame(ThreadState& ts, int f) {
     for (const RowGroup::Child& child : g.children) {
       const RowGroup& h = groups_[child.group];
       const int hn = static_cast<int>(h.columns.size());
-      const int* map = child.map.data();
       auto sum = ts.child_sum.head(hn);
       for (int r = 0; r < g.num_rows; ++r) {
         // L_gh row r times Y_h, formed densely over the child's columns (vectorised), then
@@ -568,7 +580,8 @@ void ArrowSchurProblem::ReduceFrame(ThreadState& ts, int f) {
         }
         if (!any) continue;
         double* dst = yg + r * n;
-        for (int c = 0; c < hn; ++c) dst[map[c]] -= sum[c];
+        for (const RowGroup::Run& run : child.runs)
+          Eigen::Map<Eigen::VectorXd>(dst + run.to, run.length) -= sum.segment(run.from, run.length);
       }
     }
     for (int r = 0; r < g.num_rows; ++r) {
@@ -576,8 +589,7 @@ void ArrowSchurProblem::ReduceFrame(ThreadState& ts, int f) {
       for (int q = 0; q < r; ++q)
         row -= l(g.first_row + r, g.first_row + q) * Eigen::Map<const Eigen::VectorXd>(yg + q * n, n);
       row /= l(g.first_row + r, g.first_row + r);
-      const double vr = ts.v[g.first_row + r];
-      for (int c = 0; c < n; ++c) ts.rhs[g.columns[c]] += row[c] * vr;
+      ts.g_rhs[gi] += ts.v[g.first_row + r] * row;
     }
     // Stack the group's rows (as columns) for its rank update.
     int& count = ts.g_count[gi];
@@ -593,6 +605,7 @@ void ArrowSchurProblem::EndReduction(ThreadState& ts) const {
   for (size_t gi = 0; gi < groups_.size(); ++gi) {
     FlushGroup(ts, static_cast<int>(gi));
     const RowGroup& g = groups_[gi];
+    for (size_t c = 0; c < g.columns.size(); ++c) ts.rhs[g.columns[c]] += ts.g_rhs[gi][c];
     if (g.full) continue;
     const Eigen::MatrixXd& acc = ts.g_acc[gi];
     const int n = static_cast<int>(g.columns.size());
