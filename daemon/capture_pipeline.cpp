@@ -32,6 +32,9 @@ bool CapturePipelineOptions::IsValid(std::string* error) const {
   if (frame_queue_capacity < 1 || detection_queue_capacity < 1 || point_queue_capacity < 1) {
     return fail("queue capacities must be >= 1");
   }
+  if (start_complete_sets < 1 || start_complete_sets > 100000) {
+    return fail("start_complete_sets must be in [1, 100000]");
+  }
   if (start_timeout_ms < 0 || start_timeout_ms > 600000) {
     return fail("start_timeout_ms must be in [0, 600000]");
   }
@@ -180,7 +183,9 @@ bool CapturePipeline::Recording(const reconstruction::DetectionSet& set) {
   const bool complete = set.present_count() == static_cast<int>(set.present.size());
   const bool timed_out =
       now - first_set_host_ns_ >= static_cast<std::uint64_t>(options_.start_timeout_ms) * 1000000u;
-  if (options_.start_on_complete_set && !complete && !timed_out) {
+  complete_run_ = complete ? complete_run_ + 1 : 0;
+  if (options_.start_on_complete_set && complete_run_ < options_.start_complete_sets &&
+      !timed_out) {
     ++stats_.warmup_sets;
     return false;
   }

@@ -24,9 +24,12 @@
 // Start-up. Cameras do not begin streaming at one instant: for the first tenths of a second after
 // Start() the sets hold whichever cameras are already running (on a loaded machine, two of eight).
 // Those are not a recording: triangulated from a couple of neighbouring cameras their points are
-// several times less precise, and a recording that starts with them starts with a transient. So
-// the recording begins at the first COMPLETE set (what Vicon and Qualisys call the rig being
-// live); the sets before it are counted as warm-up and never handed out. A camera that does not
+// several times less precise, and a recording that starts with them starts with a transient. Nor
+// is the first complete set the end of it: the cameras' first frames also fill their buffer pools
+// for the first time, and on a loaded machine the sets go on arriving incomplete for a while. So
+// the recording begins once the rig has been live for `start_complete_sets` consecutive COMPLETE
+// sets (what Vicon and Qualisys call the rig being live); the sets before are counted as warm-up
+// and never handed out. A camera that does not
 // stream cannot hold the rig hostage: `start_timeout_ms` after the first set, the recording
 // begins with the cameras it has, and Stats() names the ones missing at the start.
 //
@@ -112,9 +115,11 @@ struct CapturePipelineOptions {
   // it (kSequence, 64 bits). 0: frame ids as the cameras number them (hardware trigger).
   double device_clock_rate_hz = 0;
   bool keep_detections = false;  // hand each set's 2D detections out with its points
-  // The recording starts at the first set every camera contributed to, or `start_timeout_ms`
-  // after the first set (whichever comes first). false: at the first set.
+  // The recording starts once `start_complete_sets` consecutive sets had every camera (it starts
+  // with the last of them), or `start_timeout_ms` after the first set, whichever comes first.
+  // false: at the first set.
   bool start_on_complete_set = true;
+  int start_complete_sets = 20;
   int start_timeout_ms = 2000;
   reconstruction::DetectionOptions detection;
   reconstruction::FrameSyncOptions sync;  // num_cameras is set from the sources
@@ -200,6 +205,7 @@ class CapturePipeline {
   bool any_emitted_ = false;
   std::uint64_t last_emitted_sequence_ = 0;
   std::uint64_t first_set_host_ns_ = 0;  // the sync thread's: when the first set came out
+  int complete_run_ = 0;                  // consecutive complete sets before the recording
 };
 
 }  // namespace mocap::daemon

@@ -198,9 +198,10 @@ TEST(CapturePipeline, RecordingStartsAtTheFirstCompleteSet) {
   ASSERT_FALSE(frames.empty());
   EXPECT_TRUE(st.recording);
   EXPECT_EQ(frames.front().cameras_present, 4);  // nothing before the rig was live
-  EXPECT_GE(st.warmup_sets, 25u);                // the sets camera 3 missed
-  EXPECT_LE(st.warmup_sets, 35u);
-  EXPECT_GT(st.warmup_ms, 150.0);
+  // The sets camera 3 missed, then 20 complete ones (start_complete_sets) before the recording.
+  EXPECT_GE(st.warmup_sets, 25u + 19u);
+  EXPECT_LE(st.warmup_sets, 35u + 19u);
+  EXPECT_GT(st.warmup_ms, 350.0);
   EXPECT_TRUE(st.cameras_missing_at_start.empty());
   EXPECT_EQ(st.frame_sets, frames.size());
   EXPECT_EQ(st.dropped_frame_sets, 0u);  // warm-up sets are not losses of the recording
@@ -257,6 +258,13 @@ TEST(CapturePipeline, BadSetUpIsRefusedWithAReason) {
   const Status ts = timeout_rig.pipeline->Start();
   ASSERT_FALSE(ts.ok());
   EXPECT_NE(ts.message().find("start_timeout_ms"), std::string::npos) << ts.message();
+
+  daemon::CapturePipelineOptions n;
+  n.start_complete_sets = 0;
+  Rig count_rig(2, n);
+  const Status ns = count_rig.pipeline->Start();
+  ASSERT_FALSE(ns.ok());
+  EXPECT_NE(ns.message().find("start_complete_sets"), std::string::npos) << ns.message();
 
   daemon::CapturePipeline empty({}, [](const reconstruction::DetectionSet&, daemon::PointFrame*) {
     return Status::Ok();
