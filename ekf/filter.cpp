@@ -24,16 +24,22 @@ bool CholeskyInPlace(Eigen::MatrixXd* a) {
   return true;
 }
 
-// inverse = L^-1 for a lower-triangular L (forward substitution, column by column).
-void LowerInverse(const Eigen::MatrixXd& L, Eigen::MatrixXd* inverse) {
+// inverse = L^-1 for a lower-triangular L (forward substitution, column by column). The
+// diagonal's reciprocals are taken once (`reciprocal`, n entries): n divisions, not n^2 / 2.
+void LowerInverse(const Eigen::MatrixXd& L, Eigen::VectorXd* reciprocal, Eigen::MatrixXd* inverse) {
   Eigen::MatrixXd& x = *inverse;
   const int n = static_cast<int>(L.rows());
+  *reciprocal = L.diagonal().cwiseInverse();
+  const double* r = reciprocal->data();
   x.setZero();
   for (int j = 0; j < n; ++j) {
-    x(j, j) = 1.0;
+    double* xj = &x(0, j);
+    xj[j] = 1.0;
     for (int i = j; i < n; ++i) {
-      x(i, j) /= L(i, i);
-      if (i + 1 < n) x.col(j).segment(i + 1, n - i - 1) -= L.col(i).segment(i + 1, n - i - 1) * x(i, j);
+      const double xi = xj[i] * r[i];
+      xj[i] = xi;
+      const double* li = &L(0, i);
+      for (int k = i + 1; k < n; ++k) xj[k] -= li[k] * xi;
     }
   }
 }
@@ -103,6 +109,7 @@ void CoordinateUpdate::Resize(int nz) {
   dx_.resize(3 * nz);
   LB_.resize(nz, nz);
   lbb_.resize(nz);
+  reciprocal_.resize(nz);
 }
 
 bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b, double nu_r_nu,
@@ -120,8 +127,8 @@ bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b,
   B_.diagonal().array() += 1.0;
   LB_ = B_;
   if (!CholeskyInPlace(&LB_)) return false;
-  LowerInverse(L_, &Linv_);
-  LowerInverse(LB_, &LBinv_);
+  LowerInverse(L_, &reciprocal_, &Linv_);
+  LowerInverse(LB_, &reciprocal_, &LBinv_);
   auto Vw = V_.topRows(nw);
   Vw.noalias() = P.bottomLeftCorner(nw, nz) * Linv_.transpose().triangularView<Eigen::Upper>();
   // dx = V B^-1 L^T b.

@@ -37,7 +37,7 @@ class CoordinateUpdate {
  private:
   int nz_ = 0;
   Eigen::MatrixXd L_, B_, LB_, V_, U_, tmp_, Linv_, LBinv_;
-  Eigen::VectorXd c_, lb_, lbb_, dx_;
+  Eigen::VectorXd c_, lb_, lbb_, dx_, reciprocal_;
 };
 
 }  // namespace mocap::ekf
