@@ -122,6 +122,20 @@ double ThreadCpuSeconds() {
   return t.tv_sec + 1e-9 * t.tv_nsec;
 }
 
+// Runs one iteration's work and records it the same way for every case: wall time (also the
+// benchmark's manual time) and this thread's CPU time.
+template <class Work>
+void TimeIteration(benchmark::State& state, std::vector<double>* us, std::vector<double>* cpu_us,
+                   Work&& work) {
+  const double c0 = ThreadCpuSeconds();
+  const auto t0 = Clock::now();
+  work();
+  const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
+  cpu_us->push_back(1e6 * (ThreadCpuSeconds() - c0));
+  state.SetIterationTime(dt);
+  us->push_back(1e6 * dt);
+}
+
 void Report(benchmark::State& state, std::vector<double>& us, std::vector<double>& cpu_us,
             long correct, long total) {
   if (us.empty()) return;
@@ -156,17 +170,12 @@ void EkfUpdate(benchmark::State& state) {
       restart();
     }
     const Frame& fr = d.trials[trial][f++];
-    const double c0 = ThreadCpuSeconds();
-    const auto t0 = Clock::now();
-    const ekf::TrackOutput& out = tracker.Update(fr.time, fr.points);
-    const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
-    cpu_us.push_back(1e6 * (ThreadCpuSeconds() - c0));
-    state.SetIterationTime(dt);
-    us.push_back(1e6 * dt);
+    const ekf::TrackOutput* out = nullptr;
+    TimeIteration(state, &us, &cpu_us, [&] { out = &tracker.Update(fr.time, fr.points); });
     for (size_t k = 0; k < fr.truth.size(); ++k)
       if (fr.truth[k] >= 0) {
         ++total;
-        correct += out.marker_of_point[k] == fr.truth[k];
+        correct += out->marker_of_point[k] == fr.truth[k];
       }
   }
   Report(state, us, cpu_us, correct, total);
@@ -256,31 +265,27 @@ void IkNearest(benchmark::State& state) {
       restart();
     }
     const Frame& fr = d.trials[trial][f++];
-    const double c0 = ThreadCpuSeconds();
-    const auto t0 = Clock::now();
-    ForwardKinematics(model, geometry, z, &data);
-    MarkerPositions(model, geometry, data, &predicted);
-    for (int m = 0; m < nm; ++m) {
-      int best = -1;
-      double best_d = 0.05 * 0.05;  // nothing farther than 5 cm
-      for (int k = 0; k < fr.points.cols(); ++k) {
-        const double dd = (fr.points.col(k) - predicted.col(m)).squaredNorm();
-        if (dd < best_d) {
-          best_d = dd;
-          best = k;
+    TimeIteration(state, &us, &cpu_us, [&] {
+      ForwardKinematics(model, geometry, z, &data);
+      MarkerPositions(model, geometry, data, &predicted);
+      for (int m = 0; m < nm; ++m) {
+        int best = -1;
+        double best_d = 0.05 * 0.05;  // nothing farther than 5 cm
+        for (int k = 0; k < fr.points.cols(); ++k) {
+          const double dd = (fr.points.col(k) - predicted.col(m)).squaredNorm();
+          if (dd < best_d) {
+            best_d = dd;
+            best = k;
+          }
         }
+        label_of_marker[m] = best;
+        if (best >= 0)
+          measured.col(m) = fr.points.col(best);
+        else
+          measured.col(m).setConstant(NAN);
       }
-      label_of_marker[m] = best;
-      if (best >= 0)
-        measured.col(m) = fr.points.col(best);
-      else
-        measured.col(m).setConstant(NAN);
-    }
-    ik.Solve(measured, &z);
-    const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
-    cpu_us.push_back(1e6 * (ThreadCpuSeconds() - c0));
-    state.SetIterationTime(dt);
-    us.push_back(1e6 * dt);
+      ik.Solve(measured, &z);
+    });
     for (int m = 0; m < nm; ++m)
       if (label_of_marker[m] >= 0) {
         // a point labelled m counts as correct when it is m's point
@@ -357,14 +362,10 @@ void FixedWorkloadJitter(benchmark::State& state) {
   us.reserve(state.max_iterations);
   cpu_us.reserve(state.max_iterations);
   for (auto _ : state) {
-    const double c0 = ThreadCpuSeconds();
-    const auto t0 = Clock::now();
-    for (int k = 0; k < 6; ++k) p.selfadjointView<Eigen::Lower>().rankUpdate(a, 1e-12);
-    benchmark::DoNotOptimize(p.data());
-    const double wall = std::chrono::duration<double>(Clock::now() - t0).count();
-    state.SetIterationTime(wall);
-    us.push_back(1e6 * wall);
-    cpu_us.push_back(1e6 * (ThreadCpuSeconds() - c0));
+    TimeIteration(state, &us, &cpu_us, [&] {
+      for (int k = 0; k < 6; ++k) p.selfadjointView<Eigen::Lower>().rankUpdate(a, 1e-12);
+      benchmark::DoNotOptimize(p.data());
+    });
   }
   Report(state, us, cpu_us, 0, 0);
   state.counters.erase("label_accuracy");
