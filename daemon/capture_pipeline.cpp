@@ -65,6 +65,13 @@ Status CapturePipeline::Start() {
   if (options_.device_clock_rate_hz > 0) {
     options_.sync.mode = reconstruction::FrameSyncOptions::Mode::kSequence;
     options_.sync.sequence_bits = 64;
+    // The sync waits up to its timeout for a camera that is behind; its window must hold that
+    // many sets, or a camera 40 ms behind (8 sets at 200 Hz: a detection worker descheduled on a
+    // loaded machine) loses its frames as late although the timeout would have waited.
+    const double timeout_sets =
+        std::ceil(options_.sync.timeout_ns * 1e-9 * options_.device_clock_rate_hz);
+    options_.sync.max_pending_sets = std::max(
+        options_.sync.max_pending_sets, std::min(static_cast<int>(timeout_sets), 4096));
   }
   MOCAP_RETURN_IF_ERROR(sync_.Reset(options_.sync));
   frames_.clear();

@@ -112,7 +112,8 @@ struct CapturePipelineOptions {
   // fake cameras share the host's) and that expose on the ticks of that clock at this rate: a
   // frame's sequence becomes its tick, floor(device timestamp x rate), which is the same for
   // every camera at one instant whatever each camera's own frame count, and the sync runs on
-  // it (kSequence, 64 bits). 0: frame ids as the cameras number them (hardware trigger).
+  // it (kSequence, 64 bits), with a window of at least its timeout's worth of sets. 0: frame ids
+  // as the cameras number them (hardware trigger).
   double device_clock_rate_hz = 0;
   bool keep_detections = false;  // hand each set's 2D detections out with its points
   // The recording starts once `start_complete_sets` consecutive sets had every camera (it starts

@@ -217,12 +217,6 @@ int RunCapture(const CaptureArgs& a) {
   // The fakes share the host clock and expose on its frame ticks, but each counts frames from its
   // own start: sets are gathered by tick (a PTP-synchronised rig).
   pipeline_options.device_clock_rate_hz = a.rate_hz;
-  // The sync waits up to its timeout (100 ms) for a camera that is behind; its window must hold
-  // that many sets, or a camera 40 ms behind (8 sets at 200 Hz, a detection worker descheduled on
-  // a loaded machine) loses its frames as late although the timeout would have waited.
-  pipeline_options.sync.max_pending_sets = std::max(
-      pipeline_options.sync.max_pending_sets,
-      static_cast<int>(std::ceil(pipeline_options.sync.timeout_ns * 1e-9 * a.rate_hz)));
   // The renderer's dark level is 3 % of full scale and a marker peaks near 90 %.
   pipeline_options.detection.threshold = 60;
   // Each centroid's uncertainty floor is the 2D error the rig actually has beyond the pixel
