@@ -36,8 +36,8 @@ class CoordinateUpdate {
 
  private:
   int nz_ = 0;
-  Eigen::MatrixXd L_, B_, LB_, V_, U_, tmp_, Linv_, LBinv_;
-  Eigen::VectorXd c_, lb_, lbb_, dx_, reciprocal_;
+  Eigen::MatrixXd L_, LB_, X_, V_, U_, tmp_;
+  Eigen::VectorXd c_, lb_, dx_, reciprocal_l_, reciprocal_b_;
 };
 
 }  // namespace mocap::ekf
