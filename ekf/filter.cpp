@@ -37,6 +37,22 @@ void SolveRightLowerTransposed(const Eigen::MatrixXd& L, const Eigen::VectorXd& 
     V.col(j) *= reciprocal[j];
   }
 }
+// P's strict upper triangle <- the transpose of its lower one, in 4 x 4 tiles: a tile is read
+// as four contiguous column pieces and written as four, where the element-wise transposed copy
+// reads every element from a different column (about half the time of
+// P.triangularView<StrictlyUpper>() = P.transpose() at 114 x 114; run twice a frame).
+void MirrorLowerToUpper(Eigen::MatrixXd* Pp) {
+  Eigen::MatrixXd& P = *Pp;
+  const int n = static_cast<int>(P.rows()), tiled = n / 4 * 4;
+  for (int j0 = 0; j0 < tiled; j0 += 4) {
+    for (int i0 = 0; i0 < j0; i0 += 4)
+      P.block<4, 4>(i0, j0) = P.block<4, 4>(j0, i0).transpose();
+    for (int j = j0 + 1; j < j0 + 4; ++j)
+      for (int i = j0; i < j; ++i) P(i, j) = P(j, i);
+  }
+  for (int j = tiled; j < n; ++j)
+    for (int i = 0; i < j; ++i) P(i, j) = P(j, i);
+}
 }  // namespace
 
 void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eigen::VectorXd* x,
@@ -83,7 +99,7 @@ void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, dou
     P(i2, i1) += q * d2 / 2;
   }
   // The lower triangle is the result; the upper one is its mirror, exactly.
-  P.triangularView<Eigen::StrictlyUpper>() = P.transpose();
+  MirrorLowerToUpper(&P);
 }
 
 void CoordinateUpdate::Resize(int nz) {
@@ -143,7 +159,7 @@ bool CoordinateUpdate::Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b,
   P.bottomLeftCorner(nw, nz).noalias() = Uw * X_.transpose();
   P.topLeftCorner(nz, nz).setZero();
   P.topLeftCorner(nz, nz).selfadjointView<Eigen::Lower>().rankUpdate(X_, 1.0);
-  P.triangularView<Eigen::StrictlyUpper>() = P.transpose();
+  MirrorLowerToUpper(&P);
   *x += dx_;
   return true;
 }

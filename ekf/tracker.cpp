@@ -443,9 +443,13 @@ void Tracker::Impl::LabelByGating(int np) {
     const int k = static_cast<int>(cols.size());
     const auto& J = jac[m];
     auto JP = jp.leftCols(k);
+    // Summed in a register, not into JP: accumulating in memory made every term wait for the
+    // previous one's store (this loop was most of the labelling's time).
     for (int bcol = 0; bcol < k; ++bcol) {
-      JP.col(bcol).setZero();
-      for (int a = 0; a < k; ++a) JP.col(bcol) += J.col(a) * P(cols[a], cols[bcol]);
+      const double* p_col = &P(0, cols[bcol]);
+      Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+      for (int a = 0; a < k; ++a) sum += J.col(a) * p_col[cols[a]];
+      JP.col(bcol) = sum;
     }
     Eigen::Matrix3d S = JP.lazyProduct(J.transpose());  // 3 x k x 3: no GEMM machinery
     S.diagonal().array() += MeasurementVariance(m);
