@@ -2,6 +2,7 @@
 
 #include <Eigen/Cholesky>
 #include <Eigen/Geometry>
+#include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -22,7 +23,10 @@ constexpr double kProbationDistance = 0.01;
 // centre may vary on a rigid segment (noise, and the predicted centre's error).
 constexpr double kTrackStep = 0.025;
 constexpr int kMinTrackFrames = 5;
-constexpr double kRigidTolerance = 0.01;  // cost of a pair the gate excludes (finite: see assignment.h)
+constexpr double kRigidTolerance = 0.01;
+// How long the record of a point seen beside a marker holds (SeenBeside): about the longest life
+// of a stray reflection.
+constexpr double kBesideSeconds = 2.0;  // cost of a pair the gate excludes (finite: see assignment.h)
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 bool Fail(std::string* error, const char* message) {
@@ -92,6 +96,9 @@ struct Tracker::Impl {
   // frames have contributed since the last (re)initialisation.
   std::vector<Eigen::Vector3d> offset;
   std::vector<double> offset_unknown;  // (1 - gain)^frames seen: the part still unknown
+  // Per marker: the mean square (per coordinate) of its residuals after the update, averaged
+  // like the offsets: the model error that the pose and the offset do not explain.
+  std::vector<double> model_error;
   // The root joint, for placing hypotheses: its rotations as signed coordinate axes (for an
   // Euler decomposition) and its translations before any rotation (moving along fixed axes).
   bool root_euler = false;
@@ -149,6 +156,19 @@ struct Tracker::Impl {
   int hist_head = 0, hist_size = 0;
   void PushHistory(int np);
   bool NonRigidTrack(int m, const Eigen::Vector3d& p) const;
+  // Which markers each unclaimed point has been seen beside (see SeenBeside): per point of the
+  // last good frame, per marker, the last tracking frame in which that marker was measured on
+  // another point while this point's track was alive (kNever: not within its track).
+  static constexpr int kNever = std::numeric_limits<int>::min() / 2;
+  std::vector<int> beside_prev, beside_now;
+  Eigen::Matrix3Xd prev_points;
+  std::vector<char> prev_free;
+  std::vector<int> prev_free_list;  // the indices of prev_free's points
+  int prev_np = 0, prev_free_count = 0;
+  int frame_index = 0;
+  mutable std::vector<int> pred_cache;  // per point of this frame: Predecessor, -2 not yet known
+  int Predecessor(int k, int np) const;
+  bool SeenBeside(int m, int k, int np) const;
 
   // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
   double MeasurementVariance(int m) const {
@@ -162,6 +182,7 @@ struct Tracker::Impl {
   void ClearOffsets(int count) {
     std::fill(offset.begin(), offset.end(), Eigen::Vector3d::Zero());
     std::fill(offset_unknown.begin(), offset_unknown.end(), std::pow(1.0 - OffsetGain(), count));
+    std::fill(model_error.begin(), model_error.end(), 0.0);
   }
   void SetModel(std::shared_ptr<const Model> m);
   void Allocate();
@@ -170,6 +191,7 @@ struct Tracker::Impl {
   void Predict(double dt);
   void Linearise(const Eigen::VectorXd& z);
   void LabelByGating(int np);
+  void PickUpOnSegment(int np);
   int ApplyLabels(int np);
   bool FilterUpdate(double* nis);
   void Wrap(Eigen::VectorXd* z) const;
@@ -253,6 +275,7 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
     marker_variance[k] = options.sigma_m * options.sigma_m / md.markers()[k].weight;
   offset.assign(nm, Eigen::Vector3d::Zero());
   offset_unknown.assign(nm, 1.0);
+  model_error.assign(nm, 0.0);
 
   // Depths (joints are parents first).
   std::vector<int> segment_depth(md.num_segments(), 0);
@@ -374,6 +397,13 @@ void Tracker::Impl::Allocate() {
                      std::vector<Eigen::Vector3d>(model->num_segments(), Eigen::Vector3d::Zero()));
   centre_now.assign(model->num_segments(), Eigen::Vector3d::Zero());
   hist_head = hist_size = 0;
+  beside_prev.assign(static_cast<size_t>(mp) * nm, kNever);
+  beside_now.assign(static_cast<size_t>(mp) * nm, kNever);
+  prev_points.setZero(3, mp);
+  prev_free.assign(mp, 0);
+  prev_free_list.assign(mp, 0);
+  prev_np = prev_free_count = 0;
+  pred_cache.assign(mp, -2);
   last_point.setZero(3, nm);
   last_predicted.setZero(3, nm);
   llocal.assign(nz, -1);
@@ -452,13 +482,14 @@ void Tracker::Impl::LabelByGating(int np) {
       JP.col(bcol) = sum;
     }
     Eigen::Matrix3d S = JP.lazyProduct(J.transpose());  // 3 x k x 3: no GEMM machinery
-    S.diagonal().array() += MeasurementVariance(m);
+    S.diagonal().array() += MeasurementVariance(m) + (labelled_run[m] > 0 ? model_error[m] : 0.0);
     s_inv[m] = S.inverse();
     // d^2 >= |e|^2 / lambda_max(S) >= |e|^2 / trace(S): a cheap test before the quadratic form.
     reject_sq[m] = gate * S.trace();
   }
   auto C = cost.topLeftCorner(nm, np + nm);
   std::fill(gated_by.begin(), gated_by.begin() + np, 0);
+  std::fill(pred_cache.begin(), pred_cache.begin() + np, -2);
   bool contested = false;
   for (int m = 0; m < nm; ++m) {
     const Eigen::Vector3d p = predicted.col(m);
@@ -469,7 +500,8 @@ void Tracker::Impl::LabelByGating(int np) {
       double d2 = kForbidden;
       if (e.squaredNorm() < reject_sq[m]) {
         const double q = e.dot(s_inv[m] * e);
-        if (q < gate && (labelled_run[m] > 0 || !NonRigidTrack(m, points.col(k)))) {
+        if (q < gate && (labelled_run[m] > 0 || !NonRigidTrack(m, points.col(k))) &&
+            !SeenBeside(m, k, np)) {
           d2 = q;
           contested |= ++gated_by[k] > 1;
           if (q < best) {
@@ -490,6 +522,67 @@ void Tracker::Impl::LabelByGating(int np) {
     C(m, np + m) = gate;
   }
   lap.Solve(C, row_to_col.data());
+}
+
+// A marker the gates left unlabelled while three or more other markers of its segment are
+// labelled this frame is looked for where those markers put it: the rigid motion that carries
+// their predictions onto their points (Kabsch), applied to its own prediction. The gate measures
+// a marker against the pose, and the pose of a segment held by few of its own markers and many of
+// the rest of the body (the pelvis, the root, under the legs' and the trunk's) carries the whole
+// chain's model error with a nominal model: a marker back from an occlusion is found 2-5 cm from
+// its prediction, beyond its gate for as long as that error lasts, while where it sits among its
+// segment's labelled markers does not depend on the pose. It takes the one unclaimed point within
+// its gate around that position (its variance and its neighbours'), when that point's past does
+// not rule it out; the label goes through probation like any other (ChooseMeasurements). Not in
+// a fresh track, whose points' past is not judged (FreshTrack): there the gates are still wide.
+void Tracker::Impl::PickUpOnSegment(int np) {
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= np) row_to_col[m] = -1;
+  if (FreshTrack()) return;
+  bool claims_known = false;
+  for (int m = 0; m < nm; ++m) {
+    if (row_to_col[m] >= 0) continue;
+    const int segment = model->markers()[m].segment;
+    int mates = 0;
+    Eigen::Vector3d cp = Eigen::Vector3d::Zero(), cq = Eigen::Vector3d::Zero();
+    double var = 0;
+    for (int a = 0; a < nm; ++a)
+      if (a != m && row_to_col[a] >= 0 && model->markers()[a].segment == segment) {
+        ++mates;
+        cp += predicted.col(a);
+        cq += points.col(row_to_col[a]);
+        var += MeasurementVariance(a);
+      }
+    if (mates < 3) continue;
+    cp /= mates;
+    cq /= mates;
+    Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
+    for (int a = 0; a < nm; ++a)
+      if (a != m && row_to_col[a] >= 0 && model->markers()[a].segment == segment)
+        H += (predicted.col(a) - cp) * (points.col(row_to_col[a]) - cq).transpose();
+    const Eigen::JacobiSVD<Eigen::Matrix3d> svd(H, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    Eigen::Matrix3d D = Eigen::Matrix3d::Identity();
+    D(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1.0 : 1.0;
+    const Eigen::Matrix3d R = svd.matrixV() * D * svd.matrixU().transpose();
+    const Eigen::Vector3d where = R * (predicted.col(m) - cp) + cq;
+    const double gate2 = options.gate_chi2 * (MeasurementVariance(m) + var / mates);
+    if (!claims_known) {
+      std::fill(ltaken.begin(), ltaken.begin() + np, 0);
+      for (int a = 0; a < nm; ++a)
+        if (row_to_col[a] >= 0) ltaken[row_to_col[a]] = 1;
+      claims_known = true;
+    }
+    int found = -1, count = 0;
+    for (int k = 0; k < np && count < 2; ++k)
+      if (!ltaken[k] && (points.col(k) - where).squaredNorm() < gate2) {
+        found = k;
+        ++count;
+      }
+    if (count != 1 || NonRigidTrack(m, points.col(found)) || SeenBeside(m, found, np))
+      continue;
+    row_to_col[m] = found;
+    ltaken[found] = 1;
+  }
 }
 
 // Turns row_to_col (columns < np are points) into the output labels; returns the count.
@@ -518,7 +611,7 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
   double nu_r_nu = 0;
   for (int m = 0; m < nm; ++m) {
     if (row_to_col[m] < 0 || !measured[m]) continue;
-    const double w = 1.0 / MeasurementVariance(m);
+    const double w = 1.0 / (MeasurementVariance(m) + model_error[m]);
     const Eigen::Vector3d nu = points.col(row_to_col[m]) - predicted.col(m);
     nu_r_nu += w * nu.squaredNorm();
     const std::vector<int>& cols = model->marker_coordinates(m);
@@ -548,6 +641,7 @@ void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
     Eigen::Vector3d r = points.col(row_to_col[m]) - predicted.col(m);
     for (size_t a = 0; a < cols.size(); ++a) r -= jac[m].col(a) * dzv[cols[a]];
     offset[m] += k * (data.segment_rotation[model->markers()[m].segment].transpose() * r);
+    model_error[m] += k * (r.squaredNorm() / 3.0 - model_error[m]);
     offset_unknown[m] *= 1.0 - k;
   }
 }
@@ -562,6 +656,72 @@ void Tracker::Impl::PushHistory(int np) {
   for (size_t i = 0; i < centre_now.size(); ++i) hist_centre[hist_head][i] = centre_now[i];
   hist_head = (hist_head + 1) % kHistory;
   hist_size = std::min(hist_size + 1, kHistory);
+
+  // Each unclaimed point inherits its predecessor's record and adds the markers measured now.
+  ++frame_index;
+  for (int k = 0; k < np; ++k) {
+    int* now = beside_now.data() + static_cast<size_t>(k) * nm;
+    if (claimed[k]) continue;
+    const int pred = Predecessor(k, np);
+    const int* before = pred >= 0 ? beside_prev.data() + static_cast<size_t>(pred) * nm : nullptr;
+    for (int a = 0; a < nm; ++a)
+      now[a] = row_to_col[a] >= 0 && row_to_col[a] != k && measured[a] ? frame_index
+               : before ? before[a]
+                        : kNever;
+  }
+  beside_prev.swap(beside_now);
+  prev_points.leftCols(np) = points.leftCols(np);
+  prev_free_count = 0;
+  for (int k = 0; k < np; ++k) {
+    prev_free[k] = !claimed[k];
+    if (!claimed[k]) prev_free_list[prev_free_count++] = k;
+  }
+  prev_np = np;
+}
+
+// The last good frame's unclaimed point that point k continues: its nearest point of that frame
+// within a frame's motion (kTrackStep), when k is also that point's nearest of this frame (mutual
+// nearest neighbours: a reflection riding 15 mm from its marker is not confused with it) and
+// it was not a marker's (k then continues that marker); -1 otherwise.
+int Tracker::Impl::Predecessor(int k, int np) const {
+  if (pred_cache[k] != -2) return pred_cache[k];
+  const Eigen::Vector3d p = points.col(k);
+  int pred = -1;
+  double best = kTrackStep * kTrackStep;
+  // The few unclaimed points first: most points (the markers') have none near and stop here.
+  for (int f = 0; f < prev_free_count; ++f) {
+    const int j = prev_free_list[f];
+    const double d2 = (prev_points.col(j) - p).squaredNorm();
+    if (d2 < best) {
+      best = d2;
+      pred = j;
+    }
+  }
+  for (int j = 0; j < prev_np && pred >= 0; ++j)
+    if (!prev_free[j] && (prev_points.col(j) - p).squaredNorm() < best) pred = -1;
+  for (int i = 0; i < np && pred >= 0; ++i)
+    if (i != k && (points.col(i) - prev_points.col(pred)).squaredNorm() < best) pred = -1;
+  pred_cache[k] = pred;
+  return pred;
+}
+
+// Whether point p has been seen beside marker m: followed back frame by frame, it was there, as
+// another point, while m was measured, within the last kBesideSeconds. One marker is one point,
+// so p is not m: it is a reflection that came with m (riding along with it, or fixed near where
+// it passed) and outlived m's occlusion. Such a ghost keeps its distances to m's segment (it
+// moves with the marker), so NonRigidTrack passes it, and its history ring (kHistory frames) is
+// shorter than an occlusion; this record is carried for as long as the point is followed. The
+// evidence expires, so that a point the track wrongly left unclaimed beside a wrong label is not
+// kept from its marker for good.
+bool Tracker::Impl::SeenBeside(int m, int k, int np) const {
+  // A fresh track's labels may be wrong (see FreshTrack): there only a marker's own label of the
+  // last frame is trusted, to keep it from the reflection beside the point it loses; a marker
+  // without a label may be the one whose point was measured as another's.
+  if (prev_np == 0 || (FreshTrack() && labelled_run[m] == 0)) return false;
+  const int pred = Predecessor(k, np);
+  if (pred < 0) return false;
+  return frame_index - beside_prev[static_cast<size_t>(pred) * nm + m] <=
+         kBesideSeconds * options.rate_hz;
 }
 
 // Whether point p, followed back through the last frames (the nearest unclaimed point within a
@@ -973,6 +1133,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   std::fill(unlabelled_run.begin(), unlabelled_run.end(), 0);
   tracked_frames = 0;
   hist_size = 0;
+  prev_np = 0;
   init.accepted = true;
   init.reason.clear();
   return true;
@@ -1193,7 +1354,9 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
   // joint centre is a lasting ghost (a lone finger marker's two angles fit any point at the right
   // distance from the wrist).
   for (int m : rows)
-    if (lbest_assign[m] >= 0 && row_to_col[m] < 0 && NonRigidTrack(m, points.col(lbest_assign[m])))
+    if (lbest_assign[m] >= 0 && row_to_col[m] < 0 &&
+        (NonRigidTrack(m, points.col(lbest_assign[m])) ||
+         SeenBeside(m, lbest_assign[m], np)))
       return false;
   const double variance = std::max(rms * rms / 3.0, 1e-6);
   if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
@@ -1308,6 +1471,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     s.Linearise(s.zbuf);
     for (size_t i = 0; i < s.centre_now.size(); ++i) s.centre_now[i] = s.data.segment_position[i];
     s.LabelByGating(np);
+    s.PickUpOnSegment(np);
     const int labelled = s.ApplyLabels(np);
     s.ChooseMeasurements();
     double nis = 0;
@@ -1327,7 +1491,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
       s.Reacquire(np);
       s.PushHistory(np);
       s.z_good = s.x.head(s.nz);
-    } else if (++s.bad_frames >= s.options.divergence_frames || !ok) {
+    } else if (s.prev_np = 0; ++s.bad_frames >= s.options.divergence_frames || !ok) {
       out.state = TrackState::kLost;
       s.init.attempts = 0;
     }

@@ -55,7 +55,22 @@
 // take is followed back through the unclaimed points (nearest within 2.5 cm a frame); seen for 5
 // frames or more with its distance to the marker's joint centre varying by over 1 cm, it is not
 // on that segment and stays out of the marker's gate. A marker back from an occlusion has no past
-// and is not judged.
+// and is not judged. A reflection that rides along with a marker (or sits where it passed) keeps
+// its distances to the segment and outlives that 20-frame ring, and in the frame its marker is
+// occluded it is the nearest point in the gate: so each unclaimed point carries, for as long as
+// it is followed (mutual nearest neighbours between frames), which markers were measured on
+// other points beside it in the last 2 s, and stays out of those markers' gates -- one marker is
+// one point.
+// The gate of a marker labelled in the last frame also holds its own model error: the mean square
+// of its residuals after the update (an average over the offsets' time constant), which with a
+// nominal model grows with the pose (joint centres 15 mm off) and would otherwise push a tracked
+// marker out of its gate in a deep squat or trunk bend; the same variance weighs its measurement.
+// A marker coming back is gated without it (a wide gate at a hidden marker takes ghosts).
+// Segment pick-up: a marker that stays unlabelled while three or more markers of its segment are
+// labelled is looked for where those put it (their rigid motion from prediction to points,
+// Kabsch), within its gate: the pelvis, the root, is posed by its four markers and by all the
+// others through the joints, and with a nominal model a pelvis marker back from an occlusion is
+// 2-5 cm from the pose's prediction but where it belongs among its segment's labelled markers.
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (options.up), from the static pose (and,
