@@ -18,6 +18,32 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     jy_.resize(nm, Eigen::Matrix<double, 3, Eigen::Dynamic>(3, model.max_chain_coordinates()));
     jp_.resize(nm, Eigen::Matrix<double, 3, Eigen::Dynamic>(3, model.max_chain_parameters()));
     z_.resize(model.num_coordinates());
+    // Flattened (joint, element) indices, and each marker's dh/dz terms in MarkerJacobian's order.
+    element_offset_.resize(model.num_joints() + 1, 0);
+    for (int j = 0; j < model.num_joints(); ++j)
+      element_offset_[j + 1] = element_offset_[j] + static_cast<int>(model.joints()[j].elements.size());
+    const int ne = element_offset_.back();
+    world_axis_.resize(ne);
+    translation_column_.resize(ne);
+    omega_alpha_.resize(ne);
+    omega_beta_.resize(ne);
+    centre_column_.resize(model.num_joints());
+    scaled_rotation_.resize(model.num_segments());
+    z_terms_.resize(nm);
+    for (int m = 0; m < nm; ++m) {
+      const std::vector<int>& cols = model.marker_coordinates(m);
+      for (int j : model.chain(model.markers()[m].segment)) {
+        const Joint& jt = model.joints()[j];
+        for (size_t e = 0; e < jt.elements.size(); ++e) {
+          const JointElement& el = jt.elements[e];
+          if (el.coordinate < 0 || el.function.IsConstant()) continue;
+          int c = 0;
+          while (cols[c] != el.coordinate) ++c;
+          z_terms_[m].push_back({j, static_cast<int>(e), element_offset_[j] + static_cast<int>(e), c,
+                                 el.kind == ElementKind::kRotation});
+        }
+      }
+    }
   }
 
   bool Evaluate(int frame, const double* y, bool with_jacobians) override {
@@ -25,6 +51,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     const Geometry& g = problem_.geometry();
     z_ = Eigen::Map<const Eigen::VectorXd>(y, model.num_coordinates());
     ForwardKinematics(model, g, z_, &data_);
+    if (with_jacobians) PrepareJacobians();
     const double* meas = problem_.measurements().row(frame).data();
     num_blocks_ = 0;
     for (int m = 0; m < model.num_markers(); ++m) {
@@ -47,7 +74,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       if (with_jacobians) {
         auto jy = jy_[num_blocks_].leftCols(blk.num_y);
         auto jp = jp_[num_blocks_].leftCols(blk.num_p);
-        MarkerJacobian(model, g, data_, m, &jy, &jp);
+        Jacobian(m, x, &jy, &jp);
         jy *= scale;
         jp *= scale;
         blk.jy = jy_[num_blocks_].data();
@@ -61,6 +88,97 @@ class MarkerFrameEvaluator : public FrameEvaluator {
   const ResidualBlock& block(int i) const override { return blocks_[i]; }
 
  private:
+  // What MarkerJacobian computes per marker but depends only on the pose: world axes, the
+  // axis-angle derivatives' rotation vectors (and their sines and cosines), each chain joint's
+  // scale column and each segment's s R. Formed once per frame instead of once per marker on
+  // the chain (the full body's 39 markers share 15 joints); the per-marker products below are
+  // MarkerJacobian's own expressions in its order, so the Jacobians are the same to rounding
+  // (tests/test_fit.cpp checks it).
+  void PrepareJacobians() {
+    const Model& model = problem_.model();
+    const Geometry& g = problem_.geometry();
+    const ModelData& d = data_;
+    for (int j = 0; j < model.num_joints(); ++j) {
+      const Joint& jt = model.joints()[j];
+      for (size_t e = 0; e < jt.elements.size(); ++e) {
+        const JointElement& el = jt.elements[e];
+        const int k = element_offset_[j] + static_cast<int>(e);
+        if (el.coordinate >= 0 && !el.function.IsConstant()) {
+          world_axis_[k] = d.element_rotation[j][e] * g.axis[j][e];
+          if (el.kind != ElementKind::kRotation)
+            translation_column_[k] = (TranslationScale(jt, el, g) * d.element_derivative[j][e]) * world_axis_[k];
+        }
+        if (model.axis_index(j, static_cast<int>(e)) < 0) continue;
+        const double v = d.element_value[j][e];
+        const Eigen::Vector3d& a = g.axis[j][e];
+        const Eigen::Matrix3d& rb = d.element_rotation[j][e];
+        const double sv = std::sin(v), cv1 = 1.0 - std::cos(v);
+        const Eigen::Vector3d& da = g.axis_d_alpha[j][e];
+        const Eigen::Vector3d& db = g.axis_d_beta[j][e];
+        omega_alpha_[k] = rb * (sv * da + cv1 * a.cross(da));
+        omega_beta_[k] = rb * (sv * db + cv1 * a.cross(db));
+      }
+      if (jt.parent < 0) continue;
+      Eigen::Vector3d& col = centre_column_[j];
+      col = d.segment_rotation[jt.parent] * g.centre[j];
+      for (size_t e = 0; e < jt.elements.size(); ++e)
+        if (ScalesWithParent(jt, jt.elements[e]))
+          col += d.element_rotation[j][e] * (g.axis[j][e] * d.element_value[j][e]);
+    }
+    for (int s = 0; s < model.num_segments(); ++s) scaled_rotation_[s] = g.scale[s] * d.segment_rotation[s];
+  }
+
+  // MarkerJacobian(model, g, data_, m, jz, jp) from the prepared terms.
+  template <typename DerivedZ, typename DerivedP>
+  void Jacobian(int m, const Eigen::Vector3d& x, Eigen::MatrixBase<DerivedZ>* jz,
+                Eigen::MatrixBase<DerivedP>* jp) const {
+    const Model& model = problem_.model();
+    const Geometry& g = problem_.geometry();
+    const ModelData& d = data_;
+    jz->setZero();
+    for (const ZTerm& t : z_terms_[m]) {
+      if (t.rotation)
+        jz->col(t.column) += d.element_derivative[t.joint][t.element] *
+                             world_axis_[t.k].cross(x - d.element_origin[t.joint][t.element]);
+      else
+        jz->col(t.column) += translation_column_[t.k];
+    }
+    const int s = model.markers()[m].segment;
+    int c = 0;
+    jp->template middleCols<3>(c) = scaled_rotation_[s];
+    c += 3;
+    for (int j : model.chain(s)) {
+      const Joint& jt = model.joints()[j];
+      const int parent = jt.parent;
+      if (parent >= 0) jp->col(c++) = centre_column_[j];
+      if (model.centre_index(j) >= 0) {
+        if (parent >= 0)
+          jp->template middleCols<3>(c) = scaled_rotation_[parent];
+        else
+          jp->template middleCols<3>(c).setIdentity();
+        c += 3;
+      }
+      for (size_t e = 0; e < jt.elements.size(); ++e) {
+        if (model.axis_index(j, static_cast<int>(e)) < 0) continue;
+        const int k = element_offset_[j] + static_cast<int>(e);
+        const Eigen::Vector3d r = x - d.element_origin[j][e];
+        jp->col(c++) = omega_alpha_[k].cross(r);
+        jp->col(c++) = omega_beta_[k].cross(r);
+      }
+    }
+    jp->col(c) = d.segment_rotation[s] * g.marker[m];
+  }
+
+  struct ZTerm {
+    int joint, element, k, column;
+    bool rotation;
+  };
+  std::vector<int> element_offset_;
+  std::vector<Eigen::Vector3d> world_axis_, translation_column_, omega_alpha_, omega_beta_;
+  std::vector<Eigen::Vector3d> centre_column_;
+  std::vector<Eigen::Matrix3d> scaled_rotation_;
+  std::vector<std::vector<ZTerm>> z_terms_;
+
   const MarkerFitProblem& problem_;
   ModelData data_;
   Eigen::VectorXd z_;

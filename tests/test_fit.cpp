@@ -81,3 +81,47 @@ TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
     EXPECT_TRUE(std::isfinite(e.std)) << e.name;
   }
 }
+
+// The fit's evaluator forms its Jacobians from terms prepared once per frame
+// (solver/marker_fit_problem.cpp), not by MarkerJacobian per marker: they must be MarkerJacobian's
+// to rounding (the expressions are the same; the compiler fuses multiply-adds differently).
+TEST(GlobalFit, EvaluatorJacobiansAreMarkerJacobians) {
+  std::mt19937_64 rng(5);
+  const Model nominal = NominalWithoutOptional();
+  const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
+  const Model truth = nominal.WithParameters(p_true);
+  const formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, 10, 0.0005, rng);
+  solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
+  Eigen::VectorXd shared(problem.shared_dim());
+  for (int k = 0; k < problem.shared_dim(); ++k) shared[k] = p_true[problem.free_parameters()[k]];
+  ASSERT_TRUE(problem.SetShared(shared));
+  const Model& model = problem.model();
+  const int nz = model.num_coordinates();
+  std::normal_distribution<double> angle(0.0, 0.4);
+  auto evaluator = problem.NewEvaluator();
+  ModelData data(model);
+  int compared = 0;
+  for (int f = 0; f < problem.num_frames(); ++f) {
+    Eigen::VectorXd z(nz);
+    for (int c = 0; c < nz; ++c) z[c] = model.coordinates()[c].default_value + angle(rng);
+    ForwardKinematics(model, problem.geometry(), z, &data);
+    ASSERT_TRUE(evaluator->Evaluate(f, z.data(), true));
+    int b = 0;
+    for (int m = 0; m < model.num_markers(); ++m) {
+      if (!std::isfinite(problem.measurements()(f, 3 * m))) continue;
+      const solver::ResidualBlock& blk = evaluator->block(b++);
+      Eigen::Matrix<double, 3, Eigen::Dynamic> jz(3, blk.num_y), jp(3, blk.num_p);
+      MarkerJacobian(model, problem.geometry(), data, m, &jz, &jp);
+      jz *= problem.residual_scale(m);
+      jp *= problem.residual_scale(m);
+      const double tol = 1e-13 * problem.residual_scale(m);  // entries are O(1) times the scale
+      for (int c = 0; c < blk.num_y; ++c)
+        for (int r = 0; r < 3; ++r) ASSERT_NEAR(blk.jy[c * solver::kMaxBlockRows + r], jz(r, c), tol) << m;
+      for (int c = 0; c < blk.num_p; ++c)
+        for (int r = 0; r < 3; ++r) ASSERT_NEAR(blk.jp[c * solver::kMaxBlockRows + r], jp(r, c), tol) << m;
+      ++compared;
+    }
+    ASSERT_EQ(b, evaluator->num_blocks());
+  }
+  EXPECT_GT(compared, 10 * 30);
+}
