@@ -4,6 +4,26 @@
 
 namespace mocap {
 
+// Calls f(joint, element, column) for every element on marker m's chain that a coordinate drives,
+// `column` being that coordinate's place in model.marker_coordinates(m): the terms of dh_m/dz in
+// MarkerJacobian's order, which the global fit's evaluator (solver/marker_fit_problem.cpp)
+// precomputes and must visit identically.
+template <typename F>
+void ForEachDrivenElement(const Model& model, int m, F&& f) {
+  const std::vector<int>& cols = model.marker_coordinates(m);
+  for (int j : model.chain(model.markers()[m].segment)) {
+    const Joint& jt = model.joints()[j];
+    for (size_t e = 0; e < jt.elements.size(); ++e) {
+      const JointElement& el = jt.elements[e];
+      if (el.coordinate < 0 || el.function.IsConstant()) continue;
+      // cols is short and sorted: a linear scan beats a lookup table here.
+      int c = 0;
+      while (cols[c] != el.coordinate) ++c;
+      f(j, static_cast<int>(e), c);
+    }
+  }
+}
+
 template <typename DerivedZ, typename DerivedP>
 void MarkerJacobian(const Model& model, const Geometry& g, const ModelData& d, int m,
                     Eigen::MatrixBase<DerivedZ>* jz, Eigen::MatrixBase<DerivedP>* jp) {
@@ -14,23 +34,16 @@ void MarkerJacobian(const Model& model, const Geometry& g, const ModelData& d, i
 
   if (jz) {
     jz->setZero();
-    const std::vector<int>& cols = model.marker_coordinates(m);
-    for (int j : chain) {
+    ForEachDrivenElement(model, m, [&](int j, int e, int c) {
       const Joint& jt = model.joints()[j];
-      for (size_t e = 0; e < jt.elements.size(); ++e) {
-        const JointElement& el = jt.elements[e];
-        if (el.coordinate < 0 || el.function.IsConstant()) continue;
-        // cols is short and sorted: a linear scan beats a lookup table here.
-        int c = 0;
-        while (cols[c] != el.coordinate) ++c;
-        const Eigen::Vector3d w = d.element_rotation[j][e] * g.axis[j][e];
-        const double dv = d.element_derivative[j][e];
-        if (el.kind == ElementKind::kRotation)
-          jz->col(c) += dv * w.cross(x - d.element_origin[j][e]);
-        else
-          jz->col(c) += (TranslationScale(jt, el, g) * dv) * w;
-      }
-    }
+      const JointElement& el = jt.elements[e];
+      const Eigen::Vector3d w = d.element_rotation[j][e] * g.axis[j][e];
+      const double dv = d.element_derivative[j][e];
+      if (el.kind == ElementKind::kRotation)
+        jz->col(c) += dv * w.cross(x - d.element_origin[j][e]);
+      else
+        jz->col(c) += (TranslationScale(jt, el, g) * dv) * w;
+    });
   }
   if (jp) {
     int c = 0;

@@ -30,20 +30,11 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     centre_column_.resize(model.num_joints());
     scaled_rotation_.resize(model.num_segments());
     z_terms_.resize(nm);
-    for (int m = 0; m < nm; ++m) {
-      const std::vector<int>& cols = model.marker_coordinates(m);
-      for (int j : model.chain(model.markers()[m].segment)) {
-        const Joint& jt = model.joints()[j];
-        for (size_t e = 0; e < jt.elements.size(); ++e) {
-          const JointElement& el = jt.elements[e];
-          if (el.coordinate < 0 || el.function.IsConstant()) continue;
-          int c = 0;
-          while (cols[c] != el.coordinate) ++c;
-          z_terms_[m].push_back({j, static_cast<int>(e), element_offset_[j] + static_cast<int>(e), c,
-                                 el.kind == ElementKind::kRotation});
-        }
-      }
-    }
+    for (int m = 0; m < nm; ++m)
+      ForEachDrivenElement(model, m, [&](int j, int e, int c) {
+        z_terms_[m].push_back({j, e, element_offset_[j] + e, c,
+                               model.joints()[j].elements[e].kind == ElementKind::kRotation});
+      });
   }
 
   bool Evaluate(int frame, const double* y, bool with_jacobians) override {
