@@ -14,7 +14,7 @@
 namespace mocap::ekf {
 
 namespace {
-constexpr double kForbidden = 1e9;
+constexpr double kForbidden = 1e9;  // cost of a pair the gate excludes (finite: see assignment.h)
 // A point that continues a marker's first point after a gap moves as the prediction does within
 // this (a frame is 5 ms: 1 cm is 2 m/s of unpredicted motion; random ghosts jump decimetres).
 constexpr double kProbationDistance = 0.01;
@@ -26,7 +26,7 @@ constexpr int kMinTrackFrames = 5;
 constexpr double kRigidTolerance = 0.01;
 // How long the record of a point seen beside a marker holds (SeenBeside): about the longest life
 // of a stray reflection.
-constexpr double kBesideSeconds = 2.0;  // cost of a pair the gate excludes (finite: see assignment.h)
+constexpr double kBesideSeconds = 2.0;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 bool Fail(std::string* error, const char* message) {
