@@ -156,6 +156,10 @@ struct Tracker::Impl {
   int hist_head = 0, hist_size = 0;
   void PushHistory(int np);
   bool NonRigidTrack(int m, const Eigen::Vector3d& p) const;
+  // Follows p back (see NonRigidTrack): the frames it was seen, and the spread of its distance
+  // to marker m's joint centre over them.
+  int TrackBack(int m, const Eigen::Vector3d& p, double* spread) const;
+  bool RejoinAtOffset(int m, int np);
   // Which markers each unclaimed point has been seen beside (see SeenBeside): per point of the
   // last good frame, per marker, the last tracking frame in which that marker was measured on
   // another point while this point's track was alive (kNever: not within its track).
@@ -733,6 +737,11 @@ bool Tracker::Impl::SeenBeside(int m, int k, int np) const {
 bool Tracker::Impl::NonRigidTrack(int m, const Eigen::Vector3d& p) const {
   // A fresh track's limb may be wrongly placed, its joint centres with it (see FreshTrack).
   if (FreshTrack()) return false;
+  double spread = 0;
+  return TrackBack(m, p, &spread) >= kMinTrackFrames && spread > kRigidTolerance;
+}
+
+int Tracker::Impl::TrackBack(int m, const Eigen::Vector3d& p, double* spread) const {
   const int segment = model->markers()[m].segment;
   Eigen::Vector3d q = p;
   const double r0 = (p - centre_now[segment]).norm();
@@ -759,7 +768,8 @@ bool Tracker::Impl::NonRigidTrack(int m, const Eigen::Vector3d& p) const {
     hi = std::max(hi, r);
     ++length;
   }
-  return length >= kMinTrackFrames && hi - lo > kRigidTolerance;
+  *spread = hi - lo;
+  return length;
 }
 
 // A marker coming back after frames without a label is labelled at once but enters the update
@@ -1154,6 +1164,7 @@ constexpr int kLimbFrames = 20;        // 0.1 s at 200 Hz
 constexpr int kLimbIterations = 10;
 constexpr double kLimbFinalRadius = 0.05;
 constexpr double kLimbMaxRms = 0.03;
+constexpr double kRejoinRadius = 0.05;    // RejoinAtOffset: twice a nominal model's marker error
 constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
 constexpr double kLimbCentreTolerance = 0.02;
 }  // namespace
@@ -1428,10 +1439,39 @@ void Tracker::Impl::Reacquire(int np) {
       near = !ltaken[k] && (FreshTrack() ? (points.col(k) - predicted.col(m)).squaredNorm() <
                                                kLimbNearRadius * kLimbNearRadius
                                          : RigidlyPlausible(m, k));
-    if (!near) continue;
+    if (!near || RejoinAtOffset(m, np)) continue;
     if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
   }
   if (joint >= 0) ReacquireLimb(joint, np);
+}
+
+// A marker back from an occlusion outside its gate, where the pose it is predicted from carries
+// a nominal model's error that its learnt offset no longer matches (a knee marker in a deep
+// squat, an elbow marker in a shoulder circle: 25-40 mm off, and steadily so), while the rest of
+// the limb is tracked, so the limb search finds no better pose. Its point is recognised by its
+// past instead of its place: the one unclaimed point within kRejoinRadius of the prediction that
+// has been followed for kMinTrackFrames at a constant distance from the marker's joint centre
+// (rigid with the segment) and was never seen beside the marker (SeenBeside: not a reflection
+// that came with it). The marker's offset is moved onto that point; the next frame's gate takes
+// it, through probation like any returning marker. Not in a fresh track, whose pasts are not
+// judged.
+bool Tracker::Impl::RejoinAtOffset(int m, int np) {
+  if (FreshTrack()) return false;
+  int found = -1, count = 0;
+  for (int k = 0; k < np && count < 2; ++k) {
+    if (ltaken[k] || (points.col(k) - predicted.col(m)).squaredNorm() >= kRejoinRadius * kRejoinRadius)
+      continue;
+    ++count;
+    found = k;
+  }
+  if (count != 1) return false;
+  double spread = 0;
+  if (TrackBack(m, points.col(found), &spread) < kMinTrackFrames || spread > kRigidTolerance ||
+      SeenBeside(m, found, np))
+    return false;
+  const int segment = model->markers()[m].segment;
+  offset[m] += data.segment_rotation[segment].transpose() * (points.col(found) - predicted.col(m));
+  return true;
 }
 
 // ---------------------------------------------------------------------------------------------

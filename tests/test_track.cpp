@@ -317,7 +317,13 @@ class TrackCli : public ::testing::Test {
            "--duration-scale 0.6 --ghosts 4 --occlusion 0.02 --swap-traps";
   }
   // Runs one of issue 5's commands with `model` and checks its labelling targets.
-  static nlohmann::json RunIssueConditions(const std::string& model, int seed = 1);
+  // `mocap track` at issue 5's conditions; RunIssueConditions also expects every target.
+  static nlohmann::json TrackAtIssueConditions(const std::string& model, int seed);
+  static nlohmann::json RunIssueConditions(const std::string& model, int seed = 1) {
+    const nlohmann::json s = TrackAtIssueConditions(model, seed);
+    if (!s.is_null()) ExpectTargets(s);
+    return s;
+  }
   static void ExpectTargets(const nlohmann::json& s) {
     for (const char* key : {"frames", "label_accuracy", "wrong_labels", "swaps_longer_than_5_frames",
                             "reinitialisations", "update_us_p50", "update_us_p99", "marker_rms_mm",
@@ -395,7 +401,7 @@ TEST_F(TrackCli, WholeProtocolWithTheTrueModel) {
 // swap traps; the nominal and the true model. About 5 s each. The update time is printed but not
 // asserted: on a shared machine its wall-clock p99 is the scheduler's (bench/track_vs_ik.cpp
 // measures the CPU time).
-nlohmann::json TrackCli::RunIssueConditions(const std::string& model, int seed) {
+nlohmann::json TrackCli::TrackAtIssueConditions(const std::string& model, int seed) {
   const std::string dir = "issue_" + model + "_" + std::to_string(seed);
   const CommandResult r = Mocap("track --simulate --seed " + std::to_string(seed) +
                                 " --ghosts 5 --occlusion 0.1 --swap-traps --model " + model +
@@ -411,7 +417,6 @@ nlohmann::json TrackCli::RunIssueConditions(const std::string& model, int seed) 
               s["update_us_p99"].get<double>());
   EXPECT_EQ(s["frames"].get<int>(), 14880);
   EXPECT_GT(s["marker_samples"].get<long>(), 500000);
-  ExpectTargets(s);
   return s;
 }
 
@@ -435,6 +440,21 @@ TEST_F(TrackCli, IssueConditionsTrueModelSeed5) {
   const nlohmann::json s = RunIssueConditions("truth", 5);
   ASSERT_FALSE(s.is_null());
   EXPECT_LE(s["joint_angle_rms_deg"].get<double>(), 1.0);
+}
+
+// Markers on two-marker segments (RKNE on the thigh in squats, LELB on the upper arm in shoulder
+// circles and elbow flexion) come back from occlusions 25-40 mm from a prediction that carries
+// the nominal model's error, steadily so, beyond their gates for up to 111 frames (0.99934 of
+// the labels before RejoinAtOffset, ekf/tracker.cpp). This seed still has one swap longer than 5
+// frames (in the track's first second an occluded RANK takes a ghost 78 mm away, with either
+// model), which is open: the test holds the label figures and no more than that one swap.
+TEST_F(TrackCli, IssueConditionsNominalModelSeed3Labels) {
+  const nlohmann::json s = TrackAtIssueConditions("nominal", 3);
+  ASSERT_FALSE(s.is_null());
+  EXPECT_GE(s["label_accuracy"].get<double>(), 0.9995) << s.dump(1);
+  EXPECT_LE(s["wrong_labels"].get<double>(), 1e-4 * s["marker_samples"].get<double>());
+  EXPECT_LE(s["swaps_longer_than_5_frames"].get<int>(), 1);
+  EXPECT_EQ(s["reinitialisations"].get<int>(), 0);
 }
 
 // The points written by --write-points, read back as TRC and as C3D, give the same labels.
