@@ -165,6 +165,9 @@ struct Tracker::Impl {
   // another point while this point's track was alive (kNever: not within its track).
   static constexpr int kNever = std::numeric_limits<int>::min() / 2;
   std::vector<int> beside_prev, beside_now;
+  // Per marker: its longest run of labelled frames since the (re)initialisation.
+  std::vector<int> held_run;
+  static constexpr int kHeldFrames = 20;
   Eigen::Matrix3Xd prev_points;
   std::vector<char> prev_free;
   std::vector<int> prev_free_list;  // the indices of prev_free's points
@@ -402,6 +405,7 @@ void Tracker::Impl::Allocate() {
   centre_now.assign(model->num_segments(), Eigen::Vector3d::Zero());
   hist_head = hist_size = 0;
   beside_prev.assign(static_cast<size_t>(mp) * nm, kNever);
+  held_run.assign(nm, 0);
   beside_now.assign(static_cast<size_t>(mp) * nm, kNever);
   prev_points.setZero(3, mp);
   prev_free.assign(mp, 0);
@@ -661,6 +665,20 @@ void Tracker::Impl::PushHistory(int np) {
   hist_head = (hist_head + 1) % kHistory;
   hist_size = std::min(hist_size + 1, kHistory);
 
+  // A marker that lost its label this frame while another marker now holds its last point (one
+  // marker is one point) held the wrong one: what it was seen beside was recorded under that
+  // label (a head initialised turned about, its front markers on the back markers' points, their
+  // own points unclaimed beside them), so it is forgotten, and the label no longer counts as held.
+  for (int m = 0; m < nm; ++m) {
+    if (row_to_col[m] >= 0 || unlabelled_run[m] != 1) continue;
+    for (int a = 0; a < nm; ++a)
+      if (a != m && row_to_col[a] >= 0 &&
+          (points.col(row_to_col[a]) - last_point.col(m)).squaredNorm() < kTrackStep * kTrackStep) {
+        for (size_t j = static_cast<size_t>(m); j < beside_prev.size(); j += nm) beside_prev[j] = kNever;
+        held_run[m] = 0;
+        break;
+      }
+  }
   // Each unclaimed point inherits its predecessor's record and adds the markers measured now.
   ++frame_index;
   for (int k = 0; k < np; ++k) {
@@ -718,10 +736,13 @@ int Tracker::Impl::Predecessor(int k, int np) const {
 // evidence expires, so that a point the track wrongly left unclaimed beside a wrong label is not
 // kept from its marker for good.
 bool Tracker::Impl::SeenBeside(int m, int k, int np) const {
-  // A fresh track's labels may be wrong (see FreshTrack): there only a marker's own label of the
-  // last frame is trusted, to keep it from the reflection beside the point it loses; a marker
-  // without a label may be the one whose point was measured as another's.
-  if (prev_np == 0 || (FreshTrack() && labelled_run[m] == 0)) return false;
+  // A fresh track's labels may be wrong (see FreshTrack): there only a marker labelled in the last
+  // frame, or one that held its point for kHeldFrames, is kept from the reflection beside the
+  // point it loses (an ankle marker hidden in the static pose, a lab-fixed ghost 8 cm away in its
+  // still wide gate); a marker without either may be the one whose point was measured as
+  // another's. A held label that proves wrong loses its records (PushHistory).
+  if (prev_np == 0 || (FreshTrack() && labelled_run[m] == 0 && held_run[m] < kHeldFrames))
+    return false;
   const int pred = Predecessor(k, np);
   if (pred < 0) return false;
   return frame_index - beside_prev[static_cast<size_t>(pred) * nm + m] <=
@@ -798,6 +819,7 @@ void Tracker::Impl::ChooseMeasurements() {
       measured[m] = labelled_run[m] > 1;
     }
     ++labelled_run[m];
+    held_run[m] = std::max(held_run[m], labelled_run[m]);
     last_point.col(m) = p;
     last_predicted.col(m) = q;
     measured_count += measured[m];
@@ -1144,6 +1166,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   tracked_frames = 0;
   hist_size = 0;
   prev_np = 0;
+  std::fill(held_run.begin(), held_run.end(), 0);
   init.accepted = true;
   init.reason.clear();
   return true;

@@ -60,7 +60,9 @@
 // occluded it is the nearest point in the gate: so each unclaimed point carries, for as long as
 // it is followed (mutual nearest neighbours between frames), which markers were measured on
 // other points beside it in the last 2 s, and stays out of those markers' gates -- one marker is
-// one point.
+// one point. In the first second of a track, whose labels may be wrong, this holds only for a
+// marker labelled in the last frame or that has held its point for 20 frames; a marker that loses
+// its label while another marker takes its last point held the wrong one, and its records go.
 // The gate of a marker labelled in the last frame also holds its own model error: the mean square
 // of its residuals after the update (an average over the offsets' time constant), which with a
 // nominal model grows with the pose (joint centres 15 mm off) and would otherwise push a tracked

@@ -445,16 +445,17 @@ TEST_F(TrackCli, IssueConditionsTrueModelSeed5) {
 // Markers on two-marker segments (RKNE on the thigh in squats, LELB on the upper arm in shoulder
 // circles and elbow flexion) come back from occlusions 25-40 mm from a prediction that carries
 // the nominal model's error, steadily so, beyond their gates for up to 111 frames (0.99934 of
-// the labels before RejoinAtOffset, ekf/tracker.cpp). This seed still has one swap longer than 5
-// frames (in the track's first second an occluded RANK takes a ghost 78 mm away, with either
-// model), which is open: the test holds the label figures and no more than that one swap.
-TEST_F(TrackCli, IssueConditionsNominalModelSeed3Labels) {
-  const nlohmann::json s = TrackAtIssueConditions("nominal", 3);
+// the labels before RejoinAtOffset, ekf/tracker.cpp).
+TEST_F(TrackCli, IssueConditionsNominalModelSeed3) { RunIssueConditions("nominal", 3); }
+
+// In the first second, in the static pose, RANK is hidden at frame 78 and a lab-fixed ghost 78 mm
+// away sits in its still wide gate: it took the label for 17 frames (a swap longer than 5 frames,
+// with either model) before a marker that has held its point for 20 frames was kept, in a fresh
+// track too, from the points seen beside it.
+TEST_F(TrackCli, IssueConditionsTrueModelSeed3) {
+  const nlohmann::json s = RunIssueConditions("truth", 3);
   ASSERT_FALSE(s.is_null());
-  EXPECT_GE(s["label_accuracy"].get<double>(), 0.9995) << s.dump(1);
-  EXPECT_LE(s["wrong_labels"].get<double>(), 1e-4 * s["marker_samples"].get<double>());
-  EXPECT_LE(s["swaps_longer_than_5_frames"].get<int>(), 1);
-  EXPECT_EQ(s["reinitialisations"].get<int>(), 0);
+  EXPECT_LE(s["joint_angle_rms_deg"].get<double>(), 1.0);
 }
 
 // The points written by --write-points, read back as TRC and as C3D, give the same labels.
