@@ -160,6 +160,16 @@ struct Tracker::Impl {
   // to marker m's joint centre over them.
   int TrackBack(int m, const Eigen::Vector3d& p, double* spread) const;
   bool RejoinAtOffset(int m, int np);
+  // The one point not in ltaken within sqrt(radius2) of `where`; -1 when none or several.
+  int OnlyFreePointNear(const Eigen::Vector3d& where, double radius2, int np) const {
+    int found = -1;
+    for (int k = 0; k < np; ++k)
+      if (!ltaken[k] && (points.col(k) - where).squaredNorm() < radius2) {
+        if (found >= 0) return -1;
+        found = k;
+      }
+    return found;
+  }
   // Which markers each unclaimed point has been seen beside (see SeenBeside): per point of the
   // last good frame, per marker, the last tracking frame in which that marker was measured on
   // another point while this point's track was alive (kNever: not within its track).
@@ -580,14 +590,8 @@ void Tracker::Impl::PickUpOnSegment(int np) {
         if (row_to_col[a] >= 0) ltaken[row_to_col[a]] = 1;
       claims_known = true;
     }
-    int found = -1, count = 0;
-    for (int k = 0; k < np && count < 2; ++k)
-      if (!ltaken[k] && (points.col(k) - where).squaredNorm() < gate2) {
-        found = k;
-        ++count;
-      }
-    if (count != 1 || NonRigidTrack(m, points.col(found)) || SeenBeside(m, found, np))
-      continue;
+    const int found = OnlyFreePointNear(where, gate2, np);
+    if (found < 0 || NonRigidTrack(m, points.col(found)) || SeenBeside(m, found, np)) continue;
     row_to_col[m] = found;
     ltaken[found] = 1;
   }
@@ -1480,14 +1484,8 @@ void Tracker::Impl::Reacquire(int np) {
 // judged.
 bool Tracker::Impl::RejoinAtOffset(int m, int np) {
   if (FreshTrack()) return false;
-  int found = -1, count = 0;
-  for (int k = 0; k < np && count < 2; ++k) {
-    if (ltaken[k] || (points.col(k) - predicted.col(m)).squaredNorm() >= kRejoinRadius * kRejoinRadius)
-      continue;
-    ++count;
-    found = k;
-  }
-  if (count != 1) return false;
+  const int found = OnlyFreePointNear(predicted.col(m), kRejoinRadius * kRejoinRadius, np);
+  if (found < 0) return false;
   double spread = 0;
   if (TrackBack(m, points.col(found), &spread) < kMinTrackFrames || spread > kRigidTolerance ||
       SeenBeside(m, found, np))

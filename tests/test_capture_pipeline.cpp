@@ -244,27 +244,20 @@ TEST(CapturePipeline, ACameraSilentAtStartDoesNotHoldTheRecording) {
 }
 
 TEST(CapturePipeline, BadSetUpIsRefusedWithAReason) {
-  daemon::CapturePipelineOptions o;
-  o.detection_threads = 0;
-  Rig rig(2, o);
-  const Status s = rig.pipeline->Start();
-  ASSERT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("detection_threads"), std::string::npos) << s.message();
-  rig.pipeline->Stop();  // harmless when never started
-
-  daemon::CapturePipelineOptions t;
-  t.start_timeout_ms = -1;
-  Rig timeout_rig(2, t);
-  const Status ts = timeout_rig.pipeline->Start();
-  ASSERT_FALSE(ts.ok());
-  EXPECT_NE(ts.message().find("start_timeout_ms"), std::string::npos) << ts.message();
-
-  daemon::CapturePipelineOptions n;
-  n.start_complete_sets = 0;
-  Rig count_rig(2, n);
-  const Status ns = count_rig.pipeline->Start();
-  ASSERT_FALSE(ns.ok());
-  EXPECT_NE(ns.message().find("start_complete_sets"), std::string::npos) << ns.message();
+  // Each bad option refuses the start with an error naming it; Stop is harmless when never started.
+  auto expect_refused = [](void (*spoil)(daemon::CapturePipelineOptions*), const char* field) {
+    daemon::CapturePipelineOptions o;
+    spoil(&o);
+    Rig rig(2, o);
+    const Status s = rig.pipeline->Start();
+    EXPECT_FALSE(s.ok()) << field;
+    EXPECT_NE(s.message().find(field), std::string::npos) << s.message();
+    rig.pipeline->Stop();
+  };
+  expect_refused([](daemon::CapturePipelineOptions* o) { o->detection_threads = 0; }, "detection_threads");
+  expect_refused([](daemon::CapturePipelineOptions* o) { o->start_timeout_ms = -1; }, "start_timeout_ms");
+  expect_refused([](daemon::CapturePipelineOptions* o) { o->start_complete_sets = 0; },
+                 "start_complete_sets");
 
   daemon::CapturePipeline empty({}, [](const reconstruction::DetectionSet&, daemon::PointFrame*) {
     return Status::Ok();
