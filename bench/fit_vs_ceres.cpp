@@ -5,7 +5,9 @@
 //
 //   fit_vs_ceres --frames N [--json] [--threads T] [--skip-ceres] [--ceres-solvers schur,normal,dense]
 //                [--ceres-residuals marker|frame] [--ceres-shared split|single]
-//                [--ceres-max-seconds S] [--repeat R] [--verbose]
+//                [--ceres-max-seconds S] [--repeat R] [--verbose] [--plain]
+//                [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]
+//                [--pose-tolerance T] [--fine-lambda L] [--no-inner]
 //
 // Sameness. Both solvers work on ONE solver::MarkerFitProblem (measurements, residual scales,
 // free parameters, prior rows, gauge rows) from ONE x0 (per-frame IK with the nominal model, as
@@ -27,8 +29,13 @@
 // limit is 100, ours FitModel's 50: on a few poorly exciting frames (the first trial alone) both
 // stop at their limit, and only the time per iteration compares.
 //
+// Ours is what FitModel runs: solver::SolveCoarseToFine (solver/coarse_to_fine.h), LM on an
+// evenly spaced subset of the frames, every pose re-solved for that geometry, then LM on the
+// whole problem with the same tolerances. Its final cost is the whole problem's, so it compares
+// with Ceres's like for like. --plain also times our LM on the whole problem from x0 alone.
+//
 // Timing: wall clock of the solve only, for ours ArrowSchurProblem's construction (its symbolic
-// analysis) plus solver::Solve, for Ceres ceres::Solve (which includes its preprocessing);
+// analysis) plus the solve, for Ceres ceres::Solve (which includes its preprocessing);
 // simulation, IK and building the problems are not timed. With --repeat R each solver runs R
 // times from x0 and the fastest run counts.
 //
@@ -61,6 +68,7 @@
 #include "model/kinematics.h"
 #include "model/model.h"
 #include "sim/simulate.h"
+#include "solver/coarse_to_fine.h"
 #include "solver/global_fit.h"
 #include "solver/inverse_kinematics.h"
 #include "solver/marker_fit_problem.h"
@@ -159,6 +167,8 @@ struct Args {
   std::string ceres_shared = "split";      // shared p as one block per model object, or one block
   int repeat = 1;  // solves per solver; the fastest counts (the machine is shared and noisy)
   bool verbose = false;
+  bool plain = false;  // also time our plain LM (no coarse-to-fine start) in the same run
+  solver::CoarseToFineOptions coarse;  // FitOptions' defaults unless set
 };
 
 [[noreturn]] void Usage(const std::string& error) {
@@ -166,7 +176,9 @@ struct Args {
                "fit_vs_ceres: %s\n"
                "usage: fit_vs_ceres --frames N [--json] [--threads T] [--skip-ceres]\n"
                "         [--ceres-solvers schur,normal,dense] [--ceres-residuals marker|frame]\n"
-               "         [--ceres-shared split|single] [--ceres-max-seconds S] [--repeat R] [--verbose]\n",
+               "         [--ceres-shared split|single] [--ceres-max-seconds S] [--repeat R] [--verbose]\n"
+               "         [--plain] [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]\n"
+               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner]\n",
                error.c_str());
   std::exit(2);
 }
@@ -188,6 +200,13 @@ Args ParseArgs(int argc, char** argv) {
     };
     if (a == "--frames") args.frames = static_cast<int>(number(1));
     else if (a == "--json") args.json = true;
+    else if (a == "--plain") args.plain = true;
+    else if (a == "--coarse-frames") args.coarse.coarse_frames = static_cast<int>(number(1));
+    else if (a == "--coarse-tolerance") args.coarse.coarse_function_tolerance = number(0);
+    else if (a == "--pose-iterations") args.coarse.pose_iterations = static_cast<int>(number(0));
+    else if (a == "--no-inner") args.coarse.inner_iterations = false;
+    else if (a == "--pose-tolerance") args.coarse.pose_tolerance = number(0);
+    else if (a == "--fine-lambda") args.coarse.fine_initial_lambda = number(1e-300);
     else if (a == "--threads") args.threads = static_cast<int>(number(1));
     else if (a == "--skip-ceres") args.skip_ceres = true;
     else if (a == "--ceres-max-seconds") args.ceres_max_seconds = number(1e-3);
@@ -797,18 +816,38 @@ int main(int argc, char** argv) {
   bool ours_cached = false;
   std::vector<double> ours_times;
   double ours_cpu = 0, ours_others_cpu = 0;
+  solver::CoarseToFineSummary ours_coarse;
   for (int rep = 0; rep < args.repeat; ++rep) {
     Eigen::VectorXd x = x0;
     const SolveTimer timer;
-    solver::ArrowSchurProblem schur(&problem, args.threads);  // FitModel's memory budget
-    solver::LmSummary summary = solver::Solve(fit_options.lm, &schur, &x);
+    // FitModel's solve: the coarse-to-fine start, then LM on the whole problem (its memory budget).
+    solver::CoarseToFineSummary coarse;
+    solver::ArrowSchurProblem schur(&problem, args.threads);
+    solver::LmSummary summary = solver::SolveCoarseToFine(&problem, &schur, fit_options.lm,
+                                                          args.coarse, args.threads, &x, &coarse);
     ours_times.push_back(timer.wall());
     if (ours_times.back() <= *std::min_element(ours_times.begin(), ours_times.end())) {
       ours = summary;
+      ours_coarse = coarse;
       ours_cpu = timer.cpu();
       ours_others_cpu = timer.others();
     }
-    ours_cached = schur.caches_frames();
+  }
+  ours_cached = ours_coarse.frames_cached;
+  // The plain LM on the whole problem from x0, for comparison (--plain).
+  solver::LmSummary plain;
+  std::vector<double> plain_times;
+  double plain_cpu = 0;
+  for (int rep = 0; args.plain && rep < args.repeat; ++rep) {
+    Eigen::VectorXd x = x0;
+    const SolveTimer timer;
+    solver::ArrowSchurProblem schur(&problem, args.threads);
+    solver::LmSummary summary = solver::Solve(fit_options.lm, &schur, &x);
+    plain_times.push_back(timer.wall());
+    if (plain_times.back() <= *std::min_element(plain_times.begin(), plain_times.end())) {
+      plain = summary;
+      plain_cpu = timer.cpu();
+    }
   }
   const double ours_seconds = *std::min_element(ours_times.begin(), ours_times.end());
   const double ours_rss = memory.ProcessPeakMb();
@@ -824,7 +863,22 @@ int main(int argc, char** argv) {
   out["ours_termination"] = solver::ToString(ours.termination);
   out["ours_breakdown"] = {{"linearize_s", ours.linearize_seconds},
                            {"linear_solver_s", ours.linear_solver_seconds},
-                           {"cost_s", ours.cost_evaluation_seconds}};
+                           {"cost_s", ours.cost_evaluation_seconds},
+                           {"inner_iterations_s", ours.inner_iteration_seconds}};
+  out["ours_coarse"] = {{"used", ours_coarse.used},
+                        {"frames", ours_coarse.coarse_frames},
+                        {"iterations", ours_coarse.coarse.num_iterations()},
+                        {"seconds", ours_coarse.coarse.total_seconds},
+                        {"pose_seconds", ours_coarse.pose_seconds},
+                        {"start_cost", ours_coarse.start_cost},
+                        {"fine_start_cost", ours_coarse.fine_start_cost}};
+  if (args.plain) {
+    out["plain_s"] = *std::min_element(plain_times.begin(), plain_times.end());
+    out["plain_s_all"] = plain_times;
+    out["plain_cpu_s"] = plain_cpu;
+    out["plain_cost"] = plain.final_cost;
+    out["plain_iterations"] = plain.num_iterations();
+  }
   out["ours_caches_frames"] = ours_cached;  // U_f, W_f kept between passes (memory budget)
   out["ours_peak_rss_mb"] = ours_rss;
 

@@ -45,6 +45,9 @@ class FrameEvaluator {
   // Evaluates frame f at y (frame_dim values) and the shared values last given to
   // ArrowProblem::SetShared. Returns false if any residual is not finite.
   virtual bool Evaluate(int frame, const double* y, bool with_jacobians) = 0;
+  // As Evaluate with Jacobians, except that only the y Jacobians need be formed (the blocks'
+  // jp may be stale): for per-frame solves with the shared parameters held fixed.
+  virtual bool EvaluatePoseJacobians(int frame, const double* y) { return Evaluate(frame, y, true); }
   virtual int num_blocks() const = 0;
   virtual const ResidualBlock& block(int i) const = 0;
 };
@@ -80,6 +83,15 @@ class ArrowProblem {
   virtual void BlockStructure(std::vector<std::vector<int>>* y_columns,
                               std::vector<std::vector<int>>* p_columns) const = 0;
 };
+
+// ||A (p - p0)||^2 + ||G (p - p0)||^2: the shared parameters' own rows (twice their cost).
+inline double SharedRowsSquaredNorm(const ArrowProblem& problem, const Eigen::VectorXd& p) {
+  const Eigen::VectorXd delta = p - problem.prior_target();
+  double sum = problem.prior_weight().cwiseProduct(delta).squaredNorm();
+  const Eigen::MatrixXd& g = problem.shared_rows();
+  if (g.rows() > 0) sum += (g * delta).squaredNorm();
+  return sum;
+}
 
 // The widest residual block of a BlockStructure: its most y columns and most p columns (at least 1).
 inline void WidestBlock(const std::vector<std::vector<int>>& y_columns,

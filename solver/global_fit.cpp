@@ -91,6 +91,7 @@ Status InitialCoordinatesFromTable(const Model& model, const formats::Coordinate
 }
 
 bool FitOptions::IsValid(std::string* error) const {
+  std::string why;
   auto fail = [&](const std::string& what) {
     if (error) *error = what;
     return false;
@@ -101,10 +102,10 @@ bool FitOptions::IsValid(std::string* error) const {
   if (!(undetermined_ratio > 0)) return fail("undetermined_ratio must be > 0");
   if (!(gauge_sigma_m > 0)) return fail("gauge_sigma_m must be > 0");
   if (repose_after_iterations < 1) return fail("repose_after_iterations must be >= 1");
+  if (!coarse.IsValid(&why)) return fail("coarse: " + why);
   if (!(frame_prior_sigma_rad > 0) || !(frame_prior_sigma_m > 0))
     return fail("frame prior sigmas must be > 0");
   if (num_threads < 0) return fail("num_threads must be >= 0");
-  std::string why;
   if (!lm.IsValid(&why)) return fail("lm: " + why);
   if (!ik.IsValid(&why)) return fail("ik: " + why);
   return true;
@@ -134,13 +135,17 @@ Status FitOptions::SetGroups(const std::string& list) {
 }
 
 std::string FitReport::BriefReport() const {
-  char buf[512];
+  const std::string coarse_note =
+      coarse.used ? " (after " + std::to_string(coarse.coarse.num_iterations()) + " on " +
+                        std::to_string(coarse.coarse_frames) + " frames)"
+                  : "";
+  char buf[640];
   std::snprintf(buf, sizeof(buf),
                 "fit: %d trials, %d frames, %d markers, %d unknowns; marker RMS %.3f -> %.3f mm; "
-                "%d iterations, %s; %zu undetermined; %.2f s (IK %.2f s, solve %.2f s)",
+                "%d iterations%s, %s; %zu undetermined; %.2f s (IK %.2f s, solve %.2f s)",
                 trials, frames, markers, unknowns, initial_marker_rms_mm, marker_rms_mm,
-                solver.num_iterations(), ToString(solver.termination), undetermined.size(),
-                wall_seconds, ik_seconds, solve_seconds);
+                solver.num_iterations(), coarse_note.c_str(), ToString(solver.termination),
+                undetermined.size(), wall_seconds, ik_seconds, solve_seconds);
   return buf;
 }
 
@@ -278,7 +283,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   ArrowSchurProblem schur(&problem, threads);
   LmOptions first = options.lm;
   first.max_iterations = std::min(options.lm.max_iterations, options.repose_after_iterations);
-  report.solver = Solve(first, &schur, &x);
+  report.solver = SolveCoarseToFine(&problem, &schur, first, options.coarse, threads, &x, &report.coarse);
   if (report.solver.termination == TerminationType::kNoConvergence &&
       options.lm.max_iterations > first.max_iterations) {
     // Still crawling: the poses found with the initial geometry hold the fit back (frames in

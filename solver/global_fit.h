@@ -22,6 +22,7 @@
 #include "formats/marker_data.h"
 #include "model/model.h"
 #include "model/status.h"
+#include "solver/coarse_to_fine.h"
 #include "solver/inverse_kinematics.h"
 #include "solver/levenberg_marquardt.h"
 
@@ -50,6 +51,9 @@ struct FitOptions {
   int num_threads = 0;                  // 0: all cores
   LmOptions lm;
   IkOptions ik;
+  // Many frames: the geometry first from an evenly spaced subset, then the whole problem
+  // (solver/coarse_to_fine.h). The same minimum and stopping rule, fewer passes over all frames.
+  CoarseToFineOptions coarse;
 
   FitOptions() {
     lm.function_tolerance = 1e-6;  // Ceres's default; the benchmark compares final costs at 1e-6
@@ -111,6 +115,7 @@ struct FitReport {
   double covariance_seconds = 0;
   double wall_seconds = 0;
   bool reposed = false;  // the poses were re-solved part-way (FitOptions::repose_after_iterations)
+  CoarseToFineSummary coarse;  // the coarse-to-fine start of the (first) solve
   bool converged() const { return solver.termination == TerminationType::kConvergence; }
   std::string BriefReport() const;
 };

@@ -68,9 +68,9 @@ std::string LmSummary::FullReport() const {
   }
   std::snprintf(buf, sizeof(buf),
                 "  initial cost %.8e\n  final cost   %.8e\n  time: linearize %.3f s, linear "
-                "solver %.3f s, cost %.3f s, total %.3f s\n",
+                "solver %.3f s, cost %.3f s, inner iterations %.3f s, total %.3f s\n",
                 initial_cost, final_cost, linearize_seconds, linear_solver_seconds,
-                cost_evaluation_seconds, total_seconds);
+                cost_evaluation_seconds, inner_iteration_seconds, total_seconds);
   os << buf;
   os << "  termination: " << ToString(termination) << " (" << message << ")\n";
   return os.str();
@@ -166,11 +166,14 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         else if (it.step_norm <= options.parameter_tolerance * (parameter_norm + options.parameter_tolerance))
           converged = "parameter tolerance reached";
         if (converged == nullptr) {
+          t = Clock::now();
+          problem->InnerIteration(x);
+          summary.inner_iteration_seconds += Since(t);
           problem->AnticipateDamping(lambda, options.min_diagonal, options.max_diagonal);
           t = Clock::now();
           if (!problem->Linearize(*x, &cost, &gradient, &diagonal)) {
             // Cannot happen for a finite cost in exact arithmetic; step back to the last good x.
-            *x -= dx;
+            x->swap(x_new);  // x_new holds the last good x since the swap above
             cost = old_cost;
             return finish(TerminationType::kNoConvergence, "Jacobian not finite after a step");
           }

@@ -39,6 +39,7 @@ struct IterationSummary {
   int linear_solves = 0;        // in this iteration (rejected steps re-solve)
   double iteration_seconds = 0;
   double total_seconds = 0;
+  bool coarse = false;          // of a coarse stage on a subset of the frames (coarse_to_fine.h)
 };
 
 // Return false to stop the solve (the summary then says kUserCancelled).
@@ -75,6 +76,7 @@ struct LmSummary {
   double linearize_seconds = 0;
   double linear_solver_seconds = 0;
   double cost_evaluation_seconds = 0;
+  double inner_iteration_seconds = 0;
 
   int num_iterations() const { return static_cast<int>(iterations.size()); }
   bool IsSolutionUsable() const { return termination != TerminationType::kFailure; }
@@ -98,6 +100,11 @@ class LmProblem {
   // lambda * clamp(jtj_diagonal, min_diagonal, max_diagonal), so a problem may prepare that
   // solve during the linearisation pass. Ignoring it is correct.
   virtual void AnticipateDamping(double lambda, double min_diagonal, double max_diagonal) {}
+  // After an accepted step that did not end the solve, before x is linearised: the problem may
+  // move *x to a point of no higher cost by a cheap partial minimisation (Ceres Solver's "inner
+  // iterations": each frame's own block re-solved with the shared parameters fixed). The next
+  // iteration's cost change includes what it gained. Doing nothing is correct.
+  virtual void InnerIteration(Eigen::VectorXd* x) {}
 };
 
 // Minimises from *x in place. Never leaves a non-finite value in *x.

@@ -38,11 +38,17 @@ class MarkerFrameEvaluator : public FrameEvaluator {
   }
 
   bool Evaluate(int frame, const double* y, bool with_jacobians) override {
+    return Evaluate(frame, y, with_jacobians, with_jacobians);
+  }
+  bool EvaluatePoseJacobians(int frame, const double* y) override { return Evaluate(frame, y, true, false); }
+
+ private:
+  bool Evaluate(int frame, const double* y, bool with_jacobians, bool with_shared_jacobians) {
     const Model& model = problem_.model();
     const Geometry& g = problem_.geometry();
     z_ = Eigen::Map<const Eigen::VectorXd>(y, model.num_coordinates());
     ForwardKinematics(model, g, z_, &data_);
-    if (with_jacobians) PrepareJacobians();
+    if (with_jacobians) PrepareJacobians(with_shared_jacobians);
     const double* meas = problem_.measurements().row(frame).data();
     num_blocks_ = 0;
     for (int m = 0; m < model.num_markers(); ++m) {
@@ -64,17 +70,22 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       blk.p_index = pcols.data();
       if (with_jacobians) {
         auto jy = jy_[num_blocks_].leftCols(blk.num_y);
-        auto jp = jp_[num_blocks_].leftCols(blk.num_p);
-        Jacobian(m, x, &jy, &jp);
+        PoseJacobian(m, x, &jy);
         jy *= scale;
-        jp *= scale;
         blk.jy = jy_[num_blocks_].data();
+        if (with_shared_jacobians) {
+          auto jp = jp_[num_blocks_].leftCols(blk.num_p);
+          SharedJacobian(m, x, &jp);
+          jp *= scale;
+        }
         blk.jp = jp_[num_blocks_].data();
       }
       ++num_blocks_;
     }
     return true;
   }
+
+ public:
   int num_blocks() const override { return num_blocks_; }
   const ResidualBlock& block(int i) const override { return blocks_[i]; }
 
@@ -85,7 +96,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
   // the chain (the full body's 39 markers share 15 joints); the per-marker products below are
   // MarkerJacobian's own expressions in its order, so the Jacobians are the same to rounding
   // (tests/test_fit.cpp checks it).
-  void PrepareJacobians() {
+  void PrepareJacobians(bool shared) {
     const Model& model = problem_.model();
     const Geometry& g = problem_.geometry();
     const ModelData& d = data_;
@@ -99,7 +110,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
           if (el.kind != ElementKind::kRotation)
             translation_column_[k] = (TranslationScale(jt, el, g) * d.element_derivative[j][e]) * world_axis_[k];
         }
-        if (model.axis_index(j, static_cast<int>(e)) < 0) continue;
+        if (!shared || model.axis_index(j, static_cast<int>(e)) < 0) continue;
         const double v = d.element_value[j][e];
         const Eigen::Vector3d& a = g.axis[j][e];
         const Eigen::Matrix3d& rb = d.element_rotation[j][e];
@@ -109,22 +120,20 @@ class MarkerFrameEvaluator : public FrameEvaluator {
         omega_alpha_[k] = rb * (sv * da + cv1 * a.cross(da));
         omega_beta_[k] = rb * (sv * db + cv1 * a.cross(db));
       }
-      if (jt.parent < 0) continue;
+      if (!shared || jt.parent < 0) continue;
       Eigen::Vector3d& col = centre_column_[j];
       col = d.segment_rotation[jt.parent] * g.centre[j];
       for (size_t e = 0; e < jt.elements.size(); ++e)
         if (ScalesWithParent(jt, jt.elements[e]))
           col += d.element_rotation[j][e] * (g.axis[j][e] * d.element_value[j][e]);
     }
+    if (!shared) return;
     for (int s = 0; s < model.num_segments(); ++s) scaled_rotation_[s] = g.scale[s] * d.segment_rotation[s];
   }
 
-  // MarkerJacobian(model, g, data_, m, jz, jp) from the prepared terms.
-  template <typename DerivedZ, typename DerivedP>
-  void Jacobian(int m, const Eigen::Vector3d& x, Eigen::MatrixBase<DerivedZ>* jz,
-                Eigen::MatrixBase<DerivedP>* jp) const {
-    const Model& model = problem_.model();
-    const Geometry& g = problem_.geometry();
+  // MarkerJacobian(model, g, data_, m, jz, jp) from the prepared terms: its dh/dz part ...
+  template <typename DerivedZ>
+  void PoseJacobian(int m, const Eigen::Vector3d& x, Eigen::MatrixBase<DerivedZ>* jz) const {
     const ModelData& d = data_;
     jz->setZero();
     for (const ZTerm& t : z_terms_[m]) {
@@ -134,6 +143,13 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       else
         jz->col(t.column) += translation_column_[t.k];
     }
+  }
+  // ... and its dh/dp part.
+  template <typename DerivedP>
+  void SharedJacobian(int m, const Eigen::Vector3d& x, Eigen::MatrixBase<DerivedP>* jp) const {
+    const Model& model = problem_.model();
+    const Geometry& g = problem_.geometry();
+    const ModelData& d = data_;
     const int s = model.markers()[m].segment;
     int c = 0;
     jp->template middleCols<3>(c) = scaled_rotation_[s];

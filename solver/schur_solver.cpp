@@ -266,11 +266,7 @@ void ArrowSchurProblem::SolveLowerTransposed(const Eigen::MatrixXd& l, Eigen::Ve
 }
 
 double ArrowSchurProblem::SharedRowsSquaredNorm(const Eigen::VectorXd& p) const {
-  const Eigen::VectorXd delta = p - problem_->prior_target();
-  double sum = problem_->prior_weight().cwiseProduct(delta).squaredNorm();
-  const Eigen::MatrixXd& g = problem_->shared_rows();
-  if (g.rows() > 0) sum += (g * delta).squaredNorm();
-  return sum;
+  return solver::SharedRowsSquaredNorm(*problem_, p);
 }
 
 std::string ArrowSchurProblem::DescribeStructure() const {

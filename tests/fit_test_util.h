@@ -9,6 +9,15 @@
 
 namespace mocap::testutil {
 
+// The default full-body model without its optional markers (the Plug-in Gait set).
+inline Model NominalWithoutOptional() {
+  Model m = DefaultFullBodyModel();
+  std::vector<int> keep;
+  for (int i = 0; i < m.num_markers(); ++i)
+    if (!m.markers()[i].optional) keep.push_back(i);
+  return m.WithMarkers(keep);
+}
+
 inline Eigen::VectorXd PerturbedParameters(const Model& model, std::mt19937_64& rng) {
   std::uniform_real_distribution<double> u(-1, 1);
   Eigen::VectorXd p = model.InitialParameters();

@@ -11,13 +11,7 @@
 using namespace mocap;
 
 namespace {
-Model NominalWithoutOptional() {
-  Model m = DefaultFullBodyModel();
-  std::vector<int> keep;
-  for (int i = 0; i < m.num_markers(); ++i)
-    if (!m.markers()[i].optional) keep.push_back(i);
-  return m.WithMarkers(keep);
-}
+using testutil::NominalWithoutOptional;
 }  // namespace
 
 TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {

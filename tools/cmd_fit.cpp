@@ -105,9 +105,9 @@ int RunFit(const FitArgs& args) {
     }
   }
   options.lm.callbacks.push_back([](const solver::IterationSummary& it) {
-    spdlog::info("iteration {:3d}  cost {:.6e}  change {:.3e}  |gradient| {:.3e}  |step| {:.3e}  "
+    spdlog::info("{}iteration {:3d}  cost {:.6e}  change {:.3e}  |gradient| {:.3e}  |step| {:.3e}  "
                  "lambda {:.2e}  {:.2f} s",
-                 it.iteration, it.cost, it.cost_change, it.gradient_max_norm, it.step_norm, it.lambda,
+                 it.coarse ? "coarse " : "", it.iteration, it.cost, it.cost_change, it.gradient_max_norm, it.step_norm, it.lambda,
                  it.total_seconds);
     return !g_interrupted.load();
   });
@@ -161,7 +161,14 @@ int RunFit(const FitArgs& args) {
     j["marker_samples"] = r.marker_samples;
     j["unknowns"] = r.unknowns;
     j["residuals"] = r.residuals;
-    j["iterations"] = r.solver.num_iterations();
+    j["iterations"] = r.solver.num_iterations();  // on the whole problem
+    // The coarse-to-fine start (solver/coarse_to_fine.h): its subset, iterations and pose pass.
+    j["coarse"] = {{"used", r.coarse.used},
+                   {"frames", r.coarse.coarse_frames},
+                   {"iterations", r.coarse.coarse.num_iterations()},
+                   {"seconds", r.coarse.coarse.total_seconds},
+                   {"pose_seconds", r.coarse.pose_seconds},
+                   {"start_cost", r.coarse.fine_start_cost}};
     j["initial_cost"] = r.solver.initial_cost;
     j["final_cost"] = r.solver.final_cost;
     j["initial_marker_rms_mm"] = r.initial_marker_rms_mm;

@@ -1,0 +1,127 @@
+// A coarse-to-fine start for arrow problems (solver/arrow_problem.h) with many similar frames:
+// the global body-model fit over thousands of frames of a few repeated movements.
+//
+// Levenberg–Marquardt from per-frame IK with the nominal geometry takes 6-7 linearisations of
+// the whole problem to reach the minimum, though the shared parameters p are determined by far
+// fewer frames than are given: a tenth of them, evenly spread over every trial, covers every
+// movement's range and fixes p to well within its final uncertainty's scale. So:
+//
+//  1. Coarse. The same problem restricted to `coarse_frames` evenly spaced frames (the same
+//     residuals, weights, frame priors, p priors and gauge rows; only the frame set differs) is
+//     solved by LM to a loose tolerance: p moves most of the way at a tenth of the cost.
+//  2. Poses. Every frame's pose is re-solved for that p with p held fixed: a few damped
+//     Gauss–Newton steps per frame on the frame's own residuals and prior (a step is kept only
+//     if it lowers the frame's cost), so poses and geometry agree before the full problem is
+//     linearised. Cheap: no shared columns, a 38 x 38 solve per frame.
+//  3. Fine. LM on the whole problem from there with the caller's tolerances: the same minimum
+//     and stopping rule as a plain solve (the coarse stage only moves the start). Two changes,
+//     both because it starts near the minimum: the initial damping is Gauss–Newton-like
+//     (fine_initial_lambda), and after each accepted step every pose is re-solved for the new
+//     geometry (LmProblem::InnerIteration, as Ceres's inner iterations), which takes the step's
+//     shortfall in the weakly seen coordinates. Measured on the default protocol: 2 whole-problem
+//     linearisations instead of 6 at 6,000 frames and 7 at 60,000 (BENCHMARKS.md).
+//
+// This is the multi-resolution idea of bundle adjustment over keyframes first (e.g. Mouragnon et
+// al., "Real time localization and 3D reconstruction", CVPR 2006) applied to frames of motion:
+// the subset is a statistical sample of the same problem, not a different model.
+//
+// Problems with fewer than `min_frames` frames are solved directly (their plain solve is cheap
+// and a sample of them would not determine p).
+#pragma once
+
+#include <Eigen/Core>
+#include <string>
+#include <vector>
+
+#include "solver/arrow_problem.h"
+#include "solver/levenberg_marquardt.h"
+#include "solver/schur_solver.h"
+
+namespace mocap::solver {
+
+struct CoarseToFineOptions {
+  bool enabled = true;
+  int min_frames = 3000;          // fewer frames: a plain solve
+  int coarse_frames = 600;        // frames of the coarse stage, evenly spaced
+  double coarse_function_tolerance = 1e-5;
+  int coarse_max_iterations = 50;
+  // Stage 2: at most this many damped Gauss–Newton steps per frame; a frame ends once a step
+  // gains less than pose_tolerance of the frame's cost (with quadratic convergence the next would
+  // gain about nothing). Most frames, started from their predecessor's correction (consecutive
+  // frames need nearly the same one: the geometry changed, the motion hardly), need one step.
+  int pose_iterations = 8;
+  double pose_tolerance = 0.5;
+  bool pose_from_predecessor = true;
+  // Stage 3: after each accepted step every pose is re-solved for the new geometry (one
+  // Gauss–Newton step a frame, LmProblem::InnerIteration).
+  bool inner_iterations = true;
+  double pose_damping = 1e-6;     // relative to diag(J_y^T J_y), for steps in badly seen frames
+  // Stage 3 starts near the minimum, where Ceres's initial damping (LmOptions::initial_lambda,
+  // 1e-4) only slows the weakly determined directions (a parameter held mostly by its prior has
+  // a curvature far below 1e-4 of its data diagonal): each LM step would close only part of their
+  // gap. Gauss–Newton-like steps from the start; Nielsen's rule raises it if a step fails.
+  double fine_initial_lambda = 1e-8;
+
+  bool IsValid(std::string* error) const;
+};
+
+struct CoarseToFineSummary {
+  bool used = false;              // false: a plain solve (too few frames, or disabled)
+  int coarse_frames = 0;
+  LmSummary coarse;               // stage 1, on the subset
+  double pose_seconds = 0;        // stage 2
+  int poses_improved = 0;         // frames whose pose stage 2 moved
+  double start_cost = 0;          // the whole problem's cost at the caller's x
+  double fine_start_cost = 0;     // ... after stages 1 and 2
+  double total_seconds = 0;
+  bool frames_cached = false;     // the whole problem's per-frame cache fit its memory budget
+  std::string BriefReport() const;
+};
+
+// The frames of a problem restricted to a subset: frame i of the view is frame frames[i] of
+// `full`. Everything else (shared parameters, priors, gauge rows, block kinds) is `full`'s.
+class FrameSubsetProblem : public ArrowProblem {
+ public:
+  FrameSubsetProblem(ArrowProblem* full, std::vector<int> frames);
+  int num_frames() const override { return static_cast<int>(frames_.size()); }
+  int frame_dim() const override { return full_->frame_dim(); }
+  int shared_dim() const override { return full_->shared_dim(); }
+  // ArrowProblem has no per-frame row count: the full problem's rows pro rata (for reports).
+  int num_residuals() const override;
+  bool SetShared(const Eigen::VectorXd& p) override { return full_->SetShared(p); }
+  std::unique_ptr<FrameEvaluator> NewEvaluator() const override;
+  const Eigen::VectorXd& prior_weight() const override { return full_->prior_weight(); }
+  const Eigen::VectorXd& prior_target() const override { return full_->prior_target(); }
+  bool FramePrior(int frame, const double** weight, const double** target) const override {
+    return full_->FramePrior(frames_[frame], weight, target);
+  }
+  const Eigen::MatrixXd& shared_rows() const override { return full_->shared_rows(); }
+  void BlockStructure(std::vector<std::vector<int>>* y_columns,
+                      std::vector<std::vector<int>>* p_columns) const override {
+    full_->BlockStructure(y_columns, p_columns);
+  }
+  const std::vector<int>& frames() const { return frames_; }
+
+ private:
+  ArrowProblem* full_;
+  std::vector<int> frames_;
+};
+
+// Stage 2 alone: re-solves every frame's pose in x = [y_1 ... y_F, p] for x's p, p fixed; a
+// frame's pose changes only if its cost falls. Returns the number of frames whose pose changed
+// and, in *cost if given, the whole problem's cost at the result; false in *ok if p is refused
+// or a frame's residuals are not finite at its starting pose.
+int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
+                     Eigen::VectorXd* x, bool* ok, double* cost = nullptr);
+
+// Minimises `problem` from *x: stages 1-3 when it has enough frames, else LM directly. `whole`
+// is the caller's Schur solver of `problem` (it holds the per-frame cache, so the caller keeps
+// it for the covariance afterwards); stage 1 makes its own for the subset. The returned summary
+// is stage 3's (the whole problem) with initial_cost the cost at the caller's x; the options'
+// callbacks see stage 1's iterations too (IterationSummary::coarse) and may cancel in either
+// stage.
+LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, const LmOptions& options,
+                            const CoarseToFineOptions& coarse, int num_threads, Eigen::VectorXd* x,
+                            CoarseToFineSummary* summary = nullptr);
+
+}  // namespace mocap::solver

@@ -1,0 +1,238 @@
+// The coarse-to-fine start of the global fit (solver/coarse_to_fine.h): it must reach the plain
+// LM's minimum, in fewer iterations on the whole problem, and never make a frame worse.
+#include <gtest/gtest.h>
+
+#include "fit_test_util.h"
+#include "model/default_model.h"
+#include "solver/coarse_to_fine.h"
+#include "solver/global_fit.h"
+#include "solver/marker_fit_problem.h"
+#include "solver/schur_solver.h"
+
+using namespace mocap;
+
+namespace {
+using testutil::NominalWithoutOptional;
+
+// A perturbed subject moving at random, fitted from the nominal geometry; the poses start at
+// the truth plus `pose_noise` rad/m per coordinate (what IK with the wrong geometry gives, roughly).
+struct Session {
+  Model nominal = NominalWithoutOptional();
+  Eigen::MatrixXd z_true;
+  std::unique_ptr<solver::MarkerFitProblem> problem;
+  Eigen::VectorXd x0;
+  Eigen::VectorXd p_true;  // the true geometry as the problem's shared parameters
+  Session(int frames, double pose_noise, unsigned seed = 3) {
+    std::mt19937_64 rng(seed);
+    const Eigen::VectorXd truth_parameters = testutil::PerturbedParameters(nominal, rng);
+    const Model truth = nominal.WithParameters(truth_parameters);
+    formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, frames, 0.0005, rng, &z_true);
+    problem = std::make_unique<solver::MarkerFitProblem>(nominal, trial.positions, solver::FitOptions());
+    const int ny = nominal.num_coordinates(), np = problem->shared_dim();
+    x0.resize(static_cast<Eigen::Index>(frames) * ny + np);
+    std::normal_distribution<double> n(0.0, pose_noise);
+    for (int f = 0; f < frames; ++f)
+      for (int c = 0; c < ny; ++c) x0[f * ny + c] = z_true(f, c) + n(rng);
+    x0.tail(np) = problem->InitialShared();
+    problem->SetFramePriorTargets(x0);
+    p_true.resize(np);
+    for (int k = 0; k < np; ++k) p_true[k] = truth_parameters[problem->free_parameters()[k]];
+  }
+};
+
+solver::CoarseToFineOptions SmallCoarse() {
+  solver::CoarseToFineOptions c;
+  c.coarse_frames = 150;
+  c.min_frames = 600;
+  return c;
+}
+
+// Each frame's own sum of squares (residuals and frame prior) at x, for x's geometry.
+std::vector<double> FrameCosts(solver::ArrowProblem* problem, const Eigen::VectorXd& x) {
+  const int nf = problem->num_frames(), ny = problem->frame_dim();
+  EXPECT_TRUE(problem->SetShared(x.tail(problem->shared_dim())));
+  auto evaluator = problem->NewEvaluator();
+  std::vector<double> costs(nf, 0.0);
+  for (int f = 0; f < nf; ++f) {
+    const double* y = x.data() + static_cast<size_t>(f) * ny;
+    EXPECT_TRUE(evaluator->Evaluate(f, y, false));
+    for (int k = 0; k < evaluator->num_blocks(); ++k) {
+      const solver::ResidualBlock& b = evaluator->block(k);
+      for (int r = 0; r < b.rows; ++r) costs[f] += b.residual[r] * b.residual[r];
+    }
+    const double *w, *target;
+    if (problem->FramePrior(f, &w, &target))
+      for (int i = 0; i < ny; ++i) costs[f] += (w[i] * (y[i] - target[i])) * (w[i] * (y[i] - target[i]));
+  }
+  return costs;
+}
+}  // namespace
+
+TEST(CoarseToFine, ReachesThePlainMinimumWithFewerWholeProblemIterations) {
+  Session s(1500, 0.03);
+  const solver::FitOptions fit;
+  Eigen::VectorXd x_plain = s.x0, x_c2f = s.x0;
+  solver::ArrowSchurProblem plain_schur(s.problem.get(), 2);
+  const solver::LmSummary plain = solver::Solve(fit.lm, &plain_schur, &x_plain);
+  solver::ArrowSchurProblem schur(s.problem.get(), 2);
+  solver::CoarseToFineSummary summary;
+  const solver::LmSummary c2f =
+      solver::SolveCoarseToFine(s.problem.get(), &schur, fit.lm, SmallCoarse(), 2, &x_c2f, &summary);
+  ASSERT_EQ(plain.termination, solver::TerminationType::kConvergence) << plain.BriefReport();
+  ASSERT_EQ(c2f.termination, solver::TerminationType::kConvergence) << c2f.BriefReport();
+  ASSERT_TRUE(summary.used);
+  EXPECT_EQ(summary.coarse_frames, 150);
+  EXPECT_GT(summary.coarse.num_iterations(), 0);
+  // The report's initial cost is the caller's start, not stage 3's.
+  EXPECT_NEAR(c2f.initial_cost, plain.initial_cost, 1e-12 * plain.initial_cost);  // summed in another order
+  EXPECT_LT(summary.fine_start_cost, 0.01 * summary.start_cost);
+  // The same minimum: both stop on the same function tolerance, so within 1e-6 of each other.
+  EXPECT_LE(std::abs(c2f.final_cost - plain.final_cost), 1e-6 * plain.final_cost)
+      << c2f.final_cost << " vs " << plain.final_cost;
+  // And the minimum itself: a plain solve run far past the usual tolerance lands at the same
+  // cost (coarse-to-fine stops at least as low as the plain solve, which ends in a slow valley).
+  Eigen::VectorXd x_ref = s.x0;
+  solver::LmOptions tight = fit.lm;
+  tight.function_tolerance = 1e-12;
+  solver::ArrowSchurProblem ref_schur(s.problem.get(), 2);
+  const solver::LmSummary ref = solver::Solve(tight, &ref_schur, &x_ref);
+  EXPECT_LE(c2f.final_cost - ref.final_cost, 1e-6 * ref.final_cost);
+  EXPECT_LE(c2f.final_cost, plain.final_cost * (1 + 1e-9));
+  EXPECT_LT(c2f.num_iterations(), plain.num_iterations())
+      << "coarse-to-fine " << c2f.num_iterations() << ", plain " << plain.num_iterations();
+  std::printf("plain: %d iterations to %.6f; coarse-to-fine: %d coarse + %d whole to %.6f\n",
+              plain.num_iterations(), plain.final_cost, summary.coarse.num_iterations(),
+              c2f.num_iterations(), c2f.final_cost);
+}
+
+TEST(CoarseToFine, FewFramesAreSolvedPlainly) {
+  Session s(300, 0.03);
+  const solver::FitOptions fit;
+  Eigen::VectorXd x_plain = s.x0, x_c2f = s.x0;
+  solver::ArrowSchurProblem a(s.problem.get(), 2), b(s.problem.get(), 2);
+  const solver::LmSummary plain = solver::Solve(fit.lm, &a, &x_plain);
+  solver::CoarseToFineSummary summary;
+  const solver::LmSummary c2f = solver::SolveCoarseToFine(s.problem.get(), &b, fit.lm, SmallCoarse(), 2,
+                                                          &x_c2f, &summary);
+  EXPECT_FALSE(summary.used);
+  EXPECT_EQ(c2f.num_iterations(), plain.num_iterations());
+  EXPECT_EQ(c2f.final_cost, plain.final_cost);
+  EXPECT_EQ((x_c2f - x_plain).lpNorm<Eigen::Infinity>(), 0.0);
+}
+
+TEST(CoarseToFine, SubsetFrameIsTheFullProblemsFrame) {
+  Session s(20, 0.0);
+  solver::FrameSubsetProblem subset(s.problem.get(), {3, 17});
+  EXPECT_EQ(subset.num_frames(), 2);
+  EXPECT_EQ(subset.frame_dim(), s.problem->frame_dim());
+  EXPECT_EQ(subset.shared_dim(), s.problem->shared_dim());
+  ASSERT_TRUE(subset.SetShared(s.x0.tail(s.problem->shared_dim())));
+  auto full = s.problem->NewEvaluator();
+  auto view = subset.NewEvaluator();
+  const int ny = s.problem->frame_dim();
+  const double* y = s.x0.data() + 17 * ny;
+  ASSERT_TRUE(full->Evaluate(17, y, true));
+  ASSERT_TRUE(view->Evaluate(1, y, true));
+  ASSERT_EQ(view->num_blocks(), full->num_blocks());
+  for (int k = 0; k < full->num_blocks(); ++k) {
+    const solver::ResidualBlock &a = full->block(k), &b = view->block(k);
+    ASSERT_EQ(a.rows, b.rows);
+    ASSERT_EQ(a.num_y, b.num_y);
+    for (int r = 0; r < a.rows; ++r) EXPECT_EQ(a.residual[r], b.residual[r]);
+    for (int i = 0; i < 3 * a.num_y; ++i) EXPECT_EQ(a.jy[i], b.jy[i]);
+    for (int i = 0; i < 3 * a.num_p; ++i) EXPECT_EQ(a.jp[i], b.jp[i]);
+  }
+  const double *wa, *ta, *wb, *tb;
+  ASSERT_TRUE(s.problem->FramePrior(3, &wa, &ta));
+  ASSERT_TRUE(subset.FramePrior(0, &wb, &tb));
+  EXPECT_EQ(ta, tb);
+  EXPECT_EQ(wa, wb);
+}
+
+TEST(CoarseToFine, PoseOnlyJacobiansAreTheFullJacobiansYColumns) {
+  Session s(5, 0.05);
+  ASSERT_TRUE(s.problem->SetShared(s.x0.tail(s.problem->shared_dim())));
+  auto a = s.problem->NewEvaluator();
+  auto b = s.problem->NewEvaluator();
+  const double* y = s.x0.data() + 2 * s.problem->frame_dim();
+  ASSERT_TRUE(a->Evaluate(2, y, true));
+  ASSERT_TRUE(b->EvaluatePoseJacobians(2, y));
+  ASSERT_EQ(a->num_blocks(), b->num_blocks());
+  for (int k = 0; k < a->num_blocks(); ++k)
+    for (int i = 0; i < 3 * a->block(k).num_y; ++i) EXPECT_EQ(a->block(k).jy[i], b->block(k).jy[i]);
+}
+
+TEST(CoarseToFine, PoseRefinementLowersEveryFrameAndConverges) {
+  // The true geometry, poses 3 degrees (or 5 cm) off per coordinate: the refinement must bring
+  // every frame to the noise floor (0.5 mm per coordinate, a cost of about 0.25 a row).
+  Session s(400, 0.05);
+  s.x0.tail(s.problem->shared_dim()) = s.p_true;
+  const std::vector<double> before = FrameCosts(s.problem.get(), s.x0);
+  Eigen::VectorXd x = s.x0;
+  bool ok = false;
+  const solver::CoarseToFineOptions options;
+  const int moved = solver::RefineFramePoses(s.problem.get(), options, 2, &x, &ok);
+  ASSERT_TRUE(ok);
+  EXPECT_EQ(moved, 400);  // 0.05 rad of noise: every frame has something to gain
+  const std::vector<double> after = FrameCosts(s.problem.get(), x);
+  double sum_before = 0, sum_after = 0;
+  for (int f = 0; f < 400; ++f) {
+    EXPECT_LE(after[f], before[f]) << "frame " << f;
+    sum_before += before[f];
+    sum_after += after[f];
+  }
+  EXPECT_LT(sum_after, 0.25 * 1.1 * s.problem->num_samples() * 3) << "before " << sum_before;
+  // Converged: another pass gains next to nothing, and the geometry was not touched.
+  Eigen::VectorXd again = x;
+  solver::RefineFramePoses(s.problem.get(), options, 2, &again, &ok);
+  double sum_again = 0;
+  for (double c : FrameCosts(s.problem.get(), again)) sum_again += c;
+  EXPECT_GT(sum_again, (1 - 1e-3) * sum_after);
+  const int np = s.problem->shared_dim();
+  EXPECT_EQ((x.tail(np) - s.x0.tail(np)).lpNorm<Eigen::Infinity>(), 0.0);
+}
+
+TEST(CoarseToFine, CancellingInTheCoarseStageLeavesTheStartUntouched) {
+  Session s(1000, 0.03);
+  solver::FitOptions fit;
+  int seen = 0;
+  fit.lm.callbacks.push_back([&](const solver::IterationSummary& it) {
+    EXPECT_TRUE(it.coarse);
+    ++seen;
+    return false;
+  });
+  Eigen::VectorXd x = s.x0;
+  solver::ArrowSchurProblem schur(s.problem.get(), 2);
+  solver::CoarseToFineSummary summary;
+  const solver::LmSummary r =
+      solver::SolveCoarseToFine(s.problem.get(), &schur, fit.lm, SmallCoarse(), 2, &x, &summary);
+  EXPECT_EQ(seen, 1);
+  EXPECT_EQ(r.termination, solver::TerminationType::kUserCancelled);
+  EXPECT_EQ(r.final_cost, r.initial_cost);
+  EXPECT_EQ((x - s.x0).lpNorm<Eigen::Infinity>(), 0.0);
+}
+
+TEST(CoarseToFine, BadOptionsAreRefusedByName) {
+  auto refused = [](solver::CoarseToFineOptions o, const std::string& field) {
+    std::string why;
+    EXPECT_FALSE(o.IsValid(&why)) << field;
+    EXPECT_NE(why.find(field), std::string::npos) << why;
+    solver::FitOptions fit;
+    fit.coarse = o;
+    EXPECT_FALSE(fit.IsValid(&why));
+    EXPECT_NE(why.find("coarse: "), std::string::npos) << why;
+  };
+  solver::CoarseToFineOptions o;
+  o.coarse_frames = 0;
+  refused(o, "coarse_frames");
+  o = {};
+  o.min_frames = o.coarse_frames;
+  refused(o, "min_frames");
+  o = {};
+  o.pose_tolerance = 1.5;
+  refused(o, "pose_tolerance");
+  o = {};
+  o.fine_initial_lambda = 0;
+  refused(o, "fine_initial_lambda");
+  EXPECT_TRUE(solver::CoarseToFineOptions().IsValid(nullptr));
+}
