@@ -4,7 +4,10 @@
 #include <chrono>
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
+#include <cstring>
+#include <limits>
 
 #include "solver/parallel.h"
 
@@ -60,10 +63,32 @@ class WithInnerIterations : public LmProblem {
       : whole_(whole), problem_(problem), options_(options), num_threads_(num_threads) {
     options_.pose_iterations = 1;
     options_.pose_from_predecessor = false;
+    const int threads = std::max(1, std::min(num_threads_, problem_->num_frames()));
+    for (int t = 0; t < threads; ++t) evaluators_.push_back(problem_->NewEvaluator());
   }
   int num_parameters() const override { return whole_->num_parameters(); }
   int num_residuals() const override { return whole_->num_residuals(); }
-  bool Cost(const Eigen::VectorXd& x, double* cost) override { return whole_->Cost(x, cost); }
+  // The whole problem's cost as the Schur solver computes it, keeping each frame's share: the
+  // inner iteration that follows an accepted step starts from them instead of re-evaluating.
+  bool Cost(const Eigen::VectorXd& x, double* cost) override {
+    const int nf = problem_->num_frames(), ny = problem_->frame_dim(), np = problem_->shared_dim();
+    if (!problem_->SetShared(x.tail(np))) return false;
+    frame_costs_.resize(nf);
+    const int threads = std::max(1, std::min(num_threads_, nf));
+    std::vector<char> fine(threads, 1);
+    ParallelChunks(nf, threads, [&](int t, int b, int e) {
+      for (int f = b; f < e && fine[t]; ++f)
+        fine[t] = FrameCost(*problem_, evaluators_[t].get(), f, x.data() + static_cast<size_t>(f) * ny,
+                            &frame_costs_[f]);
+    });
+    double sum = 0;
+    for (int t = 0; t < threads; ++t)
+      if (!fine[t]) return false;
+    for (double c : frame_costs_) sum += c;
+    *cost = 0.5 * (sum + SharedRowsSquaredNorm(*problem_, x.tail(np)));
+    costs_at_ = Fingerprint(x);
+    return std::isfinite(*cost);
+  }
   bool Linearize(const Eigen::VectorXd& x, double* cost, Eigen::VectorXd* gradient,
                  Eigen::VectorXd* jtj_diagonal) override {
     return whole_->Linearize(x, cost, gradient, jtj_diagonal);
@@ -77,7 +102,10 @@ class WithInnerIterations : public LmProblem {
   void InnerIteration(Eigen::VectorXd* x) override {
     candidate_ = *x;
     bool ok = false;
-    RefineFramePoses(problem_, options_, num_threads_, &candidate_, &ok, nullptr);
+    // LM has just evaluated the cost at this very x (the accepted step).
+    const bool known = costs_at_ == Fingerprint(*x);
+    RefineFramePoses(problem_, options_, num_threads_, &candidate_, &ok, nullptr,
+                     known ? frame_costs_.data() : nullptr);
     if (ok) x->swap(candidate_);  // every frame's cost only fell; p is unchanged
   }
 
@@ -85,9 +113,95 @@ class WithInnerIterations : public LmProblem {
   ArrowSchurProblem* whole_;
   ArrowProblem* problem_;
   CoarseToFineOptions options_;
+  // Which x the frame costs belong to: a 64-bit FNV-1a hash of its bits and its size (a copy of
+  // x would cost 18 MB at 60,000 frames).
+  static std::uint64_t Fingerprint(const Eigen::VectorXd& x) {
+    std::uint64_t h = 1469598103934665603ull ^ static_cast<std::uint64_t>(x.size());
+    for (Eigen::Index i = 0; i < x.size(); ++i) {
+      std::uint64_t bits;
+      std::memcpy(&bits, x.data() + i, sizeof bits);
+      h = (h ^ bits) * 1099511628211ull;
+    }
+    return h;
+  }
   int num_threads_;
   Eigen::VectorXd candidate_;
+  std::uint64_t costs_at_ = 0;
+  std::vector<double> frame_costs_;
+  std::vector<std::unique_ptr<FrameEvaluator>> evaluators_;
 };
+// In-place Cholesky of a small dense SPD matrix (lower triangle, column-major, n x n), then
+// the solve with it. Written out rather than Eigen's LLT because at the frame's size (38) Eigen
+// takes its blocked path (panels of 16, packed GEMM updates) and spends more in the packing than
+// in the 9,000 multiply-adds; this left-looking loop runs down contiguous columns.
+bool CholeskyInPlace(double* a, int n) {
+  for (int j = 0; j < n; ++j) {
+    double* cj = a + static_cast<size_t>(j) * n;
+    for (int k = 0; k < j; ++k) {
+      const double* ck = a + static_cast<size_t>(k) * n;
+      const double l = ck[j];
+      for (int i = j; i < n; ++i) cj[i] -= l * ck[i];
+    }
+    if (!(cj[j] > 0)) return false;
+    const double d = std::sqrt(cj[j]);
+    cj[j] = d;
+    const double inv = 1.0 / d;
+    for (int i = j + 1; i < n; ++i) cj[i] *= inv;
+  }
+  return true;
+}
+
+// Solves L L^T x = b in place, L from CholeskyInPlace.
+void CholeskySolveInPlace(const double* l, int n, double* b) {
+  for (int j = 0; j < n; ++j) {
+    const double* cj = l + static_cast<size_t>(j) * n;
+    b[j] /= cj[j];
+    for (int i = j + 1; i < n; ++i) b[i] -= cj[i] * b[j];
+  }
+  for (int j = n - 1; j >= 0; --j) {
+    const double* cj = l + static_cast<size_t>(j) * n;
+    double sum = b[j];
+    for (int i = j + 1; i < n; ++i) sum -= cj[i] * b[i];
+    b[j] = sum / cj[j];
+  }
+}
+
+// Adds one residual block's J_y^T J_y (lower triangle of u, column-major ny x ny) and J_y^T r.
+// The common case, three rows and ascending y columns (a marker on its chain), is written out:
+// it is the inner loop of every per-frame solve.
+void AddBlockNormalEquations(const ResidualBlock& blk, int ny, double* u, double* g) {
+  const int n = blk.num_y;
+  const int* y = blk.y_index;
+  bool ascending = blk.rows == 3;
+  for (int a = 1; a < n && ascending; ++a) ascending = y[a - 1] < y[a];
+  if (ascending) {
+    const double r0 = blk.residual[0], r1 = blk.residual[1], r2 = blk.residual[2];
+    for (int c = 0; c < n; ++c) {
+      const double* jc = blk.jy + c * kMaxBlockRows;
+      const double j0 = jc[0], j1 = jc[1], j2 = jc[2];
+      g[y[c]] += j0 * r0 + j1 * r1 + j2 * r2;
+      double* col = u + static_cast<size_t>(y[c]) * ny;
+      for (int a = c; a < n; ++a) {
+        const double* ja = blk.jy + a * kMaxBlockRows;
+        col[y[a]] += j0 * ja[0] + j1 * ja[1] + j2 * ja[2];
+      }
+    }
+    return;
+  }
+  for (int a = 0; a < n; ++a) {
+    const double* ja = blk.jy + a * kMaxBlockRows;
+    double ga = 0;
+    for (int r = 0; r < blk.rows; ++r) ga += ja[r] * blk.residual[r];
+    g[y[a]] += ga;
+    for (int c = 0; c <= a; ++c) {
+      const double* jc = blk.jy + c * kMaxBlockRows;
+      double sum = 0;
+      for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jc[r];
+      const int hi = std::max(y[a], y[c]), lo = std::min(y[a], y[c]);
+      u[static_cast<size_t>(lo) * ny + hi] += sum;
+    }
+  }
+}
 }  // namespace
 
 bool CoarseToFineOptions::IsValid(std::string* error) const {
@@ -130,7 +244,7 @@ std::unique_ptr<FrameEvaluator> FrameSubsetProblem::NewEvaluator() const {
 }
 
 int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
-                     Eigen::VectorXd* x, bool* ok, double* cost) {
+                     Eigen::VectorXd* x, bool* ok, double* cost, const double* frame_costs) {
   const int nf = problem->num_frames(), ny = problem->frame_dim(), np = problem->shared_dim();
   *ok = problem->SetShared(x->tail(np));
   if (!*ok) return 0;
@@ -142,51 +256,51 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
     // Per thread, allocated once: the hot loop allocates nothing.
     std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
     Eigen::MatrixXd u(ny, ny);
-    Eigen::VectorXd g(ny), y(ny), trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
-    Eigen::LLT<Eigen::MatrixXd> llt(ny);
+    Eigen::VectorXd g(ny), step(ny), trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
     bool have_correction = false;
+    double previous_cost = 0;
     for (int f = b; f < e; ++f) {
       double* yf = x->data() + static_cast<size_t>(f) * ny;
       given = Eigen::Map<const Eigen::VectorXd>(yf, ny);
       double cost = 0;
-      if (!FrameCost(*problem, evaluator.get(), f, yf, &cost)) {
-        fine[t] = 0;
-        return;
+      bool have_cost = false, moved = false;
+      int max_iterations = options.pose_iterations;
+      if (frame_costs) {
+        cost = frame_costs[f];
+        have_cost = true;
       }
-      bool moved = false;
-      // Start from the previous frame's correction when that is better than the given pose.
-      if (have_correction && options.pose_from_predecessor) {
+      // Start from the previous frame's correction. When that start is about as good as the
+      // previous frame ended, the given pose (made for another geometry) is not even evaluated.
+      double corrected_cost = std::numeric_limits<double>::infinity();
+      if (!have_cost && have_correction && options.pose_from_predecessor) {
         trial = given + correction;
-        double trial_cost = 0;
-        if (FrameCost(*problem, evaluator.get(), f, trial.data(), &trial_cost) && trial_cost < cost) {
+        if (!FrameCost(*problem, evaluator.get(), f, trial.data(), &corrected_cost))
+          corrected_cost = std::numeric_limits<double>::infinity();
+        if (corrected_cost <= 4.0 * previous_cost) {
           Eigen::Map<Eigen::VectorXd>(yf, ny) = trial;
-          cost = trial_cost;
+          cost = corrected_cost;
+          have_cost = moved = true;
+          max_iterations = 1;  // close already; stage 3 takes what one step leaves
+        }
+      }
+      if (!have_cost) {
+        if (!FrameCost(*problem, evaluator.get(), f, yf, &cost)) {
+          fine[t] = 0;
+          return;
+        }
+        if (corrected_cost < cost) {
+          Eigen::Map<Eigen::VectorXd>(yf, ny) = trial;
+          cost = corrected_cost;
           moved = true;
         }
       }
-      for (int it = 0; it < options.pose_iterations; ++it) {
+      for (int it = 0; it < max_iterations; ++it) {
         // Normal equations of the frame's own rows: U = J_y^T J_y + B^T B, g = J_y^T r + B^T B (y - y0).
         if (!evaluator->EvaluatePoseJacobians(f, yf)) break;
         u.setZero();
         g.setZero();
-        for (int k = 0; k < evaluator->num_blocks(); ++k) {
-          const ResidualBlock& blk = evaluator->block(k);
-          for (int a = 0; a < blk.num_y; ++a) {
-            const double* ja = blk.jy + a * kMaxBlockRows;
-            const int ia = blk.y_index[a];
-            double ga = 0;
-            for (int r = 0; r < blk.rows; ++r) ga += ja[r] * blk.residual[r];
-            g[ia] += ga;
-            for (int c = 0; c <= a; ++c) {
-              const double* jc = blk.jy + c * kMaxBlockRows;
-              double s = 0;
-              for (int r = 0; r < blk.rows; ++r) s += ja[r] * jc[r];
-              const int ic = blk.y_index[c];
-              // Lower triangle in any column order: (max, min).
-              u(std::max(ia, ic), std::min(ia, ic)) += s;
-            }
-          }
-        }
+        for (int k = 0; k < evaluator->num_blocks(); ++k)
+          AddBlockNormalEquations(evaluator->block(k), ny, u.data(), g.data());
         const double *w, *target;
         if (problem->FramePrior(f, &w, &target))
           for (int i = 0; i < ny; ++i) {
@@ -194,10 +308,10 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
             g[i] += w[i] * w[i] * (yf[i] - target[i]);
           }
         for (int i = 0; i < ny; ++i) u(i, i) += options.pose_damping * std::max(u(i, i), 1e-12);
-        llt.compute(u.selfadjointView<Eigen::Lower>());
-        if (llt.info() != Eigen::Success) break;
-        y = Eigen::Map<const Eigen::VectorXd>(yf, ny);
-        trial = y - llt.solve(g);
+        if (!CholeskyInPlace(u.data(), ny)) break;
+        step = g;
+        CholeskySolveInPlace(u.data(), ny, step.data());
+        trial = Eigen::Map<const Eigen::VectorXd>(yf, ny) - step;
         double trial_cost = 0;
         if (!trial.allFinite() || !FrameCost(*problem, evaluator.get(), f, trial.data(), &trial_cost) ||
             !(trial_cost < cost))
@@ -210,6 +324,7 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
       }
       correction = Eigen::Map<const Eigen::VectorXd>(yf, ny) - given;
       have_correction = true;
+      previous_cost = cost;
       improved[t] += moved ? 1 : 0;
       frames_cost[t] += cost;
     }

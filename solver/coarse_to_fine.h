@@ -45,10 +45,12 @@ struct CoarseToFineOptions {
   int coarse_frames = 600;        // frames of the coarse stage, evenly spaced
   double coarse_function_tolerance = 1e-5;
   int coarse_max_iterations = 50;
-  // Stage 2: at most this many damped Gauss–Newton steps per frame; a frame ends once a step
-  // gains less than pose_tolerance of the frame's cost (with quadratic convergence the next would
-  // gain about nothing). Most frames, started from their predecessor's correction (consecutive
-  // frames need nearly the same one: the geometry changed, the motion hardly), need one step.
+  // Stage 2: each frame starts from its predecessor's correction (consecutive frames need nearly
+  // the same one: the geometry changed, the motion hardly) and takes one damped Gauss–Newton
+  // step; what that leaves, stage 3's inner iterations take. A frame the correction does not
+  // suit (the first of a thread's run, a trial boundary) starts from its given pose and takes
+  // up to pose_iterations steps, stopping once a step gains less than pose_tolerance of its cost
+  // (with quadratic convergence the next would gain about nothing).
   int pose_iterations = 8;
   double pose_tolerance = 0.5;
   bool pose_from_predecessor = true;
@@ -107,12 +109,17 @@ class FrameSubsetProblem : public ArrowProblem {
   std::vector<int> frames_;
 };
 
-// Stage 2 alone: re-solves every frame's pose in x = [y_1 ... y_F, p] for x's p, p fixed; a
-// frame's pose changes only if its cost falls. Returns the number of frames whose pose changed
-// and, in *cost if given, the whole problem's cost at the result; false in *ok if p is refused
-// or a frame's residuals are not finite at its starting pose.
+// Stage 2 alone: re-solves every frame's pose in x = [y_1 ... y_F, p] for x's p, p fixed. A
+// Gauss–Newton step is kept only if it lowers the frame's cost. A frame starts from its given
+// pose, or from its predecessor's correction when that is better (pose_from_predecessor); when
+// the corrected start is within 4x of the cost the previous frame ended with, the given pose is
+// not evaluated (it belongs to another geometry and is far worse). Returns the number of frames
+// whose pose changed and, in *cost if given, the whole problem's cost at the result; false in
+// *ok if p is refused or a frame's residuals are not finite at its given pose. `frame_costs`,
+// if given, holds each frame's sum of squares (residuals and frame prior) at x's poses.
 int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
-                     Eigen::VectorXd* x, bool* ok, double* cost = nullptr);
+                     Eigen::VectorXd* x, bool* ok, double* cost = nullptr,
+                     const double* frame_costs = nullptr);
 
 // Minimises `problem` from *x: stages 1-3 when it has enough frames, else LM directly. `whole`
 // is the caller's Schur solver of `problem` (it holds the per-frame cache, so the caller keeps
