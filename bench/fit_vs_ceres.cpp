@@ -871,7 +871,8 @@ int main(int argc, char** argv) {
                         {"seconds", ours_coarse.coarse.total_seconds},
                         {"pose_seconds", ours_coarse.pose_seconds},
                         {"start_cost", ours_coarse.start_cost},
-                        {"fine_start_cost", ours_coarse.fine_start_cost}};
+                        {"fine_start_cost", ours_coarse.fine_start_cost},
+                        {"total_seconds", ours_coarse.total_seconds}};
   if (args.plain) {
     out["plain_s"] = *std::min_element(plain_times.begin(), plain_times.end());
     out["plain_s_all"] = plain_times;

@@ -46,9 +46,9 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
   const double cache_bytes = 8.0 * nf_ * (2.0 * u_pattern_.size() + w_size_);
   cached_ = cache_bytes <= cache_budget_bytes;
   if (cached_) {
-    u_cache_.resize(static_cast<size_t>(nf_) * u_pattern_.size());
-    l_cache_.resize(static_cast<size_t>(nf_) * u_pattern_.size());
-    w_cache_.resize(static_cast<size_t>(nf_) * w_size_);
+    u_cache_.reset(new double[static_cast<size_t>(nf_) * u_pattern_.size()]);
+    l_cache_.reset(new double[static_cast<size_t>(nf_) * u_pattern_.size()]);
+    w_cache_.reset(new double[static_cast<size_t>(nf_) * w_size_]);
   }
   for (int t = 0; t < num_threads_; ++t) {
     auto ts = std::make_unique<ThreadState>();
