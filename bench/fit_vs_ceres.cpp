@@ -866,6 +866,7 @@ int main(int argc, char** argv) {
                            {"cost_s", ours.cost_evaluation_seconds},
                            {"inner_iterations_s", ours.inner_iteration_seconds}};
   out["ours_coarse"] = {{"used", ours_coarse.used},
+                        {"fallback", ours_coarse.fallback},
                         {"frames", ours_coarse.coarse_frames},
                         {"iterations", ours_coarse.coarse.num_iterations()},
                         {"seconds", ours_coarse.coarse.total_seconds},

@@ -406,8 +406,12 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   };
   if (s.coarse.termination == TerminationType::kUserCancelled)
     return stop_early(TerminationType::kUserCancelled, "cancelled by the callback (coarse stage)");
-  if (!s.coarse.IsSolutionUsable()) {
-    // The subset could not be solved (not finite there): the whole problem from the caller's x.
+  if (s.coarse.termination != TerminationType::kConvergence) {
+    // The subset could not be solved, or LM was still crawling on it at its budget (frames in
+    // long marker gaps, held only by their weak priors: the 10 %-missing simulation). Its
+    // geometry is then no good start, and the whole problem goes plainly from the caller's x.
+    s.used = false;
+    s.fallback = true;
     LmSummary plain = Solve(options, &fine, x);
     plain.initial_cost = s.start_cost;
     s.total_seconds = Since(start);

@@ -136,9 +136,11 @@ Status FitOptions::SetGroups(const std::string& list) {
 
 std::string FitReport::BriefReport() const {
   const std::string coarse_note =
-      coarse.used ? " (after " + std::to_string(coarse.coarse.num_iterations()) + " on " +
-                        std::to_string(coarse.coarse_frames) + " frames)"
-                  : "";
+      coarse.used       ? " (after " + std::to_string(coarse.coarse.num_iterations()) + " on " +
+                              std::to_string(coarse.coarse_frames) + " frames)"
+      : coarse.fallback ? " (from the start: " + std::to_string(coarse.coarse.num_iterations()) +
+                              " on " + std::to_string(coarse.coarse_frames) + " frames did not converge)"
+                        : "";
   char buf[640];
   std::snprintf(buf, sizeof(buf),
                 "fit: %d trials, %d frames, %d markers, %d unknowns; marker RMS %.3f -> %.3f mm; "

@@ -29,6 +29,7 @@ struct FitArgs {
   int threads = 0;
   std::string groups = "scales,centres,axes,markers";
   int max_iterations = 50;
+  int coarse_frames = solver::CoarseToFineOptions().coarse_frames;  // 0: no coarse-to-fine start
   std::vector<std::string> initial;  // one .mot per trial: starting poses instead of IK
 };
 
@@ -72,6 +73,11 @@ int RunFit(const FitArgs& args) {
   }
   options.num_threads = args.threads;
   options.lm.max_iterations = args.max_iterations;
+  options.coarse.enabled = args.coarse_frames > 0;
+  if (args.coarse_frames > 0) {
+    options.coarse.coarse_frames = args.coarse_frames;
+    options.coarse.min_frames = std::max(options.coarse.min_frames, 2 * args.coarse_frames);
+  }
   std::vector<solver::FitTrial> trials;
   for (auto& t : inputs.trials) trials.push_back({std::move(t), {}});
   if (!args.initial.empty()) {
@@ -164,6 +170,7 @@ int RunFit(const FitArgs& args) {
     j["iterations"] = r.solver.num_iterations();  // on the whole problem
     // The coarse-to-fine start (solver/coarse_to_fine.h): its subset, iterations and pose pass.
     j["coarse"] = {{"used", r.coarse.used},
+                   {"fallback", r.coarse.fallback},
                    {"frames", r.coarse.coarse_frames},
                    {"iterations", r.coarse.coarse.num_iterations()},
                    {"seconds", r.coarse.coarse.total_seconds},
@@ -212,6 +219,10 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
   cmd->add_option("--threads", args->threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);
   cmd->add_option("--fit", args->groups, "parameter groups: scales,centres,axes,markers (or all, none)");
   cmd->add_option("--max-iterations", args->max_iterations, "iteration limit")->check(CLI::PositiveNumber);
+  cmd->add_option("--coarse-frames", args->coarse_frames,
+                  "frames of the coarse-to-fine start, used from 3,000 frames (or twice this) on "
+                  "(0: LM on all frames from the start)")
+      ->check(CLI::NonNegativeNumber);
   cmd->add_option("--initial", args->initial,
                   "starting poses: one .mot per trial, same order (e.g. coordinates.mot of `mocap "
                   "track`), instead of per-frame IK; NaN rows are solved by IK");
