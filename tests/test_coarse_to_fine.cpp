@@ -105,40 +105,37 @@ TEST(CoarseToFine, ReachesThePlainMinimumWithFewerWholeProblemIterations) {
               c2f.num_iterations(), c2f.final_cost);
 }
 
-TEST(CoarseToFine, FewFramesAreSolvedPlainly) {
-  Session s(300, 0.03);
+// Solves the session plainly and by SolveCoarseToFine with `coarse`, and expects the very same
+// result: the same iterations, cost and x to the last bit.
+solver::CoarseToFineSummary ExpectThePlainSolve(const Session& s, const solver::CoarseToFineOptions& coarse) {
   const solver::FitOptions fit;
   Eigen::VectorXd x_plain = s.x0, x_c2f = s.x0;
   solver::ArrowSchurProblem a(s.problem.get(), 2), b(s.problem.get(), 2);
   const solver::LmSummary plain = solver::Solve(fit.lm, &a, &x_plain);
   solver::CoarseToFineSummary summary;
-  const solver::LmSummary c2f = solver::SolveCoarseToFine(s.problem.get(), &b, fit.lm, SmallCoarse(), 2,
-                                                          &x_c2f, &summary);
+  const solver::LmSummary c2f =
+      solver::SolveCoarseToFine(s.problem.get(), &b, fit.lm, coarse, 2, &x_c2f, &summary);
   EXPECT_FALSE(summary.used);
   EXPECT_EQ(c2f.num_iterations(), plain.num_iterations());
   EXPECT_EQ(c2f.final_cost, plain.final_cost);
   EXPECT_EQ((x_c2f - x_plain).lpNorm<Eigen::Infinity>(), 0.0);
+  return summary;
+}
+
+TEST(CoarseToFine, FewFramesAreSolvedPlainly) {
+  const solver::CoarseToFineSummary summary = ExpectThePlainSolve(Session(300, 0.03), SmallCoarse());
+  EXPECT_FALSE(summary.fallback);
+  EXPECT_EQ(summary.coarse.num_iterations(), 0);
 }
 
 // A subset that LM cannot finish within its budget (here: one iteration) is no start: the
 // whole problem is solved plainly from the caller's x, exactly as without coarse-to-fine.
 TEST(CoarseToFine, UnconvergedSubsetFallsBackToThePlainSolve) {
-  Session s(1000, 0.03);
-  const solver::FitOptions fit;
-  Eigen::VectorXd x_plain = s.x0, x_c2f = s.x0;
-  solver::ArrowSchurProblem a(s.problem.get(), 2), b(s.problem.get(), 2);
-  const solver::LmSummary plain = solver::Solve(fit.lm, &a, &x_plain);
   solver::CoarseToFineOptions coarse = SmallCoarse();
   coarse.coarse_max_iterations = 1;
-  solver::CoarseToFineSummary summary;
-  const solver::LmSummary c2f =
-      solver::SolveCoarseToFine(s.problem.get(), &b, fit.lm, coarse, 2, &x_c2f, &summary);
+  const solver::CoarseToFineSummary summary = ExpectThePlainSolve(Session(1000, 0.03), coarse);
   EXPECT_TRUE(summary.fallback);
-  EXPECT_FALSE(summary.used);
   EXPECT_EQ(summary.coarse.num_iterations(), 1);
-  EXPECT_EQ(c2f.num_iterations(), plain.num_iterations());
-  EXPECT_EQ(c2f.final_cost, plain.final_cost);
-  EXPECT_EQ((x_c2f - x_plain).lpNorm<Eigen::Infinity>(), 0.0);
 }
 
 TEST(CoarseToFine, SubsetFrameIsTheFullProblemsFrame) {
