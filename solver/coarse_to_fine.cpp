@@ -1,8 +1,7 @@
 #include "solver/coarse_to_fine.h"
 
-#include <Eigen/Cholesky>
-#include <chrono>
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -34,8 +33,8 @@ class SubsetEvaluator : public FrameEvaluator {
   const std::vector<int>* frames_;
 };
 
-// One frame's cost with p fixed: its residuals and its frame prior (halved sum of squares
-// left out: only compared with itself).
+// One frame's share of the cost with p fixed, its residuals and its frame prior, as a sum of
+// squares (not halved).
 bool FrameCost(const ArrowProblem& problem, FrameEvaluator* evaluator, int f, const double* y,
                double* cost) {
   if (!evaluator->Evaluate(f, y, false)) return false;
@@ -50,6 +49,7 @@ bool FrameCost(const ArrowProblem& problem, FrameEvaluator* evaluator, int f, co
   *cost = sum;
   return std::isfinite(sum);
 }
+
 // Stage 3's problem: the whole problem's Schur solver, with every frame's pose re-solved for the
 // new geometry after each accepted step (LmProblem::InnerIteration). Near the minimum, LM's
 // step leaves most of its shortfall in the weakly seen coordinates (a wrist's deviation, a
