@@ -46,6 +46,38 @@ class Cli : public ::testing::Test {
   static inline fs::path dir_;
 };
 
+// The whole protocol (3,000 frames here) starts coarse to fine (solver/coarse_to_fine.h): the
+// subset's iterations are printed and reported, and the result is the plain solve's minimum.
+TEST_F(Cli, WholeProtocolFitStartsCoarseAndReachesThePlainMinimum) {
+  std::string trials;
+  for (const auto& entry : fs::directory_iterator(P("sim")))
+    if (entry.path().extension() == ".trc") trials += " " + entry.path().string();
+  const std::string fit = "fit --model " + P("sim/nominal.model.json") + trials + " --threads 2";
+  const CommandResult a = Mocap(fit + " --out " + P("whole/a.json") + " --report " + P("whole/a_report.json"));
+  ASSERT_EQ(a.status, 0) << a.output;
+  EXPECT_NE(a.output.find("coarse iteration   1"), std::string::npos) << a.output;
+  const CommandResult b = Mocap(fit + " --coarse-frames 0 --out " + P("whole/b.json") + " --report " +
+                                P("whole/b_report.json"));
+  ASSERT_EQ(b.status, 0) << b.output;
+  EXPECT_EQ(b.output.find("coarse iteration"), std::string::npos) << b.output;
+  const auto ra = nlohmann::json::parse(Read("whole/a_report.json"));
+  const auto rb = nlohmann::json::parse(Read("whole/b_report.json"));
+  ASSERT_EQ(ra["frames"].get<int>(), 3000);
+  EXPECT_TRUE(ra["coarse"]["used"].get<bool>()) << ra["coarse"];
+  EXPECT_FALSE(ra["coarse"]["fallback"].get<bool>());
+  EXPECT_EQ(ra["coarse"]["frames"].get<int>(), 800);
+  EXPECT_GT(ra["coarse"]["iterations"].get<int>(), 0);
+  EXPECT_FALSE(rb["coarse"]["used"].get<bool>());
+  EXPECT_TRUE(ra["converged"].get<bool>());
+  EXPECT_TRUE(rb["converged"].get<bool>());
+  // Both start at the same cost and stop on the same tolerance: the same minimum to 1e-6.
+  EXPECT_NEAR(ra["initial_cost"].get<double>(), rb["initial_cost"].get<double>(),
+              1e-12 * rb["initial_cost"].get<double>());
+  EXPECT_LE(std::abs(ra["final_cost"].get<double>() - rb["final_cost"].get<double>()),
+            1e-6 * rb["final_cost"].get<double>());
+  EXPECT_LT(ra["iterations"].get<int>(), rb["iterations"].get<int>());
+}
+
 TEST_F(Cli, FitWritesModelReportAnglesAndJointCentres) {
   const CommandResult r = Mocap("fit --model " + P("sim/nominal.model.json") + " " + P("sim/static.trc") + " " +
                       P("sim/hip_star_arc_l.trc") + " " + P("sim/knee_flexion_l.trc") + " --out " +
