@@ -15,6 +15,7 @@
 
 #include <Eigen/Core>
 #include <algorithm>
+#include <cmath>
 #include <memory>
 #include <vector>
 
@@ -83,6 +84,23 @@ class ArrowProblem {
   virtual void BlockStructure(std::vector<std::vector<int>>* y_columns,
                               std::vector<std::vector<int>>* p_columns) const = 0;
 };
+
+// Frame f's own rows at y, for the shared values last set: the sum of squares (not halved) of
+// its residuals and of its frame prior. False if it is not finite.
+inline bool FrameSquaredNorm(const ArrowProblem& problem, FrameEvaluator* evaluator, int f,
+                             const double* y, double* sum) {
+  if (!evaluator->Evaluate(f, y, false)) return false;
+  double s = 0;
+  for (int k = 0; k < evaluator->num_blocks(); ++k) {
+    const ResidualBlock& b = evaluator->block(k);
+    for (int r = 0; r < b.rows; ++r) s += b.residual[r] * b.residual[r];
+  }
+  const double *w, *target;
+  if (problem.FramePrior(f, &w, &target))
+    for (int i = 0; i < problem.frame_dim(); ++i) s += (w[i] * (y[i] - target[i])) * (w[i] * (y[i] - target[i]));
+  *sum = s;
+  return std::isfinite(s);
+}
 
 // ||A (p - p0)||^2 + ||G (p - p0)||^2: the shared parameters' own rows (twice their cost).
 inline double SharedRowsSquaredNorm(const ArrowProblem& problem, const Eigen::VectorXd& p) {

@@ -33,23 +33,6 @@ class SubsetEvaluator : public FrameEvaluator {
   const std::vector<int>* frames_;
 };
 
-// One frame's share of the cost with p fixed, its residuals and its frame prior, as a sum of
-// squares (not halved).
-bool FrameCost(const ArrowProblem& problem, FrameEvaluator* evaluator, int f, const double* y,
-               double* cost) {
-  if (!evaluator->Evaluate(f, y, false)) return false;
-  double sum = 0;
-  for (int k = 0; k < evaluator->num_blocks(); ++k) {
-    const ResidualBlock& b = evaluator->block(k);
-    for (int r = 0; r < b.rows; ++r) sum += b.residual[r] * b.residual[r];
-  }
-  const double *w, *target;
-  if (problem.FramePrior(f, &w, &target))
-    for (int i = 0; i < problem.frame_dim(); ++i) sum += (w[i] * (y[i] - target[i])) * (w[i] * (y[i] - target[i]));
-  *cost = sum;
-  return std::isfinite(sum);
-}
-
 // Stage 3's problem: the whole problem's Schur solver, with every frame's pose re-solved for the
 // new geometry after each accepted step (LmProblem::InnerIteration). Near the minimum, LM's
 // step leaves most of its shortfall in the weakly seen coordinates (a wrist's deviation, a
@@ -78,7 +61,7 @@ class WithInnerIterations : public LmProblem {
     std::vector<char> fine(threads, 1);
     ParallelChunks(nf, threads, [&](int t, int b, int e) {
       for (int f = b; f < e && fine[t]; ++f)
-        fine[t] = FrameCost(*problem_, evaluators_[t].get(), f, x.data() + static_cast<size_t>(f) * ny,
+        fine[t] = FrameSquaredNorm(*problem_, evaluators_[t].get(), f, x.data() + static_cast<size_t>(f) * ny,
                             &frame_costs_[f]);
     });
     double sum = 0;
@@ -221,6 +204,9 @@ bool CoarseToFineOptions::IsValid(std::string* error) const {
 }
 
 std::string CoarseToFineSummary::BriefReport() const {
+  if (fallback)
+    return "coarse-to-fine: " + std::to_string(coarse.num_iterations()) + " iterations on " +
+           std::to_string(coarse_frames) + " frames did not converge; all frames solved from the start";
   if (!used) return "coarse-to-fine: not used (plain solve)";
   char buf[320];
   std::snprintf(buf, sizeof(buf),
@@ -274,7 +260,7 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
       double corrected_cost = std::numeric_limits<double>::infinity();
       if (!have_cost && have_correction && options.pose_from_predecessor) {
         trial = given + correction;
-        if (!FrameCost(*problem, evaluator.get(), f, trial.data(), &corrected_cost))
+        if (!FrameSquaredNorm(*problem, evaluator.get(), f, trial.data(), &corrected_cost))
           corrected_cost = std::numeric_limits<double>::infinity();
         if (corrected_cost <= 4.0 * previous_cost) {
           Eigen::Map<Eigen::VectorXd>(yf, ny) = trial;
@@ -284,7 +270,7 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
         }
       }
       if (!have_cost) {
-        if (!FrameCost(*problem, evaluator.get(), f, yf, &cost)) {
+        if (!FrameSquaredNorm(*problem, evaluator.get(), f, yf, &cost)) {
           fine[t] = 0;
           return;
         }
@@ -313,7 +299,7 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
         CholeskySolveInPlace(u.data(), ny, step.data());
         trial = Eigen::Map<const Eigen::VectorXd>(yf, ny) - step;
         double trial_cost = 0;
-        if (!trial.allFinite() || !FrameCost(*problem, evaluator.get(), f, trial.data(), &trial_cost) ||
+        if (!trial.allFinite() || !FrameSquaredNorm(*problem, evaluator.get(), f, trial.data(), &trial_cost) ||
             !(trial_cost < cost))
           break;
         Eigen::Map<Eigen::VectorXd>(yf, ny) = trial;

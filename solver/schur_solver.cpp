@@ -290,19 +290,9 @@ bool ArrowSchurProblem::Cost(const Eigen::VectorXd& x, double* cost) {
     ts.cost = 0;
     ts.ok = true;
     for (int f = b; f < e && ts.ok; ++f) {
-      if (!ts.evaluator->Evaluate(f, x.data() + static_cast<size_t>(f) * ny_, false)) {
-        ts.ok = false;
-        break;
-      }
-      for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
-        const ResidualBlock& blk = ts.evaluator->block(k);
-        for (int r = 0; r < blk.rows; ++r) ts.cost += blk.residual[r] * blk.residual[r];
-      }
-      const double *w, *target;
-      if (problem_->FramePrior(f, &w, &target)) {
-        const double* y = x.data() + static_cast<size_t>(f) * ny_;
-        for (int i = 0; i < ny_; ++i) ts.cost += (w[i] * (y[i] - target[i])) * (w[i] * (y[i] - target[i]));
-      }
+      double frame = 0;
+      ts.ok = FrameSquaredNorm(*problem_, ts.evaluator.get(), f, x.data() + static_cast<size_t>(f) * ny_, &frame);
+      ts.cost += frame;
     }
   });
   double sum = 0;

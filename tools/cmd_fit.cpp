@@ -131,6 +131,7 @@ int RunFit(const FitArgs& args) {
   if (!r.undetermined.empty())
     spdlog::warn("{} parameters not determined by these trials (kept near the initial model): {}{}",
                  r.undetermined.size(), r.undetermined.front(), r.undetermined.size() > 1 ? ", ..." : "");
+  if (r.coarse.used || r.coarse.fallback) std::printf("%s\n", r.coarse.BriefReport().c_str());
   std::printf("%s\n%s\n", r.solver.BriefReport().c_str(), r.BriefReport().c_str());
 
   fs::path out(args.out);
