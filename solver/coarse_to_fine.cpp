@@ -46,31 +46,15 @@ class WithInnerIterations : public LmProblem {
       : whole_(whole), problem_(problem), options_(options), num_threads_(num_threads) {
     options_.pose_iterations = 1;
     options_.pose_from_predecessor = false;
-    const int threads = std::max(1, std::min(num_threads_, problem_->num_frames()));
-    for (int t = 0; t < threads; ++t) evaluators_.push_back(problem_->NewEvaluator());
   }
   int num_parameters() const override { return whole_->num_parameters(); }
   int num_residuals() const override { return whole_->num_residuals(); }
-  // The whole problem's cost as the Schur solver computes it, keeping each frame's share: the
-  // inner iteration that follows an accepted step starts from them instead of re-evaluating.
+  // The Schur solver's cost pass keeps each frame's share: the inner iteration that follows an
+  // accepted step starts from them instead of re-evaluating.
   bool Cost(const Eigen::VectorXd& x, double* cost) override {
-    const int nf = problem_->num_frames(), ny = problem_->frame_dim(), np = problem_->shared_dim();
-    if (!problem_->SetShared(x.tail(np))) return false;
-    frame_costs_.resize(nf);
-    const int threads = std::max(1, std::min(num_threads_, nf));
-    std::vector<char> fine(threads, 1);
-    ParallelChunks(nf, threads, [&](int t, int b, int e) {
-      for (int f = b; f < e && fine[t]; ++f)
-        fine[t] = FrameSquaredNorm(*problem_, evaluators_[t].get(), f, x.data() + static_cast<size_t>(f) * ny,
-                            &frame_costs_[f]);
-    });
-    double sum = 0;
-    for (int t = 0; t < threads; ++t)
-      if (!fine[t]) return false;
-    for (double c : frame_costs_) sum += c;
-    *cost = 0.5 * (sum + SharedRowsSquaredNorm(*problem_, x.tail(np)));
+    if (!whole_->Cost(x, cost)) return false;
     costs_at_ = Fingerprint(x);
-    return std::isfinite(*cost);
+    return true;
   }
   bool Linearize(const Eigen::VectorXd& x, double* cost, Eigen::VectorXd* gradient,
                  Eigen::VectorXd* jtj_diagonal) override {
@@ -88,7 +72,7 @@ class WithInnerIterations : public LmProblem {
     // LM has just evaluated the cost at this very x (the accepted step).
     const bool known = costs_at_ == Fingerprint(*x);
     RefineFramePoses(problem_, options_, num_threads_, &candidate_, &ok, nullptr,
-                     known ? frame_costs_.data() : nullptr);
+                     known ? whole_->frame_costs().data() : nullptr);
     if (ok) x->swap(candidate_);  // every frame's cost only fell; p is unchanged
   }
 
@@ -110,9 +94,8 @@ class WithInnerIterations : public LmProblem {
   int num_threads_;
   Eigen::VectorXd candidate_;
   std::uint64_t costs_at_ = 0;
-  std::vector<double> frame_costs_;
-  std::vector<std::unique_ptr<FrameEvaluator>> evaluators_;
 };
+
 // In-place Cholesky of a small dense SPD matrix (lower triangle, column-major, n x n), then
 // the solve with it. Written out rather than Eigen's LLT because at the frame's size (38) Eigen
 // takes its blocked path (panels of 16, packed GEMM updates) and spends more in the packing than
@@ -379,19 +362,17 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
     ArrowSchurProblem schur(&subset, num_threads);
     s.coarse = Solve(coarse_lm, &schur, &xs);
   }
-  auto stop_early = [&](TerminationType type, const std::string& message) {
+  if (s.coarse.termination == TerminationType::kUserCancelled) {
     // x is left as the caller gave it: its cost is known, nothing half-updated.
     LmSummary out;
-    out.termination = type;
-    out.message = message;
+    out.termination = TerminationType::kUserCancelled;
+    out.message = "cancelled by the callback (coarse stage)";
     out.initial_cost = out.final_cost = s.start_cost;
     out.num_parameters = fine.num_parameters();
     out.num_residuals = fine.num_residuals();
     out.total_seconds = s.total_seconds = Since(start);
     return out;
-  };
-  if (s.coarse.termination == TerminationType::kUserCancelled)
-    return stop_early(TerminationType::kUserCancelled, "cancelled by the callback (coarse stage)");
+  }
   if (s.coarse.termination != TerminationType::kConvergence) {
     // The subset could not be solved, or LM was still crawling on it at its budget (frames in
     // long marker gaps, held only by their weak priors: the 10 %-missing simulation). Its

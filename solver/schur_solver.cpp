@@ -265,10 +265,6 @@ void ArrowSchurProblem::SolveLowerTransposed(const Eigen::MatrixXd& l, Eigen::Ve
   }
 }
 
-double ArrowSchurProblem::SharedRowsSquaredNorm(const Eigen::VectorXd& p) const {
-  return solver::SharedRowsSquaredNorm(*problem_, p);
-}
-
 std::string ArrowSchurProblem::DescribeStructure() const {
   std::string out = "elimination order:";
   for (int i : order_) out += " " + std::to_string(i);
@@ -285,14 +281,15 @@ std::string ArrowSchurProblem::DescribeStructure() const {
 
 bool ArrowSchurProblem::Cost(const Eigen::VectorXd& x, double* cost) {
   if (!problem_->SetShared(x.tail(np_))) return false;
+  frame_costs_.resize(nf_);
   ParallelChunks(nf_, num_threads_, [&](int t, int b, int e) {
     ThreadState& ts = *threads_[t];
     ts.cost = 0;
     ts.ok = true;
     for (int f = b; f < e && ts.ok; ++f) {
-      double frame = 0;
-      ts.ok = FrameSquaredNorm(*problem_, ts.evaluator.get(), f, x.data() + static_cast<size_t>(f) * ny_, &frame);
-      ts.cost += frame;
+      ts.ok = FrameSquaredNorm(*problem_, ts.evaluator.get(), f, x.data() + static_cast<size_t>(f) * ny_,
+                               &frame_costs_[f]);
+      ts.cost += frame_costs_[f];
     }
   });
   double sum = 0;
@@ -300,7 +297,7 @@ bool ArrowSchurProblem::Cost(const Eigen::VectorXd& x, double* cost) {
     if (!threads_[t]->ok) return false;
     sum += threads_[t]->cost;
   }
-  *cost = 0.5 * (sum + SharedRowsSquaredNorm(x.tail(np_)));
+  *cost = 0.5 * (sum + SharedRowsSquaredNorm(*problem_, x.tail(np_)));
   return std::isfinite(*cost);
 }
 
@@ -401,7 +398,7 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
     gradient->tail(np_) += g.transpose() * (g * delta);
     diagonal->tail(np_) += g.colwise().squaredNorm().transpose();
   }
-  *cost = 0.5 * (sum + SharedRowsSquaredNorm(x.tail(np_)));
+  *cost = 0.5 * (sum + SharedRowsSquaredNorm(*problem_, x.tail(np_)));
   gradient_ = *gradient;
   if (all_reduced) {
     auto dmp_p = anticipated_damping_.tail(np_);

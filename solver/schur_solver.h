@@ -83,6 +83,10 @@ class ArrowSchurProblem : public LmProblem {
   bool SharedCovariance(const Eigen::VectorXd& x, Eigen::MatrixXd* covariance,
                         double frame_ridge = 1e-10);
 
+  // Each frame's sum of squares (FrameSquaredNorm) at the x of the last Cost call, kept for a
+  // per-frame pass that follows it (coarse_to_fine.h's inner iterations).
+  const std::vector<double>& frame_costs() const { return frame_costs_; }
+
   // Per-frame squared residual sums at x (for per-marker statistics the problem computes itself).
   const std::vector<int>& elimination_order() const { return order_; }
 
@@ -130,7 +134,6 @@ class ArrowSchurProblem : public LmProblem {
   void SolveLower(const Eigen::MatrixXd& l, Eigen::VectorXd* v) const;
   void SolveLowerTransposed(const Eigen::MatrixXd& l, Eigen::VectorXd* v) const;
   double* CachedW(int f) { return w_cache_.get() + static_cast<size_t>(f) * w_size_; }
-  double SharedRowsSquaredNorm(const Eigen::VectorXd& p) const;
   // Accumulates S (lower triangle) and the reduced right-hand side over all frames.
   bool FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s, Eigen::VectorXd* rhs);
 
@@ -153,6 +156,7 @@ class ArrowSchurProblem : public LmProblem {
   // filling 144 MB at 6,000 frames took 0.1 s of a 1 s fit, single-threaded; untouched, the
   // pages are faulted in by the first linearisation's threads as they write them.
   std::unique_ptr<double[]> u_cache_, l_cache_, w_cache_;
+  std::vector<double> frame_costs_;        // of the last Cost call
   Eigen::MatrixXd v_total_;                // sum of V_f (lower) at the linearisation point
   double anticipated_lambda_ = 0, anticipated_min_ = 0, anticipated_max_ = 0;
   bool anticipated_ready_ = false;
