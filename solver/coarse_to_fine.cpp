@@ -363,11 +363,21 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
     s.coarse = Solve(coarse_lm, &schur, &xs);
   }
   if (s.coarse.termination == TerminationType::kUserCancelled) {
-    // x is left as the caller gave it: its cost is known, nothing half-updated.
+    // Cancelled on the subset: keep its geometry and its frames' poses when that lowers the whole
+    // problem's cost (the best result reached), else x as the caller gave it.
     LmSummary out;
     out.termination = TerminationType::kUserCancelled;
-    out.message = "cancelled by the callback (coarse stage)";
+    out.message = "cancelled (coarse stage)";
     out.initial_cost = out.final_cost = s.start_cost;
+    Eigen::VectorXd kept = *x;
+    for (size_t i = 0; i < frames.size(); ++i)
+      kept.segment(static_cast<Eigen::Index>(frames[i]) * ny, ny) = xs.segment(static_cast<Eigen::Index>(i) * ny, ny);
+    kept.tail(np) = xs.tail(np);
+    double kept_cost = 0;
+    if (fine.Cost(kept, &kept_cost) && kept_cost < s.start_cost) {
+      x->swap(kept);
+      out.final_cost = kept_cost;
+    }
     out.num_parameters = fine.num_parameters();
     out.num_residuals = fine.num_residuals();
     out.total_seconds = s.total_seconds = Since(start);

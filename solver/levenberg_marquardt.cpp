@@ -127,6 +127,8 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
 
     // Inner loop: raise lambda until a step is accepted or we give up.
     for (;;) {
+      if (options.cancel && options.cancel->load(std::memory_order_relaxed))
+        return finish(TerminationType::kUserCancelled, "cancelled");
       damping = lambda * diagonal.cwiseMax(options.min_diagonal).cwiseMin(options.max_diagonal);
       t = Clock::now();
       const bool solved = problem->SolveDamped(damping, &dx);

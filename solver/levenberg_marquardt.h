@@ -10,6 +10,7 @@
 // uses the identity dx^T J^T J dx = -dx^T g - dx^T D dx, so no extra product with J is needed.
 // Options, Summary and termination types follow Ceres Solver's shape.
 #pragma once
+#include <atomic>
 
 #include <Eigen/Core>
 #include <functional>
@@ -59,6 +60,10 @@ struct LmOptions {
   double min_gain_ratio = 1e-3;       // eta: accept steps whose gain ratio exceeds this
   int max_consecutive_rejections = 10;
   std::vector<IterationCallback> callbacks;
+  // Set by another thread (a daemon's fit.cancel): the solve stops before its next linear solve,
+  // accepted or not, with x at the last accepted step (kUserCancelled). A callback's `false` is
+  // only seen after an accepted step; a solve stuck rejecting steps would not see it for a while.
+  const std::atomic<bool>* cancel = nullptr;
 
   bool IsValid(std::string* error) const;
 };

@@ -12,6 +12,7 @@
 #include "formats/trc.h"
 #include "model/kinematics.h"
 #include "model/model_io.h"
+#include "solver/fit_report_json.h"
 #include "solver/global_fit.h"
 #include "tools/command.h"
 #include "tools/trial_inputs.h"
@@ -161,46 +162,7 @@ int RunFit(const FitArgs& args) {
                args.out, dir.string());
 
   if (!args.report.empty()) {
-    nlohmann::json j;
-    j["frames"] = r.frames;
-    j["trials"] = r.trials;
-    j["markers"] = r.markers;
-    j["marker_samples"] = r.marker_samples;
-    j["unknowns"] = r.unknowns;
-    j["residuals"] = r.residuals;
-    j["iterations"] = r.solver.num_iterations();  // on the whole problem
-    // The coarse-to-fine start (solver/coarse_to_fine.h): its subset, iterations and pose pass.
-    j["coarse"] = {{"used", r.coarse.used},
-                   {"fallback", r.coarse.fallback},
-                   {"frames", r.coarse.coarse_frames},
-                   {"iterations", r.coarse.coarse.num_iterations()},
-                   {"seconds", r.coarse.coarse.total_seconds},
-                   {"pose_seconds", r.coarse.pose_seconds},
-                   {"start_cost", r.coarse.fine_start_cost}};
-    j["initial_cost"] = r.solver.initial_cost;
-    j["final_cost"] = r.solver.final_cost;
-    j["initial_marker_rms_mm"] = r.initial_marker_rms_mm;
-    j["marker_rms_mm"] = r.marker_rms_mm;
-    j["per_trial"] = nlohmann::json::array();
-    for (size_t t = 0; t < trials.size(); ++t)
-      j["per_trial"].push_back({{"file", args.in.trials[t]}, {"name", trials[t].markers.name},
-                                {"frames", trials[t].markers.num_frames()},
-                                {"marker_rms_mm", r.per_trial_rms_mm[t]}});
-    j["per_marker_rms_mm"] = nlohmann::json::object();
-    for (const auto& [name, v] : r.per_marker_rms_mm) j["per_marker_rms_mm"][name] = v;
-    j["wall_seconds"] = r.wall_seconds;
-    j["ik_seconds"] = r.ik_seconds;
-    j["solve_seconds"] = r.solve_seconds;
-    j["converged"] = r.converged();
-    j["termination"] = solver::ToString(r.solver.termination);
-    j["termination_message"] = r.solver.message;
-    j["undetermined"] = r.undetermined;
-    j["unmatched_trial_markers"] = r.unmatched_trial_markers;
-    j["unobserved_model_markers"] = r.unobserved_model_markers;
-    j["parameters"] = nlohmann::json::array();
-    for (const auto& e : r.parameters)
-      j["parameters"].push_back({{"name", e.name}, {"group", ToString(e.group)}, {"initial", e.initial},
-                                 {"value", e.value}, {"std", e.std}, {"determined", e.determined}});
+    const nlohmann::json j = solver::FitReportJson(r, trials, args.in.trials);
     std::ofstream f(args.report);
     f << j.dump(1) << "\n";
     if (!f) {
