@@ -11,12 +11,14 @@
 #include <cmath>
 #include <cstdlib>
 #include <new>
+#include <chrono>
 #include <thread>
 
 #include "drivers/frame.h"
 #include "formats/marker_data.h"
 #include "model/kinematics.h"
 #include "sim/camera_rig.h"
+#include "sim/live_rig.h"
 #include "sim/renderer.h"
 #include "sim/simulate.h"
 #include "sim/wand.h"
@@ -605,6 +607,84 @@ TEST(LiveScene, CommandsWhileCamerasRead) {
   for (std::thread& t : cameras) t.join();
   EXPECT_GT(reads.load(), 30);
   EXPECT_EQ(torn.load(), 0);
+}
+
+// The simulated rig in one call: Aravis fake cameras whose images show the live scene at the
+// frame's clock tick, ids that are the cameras', and the intrinsics-only start of a calibration.
+TEST(LiveRig, CamerasShowTheLiveSubject) {
+  std::unique_ptr<LiveRig> rig;
+  LiveRigOptions bad;
+  bad.cameras = 1;
+  Status s = LiveRig::Create(bad, &rig);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("cameras"), std::string::npos) << s.message();
+  bad = LiveRigOptions();
+  bad.width = 4096;
+  s = LiveRig::Create(bad, &rig);
+  EXPECT_NE(s.message().find("width"), std::string::npos) << s.message();
+
+  LiveRigOptions o;
+  o.cameras = 3;
+  o.width = 640;
+  o.height = 512;
+  o.rate_hz = 100;
+  o.seed = 2;
+  ASSERT_TRUE(LiveRig::Create(o, &rig).ok());
+  CameraRigOptions ro;
+  ro.cameras = 3;
+  ro.width = 640;
+  ro.height = 512;
+  ro.seed = 2;
+  const std::vector<reconstruction::CameraModel> expected = MakeCameraRig(ro);
+  const std::vector<reconstruction::CameraModel> start = rig->IntrinsicsOnly();
+  ASSERT_EQ(rig->true_cameras().size(), 3u);
+  for (int c = 0; c < 3; ++c) {
+    EXPECT_EQ(rig->true_cameras()[c].id, "MOCAPSIM" + std::to_string(c));
+    EXPECT_EQ(rig->true_cameras()[c].R, expected[c].R);
+    EXPECT_EQ(rig->true_cameras()[c].t, expected[c].t);
+    EXPECT_EQ(start[c].id, rig->true_cameras()[c].id);
+    EXPECT_EQ(start[c].intrinsics.fx, expected[c].intrinsics.fx);
+    EXPECT_TRUE(start[c].R.isIdentity());
+    EXPECT_TRUE(start[c].t.isZero());
+  }
+  EXPECT_NEAR(rig->scene().SceneTimeNow(), 0.0, 0.5);  // scene time 0 is the creation
+
+  rig->scene().StandStatic();
+  drivers::CameraSettings settings;
+  settings.frame_rate_hz = o.rate_hz;
+  settings.buffer_count = 8;
+  settings.timeout_ms = 200;
+  std::vector<std::unique_ptr<drivers::CameraSource>> cameras;
+  ASSERT_TRUE(rig->OpenCameras(settings, &cameras).ok());
+  ASSERT_EQ(cameras.size(), 3u);
+  for (int c = 0; c < 3; ++c) EXPECT_EQ(cameras[c]->id(), rig->true_cameras()[c].id);
+  for (auto& c : cameras) ASSERT_TRUE(c->Start().ok());
+  int checked = 0, misses = 0, frames = 0;
+  const auto until = std::chrono::steady_clock::now() + std::chrono::milliseconds(600);
+  while (std::chrono::steady_clock::now() < until) {
+    for (int c = 0; c < 3; ++c) {
+      drivers::Frame f;
+      if (cameras[c]->Grab(&f) != drivers::GrabResult::kFrame) continue;
+      const double t = rig->SceneTimeOf(f);
+      EXPECT_LT(std::abs(t - rig->scene().SceneTimeNow()), 0.5);
+      if (frames++ % 5 == 0 && rig->scene().ActivityAt(t) == LiveActivity::kStatic) {
+        FrameTruth truth;
+        rig->renderer().Truth(c, rig->RenderedSequence(f), &truth);
+        for (const BlobTruth& b : truth.blobs) {
+          EXPECT_LT(b.marker, rig->scene().subject_marker_count());
+          const int x = static_cast<int>(std::lround(b.drawn.x()));
+          const int y = static_cast<int>(std::lround(b.drawn.y()));
+          ++checked;
+          misses += f.image.row8(y)[x] <= 60;
+        }
+      }
+      cameras[c]->Release(f);
+    }
+  }
+  for (auto& c : cameras) c->Stop();
+  EXPECT_GT(frames, 60);
+  EXPECT_GT(checked, 20);
+  EXPECT_EQ(misses, 0);
 }
 
 }  // namespace
