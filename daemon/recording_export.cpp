@@ -36,8 +36,9 @@ Status MakeRowLayout(const RecordingInfo& info, const std::vector<RecordedFrame>
     const std::string at = what + ": frame " + std::to_string(f.frame);
     if (f.markers.cols() != num_markers || f.coordinates.size() != num_coordinates) {
       return Status::Error(at + ": " + std::to_string(f.markers.cols()) + " markers and " +
-                           std::to_string(f.coordinates.size()) + " coordinates; the recording has " +
-                           std::to_string(num_markers) + " and " + std::to_string(num_coordinates));
+                           std::to_string(f.coordinates.size()) +
+                           " coordinates; the recording has " + std::to_string(num_markers) +
+                           " and " + std::to_string(num_coordinates));
     }
     if (i > 0 && f.frame <= frames[i - 1].frame) {
       return Status::Error(at + " follows frame " + std::to_string(frames[i - 1].frame) +
@@ -61,6 +62,19 @@ Status MakeRowLayout(const RecordingInfo& info, const std::vector<RecordedFrame>
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
+// A table of the layout's rows x `columns`, NaN except recorded frame i's row, whose column k is
+// value(frames[i], k).
+template <typename Value>
+formats::RowMatrix ScatterRows(const RowLayout& layout, const std::vector<RecordedFrame>& frames,
+                               int columns, Value value) {
+  formats::RowMatrix out = formats::RowMatrix::Constant(
+      static_cast<Eigen::Index>(layout.frame_numbers.size()), columns, kNaN);
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    for (int k = 0; k < columns; ++k) out(layout.row_of_frame[i], k) = value(frames[i], k);
+  }
+  return out;
+}
+
 }  // namespace
 
 Status RecordingToMarkerTrial(const RecordingInfo& info, const std::vector<RecordedFrame>& frames,
@@ -72,13 +86,10 @@ Status RecordingToMarkerTrial(const RecordingInfo& info, const std::vector<Recor
   out.name = info.movement;
   out.rate_hz = info.rate_hz;
   out.marker_names = info.marker_names;
-  out.positions = formats::RowMatrix::Constant(static_cast<Eigen::Index>(layout.frame_numbers.size()),
-                                               3 * num_markers, kNaN);
-  for (std::size_t i = 0; i < frames.size(); ++i) {
-    for (int m = 0; m < num_markers; ++m) {
-      out.positions.row(layout.row_of_frame[i]).segment<3>(3 * m) = frames[i].markers.col(m).transpose();
-    }
-  }
+  // markers is 3 x M column-major: entry k of its data is coordinate k % 3 of marker k / 3, the
+  // order of a MarkerTrial row.
+  out.positions = ScatterRows(layout, frames, 3 * num_markers,
+                              [](const RecordedFrame& f, int k) { return f.markers.data()[k]; });
   out.frame_numbers = std::move(layout.frame_numbers);
   out.times = std::move(layout.times);
   *trial = std::move(out);
@@ -102,14 +113,9 @@ Status RecordingToCoordinateTable(const RecordingInfo& info,
   out.name = info.movement;
   out.column_names = info.coordinate_names;
   out.in_degrees = in_degrees;
-  out.values = formats::RowMatrix::Constant(static_cast<Eigen::Index>(layout.frame_numbers.size()),
-                                            num_coordinates, kNaN);
-  for (std::size_t i = 0; i < frames.size(); ++i) {
-    for (int c = 0; c < num_coordinates; ++c) {
-      const double scale = in_degrees && rotational[c] ? 180.0 / std::numbers::pi : 1.0;
-      out.values(layout.row_of_frame[i], c) = scale * frames[i].coordinates[c];
-    }
-  }
+  out.values = ScatterRows(layout, frames, num_coordinates, [&](const RecordedFrame& f, int c) {
+    return (in_degrees && rotational[c] ? 180.0 / std::numbers::pi : 1.0) * f.coordinates[c];
+  });
   out.times = std::move(layout.times);
   *table = std::move(out);
   return Status::Ok();
@@ -150,7 +156,8 @@ Status ExportRecordingC3d(const RecordingInfo& info, const std::vector<RecordedF
   for (const auto& f : frames) {
     const auto row = static_cast<Eigen::Index>(f.frame - frames.front().frame);
     for (std::size_t k = 0; k < f.points.size(); ++k) {
-      all.row(row).segment<3>(3 * (num_markers + static_cast<Eigen::Index>(k))) = f.points[k].transpose();
+      all.row(row).segment<3>(3 * (num_markers + static_cast<Eigen::Index>(k))) =
+          f.points[k].transpose();
     }
   }
   trial.positions = std::move(all);

@@ -43,9 +43,9 @@ Status ExecSql(sqlite3* db, const std::string& db_path, const std::string& sql,
 // failed prepare or bind is remembered and returned by the next Step/Run, so call sites stay flat.
 class Statement {
  public:
-  Statement(sqlite3* db, const std::string& db_path, const char* sql)
-      : db_(db), db_path_(db_path), sql_(sql) {
-    if (sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr) != SQLITE_OK) {
+  Statement(sqlite3* db, const std::string& db_path, std::string sql)
+      : db_(db), db_path_(db_path), sql_(std::move(sql)) {
+    if (sqlite3_prepare_v2(db, sql_.c_str(), -1, &stmt_, nullptr) != SQLITE_OK) {
       status_ = SqlError(db_, db_path_, "preparing `" + sql_ + "`");
     }
   }
@@ -53,9 +53,13 @@ class Statement {
   Statement(const Statement&) = delete;
   Statement& operator=(const Statement&) = delete;
 
-  Statement& Bind(std::int64_t v) { return Check(stmt_ ? sqlite3_bind_int64(stmt_, ++index_, v) : SQLITE_OK); }
+  Statement& Bind(std::int64_t v) {
+    return Check(stmt_ ? sqlite3_bind_int64(stmt_, ++index_, v) : SQLITE_OK);
+  }
   Statement& Bind(int v) { return Bind(static_cast<std::int64_t>(v)); }
-  Statement& Bind(double v) { return Check(stmt_ ? sqlite3_bind_double(stmt_, ++index_, v) : SQLITE_OK); }
+  Statement& Bind(double v) {
+    return Check(stmt_ ? sqlite3_bind_double(stmt_, ++index_, v) : SQLITE_OK);
+  }
   Statement& Bind(const std::string& v) {
     return Check(stmt_ ? sqlite3_bind_text(stmt_, ++index_, v.data(), static_cast<int>(v.size()),
                                            SQLITE_TRANSIENT)
@@ -102,8 +106,8 @@ class Statement {
  private:
   Statement& Check(int rc) {
     if (rc != SQLITE_OK && status_.ok()) {
-      status_ = SqlError(db_, db_path_, "binding parameter " + std::to_string(index_) + " of `" +
-                                            sql_ + "`");
+      status_ = SqlError(db_, db_path_,
+                         "binding parameter " + std::to_string(index_) + " of `" + sql_ + "`");
     }
     return *this;
   }
@@ -150,6 +154,7 @@ class Transaction {
 
 #define MOCAP_NOW "(strftime('%Y-%m-%dT%H:%M:%fZ', 'now'))"
 
+// clang-format off
 const char* const kMigrations[] = {
     // 0 -> 1: the first schema.
     "CREATE TABLE subjects ("
@@ -211,8 +216,8 @@ const char* const kMigrations[] = {
     "  produced_by TEXT NOT NULL,"
     "  PRIMARY KEY (recording_id, chunk_index));",
 };
-static_assert(std::size(kMigrations) == Store::kSchemaVersion,
-              "one migration per schema version");
+// clang-format on
+static_assert(std::size(kMigrations) == Store::kSchemaVersion, "one migration per schema version");
 
 // Reads PRAGMA user_version.
 Status ReadSchemaVersion(sqlite3* db, const std::string& db_path, int* version) {
@@ -230,7 +235,7 @@ const char* const kSubjectColumns =
     "id, name, height_m, model_source, osim_text,"
     " (SELECT COALESCE(MAX(version), 0) FROM models m WHERE m.subject_id = subjects.id),"
     " created_at, produced_by FROM subjects";
-void ReadSubject(const Statement& q, SubjectRecord* s) {
+Status ReadSubject(const Statement& q, SubjectRecord* s) {
   s->id = q.Int(0);
   s->name = q.Text(1);
   s->height_m = q.Double(2);
@@ -239,11 +244,12 @@ void ReadSubject(const Statement& q, SubjectRecord* s) {
   s->latest_model_version = static_cast<int>(q.Int(5));
   s->created_at = q.Text(6);
   s->produced_by = q.Text(7);
+  return Status::Ok();
 }
 
 const char* const kModelColumns =
     "id, subject_id, version, model_json, fit_report_id, created_at, produced_by FROM models";
-void ReadModel(const Statement& q, ModelRecord* m) {
+Status ReadModel(const Statement& q, ModelRecord* m) {
   m->id = q.Int(0);
   m->subject_id = q.Int(1);
   m->version = static_cast<int>(q.Int(2));
@@ -251,18 +257,20 @@ void ReadModel(const Statement& q, ModelRecord* m) {
   m->fit_report_id = q.IsNull(4) ? std::nullopt : std::optional<std::int64_t>(q.Int(4));
   m->created_at = q.Text(5);
   m->produced_by = q.Text(6);
+  return Status::Ok();
 }
 
 const char* const kCalibrationColumns =
     "version, calibration_json, reprojection_rms_px, wand_length_error_mm, created_at,"
     " produced_by FROM calibrations";
-void ReadCalibration(const Statement& q, CalibrationRecord* c) {
+Status ReadCalibration(const Statement& q, CalibrationRecord* c) {
   c->version = q.Int(0);
   c->calibration_json = q.Text(1);
   c->reprojection_rms_px = q.Double(2);
   c->wand_length_error_mm = q.Double(3);
   c->created_at = q.Text(4);
   c->produced_by = q.Text(5);
+  return Status::Ok();
 }
 
 const char* const kRecordingColumns =
@@ -325,6 +333,22 @@ Status SelectAll(Statement& q, ReadRow read) {
     if (!row) return Status::Ok();
     MOCAP_RETURN_IF_ERROR(read(q));
   }
+}
+
+// Runs a SELECT and reads every row into a new element of *out (replaced only on success) with
+// read_row(statement, Record*).
+template <typename Record, typename ReadRow>
+Status SelectList(Statement& q, ReadRow read_row, std::vector<Record>* out) {
+  std::vector<Record> list;
+  MOCAP_RETURN_IF_ERROR(
+      SelectAll(q, [&](const Statement& s) { return read_row(s, &list.emplace_back()); }));
+  *out = std::move(list);
+  return Status::Ok();
+}
+
+// "SELECT <columns ... FROM table> <rest>".
+std::string Select(const char* columns, const char* rest) {
+  return std::string("SELECT ") + columns + " " + rest;
 }
 
 Status CheckJson(const std::string& text, const std::string& what) {
@@ -404,10 +428,14 @@ std::size_t FixedFrameBytes(std::size_t num_markers, std::size_t num_coordinates
 
 const char* ToString(RecordingState state) {
   switch (state) {
-    case RecordingState::kRecording: return "recording";
-    case RecordingState::kComplete: return "complete";
-    case RecordingState::kInterrupted: return "interrupted";
-    case RecordingState::kFailed: return "failed";
+    case RecordingState::kRecording:
+      return "recording";
+    case RecordingState::kComplete:
+      return "complete";
+    case RecordingState::kInterrupted:
+      return "interrupted";
+    case RecordingState::kFailed:
+      return "failed";
   }
   return "unknown";
 }
@@ -427,7 +455,8 @@ std::string EncodeFrames(const std::vector<RecordedFrame>& frames, int num_marke
                          int num_coordinates) {
   std::string out;
   std::size_t total = kFrameHeaderBytes;
-  for (const auto& f : frames) total += FixedFrameBytes(num_markers, num_coordinates) + 24 * f.points.size();
+  for (const auto& f : frames)
+    total += FixedFrameBytes(num_markers, num_coordinates) + 24 * f.points.size();
   out.reserve(total);
   BlobWriter w(&out);
   out.append(kFrameMagic, 4);
@@ -473,12 +502,15 @@ Status DecodeFrames(const std::string& blob, int num_markers, int num_coordinate
   r.Uint(4, &reserved2);
   if (version != kFrameLayoutVersion) {
     return corrupt("layout version " + std::to_string(version) + " (this mocapd reads " +
-                       std::to_string(kFrameLayoutVersion) + ")", 4);
+                       std::to_string(kFrameLayoutVersion) + ")",
+                   4);
   }
-  if (m != static_cast<std::uint64_t>(num_markers) || c != static_cast<std::uint64_t>(num_coordinates)) {
+  if (m != static_cast<std::uint64_t>(num_markers) ||
+      c != static_cast<std::uint64_t>(num_coordinates)) {
     return corrupt("the header says " + std::to_string(m) + " markers and " + std::to_string(c) +
                        " coordinates, the recording " + std::to_string(num_markers) + " and " +
-                       std::to_string(num_coordinates), 12);
+                       std::to_string(num_coordinates),
+                   12);
   }
   const std::size_t fixed = FixedFrameBytes(m, c);
   if (n > r.remaining() / fixed) {
@@ -498,7 +530,8 @@ Status DecodeFrames(const std::string& blob, int num_markers, int num_coordinate
     }
     r.Uint(4, &num_points);
     if (num_points > (r.remaining() - (fixed - 21)) / 24) {
-      return corrupt(std::to_string(num_points) + " points do not fit in the blob", frame_start + 17);
+      return corrupt(std::to_string(num_points) + " points do not fit in the blob",
+                     frame_start + 17);
     }
     f.points.resize(num_points);
     for (auto& p : f.points) {
@@ -552,12 +585,13 @@ Status Store::Open(const std::string& state_dir, std::unique_ptr<Store>* out,
   }
   const std::string path = (std::filesystem::path(state_dir) / kFileName).string();
   sqlite3* raw = nullptr;
-  const int rc = sqlite3_open_v2(path.c_str(), &raw, SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE |
-                                                         SQLITE_OPEN_NOMUTEX, nullptr);
+  const int rc =
+      sqlite3_open_v2(path.c_str(), &raw,
+                      SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_NOMUTEX, nullptr);
   std::unique_ptr<Store> store(new Store(path, raw));  // owns `raw` even when the open failed
   if (rc != SQLITE_OK) {
-    return Status::Error(path + ": cannot open the database: " +
-                         (raw ? sqlite3_errmsg(raw) : sqlite3_errstr(rc)));
+    return Status::Error(
+        path + ": cannot open the database: " + (raw ? sqlite3_errmsg(raw) : sqlite3_errstr(rc)));
   }
   sqlite3* db = store->db_.get();
   sqlite3_extended_result_codes(db, 1);
@@ -629,8 +663,7 @@ Status Store::CreateSubject(const std::string& name, double height_m,
   const std::string what = path_ + ": creating subject '" + name + "'";
   if (name.empty()) return Status::Error(path_ + ": creating a subject: the name is empty");
   if (!(height_m > 0 && height_m <= 3)) {
-    return Status::Error(what + ": height " + std::to_string(height_m) +
-                         " m is not in (0, 3] m");
+    return Status::Error(what + ": height " + std::to_string(height_m) + " m is not in (0, 3] m");
   }
   if (model_source.empty()) return Status::Error(what + ": the model source is empty");
   MOCAP_RETURN_IF_ERROR(In(what, CheckModelJson(initial_model_json, "the initial model")));
@@ -663,32 +696,22 @@ Status Store::CreateSubject(const std::string& name, double height_m,
 }
 
 Status Store::ListSubjects(std::vector<SubjectRecord>* out) {
-  Statement q(db_.get(), path_, (std::string("SELECT ") + kSubjectColumns + " ORDER BY id").c_str());
-  std::vector<SubjectRecord> list;
-  MOCAP_RETURN_IF_ERROR(SelectAll(q, [&](const Statement& s) {
-    ReadSubject(s, &list.emplace_back());
-    return Status::Ok();
-  }));
-  *out = std::move(list);
-  return Status::Ok();
+  Statement q(db_.get(), path_, Select(kSubjectColumns, "ORDER BY id"));
+  return SelectList(q, ReadSubject, out);
 }
 
 Status Store::FindSubject(const std::string& name, SubjectRecord* out) {
-  Statement q(db_.get(), path_, (std::string("SELECT ") + kSubjectColumns + " WHERE name = ?").c_str());
+  Statement q(db_.get(), path_, Select(kSubjectColumns, "WHERE name = ?"));
   q.Bind(name);
-  return SelectOne(q, path_ + ": no subject named '" + name + "'", [&](const Statement& s) {
-    ReadSubject(s, out);
-    return Status::Ok();
-  });
+  return SelectOne(q, path_ + ": no subject named '" + name + "'",
+                   [&](const Statement& s) { return ReadSubject(s, out); });
 }
 
 Status Store::GetSubject(std::int64_t id, SubjectRecord* out) {
-  Statement q(db_.get(), path_, (std::string("SELECT ") + kSubjectColumns + " WHERE id = ?").c_str());
+  Statement q(db_.get(), path_, Select(kSubjectColumns, "WHERE id = ?"));
   q.Bind(id);
-  return SelectOne(q, path_ + ": no subject with id " + std::to_string(id), [&](const Statement& s) {
-    ReadSubject(s, out);
-    return Status::Ok();
-  });
+  return SelectOne(q, path_ + ": no subject with id " + std::to_string(id),
+                   [&](const Statement& s) { return ReadSubject(s, out); });
 }
 
 // --- models -----------------------------------------------------------------------------------
@@ -704,60 +727,48 @@ Status Store::AddModel(std::int64_t subject_id, const std::string& model_json,
   if (fit_report_id) {
     Statement q(db_.get(), path_, "SELECT subject_id FROM fit_reports WHERE id = ?");
     q.Bind(*fit_report_id);
-    MOCAP_RETURN_IF_ERROR(SelectOne(
-        q, what + ": no fit report with id " + std::to_string(*fit_report_id),
-        [&](const Statement& s) {
-          if (s.Int(0) == subject_id) return Status::Ok();
-          return Status::Error(what + ": fit report " + std::to_string(*fit_report_id) +
-                               " belongs to subject " + std::to_string(s.Int(0)));
-        }));
+    MOCAP_RETURN_IF_ERROR(
+        SelectOne(q, what + ": no fit report with id " + std::to_string(*fit_report_id),
+                  [&](const Statement& s) {
+                    if (s.Int(0) == subject_id) return Status::Ok();
+                    return Status::Error(what + ": fit report " + std::to_string(*fit_report_id) +
+                                         " belongs to subject " + std::to_string(s.Int(0)));
+                  }));
   }
-  Statement insert(db_.get(), path_,
-                   "INSERT INTO models (subject_id, version, model_json, fit_report_id, produced_by)"
-                   " VALUES (?1, (SELECT COALESCE(MAX(version), 0) + 1 FROM models"
-                   " WHERE subject_id = ?1), ?2, ?3, ?4)");
+  Statement insert(
+      db_.get(), path_,
+      "INSERT INTO models (subject_id, version, model_json, fit_report_id, produced_by)"
+      " VALUES (?1, (SELECT COALESCE(MAX(version), 0) + 1 FROM models"
+      " WHERE subject_id = ?1), ?2, ?3, ?4)");
   insert.Bind(subject_id).Bind(model_json).Bind(fit_report_id).Bind(produced_by);
   MOCAP_RETURN_IF_ERROR(insert.Run());
   const std::int64_t id = sqlite3_last_insert_rowid(db_.get());
   MOCAP_RETURN_IF_ERROR(t.Commit());
-  Statement q(db_.get(), path_, (std::string("SELECT ") + kModelColumns + " WHERE id = ?").c_str());
+  Statement q(db_.get(), path_, Select(kModelColumns, "WHERE id = ?"));
   q.Bind(id);
   return SelectOne(q, what + ": the new model " + std::to_string(id) + " is gone",
-                   [&](const Statement& s) {
-                     ReadModel(s, out);
-                     return Status::Ok();
-                   });
+                   [&](const Statement& s) { return ReadModel(s, out); });
 }
 
 Status Store::ListModels(std::int64_t subject_id, std::vector<ModelRecord>* out) {
   MOCAP_RETURN_IF_ERROR(CheckSubjectExists(subject_id));
-  Statement q(db_.get(), path_,
-              (std::string("SELECT ") + kModelColumns + " WHERE subject_id = ? ORDER BY version").c_str());
+  Statement q(db_.get(), path_, Select(kModelColumns, "WHERE subject_id = ? ORDER BY version"));
   q.Bind(subject_id);
-  std::vector<ModelRecord> list;
-  MOCAP_RETURN_IF_ERROR(SelectAll(q, [&](const Statement& s) {
-    ReadModel(s, &list.emplace_back());
-    return Status::Ok();
-  }));
-  *out = std::move(list);
-  return Status::Ok();
+  return SelectList(q, ReadModel, out);
 }
 
 Status Store::GetModel(std::int64_t subject_id, int version, ModelRecord* out) {
   MOCAP_RETURN_IF_ERROR(CheckSubjectExists(subject_id));
-  Statement q(db_.get(), path_,
-              (std::string("SELECT ") + kModelColumns +
-               " WHERE subject_id = ?1 AND (version = ?2 OR ?2 = 0) ORDER BY version DESC LIMIT 1")
-                  .c_str());
+  Statement q(
+      db_.get(), path_,
+      Select(kModelColumns,
+             "WHERE subject_id = ?1 AND (version = ?2 OR ?2 = 0) ORDER BY version DESC LIMIT 1"));
   q.Bind(subject_id).Bind(version);
   const std::string missing =
       version == 0 ? path_ + ": subject " + std::to_string(subject_id) + " has no model"
                    : path_ + ": subject " + std::to_string(subject_id) + " has no model version " +
                          std::to_string(version);
-  return SelectOne(q, missing, [&](const Statement& s) {
-    ReadModel(s, out);
-    return Status::Ok();
-  });
+  return SelectOne(q, missing, [&](const Statement& s) { return ReadModel(s, out); });
 }
 
 // --- fit reports ------------------------------------------------------------------------------
@@ -767,8 +778,9 @@ Status Store::AddFitReport(std::int64_t subject_id, const std::string& report_js
   const std::string what = path_ + ": adding a fit report to subject " + std::to_string(subject_id);
   MOCAP_RETURN_IF_ERROR(In(what, CheckJson(report_json, "the report")));
   MOCAP_RETURN_IF_ERROR(CheckSubjectExists(subject_id));
-  Statement insert(db_.get(), path_,
-                   "INSERT INTO fit_reports (subject_id, report_json, produced_by) VALUES (?, ?, ?)");
+  Statement insert(
+      db_.get(), path_,
+      "INSERT INTO fit_reports (subject_id, report_json, produced_by) VALUES (?, ?, ?)");
   insert.Bind(subject_id).Bind(report_json).Bind(produced_by);
   MOCAP_RETURN_IF_ERROR(In(what, insert.Run()));
   *id = sqlite3_last_insert_rowid(db_.get());
@@ -806,36 +818,29 @@ Status Store::AddCalibration(const std::string& calibration_json, double reproje
   Statement insert(db_.get(), path_,
                    "INSERT INTO calibrations (calibration_json, reprojection_rms_px,"
                    " wand_length_error_mm, produced_by) VALUES (?, ?, ?, ?)");
-  insert.Bind(calibration_json).Bind(reprojection_rms_px).Bind(wand_length_error_mm).Bind(produced_by);
+  insert.Bind(calibration_json)
+      .Bind(reprojection_rms_px)
+      .Bind(wand_length_error_mm)
+      .Bind(produced_by);
   MOCAP_RETURN_IF_ERROR(In(what, insert.Run()));
   *version = sqlite3_last_insert_rowid(db_.get());
   return Status::Ok();
 }
 
 Status Store::GetCalibration(std::int64_t version, CalibrationRecord* out) {
-  Statement q(db_.get(), path_,
-              (std::string("SELECT ") + kCalibrationColumns +
-               " WHERE version = ?1 OR ?1 = 0 ORDER BY version DESC LIMIT 1")
-                  .c_str());
+  Statement q(
+      db_.get(), path_,
+      Select(kCalibrationColumns, "WHERE version = ?1 OR ?1 = 0 ORDER BY version DESC LIMIT 1"));
   q.Bind(version);
-  const std::string missing = version == 0 ? path_ + ": no rig calibration stored yet"
-                                           : path_ + ": no rig calibration version " +
-                                                 std::to_string(version);
-  return SelectOne(q, missing, [&](const Statement& s) {
-    ReadCalibration(s, out);
-    return Status::Ok();
-  });
+  const std::string missing =
+      version == 0 ? path_ + ": no rig calibration stored yet"
+                   : path_ + ": no rig calibration version " + std::to_string(version);
+  return SelectOne(q, missing, [&](const Statement& s) { return ReadCalibration(s, out); });
 }
 
 Status Store::ListCalibrations(std::vector<CalibrationRecord>* out) {
-  Statement q(db_.get(), path_, (std::string("SELECT ") + kCalibrationColumns + " ORDER BY version").c_str());
-  std::vector<CalibrationRecord> list;
-  MOCAP_RETURN_IF_ERROR(SelectAll(q, [&](const Statement& s) {
-    ReadCalibration(s, &list.emplace_back());
-    return Status::Ok();
-  }));
-  *out = std::move(list);
-  return Status::Ok();
+  Statement q(db_.get(), path_, Select(kCalibrationColumns, "ORDER BY version"));
+  return SelectList(q, ReadCalibration, out);
 }
 
 // --- recordings -------------------------------------------------------------------------------
@@ -866,10 +871,13 @@ Status Store::BeginRecording(std::int64_t subject_id, const std::string& movemen
                    "INSERT INTO recordings (subject_id, movement, state, rate_hz, marker_names,"
                    " coordinate_names, model_version, produced_by)"
                    " VALUES (?, ?, 'recording', ?, ?, ?, ?, ?)");
-  insert.Bind(subject_id).Bind(movement).Bind(rate_hz)
+  insert.Bind(subject_id)
+      .Bind(movement)
+      .Bind(rate_hz)
       .Bind(nlohmann::json(marker_names).dump())
       .Bind(nlohmann::json(coordinate_names).dump())
-      .Bind(model_version).Bind(produced_by);
+      .Bind(model_version)
+      .Bind(produced_by);
   MOCAP_RETURN_IF_ERROR(insert.Run());
   const std::int64_t new_id = sqlite3_last_insert_rowid(db_.get());
   MOCAP_RETURN_IF_ERROR(t.Commit());
@@ -889,7 +897,8 @@ Status Store::AppendFrames(std::int64_t recording_id, const std::vector<Recorded
     const RecordedFrame& f = frames[i];
     const std::string at = what + ": appending frame " + std::to_string(f.frame) + " (entry " +
                            std::to_string(i) + ")";
-    if (f.markers.cols() != num_markers || f.marker_flags.size() != static_cast<std::size_t>(num_markers)) {
+    if (f.markers.cols() != num_markers ||
+        f.marker_flags.size() != static_cast<std::size_t>(num_markers)) {
       return Status::Error(at + ": " + std::to_string(f.markers.cols()) + " marker columns and " +
                            std::to_string(f.marker_flags.size()) + " flags; the recording has " +
                            std::to_string(num_markers) + " markers");
@@ -919,27 +928,31 @@ Status Store::AppendFrames(std::int64_t recording_id, const std::vector<Recorded
                 " WHERE recording_id = r.id), (SELECT MAX(last_frame) FROM recording_chunks"
                 " WHERE recording_id = r.id) FROM recordings r WHERE r.id = ?");
     q.Bind(recording_id);
-    MOCAP_RETURN_IF_ERROR(SelectOne(q, path_ + ": no recording with id " + std::to_string(recording_id),
-                                    [&](const Statement& s) {
-      if (s.Text(0) != ToString(RecordingState::kRecording)) {
-        return Status::Error(what + ": cannot append frames: the recording is " + s.Text(0));
-      }
-      next_chunk = s.Int(1);
-      if (!s.IsNull(2) && static_cast<std::uint64_t>(s.Int(2)) >= frames.front().frame) {
-        return Status::Error(what + ": appending frame " + std::to_string(frames.front().frame) +
-                             ": not after the last stored frame " + std::to_string(s.Int(2)));
-      }
-      return Status::Ok();
-    }));
+    MOCAP_RETURN_IF_ERROR(SelectOne(
+        q, path_ + ": no recording with id " + std::to_string(recording_id),
+        [&](const Statement& s) {
+          if (s.Text(0) != ToString(RecordingState::kRecording)) {
+            return Status::Error(what + ": cannot append frames: the recording is " + s.Text(0));
+          }
+          next_chunk = s.Int(1);
+          if (!s.IsNull(2) && static_cast<std::uint64_t>(s.Int(2)) >= frames.front().frame) {
+            return Status::Error(what + ": appending frame " +
+                                 std::to_string(frames.front().frame) +
+                                 ": not after the last stored frame " + std::to_string(s.Int(2)));
+          }
+          return Status::Ok();
+        }));
   }
   Statement insert(db_.get(), path_,
                    "INSERT INTO recording_chunks (recording_id, chunk_index, first_frame,"
                    " last_frame, frame_count, frames, produced_by) VALUES (?, ?, ?, ?, ?, ?, ?)");
-  insert.Bind(recording_id).Bind(next_chunk)
+  insert.Bind(recording_id)
+      .Bind(next_chunk)
       .Bind(static_cast<std::int64_t>(frames.front().frame))
       .Bind(static_cast<std::int64_t>(frames.back().frame))
       .Bind(static_cast<std::int64_t>(frames.size()))
-      .BindBlob(blob).Bind(info.produced_by);
+      .BindBlob(blob)
+      .Bind(info.produced_by);
   MOCAP_RETURN_IF_ERROR(In(what + ": storing chunk " + std::to_string(next_chunk), insert.Run()));
   Statement update(db_.get(), path_,
                    "UPDATE recordings SET frame_count = frame_count + ? WHERE id = ?");
@@ -954,13 +967,15 @@ Status Store::FinishRecording(std::int64_t recording_id, RecordingState state,
   if (state == RecordingState::kRecording) {
     return Status::Error(what + ": the final state cannot be 'recording'");
   }
-  if (!coverage_json.empty()) MOCAP_RETURN_IF_ERROR(In(what, CheckJson(coverage_json, "the coverage")));
+  if (!coverage_json.empty())
+    MOCAP_RETURN_IF_ERROR(In(what, CheckJson(coverage_json, "the coverage")));
   Transaction t(db_.get(), path_);
   MOCAP_RETURN_IF_ERROR(t.Begin(Transaction::Kind::kWrite));
   RecordingInfo info;
   MOCAP_RETURN_IF_ERROR(GetRecording(recording_id, &info));
   if (info.state != RecordingState::kRecording) {
-    return Status::Error(what + " as " + ToString(state) + ": it is already " + ToString(info.state));
+    return Status::Error(what + " as " + ToString(state) + ": it is already " +
+                         ToString(info.state));
   }
   Statement update(db_.get(), path_,
                    "UPDATE recordings SET state = ?, coverage_json = ?, note = ?,"
@@ -973,19 +988,14 @@ Status Store::FinishRecording(std::int64_t recording_id, RecordingState state,
 Status Store::ListRecordings(std::int64_t subject_id, std::vector<RecordingInfo>* out) {
   if (subject_id != 0) MOCAP_RETURN_IF_ERROR(CheckSubjectExists(subject_id));
   Statement q(db_.get(), path_,
-              (std::string("SELECT ") + kRecordingColumns +
-               " WHERE subject_id = ?1 OR ?1 = 0 ORDER BY id").c_str());
+              Select(kRecordingColumns, "WHERE subject_id = ?1 OR ?1 = 0 ORDER BY id"));
   q.Bind(subject_id);
-  std::vector<RecordingInfo> list;
-  MOCAP_RETURN_IF_ERROR(SelectAll(q, [&](const Statement& s) {
-    return ReadRecording(s, path_, &list.emplace_back());
-  }));
-  *out = std::move(list);
-  return Status::Ok();
+  return SelectList(
+      q, [&](const Statement& s, RecordingInfo* r) { return ReadRecording(s, path_, r); }, out);
 }
 
 Status Store::GetRecording(std::int64_t recording_id, RecordingInfo* out) {
-  Statement q(db_.get(), path_, (std::string("SELECT ") + kRecordingColumns + " WHERE id = ?").c_str());
+  Statement q(db_.get(), path_, Select(kRecordingColumns, "WHERE id = ?"));
   q.Bind(recording_id);
   return SelectOne(q, path_ + ": no recording with id " + std::to_string(recording_id),
                    [&](const Statement& s) { return ReadRecording(s, path_, out); });
@@ -1000,14 +1010,15 @@ Status Store::ReadFrames(std::int64_t recording_id, std::vector<RecordedFrame>* 
   MOCAP_RETURN_IF_ERROR(GetRecording(recording_id, &info));
   const int num_markers = static_cast<int>(info.marker_names.size());
   const int num_coordinates = static_cast<int>(info.coordinate_names.size());
-  Statement q(db_.get(), path_,
-              "SELECT chunk_index, first_frame, last_frame, frame_count, frames FROM recording_chunks"
-              " WHERE recording_id = ? ORDER BY chunk_index");
+  Statement q(
+      db_.get(), path_,
+      "SELECT chunk_index, first_frame, last_frame, frame_count, frames FROM recording_chunks"
+      " WHERE recording_id = ? ORDER BY chunk_index");
   q.Bind(recording_id);
   std::vector<RecordedFrame> read;
   MOCAP_RETURN_IF_ERROR(SelectAll(q, [&](const Statement& s) {
-    const std::string where =
-        path_ + ": recording " + std::to_string(recording_id) + " chunk " + std::to_string(s.Int(0));
+    const std::string where = path_ + ": recording " + std::to_string(recording_id) + " chunk " +
+                              std::to_string(s.Int(0));
     const std::size_t before = read.size();
     MOCAP_RETURN_IF_ERROR(DecodeFrames(s.Blob(4), num_markers, num_coordinates, where, &read));
     const std::size_t n = read.size() - before;
@@ -1027,9 +1038,9 @@ Status Store::ReadFrames(std::int64_t recording_id, std::vector<RecordedFrame>* 
     return Status::Ok();
   }));
   if (static_cast<std::int64_t>(read.size()) != info.frame_count) {
-    return Status::Error(path_ + ": recording " + std::to_string(recording_id) + ": its chunks hold " +
-                         std::to_string(read.size()) + " frames, the recording says " +
-                         std::to_string(info.frame_count));
+    return Status::Error(path_ + ": recording " + std::to_string(recording_id) +
+                         ": its chunks hold " + std::to_string(read.size()) +
+                         " frames, the recording says " + std::to_string(info.frame_count));
   }
   MOCAP_RETURN_IF_ERROR(t.Commit());
   *frames = std::move(read);

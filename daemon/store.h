@@ -61,13 +61,13 @@ namespace mocap::daemon {
 
 // One frame set as the recorder saw it.
 struct RecordedFrame {
-  std::uint64_t frame = 0;                  // the rig's frame-set sequence number
-  double time_s = 0;                        // mid-exposure time of the set (seconds, daemon clock)
-  std::vector<Eigen::Vector3d> points;      // unlabelled 3D points (metres)
-  Eigen::Matrix3Xd markers;                 // per model marker, NaN columns where not labelled
-  std::vector<std::uint8_t> marker_flags;   // per marker: bit0 occluded, bit1 filled
-  Eigen::VectorXd coordinates;              // the tracker's z (radians/metres)
-  std::int8_t tracker_state = 0;            // 0 initialising, 1 tracking, 2 lost
+  std::uint64_t frame = 0;                 // the rig's frame-set sequence number
+  double time_s = 0;                       // mid-exposure time of the set (seconds, daemon clock)
+  std::vector<Eigen::Vector3d> points;     // unlabelled 3D points (metres)
+  Eigen::Matrix3Xd markers;                // per model marker, NaN columns where not labelled
+  std::vector<std::uint8_t> marker_flags;  // per marker: bit0 occluded, bit1 filled
+  Eigen::VectorXd coordinates;             // the tracker's z (radians/metres)
+  std::int8_t tracker_state = 0;           // 0 initialising, 1 tracking, 2 lost
 };
 constexpr std::uint8_t kMarkerOccluded = 1u << 0;
 constexpr std::uint8_t kMarkerFilled = 1u << 1;
@@ -95,8 +95,8 @@ struct SubjectRecord {
 struct ModelRecord {
   std::int64_t id = 0;
   std::int64_t subject_id = 0;
-  int version = 0;  // 1, 2, ... per subject
-  std::string model_json;  // model/model_io.h ModelToJsonString
+  int version = 0;                            // 1, 2, ... per subject
+  std::string model_json;                     // model/model_io.h ModelToJsonString
   std::optional<std::int64_t> fit_report_id;  // the fit that produced it, if any
   std::string created_at, produced_by;
 };
@@ -172,7 +172,7 @@ class Store {
   Status CreateSubject(const std::string& name, double height_m, const std::string& model_source,
                        const std::string& osim_text, const std::string& initial_model_json,
                        const std::string& produced_by, SubjectRecord* out);
-  Status ListSubjects(std::vector<SubjectRecord>* out);  // by id
+  Status ListSubjects(std::vector<SubjectRecord>* out);             // by id
   Status FindSubject(const std::string& name, SubjectRecord* out);  // error: no subject named
   Status GetSubject(std::int64_t id, SubjectRecord* out);
 

@@ -43,9 +43,9 @@ namespace {
 
 const double kNaN = std::numeric_limits<double>::quiet_NaN();
 
-#define ASSERT_OK(expr)                              \
-  do {                                               \
-    const ::mocap::Status _st = (expr);              \
+#define ASSERT_OK(expr)                                      \
+  do {                                                       \
+    const ::mocap::Status _st = (expr);                      \
     ASSERT_TRUE(_st.ok()) << #expr << ": " << _st.message(); \
   } while (0)
 
@@ -61,7 +61,8 @@ std::string RawSql(const std::string& db_path, const std::string& sql) {
   sqlite3* db = nullptr;
   EXPECT_EQ(sqlite3_open(db_path.c_str(), &db), SQLITE_OK);
   sqlite3_stmt* stmt = nullptr;
-  EXPECT_EQ(sqlite3_prepare_v2(db, sql.c_str(), -1, &stmt, nullptr), SQLITE_OK) << sqlite3_errmsg(db);
+  EXPECT_EQ(sqlite3_prepare_v2(db, sql.c_str(), -1, &stmt, nullptr), SQLITE_OK)
+      << sqlite3_errmsg(db);
   std::string result;
   const int rc = sqlite3_step(stmt);
   EXPECT_TRUE(rc == SQLITE_ROW || rc == SQLITE_DONE) << sql << ": " << sqlite3_errmsg(db);
@@ -79,7 +80,8 @@ class StoreTest : public ::testing::Test {
  protected:
   void SetUp() override {
     const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
-    root_ = fs::path(MOCAP_TEST_TMP) / "store" / (std::string(info->test_suite_name()) + "_" + info->name());
+    root_ = fs::path(MOCAP_TEST_TMP) / "store" /
+            (std::string(info->test_suite_name()) + "_" + info->name());
     fs::remove_all(root_);
     dir_ = (root_ / "var" / "lib" / "mocapd").string();
     ASSERT_OK(Store::Open(dir_, &store_));
@@ -98,13 +100,16 @@ class StoreTest : public ::testing::Test {
 
   SubjectRecord MakeSubject(const std::string& name) {
     SubjectRecord s;
-    EXPECT_TRUE(store_->CreateSubject(name, 1.75, "default", "", model_json_, "import default", &s).ok());
+    EXPECT_TRUE(
+        store_->CreateSubject(name, 1.75, "default", "", model_json_, "import default", &s).ok());
     return s;
   }
   std::int64_t BeginRecording(std::int64_t subject_id, const std::string& movement = "squats") {
     std::int64_t id = 0;
-    EXPECT_TRUE(store_->BeginRecording(subject_id, movement, 200.0, marker_names_, coordinate_names_,
-                                       1, "mocapd 0.1.0 record", &id).ok());
+    EXPECT_TRUE(store_
+                    ->BeginRecording(subject_id, movement, 200.0, marker_names_, coordinate_names_,
+                                     1, "mocapd 0.1.0 record", &id)
+                    .ok());
     return id;
   }
 
@@ -144,7 +149,9 @@ class StoreTest : public ::testing::Test {
   std::vector<std::string> marker_names_, coordinate_names_;
 };
 
-bool SameBits(double a, double b) { return std::bit_cast<std::uint64_t>(a) == std::bit_cast<std::uint64_t>(b); }
+bool SameBits(double a, double b) {
+  return std::bit_cast<std::uint64_t>(a) == std::bit_cast<std::uint64_t>(b);
+}
 
 void ExpectSameFrames(const std::vector<RecordedFrame>& a, const std::vector<RecordedFrame>& b) {
   ASSERT_EQ(a.size(), b.size());
@@ -198,7 +205,8 @@ TEST_F(StoreTest, AFileThatIsNotADatabaseIsAnErrorNamingThePath) {
   mocap::testutil::WriteBytes((fs::path(other) / Store::kFileName).string(),
                               std::string(4096, 'x'));
   std::unique_ptr<Store> s;
-  ExpectError(Store::Open(other, &s), {(fs::path(other) / Store::kFileName).string(), "not a database"});
+  ExpectError(Store::Open(other, &s),
+              {(fs::path(other) / Store::kFileName).string(), "not a database"});
 }
 
 TEST_F(StoreTest, AStateDirectoryThatCannotBeCreatedIsNamed) {
@@ -266,7 +274,8 @@ TEST_F(StoreTest, BadSubjectsAreRefusedAndNothingIsLeftBehind) {
   SubjectRecord s;
   ExpectError(store_->CreateSubject("alice", 1.7, "default", "", model_json_, "t", &s),
               {"'alice'", "already taken"});
-  ExpectError(store_->CreateSubject("", 1.7, "default", "", model_json_, "t", &s), {"name is empty"});
+  ExpectError(store_->CreateSubject("", 1.7, "default", "", model_json_, "t", &s),
+              {"name is empty"});
   ExpectError(store_->CreateSubject("carol", 0.0, "default", "", model_json_, "t", &s),
               {"'carol'", "height"});
   ExpectError(store_->CreateSubject("carol", 1.7, "", "", model_json_, "t", &s),
@@ -313,14 +322,17 @@ TEST_F(StoreTest, ModelsAreVersionedPerSubjectAndLinkTheirFitReport) {
   EXPECT_EQ(again.latest_model_version, 3);
 
   ModelRecord bad;
-  ExpectError(store_->GetModel(a.id, 9, &bad), {"subject " + std::to_string(a.id), "no model version 9"});
+  ExpectError(store_->GetModel(a.id, 9, &bad),
+              {"subject " + std::to_string(a.id), "no model version 9"});
   ExpectError(store_->GetModel(77, 0, &bad), {"no subject with id 77"});
   ExpectError(store_->ListModels(77, &list), {"no subject with id 77"});
-  ExpectError(store_->AddModel(77, model_json_, "t", std::nullopt, &bad), {"no subject with id 77"});
+  ExpectError(store_->AddModel(77, model_json_, "t", std::nullopt, &bad),
+              {"no subject with id 77"});
   ExpectError(store_->AddModel(a.id, "not json", "t", std::nullopt, &bad), {"adding a model"});
   ExpectError(store_->AddModel(a.id, model_json_, "t", 555, &bad), {"no fit report with id 555"});
-  ExpectError(store_->AddModel(b.id, model_json_, "t", report, &bad),
-              {"fit report " + std::to_string(report), "belongs to subject " + std::to_string(a.id)});
+  ExpectError(
+      store_->AddModel(b.id, model_json_, "t", report, &bad),
+      {"fit report " + std::to_string(report), "belongs to subject " + std::to_string(a.id)});
   ASSERT_OK(store_->ListModels(a.id, &list));
   EXPECT_EQ(list.size(), 3u);  // the refused ones added nothing
 }
@@ -337,7 +349,8 @@ TEST_F(StoreTest, FitReportsRoundTrip) {
   EXPECT_EQ(r.report_json, json);
   EXPECT_EQ(r.produced_by, "mocapd 0.1.0 fit");
   EXPECT_THAT(r.created_at, MatchesRegex(kIsoUtc));
-  ExpectError(store_->GetFitReport(id + 1, &r), {"no fit report with id " + std::to_string(id + 1)});
+  ExpectError(store_->GetFitReport(id + 1, &r),
+              {"no fit report with id " + std::to_string(id + 1)});
   ExpectError(store_->AddFitReport(a.id, "{oops", "t", &id), {"report is not valid JSON"});
   ExpectError(store_->AddFitReport(99, json, "t", &id), {"no subject with id 99"});
 }
@@ -346,8 +359,10 @@ TEST_F(StoreTest, CalibrationsAreVersionedAndTheLatestIsVersionZero) {
   CalibrationRecord c;
   ExpectError(store_->GetCalibration(0, &c), {"no rig calibration stored yet"});
   std::int64_t v1 = 0, v2 = 0;
-  ASSERT_OK(store_->AddCalibration(R"({"cameras": [1]})", 0.21, 0.4, "mocapd 0.1.0 rig.calibrate", &v1));
-  ASSERT_OK(store_->AddCalibration(R"({"cameras": [2]})", 0.18, -0.3, "mocapd 0.1.0 rig.calibrate", &v2));
+  ASSERT_OK(
+      store_->AddCalibration(R"({"cameras": [1]})", 0.21, 0.4, "mocapd 0.1.0 rig.calibrate", &v1));
+  ASSERT_OK(
+      store_->AddCalibration(R"({"cameras": [2]})", 0.18, -0.3, "mocapd 0.1.0 rig.calibrate", &v2));
   EXPECT_GT(v2, v1);
   ASSERT_OK(store_->GetCalibration(0, &c));
   EXPECT_EQ(c.version, v2);
@@ -364,7 +379,8 @@ TEST_F(StoreTest, CalibrationsAreVersionedAndTheLatestIsVersionZero) {
   ASSERT_EQ(list.size(), 2u);
   EXPECT_EQ(list[0].version, v1);
   EXPECT_EQ(list[1].version, v2);
-  ExpectError(store_->GetCalibration(v2 + 5, &c), {"no rig calibration version " + std::to_string(v2 + 5)});
+  ExpectError(store_->GetCalibration(v2 + 5, &c),
+              {"no rig calibration version " + std::to_string(v2 + 5)});
   ExpectError(store_->AddCalibration("[1,", 0.2, 0.1, "t", &v1), {"calibration is not valid JSON"});
   ExpectError(store_->AddCalibration("{}", kNaN, 0.1, "t", &v1), {"must be finite"});
 }
@@ -411,8 +427,9 @@ TEST_F(StoreTest, FramesAppendedInChunksReadBackBitIdentical) {
   EXPECT_EQ(info.note, "good");
   EXPECT_THAT(info.stopped_at, MatchesRegex(kIsoUtc));
   EXPECT_GE(info.stopped_at, info.started_at);
-  ExpectError(store_->AppendFrames(id, MakeFrames(6000, 2)),
-              {"recording " + std::to_string(id), "cannot append frames: the recording is complete"});
+  ExpectError(
+      store_->AppendFrames(id, MakeFrames(6000, 2)),
+      {"recording " + std::to_string(id), "cannot append frames: the recording is complete"});
   ExpectError(store_->FinishRecording(id, RecordingState::kFailed, "", ""),
               {"finishing recording " + std::to_string(id), "already complete"});
   ASSERT_OK(store_->ReadFrames(id, &read));
@@ -458,7 +475,8 @@ TEST_F(StoreTest, FramesThatDoNotFitTheRecordingAreRefusedNamingTheFrame) {
   frames = MakeFrames(200, 1);
   frames[0].frame = std::uint64_t{1} << 63;
   ExpectError(store_->AppendFrames(id, frames), {"2^63"});
-  ExpectError(store_->AppendFrames(id + 1, MakeFrames(1, 1)), {"no recording with id " + std::to_string(id + 1)});
+  ExpectError(store_->AppendFrames(id + 1, MakeFrames(1, 1)),
+              {"no recording with id " + std::to_string(id + 1)});
 
   std::vector<RecordedFrame> read;
   ASSERT_OK(store_->ReadFrames(id, &read));
@@ -468,10 +486,13 @@ TEST_F(StoreTest, FramesThatDoNotFitTheRecordingAreRefusedNamingTheFrame) {
 TEST_F(StoreTest, BadRecordingsAndUnknownIdsAreErrors) {
   const SubjectRecord a = MakeSubject("alice");
   std::int64_t id = 0;
-  ExpectError(store_->BeginRecording(99, "squats", 200, {}, {}, 0, "t", &id), {"no subject with id 99"});
-  ExpectError(store_->BeginRecording(a.id, "squats", 200, {}, {}, 4, "t", &id), {"no model version 4"});
+  ExpectError(store_->BeginRecording(99, "squats", 200, {}, {}, 0, "t", &id),
+              {"no subject with id 99"});
+  ExpectError(store_->BeginRecording(a.id, "squats", 200, {}, {}, 4, "t", &id),
+              {"no model version 4"});
   ExpectError(store_->BeginRecording(a.id, "squats", 0, {}, {}, 1, "t", &id), {"rate 0"});
-  ExpectError(store_->BeginRecording(a.id, "", 200, {}, {}, 1, "t", &id), {"movement name is empty"});
+  ExpectError(store_->BeginRecording(a.id, "", 200, {}, {}, 1, "t", &id),
+              {"movement name is empty"});
   ExpectError(store_->BeginRecording(a.id, "squats", 200, {"A", "B", "A"}, {}, 1, "t", &id),
               {"marker names", "'A' appears twice"});
   ExpectError(store_->BeginRecording(a.id, "squats", 200, {}, {"knee", ""}, 1, "t", &id),
@@ -481,11 +502,14 @@ TEST_F(StoreTest, BadRecordingsAndUnknownIdsAreErrors) {
   std::vector<RecordingInfo> list;
   ExpectError(store_->GetRecording(31, &info), {"no recording with id 31"});
   ExpectError(store_->ReadFrames(31, &frames), {"no recording with id 31"});
-  ExpectError(store_->FinishRecording(31, RecordingState::kComplete, "", ""), {"no recording with id 31"});
+  ExpectError(store_->FinishRecording(31, RecordingState::kComplete, "", ""),
+              {"no recording with id 31"});
   ExpectError(store_->ListRecordings(31, &list), {"no subject with id 31"});
   id = BeginRecording(a.id);
-  ExpectError(store_->FinishRecording(id, RecordingState::kRecording, "", ""), {"cannot be 'recording'"});
-  ExpectError(store_->FinishRecording(id, RecordingState::kComplete, "{", ""), {"coverage is not valid JSON"});
+  ExpectError(store_->FinishRecording(id, RecordingState::kRecording, "", ""),
+              {"cannot be 'recording'"});
+  ExpectError(store_->FinishRecording(id, RecordingState::kComplete, "{", ""),
+              {"coverage is not valid JSON"});
   ASSERT_OK(store_->GetRecording(id, &info));
   EXPECT_EQ(info.state, RecordingState::kRecording);
 }
@@ -755,7 +779,8 @@ TEST_F(ExportTest, C3dReadsBackTheLabelledMarkersAndTheUnlabelledPoints) {
       ASSERT_EQ(trial.Has(row, num_markers + p), has) << "frame " << f.frame << " point " << p;
       if (!has) continue;
       for (int k = 0; k < 3; ++k) {
-        EXPECT_NEAR(trial.At(row, num_markers + p)[k], f.points[p][k], 6e-8 * std::abs(f.points[p][k]) + 1e-12);
+        EXPECT_NEAR(trial.At(row, num_markers + p)[k], f.points[p][k],
+                    6e-8 * std::abs(f.points[p][k]) + 1e-12);
       }
     }
   }
@@ -774,7 +799,8 @@ TEST_F(ExportTest, TrcReadsBackTheLabelledMarkers) {
     for (int m = 0; m < trial.num_markers(); ++m) {
       for (int k = 0; k < 3; ++k) {
         // 5 decimals of mm.
-        ExpectNear(f.markers(k, m), trial.At(row, m)[k], 5e-9 + 1e-12, "marker " + marker_names_[m]);
+        ExpectNear(f.markers(k, m), trial.At(row, m)[k], 5e-9 + 1e-12,
+                   "marker " + marker_names_[m]);
       }
     }
   }
@@ -822,7 +848,8 @@ TEST_F(ExportTest, TablesForTheFitAreInMetresAndRadians) {
   fill.fill_gaps = true;
   mocap::formats::CoordinateTable table;
   const std::vector<bool> rotational(coordinate_names_.size(), true);
-  ASSERT_OK(mocap::daemon::RecordingToCoordinateTable(info_, stored_, rotational, false, fill, &table));
+  ASSERT_OK(
+      mocap::daemon::RecordingToCoordinateTable(info_, stored_, rotational, false, fill, &table));
   EXPECT_FALSE(table.in_degrees);
   ASSERT_EQ(table.num_frames(), 40);
   EXPECT_TRUE(table.values.row(20).array().isNaN().all());
