@@ -18,6 +18,12 @@
 // - The schema is versioned with `PRAGMA user_version`; Open migrates an older database step by
 //   step and refuses a newer one (written by a newer mocapd) rather than guess at it.
 //
+// Costs (this machine, the default model's 43 markers and 38 coordinates, 48 points a frame,
+// 60 s at 200 Hz in 20-frame chunks): AppendFrames p50 0.26 ms, p99 13 ms, max 32 ms — the slow
+// ones are the commits that run SQLite's automatic WAL checkpoint (every ~4 MB, with an fsync), so
+// the recorder must call it from its own thread, never from the event loop; 2.7 kB a frame (32 MB
+// a minute); ReadFrames of the 12,000 frames 80 ms.
+//
 // A recording that was still "recording" when the daemon stopped (crash, power cut, kill) becomes
 // "interrupted" at the next Open: its committed chunks stay readable and exportable.
 //

@@ -7,6 +7,7 @@
 #include <sqlite3.h>
 
 #include <algorithm>
+#include <atomic>
 #include <bit>
 #include <cmath>
 #include <filesystem>
@@ -14,6 +15,7 @@
 #include <numbers>
 #include <random>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "daemon/recording_export.h"
@@ -618,6 +620,75 @@ TEST_F(StoreTest, ARecordingLeftOpenReadsBackInterruptedWithItsFrames) {
   ASSERT_OK(store_->MarkInterrupted(&count));
   EXPECT_EQ(count, 0);
   ExpectError(store_->AppendFrames(open, MakeFrames(100, 1)), {"the recording is interrupted"});
+}
+
+// The daemon's shape: the recorder appends through its Store while other threads read and write
+// through theirs. No call fails on a lock (busy_timeout, BEGIN IMMEDIATE), and every read sees a
+// whole number of committed chunks, bit for bit.
+TEST_F(StoreTest, AStorePerThreadWorkSideBySide) {
+  const SubjectRecord a = MakeSubject("alice");
+  const std::int64_t id = BeginRecording(a.id);
+  constexpr int kChunks = 40, kChunkFrames = 20;
+  std::vector<std::vector<RecordedFrame>> chunks;
+  for (int c = 0; c < kChunks; ++c)
+    chunks.push_back(MakeFrames(1 + kChunkFrames * c, kChunkFrames));
+  StoreOptions worker;
+  worker.mark_interrupted_recordings = false;
+  std::unique_ptr<Store> reader, calibrator;
+  ASSERT_OK(Store::Open(dir_, &reader, worker));
+  ASSERT_OK(Store::Open(dir_, &calibrator, worker));
+
+  std::atomic<bool> done{false};
+  std::string writer_error, reader_error, calibrator_error;
+  std::thread writer_thread([&] {
+    for (const auto& chunk : chunks) {
+      if (Status s = store_->AppendFrames(id, chunk); !s.ok()) {
+        writer_error = s.message();
+        break;
+      }
+    }
+    done = true;
+  });
+  std::thread calibrator_thread([&] {
+    for (int i = 0; i < 20 && calibrator_error.empty(); ++i) {
+      std::int64_t v = 0;
+      if (Status s = calibrator->AddCalibration("{}", 0.2, 0.1, "t", &v); !s.ok()) {
+        calibrator_error = s.message();
+      }
+    }
+  });
+  int reads = 0;
+  std::size_t last_size = 0;
+  while (reader_error.empty()) {
+    const bool finished = done;  // read once more after the writer is done
+    std::vector<RecordedFrame> read;
+    if (Status s = reader->ReadFrames(id, &read); !s.ok()) {
+      reader_error = s.message();
+      break;
+    }
+    ++reads;
+    if (read.size() % kChunkFrames != 0 || read.size() < last_size) {
+      reader_error =
+          "read " + std::to_string(read.size()) + " frames after " + std::to_string(last_size);
+      break;
+    }
+    last_size = read.size();
+    for (std::size_t c = 0; c < read.size() / kChunkFrames; ++c) {
+      ExpectSameFrames(chunks[c],
+                       {read.begin() + c * kChunkFrames, read.begin() + (c + 1) * kChunkFrames});
+    }
+    if (finished) break;
+  }
+  writer_thread.join();
+  calibrator_thread.join();
+  EXPECT_EQ(writer_error, "");
+  EXPECT_EQ(reader_error, "");
+  EXPECT_EQ(calibrator_error, "");
+  EXPECT_EQ(last_size, static_cast<std::size_t>(kChunks * kChunkFrames));
+  EXPECT_GE(reads, 1);
+  std::vector<CalibrationRecord> calibrations;
+  ASSERT_OK(reader->ListCalibrations(&calibrations));
+  EXPECT_EQ(calibrations.size(), 20u);
 }
 
 TEST_F(StoreTest, UsageGrowsWithTheFrames) {
