@@ -1,5 +1,5 @@
-// The control client (daemon/control_client.h) against a fake mocapd: a thread on the other end
-// of a socketpair (or of a real Unix socket) that plays a scripted conversation.
+// The control client (daemon/control_client.h) against a fake mocapd (tests/fake_mocapd.h): a
+// thread on the other end of a socketpair (or of a real Unix socket) that plays a conversation.
 #include "daemon/control_client.h"
 
 #include <gmock/gmock.h>
@@ -18,6 +18,7 @@
 #include <thread>
 #include <vector>
 
+#include "fake_mocapd.h"
 #include "file_test_util.h"
 
 namespace mocap::daemon {
@@ -26,46 +27,8 @@ namespace {
 using ::testing::HasSubstr;
 using json = nlohmann::json;
 
-const std::string kHello =
-    R"({"event":"hello","protocol":1,"daemon":"mocapd 0.1.0","may_control":false,"uid":1000})";
-
-// The daemon's end: blocking line I/O on a socket.
-class FakeDaemonEnd {
- public:
-  explicit FakeDaemonEnd(int fd) : fd_(fd) {}
-  void Write(const std::string& bytes) {
-    std::size_t sent = 0;
-    while (sent < bytes.size()) {
-      const ssize_t n = send(fd_, bytes.data() + sent, bytes.size() - sent, MSG_NOSIGNAL);
-      if (n <= 0) return;  // the client went away: the test's assertions say what matters
-      sent += static_cast<std::size_t>(n);
-    }
-  }
-  void WriteLine(const std::string& line) { Write(line + "\n"); }
-  // The next request line, parsed; null when the client closed.
-  json ReadRequest() {
-    for (;;) {
-      if (auto nl = buffer_.find('\n'); nl != std::string::npos) {
-        json request = json::parse(buffer_.substr(0, nl));
-        buffer_.erase(0, nl + 1);
-        return request;
-      }
-      char chunk[4096];
-      const ssize_t n = read(fd_, chunk, sizeof chunk);
-      if (n <= 0) return json();
-      buffer_.append(chunk, static_cast<std::size_t>(n));
-    }
-  }
-  void Close() {
-    if (fd_ >= 0) close(fd_);
-    fd_ = -1;
-  }
-  ~FakeDaemonEnd() { Close(); }
-
- private:
-  int fd_;
-  std::string buffer_;
-};
+using testutil::FakeDaemonEnd;
+const std::string& kHello = testutil::kFakeHello;
 
 // A client connected through a socketpair to `script`, which runs on its own thread.
 class FakeDaemon {
@@ -332,7 +295,7 @@ TEST(ControlClient, StreamEventsAfterTheReplyAreReadByNextEvent) {
 // --- A real Unix socket ------------------------------------------------------------------------
 
 std::string SocketPath() {
-  const std::string path = testutil::TmpPath("control_client", ".sock");
+  const std::string path = testutil::ShortSocketPath();
   std::filesystem::remove(path);
   return path;
 }
@@ -348,13 +311,8 @@ int BoundSocket(const std::string& path) {
 
 TEST(ControlClient, ConnectsThroughAUnixSocket) {
   const std::string path = SocketPath();
-  const int listener = BoundSocket(path);
-  ASSERT_EQ(listen(listener, 4), 0);
-  std::thread daemon([listener] {
-    FakeDaemonEnd d(accept(listener, nullptr, nullptr));
-    d.WriteLine(kHello);
-    const json request = d.ReadRequest();
-    d.WriteLine(json({{"id", request["id"]}, {"result", {{"echo", request["method"]}}}}).dump());
+  testutil::ScriptedMocapd daemon(path, [](const json& request) {
+    return std::vector<std::string>{testutil::ResultLine(request, {{"echo", request["method"]}})};
   });
   ControlClientOptions options;
   options.socket_path = path;
@@ -365,8 +323,6 @@ TEST(ControlClient, ConnectsThroughAUnixSocket) {
   s = client->Call("cameras", json(), &reply);
   ASSERT_TRUE(s.ok()) << s.message();
   EXPECT_EQ(reply.result["echo"], "cameras");
-  daemon.join();
-  close(listener);
 }
 
 TEST(ControlClient, NotRunningSaysSo) {
