@@ -4,8 +4,9 @@ set -euo pipefail
 PKGS=(cmake ninja-build g++ pkg-config
       libeigen3-dev libsuitesparse-dev libopenblas-dev
       libceres-dev libcli11-dev nlohmann-json3-dev libspdlog-dev
-      libgtest-dev libgmock-dev libbenchmark-dev libtinyxml2-dev
+      libgtest-dev libgmock-dev libbenchmark-dev libtinyxml2-dev libtomlplusplus-dev
       libaravis-dev aravis-tools libusb-1.0-0-dev libopencv-dev
+      libsqlite3-dev                # daemon/store.h
       clang-14 libclang-rt-14-dev)  # clang + libFuzzer: scripts/fuzz.sh
 missing=()
 for p in "${PKGS[@]}"; do

@@ -91,6 +91,16 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
 // optional ones when `optional_markers` is set.
 std::vector<int> SimulatedMarkers(const Model& model, bool optional_markers);
 
+// The models of a simulation that records `markers` (SimulatedMarkers) of `subject`, as
+// SimulatedSession holds them: the nominal and true models with exactly those markers, and the
+// truth's parameters in the nominal model's layout.
+struct SessionModels {
+  Model nominal;
+  Model truth;
+  Eigen::VectorXd truth_parameters;
+};
+SessionModels MakeSessionModels(const VirtualSubject& subject, const std::vector<int>& markers);
+
 // Row `frame` of a SimulatedTrial's coordinate table as the model's z (radians, metres).
 Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTable& table,
                                 int frame);

@@ -12,27 +12,6 @@ namespace {
 // Sub-streams of Stream::kWand.
 enum : std::uint64_t { kPath = 0, kNoise = 1, kStrays = 2, kDropout = 3, kLFrame = 4 };
 
-// A smooth random signal in [-1, 1]: a sum of sinusoids with random frequencies and phases.
-struct SmoothSignal {
-  static constexpr int kTerms = 4;
-  double freq[kTerms], phase[kTerms], amp[kTerms];
-  explicit SmoothSignal(Random& rng) {
-    double total = 0;
-    for (int i = 0; i < kTerms; ++i) {
-      freq[i] = rng.Uniform(0.05, 0.4);
-      phase[i] = rng.Uniform(0, 2 * M_PI);
-      amp[i] = rng.Uniform(0.5, 1.0);
-      total += amp[i];
-    }
-    for (double& a : amp) a /= total;
-  }
-  double operator()(double t) const {
-    double v = 0;
-    for (int i = 0; i < kTerms; ++i) v += amp[i] * std::sin(2 * M_PI * freq[i] * t + phase[i]);
-    return v;
-  }
-};
-
 // One camera's detections of a set of world points: projection, merging, noise, strays.
 reconstruction::CameraDetections Detect(const reconstruction::CameraModel& cam, int camera,
                                         const std::vector<Eigen::Vector3d>& points,
@@ -84,6 +63,47 @@ reconstruction::CameraDetections Detect(const reconstruction::CameraModel& cam, 
 
 }  // namespace
 
+double WandPath::Signal::operator()(double t) const {
+  double v = 0;
+  for (int i = 0; i < kTerms; ++i) v += amp[i] * std::sin(2 * M_PI * freq[i] * t + phase[i]);
+  return v;
+}
+
+WandPath::WandPath(const WandSimulationOptions& o)
+    : WandPath(o.seed, o.volume_centre_m, o.volume_half_size_m, o.wand) {}
+
+WandPath::WandPath(std::uint64_t seed, const Eigen::Vector3d& volume_centre_m,
+                   const Eigen::Vector3d& volume_half_size_m, const reconstruction::Wand& wand)
+    : centre_m_(volume_centre_m), half_size_m_(volume_half_size_m) {
+  Random path(seed, Stream::kWand, kPath);
+  // Drawn in this order: the centre's x, y, z, then the direction's.
+  for (Signal* signal : {&centre_[0], &centre_[1], &centre_[2], &direction_[0], &direction_[1],
+                         &direction_[2]}) {
+    double total = 0;
+    for (int i = 0; i < Signal::kTerms; ++i) {
+      signal->freq[i] = path.Uniform(0.05, 0.4);
+      signal->phase[i] = path.Uniform(0, 2 * M_PI);
+      signal->amp[i] = path.Uniform(0.5, 1.0);
+      total += signal->amp[i];
+    }
+    for (double& a : signal->amp) a /= total;
+  }
+  const std::vector<double>& s = wand.marker_positions_m;
+  const double s_mean = (s[0] + s[1] + s[2]) / 3.0;
+  for (int k = 0; k < 3; ++k) offsets_m_[k] = s[k] - s_mean;
+}
+
+void WandPath::Markers(double t, Eigen::Vector3d markers[3]) const {
+  Eigen::Vector3d c, d;
+  for (int k = 0; k < 3; ++k) {
+    c[k] = centre_m_[k] + half_size_m_[k] * centre_[k](t);
+    d[k] = direction_[k](t);
+  }
+  if (d.norm() < 1e-3) d = Eigen::Vector3d::UnitX();
+  d.normalize();
+  for (int k = 0; k < 3; ++k) markers[k] = c + offsets_m_[k] * d;
+}
+
 bool WandSimulationOptions::IsValid(std::string* error) const {
   auto fail = [&](const std::string& what) {
     if (error) *error = "wand simulation: " + what;
@@ -112,24 +132,14 @@ Status SimulateWand(const std::vector<reconstruction::CameraModel>& truth,
   if (truth.size() < 2) return Status::Error("wand simulation: needs at least 2 cameras");
   *out = WandSimulation{};
   const int nc = static_cast<int>(truth.size());
-  Random path(o.seed, Stream::kWand, kPath), noise(o.seed, Stream::kWand, kNoise),
-      strays(o.seed, Stream::kWand, kStrays), dropout(o.seed, Stream::kWand, kDropout);
-  SmoothSignal centre[3] = {SmoothSignal(path), SmoothSignal(path), SmoothSignal(path)};
-  SmoothSignal direction[3] = {SmoothSignal(path), SmoothSignal(path), SmoothSignal(path)};
-  const std::vector<double>& s = o.wand.marker_positions_m;
-  const double s_mean = (s[0] + s[1] + s[2]) / 3.0;
+  Random noise(o.seed, Stream::kWand, kNoise), strays(o.seed, Stream::kWand, kStrays),
+      dropout(o.seed, Stream::kWand, kDropout);
+  const WandPath path(o);
   const int total = static_cast<int>(std::floor(o.duration_s * o.rate_hz));
   for (int i = 0; i < total; i += o.subsample) {
     const double t = i / o.rate_hz;
-    Eigen::Vector3d c, d;
-    for (int k = 0; k < 3; ++k) {
-      c[k] = o.volume_centre_m[k] + o.volume_half_size_m[k] * centre[k](t);
-      d[k] = direction[k](t);
-    }
-    if (d.norm() < 1e-3) d = Eigen::Vector3d::UnitX();
-    d.normalize();
     std::vector<Eigen::Vector3d> markers(3);
-    for (int k = 0; k < 3; ++k) markers[k] = c + (s[k] - s_mean) * d;
+    path.Markers(t, markers.data());
     reconstruction::DetectionSet set;
     set.sequence = static_cast<std::uint64_t>(i);
     set.timestamp_ns = static_cast<std::uint64_t>(std::llround(t * 1e9));

@@ -48,6 +48,32 @@ struct WandSimulation {
   std::vector<std::vector<Eigen::Vector3d>> wand_markers;
 };
 
+// The wand's smooth random path as a function of time: each coordinate of the centre, and of the
+// direction, is a sum of a few sinusoids of random frequency (0.05–0.4 Hz), phase and amplitude,
+// drawn from (seed, Stream::kWand). SimulateWand samples it; the live simulated rig
+// (sim/live_scene.h) evaluates it at the time each camera takes its image.
+class WandPath {
+ public:
+  // The path of SimulateWand(options) (its seed, volume and wand).
+  explicit WandPath(const WandSimulationOptions& options);
+  WandPath(std::uint64_t seed, const Eigen::Vector3d& volume_centre_m,
+           const Eigen::Vector3d& volume_half_size_m, const reconstruction::Wand& wand);
+
+  // The wand's three markers (world, metres, in Wand order) at time t. No allocation.
+  void Markers(double t, Eigen::Vector3d markers[3]) const;
+
+ private:
+  // A smooth random signal in [-1, 1].
+  struct Signal {
+    static constexpr int kTerms = 4;
+    double freq[kTerms], phase[kTerms], amp[kTerms];
+    double operator()(double t) const;
+  };
+  Eigen::Vector3d centre_m_, half_size_m_;
+  double offsets_m_[3];  // each marker's position along the wand from the wand's mean
+  Signal centre_[3], direction_[3];
+};
+
 // Simulates with the rig `truth` (the cameras' true poses and intrinsics).
 Status SimulateWand(const std::vector<reconstruction::CameraModel>& truth,
                     const WandSimulationOptions& options, WandSimulation* out);

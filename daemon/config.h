@@ -1,0 +1,142 @@
+// mocapd's configuration: one TOML file (/etc/mocapd/mocapd.toml by default) that says what the
+// rig is, where the state lives, who may control the daemon and how much a client may cost.
+// The store (SQLite) says what happened; this file only says what the daemon is.
+//
+// The file, with every key and its default (daemon/examples/simulated-rig.toml is a full one):
+//
+//   [rig]
+//   simulated = 8               # > 0: that many Aravis fake cameras drawn by the renderer
+//   subject_seed = 1            # the simulated rig's virtual subject (as `mocap sim --seed`)
+//   rate = 200                  # Hz, [1, 2000]
+//   width = 1280                # px
+//   height = 1024
+//   exposure_us = 500           # < the frame period
+//   gain_db = 0
+//   detection_threshold = 60    # image units (0..255 for Mono8)
+//   centroid_noise_px = 0.1     # simulated rig only
+//   detection_threads = 2
+//   calibration = "calib.json"  # camera calibration; absent: uncalibrated until rig.calibrate
+//   [[rig.camera]]              # one per camera (a simulated rig may omit them)
+//   id = "Aravis-Fake-GV01"     # GenICam id or serial
+//   backend = "aravis"          # "aravis" | "simulated"
+//   exposure_us = 0             # 0: the rig's; gain_db = -1: the rig's; detection_threshold = 0: the rig's
+//   masks = [ { x = 0, y = 900, width = 1280, height = 124 } ]   # pixels never detected (reflections)
+//   [storage]   state_dir = "/var/lib/mocapd"
+//   [control]   socket = "/run/mocapd/control.sock", group = "mocap", max_clients = 64,
+//               max_line_bytes = 1048576, subscriber_queue_frames = 400, max_pending_requests = 64
+//   [protocol]  file = "protocol.json"          # absent: the built-in protocol
+//   [fit]       threads = 0, max_iterations = 50, groups = "scales,centres,axes,markers",
+//               coarse_frames = 800             # defaults of `fit.start` (a request may override)
+//
+// Why typos are errors: an unknown key or table is refused with its name and line. A misspelt
+// `max_client = 8` that silently kept the default of 64 would look applied and not be.
+//
+// Why every error names file:line:key: the operator reads it in the journal of a daemon that
+// refused to start (or a reload that was refused) and must find the line without guessing:
+//   /etc/mocapd/mocapd.toml:12: rig.rate: expected a number in [1, 2000], got "fast"
+//
+// Relative paths in the file (calibration, state_dir, socket, protocol file) are relative to the
+// file's directory, not to the daemon's working directory (which is / under systemd), so a
+// config and the files beside it can be moved together.
+//
+// Reload (SIGHUP, config.reload): the new file is parsed and validated completely before
+// anything changes; DiffConfig says what changed and which of those changes can be applied to
+// the running daemon (limits, the control group, the protocol, fit defaults) and which need a
+// restart (the rig, the storage directory, the socket).
+#pragma once
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "model/status.h"
+
+namespace mocap::daemon {
+
+// A rectangle of a camera's image whose pixels are never detected (a reflection, a lamp).
+struct MaskRect {
+  int x = 0, y = 0;           // top-left pixel
+  int width = 0, height = 0;  // >= 1, within the image
+  bool operator==(const MaskRect&) const = default;
+};
+
+struct CameraConfig {
+  std::string id;                  // GenICam device id or serial number
+  std::string backend = "aravis";  // "aravis" | "simulated"
+  // Per-camera overrides of the rig's settings; the sentinel keeps the rig's.
+  double exposure_us = 0;          // 0: the rig's
+  double gain_db = -1;             // -1: the rig's
+  int detection_threshold = 0;     // 0: the rig's
+  std::vector<MaskRect> masks;
+  bool operator==(const CameraConfig&) const = default;
+};
+
+struct DaemonConfig {
+  std::string source;  // the file it came from ("" when built in code); not compared by DiffConfig
+
+  // [rig]
+  int simulated_cameras = 0;       // simulated = N: a simulated rig of N Aravis fake cameras
+  std::uint64_t subject_seed = 1;  // the simulated rig's virtual subject (as `mocap sim --seed`)
+  double rate_hz = 200;
+  int width = 1280, height = 1024;
+  double exposure_us = 500;
+  double gain_db = 0;
+  int detection_threshold = 60;
+  double centroid_noise_px = 0.1;  // simulated rig only
+  int detection_threads = 2;
+  std::vector<CameraConfig> cameras;  // [[rig.camera]]; a real rig needs at least one
+  std::string calibration_file;       // empty: uncalibrated until rig.calibrate
+
+  // [storage]
+  std::string state_dir = "/var/lib/mocapd";
+
+  // [control]
+  std::string socket_path = "/run/mocapd/control.sock";
+  std::string control_group = "mocap";  // members (and root) may change state; others only read
+  int max_clients = 64;
+  std::size_t max_line_bytes = 1 << 20;  // one request line, and one line a client must accept
+  int subscriber_queue_frames = 400;     // 2 s at 200 Hz; a slower subscriber loses frames
+  int max_pending_requests = 64;         // per client
+
+  // [protocol]
+  std::string protocol_file;  // empty: the built-in protocol (sim/protocol.h DefaultProtocol)
+
+  // [fit]: defaults of fit.start (the request may override each), as `mocap fit`'s options.
+  int fit_threads = 0;  // 0: all cores
+  int fit_max_iterations = 50;
+  std::string fit_groups = "scales,centres,axes,markers";  // solver::FitOptions::SetGroups
+  // 0: no coarse-to-fine start; default solver::CoarseToFineOptions's (a test keeps them equal).
+  int fit_coarse_frames = 800;
+
+  int num_cameras() const {
+    return simulated_cameras > 0 ? simulated_cameras : static_cast<int>(cameras.size());
+  }
+  // Every value in range and the values consistent with each other (exposure within the frame
+  // period, masks within the image, camera ids unique, ...). The error names the key as the
+  // file spells it ("rig.camera[2].gain_db: ..."), without a line: this struct has none.
+  bool IsValid(std::string* error) const;
+};
+
+// Parses `text` (a TOML document) as the configuration read from `source` (a path: it names the
+// file in errors and relative paths are resolved against its directory). On error `out` is
+// left untouched, so a refused reload keeps the running configuration.
+Status ParseConfig(const std::string& text, const std::string& source, DaemonConfig* out);
+// Reads and parses the file at `path` (made absolute first, so that the paths it holds stay
+// right after the daemon changes directory).
+Status LoadConfig(const std::string& path, DaemonConfig* out);
+
+// One difference between two configurations.
+struct ConfigChange {
+  std::string key;     // as the file spells it: "control.max_clients", "rig.camera", ...
+  bool needs_restart;  // false: the running daemon can apply it (config.reload)
+  bool operator==(const ConfigChange&) const = default;
+};
+// What differs from `a` to `b`, in the file's order of the keys (any change of the cameras,
+// [[rig.camera]], last as one change). The rig (cameras, rate, image,
+// simulation), the storage directory and the socket need a restart: they are what the running
+// pipeline, store and listening socket were built from. Limits apply to new clients and new
+// subscriptions; the group to the next request; the calibration file, protocol and fit defaults
+// to the next job that uses them.
+std::vector<ConfigChange> DiffConfig(const DaemonConfig& a, const DaemonConfig& b);
+
+}  // namespace mocap::daemon

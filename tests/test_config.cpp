@@ -1,0 +1,342 @@
+// mocapd's configuration file (daemon/config.h): the shipped example, every key's type and range
+// errors with file:line:key, typos, missing files, relative paths and what a reload may apply.
+#include "daemon/config.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "file_test_util.h"
+#include "solver/coarse_to_fine.h"
+
+namespace mocap::daemon {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+using ::testing::StartsWith;
+
+const std::string kSource = "/etc/mocapd/mocapd.toml";
+// A valid simulated rig; the documents below add their key after it, from line 3 on.
+const std::string kSimulatedRig = "[rig]\nsimulated = 8\n";
+
+std::string ExamplePath() { return std::string(MOCAP_SOURCE_DIR) + "/daemon/examples/simulated-rig.toml"; }
+
+Status Parse(const std::string& text, DaemonConfig* out) { return ParseConfig(text, kSource, out); }
+std::string ParseError(const std::string& text) {
+  DaemonConfig config;
+  Status s = Parse(text, &config);
+  return s.ok() ? "(parsed)" : s.message();
+}
+
+TEST(Config, ShippedExampleParsesAndHoldsTheDefaultsButTheSimulatedRig) {
+  DaemonConfig config;
+  Status s = LoadConfig(ExamplePath(), &config);
+  ASSERT_TRUE(s.ok()) << s.message();
+  EXPECT_EQ(config.source, fs::path(ExamplePath()).lexically_normal().string());
+  EXPECT_EQ(config.simulated_cameras, 8);
+  EXPECT_EQ(config.num_cameras(), 8);
+  EXPECT_EQ(config.subject_seed, 1u);
+  EXPECT_TRUE(config.cameras.empty());
+  // The example says "the values are the defaults": every other key equals DaemonConfig's.
+  EXPECT_EQ(DiffConfig(DaemonConfig(), config),
+            (std::vector<ConfigChange>{{"rig.simulated", true}}));
+  std::string error;
+  EXPECT_TRUE(config.IsValid(&error)) << error;
+}
+
+TEST(Config, FitDefaultsAreTheSolversAndADefaultConfigNeedsARig) {
+  EXPECT_EQ(DaemonConfig().fit_coarse_frames, solver::CoarseToFineOptions().coarse_frames);
+  std::string error;
+  EXPECT_FALSE(DaemonConfig().IsValid(&error));
+  EXPECT_THAT(error, StartsWith("rig: a real rig needs at least one [[rig.camera]]"));
+}
+
+TEST(Config, TheErrorOfTheIssueWordForWord) {
+  std::string text = "# mocapd\n";
+  for (int line = 2; line < 11; ++line) text += "\n";
+  text += "[rig]\nrate = \"fast\"\nsimulated = 8\n";  // rate on line 12
+  EXPECT_EQ(ParseError(text),
+            "/etc/mocapd/mocapd.toml:12: rig.rate: expected a number in [1, 2000], got \"fast\"");
+}
+
+struct BadValue {
+  std::string table, key, value;  // `key = value` in [table]
+  std::string expected;           // the message after "file:line: table.key: "
+};
+
+// For every key: a value of the wrong type and one out of range (or otherwise refused).
+const std::vector<BadValue> kBadValues = {
+    {"rig", "simulated", "\"8\"", "expected an integer in [0, 64], got \"8\""},
+    {"rig", "simulated", "65", "expected an integer in [0, 64], got 65"},
+    {"rig", "subject_seed", "1.5", "expected an integer in [0, 9200000000000000000], got 1.5"},
+    {"rig", "subject_seed", "-1", "expected an integer in [0, 9200000000000000000], got -1"},
+    {"rig", "rate", "true", "expected a number in [1, 2000], got true"},
+    {"rig", "rate", "0.5", "expected a number in [1, 2000], got 0.5"},
+    {"rig", "width", "1280.0", "expected an integer in [16, 16384], got 1280"},
+    {"rig", "width", "8", "expected an integer in [16, 16384], got 8"},
+    {"rig", "height", "[1024]", "expected an integer in [16, 16384], got an array"},
+    {"rig", "height", "99999999999", "expected an integer in [16, 16384], got 99999999999"},
+    {"rig", "exposure_us", "\"500us\"", "expected a number in [1, 1000000], got \"500us\""},
+    {"rig", "exposure_us", "0", "expected a number in [1, 1000000], got 0"},
+    {"rig", "exposure_us", "6000", "6000 us does not fit in the frame period of 5000 us (rig.rate 200 Hz)"},
+    {"rig", "gain_db", "{ db = 3 }", "expected a number in [0, 48], got a table"},
+    {"rig", "gain_db", "49", "expected a number in [0, 48], got 49"},
+    {"rig", "detection_threshold", "60.5", "expected an integer in [1, 65535], got 60.5"},
+    {"rig", "detection_threshold", "0", "expected an integer in [1, 65535], got 0"},
+    {"rig", "centroid_noise_px", "\"low\"", "expected a number in [0, 10], got \"low\""},
+    {"rig", "centroid_noise_px", "-0.1", "expected a number in [0, 10], got -0.1"},
+    {"rig", "detection_threads", "\"two\"", "expected an integer in [1, 64], got \"two\""},
+    {"rig", "detection_threads", "0", "expected an integer in [1, 64], got 0"},
+    {"rig", "calibration", "5", "expected a path (a string), got 5"},
+    {"storage", "state_dir", "false", "expected a path (a string), got false"},
+    {"storage", "state_dir", "\"\"", "must not be empty"},
+    {"control", "socket", "1", "expected a path (a string), got 1"},
+    {"control", "socket", "\"/" + std::string(120, 's') + "\"",
+     "\"/" + std::string(120, 's') + "\" is 121 bytes long; a Unix socket path holds at most 107"},
+    {"control", "group", "100", "expected a string, got 100"},
+    {"control", "group", "\"\"", "must not be empty"},
+    {"control", "max_clients", "\"many\"", "expected an integer in [1, 4096], got \"many\""},
+    {"control", "max_clients", "0", "expected an integer in [1, 4096], got 0"},
+    {"control", "max_line_bytes", "1e6", "expected an integer in [1024, 67108864], got 1000000"},
+    {"control", "max_line_bytes", "100", "expected an integer in [1024, 67108864], got 100"},
+    {"control", "subscriber_queue_frames", "[]", "expected an integer in [1, 100000], got an array"},
+    {"control", "subscriber_queue_frames", "0", "expected an integer in [1, 100000], got 0"},
+    {"control", "max_pending_requests", "\"64\"", "expected an integer in [1, 4096], got \"64\""},
+    {"control", "max_pending_requests", "5000", "expected an integer in [1, 4096], got 5000"},
+    {"protocol", "file", "0", "expected a path (a string), got 0"},
+    {"fit", "threads", "\"all\"", "expected an integer in [0, 256], got \"all\""},
+    {"fit", "threads", "-1", "expected an integer in [0, 256], got -1"},
+    {"fit", "max_iterations", "2.5", "expected an integer in [1, 10000], got 2.5"},
+    {"fit", "max_iterations", "0", "expected an integer in [1, 10000], got 0"},
+    {"fit", "groups", "[\"scales\"]", "expected a string, got an array"},
+    {"fit", "groups", "\"scales,bones\"",
+     "unknown parameter group 'bones' (expected scales, centres, axes, markers, all or none)"},
+    {"fit", "coarse_frames", "\"800\"", "expected an integer in [0, 1000000], got \"800\""},
+    {"fit", "coarse_frames", "-800", "expected an integer in [0, 1000000], got -800"},
+};
+
+TEST(Config, EveryKeysBadTypeAndRangeNameFileLineAndKey) {
+  for (const BadValue& bad : kBadValues) {
+    // [table] on line 3 (or the rig's own table), the key on line 5 after a comment.
+    // (`simulated` itself cannot be given twice: its own document starts with another key.)
+    std::string text = bad.key == "simulated" ? "[rig]\nrate = 200\n" : kSimulatedRig;
+    text += bad.table == "rig" ? "\n# the key\n" : "[" + bad.table + "]\n# the key\n";
+    text += bad.key + " = " + bad.value + "\n";
+    EXPECT_EQ(ParseError(text), kSource + ":5: " + bad.table + "." + bad.key + ": " + bad.expected)
+        << text;
+  }
+}
+
+TEST(Config, EveryDocumentedKeyIsTestedWithABadValue) {
+  // The example documents every key (commented where it has no default value); each of them
+  // must appear in kBadValues, so a key added to the parser without a test fails here.
+  const std::string example = testutil::ReadBytes(ExamplePath());
+  std::string table;
+  int keys = 0;
+  std::istringstream lines(example);
+  for (std::string line; std::getline(lines, line);) {
+    if (line.rfind("[", 0) == 0 && line.rfind("[[", 0) != 0) {
+      table = line.substr(1, line.find(']') - 1);
+      continue;
+    }
+    if (line.rfind("# ", 0) == 0 && line.find(" = ") != std::string::npos) line = line.substr(2);
+    const std::size_t eq = line.find(" = ");
+    if (eq == std::string::npos || line[0] == '#' || line[0] == ' ' || table.empty()) continue;
+    const std::string key = line.substr(0, eq);
+    if (table == "rig" && (key == "id" || key == "backend" || key == "masks" ||
+                           line.find("the rig's") != std::string::npos))
+      continue;  // [[rig.camera]]'s keys, tested below
+    bool tested = false;
+    for (const BadValue& bad : kBadValues) tested |= bad.table == table && bad.key == key;
+    EXPECT_TRUE(tested) << table << "." << key << " has no bad-value test";
+    ++keys;
+  }
+  EXPECT_EQ(keys, 23);
+}
+
+TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
+  const std::string real_rig = "[rig]\nwidth = 1280\nheight = 1024\n";
+  const std::string camera = "[[rig.camera]]\nid = \"cam-A\"\n";  // lines 4-5
+  const std::string second = "[[rig.camera]]\nid = \"cam-B\"\n";  // lines 6-7 after one camera
+  DaemonConfig config;
+  Status s = Parse(real_rig + camera + "backend = \"simulated\"\ngain_db = -1\nexposure_us = 0\n"
+                   "masks = [ { x = 0, y = 960, width = 1280, height = 64 } ]\n" + second,
+                   &config);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ASSERT_EQ(config.cameras.size(), 2u);
+  EXPECT_EQ(config.cameras[0].backend, "simulated");
+  EXPECT_EQ(config.cameras[1].backend, "aravis");
+  EXPECT_EQ(config.cameras[0].masks, (std::vector<MaskRect>{{0, 960, 1280, 64}}));
+  EXPECT_EQ(config.num_cameras(), 2);
+
+  EXPECT_EQ(ParseError(real_rig + camera + "gain_db = 60\n"),
+            kSource + ":6: rig.camera[0].gain_db: expected a number in [0, 48] or -1 (the rig's), got 60");
+  EXPECT_EQ(ParseError(real_rig + camera + "detection_threshold = -3\n"),
+            kSource + ":6: rig.camera[0].detection_threshold: expected an integer in [1, 65535] or 0 "
+                      "(the rig's), got -3");
+  EXPECT_EQ(ParseError(real_rig + camera + "exposure_us = 5000\n"),
+            kSource + ":6: rig.camera[0].exposure_us: 5000 us does not fit in the frame period of "
+                      "5000 us (rig.rate 200 Hz)");
+  EXPECT_EQ(ParseError(real_rig + camera + "backend = \"usb\"\n"),
+            kSource + ":6: rig.camera[0].backend: expected one of \"aravis\", \"simulated\", got \"usb\"");
+  EXPECT_EQ(ParseError(real_rig + camera + second + "id2 = 3\n"),
+            kSource + ":8: rig.camera[1].id2: unknown key (the keys of [rig.camera] are id, backend, "
+                      "exposure_us, gain_db, detection_threshold, masks)");
+  EXPECT_EQ(ParseError(real_rig + camera + "[[rig.camera]]\nid = \"cam-A\"\n"),
+            kSource + ":7: rig.camera[1].id: \"cam-A\" is also rig.camera[0]'s id");
+  EXPECT_EQ(ParseError(real_rig + camera + "[[rig.camera]]\nbackend = \"aravis\"\n"),
+            kSource + ":6: rig.camera[1].id: missing: each camera needs its GenICam id or serial");
+  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 1000, width = 10, height = 25 } ]\n"),
+            kSource + ":6: rig.camera[0].masks[0]: x 0, y 1000, width 10, height 25 is not a "
+                      "rectangle within the 1280x1024 image");
+  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 0, w = 10, height = 25 } ]\n"),
+            kSource + ":6: rig.camera[0].masks[0].w: unknown key (the keys of [mask] are x, y, "
+                      "width, height)");
+  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 0, height = 25 } ]\n"),
+            kSource + ":6: rig.camera[0].masks[0]: missing width (the keys of a mask are x, y, width, "
+                      "height)");
+  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 0, width = 0, height = 25 } ]\n"),
+            kSource + ":6: rig.camera[0].masks[0].width: expected an integer in [1, 16384], got 0");
+  EXPECT_EQ(ParseError(real_rig + camera + "masks = \"top\"\n"),
+            kSource + ":6: rig.camera[0].masks: expected rectangles [ { x = 0, y = 0, width = 10, "
+                      "height = 10 } ], got \"top\"");
+  EXPECT_EQ(ParseError("[rig]\ncamera = \"cam-A\"\n"),
+            kSource + ":2: rig.camera: expected camera tables ([[rig.camera]] sections), got \"cam-A\"");
+}
+
+TEST(Config, RigConsistency) {
+  EXPECT_EQ(ParseError("[control]\ngroup = \"lab\"\n"),
+            kSource + ": rig: a real rig needs at least one [[rig.camera]] (or simulated = N for a "
+                      "simulated rig of N cameras)");
+  EXPECT_EQ(ParseError("\n[rig]\nrate = 100\n"),
+            kSource + ":2: rig: a real rig needs at least one [[rig.camera]] (or simulated = N for a "
+                      "simulated rig of N cameras)");
+  EXPECT_EQ(ParseError("[rig]\nsimulated = 2\n[[rig.camera]]\nid = \"a\"\n"),
+            kSource + ":3: rig.camera: 1 cameras listed for a simulated rig of 2 (list none, or one "
+                      "per simulated camera)");
+  // Exposure against the rate whichever comes first in the file.
+  EXPECT_EQ(ParseError("[rig]\nexposure_us = 900\nsimulated = 8\nrate = 1200\n"),
+            kSource + ":2: rig.exposure_us: 900 us does not fit in the frame period of 833.333 us "
+                      "(rig.rate 1200 Hz)");
+}
+
+TEST(Config, UnknownKeysAndTablesAreErrorsNamingThem) {
+  EXPECT_EQ(ParseError(kSimulatedRig + "rat = 200\n"),
+            kSource + ":3: rig.rat: unknown key (the keys of [rig] are simulated, subject_seed, rate, "
+                      "width, height, exposure_us, gain_db, detection_threshold, centroid_noise_px, "
+                      "detection_threads, calibration, camera ([[rig.camera]]))");
+  EXPECT_EQ(ParseError(kSimulatedRig + "[control]\nmax_client = 8\n"),
+            kSource + ":4: control.max_client: unknown key (the keys of [control] are socket, group, "
+                      "max_clients, max_line_bytes, subscriber_queue_frames, max_pending_requests)");
+  EXPECT_EQ(ParseError(kSimulatedRig + "[controls]\nmax_clients = 8\n"),
+            kSource + ":3: controls: unknown table (the tables are [rig], [storage], [control], "
+                      "[protocol], [fit])");
+  EXPECT_EQ(ParseError("socket = \"/tmp/s\"\n" + kSimulatedRig),
+            kSource + ":1: socket: unknown key (keys belong in one of the tables [rig], [storage], "
+                      "[control], [protocol], [fit])");
+  EXPECT_EQ(ParseError("rig = 8\n"), kSource + ":1: rig: expected a table [rig], got 8");
+  EXPECT_THAT(ParseError(kSimulatedRig + "[fit.more]\nthreads = 1\n"),
+              StartsWith(kSource + ":3: fit.more: unknown key (the keys of [fit] are threads,"));
+}
+
+TEST(Config, SyntaxErrorsNameTheLine) {
+  EXPECT_THAT(ParseError(kSimulatedRig + "[control\ngroup = \"x\"\n"), StartsWith(kSource + ":3: "));
+  EXPECT_THAT(ParseError(kSimulatedRig + "rate = 200\nrate = 100\n"), StartsWith(kSource + ":4: "));
+}
+
+TEST(Config, ARefusedFileLeavesTheConfigUntouched) {
+  DaemonConfig config;
+  ASSERT_TRUE(Parse(kSimulatedRig + "[control]\nmax_clients = 5\n", &config).ok());
+  const DaemonConfig before = config;
+  EXPECT_FALSE(Parse(kSimulatedRig + "[control]\nmax_clients = 6\nrate = 1\n", &config).ok());
+  EXPECT_FALSE(Parse("[rig\n", &config).ok());
+  EXPECT_TRUE(DiffConfig(before, config).empty());
+  EXPECT_EQ(config.max_clients, 5);
+}
+
+TEST(Config, MissingFileNamesItAndWhy) {
+  DaemonConfig config;
+  Status s = LoadConfig("/nonexistent-dir/mocapd.toml", &config);
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(s.message(), "/nonexistent-dir/mocapd.toml: cannot read: No such file or directory");
+}
+
+TEST(Config, RelativePathsAreRelativeToTheFilesDirectory) {
+  const fs::path dir = fs::path(testutil::TmpPath("config", "_dir")) / "etc";
+  fs::create_directories(dir);
+  const fs::path file = dir / "mocapd.toml";
+  testutil::WriteBytes(file.string(), kSimulatedRig +
+                                          "calibration = \"calib/./rig.json\"\n"
+                                          "[storage]\nstate_dir = \"../state\"\n"
+                                          "[control]\nsocket = \"/run/x/control.sock\"\n"
+                                          "[protocol]\nfile = \"protocol.json\"\n");
+  DaemonConfig config;
+  // Loaded through a path relative to the working directory: the paths come out absolute.
+  const std::string relative = fs::relative(file).string();
+  ASSERT_FALSE(fs::path(relative).is_absolute());
+  Status s = LoadConfig(relative, &config);
+  ASSERT_TRUE(s.ok()) << s.message();
+  const fs::path abs_dir = fs::absolute(dir).lexically_normal();
+  EXPECT_EQ(config.source, (abs_dir / "mocapd.toml").string());
+  EXPECT_EQ(config.calibration_file, (abs_dir / "calib" / "rig.json").string());
+  EXPECT_EQ(config.state_dir, (abs_dir.parent_path() / "state").string());
+  EXPECT_EQ(config.socket_path, "/run/x/control.sock");
+  EXPECT_EQ(config.protocol_file, (abs_dir / "protocol.json").string());
+}
+
+TEST(Config, IsValidNamesTheKeyWithoutALine) {
+  DaemonConfig config;
+  config.simulated_cameras = 8;
+  std::string error;
+  ASSERT_TRUE(config.IsValid(&error)) << error;
+  config.max_clients = 0;
+  EXPECT_FALSE(config.IsValid(&error));
+  EXPECT_EQ(error, "control.max_clients: expected an integer in [1, 4096], got 0");
+  config.max_clients = 8;
+  config.cameras.resize(8);
+  for (int c = 0; c < 8; ++c) config.cameras[c].id = "cam-" + std::to_string(c % 7);
+  EXPECT_FALSE(config.IsValid(&error));
+  EXPECT_EQ(error, "rig.camera[7].id: \"cam-0\" is also rig.camera[0]'s id");
+}
+
+TEST(Config, DiffSaysWhatChangedAndWhatNeedsARestart) {
+  DaemonConfig a;
+  ASSERT_TRUE(LoadConfig(ExamplePath(), &a).ok());
+  DaemonConfig b = a;
+  EXPECT_TRUE(DiffConfig(a, b).empty());
+  b.source = "/elsewhere.toml";  // where it came from is not a change
+  EXPECT_TRUE(DiffConfig(a, b).empty());
+
+  b.rate_hz = 100;
+  b.control_group = "lab";
+  b.max_clients = 8;
+  b.subscriber_queue_frames = 100;
+  b.fit_max_iterations = 20;
+  b.socket_path = "/tmp/other.sock";
+  b.calibration_file = "/var/lib/mocapd/calibration.json";
+  b.cameras.push_back({"cam-A"});
+  EXPECT_EQ(DiffConfig(a, b), (std::vector<ConfigChange>{{"rig.rate", true},
+                                                         {"rig.calibration", false},
+                                                         {"control.socket", true},
+                                                         {"control.group", false},
+                                                         {"control.max_clients", false},
+                                                         {"control.subscriber_queue_frames", false},
+                                                         {"fit.max_iterations", false},
+                                                         {"rig.camera", true}}));
+  // A 64-bit seed is compared exactly, not as a double.
+  DaemonConfig c = a, d = a;
+  c.subject_seed = (1ull << 60);
+  d.subject_seed = (1ull << 60) + 1;
+  EXPECT_EQ(DiffConfig(c, d), (std::vector<ConfigChange>{{"rig.subject_seed", true}}));
+  // A mask moved is a camera change.
+  DaemonConfig e = b;
+  e.cameras[0].masks.push_back({0, 0, 10, 10});
+  EXPECT_EQ(DiffConfig(b, e), (std::vector<ConfigChange>{{"rig.camera", true}}));
+}
+
+}  // namespace
+}  // namespace mocap::daemon
