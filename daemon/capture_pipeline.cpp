@@ -1,5 +1,7 @@
 #include "daemon/capture_pipeline.h"
 
+#include <pthread.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -8,6 +10,10 @@
 namespace mocap::daemon {
 
 using drivers::MonotonicNs;
+
+void NameThisThread(const std::string& name) {
+  pthread_setname_np(pthread_self(), name.substr(0, 15).c_str());
+}
 
 double Percentile(std::vector<double>* values, double p) {
   if (values->empty()) return 0.0;
@@ -117,6 +123,7 @@ void CapturePipeline::Stop() {
 }
 
 void CapturePipeline::GrabLoop(int c) {
+  NameThisThread("grab-" + std::to_string(c));
   drivers::CameraSource& cam = *cameras_[c];
   bool was_lost = false;
   while (grabbing_) {
@@ -150,6 +157,7 @@ void CapturePipeline::GrabLoop(int c) {
 }
 
 void CapturePipeline::DetectLoop(int worker) {
+  NameThisThread("detect-" + std::to_string(worker));
   reconstruction::DetectionWorkspace workspace;
   drivers::Frame frame;
   BoundedQueue<drivers::Frame>& queue = *frames_[worker];
@@ -213,16 +221,20 @@ void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
   const auto t0 = std::chrono::steady_clock::now();
   const Status s = triangulate_(set, &out);
   const auto t1 = std::chrono::steady_clock::now();
-  std::uint64_t first = UINT64_MAX;
+  std::uint64_t first = UINT64_MAX, last = 0;
   for (std::size_t c = 0; c < set.cameras.size(); ++c) {
     if (!set.present[c]) continue;
     if (c < 64) out.present_mask |= std::uint64_t{1} << c;
     if (out.device_timestamp_ns == 0) out.device_timestamp_ns = set.cameras[c].device_timestamp_ns;
     first = std::min(first, set.cameras[c].host_timestamp_ns);
+    last = std::max(last, set.cameras[c].host_timestamp_ns);
   }
   if (options_.keep_detections) out.detections = set.cameras;
   const std::uint64_t now = MonotonicNs();
   out.latency_ms = first <= now ? (now - first) * 1e-6 : 0.0;
+  out.first_host_ns = first == UINT64_MAX ? now : first;
+  out.last_host_ns = last == 0 ? now : last;
+  out.ready_host_ns = now;
 
   std::lock_guard<std::mutex> lock(stats_mutex_);
   triangulate_ms_.Add(std::chrono::duration<double, std::milli>(t1 - t0).count());
@@ -242,6 +254,7 @@ void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
 }
 
 void CapturePipeline::SyncLoop() {
+  NameThisThread("sync");
   std::vector<reconstruction::DetectionSet> ready;
   reconstruction::CameraDetections d;
   for (;;) {

@@ -55,6 +55,10 @@
 
 namespace mocap::daemon {
 
+// Names the calling thread (at most 15 characters are kept): `top -H` and the daemon's CPU-per-stage
+// figures (bench/daemon_latency.cpp reads /proc/PID/task/*/comm) tell the stages apart.
+void NameThisThread(const std::string& name);
+
 // The p-th percentile (0..100) of `values` (nearest rank); 0 when empty. Reorders `values`.
 double Percentile(std::vector<double>* values, double p);
 
@@ -91,6 +95,9 @@ struct PointFrame {
   std::vector<float> residual_px;
   std::vector<std::uint8_t> camera_count;
   double latency_ms = 0;
+  // CLOCK_MONOTONIC host times at which the first and the last image of the set were handed over
+  // by their cameras, and at which its points were ready (the live latency's stages).
+  std::uint64_t first_host_ns = 0, last_host_ns = 0, ready_host_ns = 0;
   // The 2D detections the points came from (CapturePipelineOptions::keep_detections), per camera
   // of the rig; empty otherwise.
   std::vector<reconstruction::CameraDetections> detections;

@@ -6,7 +6,8 @@ PKGS=(cmake ninja-build g++ pkg-config
       libceres-dev libcli11-dev nlohmann-json3-dev libspdlog-dev
       libgtest-dev libgmock-dev libbenchmark-dev libtinyxml2-dev libtomlplusplus-dev
       libaravis-dev aravis-tools libusb-1.0-0-dev libopencv-dev
-      libsqlite3-dev                # daemon/store.h
+      libsystemd-dev  # mocapd: sd-event, sd-daemon
+      jq bc  # scripts/demo.sh reads mocapctl --json
       clang-14 libclang-rt-14-dev)  # clang + libFuzzer: scripts/fuzz.sh
 missing=()
 for p in "${PKGS[@]}"; do

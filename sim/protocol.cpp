@@ -239,10 +239,20 @@ Status ValidateProtocol(const Protocol& protocol, const Model& model) {
 std::vector<ExcitationCheck> CheckExcitations(const Movement& movement,
                                               const formats::CoordinateTable& table,
                                               double tolerance_deg) {
+  ExcitationCheckOptions options;
+  options.tolerance_deg = tolerance_deg;
+  return CheckExcitations(movement, table, options);
+}
+
+std::vector<ExcitationCheck> CheckExcitations(const Movement& movement,
+                                              const formats::CoordinateTable& table,
+                                              const ExcitationCheckOptions& options) {
   const double nan = std::numeric_limits<double>::quiet_NaN();
   const double to_deg = table.in_degrees ? 1.0 : kRadToDeg;
   std::vector<ExcitationCheck> out;
   for (const Excitation& e : movement.excitations) {
+    const double tolerance_deg =
+        std::max(options.tolerance_deg, options.tolerance_fraction * (e.max_deg - e.min_deg));
     ExcitationCheck c;
     c.coordinate = e.coordinate;
     c.min_deg = e.min_deg;
@@ -266,8 +276,14 @@ std::vector<ExcitationCheck> CheckExcitations(const Movement& movement,
         c.reached_max_deg = hi;
       }
     }
-    c.ok = c.reached_min_deg <= e.min_deg + tolerance_deg &&
-           c.reached_max_deg >= e.max_deg - tolerance_deg;
+    if (options.max_offset_deg < 0) {
+      c.ok = c.reached_min_deg <= e.min_deg + tolerance_deg &&
+             c.reached_max_deg >= e.max_deg - tolerance_deg;
+    } else {
+      const double offset = 0.5 * ((c.reached_min_deg + c.reached_max_deg) - (e.min_deg + e.max_deg));
+      c.ok = c.reached_max_deg - c.reached_min_deg >= e.max_deg - e.min_deg - tolerance_deg &&
+             std::abs(offset) <= options.max_offset_deg;
+    }
     out.push_back(c);
   }
   return out;

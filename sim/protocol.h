@@ -94,4 +94,22 @@ std::vector<ExcitationCheck> CheckExcitations(const Movement& movement,
                                               const formats::CoordinateTable& table,
                                               double tolerance_deg = 0.0);
 
+// How a recording is held against a movement's ranges.
+struct ExcitationCheckOptions {
+  double tolerance_deg = 0.0;
+  // The tolerance is at least this fraction of the required span: a tracker on a model before
+  // its fit reads a one-marker segment's angle (a hand with its finger marker) with a gain error
+  // of several per cent (wrist flexion through 87 of the 100 deg the subject moved).
+  double tolerance_fraction = 0.0;
+  // < 0: the ranges are absolute (the simulator's truth). >= 0: the reached range may sit up to
+  // this far from the required one, and only its span must be reached (within the tolerance).
+  // For a live check with a model before its fit: the tracker's angles then carry the nominal
+  // model's zero offsets (a trunk 15 deg off with markers 2 cm from where the model puts them),
+  // while what identifies a joint is how far it moved, not where its model puts zero.
+  double max_offset_deg = -1.0;
+};
+std::vector<ExcitationCheck> CheckExcitations(const Movement& movement,
+                                              const formats::CoordinateTable& table,
+                                              const ExcitationCheckOptions& options);
+
 }  // namespace mocap::sim

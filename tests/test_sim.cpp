@@ -211,6 +211,37 @@ TEST(Protocol, CheckExcitationsReportsWhatWasReached) {
   EXPECT_TRUE(std::isnan(CheckExcitations(p.movements[0], t)[0].reached_min_deg));
 }
 
+// The live check (a tracker on a model before its fit): the span must be reached, the range may
+// sit up to max_offset_deg from the protocol's.
+TEST(Protocol, CheckExcitationsBySpanAllowsAnOffsetZero) {
+  Protocol p;
+  ASSERT_TRUE(ParseProtocolJson(kMinimalProtocol, "p", &p).ok());
+  const Excitation& e = p.movements[0].excitations[0];
+  const double span = e.max_deg - e.min_deg;
+  formats::CoordinateTable t;
+  t.column_names = {e.coordinate};
+  t.values.resize(2, 1);
+  ExcitationCheckOptions o;
+  o.tolerance_deg = 3;
+  o.max_offset_deg = 20;
+  t.values << e.min_deg - 15, e.max_deg - 15;  // the whole span, 15 deg off
+  EXPECT_TRUE(CheckExcitations(p.movements[0], t, o)[0].ok);
+  EXPECT_FALSE(CheckExcitations(p.movements[0], t)[0].ok);  // absolute ranges: not reached
+  t.values << e.min_deg - 25, e.max_deg - 25;  // too far off
+  EXPECT_FALSE(CheckExcitations(p.movements[0], t, o)[0].ok);
+  t.values << e.min_deg, e.min_deg + span - 4;  // 4 deg short of the span
+  EXPECT_FALSE(CheckExcitations(p.movements[0], t, o)[0].ok);
+  t.values << e.min_deg + 2, e.min_deg + span;  // 2 deg short: within the tolerance
+  EXPECT_TRUE(CheckExcitations(p.movements[0], t, o)[0].ok);
+  t.values << e.min_deg, e.min_deg + 0.4 * span;  // 40 % of the range
+  EXPECT_FALSE(CheckExcitations(p.movements[0], t, o)[0].ok);
+  o.tolerance_fraction = 0.15;  // 15 % of the span: 13.5 deg of knee_angle_l's 90
+  t.values << e.min_deg + 13, e.min_deg + span;
+  EXPECT_TRUE(CheckExcitations(p.movements[0], t, o)[0].ok);
+  t.values << e.min_deg + 14, e.min_deg + span;
+  EXPECT_FALSE(CheckExcitations(p.movements[0], t, o)[0].ok);
+}
+
 // ---------------------------------------------------------------------------------------------
 // Virtual subject
 

@@ -1,0 +1,308 @@
+#include "daemon/live_pipeline.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+
+#include "drivers/frame.h"
+
+namespace mocap::daemon {
+
+using drivers::MonotonicNs;
+
+bool LivePipelineOptions::IsValid(std::string* error) const {
+  auto fail = [&](const std::string& m) {
+    if (error) *error = m;
+    return false;
+  };
+  if (!capture.IsValid(error)) return false;
+  if (!tracker.IsValid(error)) return false;
+  if (loop_queue_capacity < 1) return fail("loop_queue_capacity must be >= 1");
+  if (recorder_queue_capacity < 1) return fail("recorder_queue_capacity must be >= 1");
+  if (wand_subsample < 1) return fail("wand_subsample must be >= 1");
+  if (max_wand_frames < 1) return fail("max_wand_frames must be >= 1");
+  if (!(exposure_us >= 0)) return fail("exposure_us must be >= 0");
+  return true;
+}
+
+LivePipeline::LivePipeline(std::vector<std::unique_ptr<drivers::CameraSource>> cameras,
+                           LivePipelineOptions options, std::function<void()> wake)
+    : options_(std::move(options)),
+      wake_(std::move(wake)),
+      loop_queue_(static_cast<std::size_t>(std::max(1, options_.loop_queue_capacity))),
+      recorder_queue_(static_cast<std::size_t>(std::max(1, options_.recorder_queue_capacity))) {
+  options_.capture.keep_detections = true;  // the wand collector reads them
+  auto workspace = std::make_shared<reconstruction::TriangulationWorkspace>();
+  auto buffer = std::make_shared<std::vector<reconstruction::TriangulatedPoint>>();
+  // Runs on the sync thread, once per set: the calibration in force is whatever pointer it
+  // loads here, so a new calibration takes effect between two sets.
+  TriangulateFn triangulate = [this, workspace, buffer](const reconstruction::DetectionSet& set,
+                                                        PointFrame* out) {
+    std::shared_ptr<reconstruction::Triangulator> t;
+    {
+      std::lock_guard<std::mutex> lock(triangulator_mutex_);
+      t = triangulator_;
+    }
+    out->points.clear();
+    out->residual_px.clear();
+    out->camera_count.clear();
+    if (!t) return Status::Ok();  // uncalibrated: 2D detections only
+    MOCAP_RETURN_IF_ERROR(t->Triangulate(set, workspace.get(), buffer.get()));
+    for (const auto& p : *buffer) {
+      out->points.push_back(p.position);
+      out->residual_px.push_back(static_cast<float>(p.residual_px));
+      out->camera_count.push_back(static_cast<std::uint8_t>(p.camera_count));
+    }
+    return Status::Ok();
+  };
+  const int n = static_cast<int>(cameras.size());
+  capture_ = std::make_unique<CapturePipeline>(std::move(cameras), std::move(triangulate),
+                                               options_.capture);
+  wand_per_camera_.assign(n, 0);
+  wand_cells_.assign(n, std::vector<std::uint8_t>(64, 0));
+}
+
+LivePipeline::~LivePipeline() { Stop(); }
+
+Status LivePipeline::Start() {
+  std::string error;
+  if (!options_.IsValid(&error)) return Status::Error("live pipeline: " + error);
+  MOCAP_RETURN_IF_ERROR(capture_->Start());
+  running_ = true;
+  track_thread_ = std::thread([this] { TrackLoop(); });
+  return Status::Ok();
+}
+
+void LivePipeline::Stop() {
+  if (!running_.exchange(false)) return;
+  capture_->Stop();
+  if (track_thread_.joinable()) track_thread_.join();
+  loop_queue_.Close();
+  recorder_queue_.Close();
+  std::lock_guard<std::mutex> lock(request_mutex_);
+  if (request_.pending) {
+    request_.done = true;
+    request_.result = Status::Error("the pipeline stopped before the model was applied");
+    request_.pending = false;
+    request_done_.notify_all();
+  }
+}
+
+Status LivePipeline::SetCalibration(const std::vector<reconstruction::CameraModel>& cameras) {
+  if (cameras.empty()) {
+    std::lock_guard<std::mutex> lock(triangulator_mutex_);
+    triangulator_.reset();
+    return Status::Ok();
+  }
+  if (static_cast<int>(cameras.size()) != num_cameras()) {
+    return Status::Error("calibration has " + std::to_string(cameras.size()) +
+                         " cameras, the rig " + std::to_string(num_cameras()));
+  }
+  std::unique_ptr<reconstruction::Triangulator> t;
+  MOCAP_RETURN_IF_ERROR(reconstruction::Triangulator::Create(cameras, {}, &t));
+  std::shared_ptr<reconstruction::Triangulator> shared(std::move(t));
+  std::lock_guard<std::mutex> lock(triangulator_mutex_);
+  triangulator_ = std::move(shared);
+  return Status::Ok();
+}
+
+bool LivePipeline::calibrated() const {
+  std::lock_guard<std::mutex> lock(triangulator_mutex_);
+  return triangulator_ != nullptr;
+}
+
+void LivePipeline::SetSubjectModel(std::shared_ptr<const Model> model, int version) {
+  std::lock_guard<std::mutex> lock(request_mutex_);
+  request_ = {};
+  request_.pending = true;
+  request_.swap = false;
+  request_.model = std::move(model);
+  request_.version = version;
+}
+
+Status LivePipeline::SwapModel(std::shared_ptr<const Model> model, int version,
+                               std::uint64_t* from_frame) {
+  std::unique_lock<std::mutex> lock(request_mutex_);
+  if (!running_) return Status::Error("the pipeline is not running");
+  request_ = {};
+  request_.pending = true;
+  request_.swap = true;
+  request_.model = std::move(model);
+  request_.version = version;
+  // A frame arrives every 5 ms; a second covers a descheduled tracking thread.
+  if (!request_done_.wait_for(lock, std::chrono::seconds(2), [&] { return request_.done; })) {
+    request_.pending = false;
+    return Status::Error("the tracking stage did not take the model within 2 s (no frames?)");
+  }
+  if (from_frame) *from_frame = request_.from_frame;
+  return request_.result;
+}
+
+void LivePipeline::StartWandCollection() {
+  std::lock_guard<std::mutex> lock(wand_mutex_);
+  collecting_ = true;
+  wand_seen_ = 0;
+  wand_frames_.clear();
+  std::fill(wand_per_camera_.begin(), wand_per_camera_.end(), 0);
+  for (auto& cells : wand_cells_) std::fill(cells.begin(), cells.end(), 0);
+}
+
+std::vector<reconstruction::DetectionSet> LivePipeline::StopWandCollection() {
+  std::lock_guard<std::mutex> lock(wand_mutex_);
+  collecting_ = false;
+  return std::move(wand_frames_);
+}
+
+void LivePipeline::WandProgress(int* frames, std::vector<int>* per_camera,
+                                std::vector<double>* coverage) const {
+  std::lock_guard<std::mutex> lock(wand_mutex_);
+  *frames = static_cast<int>(wand_frames_.size());
+  *per_camera = wand_per_camera_;
+  coverage->clear();
+  for (const auto& cells : wand_cells_) {
+    int n = 0;
+    for (std::uint8_t c : cells) n += c;
+    coverage->push_back(n / 64.0);
+  }
+}
+
+void LivePipeline::CollectWand(const PointFrame& pf) {
+  std::lock_guard<std::mutex> lock(wand_mutex_);
+  if (!collecting_) return;
+  if (wand_seen_++ % options_.wand_subsample != 0) return;
+  if (static_cast<int>(wand_frames_.size()) >= options_.max_wand_frames) return;
+  reconstruction::DetectionSet set;
+  set.sequence = pf.sequence;
+  set.timestamp_ns = pf.timestamp_ns;
+  set.cameras = pf.detections;
+  set.present.assign(pf.detections.size(), false);
+  int seen = 0;
+  for (std::size_t c = 0; c < pf.detections.size(); ++c) {
+    set.present[c] = c < 64 && (pf.present_mask >> c & 1);
+    if (!set.present[c]) continue;
+    const auto& d = pf.detections[c];
+    if (d.centroids.size() >= 3) {
+      ++seen;
+      if (c < wand_per_camera_.size()) ++wand_per_camera_[c];
+      for (const auto& ctr : d.centroids) {
+        const int gx = std::clamp(static_cast<int>(ctr.pixel.x() * 8 / std::max(1, width_)), 0, 7);
+        const int gy = std::clamp(static_cast<int>(ctr.pixel.y() * 8 / std::max(1, height_)), 0, 7);
+        if (c < wand_cells_.size()) wand_cells_[c][gy * 8 + gx] = 1;
+      }
+    }
+  }
+  if (seen >= 2) wand_frames_.push_back(std::move(set));
+}
+
+void LivePipeline::TrackLoop() {
+  NameThisThread("track");
+  Eigen::Matrix3Xd points;
+  for (;;) {
+    PointFrame pf;
+    if (!capture_->PopPoints(&pf, 50)) {
+      if (!running_) break;
+      continue;
+    }
+    // Requests from the loop, between two frames.
+    {
+      std::lock_guard<std::mutex> lock(request_mutex_);
+      if (request_.pending) {
+        request_.pending = false;
+        if (!request_.swap) {
+          tracker_.reset();
+          if (request_.model) {
+            ekf::TrackerOptions to = options_.tracker;
+            tracker_ = std::make_unique<ekf::Tracker>(request_.model, to);
+          }
+          model_version_ = request_.version;
+          request_.result = Status::Ok();
+        } else if (!tracker_) {
+          request_.result = Status::Error("no subject is being tracked");
+        } else {
+          request_.result = tracker_->SwapModel(request_.model);
+          if (request_.result) model_version_ = request_.version;
+        }
+        request_.from_frame = pf.sequence;
+        request_.done = true;
+        request_done_.notify_all();
+      }
+    }
+    CollectWand(pf);
+
+    LiveFrame lf;
+    lf.frame = pf.sequence;
+    lf.t_mid_s = pf.timestamp_ns * 1e-9 + options_.exposure_us * 0.5e-6;
+    lf.first_host_ns = pf.first_host_ns;
+    lf.last_host_ns = pf.last_host_ns;
+    lf.points_ready_ns = pf.ready_host_ns;
+    lf.cameras_present = pf.cameras_present;
+    lf.points = std::move(pf.points);
+    lf.model_version = model_version_;
+    const auto t0 = std::chrono::steady_clock::now();
+    if (tracker_) {
+      const int np = static_cast<int>(lf.points.size());
+      points.resize(3, np);
+      for (int i = 0; i < np; ++i) points.col(i) = lf.points[i];
+      const ekf::TrackOutput& out = tracker_->Update(lf.t_mid_s, points);
+      const int nm = tracker_->model().num_markers();
+      lf.tracker_state = static_cast<int>(out.state);
+      lf.labelled = out.labelled;
+      lf.coordinates = out.z;
+      lf.markers.setConstant(3, nm, std::numeric_limits<double>::quiet_NaN());
+      lf.predicted = tracker_->predicted_markers();
+      lf.residual_mm.assign(nm, std::numeric_limits<float>::quiet_NaN());
+      for (int m = 0; m < nm && m < static_cast<int>(out.point_of_marker.size()); ++m) {
+        const int p = out.point_of_marker[m];
+        if (p < 0 || p >= np) continue;
+        lf.markers.col(m) = points.col(p);
+        if (m < lf.predicted.cols())
+          lf.residual_mm[m] = static_cast<float>(1000 * (points.col(p) - lf.predicted.col(m)).norm());
+      }
+    }
+    const double track_ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    lf.tracked_ns = MonotonicNs();
+    {
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.frames_tracked;
+      if (lf.tracker_state == static_cast<int>(ekf::TrackState::kTracking)) ++stats_.frames_tracking;
+      stats_.tracker_state = lf.tracker_state;
+      stats_.labelled = lf.labelled;
+      stats_.markers = static_cast<int>(lf.markers.cols());
+      stats_.model_version = model_version_;
+      track_ms_.Add(track_ms);
+    }
+    Publish(std::move(lf));
+  }
+}
+
+void LivePipeline::Publish(LiveFrame&& frame) {
+  if (recording_.load()) {
+    LiveFrame copy = frame;
+    if (!recorder_queue_.TryPush(std::move(copy))) {
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.recorder_dropped;
+    }
+  }
+  if (!loop_queue_.TryPush(std::move(frame))) {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    ++stats_.loop_dropped;
+    return;
+  }
+  if (wake_) wake_();
+}
+
+LivePipelineStats LivePipeline::Stats() const {
+  LivePipelineStats s;
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    s = stats_;
+    s.track_ms_p50 = track_ms_.Percentile(50);
+    s.track_ms_p99 = track_ms_.Percentile(99);
+  }
+  s.capture = capture_->Stats();
+  return s;
+}
+
+}  // namespace mocap::daemon

@@ -1,0 +1,115 @@
+// mocapd: the motion-capture daemon (daemon/daemon.h). Usage:
+//   mocapd [--config /etc/mocapd/mocapd.toml] [--state-dir DIR] [--socket PATH] [--check-config]
+// Logs to stderr with syslog priority prefixes ("<6>...") so that journald files each line at its
+// level; run by hand on a terminal, the lines are plain.
+#include <systemd/sd-daemon.h>
+#include <unistd.h>
+
+#include <CLI/CLI.hpp>
+#include <spdlog/pattern_formatter.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
+#include <spdlog/spdlog.h>
+
+#include <cstdio>
+#include <memory>
+#include <string>
+
+#include "daemon/config.h"
+#include "daemon/daemon.h"
+
+namespace {
+
+// "%*" in the pattern: the syslog priority of the message's level, as sd-daemon(3) describes.
+class SyslogPriorityFlag : public spdlog::custom_flag_formatter {
+ public:
+  void format(const spdlog::details::log_msg& msg, const std::tm&,
+              spdlog::memory_buf_t& dest) override {
+    int p = 6;
+    switch (msg.level) {
+      case spdlog::level::trace:
+      case spdlog::level::debug: p = 7; break;
+      case spdlog::level::info: p = 6; break;
+      case spdlog::level::warn: p = 4; break;
+      case spdlog::level::err: p = 3; break;
+      case spdlog::level::critical: p = 2; break;
+      default: break;
+    }
+    const char text[4] = {'<', static_cast<char>('0' + p), '>', 0};
+    dest.append(text, text + 3);
+  }
+  std::unique_ptr<custom_flag_formatter> clone() const override {
+    return std::make_unique<SyslogPriorityFlag>();
+  }
+};
+
+void SetupLogging() {
+  auto logger = spdlog::stderr_color_mt("mocapd");
+  if (isatty(STDERR_FILENO)) {
+    logger->set_pattern("%H:%M:%S.%e %^%l%$ %v");
+  } else {
+    auto formatter = std::make_unique<spdlog::pattern_formatter>();
+    formatter->add_flag<SyslogPriorityFlag>('*').set_pattern("%*%v");
+    logger->set_formatter(std::move(formatter));
+  }
+  logger->flush_on(spdlog::level::info);
+  spdlog::set_default_logger(logger);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"mocapd: the motion-capture daemon (cameras, tracking, recordings, the body-model fit)"};
+  std::string config_path = "/etc/mocapd/mocapd.toml", state_dir, socket_path;
+  bool check = false;
+  app.add_option("--config", config_path, "configuration file (TOML)")->capture_default_str();
+  app.add_option("--state-dir", state_dir, "storage directory (overrides [storage] dir)");
+  app.add_option("--socket", socket_path, "control socket path (overrides [control] socket)");
+  app.add_flag("--check-config", check, "validate the configuration and exit");
+  app.set_version_flag("--version", "mocapd 0.1.0");
+  CLI11_PARSE(app, argc, argv);
+  SetupLogging();
+
+  mocap::daemon::DaemonConfig config;
+  if (mocap::Status s = mocap::daemon::LoadConfig(config_path, &config); !s) {
+    spdlog::error("{}", s.message());
+    if (!check) sd_notifyf(0, "STATUS=configuration error: %s\nERRNO=22", s.message().c_str());
+    return 78;  // EX_CONFIG
+  }
+  if (!state_dir.empty()) config.state_dir = state_dir;
+  if (!socket_path.empty()) config.socket_path = socket_path;
+  std::string error;
+  if (!config.IsValid(&error)) {
+    spdlog::error("{}: {}", config_path, error);
+    return 78;
+  }
+  if (check) {
+    std::printf("%s: ok (%s rig of %d cameras at %g Hz; state in %s; socket %s)\n",
+                config_path.c_str(), config.simulated_cameras > 0 ? "simulated" : "camera",
+                config.simulated_cameras > 0 ? config.simulated_cameras
+                                             : static_cast<int>(config.cameras.size()),
+                config.rate_hz, config.state_dir.c_str(), config.socket_path.c_str());
+    return 0;
+  }
+
+  mocap::daemon::DaemonOptions options;
+  options.config_path = config_path;
+  // Socket activation: systemd hands over the listening control socket (mocapd.socket).
+  const int fds = sd_listen_fds(1);
+  if (fds == 1) options.listen_fd = SD_LISTEN_FDS_START;
+  else if (fds > 1) spdlog::warn("systemd passed {} sockets; using the first", fds);
+
+  mocap::daemon::Daemon daemon(config, options);
+  if (mocap::Status s = daemon.Start(); !s) {
+    spdlog::error("start-up failed: {}", s.message());
+    sd_notifyf(0, "STATUS=start-up failed: %s", s.message().c_str());
+    daemon.Stop();
+    return 1;
+  }
+  sd_notify(0, "READY=1\nSTATUS=running");
+  const int code = daemon.Run();
+  sd_notify(0, "STOPPING=1\nSTATUS=stopping");
+  spdlog::info("stopping: socket, recording, jobs, cameras, store");
+  daemon.Stop();
+  spdlog::info("stopped");
+  return code;
+}

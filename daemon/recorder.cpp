@@ -1,0 +1,100 @@
+#include "daemon/recorder.h"
+
+#include <chrono>
+
+namespace mocap::daemon {
+
+RecordedFrame ToRecordedFrame(const LiveFrame& f) {
+  RecordedFrame r;
+  r.frame = f.frame;
+  r.time_s = f.t_mid_s;
+  r.points = f.points;
+  r.markers = f.markers;
+  r.marker_flags.assign(static_cast<std::size_t>(f.markers.cols()), 0);
+  for (Eigen::Index m = 0; m < f.markers.cols(); ++m)
+    if (!f.markers.col(m).allFinite()) r.marker_flags[m] = 1;  // occluded
+  r.coordinates = f.coordinates;
+  r.tracker_state = static_cast<std::int8_t>(f.tracker_state < 0 ? 0 : f.tracker_state);
+  return r;
+}
+
+Recorder::Recorder(LivePipeline* pipeline, std::unique_ptr<Store> store, int chunk_ms)
+    : pipeline_(pipeline), store_(std::move(store)), chunk_ms_(chunk_ms) {}
+
+Recorder::~Recorder() { Stop(); }
+
+void Recorder::Start() {
+  running_ = true;
+  thread_ = std::thread([this] { Loop(); });
+}
+
+void Recorder::Stop() {
+  if (!running_.exchange(false)) return;
+  if (thread_.joinable()) thread_.join();
+}
+
+void Recorder::Begin(std::int64_t id, DoneFn done) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  recording_ = id;
+  done_ = std::move(done);
+  ending_ = false;
+  error_ = Status::Ok();
+  chunk_.clear();
+  frames_ = 0;
+}
+
+void Recorder::End() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (recording_ != 0) ending_ = true;
+}
+
+Status Recorder::Commit() {
+  if (chunk_.empty() || recording_ == 0) return Status::Ok();
+  Status s = store_->AppendFrames(recording_, chunk_);
+  if (s) frames_ += static_cast<std::int64_t>(chunk_.size());
+  chunk_.clear();
+  return s;
+}
+
+void Recorder::Loop() {
+  NameThisThread("recorder");
+  auto last_commit = std::chrono::steady_clock::now();
+  int idle_polls = 0;
+  for (;;) {
+    LiveFrame f;
+    const bool got = pipeline_->PopRecorded(&f, 10);
+    std::unique_lock<std::mutex> lock(mutex_);
+    if (got) {
+      idle_polls = 0;
+      if (recording_ != 0 && error_) chunk_.push_back(ToRecordedFrame(f));
+    } else {
+      ++idle_polls;
+    }
+    const auto now = std::chrono::steady_clock::now();
+    const bool due =
+        std::chrono::duration<double, std::milli>(now - last_commit).count() >= chunk_ms_;
+    // The last frames of a recording: the pipeline's flag is off, so once the queue has been
+    // empty for two polls (20 ms) nothing more is coming for it.
+    const bool finishing = ending_ && !got && idle_polls >= 2;
+    if ((due || finishing) && error_) {
+      error_ = Commit();
+      last_commit = now;
+    }
+    if (recording_ != 0 && (finishing || !error_ || !running_)) {
+      if (error_) error_ = Commit();
+      DoneFn done = std::move(done_);
+      const std::int64_t id = recording_;
+      const Status status = error_;
+      recording_ = 0;
+      ending_ = false;
+      done_ = nullptr;
+      chunk_.clear();
+      lock.unlock();
+      if (done) done(id, status, frames_.load());
+      continue;
+    }
+    if (!running_ && !got) break;
+  }
+}
+
+}  // namespace mocap::daemon

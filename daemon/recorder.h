@@ -1,0 +1,65 @@
+// The recorder: frames of the running recording from the live pipeline to SQLite, in chunks of at
+// most `chunk_ms` per transaction, so a crash or a power cut loses at most that much (the store's
+// WAL settings: daemon/store.h).
+//
+// It runs on its own thread with its own store connection (SQLite in WAL mode lets it write while
+// the loop's connection reads), so neither a slow disk nor a big commit ever holds the event loop
+// or the tracking stage; the pipeline hands frames over through a bounded queue of several
+// seconds (daemon/live_pipeline.h), and a full queue is counted, never waited for.
+#pragma once
+#include <atomic>
+#include <condition_variable>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+
+#include "daemon/live_pipeline.h"
+#include "daemon/store.h"
+
+namespace mocap::daemon {
+
+// A LiveFrame as stored.
+RecordedFrame ToRecordedFrame(const LiveFrame& frame);
+
+class Recorder {
+ public:
+  // Called on the recorder's thread when a recording has ended (all its frames committed) or
+  // failed (the first error, e.g. the disk is full; the frames before it stay on disk).
+  using DoneFn = std::function<void(std::int64_t recording, Status status, std::int64_t frames)>;
+
+  Recorder(LivePipeline* pipeline, std::unique_ptr<Store> store, int chunk_ms = 100);
+  ~Recorder();
+
+  void Start();
+  void Stop();
+
+  // Frames go to recording `id` from now on (the caller then turns the pipeline's recording on).
+  // `done` is called once: after End(), or at the first failure to commit.
+  void Begin(std::int64_t id, DoneFn done);
+  // The caller has turned the pipeline's recording off: commit what is queued, then `done`.
+  void End();
+  std::int64_t frames() const { return frames_.load(); }
+
+ private:
+  void Loop();
+  Status Commit();
+
+  LivePipeline* pipeline_;
+  std::unique_ptr<Store> store_;
+  int chunk_ms_;
+  std::thread thread_;
+  std::atomic<bool> running_{false};
+
+  std::mutex mutex_;
+  std::int64_t recording_ = 0;  // 0: none
+  bool ending_ = false;
+  DoneFn done_;
+  Status error_;
+  std::vector<RecordedFrame> chunk_;
+  std::atomic<std::int64_t> frames_{0};
+};
+
+}  // namespace mocap::daemon

@@ -1,0 +1,127 @@
+// The daemon tier's harness (tests/test_daemon*.cpp and bench/daemon_latency.cpp): the real
+// `mocapd` executable started on a simulated-rig config in a temporary state directory, driven
+// through its socket with the real client (daemon/control_client.h), as an operator's mocapctl
+// would. No GoogleTest here: the benchmark uses it too.
+#pragma once
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <thread>
+
+#include "daemon/control_client.h"
+
+namespace mocap::testing {
+
+inline std::string MakeTempDir(const std::string& prefix) {
+  std::string pattern = (std::filesystem::temp_directory_path() / (prefix + "-XXXXXX")).string();
+  char* made = mkdtemp(pattern.data());
+  return made ? std::string(made) : std::string();
+}
+
+// A simulated rig of `cameras` Aravis fake cameras; `extra` is appended to the file.
+inline std::string SimulatedRigToml(int cameras, int seed, const std::string& extra = "") {
+  return "[rig]\nsimulated = " + std::to_string(cameras) + "\nsubject_seed = " +
+         std::to_string(seed) + "\nrate = 200\n" + extra;
+}
+
+class DaemonProcess {
+ public:
+  // Writes `toml` to DIR/mocapd.toml and starts mocapd on it with DIR/state and DIR/control.sock.
+  DaemonProcess(const std::string& dir, const std::string& toml,
+                std::string executable = MOCAPD_PATH)
+      : dir_(dir), executable_(std::move(executable)) {
+    std::ofstream(dir_ + "/mocapd.toml") << toml;
+  }
+  ~DaemonProcess() { Kill(SIGKILL); }
+
+  std::string socket() const { return dir_ + "/control.sock"; }
+  std::string state_dir() const { return dir_ + "/state"; }
+  std::string log_path() const { return dir_ + "/mocapd.log"; }
+
+  // Starts it and waits until its socket answers (up to `timeout_s`).
+  Status Start(double timeout_s = 30) {
+    pid_ = fork();
+    if (pid_ == 0) {
+      const int log = open(log_path().c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+      if (log >= 0) {
+        dup2(log, STDERR_FILENO);
+        dup2(log, STDOUT_FILENO);
+      }
+      const std::string config = dir_ + "/mocapd.toml", state = state_dir(), sock = socket();
+      execl(executable_.c_str(), "mocapd", "--config", config.c_str(), "--state-dir", state.c_str(),
+            "--socket", sock.c_str(), static_cast<char*>(nullptr));
+      _exit(127);
+    }
+    const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
+    while (std::chrono::steady_clock::now() < until) {
+      int status = 0;
+      if (waitpid(pid_, &status, WNOHANG) == pid_) {
+        pid_ = -1;
+        return Status::Error("mocapd exited during start-up (status " + std::to_string(status) +
+                             "); log:\n" + Log());
+      }
+      std::unique_ptr<daemon::ControlClient> c;
+      daemon::ControlClientOptions o;
+      o.socket_path = socket();
+      if (daemon::ControlClient::Connect(o, &c)) return Status::Ok();
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+    return Status::Error("mocapd did not answer within " + std::to_string(timeout_s) +
+                         " s; log:\n" + Log());
+  }
+
+  Status Connect(std::unique_ptr<daemon::ControlClient>* out, int timeout_ms = 300000) const {
+    daemon::ControlClientOptions o;
+    o.socket_path = socket();
+    o.reply_timeout_ms = timeout_ms;
+    return daemon::ControlClient::Connect(o, out);
+  }
+
+  // SIGTERM and wait (up to timeout_s); the exit status, or -1 when it had to be killed.
+  int Stop(double timeout_s = 20) {
+    if (pid_ <= 0) return -1;
+    kill(pid_, SIGTERM);
+    const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
+    while (std::chrono::steady_clock::now() < until) {
+      int status = 0;
+      if (waitpid(pid_, &status, WNOHANG) == pid_) {
+        pid_ = -1;
+        return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    Kill(SIGKILL);
+    return -1;
+  }
+  void Kill(int sig) {
+    if (pid_ <= 0) return;
+    kill(pid_, sig);
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    pid_ = -1;
+  }
+  bool running() const { return pid_ > 0 && kill(pid_, 0) == 0; }
+  pid_t pid() const { return pid_; }
+
+  std::string Log() const {
+    std::ifstream f(log_path());
+    std::string s((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+    return s.size() > 20000 ? "..." + s.substr(s.size() - 20000) : s;
+  }
+
+ private:
+  std::string dir_;
+  std::string executable_;
+  pid_t pid_ = -1;
+};
+
+}  // namespace mocap::testing
