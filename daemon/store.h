@@ -27,8 +27,8 @@
 // of the process still at most the last 100 ms. bench/store_append (BENCHMARKS.md; the default
 // model's 43 markers and 38 coordinates, 48 points a frame, 60 s at 200 Hz, 20-frame chunks at
 // the rig's pace), AppendFrames per chunk:
-//   automatic checkpoints          p50 0.55 ms  p99 10-23 ms  max 22-449 ms
-//   Checkpoint() every 5 s         p50 0.59 ms  p99 4.7 ms    max 8.9 ms
+//   automatic checkpoints          p50 0.55 ms  p99 10-23 ms  max 22-449 ms (5 runs)
+//   Checkpoint() every 5 s         p50 0.58 ms  p99 4.6 ms    max 8-9 ms (2 runs)
 //   Checkpoint() every 1 s         p50 0.54 ms  p99 8.1 ms    max 12 ms
 //   Checkpoint() every 100 ms      p50 1.9-2.4  p99 7-11 ms   max 11-14 ms (an fsync in each gap)
 // 2.7 kB a frame (32 MB a minute); ReadFrames of the 12,000 frames 47-132 ms.
