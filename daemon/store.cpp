@@ -563,6 +563,13 @@ bool StoreOptions::IsValid(std::string* error) const {
     if (error) *error = "busy_timeout_ms must be >= 0, not " + std::to_string(busy_timeout_ms);
     return false;
   }
+  if (wal_autocheckpoint_pages < 0) {
+    if (error) {
+      *error = "wal_autocheckpoint_pages must be >= 0, not " +
+               std::to_string(wal_autocheckpoint_pages);
+    }
+    return false;
+  }
   return true;
 }
 
@@ -616,6 +623,9 @@ Status Store::Open(const std::string& state_dir, std::unique_ptr<Store>* out,
   // the daemon commits a chunk at least every 100 ms, so a crash loses at most 100 ms.
   MOCAP_RETURN_IF_ERROR(store->Exec("PRAGMA synchronous=NORMAL", "setting synchronous=NORMAL"));
   MOCAP_RETURN_IF_ERROR(store->Exec("PRAGMA foreign_keys=ON", "enabling foreign keys"));
+  if (sqlite3_wal_autocheckpoint(db, options.wal_autocheckpoint_pages) != SQLITE_OK) {
+    return SqlError(db, path, "setting wal_autocheckpoint");
+  }
   MOCAP_RETURN_IF_ERROR(store->Migrate());
   if (options.mark_interrupted_recordings) MOCAP_RETURN_IF_ERROR(store->MarkInterrupted());
   *out = std::move(store);
@@ -1057,6 +1067,17 @@ Status Store::MarkInterrupted(int* count) {
                    " WHERE state = 'recording'");
   MOCAP_RETURN_IF_ERROR(In(path_ + ": marking interrupted recordings", update.Run()));
   if (count) *count = sqlite3_changes(db_.get());
+  return Status::Ok();
+}
+
+Status Store::Checkpoint(int* wal_pages, int* checkpointed_pages) {
+  int log = 0, done = 0;
+  if (sqlite3_wal_checkpoint_v2(db_.get(), nullptr, SQLITE_CHECKPOINT_PASSIVE, &log, &done) !=
+      SQLITE_OK) {
+    return SqlError(db_.get(), path_, "checkpointing the WAL");
+  }
+  if (wal_pages) *wal_pages = log;
+  if (checkpointed_pages) *checkpointed_pages = done;
   return Status::Ok();
 }
 

@@ -18,11 +18,20 @@
 // - The schema is versioned with `PRAGMA user_version`; Open migrates an older database step by
 //   step and refuses a newer one (written by a newer mocapd) rather than guess at it.
 //
-// Costs (this machine, the default model's 43 markers and 38 coordinates, 48 points a frame,
-// 60 s at 200 Hz in 20-frame chunks): AppendFrames p50 0.26 ms, p99 13 ms, max 32 ms — the slow
-// ones are the commits that run SQLite's automatic WAL checkpoint (every ~4 MB, with an fsync), so
-// the recorder must call it from its own thread, never from the event loop; 2.7 kB a frame (32 MB
-// a minute); ReadFrames of the 12,000 frames 80 ms.
+// Checkpoints. SQLite moves the WAL's pages into the database file (a checkpoint, with an fsync)
+// by default at the commit that takes the WAL past 1000 pages (~4 MB, every ~8 s of recording):
+// that commit then takes tens of ms, once hundreds. The recorder's commits are on the live path, so
+// the daemon opens the recorder's Store with `wal_autocheckpoint_pages = 0` and calls Checkpoint()
+// every few seconds from another thread's Store (a passive checkpoint never blocks the writer).
+// A power cut then loses what came after the last checkpoint (its fsync): a few seconds; a crash
+// of the process still at most the last 100 ms. bench/store_append (BENCHMARKS.md; the default
+// model's 43 markers and 38 coordinates, 48 points a frame, 60 s at 200 Hz, 20-frame chunks at
+// the rig's pace), AppendFrames per chunk:
+//   automatic checkpoints          p50 0.55 ms  p99 10-23 ms  max 22-449 ms (5 runs)
+//   Checkpoint() every 5 s         p50 0.58 ms  p99 4.6 ms    max 8-9 ms (2 runs)
+//   Checkpoint() every 1 s         p50 0.54 ms  p99 8.1 ms    max 12 ms
+//   Checkpoint() every 100 ms      p50 1.9-2.4  p99 7-11 ms   max 11-14 ms (an fsync in each gap)
+// 2.7 kB a frame (32 MB a minute); ReadFrames of the 12,000 frames 47-132 ms.
 //
 // A recording that was still "recording" when the daemon stopped (crash, power cut, kill) becomes
 // "interrupted" at the next Open: its committed chunks stay readable and exportable.
@@ -151,6 +160,10 @@ struct StoreOptions {
   // this once at start-up; a Store opened later by a worker thread of the SAME daemon must not
   // (it would mark the recording in progress as interrupted), so it passes false.
   bool mark_interrupted_recordings = true;
+  // Checkpoint the WAL automatically at the commit that takes it past this many pages (SQLite's
+  // default, 1000). 0: never on this connection's commits; then some Store must call Checkpoint()
+  // regularly, or the WAL grows without bound (see "Checkpoints" above).
+  int wal_autocheckpoint_pages = 1000;
 
   bool IsValid(std::string* error) const;
 };
@@ -231,6 +244,12 @@ class Store {
   // Turns every recording still "recording" into "interrupted" (stopped_at = its last chunk's time,
   // or its start). Open does this when the options say so. *count (optional): how many.
   Status MarkInterrupted(int* count = nullptr);
+
+  // A passive checkpoint: moves what it can of the WAL into the database file without waiting
+  // for (or blocking) readers and the writer; the writer then starts the WAL over at its next
+  // commit once every page is in. *wal_pages / *checkpointed_pages (optional): the WAL's size and
+  // how much of it is now in the database.
+  Status Checkpoint(int* wal_pages = nullptr, int* checkpointed_pages = nullptr);
 
   // Bytes on disk: the database file plus its WAL.
   Status Usage(std::uint64_t* db_bytes);

@@ -691,6 +691,45 @@ TEST_F(StoreTest, AStorePerThreadWorkSideBySide) {
   EXPECT_EQ(calibrations.size(), 20u);
 }
 
+// Without automatic checkpoints the WAL grows with every chunk; a Checkpoint() from another Store
+// lets the writer start the WAL over, so it stops growing.
+TEST_F(StoreTest, ACheckpointFromAnotherStoreKeepsTheWalFromGrowing) {
+  store_.reset();
+  StoreOptions recorder;
+  recorder.wal_autocheckpoint_pages = 0;
+  ASSERT_OK(Store::Open(dir_, &store_, recorder));
+  const SubjectRecord a = MakeSubject("alice");
+  const std::int64_t id = BeginRecording(a.id);
+  const std::string wal = db_path() + "-wal";
+  std::uint64_t frame = 1;
+  auto append = [&](int chunks) {
+    for (int c = 0; c < chunks; ++c, frame += 20) {
+      ASSERT_OK(store_->AppendFrames(id, MakeFrames(frame, 20)));
+    }
+  };
+  append(100);  // ~4.7 MB: past SQLite's default 1000-page checkpoint, which must not run here
+  const auto wal_after_100 = fs::file_size(wal);
+  EXPECT_GT(wal_after_100, 1000u * 4096u);
+  StoreOptions worker;
+  worker.mark_interrupted_recordings = false;
+  std::unique_ptr<Store> checkpointer;
+  ASSERT_OK(Store::Open(dir_, &checkpointer, worker));
+  int wal_pages = 0, checkpointed = 0;
+  ASSERT_OK(checkpointer->Checkpoint(&wal_pages, &checkpointed));
+  EXPECT_GT(wal_pages, 1000);
+  EXPECT_EQ(checkpointed, wal_pages);  // nobody was reading: all of it
+  append(50);  // written from the start of the WAL again
+  EXPECT_EQ(fs::file_size(wal), wal_after_100);
+  std::vector<RecordedFrame> read;
+  ASSERT_OK(checkpointer->ReadFrames(id, &read));
+  EXPECT_EQ(read.size(), 150u * 20u);
+  StoreOptions bad;
+  bad.wal_autocheckpoint_pages = -5;
+  std::string error;
+  EXPECT_FALSE(bad.IsValid(&error));
+  EXPECT_THAT(error, HasSubstr("wal_autocheckpoint_pages must be >= 0, not -5"));
+}
+
 TEST_F(StoreTest, UsageGrowsWithTheFrames) {
   const SubjectRecord a = MakeSubject("alice");
   const std::int64_t id = BeginRecording(a.id);
