@@ -306,11 +306,13 @@ Status Daemon::Start() {
 
   // 6. The recorder (its own store connection).
   {
-    std::unique_ptr<Store> store;
+    std::unique_ptr<Store> store, checkpointer;
     StoreOptions so;
     so.mark_interrupted_recordings = false;  // done by the loop's store above
+    MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &checkpointer, so));
+    so.wal_autocheckpoint_pages = 0;  // the checkpointer's thread does it (daemon/store.h)
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &store, so));
-    recorder_ = std::make_unique<Recorder>(pipeline_.get(), std::move(store));
+    recorder_ = std::make_unique<Recorder>(pipeline_.get(), std::move(store), std::move(checkpointer));
     recorder_->Start();
   }
 

@@ -18,19 +18,42 @@ RecordedFrame ToRecordedFrame(const LiveFrame& f) {
   return r;
 }
 
-Recorder::Recorder(LivePipeline* pipeline, std::unique_ptr<Store> store, int chunk_ms)
-    : pipeline_(pipeline), store_(std::move(store)), chunk_ms_(chunk_ms) {}
+Recorder::Recorder(LivePipeline* pipeline, std::unique_ptr<Store> store,
+                   std::unique_ptr<Store> checkpointer, int chunk_ms, double checkpoint_s)
+    : pipeline_(pipeline),
+      store_(std::move(store)),
+      checkpointer_(std::move(checkpointer)),
+      chunk_ms_(chunk_ms),
+      checkpoint_s_(checkpoint_s) {}
 
 Recorder::~Recorder() { Stop(); }
 
 void Recorder::Start() {
   running_ = true;
   thread_ = std::thread([this] { Loop(); });
+  if (checkpointer_) {
+    checkpoint_thread_ = std::thread([this] {
+      NameThisThread("checkpoint");
+      std::unique_lock<std::mutex> lock(stop_mutex_);
+      while (!stop_cv_.wait_for(lock, std::chrono::duration<double>(checkpoint_s_),
+                                [this] { return !running_.load(); })) {
+        lock.unlock();
+        checkpointer_->Checkpoint();  // a failure is retried at the next one; the WAL holds all
+        lock.lock();
+      }
+    });
+  }
 }
 
 void Recorder::Stop() {
-  if (!running_.exchange(false)) return;
+  {
+    std::lock_guard<std::mutex> lock(stop_mutex_);
+    if (!running_.exchange(false)) return;
+  }
+  stop_cv_.notify_all();
   if (thread_.joinable()) thread_.join();
+  if (checkpoint_thread_.joinable()) checkpoint_thread_.join();
+  if (checkpointer_) checkpointer_->Checkpoint();
 }
 
 void Recorder::Begin(std::int64_t id, DoneFn done) {

@@ -30,7 +30,11 @@ class Recorder {
   // failed (the first error, e.g. the disk is full; the frames before it stay on disk).
   using DoneFn = std::function<void(std::int64_t recording, Status status, std::int64_t frames)>;
 
-  Recorder(LivePipeline* pipeline, std::unique_ptr<Store> store, int chunk_ms = 100);
+  // `store` commits the frames (open it with wal_autocheckpoint_pages = 0); `checkpointer`, a
+  // second connection to the same database, checkpoints the WAL every `checkpoint_s` on a thread
+  // of its own, so no commit of the recorder waits for a checkpoint's fsync (daemon/store.h).
+  Recorder(LivePipeline* pipeline, std::unique_ptr<Store> store,
+           std::unique_ptr<Store> checkpointer, int chunk_ms = 100, double checkpoint_s = 5.0);
   ~Recorder();
 
   void Start();
@@ -49,8 +53,12 @@ class Recorder {
 
   LivePipeline* pipeline_;
   std::unique_ptr<Store> store_;
+  std::unique_ptr<Store> checkpointer_;
   int chunk_ms_;
-  std::thread thread_;
+  double checkpoint_s_;
+  std::thread thread_, checkpoint_thread_;
+  std::mutex stop_mutex_;
+  std::condition_variable stop_cv_;
   std::atomic<bool> running_{false};
 
   std::mutex mutex_;

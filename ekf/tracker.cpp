@@ -1603,8 +1603,52 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
       return Status::Error("SwapModel: marker " + std::to_string(i) + " is '" +
                            model->markers()[i].name + "', the tracker's is '" +
                            old.markers()[i].name + "'");
+  const bool same_segments = model->num_segments() == old.num_segments();
+  // What the labelling has learnt of the points does not depend on the model: the probation runs,
+  // the 20-frame history, the seen-beside records, the held runs and the last frame's points. A
+  // swap that wiped them left the next frame without a measurement (every marker back on
+  // probation) and restarted the ghost protections; so they are carried over the re-allocation.
+  auto measured = std::move(s.measured);
+  auto labelled_run = std::move(s.labelled_run);
+  auto unlabelled_run = std::move(s.unlabelled_run);
+  auto last_point = std::move(s.last_point);
+  auto last_predicted = std::move(s.last_predicted);
+  auto hist_points = std::move(s.hist_points);
+  auto hist_count = std::move(s.hist_count);
+  auto hist_claimed = std::move(s.hist_claimed);
+  auto hist_centre = std::move(s.hist_centre);
+  const int hist_head = s.hist_head, hist_size = s.hist_size;
+  auto beside_prev = std::move(s.beside_prev);
+  auto held_run = std::move(s.held_run);
+  auto prev_points = std::move(s.prev_points);
+  auto prev_free = std::move(s.prev_free);
+  auto prev_free_list = std::move(s.prev_free_list);
+  const int prev_np = s.prev_np, prev_free_count = s.prev_free_count;
   s.SetModel(std::move(model));
   s.Allocate();
+  s.measured = std::move(measured);
+  s.labelled_run = std::move(labelled_run);
+  s.unlabelled_run = std::move(unlabelled_run);
+  s.last_point = std::move(last_point);
+  s.last_predicted = std::move(last_predicted);
+  s.hist_points = std::move(hist_points);
+  s.hist_count = std::move(hist_count);
+  s.hist_claimed = std::move(hist_claimed);
+  if (same_segments) {
+    // The predicted joint centres of the past frames move by the fit's correction (millimetres
+    // to centimetres); the rigidity test they feed allows 1 cm of spread, and the ring renews in
+    // 20 frames.
+    s.hist_centre = std::move(hist_centre);
+    s.hist_head = hist_head;
+    s.hist_size = hist_size;
+  }
+  s.beside_prev = std::move(beside_prev);
+  s.held_run = std::move(held_run);
+  s.prev_points = std::move(prev_points);
+  s.prev_free = std::move(prev_free);
+  s.prev_free_list = std::move(prev_free_list);
+  s.prev_np = prev_np;
+  s.prev_free_count = prev_free_count;
   // The new model's markers are where the fit put them: forget the old model's corrections, but
   // trust the new positions more than a nominal model's.
   s.ClearOffsets(s.options.swap_offset_count);

@@ -617,6 +617,28 @@ TEST(EkfTracker, SwapModelKeepsTheTrackAndImprovesTheAngles) {
   EXPECT_EQ(&swapped.model(), truth.get());
 }
 
+// The frame after a swap (model.apply in the daemon) is measured like the one before it: the swap
+// keeps the labelling's state (probation runs, history, seen-beside records); it used to wipe it,
+// and the next frame's markers were all back on probation, with no measurement at all.
+TEST(EkfTracker, SwapModelLosesNoMeasurement) {
+  const auto& session = Session();
+  const auto& trial = session.trials[TrialIndex("hip_star_arc_l")];
+  const int swap = trial.markers.num_frames() / 3;
+  SceneOptions scene;
+  scene.ghosts = 3;
+  ekf::Tracker tracker(Share(session.nominal));
+  TrackRun(&tracker, trial, scene, 0, swap, 7);
+  ASSERT_EQ(tracker.state(), ekf::TrackState::kTracking);
+  const int labelled_before = tracker.output().labelled;
+  const int dof_before = tracker.output().nis_dof;
+  ASSERT_GT(dof_before, 60);
+  ASSERT_TRUE(tracker.SwapModel(Share(session.truth)).ok());
+  TrackRun(&tracker, trial, scene, swap, swap + 1, 7);
+  EXPECT_EQ(tracker.state(), ekf::TrackState::kTracking);
+  EXPECT_GE(tracker.output().labelled, labelled_before - 1);
+  EXPECT_GE(tracker.output().nis_dof, dof_before - 3) << "the frame after the swap was not measured";
+}
+
 // A subject turning on the spot (1.5 rad/s about the vertical) through +-pi: the heading stays in
 // (-pi, pi] and the labels stay right.
 TEST(EkfTracker, WrapsTheHeading) {
