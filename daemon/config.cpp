@@ -197,6 +197,10 @@ std::string KeysOf(const std::vector<Field<C>>& fields, const std::string& table
   return keys;
 }
 
+// How errors name the table of `fields` whose `table` is this: a mask is an inline table, not a
+// [section] of the file.
+std::string Owner(const std::string& table) { return table == "mask" ? "a mask" : "[" + table + "]"; }
+
 // Where each key was read from, so that validation after parsing still names the line.
 using KeyLines = std::map<std::string, int>;
 
@@ -376,7 +380,7 @@ class Reader {
       if (table == f.table && key == f.key) field = &f;
     if (!field)
       return Error(node, full_key,
-                   "unknown key (the keys of [" + table + "] are " +
+                   "unknown key (the keys of " + Owner(table) + " are " +
                        KeysOf(fields, table, extra_keys) + ")");
     (*lines_)[full_key] = LineOf(node);
     if (field->kind == Field<C>::Kind::kNumber) {
@@ -448,8 +452,8 @@ class Reader {
                                     std::string(name.str()), value, &r, nullptr));
       for (const auto& f : MaskFields())
         if (!rect->contains(f.key))
-          return Error(item, item_key, std::string("missing ") + f.key + " (the keys of a mask are " +
-                                           KeysOf(MaskFields(), "mask") + ")");
+          return Error(item, item_key, std::string("missing ") + f.key + " (the keys of " +
+                                           Owner("mask") + " are " + KeysOf(MaskFields(), "mask") + ")");
       masks->push_back(r);
     }
     return Status::Ok();

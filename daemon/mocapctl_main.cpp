@@ -295,17 +295,25 @@ class Ctl {
   std::unique_ptr<ControlClient> client_;
 };
 
-// Runs one request; prints its result as JSON (--json) or with `print`.
-int Simple(Ctl& ctl, const std::string& method, const json& params,
-           const std::function<void(const json&)>& print = [](const json& r) { PrintTree(r); }) {
-  json result;
-  const int status = ctl.Call(method, params, &result);
+using Printer = std::function<void(const json&)>;
+
+// After a request: on success prints its result as JSON (--json) or with `print`; returns
+// the exit status.
+int Output(const Ctl& ctl, int status, const json& result, const Printer& print) {
   if (status != kExitOk) return status;
   if (ctl.json_mode())
     std::printf("%s\n", result.dump(2).c_str());
   else
     print(result);
   return kExitOk;
+}
+
+// Runs one request and prints its result.
+int Simple(Ctl& ctl, const std::string& method, const json& params,
+           const Printer& print = [](const json& r) { PrintTree(r); }) {
+  json result;
+  const int status = ctl.Call(method, params, &result);
+  return Output(ctl, status, result, print);
 }
 
 std::string Absolute(const std::string& path) {
@@ -373,8 +381,12 @@ void PrintCalibration(const json& r) {
                 Fixed(truth.value("orientation_error_deg_max", json()), 3).c_str());
 }
 
-// Returns whether the recording passed its coverage check.
-bool PrintRecording(const json& r) {
+bool CoveragePassed(const json& recording) {
+  const json coverage = recording.value("coverage", json());
+  return coverage.is_object() && coverage.value("ok", false);
+}
+
+void PrintRecording(const json& r) {
   std::printf("recording %s (%s): %s frames, %s s, tracking %s%%\n", Text(r.value("recording", json())).c_str(),
               Text(r.value("movement", json())).c_str(), Text(r.value("frames", json())).c_str(),
               Fixed(r.value("seconds", json()), 2).c_str(),
@@ -382,7 +394,6 @@ bool PrintRecording(const json& r) {
                   ? Fixed(100 * r["tracking_fraction"].get<double>(), 1).c_str()
                   : "-");
   const json coverage = r.value("coverage", json());
-  const bool ok = coverage.is_object() && coverage.value("ok", false);
   if (coverage.is_object() && coverage.contains("excitations")) {
     json rows = json::array();
     for (const auto& e : coverage["excitations"]) {
@@ -395,10 +406,9 @@ bool PrintRecording(const json& r) {
     }
     PrintTable(rows, {"coordinate", "required_deg", "reached_deg", "ok"});
   }
-  std::printf("coverage: %s\n", ok ? "passed" : "NOT passed");
+  std::printf("coverage: %s\n", CoveragePassed(r) ? "passed" : "NOT passed");
   if (r.contains("advice") && r["advice"].is_string() && !r["advice"].get<std::string>().empty())
     std::printf("%s\n", r["advice"].get<std::string>().c_str());
-  return ok;
 }
 
 void PrintFit(const json& r) {
@@ -474,15 +484,8 @@ int Calibrate(Ctl& ctl, double seconds, bool apply) {
 int Record(Ctl& ctl, const json& params) {
   json result;
   const int status = ctl.CallInterruptible("record.start", params, "record.stop", &result);
-  if (status != kExitOk) return status;
-  bool ok;
-  if (ctl.json_mode()) {
-    std::printf("%s\n", result.dump(2).c_str());
-    ok = result.value("coverage", json::object()).value("ok", false);
-  } else {
-    ok = PrintRecording(result);
-  }
-  return ok ? kExitOk : kExitCoverageFailed;
+  if (Output(ctl, status, result, PrintRecording) != kExitOk) return status;
+  return CoveragePassed(result) ? kExitOk : kExitCoverageFailed;
 }
 
 int Watch(Ctl& ctl, const std::vector<std::string>& streams, int decimation, long count) {
@@ -552,7 +555,7 @@ int main(int argc, char** argv) {
   Ctl ctl(globals);
   std::function<int()> action;
   auto simple = [&](CLI::App* cmd, const std::string& method,
-                    std::function<void(const json&)> print = [](const json& r) { PrintTree(r); }) {
+                    Printer print = [](const json& r) { PrintTree(r); }) {
     cmd->callback([&, method, print] { action = [&, method, print] { return Simple(ctl, method, json::object(), print); }; });
   };
 
@@ -662,12 +665,7 @@ int main(int argc, char** argv) {
     action = [&, params] {
       json result;
       const int status = ctl.CallInterruptible("fit.start", params, "fit.cancel", &result);
-      if (status != kExitOk) return status;
-      if (ctl.json_mode())
-        std::printf("%s\n", result.dump(2).c_str());
-      else
-        PrintFit(result);
-      return kExitOk;
+      return Output(ctl, status, result, PrintFit);
     };
   });
 
@@ -733,16 +731,15 @@ int main(int argc, char** argv) {
         params["path"] = Absolute(export_out);
       json result;
       const int status = ctl.Call("export", params, &result);
-      if (status != kExitOk) return status;
-      if (ctl.json_mode())
-        std::printf("%s\n", result.dump(2).c_str());
-      else if (result.contains("content") && result["content"].is_string())
-        std::fwrite(result["content"].get_ref<const std::string&>().data(), 1,
-                    result["content"].get_ref<const std::string&>().size(), stdout);
-      else
-        std::printf("wrote %s (%s bytes)\n", Text(result.value("path", json())).c_str(),
-                    Text(result.value("bytes", json())).c_str());
-      return kExitOk;
+      return Output(ctl, status, result, [](const json& r) {
+        if (r.contains("content") && r["content"].is_string()) {
+          const auto& content = r["content"].get_ref<const std::string&>();
+          std::fwrite(content.data(), 1, content.size(), stdout);
+        } else {
+          std::printf("wrote %s (%s bytes)\n", Text(r.value("path", json())).c_str(),
+                      Text(r.value("bytes", json())).c_str());
+        }
+      });
     };
   });
 

@@ -173,37 +173,39 @@ TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
   EXPECT_EQ(config.cameras[0].masks, (std::vector<MaskRect>{{0, 960, 1280, 64}}));
   EXPECT_EQ(config.num_cameras(), 2);
 
-  EXPECT_EQ(ParseError(real_rig + camera + "gain_db = 60\n"),
-            kSource + ":6: rig.camera[0].gain_db: expected a number in [0, 48] or -1 (the rig's), got 60");
-  EXPECT_EQ(ParseError(real_rig + camera + "detection_threshold = -3\n"),
-            kSource + ":6: rig.camera[0].detection_threshold: expected an integer in [1, 65535] or 0 "
-                      "(the rig's), got -3");
-  EXPECT_EQ(ParseError(real_rig + camera + "exposure_us = 5000\n"),
-            kSource + ":6: rig.camera[0].exposure_us: 5000 us does not fit in the frame period of "
-                      "5000 us (rig.rate 200 Hz)");
-  EXPECT_EQ(ParseError(real_rig + camera + "backend = \"usb\"\n"),
-            kSource + ":6: rig.camera[0].backend: expected one of \"aravis\", \"simulated\", got \"usb\"");
-  EXPECT_EQ(ParseError(real_rig + camera + second + "id2 = 3\n"),
-            kSource + ":8: rig.camera[1].id2: unknown key (the keys of [rig.camera] are id, backend, "
-                      "exposure_us, gain_db, detection_threshold, masks)");
-  EXPECT_EQ(ParseError(real_rig + camera + "[[rig.camera]]\nid = \"cam-A\"\n"),
-            kSource + ":7: rig.camera[1].id: \"cam-A\" is also rig.camera[0]'s id");
-  EXPECT_EQ(ParseError(real_rig + camera + "[[rig.camera]]\nbackend = \"aravis\"\n"),
-            kSource + ":6: rig.camera[1].id: missing: each camera needs its GenICam id or serial");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 1000, width = 10, height = 25 } ]\n"),
-            kSource + ":6: rig.camera[0].masks[0]: x 0, y 1000, width 10, height 25 is not a "
-                      "rectangle within the 1280x1024 image");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 0, w = 10, height = 25 } ]\n"),
-            kSource + ":6: rig.camera[0].masks[0].w: unknown key (the keys of [mask] are x, y, "
-                      "width, height)");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 0, height = 25 } ]\n"),
-            kSource + ":6: rig.camera[0].masks[0]: missing width (the keys of a mask are x, y, width, "
-                      "height)");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 0, width = 0, height = 25 } ]\n"),
-            kSource + ":6: rig.camera[0].masks[0].width: expected an integer in [1, 16384], got 0");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = \"top\"\n"),
-            kSource + ":6: rig.camera[0].masks: expected rectangles [ { x = 0, y = 0, width = 10, "
-                      "height = 10 } ], got \"top\"");
+  // Each document after the first camera, and the error after "file:".
+  const std::vector<std::pair<std::string, std::string>> bad = {
+      {"gain_db = 60\n",
+       "6: rig.camera[0].gain_db: expected a number in [0, 48] or -1 (the rig's), got 60"},
+      {"detection_threshold = -3\n",
+       "6: rig.camera[0].detection_threshold: expected an integer in [1, 65535] or 0 (the rig's), "
+       "got -3"},
+      {"exposure_us = 5000\n",
+       "6: rig.camera[0].exposure_us: 5000 us does not fit in the frame period of 5000 us "
+       "(rig.rate 200 Hz)"},
+      {"backend = \"usb\"\n",
+       "6: rig.camera[0].backend: expected one of \"aravis\", \"simulated\", got \"usb\""},
+      {second + "id2 = 3\n",
+       "8: rig.camera[1].id2: unknown key (the keys of [rig.camera] are id, backend, exposure_us, "
+       "gain_db, detection_threshold, masks)"},
+      {"[[rig.camera]]\nid = \"cam-A\"\n", "7: rig.camera[1].id: \"cam-A\" is also rig.camera[0]'s id"},
+      {"[[rig.camera]]\nbackend = \"aravis\"\n",
+       "6: rig.camera[1].id: missing: each camera needs its GenICam id or serial"},
+      {"masks = [ { x = 0, y = 1000, width = 10, height = 25 } ]\n",
+       "6: rig.camera[0].masks[0]: x 0, y 1000, width 10, height 25 is not a rectangle within the "
+       "1280x1024 image"},
+      {"masks = [ { x = 0, y = 0, w = 10, height = 25 } ]\n",
+       "6: rig.camera[0].masks[0].w: unknown key (the keys of a mask are x, y, width, height)"},
+      {"masks = [ { x = 0, y = 0, height = 25 } ]\n",
+       "6: rig.camera[0].masks[0]: missing width (the keys of a mask are x, y, width, height)"},
+      {"masks = [ { x = 0, y = 0, width = 0, height = 25 } ]\n",
+       "6: rig.camera[0].masks[0].width: expected an integer in [1, 16384], got 0"},
+      {"masks = \"top\"\n",
+       "6: rig.camera[0].masks: expected rectangles [ { x = 0, y = 0, width = 10, height = 10 } ], "
+       "got \"top\""},
+  };
+  for (const auto& [text, expected] : bad)
+    EXPECT_EQ(ParseError(real_rig + camera + text), kSource + ":" + expected) << text;
   EXPECT_EQ(ParseError("[rig]\ncamera = \"cam-A\"\n"),
             kSource + ":2: rig.camera: expected camera tables ([[rig.camera]] sections), got \"cam-A\"");
 }

@@ -263,6 +263,25 @@ TEST(ControlClient, SilenceLongerThanTheTimeoutFailsButProgressKeepsTheWaitAlive
   client.reset();
 }
 
+TEST(ControlClient, ATimeoutOfZeroWaitsForEver) {
+  FakeDaemon daemon([](FakeDaemonEnd& d) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    d.WriteLine(kHello);
+    d.ReadRequest();
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    d.WriteLine(R"({"id":1,"result":{"state":"running"}})");
+  });
+  ControlClientOptions options;
+  options.reply_timeout_ms = 0;
+  std::unique_ptr<ControlClient> client;
+  Status s = daemon.Connect(&client, options);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ControlReply reply;
+  s = client->Call("status", json(), &reply);
+  ASSERT_TRUE(s.ok()) << s.message();
+  EXPECT_EQ(reply.result["state"], "running");
+}
+
 TEST(ControlClient, StreamEventsAfterTheReplyAreReadByNextEvent) {
   FakeDaemon daemon([](FakeDaemonEnd& d) {
     d.WriteLine(kHello);
