@@ -3,7 +3,13 @@
 // is not a terminal, and its exit status on every kind of failure.
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <fcntl.h>
 #include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <csignal>
+#include <thread>
 
 #include <array>
 #include <cstdio>
@@ -153,6 +159,42 @@ TEST(Mocapctl, RecordShowsProgressLinesAndExits4WhenTheCoverageFails) {
   EXPECT_EQ(j.status, 4);
   EXPECT_EQ(json::parse(j.out), result);
   EXPECT_THAT(j.err, HasSubstr("squats: 3.5 of 7.0 s\n"));
+}
+
+TEST(Mocapctl, CtrlCDuringARecordingStopsItAndPrintsWhatWasKept) {
+  const json kept = {{"recording", 5}, {"movement", "squats"}, {"frames", 300}, {"seconds", 1.5},
+                     {"coverage", {{"ok", true}, {"excitations", json::array()}}}};
+  testutil::ScriptedMocapd daemon(SocketPath(), [&](const json& r) -> std::vector<std::string> {
+    if (r["method"] == "record.start") return {Progress(r, 0.2, "squats: 1.5 of 7.0 s")};
+    // The stop's reply, then the recording's (request 1), as mocapd sends them.
+    return {ResultLine(r, {{"stopped", 5}}), ResultLine(json({{"id", 1}}), kept)};
+  });
+  const std::string out_path = testutil::TmpPath("mocapctl", ".out");
+  const std::string socket = SocketPath();
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    const int out = open(out_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    dup2(out, STDOUT_FILENO);
+    dup2(out, STDERR_FILENO);
+    execl(MOCAPCTL_TOOL, MOCAPCTL_TOOL, "--socket", socket.c_str(), "record", "squats", nullptr);
+    _exit(127);
+  }
+  // Once the recording runs, the operator presses Ctrl-C (mocapctl catches it from before it
+  // sends the request).
+  for (int i = 0; i < 500 && daemon.requests().empty(); ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  ASSERT_FALSE(daemon.requests().empty());
+  kill(pid, SIGINT);
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  const std::string out = testutil::ReadBytes(out_path);
+  ASSERT_TRUE(WIFEXITED(status)) << out;
+  EXPECT_EQ(WEXITSTATUS(status), 0) << out;
+  EXPECT_THAT(daemon.methods(), ElementsAre("record.start", "record.stop"));
+  EXPECT_THAT(out, HasSubstr("mocapctl: interrupted: asking mocapd to stop (record.stop)\n"));
+  EXPECT_THAT(out, HasSubstr("recording 5 (squats): 300 frames, 1.50 s"));
+  EXPECT_THAT(out, HasSubstr("coverage: passed\n"));
 }
 
 TEST(Mocapctl, CalibrateCollectsFinishesAndApplies) {
