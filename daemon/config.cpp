@@ -150,6 +150,9 @@ const std::vector<DaemonField>& DaemonFields() {
       Number<&DaemonConfig::max_pending_requests>("control", "max_pending_requests", true,
                                                   {1, 4096}),
       Path("protocol", "file", true, &DaemonConfig::protocol_file, false),
+      // The tracker is built with its options when the pipeline starts.
+      Number<&DaemonConfig::tracker_sigma_m>("tracker", "sigma_m", false, {1e-4, 0.1}),
+      Number<&DaemonConfig::tracker_gate_chi2>("tracker", "gate_chi2", false, {1, 100}),
       Number<&DaemonConfig::fit_threads>("fit", "threads", true, {0, 256}),
       Number<&DaemonConfig::fit_max_iterations>("fit", "max_iterations", true, {1, 10000}),
       Text("fit", "groups", true, &DaemonConfig::fit_groups, true),
@@ -183,7 +186,7 @@ const std::vector<Field<MaskRect>>& MaskFields() {
   return fields;
 }
 
-const char* const kTables[] = {"rig", "storage", "control", "protocol", "fit"};
+const char* const kTables[] = {"rig", "storage", "control", "protocol", "tracker", "fit"};
 
 template <class C>
 std::string KeysOf(const std::vector<Field<C>>& fields, const std::string& table,

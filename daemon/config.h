@@ -26,6 +26,7 @@
 //   [control]   socket = "/run/mocapd/control.sock", group = "mocap", max_clients = 64,
 //               max_line_bytes = 1048576, subscriber_queue_frames = 400, max_pending_requests = 64
 //   [protocol]  file = "protocol.json"          # absent: the built-in protocol
+//   [tracker]   sigma_m = 0.004, gate_chi2 = 16.27
 //   [fit]       threads = 0, max_iterations = 50, groups = "scales,centres,axes,markers",
 //               coarse_frames = 800             # defaults of `fit.start` (a request may override)
 //
@@ -104,6 +105,10 @@ struct DaemonConfig {
 
   // [protocol]
   std::string protocol_file;  // empty: the built-in protocol (sim/protocol.h DefaultProtocol)
+
+  // [tracker]: as ekf::TrackerOptions's (a test keeps the defaults equal).
+  double tracker_sigma_m = 0.004;  // marker measurement noise, model error included (m)
+  double tracker_gate_chi2 = 16.27;  // marker-to-point gate (chi-square, 3 dof; 99.9 %)
 
   // [fit]: defaults of fit.start (the request may override each), as `mocap fit`'s options.
   int fit_threads = 0;  // 0: all cores

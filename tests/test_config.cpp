@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "file_test_util.h"
+#include "ekf/tracker.h"
 #include "solver/coarse_to_fine.h"
 
 namespace mocap::daemon {
@@ -48,8 +49,10 @@ TEST(Config, ShippedExampleParsesAndHoldsTheDefaultsButTheSimulatedRig) {
   EXPECT_TRUE(config.IsValid(&error)) << error;
 }
 
-TEST(Config, FitDefaultsAreTheSolversAndADefaultConfigNeedsARig) {
+TEST(Config, DefaultsAreTheLibrariesAndADefaultConfigNeedsARig) {
   EXPECT_EQ(DaemonConfig().fit_coarse_frames, solver::CoarseToFineOptions().coarse_frames);
+  EXPECT_EQ(DaemonConfig().tracker_sigma_m, ekf::TrackerOptions().sigma_m);
+  EXPECT_EQ(DaemonConfig().tracker_gate_chi2, ekf::TrackerOptions().gate_chi2);
   std::string error;
   EXPECT_FALSE(DaemonConfig().IsValid(&error));
   EXPECT_THAT(error, StartsWith("rig: a real rig needs at least one [[rig.camera]]"));
@@ -108,6 +111,10 @@ const std::vector<BadValue> kBadValues = {
     {"control", "max_pending_requests", "\"64\"", "expected an integer in [1, 4096], got \"64\""},
     {"control", "max_pending_requests", "5000", "expected an integer in [1, 4096], got 5000"},
     {"protocol", "file", "0", "expected a path (a string), got 0"},
+    {"tracker", "sigma_m", "\"4 mm\"", "expected a number in [0.0001, 0.1], got \"4 mm\""},
+    {"tracker", "sigma_m", "0", "expected a number in [0.0001, 0.1], got 0"},
+    {"tracker", "gate_chi2", "true", "expected a number in [1, 100], got true"},
+    {"tracker", "gate_chi2", "0.5", "expected a number in [1, 100], got 0.5"},
     {"fit", "threads", "\"all\"", "expected an integer in [0, 256], got \"all\""},
     {"fit", "threads", "-1", "expected an integer in [0, 256], got -1"},
     {"fit", "max_iterations", "2.5", "expected an integer in [1, 10000], got 2.5"},
@@ -155,7 +162,7 @@ TEST(Config, EveryDocumentedKeyIsTestedWithABadValue) {
     EXPECT_TRUE(tested) << table << "." << key << " has no bad-value test";
     ++keys;
   }
-  EXPECT_EQ(keys, 23);
+  EXPECT_EQ(keys, 25);
 }
 
 TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
@@ -236,10 +243,10 @@ TEST(Config, UnknownKeysAndTablesAreErrorsNamingThem) {
                       "max_clients, max_line_bytes, subscriber_queue_frames, max_pending_requests)");
   EXPECT_EQ(ParseError(kSimulatedRig + "[controls]\nmax_clients = 8\n"),
             kSource + ":3: controls: unknown table (the tables are [rig], [storage], [control], "
-                      "[protocol], [fit])");
+                      "[protocol], [tracker], [fit])");
   EXPECT_EQ(ParseError("socket = \"/tmp/s\"\n" + kSimulatedRig),
             kSource + ":1: socket: unknown key (keys belong in one of the tables [rig], [storage], "
-                      "[control], [protocol], [fit])");
+                      "[control], [protocol], [tracker], [fit])");
   EXPECT_EQ(ParseError("rig = 8\n"), kSource + ":1: rig: expected a table [rig], got 8");
   EXPECT_THAT(ParseError(kSimulatedRig + "[fit.more]\nthreads = 1\n"),
               StartsWith(kSource + ":3: fit.more: unknown key (the keys of [fit] are threads,"));
