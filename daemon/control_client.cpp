@@ -185,13 +185,16 @@ Status ControlClient::ReadLine(std::string* line, int timeout_ms, bool* got) {
   const auto deadline = DeadlineIn(timeout_ms);
   for (;;) {
     if (fd_ < 0) return Status::Error("not connected to mocapd (" + closed_because_ + ")");
-    const std::size_t newline = buffer_.find('\n');
+    // Only the bytes not yet searched: a long line arrives in many reads.
+    const std::size_t newline = buffer_.find('\n', scanned_);
     if (newline != std::string::npos && newline <= options_.max_line_bytes) {
       line->assign(buffer_, 0, newline);
       buffer_.erase(0, newline + 1);
+      scanned_ = 0;
       *got = true;
       return Status::Ok();
     }
+    scanned_ = buffer_.size();
     if (buffer_.size() > options_.max_line_bytes)
       return Fail("mocapd sent a line longer than " + std::to_string(options_.max_line_bytes) +
                   " bytes (the client's limit)");

@@ -210,6 +210,27 @@ TEST(ControlClient, ALineJustWithinTheBoundIsAccepted) {
   EXPECT_EQ(reply.result.get<std::string>().size(), payload.size());
 }
 
+TEST(ControlClient, AMultiMegabyteReplyArrivesWholeAfterEventsInTheSameReads) {
+  // An inline export: 5 MB of content in one line, read in many pieces, behind two events.
+  std::string content(5 << 20, 'z');
+  for (std::size_t i = 0; i < content.size(); i += 4099) content[i] = 'a' + (i / 4099) % 26;
+  FakeDaemon daemon([&](FakeDaemonEnd& d) {
+    d.WriteLine(kHello);
+    d.ReadRequest();
+    d.Write(R"({"event":"progress","id":1,"job":"export"})" "\n"
+            R"({"event":"progress","id":1,"job":"export"})" "\n");
+    d.WriteLine(json({{"id", 1}, {"result", {{"content", content}}}}).dump());
+  });
+  std::unique_ptr<ControlClient> client;
+  ASSERT_TRUE(daemon.Connect(&client).ok());
+  ControlReply reply;
+  int events = 0;
+  Status s = client->Call("export", {{"inline", true}}, &reply, [&](const json&) { ++events; });
+  ASSERT_TRUE(s.ok()) << s.message();
+  EXPECT_EQ(events, 2);
+  EXPECT_EQ(reply.result["content"], content);
+}
+
 TEST(ControlClient, DaemonGoneMidReplyIsAClearError) {
   FakeDaemon daemon([](FakeDaemonEnd& d) {
     d.WriteLine(kHello);
