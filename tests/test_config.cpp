@@ -327,7 +327,9 @@ TEST(Config, DiffSaysWhatChangedAndWhatNeedsARestart) {
   b.fit_max_iterations = 20;
   b.socket_path = "/tmp/other.sock";
   b.calibration_file = "/var/lib/mocapd/calibration.json";
-  b.cameras.push_back({"cam-A"});
+  CameraConfig camera;
+  camera.id = "cam-A";
+  b.cameras.push_back(camera);
   EXPECT_EQ(DiffConfig(a, b), (std::vector<ConfigChange>{{"rig.rate", true},
                                                          {"rig.calibration", false},
                                                          {"control.socket", true},
