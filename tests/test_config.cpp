@@ -79,6 +79,8 @@ const std::vector<BadValue> kBadValues = {
     {"rig", "subject_seed", "-1", "expected an integer in [0, 9200000000000000000], got -1"},
     {"rig", "rate", "true", "expected a number in [1, 2000], got true"},
     {"rig", "rate", "0.5", "expected a number in [1, 2000], got 0.5"},
+    {"rig", "rate", "nan", "expected a number in [1, 2000], got nan"},
+    {"rig", "rate", "inf", "expected a number in [1, 2000], got inf"},
     {"rig", "width", "1280.0", "expected an integer in [16, 16384], got 1280"},
     {"rig", "width", "8", "expected an integer in [16, 16384], got 8"},
     {"rig", "height", "[1024]", "expected an integer in [16, 16384], got an array"},
