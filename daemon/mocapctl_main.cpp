@@ -421,6 +421,39 @@ void PrintFit(const json& r) {
   }
 }
 
+void PrintReload(const json& r) {
+  std::printf("configuration re-read\n");
+  std::printf("applied: %s\n", r.value("applied", json::array()).empty()
+                                    ? "nothing changed that applies live"
+                                    : Join(r["applied"]).c_str());
+  if (!r.value("needs_restart", json::array()).empty())
+    std::printf("needs a restart of mocapd (not applied): %s\n", Join(r["needs_restart"]).c_str());
+}
+
+void PrintProtocol(const json& r) {
+  const json movements = r.value("movements", json::array());
+  std::printf("protocol %s: %zu movements\n", Text(r.value("name", json())).c_str(), movements.size());
+  for (const auto& m : movements) {
+    std::printf("%s (%s s): %s\n", Text(m.value("name", json())).c_str(),
+                Fixed(m.value("duration_s", json()), 1).c_str(),
+                Text(m.value("description", json(""))).c_str());
+    for (const auto& e : m.value("excitations", json::array()))
+      std::printf("  %s %s .. %s deg%s\n", Text(e.value("coordinate", json())).c_str(),
+                  Fixed(e.value("min_deg", json()), 0).c_str(), Fixed(e.value("max_deg", json()), 0).c_str(),
+                  e.value("required", json(true)) == false ? " (optional)" : "");
+  }
+}
+
+void PrintSubject(const json& r) {
+  std::printf("subject %s (id %s), model version %s\n", Text(r.value("name", json())).c_str(),
+              Text(r.value("id", json())).c_str(), Text(r.value("model_version", json())).c_str());
+}
+
+void PrintApplied(const json& r) {
+  std::printf("version %s is live from frame %s\n", Text(r.value("version", json())).c_str(),
+              Text(r.value("from_frame", json())).c_str());
+}
+
 // ---- Subcommands that need more than one request ---------------------------------------------
 
 // rig.calibrate.start, progress until --seconds passed or Enter, rig.calibrate.finish, [apply].
@@ -566,9 +599,10 @@ int main(int argc, char** argv) {
            PrintTable(r.value("cameras", json()),
                       {"id", "connected", "fps", "frames", "incomplete", "dropped", "width", "height"});
          });
-  simple(app.add_subcommand("reload", "re-read the config file (config.reload)"), "config.reload");
+  simple(app.add_subcommand("reload", "re-read the config file (config.reload)"), "config.reload",
+         PrintReload);
   simple(app.add_subcommand("protocol", "the protocol's movements and what each must excite"),
-         "protocol.show");
+         "protocol.show", PrintProtocol);
   simple(app.add_subcommand("stop", "end the running recording early (record.stop)"), "record.stop");
   simple(app.add_subcommand("cancel", "stop the running fit, keeping its best result (fit.cancel)"),
          "fit.cancel");
@@ -596,7 +630,7 @@ int main(int argc, char** argv) {
     if (calibrate_apply_cmd->parsed()) {
       json params = json::object();
       if (calibration_version) params["version"] = *calibration_version;
-      action = [&, params] { return Simple(ctl, "rig.calibrate.apply", params); };
+      action = [&, params] { return Simple(ctl, "rig.calibrate.apply", params, PrintApplied); };
     } else if (calibrate_cancel_cmd->parsed()) {
       action = [&] { return Simple(ctl, "rig.calibrate.cancel", json::object()); };
     } else {
@@ -618,12 +652,15 @@ int main(int argc, char** argv) {
     action = [&] {
       const std::string model = subject_model == "default" ? subject_model : Absolute(subject_model);
       return Simple(ctl, "subject.create",
-                    {{"name", subject_name}, {"height_m", subject_height}, {"model", model}});
+                    {{"name", subject_name}, {"height_m", subject_height}, {"model", model}},
+                    PrintSubject);
     };
   });
   auto* select = subject->add_subcommand("select", "track this subject (subject.select)");
   select->add_option("name", subject_name, "the subject's name")->required();
-  select->callback([&] { action = [&] { return Simple(ctl, "subject.select", {{"name", subject_name}}); }; });
+  select->callback([&] {
+    action = [&] { return Simple(ctl, "subject.select", {{"name", subject_name}}, PrintSubject); };
+  });
   simple(subject->add_subcommand("list", "the subjects (subject.list)"), "subject.list", [](const json& r) {
     PrintTable(r.value("subjects", json()),
                {"id", "name", "height_m", "model_versions", "recordings", "selected", "created_at"});
@@ -676,7 +713,7 @@ int main(int argc, char** argv) {
   apply->callback([&] {
     json params = json::object();
     if (model_version) params["version"] = *model_version;
-    action = [&, params] { return Simple(ctl, "model.apply", params); };
+    action = [&, params] { return Simple(ctl, "model.apply", params, PrintApplied); };
   });
 
   // models / recordings [--subject S]

@@ -257,6 +257,37 @@ TEST(Mocapctl, RequestsCarryTheirParams) {
   EXPECT_EQ(requests[5]["params"], json({{"subject", "S01"}}));
 }
 
+TEST(Mocapctl, HumanLayoutsOfReloadProtocolAndApply) {
+  testutil::ScriptedMocapd daemon(SocketPath(), [](const json& r) -> std::vector<std::string> {
+    const std::string method = r["method"];
+    if (method == "config.reload")
+      return {ResultLine(r, {{"reloaded", true}, {"applied", {"control.max_clients", "control.group"}},
+                             {"needs_restart", {"rig.rate"}}})};
+    if (method == "protocol.show")
+      return {ResultLine(r, {{"name", "full body"},
+                             {"movements", {{{"name", "squats"}, {"description", "three slow squats"},
+                                             {"duration_s", 6},
+                                             {"excitations", {{{"coordinate", "knee_angle_r"}, {"min_deg", 0},
+                                                               {"max_deg", 90}, {"required", true}},
+                                                              {{"coordinate", "lumbar_bending"}, {"min_deg", -5},
+                                                               {"max_deg", 5}, {"required", false}}}}}}}})};
+    return {ResultLine(r, {{"version", 3}, {"from_frame", 123456}})};
+  });
+  CtlResult reload = RunCtl(SocketPath(), "reload");
+  EXPECT_EQ(reload.status, 0) << reload.err;
+  EXPECT_EQ(reload.out, "configuration re-read\napplied: control.max_clients, control.group\n"
+                        "needs a restart of mocapd (not applied): rig.rate\n");
+  CtlResult protocol = RunCtl(SocketPath(), "protocol");
+  EXPECT_EQ(protocol.status, 0) << protocol.err;
+  EXPECT_EQ(protocol.out, "protocol full body: 1 movements\nsquats (6.0 s): three slow squats\n"
+                          "  knee_angle_r 0 .. 90 deg\n  lumbar_bending -5 .. 5 deg (optional)\n");
+  CtlResult apply = RunCtl(SocketPath(), "apply");
+  EXPECT_EQ(apply.status, 0) << apply.err;
+  EXPECT_EQ(apply.out, "version 3 is live from frame 123456\n");
+  EXPECT_THAT(daemon.methods(), ElementsAre("config.reload", "protocol.show", "model.apply"));
+  EXPECT_EQ(daemon.requests()[2]["params"], json::object());
+}
+
 TEST(Mocapctl, WatchPrintsFramesAndStopsAfterCount) {
   testutil::ScriptedMocapd daemon(SocketPath(), [](const json& r) {
     std::vector<std::string> lines = {ResultLine(r, {{"subscribed", {"markers"}}, {"decimation", 2}})};
