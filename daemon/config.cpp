@@ -8,7 +8,6 @@
 #include <fstream>
 #include <map>
 #include <optional>
-#include <set>
 #include <sstream>
 #include <type_traits>
 
@@ -150,6 +149,9 @@ const std::vector<DaemonField>& DaemonFields() {
       Number<&DaemonConfig::max_pending_requests>("control", "max_pending_requests", true,
                                                   {1, 4096}),
       Path("protocol", "file", true, &DaemonConfig::protocol_file, false),
+      // The tracker is built with its options when the pipeline starts.
+      Number<&DaemonConfig::tracker_sigma_m>("tracker", "sigma_m", false, {1e-4, 0.1}),
+      Number<&DaemonConfig::tracker_gate_chi2>("tracker", "gate_chi2", false, {1, 100}),
       Number<&DaemonConfig::fit_threads>("fit", "threads", true, {0, 256}),
       Number<&DaemonConfig::fit_max_iterations>("fit", "max_iterations", true, {1, 10000}),
       Text("fit", "groups", true, &DaemonConfig::fit_groups, true),
@@ -183,7 +185,7 @@ const std::vector<Field<MaskRect>>& MaskFields() {
   return fields;
 }
 
-const char* const kTables[] = {"rig", "storage", "control", "protocol", "fit"};
+const char* const kTables[] = {"rig", "storage", "control", "protocol", "tracker", "fit"};
 
 template <class C>
 std::string KeysOf(const std::vector<Field<C>>& fields, const std::string& table,
@@ -196,6 +198,10 @@ std::string KeysOf(const std::vector<Field<C>>& fields, const std::string& table
   if (extra) keys += std::string(", ") + extra;
   return keys;
 }
+
+// How errors name the table of `fields` whose `table` is this: a mask is an inline table, not a
+// [section] of the file.
+std::string Owner(const std::string& table) { return table == "mask" ? "a mask" : "[" + table + "]"; }
 
 // Where each key was read from, so that validation after parsing still names the line.
 using KeyLines = std::map<std::string, int>;
@@ -376,7 +382,7 @@ class Reader {
       if (table == f.table && key == f.key) field = &f;
     if (!field)
       return Error(node, full_key,
-                   "unknown key (the keys of [" + table + "] are " +
+                   "unknown key (the keys of " + Owner(table) + " are " +
                        KeysOf(fields, table, extra_keys) + ")");
     (*lines_)[full_key] = LineOf(node);
     if (field->kind == Field<C>::Kind::kNumber) {
@@ -448,8 +454,8 @@ class Reader {
                                     std::string(name.str()), value, &r, nullptr));
       for (const auto& f : MaskFields())
         if (!rect->contains(f.key))
-          return Error(item, item_key, std::string("missing ") + f.key + " (the keys of a mask are " +
-                                           KeysOf(MaskFields(), "mask") + ")");
+          return Error(item, item_key, std::string("missing ") + f.key + " (the keys of " +
+                                           Owner("mask") + " are " + KeysOf(MaskFields(), "mask") + ")");
       masks->push_back(r);
     }
     return Status::Ok();

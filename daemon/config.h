@@ -2,7 +2,8 @@
 // rig is, where the state lives, who may control the daemon and how much a client may cost.
 // The store (SQLite) says what happened; this file only says what the daemon is.
 //
-// The file, with every key and its default (daemon/examples/simulated-rig.toml is a full one):
+// The file, every key (DaemonConfig below holds the defaults; daemon/examples/simulated-rig.toml
+// is a whole file):
 //
 //   [rig]
 //   simulated = 8               # > 0: that many Aravis fake cameras drawn by the renderer
@@ -25,6 +26,7 @@
 //   [control]   socket = "/run/mocapd/control.sock", group = "mocap", max_clients = 64,
 //               max_line_bytes = 1048576, subscriber_queue_frames = 400, max_pending_requests = 64
 //   [protocol]  file = "protocol.json"          # absent: the built-in protocol
+//   [tracker]   sigma_m = 0.004, gate_chi2 = 16.27
 //   [fit]       threads = 0, max_iterations = 50, groups = "scales,centres,axes,markers",
 //               coarse_frames = 800             # defaults of `fit.start` (a request may override)
 //
@@ -38,6 +40,9 @@
 // Relative paths in the file (calibration, state_dir, socket, protocol file) are relative to the
 // file's directory, not to the daemon's working directory (which is / under systemd), so a
 // config and the files beside it can be moved together.
+//
+// Command-line overrides (mocapd --state-dir, --socket) are set on the parsed struct; IsValid
+// checks the result again, naming the key they override.
 //
 // Reload (SIGHUP, config.reload): the new file is parsed and validated completely before
 // anything changes; DiffConfig says what changed and which of those changes can be applied to
@@ -101,6 +106,10 @@ struct DaemonConfig {
   // [protocol]
   std::string protocol_file;  // empty: the built-in protocol (sim/protocol.h DefaultProtocol)
 
+  // [tracker]: as ekf::TrackerOptions's (a test keeps the defaults equal).
+  double tracker_sigma_m = 0.004;  // marker measurement noise, model error included (m)
+  double tracker_gate_chi2 = 16.27;  // marker-to-point gate (chi-square, 3 dof; 99.9 %)
+
   // [fit]: defaults of fit.start (the request may override each), as `mocap fit`'s options.
   int fit_threads = 0;  // 0: all cores
   int fit_max_iterations = 50;
@@ -128,15 +137,15 @@ Status LoadConfig(const std::string& path, DaemonConfig* out);
 // One difference between two configurations.
 struct ConfigChange {
   std::string key;     // as the file spells it: "control.max_clients", "rig.camera", ...
-  bool needs_restart;  // false: the running daemon can apply it (config.reload)
+  bool needs_restart = false;  // false: the running daemon can apply it (config.reload)
   bool operator==(const ConfigChange&) const = default;
 };
-// What differs from `a` to `b`, in the file's order of the keys (any change of the cameras,
-// [[rig.camera]], last as one change). The rig (cameras, rate, image,
-// simulation), the storage directory and the socket need a restart: they are what the running
-// pipeline, store and listening socket were built from. Limits apply to new clients and new
-// subscriptions; the group to the next request; the calibration file, protocol and fit defaults
-// to the next job that uses them.
+// What differs from `a` to `b`, in the file's order of the keys; any change to the cameras
+// ([[rig.camera]]) comes last, as one change. The rig (cameras, rate, image, simulation), the
+// storage directory and the socket need a restart: they are what the running pipeline, store
+// and listening socket were built from. Limits apply to new clients and new subscriptions; the
+// group to the next request; the calibration file, protocol and fit defaults to the next job
+// that uses them.
 std::vector<ConfigChange> DiffConfig(const DaemonConfig& a, const DaemonConfig& b);
 
 }  // namespace mocap::daemon

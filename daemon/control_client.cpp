@@ -47,6 +47,11 @@ std::string Excerpt(const std::string& line) {
   return line.size() <= kShown ? line : line.substr(0, kShown) + "...";
 }
 
+// reply_timeout_ms as a wait: <= 0 is "for ever" (-1 to poll()).
+int SilenceLimitMs(const ControlClientOptions& options) {
+  return options.reply_timeout_ms > 0 ? options.reply_timeout_ms : -1;
+}
+
 std::string Seconds(int ms) {
   return ms % 1000 == 0 ? std::to_string(ms / 1000) + " s" : std::to_string(ms) + " ms";
 }
@@ -154,7 +159,7 @@ std::string ControlClient::Describe(std::int64_t id) const {
 Status ControlClient::ReadHello() {
   std::string line;
   bool got = false;
-  if (Status s = ReadLine(&line, options_.reply_timeout_ms, &got); !s)
+  if (Status s = ReadLine(&line, SilenceLimitMs(options_), &got); !s)
     return Status::Error(s.message() + " before its hello (on " + options_.socket_path + ")");
   if (!got)
     return Fail("no hello from mocapd on " + options_.socket_path + " within " +
@@ -180,13 +185,16 @@ Status ControlClient::ReadLine(std::string* line, int timeout_ms, bool* got) {
   const auto deadline = DeadlineIn(timeout_ms);
   for (;;) {
     if (fd_ < 0) return Status::Error("not connected to mocapd (" + closed_because_ + ")");
-    const std::size_t newline = buffer_.find('\n');
+    // Only the bytes not yet searched: a long line arrives in many reads.
+    const std::size_t newline = buffer_.find('\n', scanned_);
     if (newline != std::string::npos && newline <= options_.max_line_bytes) {
       line->assign(buffer_, 0, newline);
       buffer_.erase(0, newline + 1);
+      scanned_ = 0;
       *got = true;
       return Status::Ok();
     }
+    scanned_ = buffer_.size();
     if (buffer_.size() > options_.max_line_bytes)
       return Fail("mocapd sent a line longer than " + std::to_string(options_.max_line_bytes) +
                   " bytes (the client's limit)");
@@ -261,7 +269,7 @@ Status ControlClient::Send(const std::string& method, const nlohmann::json& para
   if (!params.is_null()) request["params"] = params;
   const std::string line = request.dump() + "\n";
   std::size_t sent = 0;
-  const auto deadline = DeadlineIn(options_.reply_timeout_ms);
+  const auto deadline = DeadlineIn(SilenceLimitMs(options_));
   while (sent < line.size()) {
     const ssize_t n = send(fd_, line.data() + sent, line.size() - sent, MSG_NOSIGNAL);
     if (n > 0) {

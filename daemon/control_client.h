@@ -118,6 +118,7 @@ class ControlClient {
   ControlClientOptions options_;
   Hello hello_;
   std::string buffer_;  // bytes read and not yet handed out (at most max_line_bytes + one read)
+  std::size_t scanned_ = 0;  // buffer_[0, scanned_) holds no newline
   std::int64_t next_id_ = 1;
   std::map<std::int64_t, std::string> pending_;  // id -> method, sent and not yet replied
   std::map<std::int64_t, ControlReply> replies_;  // arrived, not yet taken

@@ -295,17 +295,25 @@ class Ctl {
   std::unique_ptr<ControlClient> client_;
 };
 
-// Runs one request; prints its result as JSON (--json) or with `print`.
-int Simple(Ctl& ctl, const std::string& method, const json& params,
-           const std::function<void(const json&)>& print = [](const json& r) { PrintTree(r); }) {
-  json result;
-  const int status = ctl.Call(method, params, &result);
+using Printer = std::function<void(const json&)>;
+
+// After a request: on success prints its result as JSON (--json) or with `print`; returns
+// the exit status.
+int Output(const Ctl& ctl, int status, const json& result, const Printer& print) {
   if (status != kExitOk) return status;
   if (ctl.json_mode())
     std::printf("%s\n", result.dump(2).c_str());
   else
     print(result);
   return kExitOk;
+}
+
+// Runs one request and prints its result.
+int Simple(Ctl& ctl, const std::string& method, const json& params,
+           const Printer& print = [](const json& r) { PrintTree(r); }) {
+  json result;
+  const int status = ctl.Call(method, params, &result);
+  return Output(ctl, status, result, print);
 }
 
 std::string Absolute(const std::string& path) {
@@ -373,8 +381,12 @@ void PrintCalibration(const json& r) {
                 Fixed(truth.value("orientation_error_deg_max", json()), 3).c_str());
 }
 
-// Returns whether the recording passed its coverage check.
-bool PrintRecording(const json& r) {
+bool CoveragePassed(const json& recording) {
+  const json coverage = recording.value("coverage", json());
+  return coverage.is_object() && coverage.value("ok", false);
+}
+
+void PrintRecording(const json& r) {
   std::printf("recording %s (%s): %s frames, %s s, tracking %s%%\n", Text(r.value("recording", json())).c_str(),
               Text(r.value("movement", json())).c_str(), Text(r.value("frames", json())).c_str(),
               Fixed(r.value("seconds", json()), 2).c_str(),
@@ -382,7 +394,6 @@ bool PrintRecording(const json& r) {
                   ? Fixed(100 * r["tracking_fraction"].get<double>(), 1).c_str()
                   : "-");
   const json coverage = r.value("coverage", json());
-  const bool ok = coverage.is_object() && coverage.value("ok", false);
   if (coverage.is_object() && coverage.contains("excitations")) {
     json rows = json::array();
     for (const auto& e : coverage["excitations"]) {
@@ -395,10 +406,9 @@ bool PrintRecording(const json& r) {
     }
     PrintTable(rows, {"coordinate", "required_deg", "reached_deg", "ok"});
   }
-  std::printf("coverage: %s\n", ok ? "passed" : "NOT passed");
+  std::printf("coverage: %s\n", CoveragePassed(r) ? "passed" : "NOT passed");
   if (r.contains("advice") && r["advice"].is_string() && !r["advice"].get<std::string>().empty())
     std::printf("%s\n", r["advice"].get<std::string>().c_str());
-  return ok;
 }
 
 void PrintFit(const json& r) {
@@ -409,6 +419,39 @@ void PrintFit(const json& r) {
     std::printf("%s:\n", part);
     PrintTree(r[part], 2);
   }
+}
+
+void PrintReload(const json& r) {
+  std::printf("configuration re-read\n");
+  std::printf("applied: %s\n", r.value("applied", json::array()).empty()
+                                    ? "nothing changed that applies live"
+                                    : Join(r["applied"]).c_str());
+  if (!r.value("needs_restart", json::array()).empty())
+    std::printf("needs a restart of mocapd (not applied): %s\n", Join(r["needs_restart"]).c_str());
+}
+
+void PrintProtocol(const json& r) {
+  const json movements = r.value("movements", json::array());
+  std::printf("protocol %s: %zu movements\n", Text(r.value("name", json())).c_str(), movements.size());
+  for (const auto& m : movements) {
+    std::printf("%s (%s s): %s\n", Text(m.value("name", json())).c_str(),
+                Fixed(m.value("duration_s", json()), 1).c_str(),
+                Text(m.value("description", json(""))).c_str());
+    for (const auto& e : m.value("excitations", json::array()))
+      std::printf("  %s %s .. %s deg%s\n", Text(e.value("coordinate", json())).c_str(),
+                  Fixed(e.value("min_deg", json()), 0).c_str(), Fixed(e.value("max_deg", json()), 0).c_str(),
+                  e.value("required", json(true)) == false ? " (optional)" : "");
+  }
+}
+
+void PrintSubject(const json& r) {
+  std::printf("subject %s (id %s), model version %s\n", Text(r.value("name", json())).c_str(),
+              Text(r.value("id", json())).c_str(), Text(r.value("model_version", json())).c_str());
+}
+
+void PrintApplied(const json& r) {
+  std::printf("version %s is live from frame %s\n", Text(r.value("version", json())).c_str(),
+              Text(r.value("from_frame", json())).c_str());
 }
 
 // ---- Subcommands that need more than one request ---------------------------------------------
@@ -474,15 +517,8 @@ int Calibrate(Ctl& ctl, double seconds, bool apply) {
 int Record(Ctl& ctl, const json& params) {
   json result;
   const int status = ctl.CallInterruptible("record.start", params, "record.stop", &result);
-  if (status != kExitOk) return status;
-  bool ok;
-  if (ctl.json_mode()) {
-    std::printf("%s\n", result.dump(2).c_str());
-    ok = result.value("coverage", json::object()).value("ok", false);
-  } else {
-    ok = PrintRecording(result);
-  }
-  return ok ? kExitOk : kExitCoverageFailed;
+  if (Output(ctl, status, result, PrintRecording) != kExitOk) return status;
+  return CoveragePassed(result) ? kExitOk : kExitCoverageFailed;
 }
 
 int Watch(Ctl& ctl, const std::vector<std::string>& streams, int decimation, long count) {
@@ -552,7 +588,7 @@ int main(int argc, char** argv) {
   Ctl ctl(globals);
   std::function<int()> action;
   auto simple = [&](CLI::App* cmd, const std::string& method,
-                    std::function<void(const json&)> print = [](const json& r) { PrintTree(r); }) {
+                    Printer print = [](const json& r) { PrintTree(r); }) {
     cmd->callback([&, method, print] { action = [&, method, print] { return Simple(ctl, method, json::object(), print); }; });
   };
 
@@ -563,9 +599,10 @@ int main(int argc, char** argv) {
            PrintTable(r.value("cameras", json()),
                       {"id", "connected", "fps", "frames", "incomplete", "dropped", "width", "height"});
          });
-  simple(app.add_subcommand("reload", "re-read the config file (config.reload)"), "config.reload");
+  simple(app.add_subcommand("reload", "re-read the config file (config.reload)"), "config.reload",
+         PrintReload);
   simple(app.add_subcommand("protocol", "the protocol's movements and what each must excite"),
-         "protocol.show");
+         "protocol.show", PrintProtocol);
   simple(app.add_subcommand("stop", "end the running recording early (record.stop)"), "record.stop");
   simple(app.add_subcommand("cancel", "stop the running fit, keeping its best result (fit.cancel)"),
          "fit.cancel");
@@ -593,7 +630,7 @@ int main(int argc, char** argv) {
     if (calibrate_apply_cmd->parsed()) {
       json params = json::object();
       if (calibration_version) params["version"] = *calibration_version;
-      action = [&, params] { return Simple(ctl, "rig.calibrate.apply", params); };
+      action = [&, params] { return Simple(ctl, "rig.calibrate.apply", params, PrintApplied); };
     } else if (calibrate_cancel_cmd->parsed()) {
       action = [&] { return Simple(ctl, "rig.calibrate.cancel", json::object()); };
     } else {
@@ -615,12 +652,15 @@ int main(int argc, char** argv) {
     action = [&] {
       const std::string model = subject_model == "default" ? subject_model : Absolute(subject_model);
       return Simple(ctl, "subject.create",
-                    {{"name", subject_name}, {"height_m", subject_height}, {"model", model}});
+                    {{"name", subject_name}, {"height_m", subject_height}, {"model", model}},
+                    PrintSubject);
     };
   });
   auto* select = subject->add_subcommand("select", "track this subject (subject.select)");
   select->add_option("name", subject_name, "the subject's name")->required();
-  select->callback([&] { action = [&] { return Simple(ctl, "subject.select", {{"name", subject_name}}); }; });
+  select->callback([&] {
+    action = [&] { return Simple(ctl, "subject.select", {{"name", subject_name}}, PrintSubject); };
+  });
   simple(subject->add_subcommand("list", "the subjects (subject.list)"), "subject.list", [](const json& r) {
     PrintTable(r.value("subjects", json()),
                {"id", "name", "height_m", "model_versions", "recordings", "selected", "created_at"});
@@ -662,12 +702,7 @@ int main(int argc, char** argv) {
     action = [&, params] {
       json result;
       const int status = ctl.CallInterruptible("fit.start", params, "fit.cancel", &result);
-      if (status != kExitOk) return status;
-      if (ctl.json_mode())
-        std::printf("%s\n", result.dump(2).c_str());
-      else
-        PrintFit(result);
-      return kExitOk;
+      return Output(ctl, status, result, PrintFit);
     };
   });
 
@@ -678,7 +713,7 @@ int main(int argc, char** argv) {
   apply->callback([&] {
     json params = json::object();
     if (model_version) params["version"] = *model_version;
-    action = [&, params] { return Simple(ctl, "model.apply", params); };
+    action = [&, params] { return Simple(ctl, "model.apply", params, PrintApplied); };
   });
 
   // models / recordings [--subject S]
@@ -733,16 +768,15 @@ int main(int argc, char** argv) {
         params["path"] = Absolute(export_out);
       json result;
       const int status = ctl.Call("export", params, &result);
-      if (status != kExitOk) return status;
-      if (ctl.json_mode())
-        std::printf("%s\n", result.dump(2).c_str());
-      else if (result.contains("content") && result["content"].is_string())
-        std::fwrite(result["content"].get_ref<const std::string&>().data(), 1,
-                    result["content"].get_ref<const std::string&>().size(), stdout);
-      else
-        std::printf("wrote %s (%s bytes)\n", Text(result.value("path", json())).c_str(),
-                    Text(result.value("bytes", json())).c_str());
-      return kExitOk;
+      return Output(ctl, status, result, [](const json& r) {
+        if (r.contains("content") && r["content"].is_string()) {
+          const auto& content = r["content"].get_ref<const std::string&>();
+          std::fwrite(content.data(), 1, content.size(), stdout);
+        } else {
+          std::printf("wrote %s (%s bytes)\n", Text(r.value("path", json())).c_str(),
+                      Text(r.value("bytes", json())).c_str());
+        }
+      });
     };
   });
 

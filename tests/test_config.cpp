@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "file_test_util.h"
+#include "ekf/tracker.h"
 #include "solver/coarse_to_fine.h"
 
 namespace mocap::daemon {
@@ -48,8 +49,10 @@ TEST(Config, ShippedExampleParsesAndHoldsTheDefaultsButTheSimulatedRig) {
   EXPECT_TRUE(config.IsValid(&error)) << error;
 }
 
-TEST(Config, FitDefaultsAreTheSolversAndADefaultConfigNeedsARig) {
+TEST(Config, DefaultsAreTheLibrariesAndADefaultConfigNeedsARig) {
   EXPECT_EQ(DaemonConfig().fit_coarse_frames, solver::CoarseToFineOptions().coarse_frames);
+  EXPECT_EQ(DaemonConfig().tracker_sigma_m, ekf::TrackerOptions().sigma_m);
+  EXPECT_EQ(DaemonConfig().tracker_gate_chi2, ekf::TrackerOptions().gate_chi2);
   std::string error;
   EXPECT_FALSE(DaemonConfig().IsValid(&error));
   EXPECT_THAT(error, StartsWith("rig: a real rig needs at least one [[rig.camera]]"));
@@ -76,6 +79,8 @@ const std::vector<BadValue> kBadValues = {
     {"rig", "subject_seed", "-1", "expected an integer in [0, 9200000000000000000], got -1"},
     {"rig", "rate", "true", "expected a number in [1, 2000], got true"},
     {"rig", "rate", "0.5", "expected a number in [1, 2000], got 0.5"},
+    {"rig", "rate", "nan", "expected a number in [1, 2000], got nan"},
+    {"rig", "rate", "inf", "expected a number in [1, 2000], got inf"},
     {"rig", "width", "1280.0", "expected an integer in [16, 16384], got 1280"},
     {"rig", "width", "8", "expected an integer in [16, 16384], got 8"},
     {"rig", "height", "[1024]", "expected an integer in [16, 16384], got an array"},
@@ -108,6 +113,10 @@ const std::vector<BadValue> kBadValues = {
     {"control", "max_pending_requests", "\"64\"", "expected an integer in [1, 4096], got \"64\""},
     {"control", "max_pending_requests", "5000", "expected an integer in [1, 4096], got 5000"},
     {"protocol", "file", "0", "expected a path (a string), got 0"},
+    {"tracker", "sigma_m", "\"4 mm\"", "expected a number in [0.0001, 0.1], got \"4 mm\""},
+    {"tracker", "sigma_m", "0", "expected a number in [0.0001, 0.1], got 0"},
+    {"tracker", "gate_chi2", "true", "expected a number in [1, 100], got true"},
+    {"tracker", "gate_chi2", "0.5", "expected a number in [1, 100], got 0.5"},
     {"fit", "threads", "\"all\"", "expected an integer in [0, 256], got \"all\""},
     {"fit", "threads", "-1", "expected an integer in [0, 256], got -1"},
     {"fit", "max_iterations", "2.5", "expected an integer in [1, 10000], got 2.5"},
@@ -155,7 +164,7 @@ TEST(Config, EveryDocumentedKeyIsTestedWithABadValue) {
     EXPECT_TRUE(tested) << table << "." << key << " has no bad-value test";
     ++keys;
   }
-  EXPECT_EQ(keys, 23);
+  EXPECT_EQ(keys, 25);
 }
 
 TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
@@ -173,37 +182,39 @@ TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
   EXPECT_EQ(config.cameras[0].masks, (std::vector<MaskRect>{{0, 960, 1280, 64}}));
   EXPECT_EQ(config.num_cameras(), 2);
 
-  EXPECT_EQ(ParseError(real_rig + camera + "gain_db = 60\n"),
-            kSource + ":6: rig.camera[0].gain_db: expected a number in [0, 48] or -1 (the rig's), got 60");
-  EXPECT_EQ(ParseError(real_rig + camera + "detection_threshold = -3\n"),
-            kSource + ":6: rig.camera[0].detection_threshold: expected an integer in [1, 65535] or 0 "
-                      "(the rig's), got -3");
-  EXPECT_EQ(ParseError(real_rig + camera + "exposure_us = 5000\n"),
-            kSource + ":6: rig.camera[0].exposure_us: 5000 us does not fit in the frame period of "
-                      "5000 us (rig.rate 200 Hz)");
-  EXPECT_EQ(ParseError(real_rig + camera + "backend = \"usb\"\n"),
-            kSource + ":6: rig.camera[0].backend: expected one of \"aravis\", \"simulated\", got \"usb\"");
-  EXPECT_EQ(ParseError(real_rig + camera + second + "id2 = 3\n"),
-            kSource + ":8: rig.camera[1].id2: unknown key (the keys of [rig.camera] are id, backend, "
-                      "exposure_us, gain_db, detection_threshold, masks)");
-  EXPECT_EQ(ParseError(real_rig + camera + "[[rig.camera]]\nid = \"cam-A\"\n"),
-            kSource + ":7: rig.camera[1].id: \"cam-A\" is also rig.camera[0]'s id");
-  EXPECT_EQ(ParseError(real_rig + camera + "[[rig.camera]]\nbackend = \"aravis\"\n"),
-            kSource + ":6: rig.camera[1].id: missing: each camera needs its GenICam id or serial");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 1000, width = 10, height = 25 } ]\n"),
-            kSource + ":6: rig.camera[0].masks[0]: x 0, y 1000, width 10, height 25 is not a "
-                      "rectangle within the 1280x1024 image");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 0, w = 10, height = 25 } ]\n"),
-            kSource + ":6: rig.camera[0].masks[0].w: unknown key (the keys of [mask] are x, y, "
-                      "width, height)");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 0, height = 25 } ]\n"),
-            kSource + ":6: rig.camera[0].masks[0]: missing width (the keys of a mask are x, y, width, "
-                      "height)");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = [ { x = 0, y = 0, width = 0, height = 25 } ]\n"),
-            kSource + ":6: rig.camera[0].masks[0].width: expected an integer in [1, 16384], got 0");
-  EXPECT_EQ(ParseError(real_rig + camera + "masks = \"top\"\n"),
-            kSource + ":6: rig.camera[0].masks: expected rectangles [ { x = 0, y = 0, width = 10, "
-                      "height = 10 } ], got \"top\"");
+  // Each document after the first camera, and the error after "file:".
+  const std::vector<std::pair<std::string, std::string>> bad = {
+      {"gain_db = 60\n",
+       "6: rig.camera[0].gain_db: expected a number in [0, 48] or -1 (the rig's), got 60"},
+      {"detection_threshold = -3\n",
+       "6: rig.camera[0].detection_threshold: expected an integer in [1, 65535] or 0 (the rig's), "
+       "got -3"},
+      {"exposure_us = 5000\n",
+       "6: rig.camera[0].exposure_us: 5000 us does not fit in the frame period of 5000 us "
+       "(rig.rate 200 Hz)"},
+      {"backend = \"usb\"\n",
+       "6: rig.camera[0].backend: expected one of \"aravis\", \"simulated\", got \"usb\""},
+      {second + "id2 = 3\n",
+       "8: rig.camera[1].id2: unknown key (the keys of [rig.camera] are id, backend, exposure_us, "
+       "gain_db, detection_threshold, masks)"},
+      {"[[rig.camera]]\nid = \"cam-A\"\n", "7: rig.camera[1].id: \"cam-A\" is also rig.camera[0]'s id"},
+      {"[[rig.camera]]\nbackend = \"aravis\"\n",
+       "6: rig.camera[1].id: missing: each camera needs its GenICam id or serial"},
+      {"masks = [ { x = 0, y = 1000, width = 10, height = 25 } ]\n",
+       "6: rig.camera[0].masks[0]: x 0, y 1000, width 10, height 25 is not a rectangle within the "
+       "1280x1024 image"},
+      {"masks = [ { x = 0, y = 0, w = 10, height = 25 } ]\n",
+       "6: rig.camera[0].masks[0].w: unknown key (the keys of a mask are x, y, width, height)"},
+      {"masks = [ { x = 0, y = 0, height = 25 } ]\n",
+       "6: rig.camera[0].masks[0]: missing width (the keys of a mask are x, y, width, height)"},
+      {"masks = [ { x = 0, y = 0, width = 0, height = 25 } ]\n",
+       "6: rig.camera[0].masks[0].width: expected an integer in [1, 16384], got 0"},
+      {"masks = \"top\"\n",
+       "6: rig.camera[0].masks: expected rectangles [ { x = 0, y = 0, width = 10, height = 10 } ], "
+       "got \"top\""},
+  };
+  for (const auto& [text, expected] : bad)
+    EXPECT_EQ(ParseError(real_rig + camera + text), kSource + ":" + expected) << text;
   EXPECT_EQ(ParseError("[rig]\ncamera = \"cam-A\"\n"),
             kSource + ":2: rig.camera: expected camera tables ([[rig.camera]] sections), got \"cam-A\"");
 }
@@ -234,10 +245,10 @@ TEST(Config, UnknownKeysAndTablesAreErrorsNamingThem) {
                       "max_clients, max_line_bytes, subscriber_queue_frames, max_pending_requests)");
   EXPECT_EQ(ParseError(kSimulatedRig + "[controls]\nmax_clients = 8\n"),
             kSource + ":3: controls: unknown table (the tables are [rig], [storage], [control], "
-                      "[protocol], [fit])");
+                      "[protocol], [tracker], [fit])");
   EXPECT_EQ(ParseError("socket = \"/tmp/s\"\n" + kSimulatedRig),
             kSource + ":1: socket: unknown key (keys belong in one of the tables [rig], [storage], "
-                      "[control], [protocol], [fit])");
+                      "[control], [protocol], [tracker], [fit])");
   EXPECT_EQ(ParseError("rig = 8\n"), kSource + ":1: rig: expected a table [rig], got 8");
   EXPECT_THAT(ParseError(kSimulatedRig + "[fit.more]\nthreads = 1\n"),
               StartsWith(kSource + ":3: fit.more: unknown key (the keys of [fit] are threads,"));
@@ -318,7 +329,9 @@ TEST(Config, DiffSaysWhatChangedAndWhatNeedsARestart) {
   b.fit_max_iterations = 20;
   b.socket_path = "/tmp/other.sock";
   b.calibration_file = "/var/lib/mocapd/calibration.json";
-  b.cameras.push_back({"cam-A"});
+  CameraConfig camera;
+  camera.id = "cam-A";
+  b.cameras.push_back(camera);
   EXPECT_EQ(DiffConfig(a, b), (std::vector<ConfigChange>{{"rig.rate", true},
                                                          {"rig.calibration", false},
                                                          {"control.socket", true},

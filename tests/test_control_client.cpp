@@ -210,6 +210,27 @@ TEST(ControlClient, ALineJustWithinTheBoundIsAccepted) {
   EXPECT_EQ(reply.result.get<std::string>().size(), payload.size());
 }
 
+TEST(ControlClient, AMultiMegabyteReplyArrivesWholeAfterEventsInTheSameReads) {
+  // An inline export: 5 MB of content in one line, read in many pieces, behind two events.
+  std::string content(5 << 20, 'z');
+  for (std::size_t i = 0; i < content.size(); i += 4099) content[i] = 'a' + (i / 4099) % 26;
+  FakeDaemon daemon([&](FakeDaemonEnd& d) {
+    d.WriteLine(kHello);
+    d.ReadRequest();
+    d.Write(R"({"event":"progress","id":1,"job":"export"})" "\n"
+            R"({"event":"progress","id":1,"job":"export"})" "\n");
+    d.WriteLine(json({{"id", 1}, {"result", {{"content", content}}}}).dump());
+  });
+  std::unique_ptr<ControlClient> client;
+  ASSERT_TRUE(daemon.Connect(&client).ok());
+  ControlReply reply;
+  int events = 0;
+  Status s = client->Call("export", {{"inline", true}}, &reply, [&](const json&) { ++events; });
+  ASSERT_TRUE(s.ok()) << s.message();
+  EXPECT_EQ(events, 2);
+  EXPECT_EQ(reply.result["content"], content);
+}
+
 TEST(ControlClient, DaemonGoneMidReplyIsAClearError) {
   FakeDaemon daemon([](FakeDaemonEnd& d) {
     d.WriteLine(kHello);
@@ -261,6 +282,25 @@ TEST(ControlClient, SilenceLongerThanTheTimeoutFailsButProgressKeepsTheWaitAlive
   EXPECT_GE(waited_s, 0.3);
   EXPECT_LT(waited_s, 2.0);
   client.reset();
+}
+
+TEST(ControlClient, ATimeoutOfZeroWaitsForEver) {
+  FakeDaemon daemon([](FakeDaemonEnd& d) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    d.WriteLine(kHello);
+    d.ReadRequest();
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    d.WriteLine(R"({"id":1,"result":{"state":"running"}})");
+  });
+  ControlClientOptions options;
+  options.reply_timeout_ms = 0;
+  std::unique_ptr<ControlClient> client;
+  Status s = daemon.Connect(&client, options);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ControlReply reply;
+  s = client->Call("status", json(), &reply);
+  ASSERT_TRUE(s.ok()) << s.message();
+  EXPECT_EQ(reply.result["state"], "running");
 }
 
 TEST(ControlClient, StreamEventsAfterTheReplyAreReadByNextEvent) {

@@ -3,7 +3,13 @@
 // is not a terminal, and its exit status on every kind of failure.
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <fcntl.h>
 #include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <csignal>
+#include <thread>
 
 #include <array>
 #include <cstdio>
@@ -155,6 +161,42 @@ TEST(Mocapctl, RecordShowsProgressLinesAndExits4WhenTheCoverageFails) {
   EXPECT_THAT(j.err, HasSubstr("squats: 3.5 of 7.0 s\n"));
 }
 
+TEST(Mocapctl, CtrlCDuringARecordingStopsItAndPrintsWhatWasKept) {
+  const json kept = {{"recording", 5}, {"movement", "squats"}, {"frames", 300}, {"seconds", 1.5},
+                     {"coverage", {{"ok", true}, {"excitations", json::array()}}}};
+  testutil::ScriptedMocapd daemon(SocketPath(), [&](const json& r) -> std::vector<std::string> {
+    if (r["method"] == "record.start") return {Progress(r, 0.2, "squats: 1.5 of 7.0 s")};
+    // The stop's reply, then the recording's (request 1), as mocapd sends them.
+    return {ResultLine(r, {{"stopped", 5}}), ResultLine(json({{"id", 1}}), kept)};
+  });
+  const std::string out_path = testutil::TmpPath("mocapctl", ".out");
+  const std::string socket = SocketPath();
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    const int out = open(out_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    dup2(out, STDOUT_FILENO);
+    dup2(out, STDERR_FILENO);
+    execl(MOCAPCTL_TOOL, MOCAPCTL_TOOL, "--socket", socket.c_str(), "record", "squats", nullptr);
+    _exit(127);
+  }
+  // Once the recording runs, the operator presses Ctrl-C (mocapctl catches it from before it
+  // sends the request).
+  for (int i = 0; i < 500 && daemon.requests().empty(); ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  ASSERT_FALSE(daemon.requests().empty());
+  kill(pid, SIGINT);
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  const std::string out = testutil::ReadBytes(out_path);
+  ASSERT_TRUE(WIFEXITED(status)) << out;
+  EXPECT_EQ(WEXITSTATUS(status), 0) << out;
+  EXPECT_THAT(daemon.methods(), ElementsAre("record.start", "record.stop"));
+  EXPECT_THAT(out, HasSubstr("mocapctl: interrupted: asking mocapd to stop (record.stop)\n"));
+  EXPECT_THAT(out, HasSubstr("recording 5 (squats): 300 frames, 1.50 s"));
+  EXPECT_THAT(out, HasSubstr("coverage: passed\n"));
+}
+
 TEST(Mocapctl, CalibrateCollectsFinishesAndApplies) {
   testutil::ScriptedMocapd daemon(SocketPath(), [&](const json& r) -> std::vector<std::string> {
     const std::string method = r["method"];
@@ -213,6 +255,37 @@ TEST(Mocapctl, RequestsCarryTheirParams) {
             json({{"kind", "model"}, {"id", 2}, {"format", "json"}, {"path", cwd + "/out/m.json"}}));
   EXPECT_EQ(requests[5]["method"], "model.list");
   EXPECT_EQ(requests[5]["params"], json({{"subject", "S01"}}));
+}
+
+TEST(Mocapctl, HumanLayoutsOfReloadProtocolAndApply) {
+  testutil::ScriptedMocapd daemon(SocketPath(), [](const json& r) -> std::vector<std::string> {
+    const std::string method = r["method"];
+    if (method == "config.reload")
+      return {ResultLine(r, {{"reloaded", true}, {"applied", {"control.max_clients", "control.group"}},
+                             {"needs_restart", {"rig.rate"}}})};
+    if (method == "protocol.show")
+      return {ResultLine(r, {{"name", "full body"},
+                             {"movements", {{{"name", "squats"}, {"description", "three slow squats"},
+                                             {"duration_s", 6},
+                                             {"excitations", {{{"coordinate", "knee_angle_r"}, {"min_deg", 0},
+                                                               {"max_deg", 90}, {"required", true}},
+                                                              {{"coordinate", "lumbar_bending"}, {"min_deg", -5},
+                                                               {"max_deg", 5}, {"required", false}}}}}}}})};
+    return {ResultLine(r, {{"version", 3}, {"from_frame", 123456}})};
+  });
+  CtlResult reload = RunCtl(SocketPath(), "reload");
+  EXPECT_EQ(reload.status, 0) << reload.err;
+  EXPECT_EQ(reload.out, "configuration re-read\napplied: control.max_clients, control.group\n"
+                        "needs a restart of mocapd (not applied): rig.rate\n");
+  CtlResult protocol = RunCtl(SocketPath(), "protocol");
+  EXPECT_EQ(protocol.status, 0) << protocol.err;
+  EXPECT_EQ(protocol.out, "protocol full body: 1 movements\nsquats (6.0 s): three slow squats\n"
+                          "  knee_angle_r 0 .. 90 deg\n  lumbar_bending -5 .. 5 deg (optional)\n");
+  CtlResult apply = RunCtl(SocketPath(), "apply");
+  EXPECT_EQ(apply.status, 0) << apply.err;
+  EXPECT_EQ(apply.out, "version 3 is live from frame 123456\n");
+  EXPECT_THAT(daemon.methods(), ElementsAre("config.reload", "protocol.show", "model.apply"));
+  EXPECT_EQ(daemon.requests()[2]["params"], json::object());
 }
 
 TEST(Mocapctl, WatchPrintsFramesAndStopsAfterCount) {
