@@ -93,6 +93,8 @@ class ControlServer {
   void Close();
   // New limits (config.reload); they apply to new lines and new clients.
   void SetLimits(int max_clients, std::size_t max_line_bytes, int max_pending);
+  // Who may change state, from the next client on (clients keep what their hello said).
+  void SetControlGroup(const std::string& group) { options_.control_group = group; }
 
   std::string hello_daemon = "mocapd";  // the hello's "daemon" field
 

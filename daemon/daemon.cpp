@@ -291,6 +291,8 @@ Status Daemon::Start() {
   po.capture.detection.threshold = config_.detection_threshold;
   po.capture.detection.sigma_floor_px = std::max(0.01, config_.centroid_noise_px);
   po.tracker.rate_hz = config_.rate_hz;
+  po.tracker.sigma_m = config_.tracker_sigma_m;
+  po.tracker.gate_chi2 = config_.tracker_gate_chi2;
   po.exposure_us = config_.exposure_us;
   pipeline_ = std::make_unique<LivePipeline>(std::move(sources), po, [this] {
     const std::uint64_t one = 1;
@@ -646,11 +648,31 @@ void Daemon::ConfigReload(const Request& r) {
   for (const ConfigChange& c : DiffConfig(config_, fresh)) {
     (c.needs_restart ? restart : applied).push_back(c.key);
   }
-  // What can change live: the control limits.
+  // What can change live (daemon/config.h DiffConfig): the control limits and group, the
+  // protocol, the fit's defaults. The protocol is loaded first: a file that does not parse keeps
+  // the running one, as a config that does not validate does.
+  if (fresh.protocol_file != config_.protocol_file) {
+    sim::Protocol protocol = sim::DefaultProtocol();
+    if (!fresh.protocol_file.empty()) {
+      if (Status s = sim::LoadProtocolJson(fresh.protocol_file, &protocol); !s) {
+        spdlog::error("config.reload: {} (the running configuration is unchanged)", s.message());
+        Fail(r, error_code::kFailed, s.message() + " (the running configuration is unchanged)");
+        return;
+      }
+    }
+    protocol_ = std::move(protocol);
+  }
+  config_.protocol_file = fresh.protocol_file;
   config_.max_clients = fresh.max_clients;
   config_.max_line_bytes = fresh.max_line_bytes;
   config_.max_pending_requests = fresh.max_pending_requests;
+  config_.control_group = fresh.control_group;
+  config_.fit_threads = fresh.fit_threads;
+  config_.fit_max_iterations = fresh.fit_max_iterations;
+  config_.fit_groups = fresh.fit_groups;
+  config_.fit_coarse_frames = fresh.fit_coarse_frames;
   server_->SetLimits(fresh.max_clients, fresh.max_line_bytes, fresh.max_pending_requests);
+  server_->SetControlGroup(fresh.control_group);
   spdlog::info("config reloaded from {}: {} applied, {} need a restart", options_.config_path,
                applied.size(), restart.size());
   if (r.client.id != 0)
