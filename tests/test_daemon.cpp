@@ -7,6 +7,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <fstream>
 #include <map>
@@ -133,6 +134,20 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
   EXPECT_TRUE(advice.find("hip_flexion") != std::string::npos ||
               advice.find("knee_angle") != std::string::npos)
       << advice;
+  // A subscriber watches the first recording: what is stored must be what was streamed.
+  std::unique_ptr<ControlClient> streamer;
+  ASSERT_TRUE(d.Connect(&streamer).ok());
+  MustCall(streamer.get(), "subscribe", {{"streams", {"markers"}}});
+  std::map<std::uint64_t, json> streamed;
+  std::atomic<bool> streaming{true};
+  std::thread stream_thread([&] {
+    while (streaming) {
+      json ev;
+      bool got = false;
+      if (!streamer->NextEvent(&ev, 100, &got).ok()) break;
+      if (got && ev.value("event", "") == "frame") streamed[ev["frame"].get<std::uint64_t>()] = ev["markers"];
+    }
+  });
   std::int64_t static_recording = 0;
   for (const json& m : protocol["movements"]) {
     const std::string name = m["name"];
@@ -142,7 +157,39 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
     EXPECT_EQ(rec["coverage"]["ok"], true) << name << ": " << rec.dump();
     EXPECT_GT(rec["tracking_fraction"].get<double>(), 0.95) << name;
     EXPECT_GT(progress, 0) << name;
-    if (static_recording == 0) static_recording = rec["recording"];
+    if (static_recording == 0) {
+      static_recording = rec["recording"];
+      streaming = false;
+      stream_thread.join();
+    }
+  }
+  {
+    std::unique_ptr<daemon::Store> store;
+    daemon::StoreOptions so;
+    so.mark_interrupted_recordings = false;
+    ASSERT_TRUE(daemon::Store::Open(d.state_dir(), &store, so).ok());
+    std::vector<daemon::RecordedFrame> stored;
+    ASSERT_TRUE(store->ReadFrames(static_recording, &stored).ok());
+    ASSERT_GT(stored.size(), 300u);
+    for (std::size_t f = 1; f < stored.size(); ++f)
+      ASSERT_EQ(stored[f].frame, stored[f - 1].frame + 1) << "a recorded frame is missing";
+    int compared = 0;
+    for (const auto& fr : stored) {
+      auto it = streamed.find(fr.frame);
+      ASSERT_NE(it, streamed.end()) << "frame " << fr.frame << " was recorded, never streamed";
+      ASSERT_EQ(it->second.size(), static_cast<std::size_t>(fr.markers.cols()));
+      for (Eigen::Index m = 0; m < fr.markers.cols(); ++m) {
+        const json& sm = it->second[m];
+        EXPECT_EQ(sm["occluded"].get<bool>(), !fr.markers.col(m).allFinite());
+        if (!fr.markers.col(m).allFinite()) continue;
+        // The stream's JSON numbers round-trip doubles exactly.
+        EXPECT_EQ(sm["x"].get<double>(), fr.markers(0, m));
+        EXPECT_EQ(sm["y"].get<double>(), fr.markers(1, m));
+        EXPECT_EQ(sm["z"].get<double>(), fr.markers(2, m));
+        ++compared;
+      }
+    }
+    EXPECT_GT(compared, 10000);
   }
 
   // Fit, then apply between two frames while a subscriber watches.
