@@ -411,13 +411,54 @@ void PrintRecording(const json& r) {
     std::printf("%s\n", r["advice"].get<std::string>().c_str());
 }
 
+// The fit's outcome in a dozen lines; the whole report is `mocapctl export report ID`.
 void PrintFit(const json& r) {
   std::printf("fitted model version %s (stored, not applied: mocapctl apply)\n",
               Text(r.value("model_version", json())).c_str());
-  for (const char* part : {"report", "diff", "truth"}) {
-    if (!r.contains(part)) continue;
-    std::printf("%s:\n", part);
-    PrintTree(r[part], 2);
+  if (r.contains("report")) {
+    const json& rep = r["report"];
+    std::printf("  %s after %s iterations (%s), %.1f s; %s frames of %s trials\n",
+                rep.value("termination", "?").c_str(), Text(rep.value("iterations", json())).c_str(),
+                rep.value("termination_message", "").c_str(), rep.value("wall_seconds", 0.0),
+                Text(rep.value("frames", json())).c_str(), Text(rep.value("trials", json())).c_str());
+    std::printf("  marker RMS %.3f mm (from %.3f mm)\n", rep.value("marker_rms_mm", 0.0),
+                rep.value("initial_marker_rms_mm", 0.0));
+    if (rep.contains("per_marker_rms_mm") && rep["per_marker_rms_mm"].is_object() &&
+        !rep["per_marker_rms_mm"].empty()) {
+      std::string worst;
+      double w = -1;
+      for (const auto& [name, v] : rep["per_marker_rms_mm"].items())
+        if (v.is_number() && v.get<double>() > w) w = v.get<double>(), worst = name;
+      std::printf("  largest marker RMS: %s %.3f mm\n", worst.c_str(), w);
+    }
+    if (rep.contains("undetermined") && rep["undetermined"].is_array()) {
+      std::string names;
+      int n = 0;
+      for (const json& u : rep["undetermined"]) {
+        if (n++ < 6) names += (names.empty() ? "" : ", ") + Text(u);
+      }
+      if (n > 6) names += ", ...";
+      std::printf("  %d parameters the recordings did not determine%s%s\n", n, n ? ": " : "",
+                  names.c_str());
+    }
+  }
+  if (r.contains("report_id"))
+    std::printf("  full report: mocapctl export report %s --format json --out FILE\n",
+                Text(r["report_id"]).c_str());
+  if (r.contains("diff") && r["diff"].contains("joint_centre_error_mm")) {
+    const json& jc = r["diff"]["joint_centre_error_mm"];
+    std::printf("  against the model it started from: joint centres moved %.2f mm RMS, %.2f mm max\n",
+                jc.value("rms", 0.0), jc.value("max", 0.0));
+  }
+  if (r.contains("truth")) {
+    const json& t = r["truth"];
+    std::printf("  against the simulated subject's truth: joint centres %.3f mm RMS, %.3f mm max",
+                t.value("joint_centre_error_mm_rms", 0.0), t.value("joint_centre_error_mm_max", 0.0));
+    if (r.contains("truth_before"))
+      std::printf(" (before the fit: %.1f mm max)",
+                  r["truth_before"].value("joint_centre_error_mm_max", 0.0));
+    std::printf("; segment lengths %.3f %% max; markers %.2f mm RMS\n",
+                t.value("segment_length_error_pct_max", 0.0), t.value("marker_error_mm_rms", 0.0));
   }
 }
 

@@ -192,6 +192,22 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
     EXPECT_GT(compared, 10000);
   }
 
+  // A fit cancelled at once keeps the best it reached, stored as a version; while it runs the
+  // socket answers status from another client.
+  {
+    std::int64_t id = 0;
+    ASSERT_TRUE(c->Send("fit.start", json::object(), &id).ok());
+    std::unique_ptr<ControlClient> other;
+    ASSERT_TRUE(d.Connect(&other).ok());
+    json during = MustCall(other.get(), "status");
+    EXPECT_EQ(during["job"]["kind"], "fit") << during.dump();
+    ControlReply cancel, cancelled;
+    ASSERT_TRUE(other->Call("fit.cancel", json::object(), &cancel).ok());
+    EXPECT_TRUE(cancel.ok()) << cancel.error_message;
+    ASSERT_TRUE(c->Wait(id, &cancelled).ok());
+    EXPECT_EQ(cancelled.error_code, "cancelled") << cancelled.error_message;
+    EXPECT_NE(cancelled.error_message.find("model v2"), std::string::npos) << cancelled.error_message;
+  }
   // Fit, then apply between two frames while a subscriber watches.
   int fit_events = 0;
   json fit = MustCall(c.get(), "fit.start", json::object(),
@@ -202,7 +218,7 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
   EXPECT_GT(fit["truth_before"]["joint_centre_error_mm_max"].get<double>(), 5.0);
   EXPECT_EQ(fit["report"]["converged"], true);
   const int fitted_version = fit["model_version"];
-  EXPECT_EQ(fitted_version, 2);
+  EXPECT_EQ(fitted_version, 3);  // v2 is the cancelled fit's
 
   std::unique_ptr<ControlClient> watcher;
   ASSERT_TRUE(d.Connect(&watcher).ok());
