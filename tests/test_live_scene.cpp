@@ -9,8 +9,6 @@
 
 #include <atomic>
 #include <cmath>
-#include <cstdlib>
-#include <new>
 #include <chrono>
 #include <thread>
 
@@ -22,28 +20,8 @@
 #include "sim/renderer.h"
 #include "sim/simulate.h"
 #include "sim/wand.h"
-
-// No heap allocation in Positions(): Eigen's own check (EIGEN_RUNTIME_NO_MALLOC) for its
-// matrices, and a counting global operator new for everything else.
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<long> g_allocations{0};
-}  // namespace
-
-void* operator new(std::size_t n) {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1);
-  if (void* p = std::malloc(n ? n : 1)) return p;
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t n) {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1);
-  if (void* p = std::malloc(n ? n : 1)) return p;
-  throw std::bad_alloc();
-}
-void operator delete(void* p) noexcept { std::free(p); }
-void operator delete[](void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t) noexcept { std::free(p); }
-void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
+#include "tests/allocation_test_util.h"
+#include "tests/sim_test_util.h"
 
 namespace mocap::sim {
 namespace {
@@ -89,6 +67,12 @@ formats::CoordinateTable TrueTable(const LiveScene& scene, double t0, double t1)
       table.values(f, c) = model.coordinates()[c].rotational ? z[c] / kDeg : z[c];
   }
   return table;
+}
+
+// A refused request: an error whose message names what is wrong.
+void ExpectErrorNaming(const Status& status, const std::string& what) {
+  EXPECT_FALSE(status.ok()) << what;
+  EXPECT_NE(status.message().find(what), std::string::npos) << status.message();
 }
 
 bool AllNaN(const Eigen::Vector3d* p, int begin, int end) {
@@ -142,34 +126,24 @@ TEST(LiveScene, BadOptionsAndCommandsAreRefusedWithTheirName) {
   std::shared_ptr<LiveScene> scene;
   LiveSceneOptions o;
   o.rate_hz = 0;
-  Status s = LiveScene::Create(o, &scene);
-  EXPECT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("rate_hz"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveScene::Create(o, &scene), "rate_hz");
   o = LiveSceneOptions();
   o.blend_s = -1;
-  s = LiveScene::Create(o, &scene);
-  EXPECT_NE(s.message().find("blend_s"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveScene::Create(o, &scene), "blend_s");
   Protocol bad = DefaultProtocol();
   bad.movements[1].excitations[0].coordinate = "tail_wag";
   o = LiveSceneOptions();
   o.protocol = &bad;
-  s = LiveScene::Create(o, &scene);
-  EXPECT_NE(s.message().find("tail_wag"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveScene::Create(o, &scene), "tail_wag");
 
   Fixture fx;
-  s = fx.scene->Perform("cartwheel");
-  EXPECT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("'cartwheel'"), std::string::npos) << s.message();
-  EXPECT_NE(s.message().find("squats"), std::string::npos) << s.message();
-  EXPECT_NE(s.message().find("neck_rom"), std::string::npos) << s.message();
-  s = fx.scene->Perform("squats", 2.0);
-  EXPECT_NE(s.message().find("amplitude"), std::string::npos) << s.message();
-  s = fx.scene->Perform("squats", 1.0, 0.0);
-  EXPECT_NE(s.message().find("duration_scale"), std::string::npos) << s.message();
-  s = fx.scene->WaveWand(0.0);
-  EXPECT_NE(s.message().find("duration_s"), std::string::npos) << s.message();
-  s = fx.scene->ShowLFrame(std::nan(""));
-  EXPECT_NE(s.message().find("duration_s"), std::string::npos) << s.message();
+  // The unknown name, and the movements there are.
+  for (const char* what : {"'cartwheel'", "squats", "neck_rom"})
+    ExpectErrorNaming(fx.scene->Perform("cartwheel"), what);
+  ExpectErrorNaming(fx.scene->Perform("squats", 2.0), "amplitude");
+  ExpectErrorNaming(fx.scene->Perform("squats", 1.0, 0.0), "duration_scale");
+  ExpectErrorNaming(fx.scene->WaveWand(0.0), "duration_s");
+  ExpectErrorNaming(fx.scene->ShowLFrame(std::nan("")), "duration_s");
   // A refused command changes nothing.
   EXPECT_EQ(fx.scene->ActivityAt(1.0), LiveActivity::kEmpty);
 }
@@ -192,14 +166,7 @@ TEST(LiveScene, PerformedMovementsCoverTheirRangesAndUnderPerformanceFails) {
       EXPECT_NEAR(t1 - t0, m.duration_s * scale - 1.0 / kRate, 1e-9) << m.name;
       EXPECT_EQ(scene.ActivityAt(0.5 * (t0 + t1)), LiveActivity::kMovement);
       EXPECT_EQ(scene.ActivityAt(t1 + 0.01), LiveActivity::kStatic);
-      for (const ExcitationCheck& c : CheckExcitations(m, TrueTable(scene, t0, t1))) {
-        if (!c.required) continue;
-        EXPECT_TRUE(c.ok) << "scale " << scale << " " << m.name << " " << c.coordinate
-                          << ": reached [" << c.reached_min_deg << ", " << c.reached_max_deg
-                          << "], required [" << c.min_deg << ", " << c.max_deg << "]";
-        EXPECT_GT(c.reached_min_deg, c.min_deg - 8) << m.name << " " << c.coordinate;
-        EXPECT_LT(c.reached_max_deg, c.max_deg + 8) << m.name << " " << c.coordinate;
-      }
+      ExpectExcitationsReached(m, TrueTable(scene, t0, t1), "scale " + std::to_string(scale));
       fx.SetTime(t1 + 1.0);  // the operator looks at the result, then asks for the next one
     }
   }
@@ -553,9 +520,8 @@ TEST(LiveScene, PositionsAllocateNothing) {
   fx.SetTime(w0 + 2.0);
   ASSERT_TRUE(scene.ShowLFrame(1.0, &l0).ok());
   std::vector<Eigen::Vector3d> p(scene.marker_count());
-  g_allocations = 0;
-  g_count_allocations = true;
-  Eigen::internal::set_is_malloc_allowed(false);
+  mocap::testing::g_allocations = 0;
+  mocap::testing::BeginNoAllocation();
   int subject = 0, wand = 0, lframe = 0;
   for (double t = -1.0; t < l0 + 2.0; t += 0.013) {
     scene.Positions(t, p.data());
@@ -564,9 +530,8 @@ TEST(LiveScene, PositionsAllocateNothing) {
     wand += p[scene.wand_marker_begin()].allFinite();
     lframe += p[scene.lframe_marker_begin()].allFinite();
   }
-  Eigen::internal::set_is_malloc_allowed(true);
-  g_count_allocations = false;
-  EXPECT_EQ(g_allocations.load(), 0);
+  mocap::testing::EndNoAllocation();
+  EXPECT_EQ(mocap::testing::g_allocations.load(), 0);
   EXPECT_GT(subject, 500);
   EXPECT_GT(wand, 50);
   EXPECT_GT(lframe, 50);
@@ -615,13 +580,10 @@ TEST(LiveRig, CamerasShowTheLiveSubject) {
   std::unique_ptr<LiveRig> rig;
   LiveRigOptions bad;
   bad.cameras = 1;
-  Status s = LiveRig::Create(bad, &rig);
-  EXPECT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("cameras"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveRig::Create(bad, &rig), "cameras");
   bad = LiveRigOptions();
   bad.width = 4096;
-  s = LiveRig::Create(bad, &rig);
-  EXPECT_NE(s.message().find("width"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveRig::Create(bad, &rig), "width");
 
   LiveRigOptions o;
   o.cameras = 3;
