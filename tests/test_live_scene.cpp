@@ -48,6 +48,12 @@ struct Fixture {
   void SetTime(double scene_time_s) {
     now_ns = kEpochNs + static_cast<std::uint64_t>(std::llround(scene_time_s * 1e9));
   }
+  // The subject steps in and stands (from 0.05 s), and is asked for `movement` at 1 s.
+  Status StandThenPerform(const std::string& movement, double* t0, double* t1) {
+    scene->StandStatic();
+    SetTime(1.0);
+    return scene->Perform(movement, 1.0, 1.0, t0, t1);
+  }
 };
 
 // The subject's true coordinates sampled at the frame rate over [t0, t1], as a recording's
@@ -232,10 +238,8 @@ TEST(LiveScene, MovementIsTheSimulatedSessionsMotion) {
 TEST(LiveScene, MarkersAreTheTrueModelsForwardKinematics) {
   Fixture fx;
   LiveScene& scene = *fx.scene;
-  scene.StandStatic();
-  fx.SetTime(1.0);
   double t0 = 0, t1 = 0;
-  ASSERT_TRUE(scene.Perform("squats", 1.0, 1.0, &t0, &t1).ok());
+  ASSERT_TRUE(fx.StandThenPerform("squats", &t0, &t1).ok());
   const Model& model = scene.truth();
   const Geometry geometry(model);
   ModelData data(model);
@@ -301,10 +305,8 @@ TEST(LiveScene, MotionIsContinuousAcrossCommands) {
     o.blend_s = blend;
     ASSERT_TRUE(LiveScene::Create(o, &fx.scene).ok());
     LiveScene& scene = *fx.scene;
-    scene.StandStatic();
-    fx.SetTime(1.0);
     double s0 = 0, s1 = 0;
-    ASSERT_TRUE(scene.Perform("squats", 1.0, 1.0, &s0, &s1).ok());
+    ASSERT_TRUE(fx.StandThenPerform("squats", &s0, &s1).ok());
     // What the cameras have drawn up to the interruption.
     fx.SetTime(s0 + 2.0);
     std::vector<Eigen::Vector3d> before(scene.marker_count()), after(scene.marker_count());
@@ -485,10 +487,8 @@ TEST(LiveScene, RendererDrawsTheVisibleMarkers) {
   check_frame(origin + 10, 0, 0, &blobs);
   EXPECT_EQ(blobs, 0);
   // The subject mid-squat: most of its markers in every camera.
-  scene.StandStatic();
-  fx.SetTime(1.0);
   double t0 = 0, t1 = 0;
-  ASSERT_TRUE(scene.Perform("squats", 1.0, 1.0, &t0, &t1).ok());
+  ASSERT_TRUE(fx.StandThenPerform("squats", &t0, &t1).ok());
   const std::uint64_t mid = origin + static_cast<std::uint64_t>(std::llround(0.5 * (t0 + t1) * kRate));
   blobs = 0;
   check_frame(mid, 0, scene.subject_marker_count(), &blobs);
@@ -507,10 +507,8 @@ TEST(LiveScene, RendererDrawsTheVisibleMarkers) {
 TEST(LiveScene, PositionsAllocateNothing) {
   Fixture fx;
   LiveScene& scene = *fx.scene;
-  scene.StandStatic();
-  fx.SetTime(1.0);
   double t0 = 0, t1 = 0;
-  ASSERT_TRUE(scene.Perform("hip_star_arc_l", 1.0, 1.0, &t0, &t1).ok());
+  ASSERT_TRUE(fx.StandThenPerform("hip_star_arc_l", &t0, &t1).ok());
   fx.SetTime(t0 + 1.0);
   double u0 = 0, u1 = 0;
   ASSERT_TRUE(scene.Perform("squats", 1.0, 1.0, &u0, &u1).ok());  // blends into the arc
