@@ -19,8 +19,9 @@
 // at a random place and heading per movement. Every movement starts and ends in the neutral pose
 // (the simulator's quintic envelopes); at each command the new motion is blended into the old one
 // over `blend_s` (a quintic ramp; shorter for a movement whose excitations ramp up faster, so
-// the blend never eats into the range a short movement must reach), so the coordinates stay
-// C2-continuous across commands whatever the wander was doing. The feet stay on the floor (the
+// the blend never eats into the range a short movement must reach), so the joint angles stay
+// C2-continuous across commands whatever the wander was doing (the pelvis's horizontal
+// correction below is interpolated linearly between frame-rate samples: continuous). The feet stay on the floor (the
 // pelvis height comes from the pose, every frame) and the stance foot does not skate during a
 // movement (the simulator's stance drift, integrated once per command at the frame rate, when
 // the command is given); standing still, the subject steps back onto its mark in 1.5 s, since

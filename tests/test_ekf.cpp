@@ -23,6 +23,7 @@
 #include "ekf/tracker.h"
 #include "model/kinematics.h"
 #include "sim/simulate.h"
+#include "tests/allocation_test_util.h"
 
 using namespace mocap;
 
@@ -673,28 +674,7 @@ TEST(EkfTracker, WrapsTheHeading) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// No heap allocation per frame: Eigen's own check (EIGEN_RUNTIME_NO_MALLOC) for its matrices,
-// and a counting global operator new for everything else (std::vector growth, strings, ...).
-
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<long> g_allocations{0};
-}  // namespace
-
-void* operator new(std::size_t n) {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1);
-  if (void* p = std::malloc(n ? n : 1)) return p;
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t n) {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1);
-  if (void* p = std::malloc(n ? n : 1)) return p;
-  throw std::bad_alloc();
-}
-void operator delete(void* p) noexcept { std::free(p); }
-void operator delete[](void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t) noexcept { std::free(p); }
-void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
+// No heap allocation per frame (tests/allocation_test_util.h).
 
 TEST(EkfTracker, UpdateAllocatesNothingWhileTracking) {
   const auto& session = Session();
@@ -711,19 +691,17 @@ TEST(EkfTracker, UpdateAllocatesNothingWhileTracking) {
   ASSERT_EQ(tracker.Update(trial.markers.times[0], frames[0].points).state,
             ekf::TrackState::kTracking);
   long correct = 0, total = 0;
-  g_allocations = 0;
+  mocap::testing::g_allocations = 0;
   for (int f = 1; f < 600; ++f) {
-    g_count_allocations = true;
-    Eigen::internal::set_is_malloc_allowed(false);
+    mocap::testing::BeginNoAllocation();
     const ekf::TrackOutput& out = tracker.Update(trial.markers.times[f], frames[f].points);
-    Eigen::internal::set_is_malloc_allowed(true);
-    g_count_allocations = false;
+    mocap::testing::EndNoAllocation();
     ASSERT_EQ(out.state, ekf::TrackState::kTracking) << f;
     for (size_t k = 0; k < frames[f].truth.size(); ++k) {
       total += frames[f].truth[k] >= 0;
       correct += frames[f].truth[k] >= 0 && out.marker_of_point[k] == frames[f].truth[k];
     }
   }
-  EXPECT_EQ(g_allocations.load(), 0);
+  EXPECT_EQ(mocap::testing::g_allocations.load(), 0);
   EXPECT_EQ(correct, total);
 }

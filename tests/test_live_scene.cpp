@@ -9,8 +9,6 @@
 
 #include <atomic>
 #include <cmath>
-#include <cstdlib>
-#include <new>
 #include <chrono>
 #include <thread>
 
@@ -22,28 +20,8 @@
 #include "sim/renderer.h"
 #include "sim/simulate.h"
 #include "sim/wand.h"
-
-// No heap allocation in Positions(): Eigen's own check (EIGEN_RUNTIME_NO_MALLOC) for its
-// matrices, and a counting global operator new for everything else.
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<long> g_allocations{0};
-}  // namespace
-
-void* operator new(std::size_t n) {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1);
-  if (void* p = std::malloc(n ? n : 1)) return p;
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t n) {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1);
-  if (void* p = std::malloc(n ? n : 1)) return p;
-  throw std::bad_alloc();
-}
-void operator delete(void* p) noexcept { std::free(p); }
-void operator delete[](void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t) noexcept { std::free(p); }
-void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
+#include "tests/allocation_test_util.h"
+#include "tests/sim_test_util.h"
 
 namespace mocap::sim {
 namespace {
@@ -70,6 +48,12 @@ struct Fixture {
   void SetTime(double scene_time_s) {
     now_ns = kEpochNs + static_cast<std::uint64_t>(std::llround(scene_time_s * 1e9));
   }
+  // The subject steps in and stands (from 0.05 s), and is asked for `movement` at 1 s.
+  Status StandThenPerform(const std::string& movement, double* t0, double* t1) {
+    scene->StandStatic();
+    SetTime(1.0);
+    return scene->Perform(movement, 1.0, 1.0, t0, t1);
+  }
 };
 
 // The subject's true coordinates sampled at the frame rate over [t0, t1], as a recording's
@@ -89,6 +73,12 @@ formats::CoordinateTable TrueTable(const LiveScene& scene, double t0, double t1)
       table.values(f, c) = model.coordinates()[c].rotational ? z[c] / kDeg : z[c];
   }
   return table;
+}
+
+// A refused request: an error whose message names what is wrong.
+void ExpectErrorNaming(const Status& status, const std::string& what) {
+  EXPECT_FALSE(status.ok()) << what;
+  EXPECT_NE(status.message().find(what), std::string::npos) << status.message();
 }
 
 bool AllNaN(const Eigen::Vector3d* p, int begin, int end) {
@@ -142,34 +132,24 @@ TEST(LiveScene, BadOptionsAndCommandsAreRefusedWithTheirName) {
   std::shared_ptr<LiveScene> scene;
   LiveSceneOptions o;
   o.rate_hz = 0;
-  Status s = LiveScene::Create(o, &scene);
-  EXPECT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("rate_hz"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveScene::Create(o, &scene), "rate_hz");
   o = LiveSceneOptions();
   o.blend_s = -1;
-  s = LiveScene::Create(o, &scene);
-  EXPECT_NE(s.message().find("blend_s"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveScene::Create(o, &scene), "blend_s");
   Protocol bad = DefaultProtocol();
   bad.movements[1].excitations[0].coordinate = "tail_wag";
   o = LiveSceneOptions();
   o.protocol = &bad;
-  s = LiveScene::Create(o, &scene);
-  EXPECT_NE(s.message().find("tail_wag"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveScene::Create(o, &scene), "tail_wag");
 
   Fixture fx;
-  s = fx.scene->Perform("cartwheel");
-  EXPECT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("'cartwheel'"), std::string::npos) << s.message();
-  EXPECT_NE(s.message().find("squats"), std::string::npos) << s.message();
-  EXPECT_NE(s.message().find("neck_rom"), std::string::npos) << s.message();
-  s = fx.scene->Perform("squats", 2.0);
-  EXPECT_NE(s.message().find("amplitude"), std::string::npos) << s.message();
-  s = fx.scene->Perform("squats", 1.0, 0.0);
-  EXPECT_NE(s.message().find("duration_scale"), std::string::npos) << s.message();
-  s = fx.scene->WaveWand(0.0);
-  EXPECT_NE(s.message().find("duration_s"), std::string::npos) << s.message();
-  s = fx.scene->ShowLFrame(std::nan(""));
-  EXPECT_NE(s.message().find("duration_s"), std::string::npos) << s.message();
+  // The unknown name, and the movements there are.
+  for (const char* what : {"'cartwheel'", "squats", "neck_rom"})
+    ExpectErrorNaming(fx.scene->Perform("cartwheel"), what);
+  ExpectErrorNaming(fx.scene->Perform("squats", 2.0), "amplitude");
+  ExpectErrorNaming(fx.scene->Perform("squats", 1.0, 0.0), "duration_scale");
+  ExpectErrorNaming(fx.scene->WaveWand(0.0), "duration_s");
+  ExpectErrorNaming(fx.scene->ShowLFrame(std::nan("")), "duration_s");
   // A refused command changes nothing.
   EXPECT_EQ(fx.scene->ActivityAt(1.0), LiveActivity::kEmpty);
 }
@@ -192,14 +172,7 @@ TEST(LiveScene, PerformedMovementsCoverTheirRangesAndUnderPerformanceFails) {
       EXPECT_NEAR(t1 - t0, m.duration_s * scale - 1.0 / kRate, 1e-9) << m.name;
       EXPECT_EQ(scene.ActivityAt(0.5 * (t0 + t1)), LiveActivity::kMovement);
       EXPECT_EQ(scene.ActivityAt(t1 + 0.01), LiveActivity::kStatic);
-      for (const ExcitationCheck& c : CheckExcitations(m, TrueTable(scene, t0, t1))) {
-        if (!c.required) continue;
-        EXPECT_TRUE(c.ok) << "scale " << scale << " " << m.name << " " << c.coordinate
-                          << ": reached [" << c.reached_min_deg << ", " << c.reached_max_deg
-                          << "], required [" << c.min_deg << ", " << c.max_deg << "]";
-        EXPECT_GT(c.reached_min_deg, c.min_deg - 8) << m.name << " " << c.coordinate;
-        EXPECT_LT(c.reached_max_deg, c.max_deg + 8) << m.name << " " << c.coordinate;
-      }
+      ExpectExcitationsReached(m, TrueTable(scene, t0, t1), "scale " + std::to_string(scale));
       fx.SetTime(t1 + 1.0);  // the operator looks at the result, then asks for the next one
     }
   }
@@ -265,10 +238,8 @@ TEST(LiveScene, MovementIsTheSimulatedSessionsMotion) {
 TEST(LiveScene, MarkersAreTheTrueModelsForwardKinematics) {
   Fixture fx;
   LiveScene& scene = *fx.scene;
-  scene.StandStatic();
-  fx.SetTime(1.0);
   double t0 = 0, t1 = 0;
-  ASSERT_TRUE(scene.Perform("squats", 1.0, 1.0, &t0, &t1).ok());
+  ASSERT_TRUE(fx.StandThenPerform("squats", &t0, &t1).ok());
   const Model& model = scene.truth();
   const Geometry geometry(model);
   ModelData data(model);
@@ -334,10 +305,8 @@ TEST(LiveScene, MotionIsContinuousAcrossCommands) {
     o.blend_s = blend;
     ASSERT_TRUE(LiveScene::Create(o, &fx.scene).ok());
     LiveScene& scene = *fx.scene;
-    scene.StandStatic();
-    fx.SetTime(1.0);
     double s0 = 0, s1 = 0;
-    ASSERT_TRUE(scene.Perform("squats", 1.0, 1.0, &s0, &s1).ok());
+    ASSERT_TRUE(fx.StandThenPerform("squats", &s0, &s1).ok());
     // What the cameras have drawn up to the interruption.
     fx.SetTime(s0 + 2.0);
     std::vector<Eigen::Vector3d> before(scene.marker_count()), after(scene.marker_count());
@@ -518,10 +487,8 @@ TEST(LiveScene, RendererDrawsTheVisibleMarkers) {
   check_frame(origin + 10, 0, 0, &blobs);
   EXPECT_EQ(blobs, 0);
   // The subject mid-squat: most of its markers in every camera.
-  scene.StandStatic();
-  fx.SetTime(1.0);
   double t0 = 0, t1 = 0;
-  ASSERT_TRUE(scene.Perform("squats", 1.0, 1.0, &t0, &t1).ok());
+  ASSERT_TRUE(fx.StandThenPerform("squats", &t0, &t1).ok());
   const std::uint64_t mid = origin + static_cast<std::uint64_t>(std::llround(0.5 * (t0 + t1) * kRate));
   blobs = 0;
   check_frame(mid, 0, scene.subject_marker_count(), &blobs);
@@ -540,10 +507,8 @@ TEST(LiveScene, RendererDrawsTheVisibleMarkers) {
 TEST(LiveScene, PositionsAllocateNothing) {
   Fixture fx;
   LiveScene& scene = *fx.scene;
-  scene.StandStatic();
-  fx.SetTime(1.0);
   double t0 = 0, t1 = 0;
-  ASSERT_TRUE(scene.Perform("hip_star_arc_l", 1.0, 1.0, &t0, &t1).ok());
+  ASSERT_TRUE(fx.StandThenPerform("hip_star_arc_l", &t0, &t1).ok());
   fx.SetTime(t0 + 1.0);
   double u0 = 0, u1 = 0;
   ASSERT_TRUE(scene.Perform("squats", 1.0, 1.0, &u0, &u1).ok());  // blends into the arc
@@ -553,9 +518,8 @@ TEST(LiveScene, PositionsAllocateNothing) {
   fx.SetTime(w0 + 2.0);
   ASSERT_TRUE(scene.ShowLFrame(1.0, &l0).ok());
   std::vector<Eigen::Vector3d> p(scene.marker_count());
-  g_allocations = 0;
-  g_count_allocations = true;
-  Eigen::internal::set_is_malloc_allowed(false);
+  mocap::testing::g_allocations = 0;
+  mocap::testing::BeginNoAllocation();
   int subject = 0, wand = 0, lframe = 0;
   for (double t = -1.0; t < l0 + 2.0; t += 0.013) {
     scene.Positions(t, p.data());
@@ -564,9 +528,8 @@ TEST(LiveScene, PositionsAllocateNothing) {
     wand += p[scene.wand_marker_begin()].allFinite();
     lframe += p[scene.lframe_marker_begin()].allFinite();
   }
-  Eigen::internal::set_is_malloc_allowed(true);
-  g_count_allocations = false;
-  EXPECT_EQ(g_allocations.load(), 0);
+  mocap::testing::EndNoAllocation();
+  EXPECT_EQ(mocap::testing::g_allocations.load(), 0);
   EXPECT_GT(subject, 500);
   EXPECT_GT(wand, 50);
   EXPECT_GT(lframe, 50);
@@ -615,13 +578,10 @@ TEST(LiveRig, CamerasShowTheLiveSubject) {
   std::unique_ptr<LiveRig> rig;
   LiveRigOptions bad;
   bad.cameras = 1;
-  Status s = LiveRig::Create(bad, &rig);
-  EXPECT_FALSE(s.ok());
-  EXPECT_NE(s.message().find("cameras"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveRig::Create(bad, &rig), "cameras");
   bad = LiveRigOptions();
   bad.width = 4096;
-  s = LiveRig::Create(bad, &rig);
-  EXPECT_NE(s.message().find("width"), std::string::npos) << s.message();
+  ExpectErrorNaming(LiveRig::Create(bad, &rig), "width");
 
   LiveRigOptions o;
   o.cameras = 3;

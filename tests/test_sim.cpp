@@ -22,6 +22,7 @@
 #include "sim/random.h"
 #include "sim/simulate.h"
 #include "sim/subject.h"
+#include "tests/sim_test_util.h"
 
 using namespace mocap;
 using namespace mocap::sim;
@@ -448,18 +449,9 @@ TEST(Simulation, EveryMovementReachesItsExcitations) {
     o.duration_scale = scale;
     o.seed = scale == 1.0 ? 1 : 5;
     const SimulatedSession s = Simulate(o);
-    for (size_t i = 0; i < s.trials.size(); ++i) {
-      const Movement& m = s.protocol.movements[i];
-      for (const ExcitationCheck& c : CheckExcitations(m, s.trials[i].coordinates)) {
-        if (!c.required) continue;
-        EXPECT_TRUE(c.ok) << "scale " << scale << " " << m.name << " " << c.coordinate
-                          << ": reached [" << c.reached_min_deg << ", " << c.reached_max_deg
-                          << "], required [" << c.min_deg << ", " << c.max_deg << "]";
-        // ... and not wildly beyond it.
-        EXPECT_GT(c.reached_min_deg, c.min_deg - 8) << m.name << " " << c.coordinate;
-        EXPECT_LT(c.reached_max_deg, c.max_deg + 8) << m.name << " " << c.coordinate;
-      }
-    }
+    for (size_t i = 0; i < s.trials.size(); ++i)
+      ExpectExcitationsReached(s.protocol.movements[i], s.trials[i].coordinates,
+                               "scale " + std::to_string(scale));
   }
 }
 
