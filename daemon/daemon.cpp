@@ -725,8 +725,7 @@ void Daemon::RigCalibrateFinish(const Request& r) {
   if (sim_rig_) truth = sim_rig_->true_cameras();
   LivePipeline* pipeline = pipeline_.get();
   sim::LiveScene* scene = sim_rig_ ? &sim_rig_->scene() : nullptr;
-  const std::string state_dir = config_.state_dir;
-  job_->thread = std::thread([this, r, cancel, start, truth, pipeline, scene, state_dir,
+  job_->thread = std::thread([this, r, cancel, start, truth, pipeline, scene,
                               wand = std::move(wand)]() mutable {
     // The L-frame on the floor for a second (a real operator lays it down before finishing).
     if (scene) scene->ShowLFrame(1.5);
@@ -750,37 +749,25 @@ void Daemon::RigCalibrateFinish(const Request& r) {
     Json result;
     std::string json_text;
     if (s) {
-      reconstruction::CalibrationFile file;
-      file.lab_frame = summary.lab_frame_from_lframe ? "L-frame" : "camera 0";
-      file.reprojection_rms_px = summary.reprojection_rms_px;
-      file.wand_length_error_mm_rms = summary.wand_length_error_mm_rms;
-      file.wand_length_error_mm_mean = summary.wand_length_error_mm_mean;
-      file.wand_markers_m = wo.wand.marker_positions_m;
+      reconstruction::CalibrationFile file =
+          reconstruction::CalibrationFileOf(calibrated, summary, wo.wand);
       Json cams = Json::array();
-      for (std::size_t c = 0; c < calibrated.size(); ++c) {
-        reconstruction::CalibratedCamera cc;
-        cc.camera = calibrated[c];
-        cc.reprojection_rms_px = summary.cameras[c].reprojection_rms_px;
-        cc.wand_frames = summary.cameras[c].wand_frames;
-        Json cj = {{"id", calibrated[c].id},
+      for (std::size_t c = 0; c < file.cameras.size(); ++c) {
+        reconstruction::CalibratedCamera& cc = file.cameras[c];
+        Json cj = {{"id", cc.camera.id},
                    {"reprojection_rms_px", cc.reprojection_rms_px},
                    {"wand_frames", cc.wand_frames}};
-        if (!truth.empty() && summary.lab_frame_from_lframe) {
+        if (c < truth.size() && summary.lab_frame_from_lframe) {
           double pos = 0, ang = 0;
-          reconstruction::CameraPoseError(calibrated[c], truth[c], &pos, &ang);
+          reconstruction::CameraPoseError(cc.camera, truth[c], &pos, &ang);
           cc.position_error_mm = 1000 * pos;
           cc.orientation_error_deg = ang * 180 / M_PI;
           cj["position_error_mm"] = cc.position_error_mm;
           cj["orientation_error_deg"] = cc.orientation_error_deg;
         }
         cams.push_back(cj);
-        file.cameras.push_back(cc);
       }
-      const std::string tmp = state_dir + "/.calibration-" + std::to_string(getpid()) + ".json";
-      s = reconstruction::WriteCalibrationJson(tmp, file);
-      if (s) s = formats::detail::ReadWholeFile(tmp, &json_text);
-      std::error_code ec;
-      fs::remove(tmp, ec);
+      json_text = reconstruction::CalibrationJsonString(file);
       result = {{"reprojection_rms_px", summary.reprojection_rms_px},
                 {"wand_length_error_mm", summary.wand_length_error_mm_rms},
                 {"wand_frames", summary.wand_frames_used},

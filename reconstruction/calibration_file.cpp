@@ -27,7 +27,35 @@ std::vector<CameraModel> CalibrationFile::Models() const {
   return out;
 }
 
+CalibrationFile CalibrationFileOf(const std::vector<CameraModel>& calibrated,
+                                  const WandCalibrationSummary& summary, const Wand& wand) {
+  CalibrationFile file;
+  file.lab_frame = summary.lab_frame_from_lframe ? "L-frame" : "camera 0";
+  file.reprojection_rms_px = summary.reprojection_rms_px;
+  file.wand_length_error_mm_rms = summary.wand_length_error_mm_rms;
+  file.wand_length_error_mm_mean = summary.wand_length_error_mm_mean;
+  file.wand_markers_m = wand.marker_positions_m;
+  for (std::size_t c = 0; c < calibrated.size(); ++c) {
+    CalibratedCamera cc;
+    cc.camera = calibrated[c];
+    if (c < summary.cameras.size()) {
+      cc.reprojection_rms_px = summary.cameras[c].reprojection_rms_px;
+      cc.wand_frames = summary.cameras[c].wand_frames;
+    }
+    file.cameras.push_back(cc);
+  }
+  return file;
+}
+
 Status WriteCalibrationJson(const std::string& path, const CalibrationFile& file) {
+  std::ofstream f(path, std::ios::binary);
+  if (!f) return Status::Error(path + ": cannot open for writing");
+  f << CalibrationJsonString(file);
+  if (!f) return Status::Error(path + ": write failed");
+  return Status::Ok();
+}
+
+std::string CalibrationJsonString(const CalibrationFile& file) {
   using json = nlohmann::ordered_json;  // fields in the order written, as the header shows
   json doc = {{"format", "mocap-calibration"}, {"version", 1}, {"lab_frame", file.lab_frame}};
   PutIfKnown(&doc, "reprojection_rms_px", file.reprojection_rms_px);
@@ -52,11 +80,7 @@ Status WriteCalibrationJson(const std::string& path, const CalibrationFile& file
     cams.push_back(j);
   }
   doc["cameras"] = cams;
-  std::ofstream f(path, std::ios::binary);
-  if (!f) return Status::Error(path + ": cannot open for writing");
-  f << doc.dump(2) << "\n";
-  if (!f) return Status::Error(path + ": write failed");
-  return Status::Ok();
+  return doc.dump(2) + "\n";
 }
 
 Status ReadCalibrationJson(const std::string& path, CalibrationFile* file) {

@@ -47,7 +47,14 @@ struct CalibrationFile {
   std::vector<CameraModel> Models() const;
 };
 
+// The file of a wand calibration's result: `calibrated` (CalibrateWand's cameras, in order), its
+// summary's figures per camera and for the rig, and the wand it used.
+CalibrationFile CalibrationFileOf(const std::vector<CameraModel>& calibrated,
+                                  const WandCalibrationSummary& summary, const Wand& wand);
+
 Status WriteCalibrationJson(const std::string& path, const CalibrationFile& file);
+// The JSON document WriteCalibrationJson writes.
+std::string CalibrationJsonString(const CalibrationFile& file);
 Status ReadCalibrationJson(const std::string& path, CalibrationFile* file);
 // Parses a document already in memory; `name` stands for the file in error messages.
 Status ParseCalibrationJson(const std::string& text, const std::string& name,

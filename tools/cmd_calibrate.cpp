@@ -261,19 +261,7 @@ int RunCalibrate(const CalibrateArgs& args) {
   }
   std::printf("%s", summary.FullReport().c_str());
 
-  rc::CalibrationFile file;
-  file.lab_frame = summary.lab_frame_from_lframe ? "L-frame" : "camera 0";
-  file.reprojection_rms_px = summary.reprojection_rms_px;
-  file.wand_length_error_mm_rms = summary.wand_length_error_mm_rms;
-  file.wand_length_error_mm_mean = summary.wand_length_error_mm_mean;
-  file.wand_markers_m = options.wand.marker_positions_m;
-  for (size_t c = 0; c < calibrated.size(); ++c) {
-    rc::CalibratedCamera cc;
-    cc.camera = calibrated[c];
-    cc.reprojection_rms_px = summary.cameras[c].reprojection_rms_px;
-    cc.wand_frames = summary.cameras[c].wand_frames;
-    file.cameras.push_back(cc);
-  }
+  rc::CalibrationFile file = rc::CalibrationFileOf(calibrated, summary, options.wand);
   std::printf("reprojection_rms_px %.4f\nwand_length_error_mm_rms %.4f\n",
               summary.reprojection_rms_px, summary.wand_length_error_mm_rms);
   if (!truth.empty()) {
