@@ -37,7 +37,9 @@ struct ControlServerOptions {
   std::string control_group = "mocap";  // may change state (and root); others read only
   int max_clients = 64;
   std::size_t max_line_bytes = 1 << 20;
-  std::size_t max_output_bytes = 64u << 20;    // replies + events waiting: beyond, disconnect
+  // Replies + events waiting: beyond, disconnect. 8 MiB holds the largest reply (an inline export
+  // of 4 MiB, base64) and bounds what 64 clients that never read can cost (512 MiB).
+  std::size_t max_output_bytes = 8u << 20;
   std::size_t stream_output_bytes = 256u << 10;  // stream frames only below this
   int max_pending = 64;
   bool IsValid(std::string* error) const;
