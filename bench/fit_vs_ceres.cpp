@@ -300,7 +300,10 @@ BenchData Assemble(const Model& nominal, const std::vector<const formats::Marker
   std::vector<int> keep;
   for (int m = 0; m < nominal.num_markers(); ++m)
     if (names.count(nominal.markers()[m].name)) keep.push_back(m);
-  d.model = nominal.WithMarkers(keep);
+  if (mocap::Status s = nominal.WithMarkers(keep, &d.model); !s) {
+    std::fprintf(stderr, "fit_vs_ceres: %s\n", s.message().c_str());
+    std::exit(1);
+  }
   const int nm = d.model.num_markers();
   d.measurements.setConstant(total, 3 * nm, std::numeric_limits<double>::quiet_NaN());
   int first = 0;

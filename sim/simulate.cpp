@@ -491,7 +491,8 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
                        SimulatedSession* session) {
   std::string error;
   if (!options.IsValid(&error)) return Status::Error("invalid simulation options: " + error);
-  VirtualSubject subject = MakeVirtualSubject(options.seed, options.subject);
+  VirtualSubject subject;
+  MOCAP_RETURN_IF_ERROR(MakeVirtualSubject(options.seed, options.subject, &subject));
   const Model& truth = subject.truth;
   if (Status s = ValidateProtocol(protocol, truth); !s) return s;
   RootLayout root;
@@ -529,7 +530,7 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
   out.height_m = subject.height_m;
   // The session's models carry exactly the markers it records: a marker no trial shows is not
   // fitted, and comparing an unfitted marker with the truth would only measure its nominal offset.
-  out.nominal = subject.nominal.WithMarkers(markers);
+  MOCAP_RETURN_IF_ERROR(subject.nominal.WithMarkers(markers, &out.nominal));
   {
     const Model& full = subject.nominal;
     const int first_marker = full.num_markers() > 0 ? full.marker_index(0) : full.num_parameters();
@@ -575,7 +576,7 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
       if (truth.coordinates()[c].rotational) trial.coordinates.values.col(c) /= kDeg;
     out.trials.push_back(std::move(trial));
   }
-  out.truth = subject.truth.WithMarkers(markers);
+  MOCAP_RETURN_IF_ERROR(subject.truth.WithMarkers(markers, &out.truth));
   *session = std::move(out);
   return Status::Ok();
 }

@@ -247,7 +247,8 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   // Poses of every frame by IK for the geometry `p` (trials in parallel); given poses are kept
   // on the first call.
   auto solve_poses = [&](const Eigen::VectorXd& p, bool keep_given) -> Status {
-    const Model model = initial.WithParameters(p);
+    Model model;
+    MOCAP_RETURN_IF_ERROR(initial.WithParameters(p, &model));
     std::vector<Status> status(trials.size());
     ParallelChunks(static_cast<int>(trials.size()), threads, [&](int, int b, int e) {
       Geometry geometry(model);
@@ -278,7 +279,8 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
 
   Eigen::VectorXd sum_sq;
   Eigen::VectorXi counts;
-  problem.MarkerErrors(x, threads, &sum_sq, &counts);
+  if (!problem.MarkerErrors(x, threads, &sum_sq, &counts))
+    return Status::Error("fit: the initial model's parameters are no body (a scale <= 0?)");
   report.initial_marker_rms_mm = 1000.0 * std::sqrt(sum_sq.sum() / std::max(1, counts.sum()));
 
   const auto solve_start = Clock::now();
@@ -310,7 +312,8 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   if (!report.solver.IsSolutionUsable())
     return Status::Error("fit: the solver failed: " + report.solver.message);
 
-  problem.MarkerErrors(x, threads, &sum_sq, &counts);
+  if (!problem.MarkerErrors(x, threads, &sum_sq, &counts))
+    return Status::Error("fit: the solver ended at parameters that are no body");
   report.marker_rms_mm = 1000.0 * std::sqrt(sum_sq.sum() / std::max(1, counts.sum()));
   for (int m = 0; m < nm; ++m)
     if (counts[m] > 0)
@@ -346,7 +349,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   }
   report.covariance_seconds = Since(cov_start);
 
-  result->model = initial.WithParameters(p);
+  MOCAP_RETURN_IF_ERROR(initial.WithParameters(p, &result->model));
   result->coordinates.resize(trials.size());
   const Geometry geometry(result->model);
   ModelData data(result->model);

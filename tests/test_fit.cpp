@@ -7,6 +7,7 @@
 #include "solver/global_fit.h"
 #include "solver/marker_fit_problem.h"
 #include "solver/schur_solver.h"
+#include "tests/model_test_util.h"
 
 using namespace mocap;
 
@@ -18,7 +19,7 @@ TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
   std::mt19937_64 rng(11);
   const Model nominal = NominalWithoutOptional();
   const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
-  const Model truth = nominal.WithParameters(p_true);
+  const Model truth = mocap::testutil::Baked(nominal, p_true);
   const double noise = 0.0005;
   std::vector<solver::FitTrial> trials(1);
   trials[0].markers = testutil::SimulateRandomMotion(truth, 1000, noise, rng);
@@ -76,6 +77,34 @@ TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
   }
 }
 
+// A scale <= 0 is no body: the problem refuses it, so the solver rejects a step that would take a
+// scale there (its cost is infinite) and the report's errors are never computed for it.
+TEST(GlobalFit, ProblemRefusesNonPositiveScales) {
+  std::mt19937_64 rng(5);
+  const Model nominal = NominalWithoutOptional();
+  const formats::MarkerTrial trial = testutil::SimulateRandomMotion(nominal, 5, 0.0005, rng);
+  solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
+  const Eigen::VectorXd good = problem.InitialShared();
+  ASSERT_TRUE(problem.SetShared(good));
+  const int pelvis_scale = problem.free_index()[nominal.scale_index(nominal.FindSegment("pelvis"))];
+  ASSERT_GE(pelvis_scale, 0);
+  Eigen::VectorXd bad = good;
+  for (double scale : {0.0, -1e-9, -0.9}) {
+    bad[pelvis_scale] = scale;
+    EXPECT_FALSE(problem.SetShared(bad)) << "scale " << scale;
+  }
+  bad[pelvis_scale] = std::nan("");
+  EXPECT_FALSE(problem.SetShared(bad));
+  Eigen::VectorXd x = Eigen::VectorXd::Zero(problem.num_frames() * problem.frame_dim() +
+                                            problem.shared_dim());
+  x.tail(problem.shared_dim()) = bad;
+  Eigen::VectorXd sum_sq;
+  Eigen::VectorXi counts;
+  EXPECT_FALSE(problem.MarkerErrors(x, 1, &sum_sq, &counts));
+  x.tail(problem.shared_dim()) = good;
+  EXPECT_TRUE(problem.MarkerErrors(x, 1, &sum_sq, &counts));
+}
+
 // The fit's evaluator forms its Jacobians from terms prepared once per frame
 // (solver/marker_fit_problem.cpp), not by MarkerJacobian per marker: they must be MarkerJacobian's
 // to rounding (the expressions are the same; the compiler fuses multiply-adds differently).
@@ -83,7 +112,7 @@ TEST(GlobalFit, EvaluatorJacobiansAreMarkerJacobians) {
   std::mt19937_64 rng(5);
   const Model nominal = NominalWithoutOptional();
   const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
-  const Model truth = nominal.WithParameters(p_true);
+  const Model truth = mocap::testutil::Baked(nominal, p_true);
   const formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, 10, 0.0005, rng);
   solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
   Eigen::VectorXd shared(problem.shared_dim());
