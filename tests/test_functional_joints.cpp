@@ -3,6 +3,8 @@
 // artefact; and every refused input.
 #include <gtest/gtest.h>
 
+#include <nlohmann/json.hpp>
+
 #include <algorithm>
 #include <cmath>
 #include <string>
@@ -11,6 +13,7 @@
 #include "sim/protocol.h"
 #include "sim/simulate.h"
 #include "solver/functional_joints.h"
+#include "tests/file_test_util.h"
 
 using namespace mocap;
 
@@ -226,6 +229,31 @@ TEST(FunctionalJoints, TrackClusterRefusesWhatIsNoCluster) {
   s = solver::TrackCluster(t, {0, 1, 2}, &track);
   EXPECT_FALSE(s.ok());
   EXPECT_NE(s.message().find("no frame in which all 3"), std::string::npos) << s.message();
+}
+
+// `mocap functional` on real data: welk007's right-hip functional trial, clusters from the
+// generic model's marker set (4 pelvis, 6 thigh markers).
+TEST(FunctionalCommand, RealHipTrialJsonAndErrors) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const std::string dir = testutil::SharedData() + "/welk007_hipfunc/";
+  const std::string base = "functional --model " + dir + "unscaled_generic.osim --trial " + dir +
+                           "c3d_Trimmed_RHJC1.c3d";
+  const testutil::CommandResult r = testutil::Mocap(base + " --joint hip_r --json 2>/dev/null");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json j = nlohmann::json::parse(r.output);
+  EXPECT_EQ(j["parent"]["segment"], "pelvis");
+  EXPECT_EQ(j["child"]["markers"].size(), 6u);
+  EXPECT_TRUE(j["centre"]["fit"]["excited"].get<bool>());
+  EXPECT_EQ(j["centre"]["fit"]["frames_used"], 1224);
+  const double std_mm = j["centre"]["std_mm"];
+  EXPECT_GT(std_mm, 0.1);
+  EXPECT_LT(std_mm, 10.0);
+  const double residual = j["centre"]["fit"]["residual_rms_mm"];
+  EXPECT_LT(residual, 15.0);
+
+  const testutil::CommandResult unknown = testutil::Mocap(base + " --joint hip_q");
+  EXPECT_EQ(unknown.status, 1);
+  EXPECT_NE(unknown.output.find("no joint 'hip_q'"), std::string::npos) << unknown.output;
 }
 
 }  // namespace
