@@ -48,6 +48,15 @@ struct FitOptions {
   // If the solve has not converged after this many iterations, every pose is re-solved by IK
   // with the geometry reached so far and the solve continues (see FitModel).
   int repose_after_iterations = 12;
+  // After the solve, a frame whose cost per marker sample is more than `rescue_ratio` times the
+  // median frame's (a limb left in a wrong branch of its pose, typically behind a marker gap:
+  // with one of a two-marker segment's markers hidden its rotation is free, and the solve can
+  // carry it round to a mirror pose it cannot leave) gets its pose re-solved by IK from the
+  // nearest well-fitted frames before and after it; where that lowers the frame's cost the pose
+  // is replaced and the solve continues, for at most `rescue_rounds` rounds. 0 rounds: off.
+  double rescue_ratio = 4.0;
+  int rescue_rounds = 2;
+  int rescue_iterations = 12;  // the solve's iterations after each rescue that replaced poses
   int num_threads = 0;                  // 0: all cores
   LmOptions lm;
   IkOptions ik;
@@ -115,6 +124,7 @@ struct FitReport {
   double covariance_seconds = 0;
   double wall_seconds = 0;
   bool reposed = false;  // the poses were re-solved part-way (FitOptions::repose_after_iterations)
+  int rescued_frames = 0;  // poses replaced by FitOptions' rescue pass (all rounds)
   CoarseToFineSummary coarse;  // the coarse-to-fine start of the (first) solve
   bool converged() const { return solver.termination == TerminationType::kConvergence; }
   std::string BriefReport() const;

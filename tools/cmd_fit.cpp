@@ -177,6 +177,8 @@ int RunFit(const FitArgs& args) {
                    {"seconds", r.coarse.coarse.total_seconds},
                    {"pose_seconds", r.coarse.pose_seconds},
                    {"start_cost", r.coarse.fine_start_cost}};
+    j["reposed"] = r.reposed;
+    j["rescued_frames"] = r.rescued_frames;
     j["initial_cost"] = r.solver.initial_cost;
     j["final_cost"] = r.solver.final_cost;
     j["initial_marker_rms_mm"] = r.initial_marker_rms_mm;
