@@ -5,6 +5,7 @@
 #include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <limits>
 #include <random>
 
@@ -131,6 +132,18 @@ FunctionalFit Describe(const ClusterTrack& parent, const ClusterTrack& child,
   return fit;
 }
 
+// Excited when the rotation spread about principal axis `axis` (0: main, 1: second) reaches
+// `min_deg`; otherwise a note that says so.
+void MarkExcitation(int axis, double min_deg, FunctionalFit* fit) {
+  fit->excited = fit->rotation_spread_deg[axis] >= min_deg;
+  if (fit->excited) return;
+  char buf[240];
+  std::snprintf(buf, sizeof(buf), "the joint turned %.1f deg RMS about its %s axis (at least %.1f "
+                "needed)%s", fit->rotation_spread_deg[axis], axis == 0 ? "main" : "second", min_deg,
+                axis == 0 ? "" : ": a centre needs rotation about two axes");
+  fit->note = buf;
+}
+
 // Calls `estimate(n, g)` on `samples` moving-block resamples of the terms.
 template <typename Estimate>
 void Bootstrap(const NormalTerms& t, const FunctionalJointOptions& options, Estimate estimate) {
@@ -253,15 +266,7 @@ Status EstimateCentre(const ClusterTrack& parent, const ClusterTrack& child, dou
   out.in_child = x.tail<3>();
   out.fit = Describe(parent, child, frames, t.n, x);
   // A centre is fixed by rotation about two axes; about one it slides along that axis.
-  out.fit.excited = out.fit.rotation_spread_deg[1] >= options.min_rotation_deg;
-  if (!out.fit.excited) {
-    char buf[240];
-    std::snprintf(buf, sizeof(buf),
-                  "the joint turned %.1f deg RMS about its second axis (at least %.1f needed): a "
-                  "centre needs rotation about two axes",
-                  out.fit.rotation_spread_deg[1], options.min_rotation_deg);
-    out.fit.note = buf;
-  }
+  MarkExcitation(1, options.min_rotation_deg, &out.fit);
   std::vector<Eigen::Vector3d> draws;
   Bootstrap(t, options, [&](const Matrix6d& n, const Vector6d& g) {
     const Eigen::SelfAdjointEigenSolver<Matrix6d> e(n);
@@ -289,14 +294,7 @@ Status EstimateAxis(const ClusterTrack& parent, const ClusterTrack& child, doubl
   out.point_parent = x.head<3>();
   out.point_child = x.tail<3>();
   out.fit = Describe(parent, child, frames, t.n, x);
-  out.fit.excited = out.fit.rotation_spread_deg[0] >= options.min_rotation_deg;
-  if (!out.fit.excited) {
-    char buf[200];
-    std::snprintf(buf, sizeof(buf),
-                  "the joint turned %.1f deg RMS about its main axis (at least %.1f needed)",
-                  out.fit.rotation_spread_deg[0], options.min_rotation_deg);
-    out.fit.note = buf;
-  }
+  MarkExcitation(0, options.min_rotation_deg, &out.fit);
   double angle_sq = 0, point_sq = 0;
   int draws = 0;
   Bootstrap(t, options, [&](const Matrix6d& n, const Vector6d& g) {
