@@ -163,6 +163,8 @@ bool FitOptions::IsValid(std::string* error) const {
   if (!(gauge_sigma_m > 0)) return fail("gauge_sigma_m must be > 0");
   if (repose_after_iterations < 1) return fail("repose_after_iterations must be >= 1");
   if (!(rescue_ratio > 1)) return fail("rescue_ratio must be > 1");
+  if (!(outlier_marker_ratio > 1) || !(outlier_marker_min_mm >= 0))
+    return fail("outlier_marker_ratio must be > 1 and outlier_marker_min_mm >= 0");
   if (rescue_rounds < 0) return fail("rescue_rounds must be >= 0");
   if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
@@ -204,16 +206,24 @@ std::string FitReport::BriefReport() const {
       : coarse.fallback ? " (from the start: " + std::to_string(coarse.coarse.num_iterations()) +
                               " on " + std::to_string(coarse.coarse_frames) + " frames did not converge)"
                         : "";
-  char buf[640];
+  std::string outliers;
+  for (size_t k = 0; k < outlier_markers.size() && k < 5; ++k) {
+    char one[96];
+    std::snprintf(one, sizeof(one), "%s%s %.1f mm", k == 0 ? "; outlying markers: " : ", ",
+                  outlier_markers[k].first.c_str(), outlier_markers[k].second);
+    outliers += one;
+  }
+  if (outlier_markers.size() > 5) outliers += ", ...";
+  char buf[1024];
   std::snprintf(buf, sizeof(buf),
                 "fit: %d trials, %d frames, %d markers, %d unknowns; marker RMS %.3f -> %.3f mm; "
-                "%d iterations%s, %s%s; %zu undetermined; %.2f s (IK %.2f s, solve %.2f s)",
+                "%d iterations%s, %s%s; %zu undetermined%s; %.2f s (IK %.2f s, solve %.2f s)",
                 trials, frames, markers, unknowns, initial_marker_rms_mm, marker_rms_mm,
                 solver.num_iterations(), coarse_note.c_str(), ToString(solver.termination),
                 rescued_frames > 0 ? (", " + std::to_string(rescued_frames) +
                                       " frame poses rescued").c_str()
                                    : "",
-                undetermined.size(), wall_seconds, ik_seconds, solve_seconds);
+                undetermined.size(), outliers.c_str(), wall_seconds, ik_seconds, solve_seconds);
   return buf;
 }
 
@@ -418,6 +428,19 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     if (counts[m] > 0)
       report.per_marker_rms_mm.emplace_back(initial.markers()[m].name,
                                             1000.0 * std::sqrt(sum_sq[m] / counts[m]));
+
+  if (!report.per_marker_rms_mm.empty()) {
+    std::vector<double> rms;
+    for (const auto& [name, v] : report.per_marker_rms_mm) rms.push_back(v);
+    std::nth_element(rms.begin(), rms.begin() + rms.size() / 2, rms.end());
+    report.median_marker_rms_mm = rms[rms.size() / 2];
+    for (const auto& [name, v] : report.per_marker_rms_mm)
+      if (v > options.outlier_marker_ratio * report.median_marker_rms_mm &&
+          v > report.median_marker_rms_mm + options.outlier_marker_min_mm)
+        report.outlier_markers.emplace_back(name, v);
+    std::sort(report.outlier_markers.begin(), report.outlier_markers.end(),
+              [](const auto& a, const auto& b) { return a.second > b.second; });
+  }
 
   // Uncertainty: S^{-1} in residual units; scaled by the residual variance for the reported std.
   const auto cov_start = Clock::now();
