@@ -8,6 +8,15 @@
 //                [--ceres-max-seconds S] [--repeat R] [--verbose] [--plain]
 //                [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]
 //                [--pose-tolerance T] [--fine-lambda L] [--no-inner]
+//                [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA] [--min-diagonal D]
+//                [--fit-model] [--rescue-rounds N]
+//
+// --fit-model also runs solver::FitModel, what `mocap fit` runs, on the same trials with the same
+// options: its IK start, the coarse-to-fine solve, the re-posing and the rescue of frames left in
+// a wrong branch (FitOptions::rescue_ratio), timed whole (wall) and solve alone.
+//
+// The data: the default protocol simulated with seed N (1), noise S mm (0.5) and a fraction F (0)
+// of the marker samples lost in gaps of 5-30 frames (sim/simulate.h), as real captures have.
 //
 // Sameness. Both solvers work on ONE solver::MarkerFitProblem (measurements, residual scales,
 // free parameters, prior rows, gauge rows) from ONE x0 (per-frame IK with the nominal model, as
@@ -50,6 +59,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -169,6 +179,13 @@ struct Args {
   bool verbose = false;
   bool plain = false;  // also time our plain LM (no coarse-to-fine start) in the same run
   solver::CoarseToFineOptions coarse;  // FitOptions' defaults unless set
+  double missing = 0.0;     // fraction of marker samples lost in gaps
+  double noise_mm = 0.5;
+  std::uint64_t seed = 1;
+  double min_diagonal = 0;       // > 0: LmOptions::min_diagonal; 0: its default
+  bool fit_model = false;        // also time solver::FitModel on the same trials
+  int rescue_rounds = -1;        // >= 0: FitOptions::rescue_rounds (0: no rescue); -1: default
+  double frame_prior_sigma = 0;  // > 0: FitOptions' frame prior sigma (rad and m); 0: its default
 };
 
 [[noreturn]] void Usage(const std::string& error) {
@@ -178,7 +195,9 @@ struct Args {
                "         [--ceres-solvers schur,normal,dense] [--ceres-residuals marker|frame]\n"
                "         [--ceres-shared split|single] [--ceres-max-seconds S] [--repeat R] [--verbose]\n"
                "         [--plain] [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]\n"
-               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner]\n",
+               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner]\n"
+               "         [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA]\n"
+               "         [--min-diagonal D] [--fit-model] [--rescue-rounds N]\n",
                error.c_str());
   std::exit(2);
 }
@@ -207,6 +226,15 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--no-inner") args.coarse.inner_iterations = false;
     else if (a == "--pose-tolerance") args.coarse.pose_tolerance = number(0);
     else if (a == "--fine-lambda") args.coarse.fine_initial_lambda = number(1e-300);
+    else if (a == "--missing") {
+      args.missing = number(0);
+      if (!(args.missing < 0.9)) Usage("--missing must be in [0, 0.9)");
+    } else if (a == "--noise-mm") args.noise_mm = number(0);
+    else if (a == "--fit-model") args.fit_model = true;
+    else if (a == "--rescue-rounds") args.rescue_rounds = static_cast<int>(number(0));
+    else if (a == "--min-diagonal") args.min_diagonal = number(1e-300);
+    else if (a == "--frame-prior") args.frame_prior_sigma = number(1e-6);
+    else if (a == "--seed") args.seed = static_cast<std::uint64_t>(number(0));
     else if (a == "--threads") args.threads = static_cast<int>(number(1));
     else if (a == "--skip-ceres") args.skip_ceres = true;
     else if (a == "--ceres-max-seconds") args.ceres_max_seconds = number(1e-3);
@@ -280,6 +308,7 @@ struct BenchData {
   Model model;  // the nominal model, markers restricted to those in the data
   formats::RowMatrix measurements;                // frames x 3 markers, model order, NaN = missing
   std::vector<std::pair<int, int>> trial_ranges;  // first frame, frame count
+  std::vector<formats::MarkerTrial> trials;       // the same frames as trials (--fit-model)
   std::string source;
 };
 
@@ -300,7 +329,10 @@ BenchData Assemble(const Model& nominal, const std::vector<const formats::Marker
   std::vector<int> keep;
   for (int m = 0; m < nominal.num_markers(); ++m)
     if (names.count(nominal.markers()[m].name)) keep.push_back(m);
-  d.model = nominal.WithMarkers(keep);
+  if (mocap::Status s = nominal.WithMarkers(keep, &d.model); !s) {
+    std::fprintf(stderr, "fit_vs_ceres: %s\n", s.message().c_str());
+    std::exit(1);
+  }
   const int nm = d.model.num_markers();
   d.measurements.setConstant(total, 3 * nm, std::numeric_limits<double>::quiet_NaN());
   int first = 0;
@@ -313,6 +345,11 @@ BenchData Assemble(const Model& nominal, const std::vector<const formats::Marker
     }
     d.trial_ranges.emplace_back(first, take[t]);
     first += take[t];
+    formats::MarkerTrial copy = trial;
+    copy.positions.conservativeResize(take[t], Eigen::NoChange);
+    copy.frame_numbers.resize(std::min<size_t>(copy.frame_numbers.size(), take[t]));
+    copy.times.resize(std::min<size_t>(copy.times.size(), take[t]));
+    d.trials.push_back(std::move(copy));
   }
   // A sample is all three coordinates or nothing (as in FitModel).
   for (int f = 0; f < total; ++f)
@@ -322,10 +359,11 @@ BenchData Assemble(const Model& nominal, const std::vector<const formats::Marker
   return d;
 }
 
-BenchData MakeData(int frames) {
+BenchData MakeData(int frames, const Args& args) {
   sim::SimulationOptions options;
-  options.seed = 1;
-  options.noise_mm = 0.5;
+  options.seed = args.seed;
+  options.noise_mm = args.noise_mm;
+  options.missing = args.missing;
   // The protocol is about 6000 frames at duration_scale 1; longer sessions repeat more cycles.
   options.duration_scale = std::max(1.0, std::ceil(frames / 6000.0));
   sim::SimulatedSession session;
@@ -342,7 +380,9 @@ BenchData MakeData(int frames) {
   for (const auto& t : session.trials) trials.push_back(&t.markers);
   BenchData d = Assemble(session.nominal, trials, frames);
   char buf[160];
-  std::snprintf(buf, sizeof(buf), "default protocol, seed 1, noise 0.5 mm, duration_scale %g, %zu trials",
+  std::snprintf(buf, sizeof(buf),
+                "default protocol, seed %llu, noise %g mm, missing %g, duration_scale %g, %zu trials",
+                static_cast<unsigned long long>(options.seed), options.noise_mm, options.missing,
                 options.duration_scale, d.trial_ranges.size());
   d.source = buf;
   return d;
@@ -784,10 +824,15 @@ double RelativeDifference(double a, double b) {
 
 int main(int argc, char** argv) {
   const Args args = ParseArgs(argc, argv);
-  const solver::FitOptions fit_options;  // defaults: all four groups free, FitModel's LM settings
+  solver::FitOptions fit_options;  // defaults: all four groups free, FitModel's LM settings
+  if (args.min_diagonal > 0) fit_options.lm.min_diagonal = args.min_diagonal;
+  if (args.frame_prior_sigma > 0) {
+    fit_options.frame_prior_sigma_rad = args.frame_prior_sigma;
+    fit_options.frame_prior_sigma_m = args.frame_prior_sigma;
+  }
 
   const auto setup_start = Clock::now();
-  const BenchData data = MakeData(args.frames);
+  const BenchData data = MakeData(args.frames, args);
   solver::MarkerFitProblem problem(data.model, data.measurements, fit_options);
   const int nf = problem.num_frames(), nz = problem.frame_dim(), np = problem.shared_dim();
   const double setup_seconds = Since(setup_start);
@@ -880,6 +925,29 @@ int main(int argc, char** argv) {
     out["plain_cpu_s"] = plain_cpu;
     out["plain_cost"] = plain.final_cost;
     out["plain_iterations"] = plain.num_iterations();
+  }
+  solver::FitResult fitted;
+  if (args.fit_model) {
+    std::vector<solver::FitTrial> fit_trials(data.trials.size());
+    for (size_t t = 0; t < data.trials.size(); ++t) fit_trials[t].markers = data.trials[t];
+    solver::FitOptions options = fit_options;
+    options.num_threads = args.threads;
+    if (args.rescue_rounds >= 0) options.rescue_rounds = args.rescue_rounds;
+    if (Status s = solver::FitModel(data.model, fit_trials, options, &fitted); !s) {
+      std::fprintf(stderr, "fit_vs_ceres: FitModel: %s\n", s.message().c_str());
+      return 1;
+    }
+    const solver::FitReport& r = fitted.report;
+    out["fitmodel_wall_s"] = r.wall_seconds;
+    out["fitmodel_solve_s"] = r.solve_seconds;
+    out["fitmodel_ik_s"] = r.ik_seconds;
+    out["fitmodel_cost"] = r.solver.final_cost;
+    out["fitmodel_iterations"] = r.solver.num_iterations();
+    out["fitmodel_termination"] = solver::ToString(r.solver.termination);
+    out["fitmodel_reposed"] = r.reposed;
+    out["fitmodel_rescued_frames"] = r.rescued_frames;
+    out["fitmodel_marker_rms_mm"] = r.marker_rms_mm;
+    out["fitmodel_per_trial_rms_mm"] = r.per_trial_rms_mm;
   }
   out["ours_caches_frames"] = ours_cached;  // U_f, W_f kept between passes (memory budget)
   out["ours_peak_rss_mb"] = ours_rss;
@@ -1000,6 +1068,17 @@ int main(int argc, char** argv) {
   std::printf("  %-30s %9.3f %9.3f %15.9e %5d %6.0f%%  %s\n", "ours (Schur LM)", ours_seconds,
               ours_cpu, ours.final_cost, ours.num_iterations(), 100 * ours_others_cpu,
               solver::ToString(ours.termination));
+  if (args.fit_model) {
+    const solver::FitReport& r = fitted.report;
+    double worst_trial = 0;
+    for (double v : r.per_trial_rms_mm) worst_trial = std::max(worst_trial, v);
+    std::printf("  %-30s %9.3f %9s %15.9e %5d %7s  %s (solve %.3f s, IK %.3f s; %d frames "
+                "rescued%s; marker RMS %.3f mm, worst trial %.3f mm)\n",
+                "FitModel (whole, wall)", r.wall_seconds, "", r.solver.final_cost,
+                r.solver.num_iterations(), "", solver::ToString(r.solver.termination),
+                r.solve_seconds, r.ik_seconds, r.rescued_frames, r.reposed ? ", reposed" : "",
+                r.marker_rms_mm, worst_trial);
+  }
   for (const CeresRun& r : runs) {
     const std::string name = std::string("Ceres ") + CeresSolverName(r.name);
     std::printf("  %-30s %9.3f %9.3f %15.9e %5d %6.0f%%  %s%s\n", name.c_str(), r.seconds,

@@ -873,7 +873,8 @@ void Daemon::SubjectCreate(const Request& r) {
   std::string osim_text;
   if (model_arg == "default") {
     const Model full = DefaultFullBodyModel(height);
-    model = full.WithMarkers(sim::SimulatedMarkers(full, false));
+    if (Status s = full.WithMarkers(sim::SimulatedMarkers(full, false), &model); !s)
+      return Fail(r, error_code::kInternal, "the default model: " + s.message());
   } else if (EndsWith(model_arg, ".osim")) {
     formats::OsimImport import;
     if (Status s = formats::ImportOsim(model_arg, &import); !s)

@@ -74,17 +74,22 @@ std::vector<std::string_view> SplitFields(std::string_view line) {
       fields.push_back(Trim(line.substr(start, tab - start)));
       start = tab + 1;
     }
-  } else {
-    size_t i = 0;
-    while (i < line.size()) {
-      while (i < line.size() && line[i] == ' ') ++i;
-      if (i >= line.size()) break;
-      const size_t b = i;
-      while (i < line.size() && line[i] != ' ') ++i;
-      fields.push_back(line.substr(b, i - b));
-    }
+    return fields;
   }
-  return fields;
+  return SplitWords(line);  // no tab: the words between runs of spaces
+}
+
+std::vector<std::string_view> SplitWords(std::string_view line) {
+  std::vector<std::string_view> words;
+  size_t i = 0;
+  while (i < line.size()) {
+    while (i < line.size() && (line[i] == ' ' || line[i] == '\t')) ++i;
+    if (i >= line.size()) break;
+    const size_t b = i;
+    while (i < line.size() && line[i] != ' ' && line[i] != '\t') ++i;
+    words.push_back(line.substr(b, i - b));
+  }
+  return words;
 }
 
 void DropTrailingEmpty(std::vector<std::string_view>* fields) {
@@ -103,9 +108,15 @@ bool EqualsIgnoreCase(std::string_view a, std::string_view b) {
 }
 
 double UnitsPerMetre(std::string_view units) {
-  if (EqualsIgnoreCase(units, "mm")) return 1000.0;
-  if (EqualsIgnoreCase(units, "cm")) return 100.0;
-  if (EqualsIgnoreCase(units, "m")) return 1.0;
+  for (const char* mm : {"mm", "millimeters", "millimetres", "millimeter", "millimetre"}) {
+    if (EqualsIgnoreCase(units, mm)) return 1000.0;
+  }
+  for (const char* cm : {"cm", "centimeters", "centimetres", "centimeter", "centimetre"}) {
+    if (EqualsIgnoreCase(units, cm)) return 100.0;
+  }
+  for (const char* m : {"m", "meters", "metres", "meter", "metre"}) {
+    if (EqualsIgnoreCase(units, m)) return 1.0;
+  }
   return 0.0;
 }
 

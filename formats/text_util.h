@@ -32,6 +32,9 @@ bool IsBlank(std::string_view s);
 // (so an empty field between two tabs is kept, which is how TRC marks a missing sample);
 // otherwise fields are separated by runs of spaces. Each field is trimmed of spaces.
 std::vector<std::string_view> SplitFields(std::string_view line);
+// Splits a line into the words between runs of spaces and tabs (no empty words). For header
+// lines whose words never contain spaces, written with any mix of tabs and spaces.
+std::vector<std::string_view> SplitWords(std::string_view line);
 // Drops empty fields from the end of `fields`.
 void DropTrailingEmpty(std::vector<std::string_view>* fields);
 
@@ -47,8 +50,9 @@ bool ParseInt(std::string_view field, int* value);
 
 bool EqualsIgnoreCase(std::string_view a, std::string_view b);
 
-// File units per metre for a length unit name (any case): mm 1000, cm 100, m 1; 0 when the unit is
-// not supported. Exact integers, so dividing a value in file units by them rounds correctly.
+// File units per metre for a length unit name (any case): mm 1000, cm 100, m 1 (also spelled out:
+// millimeters/millimetres, centimeters/centimetres, meters/metres); 0 when the unit is not
+// supported. Exact integers, so dividing a value in file units by them rounds correctly.
 double UnitsPerMetre(std::string_view units);
 
 // Appends `value` in fixed notation with `decimals` digits after the point (locale-independent).

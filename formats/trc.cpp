@@ -1,5 +1,6 @@
 #include "formats/trc.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <string_view>
@@ -21,6 +22,7 @@ using detail::ParseDouble;
 using detail::ParseInt;
 using detail::Quote;
 using detail::SplitFields;
+using detail::SplitWords;
 using detail::UnitsPerMetre;
 
 namespace {
@@ -38,23 +40,39 @@ bool IsCoordinateLabel(std::string_view f) {
 
 struct Header {
   double rate = 0.0;
-  int num_frames = 0;
-  int num_markers = 0;
+  int num_frames = -1;   // -1: not given
+  int num_markers = -1;  // -1: not given (the marker-name line decides)
   std::string units;
   int values_line = 0;  // line number of the header values line
 };
 
-// Parses the keys line and the values line below it.
+// The values of the header values line, one per key. OpenSim drops empty fields from both lines
+// and pairs what is left; writers differ in how they pad (tabs, runs of spaces, both). A value
+// left empty between two tabs is kept in its place when the tabs line up with the keys, so that
+// "60<TAB><TAB>300..." is read as a CameraRate without a value, not as CameraRate 300.
+std::vector<std::string_view> HeaderValues(std::string_view line, size_t num_keys) {
+  if (line.find('\t') != std::string_view::npos) {
+    std::vector<std::string_view> by_tab = SplitFields(line);
+    DropTrailingEmpty(&by_tab);
+    if (by_tab.size() <= num_keys) {
+      bool words_inside = false;  // "60 60" in one tab field: padded with spaces, not tabs
+      for (auto v : by_tab) words_inside |= SplitWords(v).size() > 1;
+      if (!words_inside) return by_tab;
+    }
+  }
+  return SplitWords(line);
+}
+
+// Parses the keys line and the values line below it. Keys never contain spaces, so the keys are
+// the words of their line whatever separates them.
 Status ParseHeader(const std::string& path, const Line& keys_line, const Line& values_line,
                    Header* header) {
-  std::vector<std::string_view> keys = SplitFields(keys_line.text);
-  std::vector<std::string_view> values = SplitFields(values_line.text);
-  DropTrailingEmpty(&keys);
-  DropTrailingEmpty(&values);
+  const std::vector<std::string_view> keys = SplitWords(keys_line.text);
+  const std::vector<std::string_view> values = HeaderValues(values_line.text, keys.size());
   header->values_line = values_line.number;
 
   bool has_rate_key = false;
-  for (auto k : keys) has_rate_key |= (k == "DataRate");
+  for (auto k : keys) has_rate_key |= EqualsIgnoreCase(k, "DataRate");
   if (!has_rate_key) {
     return Status::Error(At(path, keys_line.number,
                             "expected the header keys line (DataRate CameraRate NumFrames "
@@ -68,51 +86,49 @@ Status ParseHeader(const std::string& path, const Line& keys_line, const Line& v
                                 std::to_string(keys.size())));
   }
 
-  bool seen_rate = false, seen_frames = false, seen_markers = false, seen_units = false;
+  bool seen_rate = false, seen_units = false;
   for (size_t j = 0; j < keys.size(); ++j) {
     const std::string key(keys[j]);
     const std::string_view value = j < values.size() ? values[j] : std::string_view();
-    const bool required =
-        key == "DataRate" || key == "NumFrames" || key == "NumMarkers" || key == "Units";
+    auto is = [&](const char* name) { return EqualsIgnoreCase(key, name); };
     if (value.empty()) {
-      if (required) {
+      // Only what the reader cannot do without must have a value: the rate (times, filters) and
+      // the units (a guess would scale the subject by 10 or 1000 silently). The counts are
+      // checked against the file itself, as OpenSim does.
+      if (is("DataRate") || is("Units")) {
         return Status::Error(At(path, values_line.number, "header field " + key + " has no value"));
       }
       continue;
     }
-    if (key == "Units") {
+    if (is("Units")) {
       if (UnitsPerMetre(value) == 0.0) {
         return Status::Error(At(path, values_line.number,
                                 "Units " + Quote(value) + " is not supported (expected mm, cm or m)"));
       }
       header->units = std::string(value);
       seen_units = true;
-    } else if (key == "NumFrames" || key == "NumMarkers" || key == "OrigDataStartFrame" ||
-               key == "OrigNumFrames") {
+    } else if (is("NumFrames") || is("NumMarkers") || is("OrigDataStartFrame") ||
+               is("OrigNumFrames")) {
       int n = 0;
       if (!ParseInt(value, &n) || n < 0) {
         return Status::Error(At(path, values_line.number,
                                 "header field " + key + " = " + Quote(value) +
                                     " is not a non-negative integer"));
       }
-      if (key == "NumFrames") { header->num_frames = n; seen_frames = true; }
-      if (key == "NumMarkers") { header->num_markers = n; seen_markers = true; }
-    } else if (key == "DataRate" || key == "CameraRate" || key == "OrigDataRate") {
+      if (is("NumFrames")) header->num_frames = n;
+      if (is("NumMarkers")) header->num_markers = n;
+    } else if (is("DataRate") || is("CameraRate") || is("OrigDataRate")) {
       double r = 0.0;
       if (ParseDouble(value, &r) != NumberKind::kNumber || !(r > 0.0)) {
         return Status::Error(At(path, values_line.number,
                                 "header field " + key + " = " + Quote(value) +
                                     " is not a positive number"));
       }
-      if (key == "DataRate") { header->rate = r; seen_rate = true; }
+      if (is("DataRate")) { header->rate = r; seen_rate = true; }
     }
     // Other keys are kept for forward compatibility and ignored.
   }
-  const char* missing = !seen_rate      ? "DataRate"
-                        : !seen_frames  ? "NumFrames"
-                        : !seen_markers ? "NumMarkers"
-                        : !seen_units   ? "Units"
-                                        : nullptr;
+  const char* missing = !seen_rate ? "DataRate" : !seen_units ? "Units" : nullptr;
   if (missing) {
     return Status::Error(At(path, keys_line.number,
                             std::string("header has no ") + missing + " field"));
@@ -126,7 +142,11 @@ Status ReadTrc(const std::string& path, MarkerTrial* trial) {
   if (trial == nullptr) return Status::Error(path + ": ReadTrc called with a null trial");
   std::string text;
   if (Status s = detail::ReadWholeFile(path, &text); !s.ok()) return s;
-  const std::vector<Line> lines = detail::SplitLines(text);
+  // A UTF-8 byte order mark (Windows editors) is not part of the first line.
+  const std::string_view bom = "\xEF\xBB\xBF";
+  const std::string_view body =
+      std::string_view(text).substr(std::string_view(text).starts_with(bom) ? bom.size() : 0);
+  const std::vector<Line> lines = detail::SplitLines(body);
 
   size_t i = 0;
   auto skip_blank = [&]() {
@@ -143,7 +163,8 @@ Status ReadTrc(const std::string& path, MarkerTrial* trial) {
     return Status::Error(At(path, 1, "empty file (expected a TRC header line 'PathFileType 4 ...')"));
   }
   {
-    auto f = SplitFields(lines[i].text);
+    // Any spaces and tabs after the key: "PathFileType  4<TAB>(X/Y/Z) C:\\..." is OpenCap's.
+    auto f = SplitWords(lines[i].text);
     if (f.empty() || !EqualsIgnoreCase(f[0], "PathFileType")) {
       return Status::Error(At(path, lines[i].number,
                               "not a TRC file: expected the header line 'PathFileType 4 (X/Y/Z) "
@@ -165,6 +186,12 @@ Status ReadTrc(const std::string& path, MarkerTrial* trial) {
   std::vector<std::string> names;
   {
     auto f = SplitFields(names_line.text);
+    // "Frame# Time<TAB>A<TAB><TAB><TAB>B...": the two column labels padded with spaces.
+    if (!f.empty() && SplitWords(f[0]).size() > 1) {
+      std::vector<std::string_view> first = SplitWords(f[0]);
+      f.erase(f.begin());
+      f.insert(f.begin(), first.begin(), first.end());
+    }
     if (f.size() < 2 || !EqualsIgnoreCase(f[0], "Frame#") || !EqualsIgnoreCase(f[1], "Time")) {
       return Status::Error(At(path, names_line.number,
                               "expected the marker-name line 'Frame# Time name1 ...', found " +
@@ -183,14 +210,14 @@ Status ReadTrc(const std::string& path, MarkerTrial* trial) {
   if (names.empty()) {
     return Status::Error(At(path, names_line.number, "the file names no markers"));
   }
-  if (static_cast<int>(names.size()) != header.num_markers) {
+  if (header.num_markers >= 0 && static_cast<int>(names.size()) != header.num_markers) {
     return Status::Error(At(path, names_line.number,
                             "the marker-name line lists " + std::to_string(names.size()) +
                                 " markers but NumMarkers (line " +
                                 std::to_string(header.values_line) + ") is " +
                                 std::to_string(header.num_markers)));
   }
-  const int num_markers = header.num_markers;
+  const int num_markers = static_cast<int>(names.size());
 
   // 5: X1 Y1 Z1 X2 ... (optional: some writers leave it out)
   if (skip_blank()) {
@@ -216,10 +243,12 @@ Status ReadTrc(const std::string& path, MarkerTrial* trial) {
   std::vector<double> data;
   std::vector<int> frames;
   std::vector<double> times;
-  data.reserve(static_cast<size_t>(header.num_frames) * width);
-  frames.reserve(header.num_frames);
-  times.reserve(header.num_frames);
-  int first_data_line = 0, last_data_line = 0;
+  // NumFrames only sizes the buffers, and no more than the lines left can hold.
+  const size_t expected_rows =
+      std::min(static_cast<size_t>(std::max(header.num_frames, 0)), lines.size() - i);
+  data.reserve(expected_rows * width);
+  frames.reserve(expected_rows);
+  times.reserve(expected_rows);
   for (; i < lines.size(); ++i) {
     const Line& line = lines[i];
     if (IsBlank(line.text)) continue;
@@ -243,8 +272,6 @@ Status ReadTrc(const std::string& path, MarkerTrial* trial) {
                               "Time " + Quote(f.size() < 2 ? std::string_view() : f[1]) +
                                   " is not a number"));
     }
-    if (first_data_line == 0) first_data_line = line.number;
-    last_data_line = line.number;
     frames.push_back(frame);
     times.push_back(time);
     for (int m = 0; m < num_markers; ++m) {
@@ -277,16 +304,9 @@ Status ReadTrc(const std::string& path, MarkerTrial* trial) {
       for (int c = 0; c < 3; ++c) data.push_back(missing ? nan : xyz[c] / per_metre);
     }
   }
+  // NumFrames is not checked against the rows: OpenSim reads the rows that are there, and
+  // writers (Pose2Sim, trimmed exports) leave it stale.
   const int rows = static_cast<int>(frames.size());
-  if (rows != header.num_frames) {
-    std::string where = rows > 0 ? " (lines " + std::to_string(first_data_line) + "-" +
-                                       std::to_string(last_data_line) + ")"
-                                 : "";
-    return Status::Error(At(path, header.values_line,
-                            "NumFrames is " + std::to_string(header.num_frames) +
-                                " but the file has " + std::to_string(rows) + " data rows" +
-                                where));
-  }
 
   MarkerTrial out;
   out.name = detail::FileStem(path);

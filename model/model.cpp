@@ -301,11 +301,20 @@ Eigen::VectorXd Model::DefaultCoordinates() const {
   return z;
 }
 
-Model Model::WithParameters(const Eigen::VectorXd& p) const {
+Status Model::WithParameters(const Eigen::VectorXd& p, Model* out) const {
+  if (out == nullptr) return Status::Error("model '" + name_ + "': WithParameters given no output");
+  if (p.size() != num_parameters())
+    return Status::Error("model '" + name_ + "': " + std::to_string(p.size()) +
+                         " parameters given, the model has " + std::to_string(num_parameters()));
+  for (int i = 0; i < num_parameters(); ++i) {
+    if (!std::isfinite(p[i]))
+      return Status::Error("model '" + name_ + "': parameter " + parameters_[i].name +
+                           " is not finite");
+  }
   std::vector<Segment> segments = segments_;
   std::vector<Joint> joints = joints_;
   std::vector<Marker> markers = markers_;
-  for (int s = 0; s < num_segments(); ++s) segments[s].scale = p[s];
+  for (int s = 0; s < num_segments(); ++s) segments[s].scale = p[scale_index(s)];
   for (int j = 0; j < num_joints(); ++j) {
     if (centre_index_[j] >= 0) joints[j].centre = p.segment<3>(centre_index_[j]);
     for (size_t e = 0; e < joints[j].elements.size(); ++e) {
@@ -318,19 +327,33 @@ Model Model::WithParameters(const Eigen::VectorXd& p) const {
     }
   }
   for (int i = 0; i < num_markers(); ++i) markers[i].position = p.segment<3>(marker_index_[i]);
-  Model out;
-  Status s = Build(name_, segments, joints, coordinates_, markers, derived_, &out);
-  (void)s;  // same topology as *this, which was valid
-  return out;
+  Model built;
+  if (Status s = Build(name_, segments, joints, coordinates_, markers, derived_, &built); !s)
+    return Status::Error("model '" + name_ + "' with new parameters: " + s.message());
+  *out = std::move(built);
+  return Status::Ok();
 }
 
-Model Model::WithMarkers(const std::vector<int>& keep) const {
+Status Model::WithMarkers(const std::vector<int>& keep, Model* out) const {
+  if (out == nullptr) return Status::Error("model '" + name_ + "': WithMarkers given no output");
   std::vector<Marker> markers;
-  for (int i : keep) markers.push_back(markers_[i]);
-  Model out;
-  Status s = Build(name_, segments_, joints_, coordinates_, markers, derived_, &out);
-  (void)s;
-  return out;
+  std::vector<char> taken(markers_.size(), 0);
+  for (int i : keep) {
+    if (i < 0 || i >= num_markers())
+      return Status::Error("model '" + name_ + "': marker index " + std::to_string(i) +
+                           " is out of range (the model has " + std::to_string(num_markers()) +
+                           " markers)");
+    if (taken[i]++)
+      return Status::Error("model '" + name_ + "': marker '" + markers_[i].name +
+                           "' is kept twice");
+    markers.push_back(markers_[i]);
+  }
+  Model built;
+  if (Status s = Build(name_, segments_, joints_, coordinates_, markers, derived_, &built); !s)
+    return Status::Error("model '" + name_ + "' with " + std::to_string(keep.size()) +
+                         " markers: " + s.message());
+  *out = std::move(built);
+  return Status::Ok();
 }
 
 }  // namespace mocap

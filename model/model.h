@@ -28,7 +28,7 @@
 //            a = cos(b)(cos(a) e1 + sin(a) e2) + sin(b) e3, e1 = stored axis [2 per axis]
 //   markers  each marker's position on its segment (unscaled)            [3 per marker]
 // Axis angles are relative to the model's stored axes, so Model::InitialParameters() has zeros
-// there; Model::WithParameters(p) bakes a p into a new Model (axes re-based, angles back to 0).
+// there; Model::WithParameters bakes a p into a new Model (axes re-based, angles back to 0).
 #pragma once
 
 #include <Eigen/Core>
@@ -158,10 +158,13 @@ class Model {
   // p of this model as stored (axis angles zero) and the default pose z.
   Eigen::VectorXd InitialParameters() const;
   Eigen::VectorXd DefaultCoordinates() const;
-  // A new model with geometry p baked in (scales, centres, re-based axes, markers).
-  Model WithParameters(const Eigen::VectorXd& p) const;
-  // The same model without some markers (for data that lacks them).
-  Model WithMarkers(const std::vector<int>& keep) const;
+  // A new model with geometry p baked in (scales, centres, re-based axes, markers). An error,
+  // naming the entry, when p has the wrong size, a non-finite entry or a non-positive scale (a
+  // segment scaled to nothing is no body); *out is then left unchanged.
+  Status WithParameters(const Eigen::VectorXd& p, Model* out) const;
+  // The same model with only the markers `keep` (indices, in the order given), for data that
+  // lacks the others. An error for an index out of range or given twice.
+  Status WithMarkers(const std::vector<int>& keep, Model* out) const;
 
   // --- precomputed structure used by the kinematics (read-only) ---
   // Joints on the path from the root to segment s, root first.

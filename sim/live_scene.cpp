@@ -111,10 +111,12 @@ Status LiveScene::Create(const LiveSceneOptions& options, std::shared_ptr<LiveSc
   std::shared_ptr<LiveScene> s(new LiveScene());
   s->options_ = options;
   s->protocol_ = options.protocol ? *options.protocol : DefaultProtocol();
-  const VirtualSubject subject = MakeVirtualSubject(options.seed, options.subject);
+  VirtualSubject subject;
+  MOCAP_RETURN_IF_ERROR(MakeVirtualSubject(options.seed, options.subject, &subject));
   if (Status st = ValidateProtocol(s->protocol_, subject.truth); !st) return st;
   const std::vector<int> markers = SimulatedMarkers(subject.truth, options.medial_markers);
-  SessionModels models = MakeSessionModels(subject, markers);
+  SessionModels models;
+  MOCAP_RETURN_IF_ERROR(MakeSessionModels(subject, markers, &models));
   s->truth_ = std::move(models.truth);
   s->nominal_ = std::move(models.nominal);
   s->truth_parameters_ = std::move(models.truth_parameters);

@@ -222,11 +222,12 @@ Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTab
   return z;
 }
 
-SessionModels MakeSessionModels(const VirtualSubject& subject, const std::vector<int>& markers) {
+Status MakeSessionModels(const VirtualSubject& subject, const std::vector<int>& markers,
+                         SessionModels* models) {
   SessionModels out;
   // The session's models carry exactly the markers it records: a marker no trial shows is not
   // fitted, and comparing an unfitted marker with the truth would only measure its nominal offset.
-  out.nominal = subject.nominal.WithMarkers(markers);
+  MOCAP_RETURN_IF_ERROR(subject.nominal.WithMarkers(markers, &out.nominal));
   const Model& full = subject.nominal;
   const int first_marker = full.num_markers() > 0 ? full.marker_index(0) : full.num_parameters();
   Eigen::VectorXd p(out.nominal.num_parameters());
@@ -235,8 +236,9 @@ SessionModels MakeSessionModels(const VirtualSubject& subject, const std::vector
     p.segment<3>(out.nominal.marker_index(static_cast<int>(i))) =
         subject.truth_parameters.segment<3>(full.marker_index(markers[i]));
   out.truth_parameters = p;
-  out.truth = subject.truth.WithMarkers(markers);
-  return out;
+  MOCAP_RETURN_IF_ERROR(subject.truth.WithMarkers(markers, &out.truth));
+  *models = std::move(out);
+  return Status::Ok();
 }
 
 Status SimulateSession(const SimulationOptions& options, SimulatedSession* session) {
@@ -247,7 +249,8 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
                        SimulatedSession* session) {
   std::string error;
   if (!options.IsValid(&error)) return Status::Error("invalid simulation options: " + error);
-  VirtualSubject subject = MakeVirtualSubject(options.seed, options.subject);
+  VirtualSubject subject;
+  MOCAP_RETURN_IF_ERROR(MakeVirtualSubject(options.seed, options.subject, &subject));
   const Model& truth = subject.truth;
   if (Status s = ValidateProtocol(protocol, truth); !s) return s;
   RootLayout root;
@@ -283,7 +286,8 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
   SimulatedSession out;
   out.options = options;
   out.height_m = subject.height_m;
-  SessionModels models = MakeSessionModels(subject, markers);
+  SessionModels models;
+  MOCAP_RETURN_IF_ERROR(MakeSessionModels(subject, markers, &models));
   out.nominal = std::move(models.nominal);
   out.truth_parameters = std::move(models.truth_parameters);
   out.protocol = protocol;

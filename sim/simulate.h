@@ -99,7 +99,9 @@ struct SessionModels {
   Model truth;
   Eigen::VectorXd truth_parameters;
 };
-SessionModels MakeSessionModels(const VirtualSubject& subject, const std::vector<int>& markers);
+// Errors: a marker index the subject's models do not have (Model::WithMarkers).
+Status MakeSessionModels(const VirtualSubject& subject, const std::vector<int>& markers,
+                         SessionModels* models);
 
 // Row `frame` of a SimulatedTrial's coordinate table as the model's z (radians, metres).
 Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTable& table,

@@ -24,7 +24,9 @@ bool SubjectOptions::IsValid(std::string* error) const {
   return true;
 }
 
-VirtualSubject MakeVirtualSubject(std::uint64_t seed, const SubjectOptions& options) {
+Status MakeVirtualSubject(std::uint64_t seed, const SubjectOptions& options, VirtualSubject* out) {
+  std::string error;
+  if (!options.IsValid(&error)) return Status::Error("subject options: " + error);
   VirtualSubject subject;
   subject.seed = seed;
   Random height_rng(seed, Stream::kHeight);
@@ -60,8 +62,9 @@ VirtualSubject MakeVirtualSubject(std::uint64_t seed, const SubjectOptions& opti
     p.segment<3>(model.marker_index(m)) += marker_rng.InBall(options.marker_mm * 1e-3) / s_segment;
   }
   subject.truth_parameters = p;
-  subject.truth = model.WithParameters(p);
-  return subject;
+  MOCAP_RETURN_IF_ERROR(model.WithParameters(p, &subject.truth));
+  *out = std::move(subject);
+  return Status::Ok();
 }
 
 }  // namespace mocap::sim

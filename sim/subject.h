@@ -43,7 +43,7 @@ struct VirtualSubject {
   Eigen::VectorXd truth_parameters;  // p of the truth in the nominal model's layout
 };
 
-// Requires options.IsValid().
-VirtualSubject MakeVirtualSubject(std::uint64_t seed, const SubjectOptions& options = {});
+// A subject drawn from `seed`. An error when the options are not valid (IsValid's message).
+Status MakeVirtualSubject(std::uint64_t seed, const SubjectOptions& options, VirtualSubject* out);
 
 }  // namespace mocap::sim

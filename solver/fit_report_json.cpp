@@ -20,6 +20,8 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
                  {"seconds", r.coarse.coarse.total_seconds},
                  {"pose_seconds", r.coarse.pose_seconds},
                  {"start_cost", r.coarse.fine_start_cost}};
+  j["reposed"] = r.reposed;
+  j["rescued_frames"] = r.rescued_frames;
   j["initial_cost"] = r.solver.initial_cost;
   j["final_cost"] = r.solver.final_cost;
   j["initial_marker_rms_mm"] = r.initial_marker_rms_mm;
@@ -41,6 +43,9 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["termination"] = ToString(r.solver.termination);
   j["termination_message"] = r.solver.message;
   j["undetermined"] = r.undetermined;
+  j["median_marker_rms_mm"] = r.median_marker_rms_mm;
+  j["outlier_markers"] = nlohmann::json::object();
+  for (const auto& [name, rms] : r.outlier_markers) j["outlier_markers"][name] = rms;
   j["unmatched_trial_markers"] = r.unmatched_trial_markers;
   j["unobserved_model_markers"] = r.unobserved_model_markers;
   j["parameters"] = nlohmann::json::array();

@@ -1,5 +1,6 @@
 #include "solver/global_fit.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -46,6 +47,65 @@ void FillMissingPoses(const Eigen::Ref<const formats::RowMatrix>& measured, cons
   for (int f = first - 1; f >= 0; --f) solve(f, z->row(f + 1).transpose());
   for (int f = first + 1; f < nf; ++f)
     if (missing(f)) solve(f, z->row(f - 1).transpose());
+}
+
+// FitOptions::rescue_ratio: frames of trials [first[t], first[t+1]) whose cost per marker sample
+// is far above the median get their pose re-solved by IK (geometry `model`) from the nearest
+// well-fitted frames of the same trial; the lowest of the frame's own cost (frame prior included)
+// wins. `frame_costs` are the solver's at x. Returns how many poses were replaced.
+int RescueFrames(const MarkerFitProblem& problem, const Model& model, const std::vector<int>& first,
+                 const std::vector<double>& frame_costs, double ratio, const IkOptions& ik_options,
+                 Eigen::VectorXd* x) {
+  const int nf = problem.num_frames(), nz = problem.frame_dim(), nm = model.num_markers();
+  if (static_cast<int>(frame_costs.size()) != nf) return 0;
+  std::vector<double> per_sample(nf, 0.0);
+  std::vector<double> sorted;
+  for (int f = 0; f < nf; ++f) {
+    int n = 0;
+    for (int m = 0; m < nm; ++m) n += std::isfinite(problem.measurements()(f, 3 * m)) ? 1 : 0;
+    if (n == 0) continue;
+    per_sample[f] = frame_costs[f] / n;
+    sorted.push_back(per_sample[f]);
+  }
+  if (sorted.empty()) return 0;
+  std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
+  const double limit = ratio * sorted[sorted.size() / 2];
+  std::vector<char> suspect(nf, 0);
+  int suspects = 0;
+  for (int f = 0; f < nf; ++f) suspects += suspect[f] = per_sample[f] > limit;
+  if (suspects == 0) return 0;
+  const Geometry geometry(model);
+  InverseKinematics ik(model, geometry, ik_options);
+  auto evaluator = problem.NewEvaluator();
+  int replaced = 0;
+  for (size_t t = 0; t + 1 < first.size(); ++t) {
+    for (int f = first[t]; f < first[t + 1]; ++f) {
+      if (!suspect[f]) continue;
+      int before = f - 1, after = f + 1;
+      while (before >= first[t] && suspect[before]) --before;
+      while (after < first[t + 1] && suspect[after]) ++after;
+      const Eigen::Map<const Eigen::Matrix3Xd> measured(problem.measurements().row(f).data(), 3, nm);
+      double best = 0;
+      Eigen::VectorXd best_z = x->segment(static_cast<Eigen::Index>(f) * nz, nz);
+      if (!FrameSquaredNorm(problem, evaluator.get(), f, best_z.data(), &best)) continue;
+      bool improved = false;
+      for (int from : {before, after}) {
+        if (from < first[t] || from >= first[t + 1]) continue;
+        Eigen::VectorXd z = x->segment(static_cast<Eigen::Index>(from) * nz, nz);
+        ik.Solve(measured, &z);
+        double cost = 0;
+        if (FrameSquaredNorm(problem, evaluator.get(), f, z.data(), &cost) && cost < best) {
+          best = cost;
+          best_z = z;
+          improved = true;
+        }
+      }
+      if (!improved) continue;
+      x->segment(static_cast<Eigen::Index>(f) * nz, nz) = best_z;
+      ++replaced;
+    }
+  }
+  return replaced;
 }
 }  // namespace
 
@@ -102,6 +162,11 @@ bool FitOptions::IsValid(std::string* error) const {
   if (!(undetermined_ratio > 0)) return fail("undetermined_ratio must be > 0");
   if (!(gauge_sigma_m > 0)) return fail("gauge_sigma_m must be > 0");
   if (repose_after_iterations < 1) return fail("repose_after_iterations must be >= 1");
+  if (!(rescue_ratio > 1)) return fail("rescue_ratio must be > 1");
+  if (!(outlier_marker_ratio > 1) || !(outlier_marker_min_mm >= 0))
+    return fail("outlier_marker_ratio must be > 1 and outlier_marker_min_mm >= 0");
+  if (rescue_rounds < 0) return fail("rescue_rounds must be >= 0");
+  if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
   if (!(frame_prior_sigma_rad > 0) || !(frame_prior_sigma_m > 0))
     return fail("frame prior sigmas must be > 0");
@@ -141,13 +206,24 @@ std::string FitReport::BriefReport() const {
       : coarse.fallback ? " (from the start: " + std::to_string(coarse.coarse.num_iterations()) +
                               " on " + std::to_string(coarse.coarse_frames) + " frames did not converge)"
                         : "";
-  char buf[640];
+  std::string outliers;
+  for (size_t k = 0; k < outlier_markers.size() && k < 5; ++k) {
+    char one[96];
+    std::snprintf(one, sizeof(one), "%s%s %.1f mm", k == 0 ? "; outlying markers: " : ", ",
+                  outlier_markers[k].first.c_str(), outlier_markers[k].second);
+    outliers += one;
+  }
+  if (outlier_markers.size() > 5) outliers += ", ...";
+  char buf[1024];
   std::snprintf(buf, sizeof(buf),
                 "fit: %d trials, %d frames, %d markers, %d unknowns; marker RMS %.3f -> %.3f mm; "
-                "%d iterations%s, %s; %zu undetermined; %.2f s (IK %.2f s, solve %.2f s)",
+                "%d iterations%s, %s%s; %zu undetermined%s; %.2f s (IK %.2f s, solve %.2f s)",
                 trials, frames, markers, unknowns, initial_marker_rms_mm, marker_rms_mm,
                 solver.num_iterations(), coarse_note.c_str(), ToString(solver.termination),
-                undetermined.size(), wall_seconds, ik_seconds, solve_seconds);
+                rescued_frames > 0 ? (", " + std::to_string(rescued_frames) +
+                                      " frame poses rescued").c_str()
+                                   : "",
+                undetermined.size(), outliers.c_str(), wall_seconds, ik_seconds, solve_seconds);
   return buf;
 }
 
@@ -247,7 +323,8 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   // Poses of every frame by IK for the geometry `p` (trials in parallel); given poses are kept
   // on the first call.
   auto solve_poses = [&](const Eigen::VectorXd& p, bool keep_given) -> Status {
-    const Model model = initial.WithParameters(p);
+    Model model;
+    MOCAP_RETURN_IF_ERROR(initial.WithParameters(p, &model));
     std::vector<Status> status(trials.size());
     ParallelChunks(static_cast<int>(trials.size()), threads, [&](int, int b, int e) {
       Geometry geometry(model);
@@ -278,7 +355,8 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
 
   Eigen::VectorXd sum_sq;
   Eigen::VectorXi counts;
-  problem.MarkerErrors(x, threads, &sum_sq, &counts);
+  if (!problem.MarkerErrors(x, threads, &sum_sq, &counts))
+    return Status::Error("fit: the initial model's parameters are no body (a scale <= 0?)");
   report.initial_marker_rms_mm = 1000.0 * std::sqrt(sum_sq.sum() / std::max(1, counts.sum()));
 
   const auto solve_start = Clock::now();
@@ -286,8 +364,45 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   LmOptions first = options.lm;
   first.max_iterations = std::min(options.lm.max_iterations, options.repose_after_iterations);
   report.solver = SolveCoarseToFine(&problem, &schur, first, options.coarse, threads, &x, &report.coarse);
-  if (report.solver.termination == TerminationType::kNoConvergence &&
-      options.lm.max_iterations > first.max_iterations) {
+  // The solve continued from x for at most `max_iterations` more, appended to the report's.
+  auto continue_solve = [&](int max_iterations) {
+    LmOptions rest = options.lm;
+    rest.max_iterations = max_iterations;
+    LmSummary more = Solve(rest, &schur, &x);
+    more.initial_cost = report.solver.initial_cost;
+    more.iterations.insert(more.iterations.begin(), report.solver.iterations.begin(),
+                           report.solver.iterations.end());
+    more.num_linear_solves += report.solver.num_linear_solves;
+    more.total_seconds += report.solver.total_seconds;
+    report.solver = more;
+  };
+  int iterations_left = options.lm.max_iterations - first.max_iterations;
+  int rescue_rounds = 0;
+  // One rescue pass (FitOptions::rescue_ratio) at x; *replaced poses.
+  auto rescue = [&](int* replaced) -> Status {
+    *replaced = 0;
+    if (rescue_rounds >= options.rescue_rounds || !report.solver.IsSolutionUsable()) return Status::Ok();
+    ++rescue_rounds;
+    double cost = 0;
+    if (!schur.Cost(x, &cost)) return Status::Ok();  // also sets the problem's geometry to x's
+    Model current;
+    MOCAP_RETURN_IF_ERROR(initial.WithParameters(problem.FullParameters(x.tail(np)), &current));
+    const auto rescue_start = Clock::now();
+    *replaced = RescueFrames(problem, current, first_frame, schur.frame_costs(),
+                             options.rescue_ratio, options.ik, &x);
+    report.ik_seconds += Since(rescue_start);
+    report.rescued_frames += *replaced;
+    return Status::Ok();
+  };
+  // Wrong branches first: they are what makes a solve with gaps crawl.
+  for (int replaced = 1; replaced > 0 && iterations_left > 0;) {
+    MOCAP_RETURN_IF_ERROR(rescue(&replaced));
+    if (replaced == 0) break;
+    const int budget = std::min(iterations_left, options.rescue_iterations);
+    continue_solve(budget);
+    iterations_left -= budget;
+  }
+  if (report.solver.termination == TerminationType::kNoConvergence && iterations_left > 0) {
     // Still crawling: the poses found with the initial geometry hold the fit back (frames in
     // gaps sit where the first IK put them). Re-solve every pose with the geometry reached so
     // far and continue from there.
@@ -296,26 +411,36 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     problem.SetFramePriorTargets(x);
     report.ik_seconds += Since(repose_start);
     report.reposed = true;
-    LmOptions rest = options.lm;
-    rest.max_iterations = options.lm.max_iterations - first.max_iterations;
-    LmSummary second = Solve(rest, &schur, &x);
-    second.initial_cost = report.solver.initial_cost;
-    second.iterations.insert(second.iterations.begin(), report.solver.iterations.begin(),
-                             report.solver.iterations.end());
-    second.num_linear_solves += report.solver.num_linear_solves;
-    second.total_seconds += report.solver.total_seconds;
-    report.solver = second;
+    continue_solve(iterations_left);
+    iterations_left = 0;
+    int replaced = 0;
+    MOCAP_RETURN_IF_ERROR(rescue(&replaced));
+    if (replaced > 0) continue_solve(options.rescue_iterations);
   }
   report.solve_seconds = Since(solve_start);
   if (!report.solver.IsSolutionUsable())
     return Status::Error("fit: the solver failed: " + report.solver.message);
 
-  problem.MarkerErrors(x, threads, &sum_sq, &counts);
+  if (!problem.MarkerErrors(x, threads, &sum_sq, &counts))
+    return Status::Error("fit: the solver ended at parameters that are no body");
   report.marker_rms_mm = 1000.0 * std::sqrt(sum_sq.sum() / std::max(1, counts.sum()));
   for (int m = 0; m < nm; ++m)
     if (counts[m] > 0)
       report.per_marker_rms_mm.emplace_back(initial.markers()[m].name,
                                             1000.0 * std::sqrt(sum_sq[m] / counts[m]));
+
+  if (!report.per_marker_rms_mm.empty()) {
+    std::vector<double> rms;
+    for (const auto& [name, v] : report.per_marker_rms_mm) rms.push_back(v);
+    std::nth_element(rms.begin(), rms.begin() + rms.size() / 2, rms.end());
+    report.median_marker_rms_mm = rms[rms.size() / 2];
+    for (const auto& [name, v] : report.per_marker_rms_mm)
+      if (v > options.outlier_marker_ratio * report.median_marker_rms_mm &&
+          v > report.median_marker_rms_mm + options.outlier_marker_min_mm)
+        report.outlier_markers.emplace_back(name, v);
+    std::sort(report.outlier_markers.begin(), report.outlier_markers.end(),
+              [](const auto& a, const auto& b) { return a.second > b.second; });
+  }
 
   // Uncertainty: S^{-1} in residual units; scaled by the residual variance for the reported std.
   const auto cov_start = Clock::now();
@@ -346,7 +471,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   }
   report.covariance_seconds = Since(cov_start);
 
-  result->model = initial.WithParameters(p);
+  MOCAP_RETURN_IF_ERROR(initial.WithParameters(p, &result->model));
   result->coordinates.resize(trials.size());
   const Geometry geometry(result->model);
   ModelData data(result->model);

@@ -48,6 +48,21 @@ struct FitOptions {
   // If the solve has not converged after this many iterations, every pose is re-solved by IK
   // with the geometry reached so far and the solve continues (see FitModel).
   int repose_after_iterations = 12;
+  // After the solve, a frame whose cost per marker sample is more than `rescue_ratio` times the
+  // median frame's (a limb left in a wrong branch of its pose, typically behind a marker gap:
+  // with one of a two-marker segment's markers hidden its rotation is free, and the solve can
+  // carry it round to a mirror pose it cannot leave) gets its pose re-solved by IK from the
+  // nearest well-fitted frames before and after it; where that lowers the frame's cost the pose
+  // is replaced and the solve continues, for at most `rescue_rounds` rounds. 0 rounds: off.
+  // A marker whose residual RMS over the fit is more than `outlier_marker_ratio` times the median
+  // marker's and at least `outlier_marker_min_mm` above it is named in the report: a mislabelled
+  // marker, one placed on another body than the model says, or one that slipped. It is still
+  // fitted (least squares: it pulls its segment); the report says so instead of staying silent.
+  double outlier_marker_ratio = 3.0;
+  double outlier_marker_min_mm = 5.0;
+  double rescue_ratio = 4.0;
+  int rescue_rounds = 2;
+  int rescue_iterations = 12;  // the solve's iterations after each rescue that replaced poses
   int num_threads = 0;                  // 0: all cores
   LmOptions lm;
   IkOptions ik;
@@ -105,6 +120,9 @@ struct FitReport {
   double initial_marker_rms_mm = 0;
   double marker_rms_mm = 0;
   std::vector<std::pair<std::string, double>> per_marker_rms_mm;
+  double median_marker_rms_mm = 0;
+  // Markers far above the median (FitOptions::outlier_marker_ratio), worst first: name, RMS mm.
+  std::vector<std::pair<std::string, double>> outlier_markers;
   std::vector<double> per_trial_rms_mm;        // RMS over each trial's marker samples, trial order
   std::vector<ParameterEstimate> parameters;   // every fitted parameter
   std::vector<std::string> undetermined;
@@ -115,6 +133,7 @@ struct FitReport {
   double covariance_seconds = 0;
   double wall_seconds = 0;
   bool reposed = false;  // the poses were re-solved part-way (FitOptions::repose_after_iterations)
+  int rescued_frames = 0;  // poses replaced by FitOptions' rescue pass (all rounds)
   CoarseToFineSummary coarse;  // the coarse-to-fine start of the (first) solve
   bool converged() const { return solver.termination == TerminationType::kConvergence; }
   std::string BriefReport() const;

@@ -371,10 +371,10 @@ void MarkerFitProblem::BlockStructure(std::vector<std::vector<int>>* y_columns,
   }
 }
 
-void MarkerFitProblem::MarkerErrors(const Eigen::VectorXd& x, int num_threads,
+bool MarkerFitProblem::MarkerErrors(const Eigen::VectorXd& x, int num_threads,
                                     Eigen::VectorXd* sum_squared, Eigen::VectorXi* count) {
   const int nm = model_.num_markers(), nz = model_.num_coordinates(), nf = num_frames();
-  SetShared(x.tail(shared_dim()));
+  if (!SetShared(x.tail(shared_dim()))) return false;
   num_threads = ResolveThreads(num_threads);
   std::vector<Eigen::VectorXd> sums(num_threads, Eigen::VectorXd::Zero(nm));
   std::vector<Eigen::VectorXi> counts(num_threads, Eigen::VectorXi::Zero(nm));
@@ -399,6 +399,7 @@ void MarkerFitProblem::MarkerErrors(const Eigen::VectorXd& x, int num_threads,
     *sum_squared += sums[t];
     *count += counts[t];
   }
+  return true;
 }
 
 }  // namespace mocap::solver

@@ -42,6 +42,9 @@ class MarkerFitProblem : public ArrowProblem {
     return 3 * samples_ + shared_dim() + static_cast<int>(gauge_rows_.rows()) +
            static_cast<int>(frame_prior_target_.size());
   }
+  // Refuses (false) non-finite parameters and a scale <= 0: Levenberg–Marquardt then costs the
+  // candidate step as infinite and rejects it, so scales stay positive through the whole fit
+  // (a bound, not a change of variable: the minimum and the priors are those of p itself).
   bool SetShared(const Eigen::VectorXd& shared) override;
   std::unique_ptr<FrameEvaluator> NewEvaluator() const override;
   const Eigen::VectorXd& prior_weight() const override { return prior_weight_; }
@@ -72,7 +75,8 @@ class MarkerFitProblem : public ArrowProblem {
   double prior_sigma(int free) const { return 1.0 / prior_weight_[free]; }
 
   // Sum of squared marker distances (m^2) and sample count per marker at x = [z..., shared].
-  void MarkerErrors(const Eigen::VectorXd& x, int num_threads, Eigen::VectorXd* sum_squared,
+  // False (and nothing written) when the shared parameters are no body (SetShared refuses them).
+  bool MarkerErrors(const Eigen::VectorXd& x, int num_threads, Eigen::VectorXd* sum_squared,
                     Eigen::VectorXi* count);
 
  private:

@@ -6,6 +6,7 @@
 #include "formats/marker_data.h"
 #include "model/default_model.h"
 #include "model/kinematics.h"
+#include "tests/model_test_util.h"
 
 namespace mocap::testutil {
 
@@ -15,7 +16,7 @@ inline Model NominalWithoutOptional() {
   std::vector<int> keep;
   for (int i = 0; i < m.num_markers(); ++i)
     if (!m.markers()[i].optional) keep.push_back(i);
-  return m.WithMarkers(keep);
+  return mocap::testutil::Keeping(m, keep);
 }
 
 inline Eigen::VectorXd PerturbedParameters(const Model& model, std::mt19937_64& rng) {

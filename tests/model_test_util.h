@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <random>
+#include <vector>
 
 #include "model/kinematics.h"
 #include "model/model.h"
@@ -18,6 +19,21 @@ inline Eigen::VectorXd RandomPose(const Model& model, std::mt19937& rng, double 
   for (int c = 0; c < model.num_coordinates(); ++c)
     z[c] += model.coordinates()[c].rotational ? u(rng) : 0.3 * u(rng);
   return z;
+}
+
+// m.WithParameters(p) / m.WithMarkers(keep) for tests: a refusal fails the test (with the
+// message) instead of passing an empty model on.
+inline Model Baked(const Model& m, const Eigen::VectorXd& p) {
+  Model out;
+  const Status s = m.WithParameters(p, &out);
+  EXPECT_TRUE(s.ok()) << s.message();
+  return out;
+}
+inline Model Keeping(const Model& m, const std::vector<int>& keep) {
+  Model out;
+  const Status s = m.WithMarkers(keep, &out);
+  EXPECT_TRUE(s.ok()) << s.message();
+  return out;
 }
 
 // Perturbs every parameter so that the Jacobian test does not run at a special point.

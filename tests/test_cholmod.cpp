@@ -9,6 +9,7 @@
 #include "solver/global_fit.h"
 #include "solver/marker_fit_problem.h"
 #include "solver/schur_solver.h"
+#include "tests/model_test_util.h"
 
 using namespace mocap;
 using Sparse = solver::SparseNormalCholeskyProblem;
@@ -64,7 +65,7 @@ struct SmallProblem {
   Eigen::VectorXd x;
   explicit SmallProblem(int frames, unsigned seed = 5) {
     std::mt19937_64 rng(seed);
-    const Model truth = nominal.WithParameters(testutil::PerturbedParameters(nominal, rng));
+    const Model truth = mocap::testutil::Baked(nominal, testutil::PerturbedParameters(nominal, rng));
     trial = testutil::SimulateRandomMotion(truth, frames, 0.0005, rng, &z_true);
     // Missing samples, so frames differ in structure: two markers in frame 2, a whole frame,
     // and one marker in every third frame.

@@ -147,7 +147,9 @@ TEST_F(Cli, BadInputFailsWithAClearError) {
   m.replace(m.find("\"femur_l\""), 9, "\"nothing\"");
   Write("wrongref.model.json", m);
   std::string trc = Read("sim/static.trc");
-  Write("rows.trc", trc.substr(0, trc.size() / 2));  // rows fewer than NumFrames
+  // Cut short, as OpenSim reads it (the rows that are there: formats/trc.h), and then a field
+  // that is no number: refused, naming the file.
+  Write("rows.trc", trc.substr(0, trc.size() / 2) + "\tgarbage\n");
   // An infinite value in the first data row's first X field.
   std::string inf = trc;
   const size_t row = inf.find('\n', inf.find('\n', inf.find("Frame#")) + 1) + 1;

@@ -9,6 +9,7 @@
 #include "solver/global_fit.h"
 #include "solver/marker_fit_problem.h"
 #include "solver/schur_solver.h"
+#include "tests/model_test_util.h"
 
 using namespace mocap;
 
@@ -26,7 +27,7 @@ struct Session {
   Session(int frames, double pose_noise, unsigned seed = 3) {
     std::mt19937_64 rng(seed);
     const Eigen::VectorXd truth_parameters = testutil::PerturbedParameters(nominal, rng);
-    const Model truth = nominal.WithParameters(truth_parameters);
+    const Model truth = mocap::testutil::Baked(nominal, truth_parameters);
     formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, frames, 0.0005, rng, &z_true);
     problem = std::make_unique<solver::MarkerFitProblem>(nominal, trial.positions, solver::FitOptions());
     const int ny = nominal.num_coordinates(), np = problem->shared_dim();

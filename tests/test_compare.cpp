@@ -17,6 +17,7 @@
 #include "model/kinematics.h"
 #include "model/model_io.h"
 #include "model_test_util.h"
+#include "tests/model_test_util.h"
 
 using namespace mocap;
 
@@ -98,7 +99,7 @@ Eigen::VectorXd RandomPose(const Model& model, std::mt19937& rng) {
 Model Perturbed(unsigned seed) {
   Model base = DefaultFullBodyModel();
   std::mt19937 rng(seed);
-  return base.WithParameters(mocap::testutil::RandomParameters(base, rng));
+  return mocap::testutil::Baked(base, mocap::testutil::RandomParameters(base, rng));
 }
 
 void ExpectAllZero(const ModelComparison& c, double tol) {
@@ -274,7 +275,7 @@ TEST(CompareModels, MeasuresAScaledFemur) {
   const Model a = Perturbed(8);
   Eigen::VectorXd p = a.InitialParameters();
   p[a.scale_index(a.FindSegment("femur_l"))] *= 1.05;
-  const ModelComparison c = Compare(a, a.WithParameters(p));
+  const ModelComparison c = Compare(a, mocap::testutil::Baked(a, p));
   EXPECT_NEAR(L(c, "femur_l->knee_l").error_pct, 5.0, 1e-9);
   EXPECT_NEAR(c.segment_length_error_pct.max, 5.0, 1e-9);
   EXPECT_NEAR(L(c, "femur_r->knee_r").error_pct, 0.0, 1e-9);
@@ -287,7 +288,7 @@ TEST(CompareModels, MeasuresATiltedHingeAxis) {
   for (int component : {0, 1}) {  // alpha, beta
     Eigen::VectorXd p = a.InitialParameters();
     p[a.axis_index(knee, 0) + component] = 3 * kDeg;
-    const ModelComparison c = Compare(a, a.WithParameters(p));
+    const ModelComparison c = Compare(a, mocap::testutil::Baked(a, p));
     EXPECT_NEAR(J(c, "knee_l").axis_error_deg, 3.0, 1e-9);
     EXPECT_NEAR(c.axis_error_deg.max, 3.0, 1e-9);
     EXPECT_LE(J(c, "knee_r").axis_error_deg, 1e-9);
@@ -324,7 +325,7 @@ TEST(CompareModels, MarkersInOneModelOnlyAreListedAndIgnored) {
   std::vector<int> keep;
   for (int m = 0; m < a.num_markers(); ++m)
     if (!a.markers()[m].optional) keep.push_back(m);
-  const Model b = a.WithMarkers(keep);
+  const Model b = mocap::testutil::Keeping(a, keep);
   const ModelComparison c = Compare(a, b);
   EXPECT_EQ(c.markers_only_in_a, (std::vector<std::string>{"LKNM", "LMMA", "RKNM", "RMMA"}));
   EXPECT_TRUE(c.markers_only_in_b.empty());
@@ -404,7 +405,7 @@ TEST(ModelCommand, DiffPrintsJsonWithNumericSummaries) {
   p[a.scale_index(a.FindSegment("femur_l"))] = 1.05;
   const std::string pa = TmpFile("compare_a.json"), pb = TmpFile("compare_b.json");
   ASSERT_TRUE(SaveModelJson(pa, a).ok());
-  ASSERT_TRUE(SaveModelJson(pb, a.WithParameters(p)).ok());
+  ASSERT_TRUE(SaveModelJson(pb, mocap::testutil::Baked(a, p)).ok());
 
   std::string out;
   ASSERT_EQ(RunTool("model diff " + pa + " " + pb + " --json", &out, false), 0) << out;

@@ -24,6 +24,7 @@
 #include "model/kinematics.h"
 #include "sim/simulate.h"
 #include "tests/allocation_test_util.h"
+#include "tests/model_test_util.h"
 
 using namespace mocap;
 
@@ -611,7 +612,7 @@ TEST(EkfTracker, SwapModelKeepsTheTrackAndImprovesTheAngles) {
   EXPECT_LT(swapped_after.angle_rms_deg(), 0.8 * nominal_after.angle_rms_deg());
   EXPECT_LE(swapped_after.angle_rms_deg(), 1.0);
   // A model with other markers is refused, the track kept.
-  const Model fewer = session.nominal.WithMarkers({0, 1, 2, 3});
+  const Model fewer = mocap::testutil::Keeping(session.nominal, {0, 1, 2, 3});
   const Status bad = swapped.SwapModel(Share(fewer));
   EXPECT_FALSE(bad.ok());
   EXPECT_NE(bad.message().find("markers"), std::string::npos);

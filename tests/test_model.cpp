@@ -10,6 +10,7 @@
 #include "model/kinematics.h"
 #include "model/model_io.h"
 #include "model_test_util.h"
+#include "tests/model_test_util.h"
 
 using namespace mocap;
 
@@ -62,9 +63,48 @@ TEST(Kinematics, WithParametersReproducesPositions) {
   std::mt19937 rng(3);
   const Eigen::VectorXd p = RandomParameters(model, rng);
   const Eigen::VectorXd z = RandomPose(model, rng);
-  const Model baked = model.WithParameters(p);
+  const Model baked = mocap::testutil::Baked(model, p);
   EXPECT_LT((Positions(model, z, p) - Positions(baked, z, baked.InitialParameters())).norm(), 1e-12);
   EXPECT_NEAR(baked.InitialParameters().segment(baked.axis_index(baked.FindJoint("knee_l"), 0), 2).norm(), 0.0, 0);
+}
+
+TEST(Model, WithParametersAndWithMarkersRefuseWhatIsNoModel) {
+  const Model model = DefaultFullBodyModel();
+  const int femur = model.FindSegment("femur_r");
+  ASSERT_GE(femur, 0);
+  Model out = DefaultFullBodyModel(1.5);  // what an error must leave alone
+  const int kept_markers = out.num_markers();
+  for (double bad_scale : {0.0, -0.5}) {
+    Eigen::VectorXd p = model.InitialParameters();
+    p[model.scale_index(femur)] = bad_scale;
+    const Status s = model.WithParameters(p, &out);
+    EXPECT_FALSE(s.ok()) << "scale " << bad_scale;
+    EXPECT_NE(s.message().find("femur_r"), std::string::npos) << s.message();
+    EXPECT_NE(s.message().find("scale must be > 0"), std::string::npos) << s.message();
+  }
+  Eigen::VectorXd nan_centre = model.InitialParameters();
+  const int knee = model.FindJoint("knee_r");
+  nan_centre[model.centre_index(knee) + 1] = std::nan("");
+  Status s = model.WithParameters(nan_centre, &out);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("knee_r.centre.y is not finite"), std::string::npos) << s.message();
+  s = model.WithParameters(model.InitialParameters().head(5), &out);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("5 parameters given"), std::string::npos) << s.message();
+  EXPECT_EQ(out.num_markers(), kept_markers);
+
+  s = model.WithMarkers({0, model.num_markers()}, &out);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("out of range"), std::string::npos) << s.message();
+  s = model.WithMarkers({2, 2}, &out);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("kept twice"), std::string::npos) << s.message();
+  EXPECT_EQ(out.num_markers(), kept_markers);
+
+  s = model.WithMarkers({3, 1}, &out);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ASSERT_EQ(out.num_markers(), 2);
+  EXPECT_EQ(out.markers()[0].name, model.markers()[3].name);
 }
 
 TEST(Kinematics, EvaluationDoesNotAllocate) {

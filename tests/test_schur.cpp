@@ -6,6 +6,7 @@
 #include "solver/global_fit.h"
 #include "solver/marker_fit_problem.h"
 #include "solver/schur_solver.h"
+#include "tests/model_test_util.h"
 
 using namespace mocap;
 
@@ -22,7 +23,7 @@ class ArrowSchurStep : public ::testing::TestWithParam<SchurCase> {};
 TEST_P(ArrowSchurStep, MatchesDenseNormalEquations) {
   std::mt19937_64 rng(5);
   Model nominal = DefaultFullBodyModel();
-  const Model truth = nominal.WithParameters(testutil::PerturbedParameters(nominal, rng));
+  const Model truth = mocap::testutil::Baked(nominal, testutil::PerturbedParameters(nominal, rng));
   Eigen::MatrixXd z_true;
   const int nf = 40;
   formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, nf, 0.0005, rng, &z_true);

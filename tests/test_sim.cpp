@@ -249,7 +249,8 @@ TEST(Protocol, CheckExcitationsBySpanAllowsAnOffsetZero) {
 TEST(Subject, PerturbationsStayWithinTheirBounds) {
   const SubjectOptions o;
   for (std::uint64_t seed : {1, 2, 3, 17, 12345}) {
-    const VirtualSubject v = MakeVirtualSubject(seed, o);
+    VirtualSubject v;
+    ASSERT_TRUE(MakeVirtualSubject(seed, o, &v).ok());
     SCOPED_TRACE("seed " + std::to_string(seed));
     EXPECT_GE(v.height_m, 1.55);
     EXPECT_LE(v.height_m, 1.95);
@@ -300,7 +301,10 @@ TEST(Subject, PerturbationsStayWithinTheirBounds) {
 }
 
 TEST(Subject, DeterministicPerSeed) {
-  const VirtualSubject a = MakeVirtualSubject(7), b = MakeVirtualSubject(7), c = MakeVirtualSubject(8);
+  VirtualSubject a, b, c;
+  ASSERT_TRUE(MakeVirtualSubject(7, {}, &a).ok());
+  ASSERT_TRUE(MakeVirtualSubject(7, {}, &b).ok());
+  ASSERT_TRUE(MakeVirtualSubject(8, {}, &c).ok());
   EXPECT_EQ(a.height_m, b.height_m);
   EXPECT_TRUE(a.truth_parameters == b.truth_parameters);
   EXPECT_NE(a.height_m, c.height_m);

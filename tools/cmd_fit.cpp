@@ -132,6 +132,10 @@ int RunFit(const FitArgs& args) {
   if (!r.undetermined.empty())
     spdlog::warn("{} parameters not determined by these trials (kept near the initial model): {}{}",
                  r.undetermined.size(), r.undetermined.front(), r.undetermined.size() > 1 ? ", ..." : "");
+  for (const auto& [name, rms] : r.outlier_markers)
+    spdlog::warn("marker {} fits to {:.1f} mm RMS, {:.1f}x the median marker's {:.1f} mm: mislabelled, "
+                 "slipping, or attached to another body than the model's?",
+                 name, rms, rms / std::max(1e-9, r.median_marker_rms_mm), r.median_marker_rms_mm);
   if (r.coarse.used || r.coarse.fallback) std::printf("%s\n", r.coarse.BriefReport().c_str());
   std::printf("%s\n%s\n", r.solver.BriefReport().c_str(), r.BriefReport().c_str());
 
