@@ -1,0 +1,453 @@
+// mocapd under systemd (daemon/service_notify.h, daemon/startup_checks.h, systemd/): the real
+// mocapd executable started the way mocapd.socket starts it (systemd-socket-activate on a
+// temporary socket), talking sd_notify to a datagram socket this test owns as the service
+// manager would; the start-up errors; the units checked by systemd-analyze; the .deb.
+//
+// A two-camera simulated rig at 640x512 keeps the daemon's start-up to about half a second.
+#include <poll.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <sys/un.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <mutex>
+#include <regex>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "daemon/service_notify.h"
+#include "daemon/startup_checks.h"
+#include "tests/daemon_test_util.h"
+
+namespace mocap {
+namespace {
+
+using daemon::PipelineProgress;
+using daemon::ServiceSnapshot;
+using nlohmann::json;
+using Clock = std::chrono::steady_clock;
+
+double SecondsSince(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+// The service manager's end of NOTIFY_SOCKET: every datagram, split into its lines, with the
+// time it arrived.
+class NotifyListener {
+ public:
+  struct Message {
+    double t = 0;  // seconds since the listener started
+    std::string text;
+  };
+  explicit NotifyListener(const std::string& path) : path_(path), t0_(Clock::now()) {
+    fd_ = socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+    sockaddr_un a{};
+    a.sun_family = AF_UNIX;
+    std::snprintf(a.sun_path, sizeof a.sun_path, "%s", path.c_str());
+    bound_ = fd_ >= 0 && bind(fd_, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0;
+    thread_ = std::thread([this] { Run(); });
+  }
+  ~NotifyListener() {
+    stop_ = true;
+    thread_.join();
+    if (fd_ >= 0) close(fd_);
+    unlink(path_.c_str());
+  }
+  bool bound() const { return bound_; }
+  double Now() const { return SecondsSince(t0_); }
+  std::vector<Message> Messages() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return messages_;
+  }
+  // The first message at or after `from` (seconds) containing `line` as one of its lines, waiting
+  // up to `timeout_s`; its index or -1.
+  int WaitFor(const std::string& line, double timeout_s, double from = 0) const {
+    const auto until = Clock::now() + std::chrono::duration<double>(timeout_s);
+    do {
+      const std::vector<Message> m = Messages();
+      for (std::size_t i = 0; i < m.size(); ++i)
+        if (m[i].t >= from && HasLine(m[i].text, line)) return static_cast<int>(i);
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    } while (Clock::now() < until);
+    return -1;
+  }
+  static bool HasLine(const std::string& text, const std::string& line) {
+    std::istringstream in(text);
+    for (std::string l; std::getline(in, l);)
+      if (l == line || (line.back() == '=' && l.rfind(line, 0) == 0)) return true;
+    return false;
+  }
+  static std::string Field(const std::string& text, const std::string& key) {
+    std::istringstream in(text);
+    for (std::string l; std::getline(in, l);)
+      if (l.rfind(key + "=", 0) == 0) return l.substr(key.size() + 1);
+    return "";
+  }
+  // Times of WATCHDOG=1 within [from, to).
+  std::vector<double> Pings(double from, double to) const {
+    std::vector<double> t;
+    for (const Message& m : Messages())
+      if (m.t >= from && m.t < to && HasLine(m.text, "WATCHDOG=1")) t.push_back(m.t);
+    return t;
+  }
+
+ private:
+  void Run() {
+    char buf[4096];
+    while (!stop_) {
+      pollfd p{fd_, POLLIN, 0};
+      if (poll(&p, 1, 20) <= 0) continue;
+      const ssize_t n = recv(fd_, buf, sizeof buf, 0);
+      if (n <= 0) continue;
+      std::lock_guard<std::mutex> lock(mutex_);
+      messages_.push_back({Now(), std::string(buf, n)});
+    }
+  }
+  std::string path_;
+  Clock::time_point t0_;
+  int fd_ = -1;
+  bool bound_ = false;
+  std::atomic<bool> stop_{false};
+  mutable std::mutex mutex_;
+  std::vector<Message> messages_;
+  std::thread thread_;
+};
+
+std::string SmallRigToml() {
+  return testing::SimulatedRigToml(2, 5, "width = 640\nheight = 512\n");
+}
+
+std::string ReadAll(const std::string& path) {
+  std::ifstream f(path);
+  return std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+}
+
+// Waits for `pid` up to `timeout_s`: its exit code, 128 + signal, or -1 (still running).
+int WaitExit(pid_t pid, double timeout_s) {
+  const auto until = Clock::now() + std::chrono::duration<double>(timeout_s);
+  while (Clock::now() < until) {
+    int status = 0;
+    if (waitpid(pid, &status, WNOHANG) == pid)
+      return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  return -1;
+}
+
+// ---------------------------------------------------------------------------------------------
+// The decisions, without a service manager.
+
+TEST(ServiceStatus, OneLineSummary) {
+  ServiceSnapshot s;
+  s.cameras = 8;
+  s.progress.cameras_streaming = 8;
+  s.rate_hz = 200;
+  s.rig_live = true;
+  EXPECT_EQ(daemon::StatusLine(s), "8/8 cameras 200 Hz, idle");
+  s.subject = "S012";
+  s.model_version = 3;
+  s.recording = "squats";
+  EXPECT_EQ(daemon::StatusLine(s), "8/8 cameras 200 Hz, tracking subject S012 (model v3), recording squats");
+  s.progress.cameras_streaming = 6;
+  s.missing_cameras = {"cam3", "cam7"};
+  s.recording.clear();
+  s.job = "fit";
+  EXPECT_EQ(daemon::StatusLine(s),
+            "degraded: 6/8 cameras 200 Hz (missing cam3, cam7), tracking subject S012 (model v3), fitting");
+  s = {};
+  s.cameras = 2;
+  s.rate_hz = 100;
+  s.simulated = true;
+  s.missing_cameras = {"a", "b"};
+  EXPECT_EQ(daemon::StatusLine(s), "starting: 0/2 simulated cameras 100 Hz (missing a, b), idle");
+  EXPECT_EQ(daemon::StatusLine(s, true),
+            "degraded: no frame set yet: 0/2 simulated cameras 100 Hz (missing a, b), idle");
+}
+
+TEST(ServiceWatchdog, AStageIsHungWhenItsInputMovedAndItsOutputDidNot) {
+  const PipelineProgress a{100, 100, 50, 50, 2};
+  PipelineProgress b{200, 200, 100, 100, 2};
+  EXPECT_EQ(daemon::StalledStage(a, b), "");
+  b = {100, 100, 50, 50, 2};  // cameras say they stream, no frame came
+  EXPECT_EQ(daemon::StalledStage(a, b), "grab");
+  b = {200, 100, 50, 50, 2};
+  EXPECT_EQ(daemon::StalledStage(a, b), "detection");
+  b = {200, 200, 50, 50, 2};
+  EXPECT_EQ(daemon::StalledStage(a, b), "sync");
+  b = {200, 200, 100, 50, 2};
+  EXPECT_EQ(daemon::StalledStage(a, b), "tracking");
+  // An idle rig: no camera streams (all unplugged), nothing moves. Not a hang.
+  const PipelineProgress idle{100, 100, 50, 50, 0};
+  EXPECT_EQ(daemon::StalledStage(idle, idle), "");
+}
+
+// The notifier's messages, in-process, on a NOTIFY_SOCKET of this test.
+TEST(ServiceNotifier, ReadyOnceLiveStatusOnChangePingsOnlyWhileHealthy) {
+  const std::string dir = testing::MakeTempDir("mocapd-notifier");
+  NotifyListener listener(dir + "/notify");
+  ASSERT_TRUE(listener.bound());
+  setenv("NOTIFY_SOCKET", (dir + "/notify").c_str(), 1);
+  daemon::ServiceNotifierOptions o;
+  o.watchdog_usec = 1000000;  // check every 0.5 s
+  o.no_frames_timeout_s = 5;
+  daemon::ServiceNotifier n(o);
+  const std::uint64_t s0 = 1000000000000ull, ms = 1000000;
+  n.Started(s0);
+  ServiceSnapshot s;
+  s.cameras = 2;
+  s.rate_hz = 200;
+  s.progress.cameras_streaming = 2;
+  n.Tick(s, s0 + 100 * ms);  // not live yet
+  EXPECT_FALSE(n.ready());
+  s.rig_live = true;
+  s.progress = {400, 400, 200, 190, 2};
+  n.Tick(s, s0 + 200 * ms);
+  EXPECT_TRUE(n.ready());
+  n.Tick(s, s0 + 300 * ms);  // same line: no STATUS
+  s.progress = {600, 600, 300, 290, 2};
+  n.Tick(s, s0 + 600 * ms);  // first check: baseline, ping
+  s.progress = {800, 800, 400, 390, 2};
+  n.Tick(s, s0 + 1100 * ms);  // progressed: ping
+  EXPECT_EQ(n.pings(), 2u);
+  s.progress = {1000, 800, 400, 390, 2};  // detection held
+  EXPECT_TRUE(n.Tick(s, s0 + 1600 * ms));
+  EXPECT_EQ(n.stalled(), "detection");
+  EXPECT_EQ(n.pings(), 2u);
+  s.progress = {1200, 1000, 500, 490, 2};
+  EXPECT_TRUE(n.Tick(s, s0 + 2100 * ms));
+  EXPECT_EQ(n.stalled(), "");
+  EXPECT_EQ(n.pings(), 3u);
+  {
+    daemon::ReloadNotice reload(&n);
+  }
+  n.Stopping();
+  unsetenv("NOTIFY_SOCKET");
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  std::vector<std::string> got;
+  for (const auto& m : listener.Messages()) got.push_back(m.text);
+  ASSERT_EQ(got.size(), 9u);
+  EXPECT_EQ(got[0], "STATUS=starting: waiting for the cameras' first frame sets");
+  EXPECT_EQ(got[1], "STATUS=starting: 2/2 cameras 200 Hz, idle");
+  EXPECT_EQ(got[2], "READY=1\nSTATUS=2/2 cameras 200 Hz, idle");
+  EXPECT_EQ(got[3], "WATCHDOG=1");
+  EXPECT_EQ(got[4], "WATCHDOG=1");
+  EXPECT_EQ(got[5], "WATCHDOG=1");  // after the hold: the ping at 2.1 s, none at 1.6 s
+  EXPECT_TRUE(std::regex_match(got[6], std::regex("RELOADING=1\nMONOTONIC_USEC=[0-9]+\nSTATUS=.*")))
+      << got[6];
+  EXPECT_EQ(got[7], "READY=1\nSTATUS=2/2 cameras 200 Hz, idle");
+  EXPECT_EQ(got[8], "STOPPING=1\nSTATUS=stopping");
+}
+
+// ---------------------------------------------------------------------------------------------
+// The real mocapd, socket-activated, with a NOTIFY_SOCKET and a watchdog.
+
+TEST(MocapdUnderSystemd, ActivatedReadyStatusWatchdogReloadHangAndStop) {
+  const std::string dir = testing::MakeTempDir("mocapd-systemd");
+  ASSERT_FALSE(dir.empty());
+  std::ofstream(dir + "/mocapd.toml") << SmallRigToml();
+  const std::string sock = dir + "/control.sock", hold = dir + "/hold", log = dir + "/mocapd.log";
+  NotifyListener notify(dir + "/notify");
+  ASSERT_TRUE(notify.bound());
+
+  const pid_t pid = fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    const int fd = open(log.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+    dup2(fd, STDERR_FILENO);
+    dup2(fd, STDOUT_FILENO);
+    // systemd-socket-activate passes only the variables named with -E; exec keeps the pid, so
+    // WATCHDOG_PID is mocapd's.
+    const std::string e_notify = "NOTIFY_SOCKET=" + dir + "/notify";
+    const std::string e_pid = "WATCHDOG_PID=" + std::to_string(getpid());
+    const std::string e_file = "MOCAP_TEST_HOLD_FILE=" + hold;
+    const std::string config = dir + "/mocapd.toml", state = dir + "/state";
+    execlp("systemd-socket-activate", "systemd-socket-activate", "-l", sock.c_str(), "-E",
+           e_notify.c_str(), "-E", "WATCHDOG_USEC=1000000", "-E", e_pid.c_str(), "-E",
+           e_file.c_str(), "-E", "MOCAP_TEST_HOLD_STAGE=detection", MOCAPD_PATH, "--config",
+           config.c_str(), "--state-dir", state.c_str(), "--socket", sock.c_str(),
+           static_cast<char*>(nullptr));
+    _exit(127);
+  }
+  struct Reaper {
+    pid_t pid;
+    ~Reaper() {
+      if (kill(pid, 0) == 0) kill(pid, SIGKILL), waitpid(pid, nullptr, 0);
+    }
+  } reaper{pid};
+
+  // The socket exists before mocapd runs; a client connecting now starts it (as mocapd.socket
+  // does) and is served once the loop runs, before or after READY.
+  for (int i = 0; i < 200 && access(sock.c_str(), F_OK) != 0; ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  const int fd = socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  sockaddr_un a{};
+  a.sun_family = AF_UNIX;
+  std::snprintf(a.sun_path, sizeof a.sun_path, "%s", sock.c_str());
+  ASSERT_EQ(connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a), 0) << strerror(errno);
+  const double connected_at = notify.Now();
+  EXPECT_TRUE(notify.Messages().empty()) << "mocapd talked to the manager before a client came";
+  std::unique_ptr<daemon::ControlClient> client;
+  daemon::ControlClientOptions co;
+  co.reply_timeout_ms = 30000;
+  ASSERT_TRUE(daemon::ControlClient::Adopt(fd, co, &client).ok()) << ReadAll(log);
+  daemon::ControlReply status;
+  ASSERT_TRUE(client->Call("status", json::object(), &status).ok());
+  ASSERT_TRUE(status.ok()) << status.error_message;
+
+  // READY=1 only once the rig streams: its warm-up of complete sets is behind it.
+  const int ready = notify.WaitFor("READY=1", 20);
+  ASSERT_GE(ready, 0) << ReadAll(log);
+  const NotifyListener::Message ready_msg = notify.Messages()[ready];
+  EXPECT_GT(ready_msg.t, connected_at);
+  EXPECT_EQ(NotifyListener::Field(ready_msg.text, "STATUS"), "2/2 simulated cameras 200 Hz, idle");
+  ASSERT_TRUE(client->Call("status", json::object(), &status).ok());
+  EXPECT_GE(status.result["sets"]["warmup"].get<int>() + status.result["sets"]["total"].get<int>(), 20)
+      << status.result.dump();
+  const std::vector<NotifyListener::Message> before_ready = notify.Messages();
+  for (int i = 0; i < ready; ++i) {
+    EXPECT_FALSE(NotifyListener::HasLine(before_ready[i].text, "READY=1"));
+    const std::string st = NotifyListener::Field(before_ready[i].text, "STATUS");
+    if (!st.empty()) {
+      EXPECT_EQ(st.rfind("starting: ", 0), 0u) << st;
+    }
+  }
+
+  // STATUS follows the state: a subject selected.
+  ASSERT_TRUE(client->Call("subject.create", {{"name", "S01"}, {"height_m", 1.75}}, &status).ok());
+  ASSERT_TRUE(status.ok()) << status.error_message;
+  ASSERT_TRUE(client->Call("subject.select", {{"name", "S01"}}, &status).ok());
+  ASSERT_TRUE(status.ok()) << status.error_message;
+  const int tracking = notify.WaitFor("STATUS=2/2 simulated cameras 200 Hz, tracking subject S01 (model v1)", 3);
+  EXPECT_GE(tracking, 0);
+
+  // WATCHDOG=1 every half interval (0.5 s at WATCHDOG_USEC = 1 s), never a gap of the interval.
+  const double w0 = notify.Now();
+  std::this_thread::sleep_for(std::chrono::milliseconds(3000));
+  std::vector<double> pings = notify.Pings(w0, notify.Now());
+  EXPECT_GE(pings.size(), 5u);
+  EXPECT_LE(pings.size(), 7u);
+  for (std::size_t i = 1; i < pings.size(); ++i) EXPECT_LT(pings[i] - pings[i - 1], 0.8);
+
+  // SIGHUP: RELOADING=1 ... READY=1.
+  const double h0 = notify.Now();
+  kill(pid, SIGHUP);
+  const int reloading = notify.WaitFor("RELOADING=1", 3, h0);
+  ASSERT_GE(reloading, 0);
+  EXPECT_FALSE(NotifyListener::Field(notify.Messages()[reloading].text, "MONOTONIC_USEC").empty());
+  const int reloaded = notify.WaitFor("READY=1", 3, notify.Messages()[reloading].t);
+  EXPECT_GT(reloaded, reloading);
+
+  // The detection stage held: the pings stop within the interval, and come back once let go.
+  const double hold0 = notify.Now();
+  std::ofstream(hold) << "held\n";
+  std::this_thread::sleep_for(std::chrono::milliseconds(2500));
+  const std::vector<double> during = notify.Pings(hold0, notify.Now());
+  // At most the one check whose window began before the hold.
+  EXPECT_LE(during.size(), 1u);
+  if (!during.empty()) {
+    EXPECT_LT(during[0] - hold0, 0.7);
+  }
+  EXPECT_NE(ReadAll(log).find("watchdog: the detection stage made no progress"), std::string::npos)
+      << ReadAll(log);
+  const double release0 = notify.Now();
+  unlink(hold.c_str());
+  EXPECT_GE(notify.WaitFor("WATCHDOG=1", 2.0, release0), 0) << "the pings did not come back";
+
+  // SIGTERM: STOPPING=1 and a clean exit.
+  const double t0 = notify.Now();
+  kill(pid, SIGTERM);
+  const int code = WaitExit(pid, 20);
+  EXPECT_EQ(code, 0) << ReadAll(log);
+  EXPECT_GE(notify.WaitFor("STOPPING=1", 1, t0), 0);
+  std::printf("READY %.2f s after the client connected; stopped in %.2f s\n",
+              ready_msg.t - connected_at, notify.Now() - t0);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Bad input at start-up: one error line naming the cause and the setting, the exit code.
+
+struct StartResult {
+  int code = -1;
+  std::vector<std::string> errors;  // lines at error priority ("<3>")
+  std::string log;
+};
+
+StartResult StartMocapd(const std::string& dir, const std::vector<std::string>& args) {
+  const std::string log = dir + "/start.log";
+  unlink(log.c_str());
+  const pid_t pid = fork();
+  if (pid == 0) {
+    const int fd = open(log.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+    dup2(fd, STDERR_FILENO);
+    dup2(fd, STDOUT_FILENO);
+    std::vector<char*> argv{const_cast<char*>("mocapd")};
+    for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+    argv.push_back(nullptr);
+    execv(MOCAPD_PATH, argv.data());
+    _exit(127);
+  }
+  StartResult r;
+  r.code = WaitExit(pid, 30);
+  if (r.code < 0) kill(pid, SIGKILL), waitpid(pid, nullptr, 0);
+  r.log = ReadAll(log);
+  std::istringstream in(r.log);
+  for (std::string l; std::getline(in, l);)
+    if (l.rfind("<3>", 0) == 0) r.errors.push_back(l);
+  return r;
+}
+
+TEST(MocapdUnderSystemd, BadInputAtStartUpNamesTheCauseAndExitsWithItsCode) {
+  const std::string dir = testing::MakeTempDir("mocapd-badstart");
+  ASSERT_FALSE(dir.empty());
+  const std::string config = dir + "/mocapd.toml";
+  std::ofstream(config) << SmallRigToml();
+  std::ofstream(dir + "/plain") << "not a directory, not a socket\n";
+
+  // A missing configuration file.
+  StartResult r = StartMocapd(dir, {"--config", dir + "/absent.toml"});
+  EXPECT_EQ(r.code, daemon::kExitConfig) << r.log;
+  ASSERT_EQ(r.errors.size(), 1u) << r.log;
+  EXPECT_NE(r.errors[0].find(dir + "/absent.toml: cannot read"), std::string::npos) << r.errors[0];
+
+  // A storage directory that is a file, and one under a file (not accessible).
+  r = StartMocapd(dir, {"--config", config, "--state-dir", dir + "/plain", "--socket", dir + "/c.sock"});
+  EXPECT_EQ(r.code, daemon::kExitConfig) << r.log;
+  ASSERT_EQ(r.errors.size(), 1u) << r.log;
+  EXPECT_NE(r.errors[0].find("[storage] state_dir '" + dir + "/plain': exists and is not a directory"),
+            std::string::npos) << r.errors[0];
+  r = StartMocapd(dir, {"--config", config, "--state-dir", dir + "/plain/state", "--socket", dir + "/c.sock"});
+  EXPECT_EQ(r.code, daemon::kExitNoPermission) << r.log;
+  ASSERT_EQ(r.errors.size(), 1u) << r.log;
+  EXPECT_NE(r.errors[0].find("[storage] state_dir '" + dir + "/plain/state': Not a directory"),
+            std::string::npos) << r.errors[0];
+
+  // A socket path that exists and is not a socket.
+  r = StartMocapd(dir, {"--config", config, "--state-dir", dir + "/state", "--socket", dir + "/plain"});
+  EXPECT_EQ(r.code, daemon::kExitConfig) << r.log;
+  ASSERT_EQ(r.errors.size(), 1u) << r.log;
+  EXPECT_NE(r.errors[0].find("[control] socket '" + dir + "/plain': exists and is not a socket"),
+            std::string::npos) << r.errors[0];
+  EXPECT_TRUE(std::filesystem::is_regular_file(dir + "/plain")) << "the file was removed";
+
+  // A real rig whose camera is not there: unavailable (systemd retries; the camera may come back).
+  const std::string real = dir + "/real.toml";
+  std::ofstream(real) << "[rig]\nrate = 100\n[[rig.camera]]\nid = \"No-Such-Camera-0\"\n";
+  r = StartMocapd(dir, {"--config", real, "--state-dir", dir + "/state", "--socket", dir + "/c.sock"});
+  EXPECT_EQ(r.code, daemon::kExitUnavailable) << r.log;
+  ASSERT_EQ(r.errors.size(), 1u) << r.log;
+  EXPECT_NE(r.errors[0].find("camera 'No-Such-Camera-0'"), std::string::npos) << r.errors[0];
+}
+
+}  // namespace
+}  // namespace mocap
