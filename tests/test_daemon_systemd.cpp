@@ -451,3 +451,152 @@ TEST(MocapdUnderSystemd, BadInputAtStartUpNamesTheCauseAndExitsWithItsCode) {
 
 }  // namespace
 }  // namespace mocap
+
+// ---------------------------------------------------------------------------------------------
+// The units, installed into a temporary root, and the Debian package.
+
+#ifdef MOCAPD_BUILD_DIR
+namespace mocap {
+namespace {
+
+// Runs `command` through the shell; its exit code and its output (stdout and stderr).
+int Shell(const std::string& command, std::string* output) {
+  output->clear();
+  FILE* p = popen((command + " 2>&1").c_str(), "r");
+  if (!p) return -1;
+  char buf[4096];
+  for (std::size_t n; (n = fread(buf, 1, sizeof buf, p)) > 0;) output->append(buf, n);
+  const int status = pclose(p);
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+bool Have(const std::string& program) {
+  std::string out;
+  return Shell("command -v " + program, &out) == 0;
+}
+
+// `cmake --install` of the build into DESTDIR=root.
+void InstallInto(const std::string& root) {
+  std::string out;
+  ASSERT_EQ(Shell("DESTDIR='" + root + "' cmake --install '" MOCAPD_BUILD_DIR "' --component mocapd", &out), 0)
+      << out;
+}
+
+TEST(SystemdUnits, InstalledUnitsVerifyCleanAndScoreAtMost1_5) {
+  if (!Have("systemd-analyze"))
+    GTEST_SKIP() << "systemd-analyze is not installed (Debian package systemd; scripts/deps.sh)";
+  const std::string root = testing::MakeTempDir("mocapd-units");
+  ASSERT_FALSE(root.empty());
+  InstallInto(root);
+  const std::string units = root + MOCAPD_INSTALLED_UNIT_DIR;
+  ASSERT_TRUE(std::filesystem::exists(units + "/mocapd.service"));
+  ASSERT_TRUE(std::filesystem::exists(root + MOCAPD_INSTALLED_SBIN));
+  // verify --root loads every unit a unit refers to from the root and checks the commands there:
+  // the targets (sockets.target, multi-user.target, ...) and /bin/kill come from the host's
+  // systemd and procps packages, as on the capture PC.
+  std::string out;
+  ASSERT_EQ(Shell("cp -n /lib/systemd/system/*.target '" + units + "/' && mkdir -p '" + root +
+                      "/bin' && cp /bin/kill '" + root + "/bin/kill'",
+                  &out),
+            0)
+      << out;
+  const int verify = Shell("systemd-analyze verify --root='" + root + "' " MOCAPD_INSTALLED_UNIT_DIR
+                           "/mocapd.service " MOCAPD_INSTALLED_UNIT_DIR "/mocapd.socket",
+                           &out);
+  EXPECT_EQ(verify, 0) << out;
+  EXPECT_EQ(out, "") << "systemd-analyze verify is not clean";
+
+  ASSERT_EQ(Shell("systemd-analyze security --offline=yes --root='" + root + "' mocapd.service", &out), 0)
+      << out;
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(out, m, std::regex("Overall exposure level for mocapd.service: ([0-9.]+)")))
+      << out;
+  const double exposure = std::stod(m[1]);
+  std::printf("systemd-analyze security: exposure %.1f\n", exposure);
+  EXPECT_LE(exposure, 1.5) << out;
+  // Every setting the score would like tighter is named in a comment of the unit, with why.
+  const std::string unit = ReadAll(units + "/mocapd.service");
+  std::istringstream lines(out);
+  int flagged = 0;
+  for (std::string l; std::getline(lines, l);) {
+    if (l.rfind("✗ ", 0) != 0) continue;
+    ++flagged;
+    std::string key = l.substr(std::string("✗ ").size());
+    key = key.substr(0, key.find_first_of("=/ "));
+    EXPECT_TRUE(std::regex_search(unit, std::regex("\n#[^\n]*" + key + "[^\n]*\\(score\\)")))
+        << key << " is flagged by the score and not explained in a comment: " << l;
+  }
+  EXPECT_GT(flagged, 0);
+}
+
+TEST(DebianPackage, BuildsWithDependenciesAndInstallsIntoAThrowAwayRoot) {
+  for (const char* tool : {"cpack", "dpkg-deb", "dpkg-shlibdeps", "dpkg"})
+    if (!Have(tool)) GTEST_SKIP() << tool << " is not installed (scripts/deps.sh: dpkg-dev)";
+  const std::string dir = testing::MakeTempDir("mocapd-deb");
+  ASSERT_FALSE(dir.empty());
+  std::string out, arch;
+  ASSERT_EQ(Shell("dpkg --print-architecture", &arch), 0);
+  arch.erase(arch.find_last_not_of("\n") + 1);
+  ASSERT_EQ(Shell("cd '" + dir + "' && cpack -G DEB --config '" MOCAPD_BUILD_DIR "/CPackConfig.cmake' -B '" +
+                      dir + "'",
+                  &out),
+            0)
+      << out;
+  const std::string deb = dir + "/mocapd_" MOCAPD_VERSION "_" + arch + ".deb";
+  ASSERT_TRUE(std::filesystem::exists(deb)) << out;
+
+  ASSERT_EQ(Shell("dpkg-deb --contents '" + deb + "'", &out), 0) << out;
+  for (const std::string path :
+       {MOCAPD_INSTALLED_SBIN, MOCAPD_INSTALLED_BIN, MOCAPD_INSTALLED_CONFIG,
+        MOCAPD_INSTALLED_UNIT_DIR "/mocapd.service", MOCAPD_INSTALLED_UNIT_DIR "/mocapd.socket",
+        MOCAPD_INSTALLED_SYSUSERS, MOCAPD_INSTALLED_TMPFILES, MOCAPD_INSTALLED_UDEV,
+        MOCAPD_INSTALLED_SYSCTL, MOCAPD_INSTALLED_DOC_DIR "/README.md"})
+    EXPECT_NE(out.find(" ." + path + "\n"), std::string::npos) << path << " not in the package:\n" << out;
+
+  ASSERT_EQ(Shell("dpkg-deb --field '" + deb + "' Package Version Architecture Depends", &out), 0) << out;
+  EXPECT_NE(out.find("Package: mocapd\n"), std::string::npos) << out;
+  EXPECT_NE(out.find("Version: " MOCAPD_VERSION "\n"), std::string::npos) << out;
+  // From dpkg-shlibdeps on what the binaries link, and systemd for the maintainer scripts.
+  for (const char* dep : {"systemd (>=", "libaravis-0.8-0", "libsqlite3-0", "libsystemd0", "libc6"})
+    EXPECT_NE(out.find(dep), std::string::npos) << dep << " missing from " << out;
+  ASSERT_EQ(Shell("dpkg-deb --info '" + deb + "' conffiles", &out), 0) << out;
+  EXPECT_EQ(out, std::string(MOCAPD_INSTALLED_CONFIG) + "\n");
+
+  // Installed into a throw-away root: dpkg --root with the maintainer scripts run outside a
+  // chroot (DPKG_ROOT set; the root has no shell to chroot into), its dependencies not there.
+  if (geteuid() != 0) GTEST_SKIP() << "installing the package into a root needs root (dpkg --root)";
+  const std::string root = dir + "/root";
+  ASSERT_EQ(Shell("mkdir -p '" + root + "/var/lib/dpkg/info' '" + root + "/var/lib/dpkg/updates' '" +
+                      root + "/etc' && touch '" + root + "/var/lib/dpkg/status' '" + root +
+                      "/var/lib/dpkg/available'",
+                  &out),
+            0);
+  const std::string dpkg = "dpkg --root='" + root + "' --force-script-chrootless --force-depends --log=/dev/null ";
+  ASSERT_EQ(Shell(dpkg + "-i '" + deb + "'", &out), 0) << out;
+  EXPECT_TRUE(std::regex_search(ReadAll(root + "/etc/passwd"),
+                                std::regex("(^|\n)mocap:x:[0-9]+:[0-9]+:[^:]*:/var/lib/mocapd:")))
+      << ReadAll(root + "/etc/passwd");
+  EXPECT_TRUE(std::regex_search(ReadAll(root + "/etc/group"), std::regex("(^|\n)mocap:x:[0-9]+:")));
+  EXPECT_TRUE(std::filesystem::is_regular_file(root + MOCAPD_INSTALLED_CONFIG));
+  EXPECT_TRUE(std::filesystem::is_regular_file(root + MOCAPD_INSTALLED_UNIT_DIR "/mocapd.service"));
+  EXPECT_TRUE(std::filesystem::is_symlink(root + "/etc/systemd/system/sockets.target.wants/mocapd.socket"))
+      << "the socket is not enabled";
+  struct stat st {};
+  ASSERT_EQ(stat((root + "/var/lib/mocapd").c_str(), &st), 0);
+  EXPECT_EQ(st.st_mode & 07777, 0750u);
+  // The shipped configuration is valid as it is.
+  ASSERT_EQ(Shell(std::string(MOCAPD_PATH) + " --check-config --config '" + root + MOCAPD_INSTALLED_CONFIG + "'", &out), 0)
+      << out;
+  EXPECT_NE(out.find("simulated rig of 8 cameras"), std::string::npos) << out;
+  // Removed: the conffile stays (until purge), the units go.
+  ASSERT_EQ(Shell(dpkg + "-r mocapd", &out), 0) << out;
+  EXPECT_TRUE(std::filesystem::exists(root + MOCAPD_INSTALLED_CONFIG));
+  EXPECT_FALSE(std::filesystem::exists(root + MOCAPD_INSTALLED_UNIT_DIR "/mocapd.service"));
+  ASSERT_EQ(Shell(dpkg + "-P mocapd", &out), 0) << out;
+  EXPECT_FALSE(std::filesystem::exists(root + MOCAPD_INSTALLED_CONFIG));
+  EXPECT_FALSE(std::filesystem::exists(root + "/etc/systemd/system/sockets.target.wants/mocapd.socket"));
+}
+
+}  // namespace
+}  // namespace mocap
+#endif  // MOCAPD_BUILD_DIR
