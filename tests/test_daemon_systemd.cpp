@@ -252,33 +252,74 @@ TEST(ServiceNotifier, ReadyOnceLiveStatusOnChangePingsOnlyWhileHealthy) {
 // ---------------------------------------------------------------------------------------------
 // The real mocapd, socket-activated, with a NOTIFY_SOCKET and a watchdog.
 
+// Starts mocapd as mocapd.socket would (systemd-socket-activate: the socket is made first and
+// mocapd is executed with it when the first client connects), with NOTIFY_SOCKET = DIR/notify,
+// a watchdog of 1 s and the test hook holding `hold_stage` while DIR/hold exists. The pid is
+// mocapd's (exec keeps it).
+pid_t StartSocketActivated(const std::string& dir, const std::string& hold_stage) {
+  std::ofstream(dir + "/mocapd.toml") << SmallRigToml();
+  const pid_t pid = fork();
+  if (pid != 0) return pid;
+  const int fd = open((dir + "/mocapd.log").c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
+  dup2(fd, STDERR_FILENO);
+  dup2(fd, STDOUT_FILENO);
+  // systemd-socket-activate passes on only the variables named with -E.
+  const std::string e_notify = "NOTIFY_SOCKET=" + dir + "/notify";
+  const std::string e_pid = "WATCHDOG_PID=" + std::to_string(getpid());
+  const std::string e_file = "MOCAP_TEST_HOLD_FILE=" + dir + "/hold";
+  const std::string e_stage = "MOCAP_TEST_HOLD_STAGE=" + hold_stage;
+  const std::string config = dir + "/mocapd.toml", state = dir + "/state", sock = dir + "/control.sock";
+  execlp("systemd-socket-activate", "systemd-socket-activate", "-l", sock.c_str(), "-E",
+         e_notify.c_str(), "-E", "WATCHDOG_USEC=1000000", "-E", e_pid.c_str(), "-E",
+         e_file.c_str(), "-E", e_stage.c_str(), MOCAPD_PATH, "--config", config.c_str(),
+         "--state-dir", state.c_str(), "--socket", sock.c_str(), static_cast<char*>(nullptr));
+  _exit(127);
+}
+
+// Connects to the activation socket as soon as it exists (which starts mocapd); the connected
+// descriptor or -1.
+int ConnectWhenListening(const std::string& sock) {
+  for (int i = 0; i < 500 && access(sock.c_str(), F_OK) != 0; ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  const int fd = socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  sockaddr_un a{};
+  a.sun_family = AF_UNIX;
+  std::snprintf(a.sun_path, sizeof a.sun_path, "%s", sock.c_str());
+  if (connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0) {
+    close(fd);
+    return -1;
+  }
+  return fd;
+}
+
+// Holds a stage (DIR/hold) for 2.5 s: at most the one ping whose window began before the hold,
+// the log names the stage; let go, the pings come back.
+void ExpectHoldStopsThePings(const NotifyListener& notify, const std::string& dir,
+                             const std::string& stage) {
+  const double hold0 = notify.Now();
+  std::ofstream(dir + "/hold") << "held\n";
+  std::this_thread::sleep_for(std::chrono::milliseconds(2500));
+  const std::vector<double> during = notify.Pings(hold0, notify.Now());
+  EXPECT_LE(during.size(), 1u) << stage;
+  if (!during.empty()) {
+    EXPECT_LT(during[0] - hold0, 0.7) << stage;
+  }
+  const std::string log = ReadAll(dir + "/mocapd.log");
+  EXPECT_NE(log.find("watchdog: the " + stage + " stage made no progress"), std::string::npos) << log;
+  const double release0 = notify.Now();
+  unlink((dir + "/hold").c_str());
+  EXPECT_GE(notify.WaitFor("WATCHDOG=1", 2.0, release0), 0) << stage << ": the pings did not come back";
+}
+
 TEST(MocapdUnderSystemd, ActivatedReadyStatusWatchdogReloadHangAndStop) {
   const std::string dir = testing::MakeTempDir("mocapd-systemd");
   ASSERT_FALSE(dir.empty());
-  std::ofstream(dir + "/mocapd.toml") << SmallRigToml();
-  const std::string sock = dir + "/control.sock", hold = dir + "/hold", log = dir + "/mocapd.log";
+  const std::string sock = dir + "/control.sock", log = dir + "/mocapd.log";
   NotifyListener notify(dir + "/notify");
   ASSERT_TRUE(notify.bound());
 
-  const pid_t pid = fork();
-  ASSERT_GE(pid, 0);
-  if (pid == 0) {
-    const int fd = open(log.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
-    dup2(fd, STDERR_FILENO);
-    dup2(fd, STDOUT_FILENO);
-    // systemd-socket-activate passes only the variables named with -E; exec keeps the pid, so
-    // WATCHDOG_PID is mocapd's.
-    const std::string e_notify = "NOTIFY_SOCKET=" + dir + "/notify";
-    const std::string e_pid = "WATCHDOG_PID=" + std::to_string(getpid());
-    const std::string e_file = "MOCAP_TEST_HOLD_FILE=" + hold;
-    const std::string config = dir + "/mocapd.toml", state = dir + "/state";
-    execlp("systemd-socket-activate", "systemd-socket-activate", "-l", sock.c_str(), "-E",
-           e_notify.c_str(), "-E", "WATCHDOG_USEC=1000000", "-E", e_pid.c_str(), "-E",
-           e_file.c_str(), "-E", "MOCAP_TEST_HOLD_STAGE=detection", MOCAPD_PATH, "--config",
-           config.c_str(), "--state-dir", state.c_str(), "--socket", sock.c_str(),
-           static_cast<char*>(nullptr));
-    _exit(127);
-  }
+  const pid_t pid = StartSocketActivated(dir, "detection");
+  ASSERT_GT(pid, 0);
   struct Reaper {
     pid_t pid;
     ~Reaper() {
@@ -288,13 +329,8 @@ TEST(MocapdUnderSystemd, ActivatedReadyStatusWatchdogReloadHangAndStop) {
 
   // The socket exists before mocapd runs; a client connecting now starts it (as mocapd.socket
   // does) and is served once the loop runs, before or after READY.
-  for (int i = 0; i < 200 && access(sock.c_str(), F_OK) != 0; ++i)
-    std::this_thread::sleep_for(std::chrono::milliseconds(10));
-  const int fd = socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
-  sockaddr_un a{};
-  a.sun_family = AF_UNIX;
-  std::snprintf(a.sun_path, sizeof a.sun_path, "%s", sock.c_str());
-  ASSERT_EQ(connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a), 0) << strerror(errno);
+  const int fd = ConnectWhenListening(sock);
+  ASSERT_GE(fd, 0) << strerror(errno);
   const double connected_at = notify.Now();
   EXPECT_TRUE(notify.Messages().empty()) << "mocapd talked to the manager before a client came";
   std::unique_ptr<daemon::ControlClient> client;
@@ -349,20 +385,7 @@ TEST(MocapdUnderSystemd, ActivatedReadyStatusWatchdogReloadHangAndStop) {
   EXPECT_GT(reloaded, reloading);
 
   // The detection stage held: the pings stop within the interval, and come back once let go.
-  const double hold0 = notify.Now();
-  std::ofstream(hold) << "held\n";
-  std::this_thread::sleep_for(std::chrono::milliseconds(2500));
-  const std::vector<double> during = notify.Pings(hold0, notify.Now());
-  // At most the one check whose window began before the hold.
-  EXPECT_LE(during.size(), 1u);
-  if (!during.empty()) {
-    EXPECT_LT(during[0] - hold0, 0.7);
-  }
-  EXPECT_NE(ReadAll(log).find("watchdog: the detection stage made no progress"), std::string::npos)
-      << ReadAll(log);
-  const double release0 = notify.Now();
-  unlink(hold.c_str());
-  EXPECT_GE(notify.WaitFor("WATCHDOG=1", 2.0, release0), 0) << "the pings did not come back";
+  ExpectHoldStopsThePings(notify, dir, "detection");
 
   // SIGTERM: STOPPING=1 and a clean exit.
   const double t0 = notify.Now();
@@ -372,6 +395,31 @@ TEST(MocapdUnderSystemd, ActivatedReadyStatusWatchdogReloadHangAndStop) {
   EXPECT_GE(notify.WaitFor("STOPPING=1", 1, t0), 0);
   std::printf("READY %.2f s after the client connected; stopped in %.2f s\n",
               ready_msg.t - connected_at, notify.Now() - t0);
+}
+
+// The cameras stop delivering (the grab threads held, as a camera that still says it streams and
+// sends nothing): the grab stage is hung, the pings stop.
+TEST(MocapdUnderSystemd, CamerasThatStopDeliveringStopThePings) {
+  const std::string dir = testing::MakeTempDir("mocapd-grabhang");
+  ASSERT_FALSE(dir.empty());
+  NotifyListener notify(dir + "/notify");
+  ASSERT_TRUE(notify.bound());
+  const pid_t pid = StartSocketActivated(dir, "grab");
+  ASSERT_GT(pid, 0);
+  struct Reaper {
+    pid_t pid;
+    ~Reaper() {
+      if (kill(pid, 0) == 0) kill(pid, SIGKILL), waitpid(pid, nullptr, 0);
+    }
+  } reaper{pid};
+  const int fd = ConnectWhenListening(dir + "/control.sock");
+  ASSERT_GE(fd, 0);
+  ASSERT_GE(notify.WaitFor("READY=1", 20), 0) << ReadAll(dir + "/mocapd.log");
+  ASSERT_GE(notify.WaitFor("WATCHDOG=1", 2, notify.Now()), 0);
+  ExpectHoldStopsThePings(notify, dir, "grab");
+  close(fd);
+  kill(pid, SIGTERM);
+  EXPECT_EQ(WaitExit(pid, 20), 0) << ReadAll(dir + "/mocapd.log");
 }
 
 // ---------------------------------------------------------------------------------------------
