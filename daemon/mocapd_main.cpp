@@ -1,7 +1,10 @@
 // mocapd: the motion-capture daemon (daemon/daemon.h). Usage:
 //   mocapd [--config /etc/mocapd/mocapd.toml] [--state-dir DIR] [--socket PATH] [--check-config]
 // Logs to stderr with syslog priority prefixes ("<6>...") so that journald files each line at its
-// level; run by hand on a terminal, the lines are plain.
+// level; run by hand on a terminal, the lines are plain. Under systemd (mocapd.service,
+// Type=notify) it reports readiness, status and health through sd_notify
+// (daemon/service_notify.h); exit codes: 0 stopped, 78 configuration, 73/77 storage directory,
+// 69 cameras or store unavailable (daemon/startup_checks.h).
 #include <systemd/sd-daemon.h>
 #include <unistd.h>
 

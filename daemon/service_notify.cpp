@@ -3,6 +3,7 @@
 #include <systemd/sd-daemon.h>
 #include <time.h>
 
+#include <algorithm>
 #include <cstdio>
 
 #include "daemon/config.h"
@@ -54,11 +55,10 @@ std::string StatusLine(const ServiceSnapshot& s, bool gave_up_waiting) {
 
 std::string StalledStage(const PipelineProgress& before, const PipelineProgress& after) {
   const auto moved = [](std::uint64_t a, std::uint64_t b) { return b > a; };
-  // The grab stage has work when a camera says it streams; each later stage when its input moved.
-  if (after.cameras_streaming > 0 && !moved(before.frames_grabbed, after.frames_grabbed))
-    return "grab";
-  if (moved(before.frames_grabbed, after.frames_grabbed) &&
-      !moved(before.frames_detected, after.frames_detected))
+  const std::uint64_t waiting_for_detection =
+      after.frames_grabbed - std::min(after.frames_grabbed, after.frames_dropped + after.frames_detected);
+  if (!moved(before.frames_detected, after.frames_detected) &&
+      (moved(before.frames_grabbed, after.frames_grabbed) || waiting_for_detection > 0))
     return "detection";
   if (moved(before.frames_detected, after.frames_detected) &&
       !moved(before.sets_synced, after.sets_synced))
@@ -66,14 +66,16 @@ std::string StalledStage(const PipelineProgress& before, const PipelineProgress&
   if (moved(before.sets_synced, after.sets_synced) &&
       !moved(before.frames_tracked, after.frames_tracked))
     return "tracking";
+  if (after.cameras_streaming > 0 && !moved(before.frames_grabbed, after.frames_grabbed))
+    return "grab";
   return "";
 }
 
 ServiceNotifierOptions ServiceNotifier::FromEnvironment() {
   ServiceNotifierOptions o;
   std::uint64_t usec = 0;
-  // 0 = unset (or meant for another process, WATCHDOG_PID); keep the variables for a child? No
-  // child of mocapd talks to systemd, so they are left as they are (unset_environment = 0).
+  // > 0 only when WATCHDOG_USEC is set and WATCHDOG_PID, if set, is this process. The variables
+  // are left in place (unset_environment = 0): mocapd starts no child that could misuse them.
   if (sd_watchdog_enabled(0, &usec) > 0) o.watchdog_usec = usec;
   return o;
 }
@@ -135,6 +137,7 @@ ServiceSnapshot PipelineSnapshot(LivePipeline& pipeline, const DaemonConfig& con
   ServiceSnapshot s;
   const LivePipelineStats st = pipeline.Stats();
   s.progress.frames_grabbed = st.capture.frames_grabbed;
+  s.progress.frames_dropped = st.capture.frames_dropped;
   s.progress.frames_detected = st.capture.frames_detected;
   s.progress.sets_synced =
       st.capture.frame_sets + st.capture.warmup_sets + st.capture.dropped_frame_sets;

@@ -15,8 +15,8 @@
 // when every stage progressed since the previous ping (a hung detection worker behind a loop
 // that still answers requests must get the service restarted). Per-stage progress counters
 // (frames grabbed, frames detected, sets synced, frames tracked) are compared over the interval;
-// a stage is hung when its input moved and its output did not, the grab stage when cameras say
-// they stream and no frame came. A rig with no streaming camera (all unplugged, an idle bench)
+// a stage is hung when it had work (its input moved, or frames wait in its queue) and its
+// output did not move, the grab stage when cameras say they stream and no frame came. A rig with no streaming camera (all unplugged, an idle bench)
 // has nothing to process: that is degraded, announced in STATUS, not a hang. The ping is sent
 // every half watchdog interval (sd_watchdog_enabled(3)'s advice), so a hang stops the pings
 // within one interval plus one tick.
@@ -45,6 +45,7 @@ struct DaemonConfig;
 // Cumulative counters of the pipeline's stages; only differences between two snapshots matter.
 struct PipelineProgress {
   std::uint64_t frames_grabbed = 0;   // images handed over by the cameras
+  std::uint64_t frames_dropped = 0;   // ... of which dropped (the detection queue was full)
   std::uint64_t frames_detected = 0;  // images through marker detection
   std::uint64_t sets_synced = 0;      // frame sets out of the sync (warm-up included)
   std::uint64_t frames_tracked = 0;   // frame sets through the tracking stage
@@ -74,7 +75,10 @@ struct ServiceSnapshot {
 std::string StatusLine(const ServiceSnapshot& s, bool gave_up_waiting = false);
 
 // Which stage did not progress from `before` to `after` although it had work ("" if none):
-// "grab", "detection", "sync" or "tracking".
+// "detection", "sync", "tracking" or "grab". A stage has work when its input moved, detection
+// also when frames wait for it; the grab stage when a camera says it streams. Downstream stages
+// are judged first: a held detection stage soon stops the grab too (the frames it holds in its
+// queue are the cameras' buffers), and the culprit is the stage with work waiting.
 std::string StalledStage(const PipelineProgress& before, const PipelineProgress& after);
 
 struct ServiceNotifierOptions {

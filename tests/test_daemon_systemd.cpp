@@ -176,19 +176,26 @@ TEST(ServiceStatus, OneLineSummary) {
 }
 
 TEST(ServiceWatchdog, AStageIsHungWhenItsInputMovedAndItsOutputDidNot) {
-  const PipelineProgress a{100, 100, 50, 50, 2};
-  PipelineProgress b{200, 200, 100, 100, 2};
+  // {grabbed, dropped, detected, sets, tracked, cameras streaming}
+  const PipelineProgress a{100, 0, 100, 50, 50, 2};
+  PipelineProgress b{200, 0, 200, 100, 100, 2};
   EXPECT_EQ(daemon::StalledStage(a, b), "");
-  b = {100, 100, 50, 50, 2};  // cameras say they stream, no frame came
+  b = {100, 0, 100, 50, 50, 2};  // cameras say they stream, no frame came, nothing waits
   EXPECT_EQ(daemon::StalledStage(a, b), "grab");
-  b = {200, 100, 50, 50, 2};
+  b = {200, 0, 100, 50, 50, 2};
   EXPECT_EQ(daemon::StalledStage(a, b), "detection");
-  b = {200, 200, 50, 50, 2};
+  // Detection held long enough that the cameras' buffers all wait in its queue: the grab stops
+  // too, and detection, with work waiting, is the stage named.
+  const PipelineProgress held{164, 0, 100, 50, 50, 2};
+  EXPECT_EQ(daemon::StalledStage(held, held), "detection");
+  // Frames dropped at the full queue are not waiting.
+  EXPECT_EQ(daemon::StalledStage(PipelineProgress{164, 64, 100, 50, 50, 0},
+                                 PipelineProgress{164, 64, 100, 50, 50, 0}), "");
+  b = {200, 0, 200, 50, 50, 2};
   EXPECT_EQ(daemon::StalledStage(a, b), "sync");
-  b = {200, 200, 100, 50, 2};
+  b = {200, 0, 200, 100, 50, 2};
   EXPECT_EQ(daemon::StalledStage(a, b), "tracking");
-  // An idle rig: no camera streams (all unplugged), nothing moves. Not a hang.
-  const PipelineProgress idle{100, 100, 50, 50, 0};
+  const PipelineProgress idle{100, 0, 100, 50, 50, 0};
   EXPECT_EQ(daemon::StalledStage(idle, idle), "");
 }
 
@@ -211,20 +218,20 @@ TEST(ServiceNotifier, ReadyOnceLiveStatusOnChangePingsOnlyWhileHealthy) {
   n.Tick(s, s0 + 100 * ms);  // not live yet
   EXPECT_FALSE(n.ready());
   s.rig_live = true;
-  s.progress = {400, 400, 200, 190, 2};
+  s.progress = {400, 0, 400, 200, 190, 2};
   n.Tick(s, s0 + 200 * ms);
   EXPECT_TRUE(n.ready());
   n.Tick(s, s0 + 300 * ms);  // same line: no STATUS
-  s.progress = {600, 600, 300, 290, 2};
+  s.progress = {600, 0, 600, 300, 290, 2};
   n.Tick(s, s0 + 600 * ms);  // first check: baseline, ping
-  s.progress = {800, 800, 400, 390, 2};
+  s.progress = {800, 0, 800, 400, 390, 2};
   n.Tick(s, s0 + 1100 * ms);  // progressed: ping
   EXPECT_EQ(n.pings(), 2u);
-  s.progress = {1000, 800, 400, 390, 2};  // detection held
+  s.progress = {1000, 0, 800, 400, 390, 2};  // detection held
   EXPECT_TRUE(n.Tick(s, s0 + 1600 * ms));
   EXPECT_EQ(n.stalled(), "detection");
   EXPECT_EQ(n.pings(), 2u);
-  s.progress = {1200, 1000, 500, 490, 2};
+  s.progress = {1200, 0, 1200, 500, 490, 2};
   EXPECT_TRUE(n.Tick(s, s0 + 2100 * ms));
   EXPECT_EQ(n.stalled(), "");
   EXPECT_EQ(n.pings(), 3u);
@@ -247,6 +254,42 @@ TEST(ServiceNotifier, ReadyOnceLiveStatusOnChangePingsOnlyWhileHealthy) {
       << got[6];
   EXPECT_EQ(got[7], "READY=1\nSTATUS=2/2 cameras 200 Hz, idle");
   EXPECT_EQ(got[8], "STOPPING=1\nSTATUS=stopping");
+}
+
+// A rig of which no camera ever streams does not hold start-up hostage: READY after the
+// timeout, degraded, the cameras named; and no watchdog hang (nothing to process).
+TEST(ServiceNotifier, NoFrameSetWithinTheTimeoutIsReadyDegraded) {
+  const std::string dir = testing::MakeTempDir("mocapd-notifier-degraded");
+  NotifyListener listener(dir + "/notify");
+  ASSERT_TRUE(listener.bound());
+  setenv("NOTIFY_SOCKET", (dir + "/notify").c_str(), 1);
+  daemon::ServiceNotifierOptions o;
+  o.watchdog_usec = 2000000;
+  o.no_frames_timeout_s = 15;
+  daemon::ServiceNotifier n(o);
+  const std::uint64_t s0 = 5000000000ull, s = 1000000000;
+  n.Started(s0);
+  ServiceSnapshot snap;
+  snap.cameras = 2;
+  snap.rate_hz = 200;
+  snap.missing_cameras = {"Basler-1", "Basler-2"};
+  for (std::uint64_t t = 1; t < 15; ++t) n.Tick(snap, s0 + t * s);
+  EXPECT_FALSE(n.ready());
+  n.Tick(snap, s0 + 15 * s);
+  EXPECT_TRUE(n.ready());
+  for (std::uint64_t t = 16; t < 20; ++t) n.Tick(snap, s0 + t * s);
+  unsetenv("NOTIFY_SOCKET");
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  int ready = 0;
+  for (const auto& m : listener.Messages()) {
+    if (!NotifyListener::HasLine(m.text, "READY=1")) continue;
+    ++ready;
+    EXPECT_EQ(NotifyListener::Field(m.text, "STATUS"),
+              "degraded: no frame set yet: 0/2 cameras 200 Hz (missing Basler-1, Basler-2), idle");
+  }
+  EXPECT_EQ(ready, 1);
+  EXPECT_EQ(n.pings(), 19u);  // every check (1 s apart), none withheld: an idle rig is not hung
+  EXPECT_EQ(n.stalled(), "");
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -276,20 +319,27 @@ pid_t StartSocketActivated(const std::string& dir, const std::string& hold_stage
   _exit(127);
 }
 
-// Connects to the activation socket as soon as it exists (which starts mocapd); the connected
-// descriptor or -1.
+// A failed assertion leaves no mocapd behind.
+struct KillOnExit {
+  pid_t pid;
+  ~KillOnExit() {
+    if (kill(pid, 0) == 0) kill(pid, SIGKILL), waitpid(pid, nullptr, 0);
+  }
+};
+
+// Connects to the activation socket as soon as it listens (which starts mocapd); the connected
+// descriptor or -1. systemd-socket-activate binds before it listens: refused in between.
 int ConnectWhenListening(const std::string& sock) {
-  for (int i = 0; i < 500 && access(sock.c_str(), F_OK) != 0; ++i)
-    std::this_thread::sleep_for(std::chrono::milliseconds(10));
-  const int fd = socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
   sockaddr_un a{};
   a.sun_family = AF_UNIX;
   std::snprintf(a.sun_path, sizeof a.sun_path, "%s", sock.c_str());
-  if (connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0) {
+  for (int i = 0; i < 500; ++i) {
+    const int fd = socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+    if (connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0) return fd;
     close(fd);
-    return -1;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
   }
-  return fd;
+  return -1;
 }
 
 // Holds a stage (DIR/hold) for 2.5 s: at most the one ping whose window began before the hold,
@@ -320,12 +370,7 @@ TEST(MocapdUnderSystemd, ActivatedReadyStatusWatchdogReloadHangAndStop) {
 
   const pid_t pid = StartSocketActivated(dir, "detection");
   ASSERT_GT(pid, 0);
-  struct Reaper {
-    pid_t pid;
-    ~Reaper() {
-      if (kill(pid, 0) == 0) kill(pid, SIGKILL), waitpid(pid, nullptr, 0);
-    }
-  } reaper{pid};
+  const KillOnExit reaper{pid};
 
   // The socket exists before mocapd runs; a client connecting now starts it (as mocapd.socket
   // does) and is served once the loop runs, before or after READY.
@@ -406,12 +451,7 @@ TEST(MocapdUnderSystemd, CamerasThatStopDeliveringStopThePings) {
   ASSERT_TRUE(notify.bound());
   const pid_t pid = StartSocketActivated(dir, "grab");
   ASSERT_GT(pid, 0);
-  struct Reaper {
-    pid_t pid;
-    ~Reaper() {
-      if (kill(pid, 0) == 0) kill(pid, SIGKILL), waitpid(pid, nullptr, 0);
-    }
-  } reaper{pid};
+  const KillOnExit reaper{pid};
   const int fd = ConnectWhenListening(dir + "/control.sock");
   ASSERT_GE(fd, 0);
   ASSERT_GE(notify.WaitFor("READY=1", 20), 0) << ReadAll(dir + "/mocapd.log");
