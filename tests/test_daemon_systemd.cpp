@@ -199,12 +199,26 @@ TEST(ServiceWatchdog, AStageIsHungWhenItsInputMovedAndItsOutputDidNot) {
   EXPECT_EQ(daemon::StalledStage(idle, idle), "");
 }
 
-// The notifier's messages, in-process, on a NOTIFY_SOCKET of this test.
-TEST(ServiceNotifier, ReadyOnceLiveStatusOnChangePingsOnlyWhileHealthy) {
-  const std::string dir = testing::MakeTempDir("mocapd-notifier");
-  NotifyListener listener(dir + "/notify");
-  ASSERT_TRUE(listener.bound());
-  setenv("NOTIFY_SOCKET", (dir + "/notify").c_str(), 1);
+// The notifier in this process, its NOTIFY_SOCKET this test's.
+class ServiceNotifier : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_TRUE(listener_.bound());
+    setenv("NOTIFY_SOCKET", path_.c_str(), 1);
+  }
+  void TearDown() override { unsetenv("NOTIFY_SOCKET"); }
+  // What arrived (after the datagrams in flight).
+  std::vector<NotifyListener::Message> Received() {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    return listener_.Messages();
+  }
+
+ private:
+  std::string path_ = testing::MakeTempDir("mocapd-notifier") + "/notify";
+  NotifyListener listener_{path_};
+};
+
+TEST_F(ServiceNotifier, ReadyOnceLiveStatusOnChangePingsOnlyWhileHealthy) {
   daemon::ServiceNotifierOptions o;
   o.watchdog_usec = 1000000;  // check every 0.5 s
   o.no_frames_timeout_s = 5;
@@ -239,10 +253,8 @@ TEST(ServiceNotifier, ReadyOnceLiveStatusOnChangePingsOnlyWhileHealthy) {
     daemon::ReloadNotice reload(&n);
   }
   n.Stopping();
-  unsetenv("NOTIFY_SOCKET");
-  std::this_thread::sleep_for(std::chrono::milliseconds(100));
   std::vector<std::string> got;
-  for (const auto& m : listener.Messages()) got.push_back(m.text);
+  for (const auto& m : Received()) got.push_back(m.text);
   ASSERT_EQ(got.size(), 9u);
   EXPECT_EQ(got[0], "STATUS=starting: waiting for the cameras' first frame sets");
   EXPECT_EQ(got[1], "STATUS=starting: 2/2 cameras 200 Hz, idle");
@@ -258,11 +270,7 @@ TEST(ServiceNotifier, ReadyOnceLiveStatusOnChangePingsOnlyWhileHealthy) {
 
 // A rig of which no camera ever streams does not hold start-up hostage: READY after the
 // timeout, degraded, the cameras named; and no watchdog hang (nothing to process).
-TEST(ServiceNotifier, NoFrameSetWithinTheTimeoutIsReadyDegraded) {
-  const std::string dir = testing::MakeTempDir("mocapd-notifier-degraded");
-  NotifyListener listener(dir + "/notify");
-  ASSERT_TRUE(listener.bound());
-  setenv("NOTIFY_SOCKET", (dir + "/notify").c_str(), 1);
+TEST_F(ServiceNotifier, NoFrameSetWithinTheTimeoutIsReadyDegraded) {
   daemon::ServiceNotifierOptions o;
   o.watchdog_usec = 2000000;
   o.no_frames_timeout_s = 15;
@@ -278,10 +286,8 @@ TEST(ServiceNotifier, NoFrameSetWithinTheTimeoutIsReadyDegraded) {
   n.Tick(snap, s0 + 15 * s);
   EXPECT_TRUE(n.ready());
   for (std::uint64_t t = 16; t < 20; ++t) n.Tick(snap, s0 + t * s);
-  unsetenv("NOTIFY_SOCKET");
-  std::this_thread::sleep_for(std::chrono::milliseconds(100));
   int ready = 0;
-  for (const auto& m : listener.Messages()) {
+  for (const auto& m : Received()) {
     if (!NotifyListener::HasLine(m.text, "READY=1")) continue;
     ++ready;
     EXPECT_EQ(NotifyListener::Field(m.text, "STATUS"),
