@@ -127,6 +127,7 @@ void CapturePipeline::GrabLoop(int c) {
   drivers::CameraSource& cam = *cameras_[c];
   bool was_lost = false;
   while (grabbing_) {
+    if (options_.test_hold) options_.test_hold("grab");
     drivers::Frame frame;
     const drivers::GrabResult r = cam.Grab(&frame);
     if (r == drivers::GrabResult::kFrame) {
@@ -166,6 +167,7 @@ void CapturePipeline::DetectLoop(int worker) {
       if (queue.closed()) break;  // closed and drained
       continue;
     }
+    if (options_.test_hold) options_.test_hold("detection");
     reconstruction::CameraDetections d;
     d.camera = frame.camera;
     d.sequence = options_.device_clock_rate_hz > 0
@@ -182,6 +184,7 @@ void CapturePipeline::DetectLoop(int worker) {
     cameras_[frame.camera]->Release(frame);
     std::lock_guard<std::mutex> lock(stats_mutex_);
     detect_ms_.Add(ms);
+    ++stats_.frames_detected;
     if (!s) {
       ++stats_.detection_errors;
       d.centroids.clear();  // the set still learns that this camera saw nothing usable

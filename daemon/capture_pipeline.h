@@ -131,6 +131,11 @@ struct CapturePipelineOptions {
   int start_timeout_ms = 2000;
   reconstruction::DetectionOptions detection;
   reconstruction::FrameSyncOptions sync;  // num_cameras is set from the sources
+  // Test hook: called by each grab thread before each grab (stage "grab") and by each detection
+  // worker before each frame (stage "detection"); a test holds a stage by blocking in it (the
+  // daemon's watchdog must then stop its pings). Empty: not called. mocapd sets it only when
+  // built with MOCAP_TEST_HOOKS (daemon/mocapd_main.cpp).
+  std::function<void(const char* stage)> test_hold;
 
   bool IsValid(std::string* error) const;
 };
@@ -141,6 +146,7 @@ struct CapturePipelineStats {
   std::uint64_t frames_grabbed = 0;
   std::uint64_t frames_incomplete = 0;   // buffers the cameras counted as incomplete
   std::uint64_t frames_dropped = 0;      // the detection queue was full
+  std::uint64_t frames_detected = 0;     // images through detection (errors included)
   std::uint64_t detection_errors = 0;
   std::uint64_t sync_errors = 0;         // detections the sync refused (camera index, ...)
   std::uint64_t detections_dropped = 0;  // the sync queue was full

@@ -294,6 +294,7 @@ Status Daemon::Start() {
   po.tracker.sigma_m = config_.tracker_sigma_m;
   po.tracker.gate_chi2 = config_.tracker_gate_chi2;
   po.exposure_us = config_.exposure_us;
+  po.capture.test_hold = options_.test_hold;
   pipeline_ = std::make_unique<LivePipeline>(std::move(sources), po, [this] {
     const std::uint64_t one = 1;
     [[maybe_unused]] ssize_t n = ::write(wake_fd_, &one, sizeof one);
@@ -631,6 +632,7 @@ Json Daemon::Status_() const {
 }
 
 void Daemon::ConfigReload(const Request& r) {
+  ReloadNotice reload_notice(options_.notifier);  // RELOADING=1 now, READY=1 on return
   DaemonConfig fresh;
   if (options_.config_path.empty()) {
     Fail(r, error_code::kUnavailable, "mocapd was started without a config file");
@@ -1543,6 +1545,19 @@ void Daemon::Stream(const LiveFrame& f) {
 
 void Daemon::Tick() {
   DrainFrames();
+  if (options_.notifier && pipeline_) {
+    ServiceSnapshot s = PipelineSnapshot(*pipeline_, config_);
+    if (subject_) s.subject = subject_->name;
+    s.model_version = live_model_version_;
+    if (recording_) s.recording = recording_->movement;
+    s.job = collection_ ? "rig.calibrate" : job_ ? job_->kind : "";
+    if (options_.notifier->Tick(s, drivers::MonotonicNs())) {
+      const std::string& stage = options_.notifier->stalled();
+      if (stage.empty()) spdlog::info("watchdog: every pipeline stage progresses again");
+      else spdlog::error("watchdog: the {} stage made no progress within half the watchdog "
+                         "interval: pings withheld, systemd will restart mocapd", stage);
+    }
+  }
   if (collection_) {
     const double t = SecondsSince(collection_->started_ns);
     if (t - collection_->last_progress_s >= 0.5) {

@@ -39,6 +39,7 @@
 #include "daemon/config.h"
 #include "daemon/control_server.h"
 #include "daemon/live_pipeline.h"
+#include "daemon/service_notify.h"
 #include "daemon/store.h"
 #include "model/model.h"
 #include "model/status.h"
@@ -56,6 +57,10 @@ struct DaemonOptions {
   std::string config_path;  // for config.reload / SIGHUP
   int listen_fd = -1;       // socket activation: a listening socket from systemd
   std::string version = "0.1.0";
+  // systemd's notifications (daemon/service_notify.h), fed by the loop's tick; null: none.
+  ServiceNotifier* notifier = nullptr;
+  // CapturePipelineOptions::test_hold (test builds only, daemon/mocapd_main.cpp).
+  std::function<void(const char* stage)> test_hold;
 };
 
 class Daemon {

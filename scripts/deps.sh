@@ -7,6 +7,7 @@ PKGS=(cmake ninja-build g++ pkg-config
       libgtest-dev libgmock-dev libbenchmark-dev libtinyxml2-dev libtomlplusplus-dev
       libaravis-dev aravis-tools libusb-1.0-0-dev libopencv-dev
       libsystemd-dev  # mocapd: sd-event, sd-daemon
+      systemd dpkg-dev  # tests/test_daemon_systemd: systemd-socket-activate, systemd-analyze, dpkg-shlibdeps (cpack -G DEB)
       jq bc  # scripts/demo.sh reads mocapctl --json
       clang-14 libclang-rt-14-dev)  # clang + libFuzzer: scripts/fuzz.sh
 missing=()
