@@ -284,9 +284,10 @@ bool CapturePipeline::PopPoints(PointFrame* out, int timeout_ms) {
   return points_.Pop(out, std::chrono::milliseconds(timeout_ms));
 }
 
-CapturePipelineStats CapturePipeline::Stats() const {
+CapturePipelineStats CapturePipeline::Stats(bool timings) const {
   std::lock_guard<std::mutex> lock(stats_mutex_);
   CapturePipelineStats s = stats_;
+  if (!timings) return s;
   s.detect_ms_p50 = detect_ms_.Percentile(50);
   s.detect_ms_p99 = detect_ms_.Percentile(99);
   s.triangulate_ms_p50 = triangulate_ms_.Percentile(50);

@@ -259,8 +259,10 @@ int ControlServer::OnClient(sd_event_source* s, int fd, uint32_t revents, void* 
 
 void ControlServer::ReadFrom(Client* c) {
   const std::uint64_t id = c->id;
-  char buf[65536];
-  for (int rounds = 0; rounds < 16; ++rounds) {  // fairness: at most 1 MB per wake-up
+  // Fairness: one 16 KB read per wake-up (a few hundred requests at most), then the loop serves
+  // the frames and the other clients; epoll wakes it again for the rest.
+  char buf[16384];
+  for (int rounds = 0; rounds < 1; ++rounds) {
     const ssize_t n = ::recv(c->fd, buf, sizeof buf, 0);
     if (n == 0) {
       Drop(c, "");

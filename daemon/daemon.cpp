@@ -315,7 +315,10 @@ Status Daemon::Start() {
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &checkpointer, so));
     so.wal_autocheckpoint_pages = 0;  // the checkpointer's thread does it (daemon/store.h)
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &store, so));
-    recorder_ = std::make_unique<Recorder>(pipeline_.get(), std::move(store), std::move(checkpointer));
+    // Chunks of 80 ms: a frame reaches the recorder a few ms after its exposure, so a crash loses
+    // at most the last 100 ms of the recording (tests/test_daemon_faults.cpp measures it).
+    recorder_ = std::make_unique<Recorder>(pipeline_.get(), std::move(store),
+                                           std::move(checkpointer), /*chunk_ms=*/80);
     recorder_->Start();
   }
 
@@ -549,7 +552,6 @@ void Daemon::OnRequest(const ClientInfo& client, const Json& id, const std::stri
 Json Daemon::CamerasJson() const {
   Json cams = Json::array();
   if (!pipeline_) return {{"cameras", cams}};
-  const LivePipelineStats st = pipeline_->Stats();
   const double up = std::max(1e-3, SecondsSince(started_ns_));
   for (int c = 0; c < pipeline_->num_cameras(); ++c) {
     drivers::CameraSource& cam = pipeline_->camera(c);
@@ -584,7 +586,18 @@ Json Daemon::Status_() const {
   j["rig"] = rig;
   j["cameras"] = CamerasJson()["cameras"];
   if (pipeline_) {
-    const LivePipelineStats st = pipeline_->Stats();
+    // The timing percentiles cost milliseconds: at most once a second, however many clients ask
+    // (a flood of status requests must not hold the loop off the frames).
+    const std::uint64_t now = drivers::MonotonicNs();
+    if (now - stats_cached_ns_ > 1000000000ull) {
+      stats_cache_ = pipeline_->Stats();
+      stats_cached_ns_ = now;
+    }
+    LivePipelineStats st = pipeline_->Stats(/*timings=*/false);
+    st.capture.latency_ms_p50 = stats_cache_.capture.latency_ms_p50;
+    st.capture.latency_ms_p99 = stats_cache_.capture.latency_ms_p99;
+    st.track_ms_p50 = stats_cache_.track_ms_p50;
+    st.track_ms_p99 = stats_cache_.track_ms_p99;
     j["sets"] = {{"total", st.capture.frame_sets},
                  {"incomplete", st.capture.incomplete_sets},
                  {"dropped", st.capture.dropped_frame_sets},

@@ -164,6 +164,8 @@ class Daemon {
   int calibration_version_ = 0;  // live calibration (0: none)
   std::uint64_t last_frame_ = 0;
   LiveFrame last_live_;           // the newest frame (status)
+  mutable LivePipelineStats stats_cache_;  // with timings, refreshed at most once a second
+  mutable std::uint64_t stats_cached_ns_ = 0;
 
   // The running recording.
   struct Recording {

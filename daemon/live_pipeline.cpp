@@ -293,15 +293,17 @@ void LivePipeline::Publish(LiveFrame&& frame) {
   if (wake_) wake_();
 }
 
-LivePipelineStats LivePipeline::Stats() const {
+LivePipelineStats LivePipeline::Stats(bool timings) const {
   LivePipelineStats s;
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     s = stats_;
-    s.track_ms_p50 = track_ms_.Percentile(50);
-    s.track_ms_p99 = track_ms_.Percentile(99);
+    if (timings) {
+      s.track_ms_p50 = track_ms_.Percentile(50);
+      s.track_ms_p99 = track_ms_.Percentile(99);
+    }
   }
-  s.capture = capture_->Stats();
+  s.capture = capture_->Stats(timings);
   return s;
 }
 

@@ -129,7 +129,8 @@ class LivePipeline {
   // fraction of an 8 x 8 grid of its image the centroids visited.
   void WandProgress(int* frames, std::vector<int>* per_camera, std::vector<double>* coverage) const;
 
-  LivePipelineStats Stats() const;
+  // timings = false: the counters only (cheap; see CapturePipeline::Stats).
+  LivePipelineStats Stats(bool timings = true) const;
   int num_cameras() const { return capture_ ? capture_->num_cameras() : 0; }
   drivers::CameraSource& camera(int c) { return capture_->camera(c); }
   // Camera image size, for the coverage grid.

@@ -135,7 +135,7 @@ void ServiceNotifier::StartFailed(const std::string& message, int exit_code) {
 
 ServiceSnapshot PipelineSnapshot(LivePipeline& pipeline, const DaemonConfig& config) {
   ServiceSnapshot s;
-  const LivePipelineStats st = pipeline.Stats();
+  const LivePipelineStats st = pipeline.Stats(/*timings=*/false);  // every 100 ms
   s.progress.frames_grabbed = st.capture.frames_grabbed;
   s.progress.frames_dropped = st.capture.frames_dropped;
   s.progress.frames_detected = st.capture.frames_detected;

@@ -4,7 +4,6 @@
 // errors (never crashes), and exports read back with formats/ equal what was stored.
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
-#include <sqlite3.h>
 
 #include <algorithm>
 #include <atomic>
@@ -26,6 +25,7 @@
 #include "model/default_model.h"
 #include "model/model_io.h"
 #include "tests/file_test_util.h"
+#include "tests/store_test_util.h"
 
 namespace fs = std::filesystem;
 using mocap::Status;
@@ -42,6 +42,7 @@ using ::testing::HasSubstr;
 using ::testing::MatchesRegex;
 
 namespace {
+using mocap::testing::RawSql;
 
 const double kNaN = std::numeric_limits<double>::quiet_NaN();
 
@@ -59,23 +60,6 @@ void ExpectError(const Status& s, std::initializer_list<std::string> parts) {
 
 // Runs one SQL statement on the database file directly (behind the Store's back) and returns the
 // first column of its first row as text ("" when none).
-std::string RawSql(const std::string& db_path, const std::string& sql) {
-  sqlite3* db = nullptr;
-  EXPECT_EQ(sqlite3_open(db_path.c_str(), &db), SQLITE_OK);
-  sqlite3_stmt* stmt = nullptr;
-  EXPECT_EQ(sqlite3_prepare_v2(db, sql.c_str(), -1, &stmt, nullptr), SQLITE_OK)
-      << sqlite3_errmsg(db);
-  std::string result;
-  const int rc = sqlite3_step(stmt);
-  EXPECT_TRUE(rc == SQLITE_ROW || rc == SQLITE_DONE) << sql << ": " << sqlite3_errmsg(db);
-  if (rc == SQLITE_ROW && sqlite3_column_text(stmt, 0)) {
-    result = reinterpret_cast<const char*>(sqlite3_column_text(stmt, 0));
-  }
-  sqlite3_finalize(stmt);
-  sqlite3_close(db);
-  return result;
-}
-
 // Each test gets an empty state directory (nested, so Open must create the parents); after each,
 // SQLite's integrity check must pass on what the test left.
 class StoreTest : public ::testing::Test {

@@ -1,0 +1,321 @@
+// mocapd under faults and load (issue 17), against the real executable on the simulated rig:
+//  - SIGKILL at random moments of a session (recording, fit, model.apply): what was recorded up
+//    to the last 100 ms is on disk, marked interrupted, readable and exportable; the database is
+//    intact; subjects, calibrations and models are unchanged;
+//  - clients that misbehave in every way a client can: the daemon answers the others, its memory
+//    stays bounded, the loop never falls behind the pipeline because of them.
+#include <sys/socket.h>
+#include <sys/un.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <random>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "daemon/store.h"
+#include "formats/c3d.h"
+#include "tests/daemon_test_util.h"
+#include "tests/store_test_util.h"
+
+namespace mocap {
+namespace {
+
+using daemon::ControlClient;
+using daemon::ControlReply;
+using nlohmann::json;
+using testing::DaemonProcess;
+
+#define ASSERT_OK(expr)                      \
+  do {                                       \
+    const Status status_ = (expr);           \
+    ASSERT_TRUE(status_.ok()) << status_.message(); \
+  } while (0)
+
+json Call(ControlClient* c, const std::string& method, const json& params = json::object()) {
+  ControlReply r;
+  const Status s = c->Call(method, params, &r);
+  EXPECT_TRUE(s.ok()) << method << ": " << s.message();
+  EXPECT_TRUE(r.ok()) << method << ": " << r.error_code << " " << r.error_message;
+  return r.result;
+}
+
+double WallSeconds() {
+  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+}
+
+long RssKb(pid_t pid) {
+  std::ifstream f("/proc/" + std::to_string(pid) + "/status");
+  std::string line;
+  while (std::getline(f, line))
+    if (line.rfind("VmRSS:", 0) == 0) return std::stol(line.substr(6));
+  return -1;
+}
+
+// SIGKILL at 20 random moments: during recordings, during a fit, during model.apply.
+TEST(DaemonFaults, KilledAtRandomMomentsLosesAtMostTheLast100ms) {
+  const std::string dir = testing::MakeTempDir("mocapd-kill");
+  DaemonProcess d(dir, testing::SimulatedRigToml(8, 2));
+  ASSERT_OK(d.Start());
+  std::unique_ptr<ControlClient> c;
+  ASSERT_OK(d.Connect(&c));
+  Call(c.get(), "rig.calibrate.start", {{"seconds", 10}});
+  std::this_thread::sleep_for(std::chrono::seconds(10));
+  Call(c.get(), "rig.calibrate.finish");
+  Call(c.get(), "rig.calibrate.apply");
+  const double height = Call(c.get(), "status")["rig"]["virtual_subject"]["height_m"];
+  Call(c.get(), "subject.create", {{"name", "S01"}, {"height_m", height}});
+  Call(c.get(), "subject.select", {{"name", "S01"}});
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  json first = Call(c.get(), "record.start", {{"movement", "static"}, {"sim_duration_scale", 0.5}});
+  ASSERT_EQ(first["coverage"]["ok"], true) << first.dump();
+
+  std::mt19937 rng(17);
+  const std::string db = d.state_dir() + "/" + daemon::Store::kFileName;
+  int interrupted_checked = 0;
+  for (int cycle = 0; cycle < 20; ++cycle) {
+    SCOPED_TRACE("cycle " + std::to_string(cycle));
+    // What is on disk before the kill.
+    const json calibrations = Call(c.get(), "calibration.list")["calibrations"];
+    const json models = Call(c.get(), "model.list", {{"subject", "S01"}})["models"];
+    std::vector<std::string> model_json;
+    for (const json& m : models)
+      model_json.push_back(Call(c.get(), "export", {{"kind", "model"}, {"id", m["version"]},
+                                                    {"format", "json"}, {"inline", true}, {"subject", "S01"}})["content"]);
+    const int kind = cycle % 5;  // 0-2: recording, 3: fit, 4: model.apply
+    std::int64_t id = 0;
+    double killed_at = 0;
+    if (kind <= 2) {
+      ASSERT_OK(c->Send("record.start", {{"movement", "squats"}}, &id));
+      std::this_thread::sleep_for(std::chrono::milliseconds(300 + rng() % 1500));
+    } else if (kind == 3) {
+      ASSERT_OK(c->Send("fit.start", json::object(), &id));
+      std::this_thread::sleep_for(std::chrono::milliseconds(rng() % 1500));
+    } else {
+      ASSERT_OK(c->Send("model.apply", json::object(), &id));
+      std::this_thread::sleep_for(std::chrono::milliseconds(rng() % 5));
+    }
+    killed_at = WallSeconds();
+    d.Kill(SIGKILL);
+    c.reset();
+
+    EXPECT_EQ(testing::RawSql(db, "PRAGMA integrity_check"), "ok");
+    ASSERT_OK(d.Start());
+    ASSERT_OK(d.Connect(&c));
+    // Nothing that was stored changed.
+    EXPECT_EQ(Call(c.get(), "calibration.list")["calibrations"], calibrations);
+    const json models_after = Call(c.get(), "model.list", {{"subject", "S01"}})["models"];
+    ASSERT_GE(models_after.size(), models.size());
+    for (std::size_t k = 0; k < models.size(); ++k) {
+      EXPECT_EQ(models_after[k]["version"], models[k]["version"]);
+      EXPECT_EQ(Call(c.get(), "export", {{"kind", "model"}, {"id", models[k]["version"]},
+                                         {"format", "json"}, {"inline", true}, {"subject", "S01"}})["content"],
+                model_json[k]);
+    }
+    EXPECT_EQ(Call(c.get(), "subject.list")["subjects"].size(), 1u);
+    if (kind <= 2) {
+      // The recording: interrupted, its frames up to 100 ms before the kill, exportable.
+      const json recs = Call(c.get(), "recording.list")["recordings"];
+      ASSERT_FALSE(recs.empty());
+      const json& last = recs.back();
+      EXPECT_EQ(last["state"], "interrupted") << last.dump();
+      std::unique_ptr<daemon::Store> store;
+      daemon::StoreOptions so;
+      so.mark_interrupted_recordings = false;
+      ASSERT_OK(daemon::Store::Open(d.state_dir(), &store, so));
+      std::vector<daemon::RecordedFrame> frames;
+      ASSERT_OK(store->ReadFrames(last["id"], &frames));
+      ASSERT_FALSE(frames.empty());
+      // The rig's clock is the host's wall clock (the fake cameras' timestamps).
+      const double lost_s = killed_at - frames.back().time_s;
+      std::printf("cycle %d: killed %.3f s after the last stored frame (%zu frames)\n", cycle, lost_s,
+                  frames.size());
+      EXPECT_LE(lost_s, 0.100);
+      EXPECT_GT(lost_s, -0.05);
+      const std::string c3d = dir + "/interrupted.c3d";
+      Call(c.get(), "export", {{"kind", "recording"}, {"id", last["id"]}, {"format", "c3d"}, {"path", c3d}});
+      formats::MarkerTrial trial;
+      {
+        const Status s = formats::ReadC3d(c3d, &trial);
+        EXPECT_TRUE(s.ok()) << s.message();
+        EXPECT_GE(trial.num_frames(), static_cast<int>(frames.size()));
+      }
+      ++interrupted_checked;
+    }
+    Call(c.get(), "subject.select", {{"name", "S01"}});
+  }
+  EXPECT_EQ(interrupted_checked, 12);
+  EXPECT_EQ(d.Stop(), 0) << d.Log();
+  EXPECT_EQ(testing::RawSql(db, "PRAGMA integrity_check"), "ok");
+}
+
+// A raw connection (the client library would refuse to send most of this).
+int RawConnect(const std::string& path) {
+  const int fd = socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  sockaddr_un addr{};
+  addr.sun_family = AF_UNIX;
+  std::snprintf(addr.sun_path, sizeof addr.sun_path, "%s", path.c_str());
+  if (connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+    close(fd);
+    return -1;
+  }
+  timeval tv{10, 0};
+  setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+  return fd;
+}
+
+// Reads until `n` lines have arrived or the connection ends; returns them.
+std::vector<std::string> ReadLines(int fd, std::size_t n) {
+  std::vector<std::string> lines;
+  std::string buffer;
+  char buf[65536];
+  while (lines.size() < n) {
+    const ssize_t got = recv(fd, buf, sizeof buf, 0);
+    if (got <= 0) break;
+    buffer.append(buf, static_cast<std::size_t>(got));
+    for (std::size_t nl; (nl = buffer.find('\n')) != std::string::npos;) {
+      lines.push_back(buffer.substr(0, nl));
+      buffer.erase(0, nl + 1);
+    }
+  }
+  return lines;
+}
+
+TEST(DaemonFaults, MisbehavingClientsCannotStopTheRig) {
+  const std::string dir = testing::MakeTempDir("mocapd-clients");
+  DaemonProcess d(dir, "[rig]\nsimulated = 4\nwidth = 640\nheight = 512\nrate = 200\n"
+                       "[control]\nmax_clients = 256\n");
+  ASSERT_OK(d.Start());
+  std::unique_ptr<ControlClient> good;
+  ASSERT_OK(d.Connect(&good, 10000));
+  Call(good.get(), "subject.create", {{"name", "S01"}, {"height_m", 1.7}});
+  // Selected: the markers stream carries every model marker (predicted where unseen), ~4 kB a
+  // frame, so a subscriber that does not read falls behind within a second.
+  Call(good.get(), "subject.select", {{"name", "S01"}});
+  std::this_thread::sleep_for(std::chrono::seconds(1));
+  const json before = Call(good.get(), "status");
+  const long rss_before = RssKb(d.pid());
+  ASSERT_GT(rss_before, 0);
+
+  // Garbage, invalid UTF-8: each a structured error; the connection goes on.
+  {
+    const int fd = RawConnect(d.socket());
+    ASSERT_GE(fd, 0);
+    ReadLines(fd, 1);  // hello
+    const std::string garbage = std::string("\x00\x01\x02 not json \xff\n", 16) +
+                                "{\"id\":1,\"method\":\"st\xc3\x28tus\"}\n";
+    ASSERT_EQ(send(fd, garbage.data(), garbage.size(), MSG_NOSIGNAL), static_cast<ssize_t>(garbage.size()));
+    const auto replies = ReadLines(fd, 2);
+    ASSERT_EQ(replies.size(), 2u);
+    for (const std::string& r : replies) EXPECT_NE(r.find("\"parse_error\""), std::string::npos) << r;
+    close(fd);
+  }
+  // A 100 MB line: refused after max_line_bytes, the connection closed.
+  {
+    const int fd = RawConnect(d.socket());
+    ASSERT_GE(fd, 0);
+    ReadLines(fd, 1);
+    const std::string chunk(1 << 20, 'a');
+    std::size_t sent = 0;
+    for (int i = 0; i < 100; ++i) {
+      const ssize_t n = send(fd, chunk.data(), chunk.size(), MSG_NOSIGNAL);
+      if (n <= 0) break;
+      sent += static_cast<std::size_t>(n);
+    }
+    const auto replies = ReadLines(fd, 1);
+    ASSERT_EQ(replies.size(), 1u);
+    EXPECT_NE(replies[0].find("\"line_too_long\""), std::string::npos) << replies[0];
+    EXPECT_LT(sent, 100u << 20) << "the daemon kept reading a line it had refused";
+    close(fd);
+  }
+  // 1,000 connections opened and dropped at once.
+  for (int i = 0; i < 1000; ++i) {
+    const int fd = RawConnect(d.socket());
+    if (fd >= 0) close(fd);
+  }
+  // 200 idle connections kept open, a subscriber that never reads, 50 clients gone mid-reply.
+  std::vector<int> idle;
+  for (int i = 0; i < 200; ++i) idle.push_back(RawConnect(d.socket()));
+  EXPECT_EQ(std::count(idle.begin(), idle.end(), -1), 0);
+  const int sleeper = RawConnect(d.socket());
+  {
+    const std::string sub = "{\"id\":1,\"method\":\"subscribe\",\"params\":{\"streams\":[\"markers\",\"points\",\"pose\",\"status\"]}}\n";
+    ASSERT_EQ(send(sleeper, sub.data(), sub.size(), MSG_NOSIGNAL), static_cast<ssize_t>(sub.size()));
+  }
+  for (int i = 0; i < 50; ++i) {
+    const int fd = RawConnect(d.socket());
+    const std::string req = "{\"id\":1,\"method\":\"export\",\"params\":{\"kind\":\"model\",\"id\":1,\"subject\":\"S01\",\"format\":\"json\",\"inline\":true}}\n";
+    send(fd, req.data(), req.size(), MSG_NOSIGNAL);
+    close(fd);
+  }
+  // A flood: 10,000 requests pipelined as fast as the socket takes them, the replies read by
+  // another thread; meanwhile a well-behaved client is answered promptly.
+  const int flood = RawConnect(d.socket());
+  ASSERT_GE(flood, 0);
+  std::atomic<std::size_t> flood_replies{0};
+  std::thread reader([&] { flood_replies = ReadLines(flood, 10001).size(); });
+  const auto t0 = std::chrono::steady_clock::now();
+  std::string burst;
+  for (int i = 0; i < 10000; ++i) burst += "{\"id\":" + std::to_string(i) + ",\"method\":\"status\"}\n";
+  std::thread writer([&] { send(flood, burst.data(), burst.size(), MSG_NOSIGNAL); });
+  double worst_s = 0;
+  for (int i = 0; i < 10; ++i) {
+    const auto a = std::chrono::steady_clock::now();
+    Call(good.get(), "status");
+    worst_s = std::max(worst_s, std::chrono::duration<double>(std::chrono::steady_clock::now() - a).count());
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  writer.join();
+  reader.join();
+  const double flood_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  std::printf("flood: %zu replies (hello included) to 10,000 requests in %.2f s; a good client's "
+              "worst status %.3f s\n", flood_replies.load(), flood_s, worst_s);
+  EXPECT_EQ(flood_replies.load(), 10001u);
+  EXPECT_LT(worst_s, 1.0);
+  close(flood);
+
+  // The sleeper, when it finally reads, is told how many frames it lost.
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  bool told = false;
+  {
+    std::string buffer;
+    char buf[65536];
+    const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+    while (!told && std::chrono::steady_clock::now() < until) {
+      const ssize_t got = recv(sleeper, buf, sizeof buf, 0);
+      if (got <= 0) break;
+      buffer.append(buf, static_cast<std::size_t>(got));
+      told = buffer.find("\"event\":\"dropped\"") != std::string::npos;
+      if (buffer.size() > (1u << 20)) buffer.erase(0, buffer.size() - 64);
+    }
+  }
+  EXPECT_TRUE(told) << "a subscriber that did not read was never told it lost frames";
+  close(sleeper);
+  for (int fd : idle)
+    if (fd >= 0) close(fd);
+
+  const json after = Call(good.get(), "status");
+  const long rss_after = RssKb(d.pid());
+  std::printf("RSS %ld kB -> %ld kB; frame sets dropped %llu -> %llu; loop dropped %llu -> %llu\n",
+              rss_before, rss_after, before["sets"]["dropped"].get<unsigned long long>(),
+              after["sets"]["dropped"].get<unsigned long long>(),
+              before["tracker"]["loop_dropped"].get<unsigned long long>(),
+              after["tracker"]["loop_dropped"].get<unsigned long long>());
+  EXPECT_LT(rss_after - rss_before, 100 * 1024) << "memory grew with the clients";
+  // The loop took every frame the pipeline handed it: no client held it off.
+  EXPECT_EQ(after["tracker"]["loop_dropped"], before["tracker"]["loop_dropped"]);
+  EXPECT_EQ(after["tracker"]["recorder_dropped"], 0);
+  const std::string log = d.Log();
+  EXPECT_NE(log.find("line longer than"), std::string::npos) << "the refused client is not in the log";
+  EXPECT_EQ(d.Stop(), 0) << log;
+}
+
+}  // namespace
+}  // namespace mocap
