@@ -386,4 +386,78 @@ Status EstimateFunctionalJoint(const Model& model, const formats::MarkerTrial& t
   return Status::Ok();
 }
 
+Status AddFunctionalCentres(const std::vector<std::string>& joints,
+                            const FunctionalJointOptions& options, double weight, Model* model,
+                            std::vector<formats::MarkerTrial>* trials,
+                            std::vector<std::string>* virtual_markers,
+                            std::vector<std::string>* notes) {
+  if (!(weight > 0) || !std::isfinite(weight))
+    return Status::Error("functional centres: the weight must be > 0");
+  std::vector<Marker> markers = model->markers();
+  std::vector<formats::MarkerTrial> out_trials = *trials;  // *trials untouched on error
+  std::vector<std::string> added;
+  for (const std::string& joint : joints) {
+    const std::string name = joint + "@functional";
+    if (model->FindMarker(name) >= 0 || std::find(added.begin(), added.end(), name) != added.end())
+      return Status::Error("functional centres: joint '" + joint + "' given twice");
+    int excited = 0;
+    std::vector<Eigen::MatrixXd> centres(trials->size());
+    for (size_t t = 0; t < trials->size(); ++t) {
+      const formats::MarkerTrial& trial = (*trials)[t];
+      FunctionalJoint fj;
+      if (Status s = EstimateFunctionalJoint(*model, trial, joint, options, &fj); !s) {
+        if (model->FindJoint(joint) < 0 || model->joints()[model->FindJoint(joint)].parent < 0)
+          return s;  // a joint the model does not have (or the root) is the caller's error
+        notes->push_back(joint + ": trial '" + trial.name + "' not used: " + s.message());
+        continue;
+      }
+      if (!fj.centre.fit.excited) {
+        notes->push_back(joint + ": trial '" + trial.name + "' not used: " + fj.centre.fit.note);
+        continue;
+      }
+      char buf[200];
+      std::snprintf(buf, sizeof(buf),
+                    "%s: trial '%s': SCoRE centre over %d frames, std %.2f mm, residual %.2f mm",
+                    joint.c_str(), trial.name.c_str(), fj.centre.fit.frames_used, fj.centre.std_mm,
+                    fj.centre.fit.residual_rms_mm);
+      notes->push_back(buf);
+      centres[t].resize(trial.num_frames(), 3);
+      for (int f = 0; f < trial.num_frames(); ++f) centres[t].row(f) = fj.CentreInLab(f).transpose();
+      ++excited;
+    }
+    if (excited == 0)
+      return Status::Error("functional centres: no trial excites joint '" + joint +
+                           "' (each needs rotation about two axes and 3 markers on each segment)");
+    for (size_t t = 0; t < out_trials.size(); ++t) {
+      formats::MarkerTrial& trial = out_trials[t];
+      const Eigen::Index cols = trial.positions.cols();
+      trial.positions.conservativeResize(Eigen::NoChange, cols + 3);
+      if (centres[t].size() > 0) {
+        trial.positions.rightCols<3>() = centres[t];
+      } else {
+        trial.positions.rightCols<3>().setConstant(std::numeric_limits<double>::quiet_NaN());
+      }
+      trial.marker_names.push_back(name);
+    }
+    Marker m;
+    m.name = name;
+    m.segment = model->joints()[model->FindJoint(joint)].child;
+    m.position = Eigen::Vector3d::Zero();
+    m.weight = weight;
+    markers.push_back(m);
+    added.push_back(name);
+  }
+  std::vector<Segment> segments = model->segments();
+  std::vector<Joint> model_joints = model->joints();
+  std::vector<Coordinate> coordinates = model->coordinates();
+  std::vector<DerivedCoordinate> derived = model->derived_coordinates();
+  Model out;
+  MOCAP_RETURN_IF_ERROR(Model::Build(model->name(), segments, model_joints, coordinates, markers,
+                                     derived, &out));
+  *model = std::move(out);
+  *trials = std::move(out_trials);
+  virtual_markers->insert(virtual_markers->end(), added.begin(), added.end());
+  return Status::Ok();
+}
+
 }  // namespace mocap::solver
