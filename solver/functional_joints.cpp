@@ -47,8 +47,11 @@ std::vector<int> CommonFrames(const ClusterTrack& parent, const ClusterTrack& ch
   return frames;
 }
 
-// Per-frame terms of the normal equations, summed over blocks of consecutive used frames.
+// Per-frame terms of the normal equations, summed over blocks of consecutive used frames, and
+// the eigen-decomposition of their sum.
 struct NormalTerms {
+  std::vector<int> frames;  // used: both clusters have a pose
+  Eigen::SelfAdjointEigenSolver<Matrix6d> eig;
   std::vector<Matrix6d> block_n;
   std::vector<Vector6d> block_g;
   Matrix6d n = Matrix6d::Zero();
@@ -163,7 +166,7 @@ void Bootstrap(const NormalTerms& t, const FunctionalJointOptions& options, Esti
 }
 
 Status Prepare(const ClusterTrack& parent, const ClusterTrack& child, double rate_hz,
-               const FunctionalJointOptions& options, std::vector<int>* frames, NormalTerms* t) {
+               const FunctionalJointOptions& options, NormalTerms* t) {
   std::string why;
   if (!options.IsValid(&why)) return Status::Error("functional joint options: " + why);
   if (parent.valid.size() != child.valid.size())
@@ -171,13 +174,15 @@ Status Prepare(const ClusterTrack& parent, const ClusterTrack& child, double rat
                          std::to_string(parent.valid.size()) + " and " +
                          std::to_string(child.valid.size()) + " frames (not the same trial?)");
   if (!(rate_hz > 0)) return Status::Error("functional joint: the trial's rate must be > 0");
-  *frames = CommonFrames(parent, child);
-  if (static_cast<int>(frames->size()) < options.min_frames)
-    return Status::Error("functional joint: only " + std::to_string(frames->size()) +
+  const std::vector<int> frames = CommonFrames(parent, child);
+  if (static_cast<int>(frames.size()) < options.min_frames)
+    return Status::Error("functional joint: only " + std::to_string(frames.size()) +
                          " frames in which both segments' markers are seen (at least " +
                          std::to_string(options.min_frames) + " needed)");
   const int block = std::max(1, static_cast<int>(std::lround(options.bootstrap_block_s * rate_hz)));
-  *t = Accumulate(parent, child, *frames, block);
+  *t = Accumulate(parent, child, frames, block);
+  t->frames = frames;
+  t->eig.compute(t->n);
   return Status::Ok();
 }
 
@@ -256,15 +261,13 @@ Status TrackCluster(const formats::MarkerTrial& trial, const std::vector<int>& c
 
 Status EstimateCentre(const ClusterTrack& parent, const ClusterTrack& child, double rate_hz,
                       const FunctionalJointOptions& options, CentreEstimate* centre) {
-  std::vector<int> frames;
   NormalTerms t;
-  MOCAP_RETURN_IF_ERROR(Prepare(parent, child, rate_hz, options, &frames, &t));
+  MOCAP_RETURN_IF_ERROR(Prepare(parent, child, rate_hz, options, &t));
   CentreEstimate out;
-  const Eigen::SelfAdjointEigenSolver<Matrix6d> eig(t.n);
-  const Vector6d x = SolveFrom(eig, t.g, 0);
+  const Vector6d x = SolveFrom(t.eig, t.g, 0);
   out.in_parent = x.head<3>();
   out.in_child = x.tail<3>();
-  out.fit = Describe(parent, child, frames, t.n, x);
+  out.fit = Describe(parent, child, t.frames, t.n, x);
   // A centre is fixed by rotation about two axes; about one it slides along that axis.
   MarkExcitation(1, options.min_rotation_deg, &out.fit);
   std::vector<Eigen::Vector3d> draws;
@@ -282,18 +285,16 @@ Status EstimateCentre(const ClusterTrack& parent, const ClusterTrack& child, dou
 
 Status EstimateAxis(const ClusterTrack& parent, const ClusterTrack& child, double rate_hz,
                     const FunctionalJointOptions& options, AxisEstimate* axis) {
-  std::vector<int> frames;
   NormalTerms t;
-  MOCAP_RETURN_IF_ERROR(Prepare(parent, child, rate_hz, options, &frames, &t));
+  MOCAP_RETURN_IF_ERROR(Prepare(parent, child, rate_hz, options, &t));
   AxisEstimate out;
-  const Eigen::SelfAdjointEigenSolver<Matrix6d> eig(t.n);
-  const Vector6d null = eig.eigenvectors().col(0);
-  const Vector6d x = SolveFrom(eig, t.g, 1);
+  const Vector6d null = t.eig.eigenvectors().col(0);
+  const Vector6d x = SolveFrom(t.eig, t.g, 1);
   out.direction_parent = null.head<3>().normalized();
   out.direction_child = null.tail<3>().normalized();
   out.point_parent = x.head<3>();
   out.point_child = x.tail<3>();
-  out.fit = Describe(parent, child, frames, t.n, x);
+  out.fit = Describe(parent, child, t.frames, t.n, x);
   MarkExcitation(0, options.min_rotation_deg, &out.fit);
   double angle_sq = 0, point_sq = 0;
   int draws = 0;
