@@ -47,8 +47,11 @@ std::vector<int> CommonFrames(const ClusterTrack& parent, const ClusterTrack& ch
   return frames;
 }
 
-// Per-frame terms of the normal equations, summed over blocks of consecutive used frames.
+// Per-frame terms of the normal equations, summed over blocks of consecutive used frames, and
+// the eigen-decomposition of their sum.
 struct NormalTerms {
+  std::vector<int> frames;  // used: both clusters have a pose
+  Eigen::SelfAdjointEigenSolver<Matrix6d> eig;
   std::vector<Matrix6d> block_n;
   std::vector<Vector6d> block_g;
   Matrix6d n = Matrix6d::Zero();
@@ -163,7 +166,7 @@ void Bootstrap(const NormalTerms& t, const FunctionalJointOptions& options, Esti
 }
 
 Status Prepare(const ClusterTrack& parent, const ClusterTrack& child, double rate_hz,
-               const FunctionalJointOptions& options, std::vector<int>* frames, NormalTerms* t) {
+               const FunctionalJointOptions& options, NormalTerms* t) {
   std::string why;
   if (!options.IsValid(&why)) return Status::Error("functional joint options: " + why);
   if (parent.valid.size() != child.valid.size())
@@ -171,13 +174,15 @@ Status Prepare(const ClusterTrack& parent, const ClusterTrack& child, double rat
                          std::to_string(parent.valid.size()) + " and " +
                          std::to_string(child.valid.size()) + " frames (not the same trial?)");
   if (!(rate_hz > 0)) return Status::Error("functional joint: the trial's rate must be > 0");
-  *frames = CommonFrames(parent, child);
-  if (static_cast<int>(frames->size()) < options.min_frames)
-    return Status::Error("functional joint: only " + std::to_string(frames->size()) +
+  const std::vector<int> frames = CommonFrames(parent, child);
+  if (static_cast<int>(frames.size()) < options.min_frames)
+    return Status::Error("functional joint: only " + std::to_string(frames.size()) +
                          " frames in which both segments' markers are seen (at least " +
                          std::to_string(options.min_frames) + " needed)");
   const int block = std::max(1, static_cast<int>(std::lround(options.bootstrap_block_s * rate_hz)));
-  *t = Accumulate(parent, child, *frames, block);
+  *t = Accumulate(parent, child, frames, block);
+  t->frames = frames;
+  t->eig.compute(t->n);
   return Status::Ok();
 }
 
@@ -256,15 +261,13 @@ Status TrackCluster(const formats::MarkerTrial& trial, const std::vector<int>& c
 
 Status EstimateCentre(const ClusterTrack& parent, const ClusterTrack& child, double rate_hz,
                       const FunctionalJointOptions& options, CentreEstimate* centre) {
-  std::vector<int> frames;
   NormalTerms t;
-  MOCAP_RETURN_IF_ERROR(Prepare(parent, child, rate_hz, options, &frames, &t));
+  MOCAP_RETURN_IF_ERROR(Prepare(parent, child, rate_hz, options, &t));
   CentreEstimate out;
-  const Eigen::SelfAdjointEigenSolver<Matrix6d> eig(t.n);
-  const Vector6d x = SolveFrom(eig, t.g, 0);
+  const Vector6d x = SolveFrom(t.eig, t.g, 0);
   out.in_parent = x.head<3>();
   out.in_child = x.tail<3>();
-  out.fit = Describe(parent, child, frames, t.n, x);
+  out.fit = Describe(parent, child, t.frames, t.n, x);
   // A centre is fixed by rotation about two axes; about one it slides along that axis.
   MarkExcitation(1, options.min_rotation_deg, &out.fit);
   std::vector<Eigen::Vector3d> draws;
@@ -282,18 +285,16 @@ Status EstimateCentre(const ClusterTrack& parent, const ClusterTrack& child, dou
 
 Status EstimateAxis(const ClusterTrack& parent, const ClusterTrack& child, double rate_hz,
                     const FunctionalJointOptions& options, AxisEstimate* axis) {
-  std::vector<int> frames;
   NormalTerms t;
-  MOCAP_RETURN_IF_ERROR(Prepare(parent, child, rate_hz, options, &frames, &t));
+  MOCAP_RETURN_IF_ERROR(Prepare(parent, child, rate_hz, options, &t));
   AxisEstimate out;
-  const Eigen::SelfAdjointEigenSolver<Matrix6d> eig(t.n);
-  const Vector6d null = eig.eigenvectors().col(0);
-  const Vector6d x = SolveFrom(eig, t.g, 1);
+  const Vector6d null = t.eig.eigenvectors().col(0);
+  const Vector6d x = SolveFrom(t.eig, t.g, 1);
   out.direction_parent = null.head<3>().normalized();
   out.direction_child = null.tail<3>().normalized();
   out.point_parent = x.head<3>();
   out.point_child = x.tail<3>();
-  out.fit = Describe(parent, child, frames, t.n, x);
+  out.fit = Describe(parent, child, t.frames, t.n, x);
   MarkExcitation(0, options.min_rotation_deg, &out.fit);
   double angle_sq = 0, point_sq = 0;
   int draws = 0;
@@ -383,6 +384,80 @@ Status EstimateFunctionalJoint(const Model& model, const formats::MarkerTrial& t
   MOCAP_RETURN_IF_ERROR(EstimateCentre(out.parent, out.child, trial.rate_hz, options, &out.centre));
   MOCAP_RETURN_IF_ERROR(EstimateAxis(out.parent, out.child, trial.rate_hz, options, &out.axis));
   *result = std::move(out);
+  return Status::Ok();
+}
+
+Status AddFunctionalCentres(const std::vector<std::string>& joints,
+                            const FunctionalJointOptions& options, double weight, Model* model,
+                            std::vector<formats::MarkerTrial>* trials,
+                            std::vector<std::string>* virtual_markers,
+                            std::vector<std::string>* notes) {
+  if (!(weight > 0) || !std::isfinite(weight))
+    return Status::Error("functional centres: the weight must be > 0");
+  std::vector<Marker> markers = model->markers();
+  std::vector<formats::MarkerTrial> out_trials = *trials;  // *trials untouched on error
+  std::vector<std::string> added;
+  for (const std::string& joint : joints) {
+    const std::string name = joint + "@functional";
+    if (model->FindMarker(name) >= 0 || std::find(added.begin(), added.end(), name) != added.end())
+      return Status::Error("functional centres: joint '" + joint + "' given twice");
+    int excited = 0;
+    std::vector<Eigen::MatrixXd> centres(trials->size());
+    for (size_t t = 0; t < trials->size(); ++t) {
+      const formats::MarkerTrial& trial = (*trials)[t];
+      FunctionalJoint fj;
+      if (Status s = EstimateFunctionalJoint(*model, trial, joint, options, &fj); !s) {
+        if (model->FindJoint(joint) < 0 || model->joints()[model->FindJoint(joint)].parent < 0)
+          return s;  // a joint the model does not have (or the root) is the caller's error
+        notes->push_back(joint + ": trial '" + trial.name + "' not used: " + s.message());
+        continue;
+      }
+      if (!fj.centre.fit.excited) {
+        notes->push_back(joint + ": trial '" + trial.name + "' not used: " + fj.centre.fit.note);
+        continue;
+      }
+      char buf[200];
+      std::snprintf(buf, sizeof(buf),
+                    "%s: trial '%s': SCoRE centre over %d frames, std %.2f mm, residual %.2f mm",
+                    joint.c_str(), trial.name.c_str(), fj.centre.fit.frames_used, fj.centre.std_mm,
+                    fj.centre.fit.residual_rms_mm);
+      notes->push_back(buf);
+      centres[t].resize(trial.num_frames(), 3);
+      for (int f = 0; f < trial.num_frames(); ++f) centres[t].row(f) = fj.CentreInLab(f).transpose();
+      ++excited;
+    }
+    if (excited == 0)
+      return Status::Error("functional centres: no trial excites joint '" + joint +
+                           "' (each needs rotation about two axes and 3 markers on each segment)");
+    for (size_t t = 0; t < out_trials.size(); ++t) {
+      formats::MarkerTrial& trial = out_trials[t];
+      const Eigen::Index cols = trial.positions.cols();
+      trial.positions.conservativeResize(Eigen::NoChange, cols + 3);
+      if (centres[t].size() > 0) {
+        trial.positions.rightCols<3>() = centres[t];
+      } else {
+        trial.positions.rightCols<3>().setConstant(std::numeric_limits<double>::quiet_NaN());
+      }
+      trial.marker_names.push_back(name);
+    }
+    Marker m;
+    m.name = name;
+    m.segment = model->joints()[model->FindJoint(joint)].child;
+    m.position = Eigen::Vector3d::Zero();
+    m.weight = weight;
+    markers.push_back(m);
+    added.push_back(name);
+  }
+  std::vector<Segment> segments = model->segments();
+  std::vector<Joint> model_joints = model->joints();
+  std::vector<Coordinate> coordinates = model->coordinates();
+  std::vector<DerivedCoordinate> derived = model->derived_coordinates();
+  Model out;
+  MOCAP_RETURN_IF_ERROR(Model::Build(model->name(), segments, model_joints, coordinates, markers,
+                                     derived, &out));
+  *model = std::move(out);
+  *trials = std::move(out_trials);
+  virtual_markers->insert(virtual_markers->end(), added.begin(), added.end());
   return Status::Ok();
 }
 

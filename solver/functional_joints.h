@@ -130,4 +130,19 @@ Status EstimateFunctionalJoint(const Model& model, const formats::MarkerTrial& t
                                const std::string& joint, const FunctionalJointOptions& options,
                                FunctionalJoint* result);
 
+// The functional centres as data for the global fit (solver/global_fit.h): for each joint, a
+// virtual marker "<joint>@functional" at the origin of the joint's child segment (which is the
+// joint centre) with marker weight `weight`, and, in each trial in which the joint's centre is
+// excited, that marker's samples: the SCoRE centre in the lab, frame by frame. The fit then pulls
+// the model's centre towards the functional one as much as the weight says, and the marker's
+// residual RMS is the distance between the two. The caller keeps the virtual markers' positions
+// fixed (FitOptions::fixed_markers = *virtual_markers). A trial with too few markers on either
+// segment, or that does not excite the joint, adds no samples and a line to *notes; a joint
+// that no trial excites is an error; on error *model, *trials and *virtual_markers are unchanged.
+Status AddFunctionalCentres(const std::vector<std::string>& joints,
+                            const FunctionalJointOptions& options, double weight, Model* model,
+                            std::vector<formats::MarkerTrial>* trials,
+                            std::vector<std::string>* virtual_markers,
+                            std::vector<std::string>* notes);
+
 }  // namespace mocap::solver

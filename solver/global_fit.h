@@ -58,6 +58,9 @@ struct FitOptions {
   // marker's and at least `outlier_marker_min_mm` above it is named in the report: a mislabelled
   // marker, one placed on another body than the model says, or one that slipped. It is still
   // fitted (least squares: it pulls its segment); the report says so instead of staying silent.
+  // Markers whose positions on their segments are not fitted (the virtual markers of
+  // solver/functional_joints.h's AddFunctionalCentres, which sit at a joint centre by definition).
+  std::vector<std::string> fixed_markers;
   double outlier_marker_ratio = 3.0;
   double outlier_marker_min_mm = 5.0;
   double rescue_ratio = 4.0;

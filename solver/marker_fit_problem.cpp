@@ -1,5 +1,6 @@
 #include "solver/marker_fit_problem.h"
 
+#include <algorithm>
 #include <cmath>
 
 #include "solver/global_fit.h"
@@ -221,7 +222,11 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
   for (int i = 0; i < model.num_parameters(); ++i) {
     const ParameterInfo& info = model.parameters()[i];
     if (!free_groups[static_cast<int>(info.group)]) continue;
-    if (info.group == ParameterGroup::kMarker && !observed_[info.object]) continue;
+    if (info.group == ParameterGroup::kMarker &&
+        (!observed_[info.object] ||
+         std::find(options.fixed_markers.begin(), options.fixed_markers.end(),
+                   model.markers()[info.object].name) != options.fixed_markers.end()))
+      continue;
     free_index_[i] = static_cast<int>(free_parameters_.size());
     free_parameters_.push_back(i);
     double sigma = prior_sigma_position_m;
@@ -273,6 +278,9 @@ void MarkerFitProblem::BuildGaugeRows(double gauge_sigma_m) {
     for (int m = 0; m < model_.num_markers(); ++m) {
       if (model_.markers()[m].segment != s || !observed_[m]) continue;
       const int base = model_.marker_index(m);
+      // A fixed marker at the segment's origin (a joint centre: FitOptions::fixed_markers) moves
+      // with none of its gauges: rotations and growth are about the origin.
+      if (!free3(base) && p0_.segment<3>(base).isZero()) continue;
       all_free = all_free && free3(base);
       markers.emplace_back(base, p0_.segment<3>(base));
     }

@@ -13,6 +13,7 @@
 #include "sim/protocol.h"
 #include "sim/simulate.h"
 #include "solver/functional_joints.h"
+#include "solver/global_fit.h"
 #include "tests/file_test_util.h"
 
 using namespace mocap;
@@ -229,6 +230,64 @@ TEST(FunctionalJoints, TrackClusterRefusesWhatIsNoCluster) {
   s = solver::TrackCluster(t, {0, 1, 2}, &track);
   EXPECT_FALSE(s.ok());
   EXPECT_NE(s.message().find("no frame in which all 3"), std::string::npos) << s.message();
+}
+
+// The functional centre as data for the global fit: a fixed virtual marker at the hip centre
+// with SCoRE's lab centre as its samples; the fit keeps it at the segment's origin and ends with
+// the model's hip centre next to SCoRE's (both within 1 mm of the truth here).
+TEST(FunctionalJoints, FunctionalCentresJoinTheGlobalFit) {
+  sim::SimulatedSession session = Simulate({"hip_star_arc_r", "knee_flexion_r"}, 0.0, true, 7);
+  std::vector<formats::MarkerTrial> trials;
+  for (const sim::SimulatedTrial& t : session.trials) trials.push_back(t.markers);
+  Model model = session.nominal;
+  const int before = model.num_markers();
+  std::vector<std::string> virtual_markers, notes;
+  Status s = solver::AddFunctionalCentres({"hip_r"}, {}, 0.04, &model, &trials, &virtual_markers,
+                                          &notes);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ASSERT_EQ(virtual_markers, std::vector<std::string>{"hip_r@functional"});
+  ASSERT_EQ(model.num_markers(), before + 1);
+  const Marker& v = model.markers().back();
+  EXPECT_EQ(model.segments()[v.segment].name, "femur_r");
+  EXPECT_EQ(v.weight, 0.04);
+  // The knee trial hardly moves the hip: no samples there, and a note says why.
+  const int col_hip = trials[0].FindMarker("hip_r@functional");
+  const int col_knee = trials[1].FindMarker("hip_r@functional");
+  ASSERT_GE(col_hip, 0);
+  ASSERT_GE(col_knee, 0);
+  EXPECT_TRUE(trials[0].Has(100, col_hip));
+  EXPECT_FALSE(trials[1].Has(100, col_knee));
+  bool knee_note = false;
+  for (const std::string& n : notes) knee_note |= n.find("knee_flexion_r' not used") != std::string::npos;
+  EXPECT_TRUE(knee_note);
+
+  std::vector<solver::FitTrial> fit_trials;
+  for (const auto& t : trials) fit_trials.push_back({t, {}});
+  solver::FitOptions options;
+  options.fixed_markers = virtual_markers;
+  solver::FitResult result;
+  s = solver::FitModel(model, fit_trials, options, &result);
+  ASSERT_TRUE(s.ok()) << s.message();
+  double virtual_rms = -1;
+  for (const auto& [name, rms] : result.report.per_marker_rms_mm)
+    if (name == "hip_r@functional") virtual_rms = rms;
+  std::printf("fit with the functional hip: %s; hip_r@functional %.2f mm\n",
+              result.report.BriefReport().c_str(), virtual_rms);
+  EXPECT_GT(virtual_rms, 0.0);
+  EXPECT_LT(virtual_rms, 2.0);
+  EXPECT_EQ(result.model.markers().back().position, Eigen::Vector3d::Zero());  // never fitted
+  for (const auto& e : result.report.parameters)
+    EXPECT_EQ(e.name.find("hip_r@functional"), std::string::npos) << e.name;
+
+  // A joint no trial excites is refused, as is one the model lacks.
+  std::vector<formats::MarkerTrial> knee_only = {session.trials[1].markers};
+  Model m2 = session.nominal;
+  s = solver::AddFunctionalCentres({"hip_r"}, {}, 0.04, &m2, &knee_only, &virtual_markers, &notes);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("no trial excites joint 'hip_r'"), std::string::npos) << s.message();
+  s = solver::AddFunctionalCentres({"hip_q"}, {}, 0.04, &m2, &knee_only, &virtual_markers, &notes);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("no joint 'hip_q'"), std::string::npos) << s.message();
 }
 
 // `mocap functional` on real data: welk007's right-hip functional trial, clusters from the

@@ -2,9 +2,11 @@
 #include <spdlog/spdlog.h>
 
 #include <atomic>
+#include <cmath>
 #include <csignal>
 #include <filesystem>
 #include <fstream>
+#include <sstream>
 #include <nlohmann/json.hpp>
 
 #include "formats/mot.h"
@@ -13,6 +15,7 @@
 #include "model/kinematics.h"
 #include "model/model_io.h"
 #include "solver/fit_report_json.h"
+#include "solver/functional_joints.h"
 #include "solver/global_fit.h"
 #include "tools/command.h"
 #include "tools/trial_inputs.h"
@@ -32,6 +35,8 @@ struct FitArgs {
   int max_iterations = 50;
   int coarse_frames = solver::CoarseToFineOptions().coarse_frames;  // 0: no coarse-to-fine start
   std::vector<std::string> initial;  // one .mot per trial: starting poses instead of IK
+  std::string functional;  // joints (comma-separated) whose SCoRE centres join the fit as data
+  double functional_sigma_mm = 5.0;
 };
 
 formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerTrial& trial,
@@ -66,8 +71,26 @@ int RunFit(const FitArgs& args) {
   }
   Inputs inputs;
   if (!LoadInputs(args.in, &inputs)) return 1;
+  const int model_markers = inputs.model.model.num_markers();
+  std::vector<std::string> virtual_markers;
+  if (!args.functional.empty()) {
+    std::vector<std::string> joints, notes;
+    std::stringstream list(args.functional);
+    for (std::string j; std::getline(list, j, ',');)
+      if (!j.empty()) joints.push_back(j);
+    const double weight = std::pow(1.0 / args.functional_sigma_mm, 2);  // marker sigma is 1 mm
+    if (Status s = solver::AddFunctionalCentres(joints, solver::FunctionalJointOptions(),
+                                                weight, &inputs.model.model, &inputs.trials,
+                                                &virtual_markers, &notes);
+        !s) {
+      spdlog::error("--functional: {}", s.message());
+      return 2;
+    }
+    for (const std::string& n : notes) spdlog::info("--functional: {}", n);
+  }
   const Model& model = inputs.model.model;
   solver::FitOptions options;
+  options.fixed_markers = virtual_markers;
   if (Status s = options.SetGroups(args.groups); !s) {
     spdlog::error("--fit: {}", s.message());
     return 2;
@@ -129,6 +152,21 @@ int RunFit(const FitArgs& args) {
     return 1;
   }
   const solver::FitReport& r = result.report;
+  for (const auto& [name, rms] : r.per_marker_rms_mm)
+    for (const std::string& v : virtual_markers)
+      if (name == v)
+        spdlog::info("{}: the fitted centre is {:.1f} mm RMS from its functional (SCoRE) estimate",
+                     v.substr(0, v.find('@')), rms);
+  if (!virtual_markers.empty()) {
+    std::vector<int> keep(model_markers);
+    for (int m = 0; m < model_markers; ++m) keep[m] = m;
+    Model without;
+    if (Status w = result.model.WithMarkers(keep, &without); !w) {
+      spdlog::error("{}", w.message());
+      return 1;
+    }
+    result.model = std::move(without);
+  }
   if (!r.undetermined.empty())
     spdlog::warn("{} parameters not determined by these trials (kept near the initial model): {}{}",
                  r.undetermined.size(), r.undetermined.front(), r.undetermined.size() > 1 ? ", ..." : "");
@@ -190,6 +228,13 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
                   "frames of the coarse-to-fine start, used from 3,000 frames (or twice this) on "
                   "(0: LM on all frames from the start)")
       ->check(CLI::NonNegativeNumber);
+  cmd->add_option("--functional", args->functional,
+                  "joints (e.g. hip_r,hip_l) whose functional centres (SCoRE, per trial that "
+                  "excites them) pull the fit's centres, as a virtual marker at each");
+  cmd->add_option("--functional-sigma-mm", args->functional_sigma_mm,
+                  "how far (mm, 1 sigma) a fitted centre may sit from its functional estimate")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
   cmd->add_option("--initial", args->initial,
                   "starting poses: one .mot per trial, same order (e.g. coordinates.mot of `mocap "
                   "track`), instead of per-frame IK; NaN rows are solved by IK");
