@@ -1032,11 +1032,18 @@ void Daemon::RecordStart(const Request& r) {
     PostToLoop([this, rec, s, frames] {
       if (!recording_ || recording_->id != rec) return;
       if (!s) {
-        spdlog::error("recording {}: {} ({} frames kept)", rec, s.message(), frames);
+        // The disk is full (or the store failed otherwise): the recording stops, what was
+        // committed stays readable, tracking and the stream go on.
+        std::string why = s.message();
+        struct statvfs vfs {};
+        if (statvfs(config_.state_dir.c_str(), &vfs) == 0)
+          why += "; " + std::to_string(static_cast<std::uint64_t>(vfs.f_bavail) * vfs.f_frsize / 1024) +
+                 " kB free in " + config_.state_dir;
+        spdlog::error("recording {} stopped: {} ({} frames kept)", rec, why, frames);
         pipeline_->SetRecording(false);
-        store_->FinishRecording(rec, RecordingState::kFailed, "", s.message());
+        FinishInStore(rec, RecordingState::kFailed, "", why);
         Fail(recording_->request, error_code::kFailed,
-             "recording " + std::to_string(rec) + " stopped: " + s.message() + " (" +
+             "recording " + std::to_string(rec) + " stopped: " + why + " (" +
                  std::to_string(frames) + " frames kept)");
         recording_.reset();
         return;
@@ -1056,6 +1063,18 @@ void Daemon::RecordStop(const Request& r) {
     recorder_->End();
   }
   server_->Reply(r.client.id, r.id, {{"stopped", recording_->id}});
+}
+
+// A recording's end written to the store; when that fails too (the disk is still full), it is
+// retried every second from Tick until it succeeds, and a restart before then finds the recording
+// "interrupted" with its frames (daemon/store.h).
+void Daemon::FinishInStore(std::int64_t id, RecordingState state, const std::string& coverage,
+                           const std::string& note) {
+  if (Status s = store_->FinishRecording(id, state, coverage, note); !s) {
+    spdlog::error("recording {}: cannot mark it {} yet: {} (retried every second)", id,
+                  ToString(state), s.message());
+    pending_finishes_.push_back({id, state, coverage, note});
+  }
 }
 
 // Runs when the recorder has committed every frame of the recording.
@@ -1104,8 +1123,8 @@ void Daemon::FinishRecording() {
     if (table.num_frames() == 0) advice = "repeat " + rec.movement + ": the subject was never tracked";
     coverage["ok"] = ok;
   }
-  store_->FinishRecording(rec.id, s ? RecordingState::kComplete : RecordingState::kFailed,
-                          coverage.dump(), s ? "" : s.message());
+  FinishInStore(rec.id, s ? RecordingState::kComplete : RecordingState::kFailed, coverage.dump(),
+                s ? "" : s.message());
   const double seconds = frames.empty() ? 0 : frames.back().time_s - frames.front().time_s;
   spdlog::info("recording {} ({}): {} frames, tracking {:.1f} %, coverage {}{}", rec.id,
                rec.movement, frames.size(), 100 * tracking,
@@ -1558,6 +1577,18 @@ void Daemon::Stream(const LiveFrame& f) {
 
 void Daemon::Tick() {
   DrainFrames();
+  if (!pending_finishes_.empty() && ++ticks_since_retry_ >= 10) {
+    ticks_since_retry_ = 0;
+    std::vector<PendingFinish> retry;
+    retry.swap(pending_finishes_);
+    for (const PendingFinish& f : retry) {
+      if (Status s = store_->FinishRecording(f.id, f.state, f.coverage, f.note); s) {
+        spdlog::info("recording {} marked {} (the store accepts writes again)", f.id, ToString(f.state));
+      } else {
+        pending_finishes_.push_back(f);
+      }
+    }
+  }
   if (options_.notifier && pipeline_) {
     ServiceSnapshot s = PipelineSnapshot(*pipeline_, config_);
     if (subject_) s.subject = subject_->name;

@@ -130,6 +130,15 @@ class Daemon {
   void Unsubscribe(const Request& r);
 
   void FinishRecording();
+  void FinishInStore(std::int64_t id, RecordingState state, const std::string& coverage,
+                     const std::string& note);
+  struct PendingFinish {
+    std::int64_t id;
+    RecordingState state;
+    std::string coverage, note;
+  };
+  std::vector<PendingFinish> pending_finishes_;
+  int ticks_since_retry_ = 0;
   Status SelectSubject(const SubjectRecord& subject, std::string* why);
   Status LoadSubjectModel(const SubjectRecord& subject, int version, std::shared_ptr<Model>* out,
                           int* got_version);

@@ -16,6 +16,7 @@
 #include <memory>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "daemon/control_client.h"
 
@@ -43,6 +44,9 @@ class DaemonProcess {
   }
   ~DaemonProcess() { Kill(SIGKILL); }
 
+  // A command the daemon runs under (e.g. an `unshare -m` that mounts a small tmpfs on the state
+  // directory first); its last argument is followed by mocapd's command line.
+  void SetWrapper(std::vector<std::string> wrapper) { wrapper_ = std::move(wrapper); }
   std::string socket() const { return dir_ + "/control.sock"; }
   std::string state_dir() const { return dir_ + "/state"; }
   std::string log_path() const { return dir_ + "/mocapd.log"; }
@@ -57,8 +61,14 @@ class DaemonProcess {
         dup2(log, STDOUT_FILENO);
       }
       const std::string config = dir_ + "/mocapd.toml", state = state_dir(), sock = socket();
-      execl(executable_.c_str(), "mocapd", "--config", config.c_str(), "--state-dir", state.c_str(),
-            "--socket", sock.c_str(), static_cast<char*>(nullptr));
+      std::vector<std::string> args = wrapper_;
+      for (const std::string& a : {executable_, std::string("--config"), config,
+                                   std::string("--state-dir"), state, std::string("--socket"), sock})
+        args.push_back(a);
+      std::vector<char*> argv;
+      for (std::string& a : args) argv.push_back(a.data());
+      argv.push_back(nullptr);
+      execvp(argv[0], argv.data());
       _exit(127);
     }
     const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
@@ -121,6 +131,7 @@ class DaemonProcess {
  private:
   std::string dir_;
   std::string executable_;
+  std::vector<std::string> wrapper_;
   pid_t pid_ = -1;
 };
 

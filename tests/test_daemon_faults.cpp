@@ -12,6 +12,7 @@
 #include <atomic>
 #include <chrono>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <random>
 #include <string>
@@ -154,6 +155,72 @@ TEST(DaemonFaults, KilledAtRandomMomentsLosesAtMostTheLast100ms) {
   EXPECT_EQ(interrupted_checked, 12);
   EXPECT_EQ(d.Stop(), 0) << d.Log();
   EXPECT_EQ(testing::RawSql(db, "PRAGMA integrity_check"), "ok");
+}
+
+// The storage fills up mid-recording (a 24 MB tmpfs in a mount namespace of the daemon's own):
+// the recording stops with an error naming the cause, what was written stays readable, tracking
+// and the stream go on, and recording works again once space is freed.
+TEST(DaemonFaults, DiskFullStopsTheRecordingNotTheRig) {
+  if (geteuid() != 0 || system("command -v unshare >/dev/null 2>&1") != 0)
+    GTEST_SKIP() << "needs root and unshare(1) for a tmpfs in a private mount namespace";
+  const std::string dir = testing::MakeTempDir("mocapd-full");
+  DaemonProcess d(dir, testing::SimulatedRigToml(8, 4));
+  std::filesystem::create_directories(d.state_dir());
+  d.SetWrapper({"unshare", "-m", "--propagation", "private", "sh", "-c",
+                "mount -t tmpfs -o size=24m tmpfs \"$0\" && exec \"$@\"", d.state_dir()});
+  ASSERT_OK(d.Start());
+  std::unique_ptr<ControlClient> c;
+  ASSERT_OK(d.Connect(&c));
+  Call(c.get(), "rig.calibrate.start", {{"seconds", 10}});
+  std::this_thread::sleep_for(std::chrono::seconds(10));
+  Call(c.get(), "rig.calibrate.finish");
+  Call(c.get(), "rig.calibrate.apply");
+  const double height = Call(c.get(), "status")["rig"]["virtual_subject"]["height_m"];
+  Call(c.get(), "subject.create", {{"name", "S01"}, {"height_m", height}});
+  Call(c.get(), "subject.select", {{"name", "S01"}});
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  // Fill the tmpfs (seen from outside through the daemon's /proc/PID/root) but for ~1.5 MB:
+  // about three seconds of recording.
+  const std::string inside = "/proc/" + std::to_string(d.pid()) + "/root" + d.state_dir();
+  const json before = Call(c.get(), "status");
+  const std::uint64_t free_bytes = before["storage"]["free_bytes"];
+  ASSERT_LT(free_bytes, 25u << 20) << "the state directory is not the small tmpfs";
+  {
+    std::ofstream filler(inside + "/filler", std::ios::binary);
+    const std::string block(1 << 20, 'x');
+    for (std::uint64_t left = free_bytes; left > (3u << 19); left -= block.size())
+      filler.write(block.data(), block.size());
+  }
+  ControlReply full;
+  ASSERT_OK(c->Call("record.start", {{"movement", "squats"}, {"duration_s", 30}}, &full));
+  EXPECT_EQ(full.error_code, "failed");
+  EXPECT_NE(full.error_message.find("full"), std::string::npos) << full.error_message;
+  EXPECT_NE(full.error_message.find("frames kept"), std::string::npos) << full.error_message;
+  EXPECT_NE(d.Log().find("stopped"), std::string::npos);
+  // The rig goes on: tracking, the stream.
+  const json during = Call(c.get(), "status");
+  EXPECT_EQ(during["tracker"]["state"], "tracking");
+  std::unique_ptr<ControlClient> watcher;
+  ASSERT_OK(d.Connect(&watcher));
+  Call(watcher.get(), "subscribe", {{"streams", {"markers"}}});
+  int streamed = 0;
+  for (int i = 0; i < 50; ++i) {
+    json ev;
+    bool got = false;
+    ASSERT_OK(watcher->NextEvent(&ev, 1000, &got));
+    streamed += got && ev.value("event", "") == "frame";
+  }
+  EXPECT_GE(streamed, 45);
+  // Space freed: the failed recording is marked so and readable; recording works again.
+  std::filesystem::remove(inside + "/filler");
+  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  const json recs = Call(c.get(), "recording.list")["recordings"];
+  ASSERT_EQ(recs.size(), 1u);
+  EXPECT_EQ(recs[0]["state"], "failed");
+  EXPECT_GT(recs[0]["frames"].get<int>(), 100);
+  json again = Call(c.get(), "record.start", {{"movement", "static"}, {"sim_duration_scale", 0.5}});
+  EXPECT_EQ(again["coverage"]["ok"], true) << again.dump();
+  EXPECT_EQ(d.Stop(), 0) << d.Log();
 }
 
 // A raw connection (the client library would refuse to send most of this).
