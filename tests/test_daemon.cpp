@@ -222,13 +222,13 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
 
   std::unique_ptr<ControlClient> watcher;
   ASSERT_TRUE(d.Connect(&watcher).ok());
-  MustCall(watcher.get(), "subscribe", {{"streams", {"markers", "pose"}}});
+  MustCall(watcher.get(), "subscribe", {{"streams", {"markers", "pose", "status"}}});
   json apply = MustCall(c.get(), "model.apply", json::object());
   EXPECT_EQ(apply["version"], fitted_version);
   const std::uint64_t from_frame = apply["from_frame"];
   std::vector<std::uint64_t> frames;
   std::vector<int> versions;
-  std::vector<int> labelled;
+  std::vector<int> labelled, cameras_present;
   const auto watch_until = std::chrono::steady_clock::now() + std::chrono::seconds(2);
   while (std::chrono::steady_clock::now() < watch_until) {
     json ev;
@@ -240,12 +240,17 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
     int n = 0;
     for (const json& m : ev["markers"]) n += !m["occluded"].get<bool>();
     labelled.push_back(n);
+    cameras_present.push_back(ev["health"]["cameras_present"]);
   }
   ASSERT_GT(frames.size(), 100u);
   for (std::size_t i = 1; i < frames.size(); ++i) EXPECT_EQ(frames[i], frames[i - 1] + 1) << "lost frame";
   for (std::size_t i = 0; i < frames.size(); ++i) {
     if (frames[i] >= from_frame) EXPECT_EQ(versions[i], fitted_version) << frames[i];
-    EXPECT_GT(labelled[i], 30) << "frame " << frames[i] << " lost its labels";
+    // A set the overloaded machine delivered with cameras missing has fewer points; the swap
+    // must not cost a complete set its labels.
+    if (cameras_present[i] == 8)
+      EXPECT_GT(labelled[i], 30) << "frame " << frames[i] << " (the swap at " << from_frame
+                                 << ") lost its labels";
   }
 
   // Exports read back identically: the static recording as C3D and TRC against the store.
