@@ -1208,9 +1208,12 @@ void Daemon::FitStart(const Request& r) {
   if (chosen.empty())
     return Fail(r, error_code::kConflict,
                 "subject '" + subject_->name + "' has no recording that passed its coverage check");
+  // The fit starts from the live model: the one the tracker ran when it recorded the poses that
+  // start the fit (not the latest stored version, which may be a cancelled fit's).
   std::shared_ptr<Model> model;
   int version = 0;
-  if (Status s = LoadSubjectModel(*subject_, 0, &model, &version); !s) return Fail(r, error_code::kFailed, s.message());
+  if (Status s = LoadSubjectModel(*subject_, live_model_version_, &model, &version); !s)
+    return Fail(r, error_code::kFailed, s.message());
 
   job_ = std::make_unique<Job>();
   job_->kind = "fit";
@@ -1528,7 +1531,15 @@ void Daemon::Stream(const LiveFrame& f) {
   // One serialisation per combination of streams, shared by the subscribers that want it.
   std::map<std::set<std::string>, std::string> lines;
   const double t_sent = drivers::MonotonicNs() * 1e-9;
-  for (auto& [client, sub] : subscribers_) {
+  // Sending may find a client gone and drop it, which erases it from subscribers_ (OnDisconnect):
+  // so the loop runs over a copy of the ids, never over the map it may change.
+  std::vector<std::uint64_t> clients;
+  clients.reserve(subscribers_.size());
+  for (const auto& [client, sub] : subscribers_) clients.push_back(client);
+  for (const std::uint64_t client : clients) {
+    auto found = subscribers_.find(client);
+    if (found == subscribers_.end()) continue;
+    const Subscriber& sub = found->second;
     if (f.frame % sub.decimation != 0) continue;
     auto it = lines.find(sub.streams);
     if (it == lines.end()) {
@@ -1567,8 +1578,10 @@ void Daemon::Stream(const LiveFrame& f) {
       }
       it = lines.emplace(sub.streams, j.dump(-1, ' ', false, Json::error_handler_t::replace) + "\n").first;
     }
-    if (server_->SendStream(client, it->second)) ++sub.sent;
-    else ++sub.dropped;
+    const bool sent = server_->SendStream(client, it->second);
+    found = subscribers_.find(client);
+    if (found == subscribers_.end()) continue;
+    (sent ? found->second.sent : found->second.dropped) += 1;
   }
 }
 

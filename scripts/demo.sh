@@ -57,7 +57,14 @@ if "${ctl[@]}" record squats --sim-amplitude 0.4 --sim-duration-scale "$scale"; 
 fi
 echo "   (as the operator was told: repeat it, properly)"
 for m in $("${ctl[@]}" --json protocol | jq -r '.movements[].name'); do
-  "${ctl[@]}" record "$m" --sim-duration-scale "$scale"
+  # As an operator does: a movement whose coverage check fails (exit 4) is repeated.
+  for attempt in 1 2 3; do
+    status=0
+    "${ctl[@]}" record "$m" --sim-duration-scale "$scale" || status=$?
+    [ "$status" -eq 0 ] && break
+    [ "$status" -eq 4 ] || exit "$status"
+    echo "   (repeating $m, as the daemon advised)"
+  done
   lap "record $m"
 done
 

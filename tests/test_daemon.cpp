@@ -149,11 +149,20 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
     }
   });
   std::int64_t static_recording = 0;
+  int repeats = 0;
   for (const json& m : protocol["movements"]) {
     const std::string name = m["name"];
     int progress = 0;
-    json rec = MustCall(c.get(), "record.start", {{"movement", name}, {"sim_duration_scale", 0.5}},
-                        [&](const json& ev) { progress += ev.value("job", "") == "record"; });
+    json rec;
+    // As the operator is told: a movement whose check fails is repeated (a one-marker hand the
+    // tracker on the nominal model took the wrong way round, once in a few sessions).
+    for (int attempt = 0; attempt < 3; ++attempt) {
+      rec = MustCall(c.get(), "record.start", {{"movement", name}, {"sim_duration_scale", 0.5}},
+                     [&](const json& ev) { progress += ev.value("job", "") == "record"; });
+      if (rec["coverage"]["ok"] == true) break;
+      ++repeats;
+      std::printf("%s repeated: %s\n", name.c_str(), rec["advice"].dump().c_str());
+    }
     EXPECT_EQ(rec["coverage"]["ok"], true) << name << ": " << rec.dump();
     EXPECT_GT(rec["tracking_fraction"].get<double>(), 0.95) << name;
     EXPECT_GT(progress, 0) << name;
@@ -163,6 +172,7 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
       stream_thread.join();
     }
   }
+  EXPECT_LE(repeats, 2) << "more than a rare repeat: the live labelling is not robust";
   {
     std::unique_ptr<daemon::Store> store;
     daemon::StoreOptions so;
