@@ -1422,6 +1422,14 @@ void Daemon::Export(const Request& r) {
           s = Status::Error("fit report " + std::to_string(id) + ": no stored model version came from it");
         report::FitReportPage page;
         if (s) s = report::FitReportPageFromJson(rep.report_json, std::prev(made)->model_json, made->model_json, &page);
+        for (const Json& t : s ? page.report["per_trial"] : Json::array()) {  // "movement (recording N)"
+          const std::string file = t.value("file", "");
+          RecordingInfo info;
+          const std::size_t at = file.rfind("(recording ");
+          if (at != std::string::npos && store_->GetRecording(std::atoll(file.c_str() + at + 11), &info) &&
+              !info.coverage_json.empty())
+            (void)report::AppendCoverageRows(info.movement, info.coverage_json, &page.coverage);
+        }
         page.model_file = subject.model_source;
         page.software_version = "mocapd " + options_.version;
         page.date = rep.created_at;

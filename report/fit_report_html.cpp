@@ -489,7 +489,7 @@ std::string CoverageHtml(const std::vector<CoverageRow>& rows) {
     for (double v : {r.required_min_deg, r.required_max_deg, r.reached_min_deg, r.reached_max_deg})
       if (std::isfinite(v)) lo = std::min(lo, v), hi = std::max(hi, v);
   lo = -NiceCeil(-lo + 1e-9), hi = NiceCeil(hi);
-  constexpr double kRow = 18, kL = 250, kR = 90, kW = 900;
+  constexpr double kRow = 18, kL = 250, kR = 210, kW = 1000;
   const double h = 24 + kRow * rows.size();
   SvgWriter svg(kW, h, "coverage", "protocol coverage");
   auto X = [&](double d) { return kL + (kW - kL - kR) * (d - lo) / (hi - lo); };
@@ -506,7 +506,11 @@ std::string CoverageHtml(const std::vector<CoverageRow>& rows) {
     if (std::isfinite(r.reached_min_deg) && std::isfinite(r.reached_max_deg))
       svg.Rect(X(r.reached_min_deg), y + 6, X(r.reached_max_deg) - X(r.reached_min_deg), kRow - 12,
                r.ok ? "reached" : "reached fail");
-    svg.Text(kW - kR + 6, y + 11, r.ok ? "ok" : "NOT reached", r.ok ? "lbl" : "lbl bad");
+    svg.Text(kW - kR + 6, y + 11,
+             "[" + Fixed(r.reached_min_deg, 0) + ", " + Fixed(r.reached_max_deg, 0) + "] of [" +
+                 Fixed(r.required_min_deg, 0) + ", " + Fixed(r.required_max_deg, 0) + "]° " +
+                 (r.ok ? "ok" : "NOT reached"),
+             r.ok ? "lbl" : "lbl bad");
   }
   return svg.Finish() + "<p class=\"legend\"><span>grey: range required by the protocol; blue: range "
                         "reached (red: not enough)</span></p>";
@@ -632,6 +636,33 @@ Status WriteFitReportHtml(const FitReportPage& in, std::string* html) {
   out += "<section><h2>Inputs</h2>" + InputsHtml(in) + "</section>";
   out += "</body></html>\n";
   *html = std::move(out);
+  return Status::Ok();
+}
+
+Status AppendCoverageRows(const std::string& movement, const std::string& coverage_json,
+                          std::vector<CoverageRow>* rows) {
+  const json coverage = json::parse(coverage_json, nullptr, false);
+  const std::string where = "coverage of '" + movement + "'";
+  if (!coverage.is_object() || !coverage.contains("excitations") || !coverage["excitations"].is_array())
+    return Status::Error(where + ": not an object with an 'excitations' array");
+  std::vector<CoverageRow> add;
+  for (const json& e : coverage["excitations"]) {
+    CoverageRow row;
+    row.movement = movement;
+    if (!e.is_object() || !e.contains("coordinate") || !e["coordinate"].is_string())
+      return Status::Error(where + ": an excitation without a 'coordinate' string");
+    row.coordinate = e["coordinate"].get<std::string>();
+    row.required_min_deg = Number(e, "min_deg");
+    row.required_max_deg = Number(e, "max_deg");
+    if (!std::isfinite(row.required_min_deg) || !std::isfinite(row.required_max_deg))
+      return Status::Error(where + ", " + row.coordinate + ": 'min_deg' and 'max_deg' must be numbers");
+    row.reached_min_deg = Number(e, "reached_min_deg");
+    row.reached_max_deg = Number(e, "reached_max_deg");
+    row.required = e.value("required", true);
+    row.ok = e.value("ok", false);
+    add.push_back(row);
+  }
+  rows->insert(rows->end(), add.begin(), add.end());
   return Status::Ok();
 }
 

@@ -71,6 +71,12 @@ Status WriteFitReportHtml(const FitReportPage& inputs, std::string* html);
 Status FitReportPageFromJson(const std::string& report_json, const std::string& initial_model_json,
                              const std::string& fitted_model_json, FitReportPage* page);
 
+// Appends a recording's coverage as the daemon stores it (daemon.cpp: {"ok", "excitations":
+// [{coordinate, min_deg, max_deg, reached_min_deg, reached_max_deg (null: never reached),
+// required, ok}]}) as rows of `movement`. An error names the field that is missing or mistyped.
+Status AppendCoverageRows(const std::string& movement, const std::string& coverage_json,
+                          std::vector<CoverageRow>* rows);
+
 // The three orthographic views, shared with the tests: horizontal and vertical screen
 // directions in the lab frame (Z up, X anterior, Y left).
 struct OrthographicView {

@@ -10,6 +10,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <map>
 #include <nlohmann/json.hpp>
@@ -22,6 +23,7 @@
 #include "model/kinematics.h"
 #include "model/model_io.h"
 #include "report/fit_report_html.h"
+#include "sim/protocol.h"
 #include "tests/file_test_util.h"
 
 namespace mocap {
@@ -218,6 +220,42 @@ TEST_F(Report, RejectsAReportThatIsNotAFitReport) {
   EXPECT_EQ(html, "untouched");
   EXPECT_FALSE(report::FitReportPageFromJson("{not json", ReadBytes(P("sim/nominal.model.json")),
                                              ReadBytes(P("good/fitted.json")), &page));
+}
+
+// The CLI's optional inputs: the functional estimate beside each fitted centre (the distance is
+// the report's RMS of the joint's virtual marker, solver/functional_joints.h) and the protocol's
+// coverage by the trials named after its movements, checked on the fitted poses.
+TEST_F(Report, FunctionalEstimatesAndProtocolCoverageWhenGiven) {
+  CommandResult r = Mocap("sim --out " + P("medial") + " --seed 3 --duration-scale 0.5 --medial");
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = Mocap("fit --model " + P("medial/nominal.model.json") + " " + P("medial/static.trc") + " " +
+            P("medial/hip_star_arc_l.trc") + " " + P("medial/knee_flexion_l.trc") +
+            " --threads 2 --functional hip_l --protocol default --out " + P("functional/fitted.json") +
+            " --report " + P("functional/report.json") + " --html " + P("functional/report.html"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const auto report = Json("functional/report.json");
+  const std::string html = ReadBytes(P("functional/report.html"));
+  ASSERT_TRUE(report["per_marker_rms_mm"].contains("hip_l@functional"));
+  char cell[64];
+  std::snprintf(cell, sizeof cell, "<td>%.1f</td><td></td></tr>",
+                report["per_marker_rms_mm"]["hip_l@functional"].get<double>());
+  const size_t row = html.find("<tr data-joint=\"hip_l\">");
+  ASSERT_NE(row, std::string::npos);
+  EXPECT_EQ(html.find(cell, row), html.find("</tr>", row) - std::strlen(cell) + 5) << cell;
+  EXPECT_EQ(html.find("data-marker=\"hip_l@functional\""), std::string::npos) << "a virtual marker drawn as a marker";
+  // Every excitation of the two movements has its row.
+  int rows = 0;
+  for (const char* name : {"hip_star_arc_l", "knee_flexion_l"}) {
+    const sim::Movement* m = sim::DefaultProtocol().Find(name);
+    ASSERT_NE(m, nullptr) << name;
+    for (const sim::Excitation& e : m->excitations) {
+      EXPECT_NE(html.find(std::string(">") + name + ": " + e.coordinate), std::string::npos) << name << " " << e.coordinate;
+      ++rows;
+    }
+  }
+  ASSERT_GT(rows, 2);
+  EXPECT_EQ(html.find("No protocol coverage"), std::string::npos);
+  EXPECT_NE(ReadBytes(P("good/report.html")).find("No protocol coverage"), std::string::npos);
 }
 
 struct ShellRun {

@@ -18,6 +18,7 @@
 #include "model/kinematics.h"
 #include "model/model_io.h"
 #include "report/fit_report_html.h"
+#include "sim/protocol.h"
 #include "solver/fit_report_json.h"
 #include "solver/functional_joints.h"
 #include "solver/global_fit.h"
@@ -35,6 +36,7 @@ struct FitArgs {
   std::string out;
   std::string report;
   std::string html;
+  std::string protocol;  // for --html: the protocol whose coverage the page shows ("default" or a file)
   int threads = 0;
   std::string groups = "scales,centres,axes,markers";
   int max_iterations = 50;
@@ -232,6 +234,31 @@ int RunFit(const FitArgs& args) {
       page.options["functional"] = args.functional;
       page.options["functional_sigma_mm"] = args.functional_sigma_mm;
     }
+    if (!args.protocol.empty()) {
+      // Each trial named after a protocol movement (as `mocap sim` names them) is checked with
+      // the fitted poses: the range each excitation reached against the range required.
+      sim::Protocol protocol = sim::DefaultProtocol();
+      if (args.protocol != "default")
+        if (Status p = sim::LoadProtocolJson(args.protocol, &protocol); !p) {
+          spdlog::error("--protocol: {}", p.message());
+          return 2;
+        }
+      page.options["protocol"] = args.protocol;
+      const Model& fitted = result.model;
+      for (size_t t = 0; t < trials.size(); ++t) {
+        const sim::Movement* movement = protocol.Find(trials[t].markers.name);
+        if (movement == nullptr) continue;
+        formats::CoordinateTable table;
+        table.values = result.coordinates[t];
+        for (int c = 0; c < fitted.num_coordinates(); ++c) {
+          table.column_names.push_back(fitted.coordinates()[c].name);
+          if (fitted.coordinates()[c].rotational) table.values.col(c) *= 180.0 / M_PI;
+        }
+        for (const sim::ExcitationCheck& e : sim::CheckExcitations(*movement, table, sim::ExcitationCheckOptions()))
+          page.coverage.push_back({movement->name, e.coordinate, e.min_deg, e.max_deg, e.reached_min_deg,
+                                   e.reached_max_deg, e.required, e.ok});
+      }
+    }
     page.software_version = "mocap " MOCAP_VERSION;
     const std::time_t now = std::chrono::system_clock::to_time_t(std::chrono::system_clock::now());
     char date[32];
@@ -258,6 +285,9 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
   cmd->add_option("--html", args->html,
                   "report page to write: one self-contained HTML file (skeleton views, residuals, "
                   "convergence), opens without a network and prints to A4");
+  cmd->add_option("--protocol", args->protocol,
+                  "with --html: show the coverage of this protocol (\"default\" or a .json) by "
+                  "the trials named after its movements, with the fitted poses");
   cmd->add_option("--threads", args->threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);
   cmd->add_option("--fit", args->groups, "parameter groups: scales,centres,axes,markers (or all, none)");
   cmd->add_option("--max-iterations", args->max_iterations, "iteration limit")->check(CLI::PositiveNumber);
