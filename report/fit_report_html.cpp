@@ -2,6 +2,7 @@
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <map>
@@ -189,8 +190,6 @@ std::string SkeletonViewsHtml(const FitReportPage& in, const std::set<std::strin
       for (const auto& j : m->joints) extend(j.centre);
       for (const auto& [name, p] : m->markers) extend(p);
     }
-    const double span = std::max({b[1] - b[0], b[3] - b[2], 1e-3});
-    (void)span;
     scale = std::min({scale, (kWidth - 2 * kPad) / std::max(b[1] - b[0], 1e-3),
                       (kHeight - 2 * kPad) / std::max(b[3] - b[2], 1e-3)});
     bounds.push_back(b);

@@ -14,7 +14,7 @@ trap 'rm -rf "$work"' EXIT
 "$mocap" sim --out "$work/sim" --seed 1 --duration-scale 0.5 >/dev/null
 trials=$(ls "$work"/sim/*.trc | grep -v joint_centres)
 # shellcheck disable=SC2086
-"$mocap" fit --model "$work/sim/nominal.model.json" $trials --threads 2 \
+"$mocap" fit --model "$work/sim/nominal.model.json" $trials --threads 2 --protocol default \
   --out "$work/fit/fitted.json" --report "$work/fit/report.json" --html "$work/fit/report.html" >/dev/null
 mkdir -p "$root/docs"
 chromium --headless --no-sandbox --disable-gpu --disable-quic --no-first-run \
