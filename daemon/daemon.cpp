@@ -27,6 +27,7 @@
 #include "model/default_model.h"
 #include "model/model_io.h"
 #include "reconstruction/calibration.h"
+#include "report/fit_report_html.h"
 #include "reconstruction/calibration_file.h"
 #include "sim/live_rig.h"
 #include "sim/simulate.h"
@@ -1432,8 +1433,31 @@ void Daemon::Export(const Request& r) {
       FitReportRecord rep;
       s = store_->GetFitReport(id, &rep);
       if (!s) return Fail(r, error_code::kNotFound, s.message());
-      if (format != "json") return Fail(r, error_code::kInvalidParams, "params.format: a report exports as json");
-      s = formats::detail::WriteWholeFile(target, rep.report_json);
+      if (format != "json" && format != "html")
+        return Fail(r, error_code::kInvalidParams, "params.format: a report exports as json or html");
+      std::string text = rep.report_json;
+      if (format == "html") {  // the page of `mocap fit --html`: the report, the model it made, the one before
+        std::vector<ModelRecord> models;
+        s = store_->ListModels(rep.subject_id, &models);
+        auto made = std::find_if(models.begin(), models.end(), [&](const ModelRecord& m) { return m.fit_report_id == id; });
+        if (s && (made == models.end() || made == models.begin()))
+          s = Status::Error("fit report " + std::to_string(id) + ": no stored model version came from it");
+        report::FitReportPage page;
+        if (s) s = report::FitReportPageFromJson(rep.report_json, std::prev(made)->model_json, made->model_json, &page);
+        for (const Json& t : s ? page.report["per_trial"] : Json::array()) {  // "movement (recording N)"
+          const std::string file = t.value("file", "");
+          RecordingInfo info;
+          const std::size_t at = file.rfind("(recording ");
+          if (at != std::string::npos && store_->GetRecording(std::atoll(file.c_str() + at + 11), &info) &&
+              !info.coverage_json.empty())
+            (void)report::AppendCoverageRows(info.movement, info.coverage_json, &page.coverage);
+        }
+        page.model_file = subject.model_source;
+        page.software_version = "mocapd " + options_.version;
+        page.date = rep.created_at;
+        if (s) s = report::WriteFitReportHtml(page, &text);
+      }
+      if (s) s = formats::detail::WriteWholeFile(target, text);
     } else {
       ModelRecord rec;
       s = store_->GetModel(subject.id, static_cast<int>(id), &rec);

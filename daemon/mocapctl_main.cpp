@@ -791,9 +791,9 @@ int main(int argc, char** argv) {
       ->required()
       ->check(CLI::IsMember({"recording", "model", "report"}));
   export_cmd->add_option("id", export_id, "recording id, model version or report id")->required();
-  export_cmd->add_option("--format", export_format, "c3d, trc, mot, json or osim")
+  export_cmd->add_option("--format", export_format, "c3d, trc, mot, json, osim or html (a report's page)")
       ->required()
-      ->check(CLI::IsMember({"c3d", "trc", "mot", "json", "osim"}));
+      ->check(CLI::IsMember({"c3d", "trc", "mot", "json", "osim", "html"}));
   export_cmd->add_option("--out", export_out,
                          "file for the daemon to write (default: the content to stdout; not for c3d)");
   export_cmd->callback([&] {

@@ -9,6 +9,7 @@ PKGS=(cmake ninja-build g++ pkg-config
       libsystemd-dev  # mocapd: sd-event, sd-daemon
       systemd dpkg-dev  # tests/test_daemon_systemd: systemd-socket-activate, systemd-analyze, dpkg-shlibdeps (cpack -G DEB)
       jq bc  # scripts/demo.sh reads mocapctl --json
+      chromium  # tests/test_report: the fit report page opened headless; scripts/report_screenshot.sh
       clang-14 libclang-rt-14-dev)  # clang + libFuzzer: scripts/fuzz.sh
 missing=()
 for p in "${PKGS[@]}"; do

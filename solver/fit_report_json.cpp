@@ -1,5 +1,7 @@
 #include "solver/fit_report_json.h"
 
+#include <cmath>
+
 namespace mocap::solver {
 
 nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& trials,
@@ -12,6 +14,12 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["unknowns"] = r.unknowns;
   j["residuals"] = r.residuals;
   j["iterations"] = r.solver.num_iterations();  // on the whole problem
+  // The solve's history (the report page's convergence plot): cost after each iteration.
+  j["iteration_history"] = nlohmann::json::array();
+  for (const IterationSummary& it : r.solver.iterations)
+    j["iteration_history"].push_back({{"iteration", it.iteration}, {"cost", it.cost},
+                                      {"accepted", it.step_accepted}, {"lambda", it.lambda},
+                                      {"seconds", it.total_seconds}});
   // The coarse-to-fine start (solver/coarse_to_fine.h): its subset, iterations and pose pass.
   j["coarse"] = {{"used", r.coarse.used},
                  {"fallback", r.coarse.fallback},
@@ -29,9 +37,16 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["per_trial"] = nlohmann::json::array();
   for (size_t t = 0; t < trials.size(); ++t) {
     nlohmann::json tj = {{"name", trials[t].markers.name},
-                         {"frames", trials[t].markers.num_frames()}};
+                         {"frames", trials[t].markers.num_frames()},
+                         {"rate_hz", trials[t].markers.rate_hz}};
     if (t < trial_sources.size()) tj["file"] = trial_sources[t];
     if (t < r.per_trial_rms_mm.size()) tj["marker_rms_mm"] = r.per_trial_rms_mm[t];
+    if (t < r.per_frame_rms_mm.size()) {  // null for a frame without marker samples
+      nlohmann::json frames = nlohmann::json::array();
+      for (double v : r.per_frame_rms_mm[t])
+        frames.push_back(std::isfinite(v) ? nlohmann::json(v) : nlohmann::json());
+      tj["per_frame_rms_mm"] = std::move(frames);
+    }
     j["per_trial"].push_back(tj);
   }
   j["per_marker_rms_mm"] = nlohmann::json::object();

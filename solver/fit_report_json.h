@@ -10,6 +10,8 @@
 
 namespace mocap::solver {
 
+// Besides the totals it carries what the report page (report/fit_report_html.h) draws: each
+// trial's rate and per-frame marker RMS, and the solve's iteration history.
 // `trial_sources` names each trial's source (a file, a recording), in the order of `trials`.
 nlohmann::json FitReportJson(const FitReport& report, const std::vector<FitTrial>& trials,
                              const std::vector<std::string>& trial_sources);

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <cstdio>
 #include <map>
 #include <set>
@@ -480,16 +481,23 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     z.resize(trials[t].markers.num_frames(), nz);
     double trial_sq = 0;
     int trial_n = 0;
+    std::vector<double>& frame_rms = report.per_frame_rms_mm.emplace_back(z.rows());
     for (int f = 0; f < z.rows(); ++f) {
+      double frame_sq = 0;
+      int frame_n = 0;
       z.row(f) = x.segment(static_cast<Eigen::Index>(first_frame[t] + f) * nz, nz).transpose();
       ForwardKinematics(result->model, geometry, z.row(f).transpose(), &data);
       const auto row = problem.measurements().row(first_frame[t] + f);
       for (int m = 0; m < nm; ++m) {
         if (!std::isfinite(row[3 * m])) continue;
-        trial_sq += (MarkerPosition(result->model, geometry, data, m) -
+        frame_sq += (MarkerPosition(result->model, geometry, data, m) -
                      row.segment<3>(3 * m).transpose()).squaredNorm();
-        ++trial_n;
+        ++frame_n;
       }
+      frame_rms[f] = frame_n > 0 ? 1000.0 * std::sqrt(frame_sq / frame_n)
+                                 : std::numeric_limits<double>::quiet_NaN();
+      trial_sq += frame_sq;
+      trial_n += frame_n;
     }
     report.per_trial_rms_mm.push_back(1000.0 * std::sqrt(trial_sq / std::max(1, trial_n)));
   }

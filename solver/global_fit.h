@@ -127,6 +127,10 @@ struct FitReport {
   // Markers far above the median (FitOptions::outlier_marker_ratio), worst first: name, RMS mm.
   std::vector<std::pair<std::string, double>> outlier_markers;
   std::vector<double> per_trial_rms_mm;        // RMS over each trial's marker samples, trial order
+  // Per trial, per frame: the RMS over that frame's marker samples (NaN for a frame without
+  // any), so a report can show where in a trial the model stops fitting (a slipping marker, a
+  // movement outside the model's range) rather than one number per trial.
+  std::vector<std::vector<double>> per_frame_rms_mm;
   std::vector<ParameterEstimate> parameters;   // every fitted parameter
   std::vector<std::string> undetermined;
   std::vector<std::string> unmatched_trial_markers;   // in a trial, not in the model (ignored)

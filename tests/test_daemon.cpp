@@ -269,6 +269,18 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
   MustCall(c.get(), "export", {{"kind", "recording"}, {"id", static_recording}, {"format", "trc"}, {"path", trc}});
   json model_inline = MustCall(c.get(), "export", {{"kind", "model"}, {"id", fitted_version}, {"format", "json"}, {"inline", true}});
   EXPECT_GT(model_inline["content"].get<std::string>().size(), 1000u);
+  // The fit's report page (report/fit_report_html.h), built from the stored report and the two
+  // model versions: the same page as `mocap fit --html`, with this fit's RMS and iterations.
+  json page = MustCall(c.get(), "export", {{"kind", "report"}, {"id", fit["report_id"]}, {"format", "html"}, {"inline", true}});
+  const std::string html = page["content"];
+  EXPECT_EQ(html.rfind("<!DOCTYPE html>", 0), 0u);
+  for (const char* view : {"front", "side", "top"})
+    EXPECT_NE(html.find(std::string("data-view=\"") + view + "\""), std::string::npos) << view;
+  char rms[64];
+  std::snprintf(rms, sizeof rms, "<div class=\"v\">%.2f mm</div>", fit["report"]["marker_rms_mm"].get<double>());
+  EXPECT_NE(html.find(rms), std::string::npos) << rms;
+  EXPECT_NE(html.find("after " + std::to_string(fit["report"]["iterations"].get<int>()) + " iterations"),
+            std::string::npos);
   {
     std::unique_ptr<daemon::Store> store;
     daemon::StoreOptions so;

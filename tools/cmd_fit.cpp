@@ -2,8 +2,10 @@
 #include <spdlog/spdlog.h>
 
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <csignal>
+#include <ctime>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
@@ -11,9 +13,12 @@
 
 #include "formats/mot.h"
 #include "formats/osim.h"
+#include "formats/text_util.h"
 #include "formats/trc.h"
 #include "model/kinematics.h"
 #include "model/model_io.h"
+#include "report/fit_report_html.h"
+#include "sim/protocol.h"
 #include "solver/fit_report_json.h"
 #include "solver/functional_joints.h"
 #include "solver/global_fit.h"
@@ -30,6 +35,8 @@ struct FitArgs {
   InputArgs in;
   std::string out;
   std::string report;
+  std::string html;
+  std::string protocol;  // for --html: the protocol whose coverage the page shows ("default" or a file)
   int threads = 0;
   std::string groups = "scales,centres,axes,markers";
   int max_iterations = 50;
@@ -203,14 +210,68 @@ int RunFit(const FitArgs& args) {
   spdlog::info("wrote {} and, per trial, <trial>.fitted.mot and <trial>.joint_centres.trc in {}",
                args.out, dir.string());
 
+  const nlohmann::json report_json = solver::FitReportJson(r, trials, args.in.trials);
   if (!args.report.empty()) {
-    const nlohmann::json j = solver::FitReportJson(r, trials, args.in.trials);
     std::ofstream f(args.report);
-    f << j.dump(1) << "\n";
+    f << report_json.dump(1) << "\n";
     if (!f) {
       spdlog::error("{}: cannot write the report", args.report);
       return 1;
     }
+  }
+  if (!args.html.empty()) {
+    report::FitReportPage page;
+    page.report = report_json;
+    page.initial = model;
+    page.fitted = result.model;
+    page.model_file = args.in.model_path;
+    page.options = {{"fit", args.groups},
+                    {"max_iterations", args.max_iterations},
+                    {"coarse_frames", args.coarse_frames},
+                    {"threads", args.threads},
+                    {"initial poses", args.initial.empty() ? "inverse kinematics" : "given (.mot)"}};
+    if (!args.functional.empty()) {
+      page.options["functional"] = args.functional;
+      page.options["functional_sigma_mm"] = args.functional_sigma_mm;
+    }
+    if (!args.protocol.empty()) {
+      // Each trial named after a protocol movement (as `mocap sim` names them) is checked with
+      // the fitted poses: the range each excitation reached against the range required.
+      sim::Protocol protocol = sim::DefaultProtocol();
+      if (args.protocol != "default")
+        if (Status p = sim::LoadProtocolJson(args.protocol, &protocol); !p) {
+          spdlog::error("--protocol: {}", p.message());
+          return 2;
+        }
+      page.options["protocol"] = args.protocol;
+      const Model& fitted = result.model;
+      for (size_t t = 0; t < trials.size(); ++t) {
+        const sim::Movement* movement = protocol.Find(trials[t].markers.name);
+        if (movement == nullptr) continue;
+        formats::CoordinateTable table;
+        table.values = result.coordinates[t];
+        for (int c = 0; c < fitted.num_coordinates(); ++c) {
+          table.column_names.push_back(fitted.coordinates()[c].name);
+          if (fitted.coordinates()[c].rotational) table.values.col(c) *= 180.0 / M_PI;
+        }
+        for (const sim::ExcitationCheck& e : sim::CheckExcitations(*movement, table, sim::ExcitationCheckOptions()))
+          page.coverage.push_back({movement->name, e.coordinate, e.min_deg, e.max_deg, e.reached_min_deg,
+                                   e.reached_max_deg, e.required, e.ok});
+      }
+    }
+    page.software_version = "mocap " MOCAP_VERSION;
+    const std::time_t now = std::chrono::system_clock::to_time_t(std::chrono::system_clock::now());
+    char date[32];
+    std::strftime(date, sizeof date, "%Y-%m-%d %H:%M UTC", std::gmtime(&now));
+    page.date = date;
+    std::string html;
+    Status h = report::WriteFitReportHtml(page, &html);
+    if (h) h = formats::detail::WriteWholeFile(args.html, html);
+    if (!h) {
+      spdlog::error("--html {}: {}", args.html, h.message());
+      return 1;
+    }
+    spdlog::info("wrote the report page {}", args.html);
   }
   return 0;
 }
@@ -221,6 +282,12 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
   AddInputOptions(cmd, &args->in);
   cmd->add_option("--out", args->out, "fitted model to write (.json, or .osim from an .osim model)")->required();
   cmd->add_option("--report", args->report, "JSON report to write");
+  cmd->add_option("--html", args->html,
+                  "report page to write: one self-contained HTML file (skeleton views, residuals, "
+                  "convergence), opens without a network and prints to A4");
+  cmd->add_option("--protocol", args->protocol,
+                  "with --html: show the coverage of this protocol (\"default\" or a .json) by "
+                  "the trials named after its movements, with the fitted poses");
   cmd->add_option("--threads", args->threads, "worker threads (0: all cores)")->check(CLI::NonNegativeNumber);
   cmd->add_option("--fit", args->groups, "parameter groups: scales,centres,axes,markers (or all, none)");
   cmd->add_option("--max-iterations", args->max_iterations, "iteration limit")->check(CLI::PositiveNumber);
