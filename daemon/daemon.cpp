@@ -266,8 +266,12 @@ Status Daemon::Start() {
       if (!have) return Status::Error("[rig] calibration: " + have.message());
       calibration_version_ = 0;
     } else {
+      // The calibration that was live before a restart, else the newest.
       CalibrationRecord rec;
-      if (store_->GetCalibration(0, &rec)) {
+      std::string live;
+      const std::int64_t wanted =
+          store_->GetState("calibration_version", &live) ? std::atoll(live.c_str()) : 0;
+      if (store_->GetCalibration(wanted, &rec) || store_->GetCalibration(0, &rec)) {
         have = reconstruction::ParseCalibrationJson(
             rec.calibration_json, "stored calibration " + std::to_string(rec.version), &cal);
         if (have) calibration_version_ = static_cast<int>(rec.version);
@@ -307,6 +311,7 @@ Status Daemon::Start() {
     if (calibrated.empty()) sim_rig_->scene().ShowEmpty();
     else sim_rig_->scene().StandStatic();
   }
+  ResumeLive();
 
   // 6. The recorder (its own store connection).
   {
@@ -842,6 +847,7 @@ void Daemon::RigCalibrateApply(const Request& r) {
   if (s) s = pipeline_->SetCalibration(cams);
   if (!s) return Fail(r, error_code::kFailed, "calibration " + std::to_string(rec.version) + ": " + s.message());
   calibration_version_ = static_cast<int>(rec.version);
+  RememberLive();
   spdlog::info("rig calibration {} applied from frame {}", rec.version, last_frame_ + 1);
   server_->Reply(r.client.id, r.id, {{"version", rec.version}, {"from_frame", last_frame_ + 1}});
 }
@@ -917,15 +923,42 @@ void Daemon::SubjectCreate(const Request& r) {
   server_->Reply(r.client.id, r.id, {{"id", rec.id}, {"name", rec.name}, {"model_version", 1}});
 }
 
-Status Daemon::SelectSubject(const SubjectRecord& subject, std::string* why) {
+Status Daemon::SelectSubject(const SubjectRecord& subject, int version) {
   std::shared_ptr<Model> model;
-  int version = 0;
-  MOCAP_RETURN_IF_ERROR(LoadSubjectModel(subject, 0, &model, &version));
+  int got = 0;
+  MOCAP_RETURN_IF_ERROR(LoadSubjectModel(subject, version, &model, &got));
   subject_ = subject;
   live_model_ = model;
-  live_model_version_ = version;
-  pipeline_->SetSubjectModel(model, version);
+  live_model_version_ = got;
+  pipeline_->SetSubjectModel(model, got);
+  RememberLive();
   return Status::Ok();
+}
+
+// What is live goes to the store (daemon_state), so that a restart -- a crash, the watchdog, an
+// upgrade -- resumes it. A failure here (a full disk) is logged; the live state itself is fine.
+void Daemon::RememberLive() {
+  Status s = store_->SetState("subject", subject_ ? std::to_string(subject_->id) : "");
+  if (s) s = store_->SetState("live_model_version", std::to_string(live_model_version_));
+  if (s) s = store_->SetState("calibration_version", std::to_string(calibration_version_));
+  if (!s) spdlog::warn("cannot remember what is live: {}", s.message());
+}
+
+// After a restart: the subject, model and calibration that were live.
+void Daemon::ResumeLive() {
+  std::string subject_id, version;
+  if (!store_->GetState("subject", &subject_id) || subject_id.empty()) return;
+  store_->GetState("live_model_version", &version);
+  SubjectRecord rec;
+  if (Status s = store_->GetSubject(std::atoll(subject_id.c_str()), &rec); !s) {
+    spdlog::warn("cannot resume the subject that was live: {}", s.message());
+    return;
+  }
+  if (Status s = SelectSubject(rec, std::atoi(version.c_str())); !s) {
+    spdlog::warn("cannot resume subject '{}': {}", rec.name, s.message());
+    return;
+  }
+  spdlog::info("resumed subject '{}' with model v{}", rec.name, live_model_version_);
 }
 
 void Daemon::SubjectSelect(const Request& r) {
@@ -940,8 +973,7 @@ void Daemon::SubjectSelect(const Request& r) {
   SubjectRecord rec;
   Status s = name.empty() ? store_->GetSubject(id, &rec) : store_->FindSubject(name, &rec);
   if (!s) return Fail(r, error_code::kNotFound, s.message());
-  std::string why;
-  if (s = SelectSubject(rec, &why); !s) return Fail(r, error_code::kFailed, s.message());
+  if (s = SelectSubject(rec, 0); !s) return Fail(r, error_code::kFailed, s.message());
   spdlog::info("subject '{}' selected: tracking with model v{}", rec.name, live_model_version_);
   server_->Reply(r.client.id, r.id,
                  {{"id", rec.id}, {"name", rec.name}, {"model_version", live_model_version_}});
@@ -1380,6 +1412,7 @@ void Daemon::ModelApply(const Request& r) {
     return Fail(r, error_code::kFailed, "model v" + std::to_string(got) + ": " + s.message());
   live_model_ = model;
   live_model_version_ = got;
+  RememberLive();
   spdlog::info("model v{} of '{}' live from frame {}", got, subject_->name, from);
   server_->Reply(r.client.id, r.id, {{"version", got}, {"from_frame", from}});
 }

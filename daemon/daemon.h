@@ -139,7 +139,9 @@ class Daemon {
   };
   std::vector<PendingFinish> pending_finishes_;
   int ticks_since_retry_ = 0;
-  Status SelectSubject(const SubjectRecord& subject, std::string* why);
+  Status SelectSubject(const SubjectRecord& subject, int version);  // version 0: the latest
+  void RememberLive();
+  void ResumeLive();
   Status LoadSubjectModel(const SubjectRecord& subject, int version, std::shared_ptr<Model>* out,
                           int* got_version);
   void Stream(const LiveFrame& frame);

@@ -215,6 +215,12 @@ const char* const kMigrations[] = {
     "  created_at TEXT NOT NULL DEFAULT " MOCAP_NOW ","
     "  produced_by TEXT NOT NULL,"
     "  PRIMARY KEY (recording_id, chunk_index));",
+    // 1 -> 2: what the daemon had live (the selected subject, its live model, the live rig
+    // calibration), so a restart (a crash, the watchdog) resumes it.
+    "CREATE TABLE daemon_state ("
+    "  key TEXT PRIMARY KEY,"
+    "  value TEXT NOT NULL,"
+    "  updated_at TEXT NOT NULL DEFAULT " MOCAP_NOW ");",
 };
 // clang-format on
 static_assert(std::size(kMigrations) == Store::kSchemaVersion, "one migration per schema version");
@@ -811,6 +817,25 @@ Status Store::GetFitReport(std::int64_t id, FitReportRecord* out) {
                      out->produced_by = s.Text(4);
                      return Status::Ok();
                    });
+}
+
+// --- the daemon's live state ----------------------------------------------------------------
+
+Status Store::SetState(const std::string& key, const std::string& value) {
+  Statement upsert(db_.get(), path_,
+                   "INSERT INTO daemon_state (key, value) VALUES (?, ?) ON CONFLICT(key) DO UPDATE"
+                   " SET value = excluded.value, updated_at = " MOCAP_NOW);
+  upsert.Bind(key).Bind(value);
+  return In(path_ + ": setting the daemon's " + key, upsert.Run());
+}
+
+Status Store::GetState(const std::string& key, std::string* value) {
+  Statement q(db_.get(), path_, "SELECT value FROM daemon_state WHERE key = ?");
+  q.Bind(key);
+  return SelectOne(q, path_ + ": no daemon state '" + key + "'", [&](const Statement& s) {
+    *value = s.Text(0);
+    return Status::Ok();
+  });
 }
 
 // --- calibrations -----------------------------------------------------------------------------

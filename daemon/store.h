@@ -171,7 +171,7 @@ struct StoreOptions {
 class Store {
  public:
   static constexpr const char* kFileName = "mocapd.sqlite";
-  static constexpr int kSchemaVersion = 1;
+  static constexpr int kSchemaVersion = 2;
 
   // Opens (creating it, and the state directory with its parents, if missing) the database
   // `state_dir`/mocapd.sqlite, migrates its schema and, if the options say so, marks interrupted
@@ -210,6 +210,11 @@ class Store {
                       const std::string& produced_by, std::int64_t* id);
   Status GetFitReport(std::int64_t id, FitReportRecord* out);
 
+  // --- the daemon's live state --- (schema 2) What the daemon had live, by key
+  // ("subject", "live_model_version"), so that a restart resumes it. GetState: an error when the
+  // key was never set.
+  Status SetState(const std::string& key, const std::string& value);
+  Status GetState(const std::string& key, std::string* value);
   // --- rig calibrations --- (calibration_json must be JSON; version = id, increasing)
   Status AddCalibration(const std::string& calibration_json, double reprojection_rms_px,
                         double wand_length_error_mm, const std::string& produced_by,

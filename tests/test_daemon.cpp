@@ -328,8 +328,13 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
   ASSERT_EQ(models2["models"].size(), models["models"].size());
   for (std::size_t i = 0; i < models["models"].size(); ++i)
     EXPECT_EQ(models2["models"][i]["version"], models["models"][i]["version"]);
-  // The calibration survived the restart: the rig comes back calibrated.
-  EXPECT_EQ(MustCall(c.get(), "status")["rig"]["calibrated"], true);
+  // What was live survived the restart: the rig comes back calibrated, tracking the subject with
+  // the model that was applied.
+  const json resumed = MustCall(c.get(), "status");
+  EXPECT_EQ(resumed["rig"]["calibrated"], true);
+  EXPECT_EQ(resumed["rig"]["calibration_version"], cal["version"]);
+  EXPECT_EQ(resumed["subject"]["name"], "S01");
+  EXPECT_EQ(resumed["live_model_version"], fitted_version);
   EXPECT_EQ(d.Stop(), 0) << d.Log();
 }
 

@@ -136,6 +136,7 @@ TEST(DaemonFaults, KilledAtRandomMomentsLosesAtMostTheLast100ms) {
                 model_json[k]);
     }
     EXPECT_EQ(Call(c.get(), "subject.list")["subjects"].size(), 1u);
+    EXPECT_EQ(Call(c.get(), "status")["subject"]["name"], "S01") << "the live subject was not resumed";
     if (kind <= 2) {
       // The recording: interrupted, its frames up to 100 ms before the kill, exportable.
       const json recs = Call(c.get(), "recording.list")["recordings"];

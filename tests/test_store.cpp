@@ -958,4 +958,18 @@ TEST_F(ExportTest, TablesForTheFitAreInMetresAndRadians) {
   ExpectError(mocap::daemon::RecordingToMarkerTrial(info_, bad, {}, &trial), {"must increase"});
 }
 
+// The daemon's live state: set, replaced, read back after a reopen; an unknown key is an error.
+TEST_F(StoreTest, DaemonStateSurvivesAReopen) {
+  ASSERT_TRUE(store_->SetState("subject", "3").ok());
+  ASSERT_TRUE(store_->SetState("subject", "4").ok());
+  std::string v;
+  const Status missing = store_->GetState("live_model_version", &v);
+  EXPECT_FALSE(missing.ok());
+  EXPECT_THAT(missing.message(), HasSubstr("live_model_version"));
+  store_.reset();
+  ASSERT_TRUE(Store::Open(dir_, &store_).ok());
+  ASSERT_TRUE(store_->GetState("subject", &v).ok());
+  EXPECT_EQ(v, "4");
+}
+
 }  // namespace
