@@ -113,21 +113,13 @@ int main(int argc, char** argv) {
   }
   std::unique_ptr<ControlClient> c, sub;
   if (!d.Connect(&c).ok() || !d.Connect(&sub).ok()) return 1;
-  json r;
   std::fprintf(stderr, "daemon_latency: calibrating the rig, creating the subject...\n");
-  if (!Call(c.get(), "rig.calibrate.start", {{"seconds", 12}}, nullptr)) return 1;
-  std::this_thread::sleep_for(std::chrono::seconds(12));
-  if (!Call(c.get(), "rig.calibrate.finish", json::object(), nullptr) ||
-      !Call(c.get(), "rig.calibrate.apply", json::object(), nullptr) ||
-      !Call(c.get(), "status", json::object(), &r))
+  if (mocap::Status s = mocap::testing::CalibrateRigAndSelectSubject(c.get(), 12, "bench", 3); !s) {
+    std::fprintf(stderr, "daemon_latency: %s\n", s.message().c_str());
     return 1;
-  const double height = r["rig"]["virtual_subject"]["height_m"];
-  if (!Call(c.get(), "subject.create", {{"name", "bench"}, {"height_m", height}}, nullptr) ||
-      !Call(c.get(), "subject.select", {{"name", "bench"}}, nullptr))
-    return 1;
+  }
   json protocol;
   if (!Call(c.get(), "protocol.show", json::object(), &protocol)) return 1;
-  std::this_thread::sleep_for(std::chrono::seconds(3));
 
   // The operator records movement after movement while the subscriber measures.
   std::atomic<bool> done{false};

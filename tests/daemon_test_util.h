@@ -135,4 +135,30 @@ class DaemonProcess {
   pid_t pid_ = -1;
 };
 
+// The start of every session on a simulated rig, as an operator does it: wave the wand for
+// `wand_seconds`, calibrate, apply, create the subject at the virtual subject's height and select
+// it; then give the tracker `settle_seconds` to find the subject. Errors name the request.
+inline Status CalibrateRigAndSelectSubject(daemon::ControlClient* c, double wand_seconds,
+                                           const std::string& subject, double settle_seconds = 2) {
+  auto call = [&](const std::string& method, const nlohmann::json& params,
+                  nlohmann::json* result) -> Status {
+    daemon::ControlReply r;
+    MOCAP_RETURN_IF_ERROR(c->Call(method, params, &r));
+    if (!r.ok()) return Status::Error(method + ": " + r.error_code + ": " + r.error_message);
+    if (result) *result = r.result;
+    return Status::Ok();
+  };
+  nlohmann::json status;
+  MOCAP_RETURN_IF_ERROR(call("rig.calibrate.start", {{"seconds", wand_seconds}}, nullptr));
+  std::this_thread::sleep_for(std::chrono::duration<double>(wand_seconds));
+  MOCAP_RETURN_IF_ERROR(call("rig.calibrate.finish", nlohmann::json::object(), nullptr));
+  MOCAP_RETURN_IF_ERROR(call("rig.calibrate.apply", nlohmann::json::object(), nullptr));
+  MOCAP_RETURN_IF_ERROR(call("status", nlohmann::json::object(), &status));
+  const double height = status["rig"]["virtual_subject"]["height_m"];
+  MOCAP_RETURN_IF_ERROR(call("subject.create", {{"name", subject}, {"height_m", height}}, nullptr));
+  MOCAP_RETURN_IF_ERROR(call("subject.select", {{"name", subject}}, nullptr));
+  std::this_thread::sleep_for(std::chrono::duration<double>(settle_seconds));
+  return Status::Ok();
+}
+
 }  // namespace mocap::testing

@@ -67,14 +67,7 @@ TEST(DaemonFaults, KilledAtRandomMomentsLosesAtMostTheLast100ms) {
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> c;
   ASSERT_OK(d.Connect(&c));
-  Call(c.get(), "rig.calibrate.start", {{"seconds", 10}});
-  std::this_thread::sleep_for(std::chrono::seconds(10));
-  Call(c.get(), "rig.calibrate.finish");
-  Call(c.get(), "rig.calibrate.apply");
-  const double height = Call(c.get(), "status")["rig"]["virtual_subject"]["height_m"];
-  Call(c.get(), "subject.create", {{"name", "S01"}, {"height_m", height}});
-  Call(c.get(), "subject.select", {{"name", "S01"}});
-  std::this_thread::sleep_for(std::chrono::seconds(2));
+  ASSERT_OK(testing::CalibrateRigAndSelectSubject(c.get(), 10, "S01"));
   json first = Call(c.get(), "record.start", {{"movement", "static"}, {"sim_duration_scale", 0.5}});
   ASSERT_EQ(first["coverage"]["ok"], true) << first.dump();
 
@@ -192,14 +185,7 @@ TEST(DaemonFaults, DiskFullStopsTheRecordingNotTheRig) {
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> c;
   ASSERT_OK(d.Connect(&c));
-  Call(c.get(), "rig.calibrate.start", {{"seconds", 10}});
-  std::this_thread::sleep_for(std::chrono::seconds(10));
-  Call(c.get(), "rig.calibrate.finish");
-  Call(c.get(), "rig.calibrate.apply");
-  const double height = Call(c.get(), "status")["rig"]["virtual_subject"]["height_m"];
-  Call(c.get(), "subject.create", {{"name", "S01"}, {"height_m", height}});
-  Call(c.get(), "subject.select", {{"name", "S01"}});
-  std::this_thread::sleep_for(std::chrono::seconds(2));
+  ASSERT_OK(testing::CalibrateRigAndSelectSubject(c.get(), 10, "S01"));
   // Fill the tmpfs (seen from outside through the daemon's /proc/PID/root) but for ~1.5 MB:
   // about three seconds of recording.
   const std::string inside = "/proc/" + std::to_string(d.pid()) + "/root" + d.state_dir();
