@@ -24,15 +24,14 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <sstream>
-#include <ctime>
 
+#include "daemon/capture_pipeline.h"
 #include "ekf/tracker.h"
 #include "formats/marker_file.h"
 #include "formats/mot.h"
@@ -40,6 +39,7 @@
 #include "model/default_model.h"
 #include "model/kinematics.h"
 #include "model/model_io.h"
+#include "sim/track_run.h"
 #include "sim/tracking_scene.h"
 #include "tools/command.h"
 #include "tools/trial_inputs.h"
@@ -48,7 +48,6 @@ namespace mocap::tools {
 namespace {
 
 namespace fs = std::filesystem;
-using Clock = std::chrono::steady_clock;
 
 struct TrackArgs {
   std::string model;
@@ -71,13 +70,6 @@ std::vector<std::string> SplitList(const std::string& list) {
   return out;
 }
 
-double Percentile(std::vector<double> v, double q) {
-  if (v.empty()) return 0.0;
-  const size_t k = std::min(v.size() - 1, static_cast<size_t>(q * (v.size() - 1) + 0.5));
-  std::nth_element(v.begin(), v.begin() + static_cast<long>(k), v.end());
-  return v[k];
-}
-
 // TrackingSceneOptions::IsValid names the field; the user typed the flag.
 std::string FlagOf(const std::string& message) {
   static const std::pair<const char*, const char*> flags[] = {
@@ -89,13 +81,6 @@ std::string FlagOf(const std::string& message) {
 }
 
 double WrapAngle(double a) { return std::remainder(a, 2.0 * M_PI); }
-
-// This thread's CPU time (microseconds).
-double ThreadCpuUs() {
-  timespec t;
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
-  return t.tv_sec * 1e6 + t.tv_nsec * 1e-3;
-}
 
 int RunTrack(const TrackArgs& args) {
   if (args.simulate == !args.points.empty()) {
@@ -212,73 +197,49 @@ int RunTrack(const TrackArgs& args) {
   const int nm = model.num_markers(), nz = model.num_coordinates();
   auto shared = std::make_shared<const Model>(model);
   ekf::Tracker tracker(shared, topt);
+  std::vector<double> file_times;
+  std::vector<Eigen::Matrix3Xd> file_points;
+  if (!args.simulate) {
+    file_times.resize(nf);
+    file_points.resize(nf);
+    for (int f = 0; f < nf; ++f) {
+      file_times[f] = file.times[f] - file.times[0];
+      file_points[f].resize(3, file.num_markers());
+      for (int i = 0; i < file.num_markers(); ++i) file_points[f].col(i) = file.At(f, i);
+    }
+  }
+  const int progress_every = std::max(1, nf / 10);
+  const auto progress = [&](int f, const ekf::TrackOutput& o) {
+    if ((f + 1) % progress_every == 0 || f + 1 == nf)
+      spdlog::info("frame {}/{} ({:.0f}%): {}, {}/{} markers labelled", f + 1, nf,
+                   100.0 * (f + 1) / nf, ekf::ToString(o.state), o.labelled, nm);
+  };
+  sim::TrackRun run;
+  if (args.simulate) {
+    run = sim::TrackScene(scene, &tracker, progress);
+  } else {
+    sim::TrackInput in;
+    in.times = &file_times;
+    in.points = &file_points;
+    run = sim::RunTracker(in, &tracker, progress);
+  }
+  const std::vector<double>& times = args.simulate ? scene.times : file_times;
+  const std::vector<Eigen::Matrix3Xd>& frames = args.simulate ? scene.points : file_points;
   formats::MarkerTrial labelled;
   labelled.name = "labelled";
   labelled.rate_hz = topt.rate_hz;
   for (const Marker& m : model.markers()) labelled.marker_names.push_back(m.name);
   labelled.positions.setConstant(nf, 3 * nm, std::nan(""));
-  Eigen::MatrixXd z_out = Eigen::MatrixXd::Constant(nf, nz, std::nan(""));
-  std::vector<double> update_us, update_cpu_us;
-  update_us.reserve(nf);
-  update_cpu_us.reserve(nf);
-  std::vector<ekf::TrackState> states(nf);
-  int initialisations = 0, nan_poses = 0, first_tracking = -1;
-  int state_count[3] = {0, 0, 0};
-  sim::LabelScorer scorer(args.simulate ? scene.num_markers() : 0);
-  std::vector<int> given;
-  std::vector<sim::LabelScore> frame_scores(args.simulate ? nf : 0);
-  Eigen::Matrix3Xd points;
-  double max_points = 0, sum_points = 0;
-  const int progress_every = std::max(1, nf / 10);
-  for (int f = 0; f < nf; ++f) {
-    double t;
-    if (args.simulate) {
-      points = scene.points[f];
-      t = scene.times[f];
-    } else {
-      points.resize(3, file.num_markers());
-      for (int i = 0; i < file.num_markers(); ++i) points.col(i) = file.At(f, i);
-      t = file.times[f] - file.times[0];
-    }
-    sum_points += static_cast<double>(points.cols());
-    max_points = std::max(max_points, static_cast<double>(points.cols()));
-    const double cpu_start = ThreadCpuUs();
-    const auto start = Clock::now();
-    const ekf::TrackOutput& o = tracker.Update(t, points);
-    update_us.push_back(std::chrono::duration<double, std::micro>(Clock::now() - start).count());
-    update_cpu_us.push_back(ThreadCpuUs() - cpu_start);
-    states[f] = o.state;
-    ++state_count[static_cast<int>(o.state)];
-    if (o.reinitialised) ++initialisations;
-    if (!o.z.allFinite() || o.z.size() != nz) ++nan_poses;
-    if (o.state == ekf::TrackState::kTracking) {
-      if (first_tracking < 0) first_tracking = f;
-      if (o.z.size() == nz) z_out.row(f) = o.z.transpose();
-    }
-    for (int m = 0; m < nm && m < static_cast<int>(o.point_of_marker.size()); ++m) {
-      const int i = o.point_of_marker[m];
-      if (i >= 0 && i < points.cols())
-        labelled.positions.row(f).segment<3>(3 * m) = points.col(i).transpose();
-    }
-    if (args.simulate) {
-      given.assign(points.cols(), -1);
-      for (int i = 0; i < points.cols() && i < static_cast<int>(o.marker_of_point.size()); ++i) {
-        const int m = o.marker_of_point[i];
-        if (m >= 0 && m < nm) given[i] = scene_marker[m];
-      }
-      frame_scores[f] = scorer.Add(scene.labels[f], given);
-    }
-    if ((f + 1) % progress_every == 0 || f + 1 == nf)
-      spdlog::info("frame {}/{} ({:.0f}%): {}, {}/{} markers labelled, {} points, {:.0f} us",
-                   f + 1, nf, 100.0 * (f + 1) / nf, ekf::ToString(o.state), o.labelled, nm,
-                   points.cols(), update_us.back());
-  }
-  labelled.times.resize(nf);
+  labelled.times = times;
   labelled.frame_numbers.resize(nf);
   for (int f = 0; f < nf; ++f) {
-    labelled.times[f] = args.simulate ? scene.times[f] : file.times[f] - file.times[0];
     labelled.frame_numbers[f] = f + 1;
+    for (int m = 0; m < nm; ++m)
+      if (const int i = run.point_of_marker(f, m); i >= 0)
+        labelled.positions.row(f).segment<3>(3 * m) = frames[f].col(i).transpose();
   }
+  const Eigen::MatrixXd& z_out = run.z;
+  const std::vector<ekf::TrackState>& states = run.states;
 
   // --- outputs ---
   if (Status s = formats::WriteTrc((dir / "labelled.trc").string(), labelled); !s) {
@@ -294,23 +255,24 @@ int RunTrack(const TrackArgs& args) {
   j["model"] = input.path;
   j["model_markers"] = nm;
   j["rate_hz"] = topt.rate_hz;
-  j["points_per_frame_mean"] = sum_points / std::max(1, nf);
-  j["points_per_frame_max"] = max_points;
-  j["frames_tracking"] = state_count[static_cast<int>(ekf::TrackState::kTracking)];
-  j["frames_initialising"] = state_count[static_cast<int>(ekf::TrackState::kInitialising)];
-  j["frames_lost"] = state_count[static_cast<int>(ekf::TrackState::kLost)];
-  j["first_tracking_frame"] = first_tracking;
-  j["initialisations"] = initialisations;
-  j["reinitialisations"] = std::max(0, initialisations - 1);
-  j["nan_poses"] = nan_poses;
-  j["update_us_p50"] = Percentile(update_us, 0.50);
-  j["update_us_p99"] = Percentile(update_us, 0.99);
+  j["points_per_frame_mean"] = run.points_per_frame_mean;
+  j["points_per_frame_max"] = run.points_per_frame_max;
+  j["frames_tracking"] = run.frames_tracking();
+  j["frames_initialising"] = run.state_count[static_cast<int>(ekf::TrackState::kInitialising)];
+  j["frames_lost"] = run.state_count[static_cast<int>(ekf::TrackState::kLost)];
+  j["first_tracking_frame"] = run.first_tracking;
+  j["initialisations"] = run.initialisations;
+  j["reinitialisations"] = run.reinitialisations();
+  j["nan_poses"] = run.nan_poses;
+  std::vector<double> update_us = run.update_us, update_cpu_us = run.update_cpu_us;
+  j["update_us_p50"] = daemon::Percentile(&update_us, 50);
+  j["update_us_p99"] = daemon::Percentile(&update_us, 99);
   j["update_us_max"] = update_us.empty() ? 0.0 : *std::max_element(update_us.begin(), update_us.end());
-  j["update_cpu_us_p50"] = Percentile(update_cpu_us, 0.50);
-  j["update_cpu_us_p99"] = Percentile(update_cpu_us, 0.99);
+  j["update_cpu_us_p50"] = daemon::Percentile(&update_cpu_us, 50);
+  j["update_cpu_us_p99"] = daemon::Percentile(&update_cpu_us, 99);
 
   if (args.simulate) {
-    const sim::LabelScore score = scorer.Finish();
+    const sim::LabelScore& score = run.score;
     j["seed"] = scene.options.seed;
     j["scene"] = {{"ghosts", scene.options.ghosts},
                   {"occlusion", scene.options.occlusion},
@@ -333,9 +295,9 @@ int RunTrack(const TrackArgs& args) {
     j["trap_moments"] = scene.traps.size();
     j["per_marker_accuracy"] = nlohmann::json::object();
     for (int k = 0; k < scene.num_markers(); ++k)
-      if (scorer.marker_samples()[k] > 0)
+      if (run.marker_samples[k] > 0)
         j["per_marker_accuracy"][scene.marker_names[k]] =
-            static_cast<double>(scorer.marker_correct()[k]) / scorer.marker_samples()[k];
+            static_cast<double>(run.marker_correct[k]) / run.marker_samples[k];
 
     // Against the true poses, in the frames the tracker was tracking: the model's markers (forward
     // kinematics of the tracked z with the tracker's model) against the true markers, and the
@@ -386,7 +348,7 @@ int RunTrack(const TrackArgs& args) {
     if (scene.fault_end > 0 && scene.fault_end < nf) {
       j["recovery_frames"] = nullptr;
       for (int f = scene.fault_end; f < nf; ++f) {
-        const sim::LabelScore& fs = frame_scores[f];
+        const sim::LabelScore& fs = run.frame_scores[f];
         if (states[f] == ekf::TrackState::kTracking && fs.wrong == 0 &&
             fs.correct >= 0.9 * static_cast<double>(fs.samples)) {
           j["recovery_frames"] = f - scene.fault_end;
