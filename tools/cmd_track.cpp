@@ -17,6 +17,13 @@
 //                    (as `mocap sim` writes them), and (--write-points) the unlabelled points as a
 //                    --points file.
 //
+// A labelled points file (a real recording, its names the model's after --marker-map): the model's
+// markers it never shows are the tracker's unseen markers (virtual ones such as R_HJC); with
+// --unlabel its labels are removed, each frame's points shuffled and --ghosts added, and
+// stats.json scores the tracker's labels against the file's (label_accuracy, wrong_labels,
+// swaps_longer_than_5_frames, per_marker_accuracy). --up names the lab's vertical; an OpenSim
+// model's own is Y, ours Z (TrackerOptions::up, model_up).
+//
 // The model: --model FILE (.json or .osim). With --simulate, also `nominal` (the default: the
 // default model scaled to the subject's height, what `mocap sim` writes as nominal.model.json)
 // or `truth` (the subject's true model, truth.model.json). With --points the default is the
@@ -56,6 +63,9 @@ struct TrackArgs {
   std::string movements;  // comma-separated
   std::string fault = "none";
   std::string points;
+  std::string marker_set, marker_map;
+  std::string up = "z";
+  bool unlabel = false;
   double height_m = 1.75;
   std::string out;
   bool write_points = false;
@@ -81,6 +91,19 @@ std::string FlagOf(const std::string& message) {
 }
 
 double WrapAngle(double a) { return std::remainder(a, 2.0 * M_PI); }
+
+// "x", "-y", ... as a unit vector.
+bool ParseAxis(const std::string& text, Eigen::Vector3d* axis) {
+  static const std::pair<const char*, Eigen::Vector3d> axes[] = {
+      {"x", Eigen::Vector3d::UnitX()},  {"y", Eigen::Vector3d::UnitY()},  {"z", Eigen::Vector3d::UnitZ()},
+      {"-x", -Eigen::Vector3d::UnitX()}, {"-y", -Eigen::Vector3d::UnitY()}, {"-z", -Eigen::Vector3d::UnitZ()}};
+  for (const auto& [name, a] : axes)
+    if (text == name) {
+      *axis = a;
+      return true;
+    }
+  return false;
+}
 
 int RunTrack(const TrackArgs& args) {
   if (args.simulate == !args.points.empty()) {
@@ -110,29 +133,10 @@ int RunTrack(const TrackArgs& args) {
       spdlog::error("mocap track: {}", s.message());
       return 2;
     }
-  } else {
-    if (Status s = formats::ReadMarkerFile(args.points, &file); !s) {
-      spdlog::error("mocap track: {}", s.message());
-      return 2;
-    }
-    if (file.num_frames() == 0) {
-      spdlog::error("mocap track: {}: no frames", args.points);
-      return 2;
-    }
-    if (!(file.rate_hz > 0.0) && file.times.size() < 2) {
-      spdlog::error("mocap track: {}: no frame rate and no times", args.points);
-      return 2;
-    }
-    if (file.times.size() != static_cast<size_t>(file.num_frames())) {
-      file.times.resize(file.num_frames());
-      for (int f = 0; f < file.num_frames(); ++f) file.times[f] = f / file.rate_hz;
-    }
-    for (int f = 1; f < file.num_frames(); ++f)
-      if (!(file.times[f] > file.times[f - 1])) {
-        spdlog::error("mocap track: {}: frame {} does not come after frame {} in time ({} s, {} s)",
-                      args.points, f + 1, f, file.times[f], file.times[f - 1]);
-        return 2;
-      }
+  } else if (Status s = formats::ReadMarkerFile(args.points, &file); !s) {
+    // Read here for its errors first; read again with the model's names below (LoadTrials).
+    spdlog::error("mocap track: {}", s.message());
+    return 2;
   }
 
   // --- the model ---
@@ -148,8 +152,17 @@ int RunTrack(const TrackArgs& args) {
       spdlog::error("mocap track: --model {}: only with --simulate (give a model file)", args.model);
       return 2;
     }
-  } else if (Status s = LoadModelInput(args.model, "", &input); !s) {
+  } else if (Status s = LoadModelInput(args.model, args.marker_set, &input); !s) {
     spdlog::error("mocap track: {}", s.message());
+    return 2;
+  }
+  if (!input.osim && !args.marker_set.empty()) {
+    spdlog::error("mocap track: --marker-set {}: only with an OpenSim model (--model FILE.osim)",
+                  args.marker_set);
+    return 2;
+  }
+  if (args.simulate && !args.marker_map.empty()) {
+    spdlog::error("mocap track: --marker-map {}: only with --points", args.marker_map);
     return 2;
   }
   const Model& model = input.model;
@@ -158,6 +171,39 @@ int RunTrack(const TrackArgs& args) {
                   model.name(), input.path, model.num_markers());
     return 2;
   }
+  // --- the points file, its marker names mapped to the model's (--marker-map) ---
+  MarkerMatch match;
+  bool labelled_file = false;  // its names are the model's: the labels can be scored
+  if (!args.simulate) {
+    std::vector<formats::MarkerTrial> trials;
+    if (Status s = LoadTrials({args.points}, args.marker_map, model, &trials, &match); !s) {
+      spdlog::error("mocap track: {}", s.message());
+      return 2;
+    }
+    file = std::move(trials[0]);
+    if (!(file.rate_hz > 0.0) && file.times.size() < 2) {
+      spdlog::error("mocap track: {}: no frame rate and no times", args.points);
+      return 2;
+    }
+    if (file.times.size() != static_cast<size_t>(file.num_frames())) {
+      file.times.resize(file.num_frames());
+      for (int f = 0; f < file.num_frames(); ++f) file.times[f] = f / file.rate_hz;
+    }
+    for (int f = 1; f < file.num_frames(); ++f)
+      if (!(file.times[f] > file.times[f - 1])) {
+        spdlog::error("mocap track: {}: frame {} does not come after frame {} in time ({} s, {} s)",
+                      args.points, f + 1, f, file.times[f], file.times[f - 1]);
+        return 2;
+      }
+    labelled_file = static_cast<int>(match.unobserved_model_markers.size()) < model.num_markers();
+    if (labelled_file) LogMarkerMatch(match);
+    if (args.unlabel && !labelled_file) {
+      spdlog::error("mocap track: --unlabel: {} has none of the model's marker names (after "
+                    "--marker-map): there are no labels to score", args.points);
+      return 2;
+    }
+  }
+
   std::vector<int> scene_marker;  // per model marker
   if (args.simulate) {
     scene_marker = sim::SceneMarkerOf(model, scene);
@@ -178,6 +224,15 @@ int RunTrack(const TrackArgs& args) {
   topt.rate_hz = args.simulate ? scene.options.rate_hz
                                : (file.rate_hz > 0 ? file.rate_hz
                                                    : 1.0 / (file.times[1] - file.times[0]));
+  if (!ParseAxis(args.up, &topt.up)) {
+    spdlog::error("mocap track: --up {}: expected x, y, z, -x, -y or -z", args.up);
+    return 2;
+  }
+  // OpenSim's ground is Y up (gravity -Y); our models are Z up.
+  topt.model_up = input.osim ? Eigen::Vector3d::UnitY() : Eigen::Vector3d::UnitZ();
+  // The model's markers the file never shows (virtual ones such as R_HJC, markers the lab's set
+  // lacks): known only when the file's names are the model's.
+  if (labelled_file) topt.unseen_markers = match.unobserved_model_markers;
   std::string why;
   if (!topt.IsValid(&why)) {
     spdlog::error("mocap track: tracker options: {}", why);
@@ -197,16 +252,14 @@ int RunTrack(const TrackArgs& args) {
   const int nm = model.num_markers(), nz = model.num_coordinates();
   auto shared = std::make_shared<const Model>(model);
   ekf::Tracker tracker(shared, topt);
-  std::vector<double> file_times;
-  std::vector<Eigen::Matrix3Xd> file_points;
+  // A points file as frames of points (NaN columns dropped); with --unlabel its labels are
+  // removed, each frame's points shuffled and --ghosts added, and the tracker scored against them.
+  sim::UnlabelledTrial file_frames;
   if (!args.simulate) {
-    file_times.resize(nf);
-    file_points.resize(nf);
-    for (int f = 0; f < nf; ++f) {
-      file_times[f] = file.times[f] - file.times[0];
-      file_points[f].resize(3, file.num_markers());
-      for (int i = 0; i < file.num_markers(); ++i) file_points[f].col(i) = file.At(f, i);
-    }
+    sim::UnlabelOptions uo;
+    uo.shuffle_seed = args.unlabel ? 1 : 0;
+    uo.ghosts = args.unlabel ? args.scene.ghosts : 0;
+    file_frames = sim::Unlabel(file, model, uo);
   }
   const int progress_every = std::max(1, nf / 10);
   const auto progress = [&](int f, const ekf::TrackOutput& o) {
@@ -218,13 +271,12 @@ int RunTrack(const TrackArgs& args) {
   if (args.simulate) {
     run = sim::TrackScene(scene, &tracker, progress);
   } else {
-    sim::TrackInput in;
-    in.times = &file_times;
-    in.points = &file_points;
+    sim::TrackInput in = file_frames.Input(nm);
+    if (!args.unlabel) in.labels = nullptr;
     run = sim::RunTracker(in, &tracker, progress);
   }
-  const std::vector<double>& times = args.simulate ? scene.times : file_times;
-  const std::vector<Eigen::Matrix3Xd>& frames = args.simulate ? scene.points : file_points;
+  const std::vector<double>& times = args.simulate ? scene.times : file_frames.times;
+  const std::vector<Eigen::Matrix3Xd>& frames = args.simulate ? scene.points : file_frames.points;
   formats::MarkerTrial labelled;
   labelled.name = "labelled";
   labelled.rate_hz = topt.rate_hz;
@@ -383,10 +435,30 @@ int RunTrack(const TrackArgs& args) {
                 j["joint_angle_rms_deg"].is_number() ? j["joint_angle_rms_deg"].get<double>() : std::nan(""),
                 j["update_us_p50"].get<double>(), j["update_us_p99"].get<double>(), args.out.c_str());
   } else {
+    if (run.scored) {
+      j["unlabelled"] = {{"shuffled", true}, {"ghosts", args.scene.ghosts}};
+      j["marker_samples"] = run.score.samples;
+      j["label_accuracy"] = run.score.accuracy();
+      j["wrong_labels"] = run.score.wrong;
+      j["wrong_labels_on_ghosts"] = run.score.wrong_on_ghosts;
+      j["swaps_longer_than_5_frames"] = run.score.swaps_longer_than_5_frames;
+      j["longest_wrong_run_frames"] = run.score.longest_wrong_run;
+      j["per_marker_accuracy"] = nlohmann::json::object();
+      for (int k = 0; k < nm; ++k)
+        if (run.marker_samples[k] > 0)
+          j["per_marker_accuracy"][model.markers()[k].name] =
+              static_cast<double>(run.marker_correct[k]) / run.marker_samples[k];
+    }
+    j["unseen_markers"] = topt.unseen_markers;
     std::printf("mocap track: %d frames, %d tracking, %d reinitialisations, update p50 %.0f us p99 "
-                "%.0f us -> %s\n", nf, j["frames_tracking"].get<int>(),
+                "%.0f us", nf, j["frames_tracking"].get<int>(),
                 j["reinitialisations"].get<int>(), j["update_us_p50"].get<double>(),
-                j["update_us_p99"].get<double>(), args.out.c_str());
+                j["update_us_p99"].get<double>());
+    if (run.scored)
+      std::printf(", label accuracy %.6f, %ld wrong labels, %d swaps > 5 frames (longest %d)",
+                  run.score.accuracy(), run.score.wrong, run.score.swaps_longer_than_5_frames,
+                  run.score.longest_wrong_run);
+    std::printf(" -> %s\n", args.out.c_str());
   }
   {
     std::ofstream f(dir / "stats.json");
@@ -410,7 +482,7 @@ const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code)
   cmd->add_flag("--simulate", args->simulate, "track a simulated scene (sim/tracking_scene.h)");
   cmd->add_option("--seed", args->scene.seed, "simulation: the subject and movements of `mocap sim --seed N`")
       ->check(CLI::NonNegativeNumber);
-  cmd->add_option("--ghosts", args->scene.ghosts, "simulation: ghost points per frame")
+  cmd->add_option("--ghosts", args->scene.ghosts, "simulation, or --points with --unlabel: ghost points per frame")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--occlusion", args->scene.occlusion,
                   "simulation: fraction of marker samples occluded (gaps of 5..30 frames)");
@@ -426,6 +498,13 @@ const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code)
   cmd->add_option("--fault-time", args->scene.fault_time_s, "simulation: when the fault starts (s; default 40 % in)");
   cmd->add_flag("--write-points", args->write_points, "simulation: also write the points as DIR/points.trc");
   cmd->add_option("--points", args->points, "unlabelled points (.trc or .c3d, NaN for empty slots)");
+  cmd->add_option("--marker-set", args->marker_set, "OpenSim marker set (.xml) added to an .osim model");
+  cmd->add_option("--marker-map", args->marker_map,
+                  "with --points: marker-name map, lines 'model_name = file_name' (# comments)");
+  cmd->add_option("--up", args->up, "the lab's vertical: x, y, z (default), -x, -y or -z");
+  cmd->add_flag("--unlabel", args->unlabel,
+                "with a labelled --points file: remove its labels, shuffle each frame's points, add "
+                "--ghosts, and score the tracker's labels against the file's");
   cmd->add_option("--height", args->height_m, "with --points and no --model: subject height (m)")
       ->check(CLI::Range(0.5, 3.0));
   cmd->add_option("--out", args->out, "output directory (created)")->required();
