@@ -54,6 +54,8 @@ bool TrackerOptions::IsValid(std::string* error) const {
     return Fail(error, "min_labelled_fraction must be in [0, 1]");
   if (!(max_nis_per_dof > 0)) return Fail(error, "max_nis_per_dof must be > 0");
   if (!(up.norm() > 0.5) || !up.allFinite()) return Fail(error, "up must be a non-zero vector");
+  if (!(model_up.norm() > 0.5) || !model_up.allFinite())
+    return Fail(error, "model_up must be a non-zero vector");
   if (init_headings < 1) return Fail(error, "init_headings must be >= 1");
   if (init_variants < 0 || !(init_variant_rad >= 0))
     return Fail(error, "init_variants and init_variant_rad must be >= 0");
@@ -90,6 +92,14 @@ struct Tracker::Impl {
   Geometry geometry;
   ModelData data;
   int nz = 0, nm = 0;
+  // Per marker: whether the data can show it (not in options.unseen_markers); how many can.
+  std::vector<char> seen;
+  int nm_seen = 0;
+  // Turns the lab's vertical (options.up) onto the model's (options.model_up): every input point
+  // goes through it, so the model's root angles describe a subject standing as the model stands
+  // whatever the lab's axes (an upside-down lab would need pelvis tilt and list near 180 degrees,
+  // outside their ranges, which the search and the filter keep to).
+  Eigen::Matrix3d lab_to_model = Eigen::Matrix3d::Identity();
   std::vector<char> rotational, wraps;
   Eigen::VectorXd marker_variance;  // sigma_m^2 / w_m
   // Online marker offsets (see tracker.h): per marker, in its segment's frame, and how many
@@ -290,6 +300,11 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   marker_variance.resize(nm);
   for (int k = 0; k < nm; ++k)
     marker_variance[k] = options.sigma_m * options.sigma_m / md.markers()[k].weight;
+  seen.assign(nm, 1);
+  for (int k = 0; k < nm; ++k)
+    for (const std::string& name : options.unseen_markers)
+      if (md.markers()[k].name == name) seen[k] = 0;
+  nm_seen = static_cast<int>(std::count(seen.begin(), seen.end(), 1));
   offset.assign(nm, Eigen::Vector3d::Zero());
   offset_unknown.assign(nm, 1.0);
   model_error.assign(nm, 0.0);
@@ -328,7 +343,7 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
           for (const JointElement& e : md.joints()[i].elements)
             if (e.coordinate >= 0) limb_coord[j][e.coordinate] = 1;
       for (int k = 0; k < nm; ++k)
-        if (in[md.markers()[k].segment]) limb_markers[j].push_back(k);
+        if (in[md.markers()[k].segment] && seen[k]) limb_markers[j].push_back(k);
     }
   }
   limb_coord_list.assign(nj, {});
@@ -349,7 +364,9 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
       j = parent >= 0 ? md.segments()[parent].joint : -1;
     }
     // The root is the global search's business, and so are subtrees too large for a local one.
-    marker_limb[k] = j > 0 && static_cast<int>(limb_coord_list[j].size()) <= kMaxLimbCoords ? j : -1;
+    marker_limb[k] = seen[k] && j > 0 && static_cast<int>(limb_coord_list[j].size()) <= kMaxLimbCoords
+                         ? j
+                         : -1;
   }
 
   // Root placement.
@@ -513,6 +530,11 @@ void Tracker::Impl::LabelByGating(int np) {
     const Eigen::Vector3d p = predicted.col(m);
     double best = gate;
     int best_k = np + m;  // its own "missing" column
+    if (!seen[m]) {
+      C.row(m).head(np).setConstant(kForbidden);
+      row_to_col[m] = best_k;
+      continue;
+    }
     for (int k = 0; k < np; ++k) {
       const Eigen::Vector3d e = points.col(k) - p;
       double d2 = kForbidden;
@@ -559,7 +581,7 @@ void Tracker::Impl::PickUpOnSegment(int np) {
   if (FreshTrack()) return;
   bool claims_known = false;
   for (int m = 0; m < nm; ++m) {
-    if (row_to_col[m] >= 0) continue;
+    if (row_to_col[m] >= 0 || !seen[m]) continue;
     const int segment = model->markers()[m].segment;
     int mates = 0;
     Eigen::Vector3d cp = Eigen::Vector3d::Zero(), cq = Eigen::Vector3d::Zero();
@@ -881,8 +903,9 @@ bool Tracker::Impl::PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3
   }
   ForwardKinematics(*model, geometry, *z, &data);
   Eigen::Vector3d mc = Eigen::Vector3d::Zero();
-  for (int m = 0; m < nm; ++m) mc += MarkerPosition(*model, geometry, data, m);
-  const Eigen::Vector3d shift = centroid - mc / nm;
+  for (int m = 0; m < nm; ++m)
+    if (seen[m]) mc += MarkerPosition(*model, geometry, data, m);
+  const Eigen::Vector3d shift = centroid - mc / std::max(1, nm_seen);
   for (const auto& [coord, axis] : root_translations) (*z)[coord] += axis.dot(shift);
   return true;
 }
@@ -929,7 +952,7 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
     const bool final_stage = stage >= stages;
     const int depth = final_stage ? max_depth : stage;
     for (int i = 0; i < nz; ++i) free[i] = coordinate_depth[i] <= depth;
-    for (int m = 0; m < nm; ++m) active[m] = marker_depth[m] <= depth;
+    for (int m = 0; m < nm; ++m) active[m] = seen[m] && marker_depth[m] <= depth;
     radius = stage == 0 ? 0.25
              : !final_stage ? 0.15
                             : std::max(options.init_radius_m,
@@ -1009,7 +1032,7 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
   for (int m = 0; m < nm; ++m) {
     for (int k = 0; k < np; ++k) {
       const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
-      C(m, k) = d2 < r2 ? d2 : kForbidden;
+      C(m, k) = seen[m] && d2 < r2 ? d2 : kForbidden;
     }
     C.row(m).tail(nm).setConstant(kForbidden);
     C(m, np + m) = r2;
@@ -1035,7 +1058,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   init.hypotheses = 0;
   init.best_score = init.runner_up_score = init.rms_m = 0;
   init.labelled = 0;
-  if (np < options.init_min_fraction * nm) {
+  if (np < options.init_min_fraction * nm_seen) {
     init.reason = "too few points";
     return false;
   }
@@ -1045,7 +1068,8 @@ bool Tracker::Impl::TryInitialise(int np) {
   starts.push_back(options.static_pose.size() == nz ? options.static_pose
                                                     : model->DefaultCoordinates());
   if (had_track) starts.push_back(z_good);
-  const Eigen::Vector3d up = options.up.normalized();
+  // The points are turned so that the lab's vertical is the model's (lab_to_model).
+  const Eigen::Vector3d up = options.model_up.normalized();
   std::vector<Hypothesis> hyps;
   for (const Eigen::VectorXd& s : starts) {
     const int headings = root_euler ? options.init_headings : 1;
@@ -1113,7 +1137,7 @@ bool Tracker::Impl::TryInitialise(int np) {
     if (differ >= 3) runner_up = std::min(runner_up, o.score);
   }
   init.runner_up_score = std::isfinite(runner_up) ? runner_up : 0.0;
-  if (h.labelled < options.init_min_fraction * nm) {
+  if (h.labelled < options.init_min_fraction * nm_seen) {
     init.reason = "too few markers labelled";
     return false;
   }
@@ -1499,6 +1523,9 @@ bool Tracker::Impl::RejoinAtOffset(int m, int np) {
 
 Tracker::Tracker(std::shared_ptr<const Model> model, TrackerOptions options) : impl_(new Impl) {
   impl_->options = std::move(options);
+  impl_->lab_to_model = Eigen::Quaterniond::FromTwoVectors(impl_->options.up.normalized(),
+                                                            impl_->options.model_up.normalized())
+                            .toRotationMatrix();
   impl_->SetModel(std::move(model));
   impl_->Allocate();
   impl_->ResetState();
@@ -1519,7 +1546,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
   s.valid.clear();
   for (int k = 0; k < nin && static_cast<int>(s.valid.size()) < s.options.max_points; ++k)
     if (pts.col(k).allFinite()) {
-      s.points.col(s.valid.size()) = pts.col(k);
+      s.points.col(s.valid.size()) = s.lab_to_model * pts.col(k);
       s.valid.push_back(k);
     }
   const int np = static_cast<int>(s.valid.size());
@@ -1545,7 +1572,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     }
     out.nis = nis;
     out.nis_dof = 3 * s.measured_count;
-    const bool bad = !ok || labelled < s.options.min_labelled_fraction * s.nm ||
+    const bool bad = !ok || labelled < s.options.min_labelled_fraction * s.nm_seen ||
                      (labelled > 0 && nis > s.options.max_nis_per_dof * out.nis_dof);
     if (ok && !bad) {
       s.bad_frames = 0;

@@ -75,7 +75,8 @@
 // 2-5 cm from the pose's prediction but where it belongs among its segment's labelled markers.
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
-// cloud's centroid at several headings about the vertical (options.up), from the static pose (and,
+// cloud's centroid at several headings about the vertical (the points turned so that the lab's
+// vertical, options.up, is the model's, options.model_up), from the static pose (and,
 // after a loss, from the last good pose). Each hypothesis is refined ICP-like (assign markers to
 // points by distance with the optimal assignment, one damped Gauss-Newton step on the pose with a
 // weak prior towards the start and the model's joint ranges, reassign), placing the body from the
@@ -197,7 +198,23 @@ struct TrackerOptions {
   double max_nis_per_dof = 10.0;
 
   // Initialisation: number of headings tried about `up`; acceptance thresholds.
+  // `up` is the lab's vertical (Z in our simulations and in most C3D labs, Y in OpenSim's TRC
+  // files, -Z in a data set turned upside down); `model_up` the model's own vertical in its
+  // default pose (Z for the default model, Y for an OpenSim model: its ground's gravity is -Y).
+  // The tracker turns every input point by the rotation that takes up onto model_up (the
+  // shortest one) and works in that frame: a Y-up OpenSim model in a Z-up lab would otherwise be
+  // searched for lying down, and a subject in a -Z-up lab needs root angles outside the model's
+  // ranges. TrackOutput::z and predicted_markers() are in that turned frame (the lab's when
+  // up == model_up, the default).
   Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
+  Eigen::Vector3d model_up = Eigen::Vector3d::UnitZ();
+  // Model markers the data never shows, by name: virtual markers (joint centres such as R_HJC,
+  // midASIS, projections) and markers the lab's set lacks. They are never labelled (a joint
+  // centre would otherwise take a ghost or a neighbour's point), never searched for, and not
+  // counted in the fractions (init_min_fraction, min_labelled_fraction): counted, a model with 72
+  // markers of which 54 are worn can never label 80 % of its markers. Names the model lacks are
+  // ignored (one list serves several models of a lab).
+  std::vector<std::string> unseen_markers;
   int init_headings = 12;
   // Then restarts from the best placement: the static pose blended 10, 20 and 30 % towards the
   // middle of each joint's range, and init_variants more with the joint angles perturbed by up
@@ -206,7 +223,7 @@ struct TrackerOptions {
   double init_variant_rad = 0.3;
   int init_iterations = 30;          // ICP iterations per hypothesis
   double init_max_rms_m = 0.03;      // RMS distance of the labelled markers (nominal model: ~2 cm)
-  double init_min_fraction = 0.8;    // of the model's markers labelled
+  double init_min_fraction = 0.8;    // of the model's markers labelled (those it can see)
   // Unambiguous: every hypothesis that labels 3 or more markers differently must cost at least
   // init_ambiguity_ratio x the best one's score, and more than the best by init_ambiguity_margin
   // times the best one's residual variance per coordinate (a log-likelihood-ratio test: with a

@@ -17,6 +17,13 @@
 //                    (as `mocap sim` writes them), and (--write-points) the unlabelled points as a
 //                    --points file.
 //
+// A labelled points file (a real recording, its names the model's after --marker-map): the model's
+// markers it never shows are the tracker's unseen markers (virtual ones such as R_HJC); with
+// --unlabel its labels are removed, each frame's points shuffled and --ghosts added, and
+// stats.json scores the tracker's labels against the file's (label_accuracy, wrong_labels,
+// swaps_longer_than_5_frames, per_marker_accuracy). --up names the lab's vertical; an OpenSim
+// model's own is Y, ours Z (TrackerOptions::up, model_up).
+//
 // The model: --model FILE (.json or .osim). With --simulate, also `nominal` (the default: the
 // default model scaled to the subject's height, what `mocap sim` writes as nominal.model.json)
 // or `truth` (the subject's true model, truth.model.json). With --points the default is the
@@ -24,15 +31,14 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <sstream>
-#include <ctime>
 
+#include "daemon/capture_pipeline.h"
 #include "ekf/tracker.h"
 #include "formats/marker_file.h"
 #include "formats/mot.h"
@@ -40,6 +46,7 @@
 #include "model/default_model.h"
 #include "model/kinematics.h"
 #include "model/model_io.h"
+#include "sim/track_run.h"
 #include "sim/tracking_scene.h"
 #include "tools/command.h"
 #include "tools/trial_inputs.h"
@@ -48,7 +55,6 @@ namespace mocap::tools {
 namespace {
 
 namespace fs = std::filesystem;
-using Clock = std::chrono::steady_clock;
 
 struct TrackArgs {
   std::string model;
@@ -57,6 +63,9 @@ struct TrackArgs {
   std::string movements;  // comma-separated
   std::string fault = "none";
   std::string points;
+  std::string marker_set, marker_map;
+  std::string up = "z";
+  bool unlabel = false;
   double height_m = 1.75;
   std::string out;
   bool write_points = false;
@@ -71,13 +80,6 @@ std::vector<std::string> SplitList(const std::string& list) {
   return out;
 }
 
-double Percentile(std::vector<double> v, double q) {
-  if (v.empty()) return 0.0;
-  const size_t k = std::min(v.size() - 1, static_cast<size_t>(q * (v.size() - 1) + 0.5));
-  std::nth_element(v.begin(), v.begin() + static_cast<long>(k), v.end());
-  return v[k];
-}
-
 // TrackingSceneOptions::IsValid names the field; the user typed the flag.
 std::string FlagOf(const std::string& message) {
   static const std::pair<const char*, const char*> flags[] = {
@@ -90,11 +92,17 @@ std::string FlagOf(const std::string& message) {
 
 double WrapAngle(double a) { return std::remainder(a, 2.0 * M_PI); }
 
-// This thread's CPU time (microseconds).
-double ThreadCpuUs() {
-  timespec t;
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
-  return t.tv_sec * 1e6 + t.tv_nsec * 1e-3;
+// "x", "-y", ... as a unit vector.
+bool ParseAxis(const std::string& text, Eigen::Vector3d* axis) {
+  static const std::pair<const char*, Eigen::Vector3d> axes[] = {
+      {"x", Eigen::Vector3d::UnitX()},  {"y", Eigen::Vector3d::UnitY()},  {"z", Eigen::Vector3d::UnitZ()},
+      {"-x", -Eigen::Vector3d::UnitX()}, {"-y", -Eigen::Vector3d::UnitY()}, {"-z", -Eigen::Vector3d::UnitZ()}};
+  for (const auto& [name, a] : axes)
+    if (text == name) {
+      *axis = a;
+      return true;
+    }
+  return false;
 }
 
 int RunTrack(const TrackArgs& args) {
@@ -125,29 +133,10 @@ int RunTrack(const TrackArgs& args) {
       spdlog::error("mocap track: {}", s.message());
       return 2;
     }
-  } else {
-    if (Status s = formats::ReadMarkerFile(args.points, &file); !s) {
-      spdlog::error("mocap track: {}", s.message());
-      return 2;
-    }
-    if (file.num_frames() == 0) {
-      spdlog::error("mocap track: {}: no frames", args.points);
-      return 2;
-    }
-    if (!(file.rate_hz > 0.0) && file.times.size() < 2) {
-      spdlog::error("mocap track: {}: no frame rate and no times", args.points);
-      return 2;
-    }
-    if (file.times.size() != static_cast<size_t>(file.num_frames())) {
-      file.times.resize(file.num_frames());
-      for (int f = 0; f < file.num_frames(); ++f) file.times[f] = f / file.rate_hz;
-    }
-    for (int f = 1; f < file.num_frames(); ++f)
-      if (!(file.times[f] > file.times[f - 1])) {
-        spdlog::error("mocap track: {}: frame {} does not come after frame {} in time ({} s, {} s)",
-                      args.points, f + 1, f, file.times[f], file.times[f - 1]);
-        return 2;
-      }
+  } else if (Status s = formats::ReadMarkerFile(args.points, &file); !s) {
+    // Read here for its errors first; read again with the model's names below (LoadTrials).
+    spdlog::error("mocap track: {}", s.message());
+    return 2;
   }
 
   // --- the model ---
@@ -163,8 +152,17 @@ int RunTrack(const TrackArgs& args) {
       spdlog::error("mocap track: --model {}: only with --simulate (give a model file)", args.model);
       return 2;
     }
-  } else if (Status s = LoadModelInput(args.model, "", &input); !s) {
+  } else if (Status s = LoadModelInput(args.model, args.marker_set, &input); !s) {
     spdlog::error("mocap track: {}", s.message());
+    return 2;
+  }
+  if (!input.osim && !args.marker_set.empty()) {
+    spdlog::error("mocap track: --marker-set {}: only with an OpenSim model (--model FILE.osim)",
+                  args.marker_set);
+    return 2;
+  }
+  if (args.simulate && !args.marker_map.empty()) {
+    spdlog::error("mocap track: --marker-map {}: only with --points", args.marker_map);
     return 2;
   }
   const Model& model = input.model;
@@ -173,6 +171,39 @@ int RunTrack(const TrackArgs& args) {
                   model.name(), input.path, model.num_markers());
     return 2;
   }
+  // --- the points file, its marker names mapped to the model's (--marker-map) ---
+  MarkerMatch match;
+  bool labelled_file = false;  // its names are the model's: the labels can be scored
+  if (!args.simulate) {
+    std::vector<formats::MarkerTrial> trials;
+    if (Status s = LoadTrials({args.points}, args.marker_map, model, &trials, &match); !s) {
+      spdlog::error("mocap track: {}", s.message());
+      return 2;
+    }
+    file = std::move(trials[0]);
+    if (!(file.rate_hz > 0.0) && file.times.size() < 2) {
+      spdlog::error("mocap track: {}: no frame rate and no times", args.points);
+      return 2;
+    }
+    if (file.times.size() != static_cast<size_t>(file.num_frames())) {
+      file.times.resize(file.num_frames());
+      for (int f = 0; f < file.num_frames(); ++f) file.times[f] = f / file.rate_hz;
+    }
+    for (int f = 1; f < file.num_frames(); ++f)
+      if (!(file.times[f] > file.times[f - 1])) {
+        spdlog::error("mocap track: {}: frame {} does not come after frame {} in time ({} s, {} s)",
+                      args.points, f + 1, f, file.times[f], file.times[f - 1]);
+        return 2;
+      }
+    labelled_file = static_cast<int>(match.unobserved_model_markers.size()) < model.num_markers();
+    if (labelled_file) LogMarkerMatch(match);
+    if (args.unlabel && !labelled_file) {
+      spdlog::error("mocap track: --unlabel: {} has none of the model's marker names (after "
+                    "--marker-map): there are no labels to score", args.points);
+      return 2;
+    }
+  }
+
   std::vector<int> scene_marker;  // per model marker
   if (args.simulate) {
     scene_marker = sim::SceneMarkerOf(model, scene);
@@ -193,6 +224,15 @@ int RunTrack(const TrackArgs& args) {
   topt.rate_hz = args.simulate ? scene.options.rate_hz
                                : (file.rate_hz > 0 ? file.rate_hz
                                                    : 1.0 / (file.times[1] - file.times[0]));
+  if (!ParseAxis(args.up, &topt.up)) {
+    spdlog::error("mocap track: --up {}: expected x, y, z, -x, -y or -z", args.up);
+    return 2;
+  }
+  // OpenSim's ground is Y up (gravity -Y); our models are Z up.
+  topt.model_up = input.osim ? Eigen::Vector3d::UnitY() : Eigen::Vector3d::UnitZ();
+  // The model's markers the file never shows (virtual ones such as R_HJC, markers the lab's set
+  // lacks): known only when the file's names are the model's.
+  if (labelled_file) topt.unseen_markers = match.unobserved_model_markers;
   std::string why;
   if (!topt.IsValid(&why)) {
     spdlog::error("mocap track: tracker options: {}", why);
@@ -212,73 +252,46 @@ int RunTrack(const TrackArgs& args) {
   const int nm = model.num_markers(), nz = model.num_coordinates();
   auto shared = std::make_shared<const Model>(model);
   ekf::Tracker tracker(shared, topt);
+  // A points file as frames of points (NaN columns dropped); with --unlabel its labels are
+  // removed, each frame's points shuffled and --ghosts added, and the tracker scored against them.
+  sim::UnlabelledTrial file_frames;
+  if (!args.simulate) {
+    sim::UnlabelOptions uo;
+    uo.shuffle_seed = args.unlabel ? 1 : 0;
+    uo.ghosts = args.unlabel ? args.scene.ghosts : 0;
+    file_frames = sim::Unlabel(file, model, uo);
+  }
+  const int progress_every = std::max(1, nf / 10);
+  const auto progress = [&](int f, const ekf::TrackOutput& o) {
+    if ((f + 1) % progress_every == 0 || f + 1 == nf)
+      spdlog::info("frame {}/{} ({:.0f}%): {}, {}/{} markers labelled", f + 1, nf,
+                   100.0 * (f + 1) / nf, ekf::ToString(o.state), o.labelled, nm);
+  };
+  sim::TrackRun run;
+  if (args.simulate) {
+    run = sim::TrackScene(scene, &tracker, progress);
+  } else {
+    sim::TrackInput in = file_frames.Input(nm);
+    if (!args.unlabel) in.labels = nullptr;
+    run = sim::RunTracker(in, &tracker, progress);
+  }
+  const std::vector<double>& times = args.simulate ? scene.times : file_frames.times;
+  const std::vector<Eigen::Matrix3Xd>& frames = args.simulate ? scene.points : file_frames.points;
   formats::MarkerTrial labelled;
   labelled.name = "labelled";
   labelled.rate_hz = topt.rate_hz;
   for (const Marker& m : model.markers()) labelled.marker_names.push_back(m.name);
   labelled.positions.setConstant(nf, 3 * nm, std::nan(""));
-  Eigen::MatrixXd z_out = Eigen::MatrixXd::Constant(nf, nz, std::nan(""));
-  std::vector<double> update_us, update_cpu_us;
-  update_us.reserve(nf);
-  update_cpu_us.reserve(nf);
-  std::vector<ekf::TrackState> states(nf);
-  int initialisations = 0, nan_poses = 0, first_tracking = -1;
-  int state_count[3] = {0, 0, 0};
-  sim::LabelScorer scorer(args.simulate ? scene.num_markers() : 0);
-  std::vector<int> given;
-  std::vector<sim::LabelScore> frame_scores(args.simulate ? nf : 0);
-  Eigen::Matrix3Xd points;
-  double max_points = 0, sum_points = 0;
-  const int progress_every = std::max(1, nf / 10);
-  for (int f = 0; f < nf; ++f) {
-    double t;
-    if (args.simulate) {
-      points = scene.points[f];
-      t = scene.times[f];
-    } else {
-      points.resize(3, file.num_markers());
-      for (int i = 0; i < file.num_markers(); ++i) points.col(i) = file.At(f, i);
-      t = file.times[f] - file.times[0];
-    }
-    sum_points += static_cast<double>(points.cols());
-    max_points = std::max(max_points, static_cast<double>(points.cols()));
-    const double cpu_start = ThreadCpuUs();
-    const auto start = Clock::now();
-    const ekf::TrackOutput& o = tracker.Update(t, points);
-    update_us.push_back(std::chrono::duration<double, std::micro>(Clock::now() - start).count());
-    update_cpu_us.push_back(ThreadCpuUs() - cpu_start);
-    states[f] = o.state;
-    ++state_count[static_cast<int>(o.state)];
-    if (o.reinitialised) ++initialisations;
-    if (!o.z.allFinite() || o.z.size() != nz) ++nan_poses;
-    if (o.state == ekf::TrackState::kTracking) {
-      if (first_tracking < 0) first_tracking = f;
-      if (o.z.size() == nz) z_out.row(f) = o.z.transpose();
-    }
-    for (int m = 0; m < nm && m < static_cast<int>(o.point_of_marker.size()); ++m) {
-      const int i = o.point_of_marker[m];
-      if (i >= 0 && i < points.cols())
-        labelled.positions.row(f).segment<3>(3 * m) = points.col(i).transpose();
-    }
-    if (args.simulate) {
-      given.assign(points.cols(), -1);
-      for (int i = 0; i < points.cols() && i < static_cast<int>(o.marker_of_point.size()); ++i) {
-        const int m = o.marker_of_point[i];
-        if (m >= 0 && m < nm) given[i] = scene_marker[m];
-      }
-      frame_scores[f] = scorer.Add(scene.labels[f], given);
-    }
-    if ((f + 1) % progress_every == 0 || f + 1 == nf)
-      spdlog::info("frame {}/{} ({:.0f}%): {}, {}/{} markers labelled, {} points, {:.0f} us",
-                   f + 1, nf, 100.0 * (f + 1) / nf, ekf::ToString(o.state), o.labelled, nm,
-                   points.cols(), update_us.back());
-  }
-  labelled.times.resize(nf);
+  labelled.times = times;
   labelled.frame_numbers.resize(nf);
   for (int f = 0; f < nf; ++f) {
-    labelled.times[f] = args.simulate ? scene.times[f] : file.times[f] - file.times[0];
     labelled.frame_numbers[f] = f + 1;
+    for (int m = 0; m < nm; ++m)
+      if (const int i = run.point_of_marker(f, m); i >= 0)
+        labelled.positions.row(f).segment<3>(3 * m) = frames[f].col(i).transpose();
   }
+  const Eigen::MatrixXd& z_out = run.z;
+  const std::vector<ekf::TrackState>& states = run.states;
 
   // --- outputs ---
   if (Status s = formats::WriteTrc((dir / "labelled.trc").string(), labelled); !s) {
@@ -294,23 +307,24 @@ int RunTrack(const TrackArgs& args) {
   j["model"] = input.path;
   j["model_markers"] = nm;
   j["rate_hz"] = topt.rate_hz;
-  j["points_per_frame_mean"] = sum_points / std::max(1, nf);
-  j["points_per_frame_max"] = max_points;
-  j["frames_tracking"] = state_count[static_cast<int>(ekf::TrackState::kTracking)];
-  j["frames_initialising"] = state_count[static_cast<int>(ekf::TrackState::kInitialising)];
-  j["frames_lost"] = state_count[static_cast<int>(ekf::TrackState::kLost)];
-  j["first_tracking_frame"] = first_tracking;
-  j["initialisations"] = initialisations;
-  j["reinitialisations"] = std::max(0, initialisations - 1);
-  j["nan_poses"] = nan_poses;
-  j["update_us_p50"] = Percentile(update_us, 0.50);
-  j["update_us_p99"] = Percentile(update_us, 0.99);
+  j["points_per_frame_mean"] = run.points_per_frame_mean;
+  j["points_per_frame_max"] = run.points_per_frame_max;
+  j["frames_tracking"] = run.frames_tracking();
+  j["frames_initialising"] = run.state_count[static_cast<int>(ekf::TrackState::kInitialising)];
+  j["frames_lost"] = run.state_count[static_cast<int>(ekf::TrackState::kLost)];
+  j["first_tracking_frame"] = run.first_tracking;
+  j["initialisations"] = run.initialisations;
+  j["reinitialisations"] = run.reinitialisations();
+  j["nan_poses"] = run.nan_poses;
+  std::vector<double> update_us = run.update_us, update_cpu_us = run.update_cpu_us;
+  j["update_us_p50"] = daemon::Percentile(&update_us, 50);
+  j["update_us_p99"] = daemon::Percentile(&update_us, 99);
   j["update_us_max"] = update_us.empty() ? 0.0 : *std::max_element(update_us.begin(), update_us.end());
-  j["update_cpu_us_p50"] = Percentile(update_cpu_us, 0.50);
-  j["update_cpu_us_p99"] = Percentile(update_cpu_us, 0.99);
+  j["update_cpu_us_p50"] = daemon::Percentile(&update_cpu_us, 50);
+  j["update_cpu_us_p99"] = daemon::Percentile(&update_cpu_us, 99);
 
   if (args.simulate) {
-    const sim::LabelScore score = scorer.Finish();
+    const sim::LabelScore& score = run.score;
     j["seed"] = scene.options.seed;
     j["scene"] = {{"ghosts", scene.options.ghosts},
                   {"occlusion", scene.options.occlusion},
@@ -333,9 +347,9 @@ int RunTrack(const TrackArgs& args) {
     j["trap_moments"] = scene.traps.size();
     j["per_marker_accuracy"] = nlohmann::json::object();
     for (int k = 0; k < scene.num_markers(); ++k)
-      if (scorer.marker_samples()[k] > 0)
+      if (run.marker_samples[k] > 0)
         j["per_marker_accuracy"][scene.marker_names[k]] =
-            static_cast<double>(scorer.marker_correct()[k]) / scorer.marker_samples()[k];
+            static_cast<double>(run.marker_correct[k]) / run.marker_samples[k];
 
     // Against the true poses, in the frames the tracker was tracking: the model's markers (forward
     // kinematics of the tracked z with the tracker's model) against the true markers, and the
@@ -386,7 +400,7 @@ int RunTrack(const TrackArgs& args) {
     if (scene.fault_end > 0 && scene.fault_end < nf) {
       j["recovery_frames"] = nullptr;
       for (int f = scene.fault_end; f < nf; ++f) {
-        const sim::LabelScore& fs = frame_scores[f];
+        const sim::LabelScore& fs = run.frame_scores[f];
         if (states[f] == ekf::TrackState::kTracking && fs.wrong == 0 &&
             fs.correct >= 0.9 * static_cast<double>(fs.samples)) {
           j["recovery_frames"] = f - scene.fault_end;
@@ -421,10 +435,30 @@ int RunTrack(const TrackArgs& args) {
                 j["joint_angle_rms_deg"].is_number() ? j["joint_angle_rms_deg"].get<double>() : std::nan(""),
                 j["update_us_p50"].get<double>(), j["update_us_p99"].get<double>(), args.out.c_str());
   } else {
+    if (run.scored) {
+      j["unlabelled"] = {{"shuffled", true}, {"ghosts", args.scene.ghosts}};
+      j["marker_samples"] = run.score.samples;
+      j["label_accuracy"] = run.score.accuracy();
+      j["wrong_labels"] = run.score.wrong;
+      j["wrong_labels_on_ghosts"] = run.score.wrong_on_ghosts;
+      j["swaps_longer_than_5_frames"] = run.score.swaps_longer_than_5_frames;
+      j["longest_wrong_run_frames"] = run.score.longest_wrong_run;
+      j["per_marker_accuracy"] = nlohmann::json::object();
+      for (int k = 0; k < nm; ++k)
+        if (run.marker_samples[k] > 0)
+          j["per_marker_accuracy"][model.markers()[k].name] =
+              static_cast<double>(run.marker_correct[k]) / run.marker_samples[k];
+    }
+    j["unseen_markers"] = topt.unseen_markers;
     std::printf("mocap track: %d frames, %d tracking, %d reinitialisations, update p50 %.0f us p99 "
-                "%.0f us -> %s\n", nf, j["frames_tracking"].get<int>(),
+                "%.0f us", nf, j["frames_tracking"].get<int>(),
                 j["reinitialisations"].get<int>(), j["update_us_p50"].get<double>(),
-                j["update_us_p99"].get<double>(), args.out.c_str());
+                j["update_us_p99"].get<double>());
+    if (run.scored)
+      std::printf(", label accuracy %.6f, %ld wrong labels, %d swaps > 5 frames (longest %d)",
+                  run.score.accuracy(), run.score.wrong, run.score.swaps_longer_than_5_frames,
+                  run.score.longest_wrong_run);
+    std::printf(" -> %s\n", args.out.c_str());
   }
   {
     std::ofstream f(dir / "stats.json");
@@ -448,7 +482,7 @@ const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code)
   cmd->add_flag("--simulate", args->simulate, "track a simulated scene (sim/tracking_scene.h)");
   cmd->add_option("--seed", args->scene.seed, "simulation: the subject and movements of `mocap sim --seed N`")
       ->check(CLI::NonNegativeNumber);
-  cmd->add_option("--ghosts", args->scene.ghosts, "simulation: ghost points per frame")
+  cmd->add_option("--ghosts", args->scene.ghosts, "simulation, or --points with --unlabel: ghost points per frame")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--occlusion", args->scene.occlusion,
                   "simulation: fraction of marker samples occluded (gaps of 5..30 frames)");
@@ -464,6 +498,13 @@ const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code)
   cmd->add_option("--fault-time", args->scene.fault_time_s, "simulation: when the fault starts (s; default 40 % in)");
   cmd->add_flag("--write-points", args->write_points, "simulation: also write the points as DIR/points.trc");
   cmd->add_option("--points", args->points, "unlabelled points (.trc or .c3d, NaN for empty slots)");
+  cmd->add_option("--marker-set", args->marker_set, "OpenSim marker set (.xml) added to an .osim model");
+  cmd->add_option("--marker-map", args->marker_map,
+                  "with --points: marker-name map, lines 'model_name = file_name' (# comments)");
+  cmd->add_option("--up", args->up, "the lab's vertical: x, y, z (default), -x, -y or -z");
+  cmd->add_flag("--unlabel", args->unlabel,
+                "with a labelled --points file: remove its labels, shuffle each frame's points, add "
+                "--ghosts, and score the tracker's labels against the file's");
   cmd->add_option("--height", args->height_m, "with --points and no --model: subject height (m)")
       ->check(CLI::Range(0.5, 3.0));
   cmd->add_option("--out", args->out, "output directory (created)")->required();

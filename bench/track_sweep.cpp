@@ -1,0 +1,245 @@
+// track_sweep: the tracker (ekf/tracker.h) over many seeds of the same simulated scene, the way a
+// new user would meet it, instead of the few seeds its rules were tuned on (issue 15, item 1).
+//
+//   track_sweep --seeds 1-50 --ghosts G --occlusion F [--swap-traps] [--model nominal|truth]
+//               [--json] [--threads N]
+//
+// Each seed's scene (sim/tracking_scene.h: the whole protocol as one take, `mocap track
+// --simulate --seed N`) is built and tracked by sim::TrackScene, the loop `mocap track` runs, on a
+// pool of threads (one scene per thread at a time). Per seed and in summary: label accuracy
+// (worst, 5th percentile, median), wrong labels, swaps longer than 5 frames, the longest wrong
+// run, re-initialisations, and the update's p99 and max, wall clock and thread CPU time (with
+// several threads on a shared machine the wall clock's tail is mostly the other threads' and
+// processes' time slices; the CPU time's is the tracker's own work).
+#include <CLI/CLI.hpp>
+
+#include <algorithm>
+#include <atomic>
+#include <cstdio>
+#include <memory>
+#include <mutex>
+#include <nlohmann/json.hpp>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "daemon/capture_pipeline.h"
+#include "ekf/tracker.h"
+#include "sim/track_run.h"
+#include "sim/tracking_scene.h"
+
+namespace {
+
+using mocap::sim::TrackRun;
+
+// "1-50", "3", "1,4,9-12".
+bool ParseSeeds(const std::string& text, std::vector<std::uint64_t>* seeds) {
+  std::stringstream ss(text);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    if (item.empty()) return false;
+    const size_t dash = item.find('-');
+    try {
+      size_t used = 0;
+      const unsigned long first = std::stoul(item.substr(0, dash), &used);
+      if (used != item.substr(0, dash).size()) return false;
+      unsigned long last = first;
+      if (dash != std::string::npos) {
+        last = std::stoul(item.substr(dash + 1), &used);
+        if (used != item.size() - dash - 1 || last < first) return false;
+      }
+      for (unsigned long s = first; s <= last; ++s) seeds->push_back(s);
+    } catch (const std::exception&) {
+      return false;
+    }
+  }
+  return !seeds->empty();
+}
+
+struct SeedResult {
+  std::uint64_t seed = 0;
+  std::string error;
+  int frames = 0;
+  long samples = 0, wrong = 0;
+  double accuracy = 0;
+  int swaps_longer_than_5_frames = 0, longest_wrong_run = 0, reinitialisations = 0;
+  int frames_tracking = 0;
+  double p99_us = 0, max_us = 0, cpu_p99_us = 0, cpu_max_us = 0;
+  // The largest CPU time of a frame that continued a track (not one that searched for the subject).
+  double cpu_max_tracking_us = 0;
+  std::vector<double> update_us, update_cpu_us;  // kept for the pooled summary
+};
+
+SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& base, bool truth) {
+  SeedResult r;
+  r.seed = seed;
+  mocap::sim::TrackingSceneOptions o = base;
+  o.seed = seed;
+  mocap::sim::TrackingScene scene;
+  if (mocap::Status s = mocap::sim::MakeTrackingScene(o, &scene); !s) {
+    r.error = s.message();
+    return r;
+  }
+  mocap::ekf::TrackerOptions topt;
+  topt.rate_hz = o.rate_hz;
+  mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(truth ? scene.truth : scene.nominal),
+                              topt);
+  TrackRun run = mocap::sim::TrackScene(scene, &tracker);
+  r.frames = run.frames;
+  r.samples = run.score.samples;
+  r.wrong = run.score.wrong;
+  r.accuracy = run.score.accuracy();
+  r.swaps_longer_than_5_frames = run.score.swaps_longer_than_5_frames;
+  r.longest_wrong_run = run.score.longest_wrong_run;
+  r.reinitialisations = run.reinitialisations();
+  r.frames_tracking = run.frames_tracking();
+  r.update_us = run.update_us;
+  r.update_cpu_us = run.update_cpu_us;
+  for (int f = 1; f < run.frames; ++f)
+    if (run.states[f] == mocap::ekf::TrackState::kTracking &&
+        run.states[f - 1] == mocap::ekf::TrackState::kTracking)
+      r.cpu_max_tracking_us = std::max(r.cpu_max_tracking_us, run.update_cpu_us[f]);
+  std::vector<double> w = run.update_us, c = run.update_cpu_us;
+  r.p99_us = mocap::daemon::Percentile(&w, 99);
+  r.cpu_p99_us = mocap::daemon::Percentile(&c, 99);
+  r.max_us = w.empty() ? 0 : *std::max_element(w.begin(), w.end());
+  r.cpu_max_us = c.empty() ? 0 : *std::max_element(c.begin(), c.end());
+  return r;
+}
+
+nlohmann::ordered_json ToJson(const SeedResult& r) {
+  nlohmann::ordered_json j;
+  j["seed"] = r.seed;
+  if (!r.error.empty()) {
+    j["error"] = r.error;
+    return j;
+  }
+  j["frames"] = r.frames;
+  j["frames_tracking"] = r.frames_tracking;
+  j["marker_samples"] = r.samples;
+  j["label_accuracy"] = r.accuracy;
+  j["wrong_labels"] = r.wrong;
+  j["swaps_longer_than_5_frames"] = r.swaps_longer_than_5_frames;
+  j["longest_wrong_run_frames"] = r.longest_wrong_run;
+  j["reinitialisations"] = r.reinitialisations;
+  j["update_us_p99"] = r.p99_us;
+  j["update_us_max"] = r.max_us;
+  j["update_cpu_us_p99"] = r.cpu_p99_us;
+  j["update_cpu_us_max"] = r.cpu_max_us;
+  j["update_cpu_us_max_tracking"] = r.cpu_max_tracking_us;
+  return j;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"track_sweep: the tracker over many seeds of a simulated scene (issue 15)"};
+  std::string seeds_text = "1-50", model = "nominal";
+  mocap::sim::TrackingSceneOptions scene;
+  scene.ghosts = 5;
+  scene.occlusion = 0.1;
+  bool json = false;
+  int threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  app.add_option("--seeds", seeds_text, "seeds: 1-50, 3, 1,4,9-12");
+  app.add_option("--ghosts", scene.ghosts, "ghost points per frame")->check(CLI::NonNegativeNumber);
+  app.add_option("--occlusion", scene.occlusion, "fraction of marker samples occluded");
+  app.add_flag("--swap-traps", scene.swap_traps, "append the swap-trap movement");
+  app.add_option("--model", model, "nominal or truth")->check(CLI::IsMember({"nominal", "truth"}));
+  app.add_flag("--json", json, "print JSON (per seed and summary) instead of a table");
+  app.add_option("--threads", threads, "seeds tracked at once")->check(CLI::PositiveNumber);
+  CLI11_PARSE(app, argc, argv);
+  std::vector<std::uint64_t> seeds;
+  if (!ParseSeeds(seeds_text, &seeds)) {
+    std::fprintf(stderr, "track_sweep: --seeds %s: expected a list such as 1-50 or 1,4,9-12\n",
+                 seeds_text.c_str());
+    return 2;
+  }
+  std::string why;
+  if (!scene.IsValid(&why)) {
+    std::fprintf(stderr, "track_sweep: scene options: %s\n", why.c_str());
+    return 2;
+  }
+
+  std::vector<SeedResult> results(seeds.size());
+  std::atomic<size_t> next{0};
+  std::mutex print_mutex;
+  auto worker = [&] {
+    for (size_t k = next++; k < seeds.size(); k = next++) {
+      results[k] = RunSeed(seeds[k], scene, model == "truth");
+      if (json) continue;
+      const SeedResult& r = results[k];
+      std::lock_guard<std::mutex> lock(print_mutex);
+      if (!r.error.empty())
+        std::printf("seed %3llu  error: %s\n", static_cast<unsigned long long>(r.seed), r.error.c_str());
+      else
+        std::printf("seed %3llu  accuracy %.6f  wrong %5ld  swaps>5 %2d  longest %4d  reinit %2d  "
+                    "p99 %5.0f us (cpu %5.0f)  max %7.0f us (cpu %7.0f, tracking %5.0f)\n",
+                    static_cast<unsigned long long>(r.seed), r.accuracy, r.wrong,
+                    r.swaps_longer_than_5_frames, r.longest_wrong_run, r.reinitialisations, r.p99_us,
+                    r.cpu_p99_us, r.max_us, r.cpu_max_us, r.cpu_max_tracking_us);
+      std::fflush(stdout);
+    }
+  };
+  std::vector<std::thread> pool;
+  for (int t = 0; t < std::min<int>(threads, static_cast<int>(seeds.size())); ++t) pool.emplace_back(worker);
+  for (std::thread& t : pool) t.join();
+
+  // Summary over the seeds that ran.
+  std::vector<double> accuracy, all_us, all_cpu_us;
+  long wrong = 0;
+  int errors = 0, seeds_with_swaps = 0, swaps = 0, longest = 0, reinit = 0;
+  std::uint64_t worst_seed = 0;
+  double worst = 2, cpu_max_tracking = 0;
+  for (const SeedResult& r : results) {
+    if (!r.error.empty()) {
+      ++errors;
+      continue;
+    }
+    accuracy.push_back(r.accuracy);
+    if (r.accuracy < worst) worst = r.accuracy, worst_seed = r.seed;
+    wrong += r.wrong;
+    swaps += r.swaps_longer_than_5_frames;
+    seeds_with_swaps += r.swaps_longer_than_5_frames > 0;
+    longest = std::max(longest, r.longest_wrong_run);
+    reinit += r.reinitialisations;
+    cpu_max_tracking = std::max(cpu_max_tracking, r.cpu_max_tracking_us);
+    all_us.insert(all_us.end(), r.update_us.begin(), r.update_us.end());
+    all_cpu_us.insert(all_cpu_us.end(), r.update_cpu_us.begin(), r.update_cpu_us.end());
+  }
+  nlohmann::ordered_json summary;
+  summary["seeds"] = accuracy.size();
+  summary["errors"] = errors;
+  summary["ghosts"] = scene.ghosts;
+  summary["occlusion"] = scene.occlusion;
+  summary["swap_traps"] = scene.swap_traps;
+  summary["model"] = model;
+  summary["threads"] = threads;
+  if (!accuracy.empty()) {
+    std::vector<double> a = accuracy;
+    summary["label_accuracy_worst"] = worst;
+    summary["worst_seed"] = worst_seed;
+    summary["label_accuracy_p5"] = mocap::daemon::Percentile(&a, 5);
+    summary["label_accuracy_median"] = mocap::daemon::Percentile(&a, 50);
+    summary["wrong_labels"] = wrong;
+    summary["swaps_longer_than_5_frames"] = swaps;
+    summary["seeds_with_swaps_longer_than_5_frames"] = seeds_with_swaps;
+    summary["longest_wrong_run_frames"] = longest;
+    summary["reinitialisations"] = reinit;
+    summary["update_us_max"] = *std::max_element(all_us.begin(), all_us.end());
+    summary["update_cpu_us_max"] = *std::max_element(all_cpu_us.begin(), all_cpu_us.end());
+    summary["update_cpu_us_max_tracking"] = cpu_max_tracking;
+    summary["update_us_p99"] = mocap::daemon::Percentile(&all_us, 99);
+    summary["update_cpu_us_p99"] = mocap::daemon::Percentile(&all_cpu_us, 99);
+  }
+  if (json) {
+    nlohmann::ordered_json j;
+    j["per_seed"] = nlohmann::json::array();
+    for (const SeedResult& r : results) j["per_seed"].push_back(ToJson(r));
+    j["summary"] = summary;
+    std::printf("%s\n", j.dump(2).c_str());
+  } else {
+    std::printf("summary: %s\n", summary.dump().c_str());
+  }
+  return errors > 0 ? 1 : 0;
+}
