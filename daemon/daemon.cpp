@@ -522,6 +522,7 @@ void Daemon::OnRequest(const ClientInfo& client, const Json& id, const std::stri
       {"subscribe", {&Daemon::Subscribe, false}},
       {"unsubscribe", {&Daemon::Unsubscribe, false}},
       {"shutdown", {nullptr, true}},
+      {"sim.camera", {&Daemon::SimCamera, true}},
   };
   auto it = kMethods.find(method);
   if (it == kMethods.end()) {
@@ -1156,6 +1157,17 @@ void Daemon::FinishRecording() {
     if (table.num_frames() == 0) advice = "repeat " + rec.movement + ": the subject was never tracked";
     coverage["ok"] = ok;
   }
+  // Cameras missing from the recording's sets (unplugged, lost): noted with the recording.
+  Json gaps = Json::array();
+  for (const CameraGap& g : recorder_->CameraGaps()) {
+    const std::string id = g.camera < pipeline_->num_cameras() ? pipeline_->camera(g.camera).id()
+                                                               : std::to_string(g.camera);
+    gaps.push_back({{"camera", id}, {"missing_frames", g.missing_frames}, {"outages", g.outages},
+                    {"first_frame", g.first_frame}, {"last_frame", g.last_frame}});
+    spdlog::warn("recording {}: camera {} missing from {} sets ({} outage(s), frames {}..{})",
+                 rec.id, id, g.missing_frames, g.outages, g.first_frame, g.last_frame);
+  }
+  coverage["camera_gaps"] = gaps;
   FinishInStore(rec.id, s ? RecordingState::kComplete : RecordingState::kFailed, coverage.dump(),
                 s ? "" : s.message());
   const double seconds = frames.empty() ? 0 : frames.back().time_s - frames.front().time_s;
@@ -1170,6 +1182,7 @@ void Daemon::FinishRecording() {
                   {"seconds", seconds},
                   {"tracking_fraction", tracking},
                   {"coverage", coverage},
+                  {"camera_gaps", gaps},
                   {"advice", advice.empty() ? Json() : Json(advice)}});
 }
 
@@ -1548,6 +1561,27 @@ void Daemon::Export(const Request& r) {
     reply["content"] = content;
   }
   server_->Reply(r.client.id, r.id, reply);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Simulated rig: a camera unplugged and plugged back (the hot-plug path of a USB3 Vision camera:
+// the device refused while absent, the camera told it left, then that it arrived).
+
+void Daemon::SimCamera(const Request& r) {
+  if (!sim_rig_) return Fail(r, error_code::kUnavailable, "sim.camera needs a simulated rig");
+  Params p(r.params);
+  std::int64_t camera = -1;
+  bool present = true;
+  if (!p.Int("camera", &camera, 0, pipeline_->num_cameras() - 1, true) || !p.Bool("present", &present))
+    return Fail(r, error_code::kInvalidParams, p.error);
+  if (!p.Has("present")) return Fail(r, error_code::kInvalidParams, "params.present: missing");
+  auto* cam = dynamic_cast<drivers::AravisCamera*>(&pipeline_->camera(static_cast<int>(camera)));
+  if (!cam) return Fail(r, error_code::kInternal, "camera " + std::to_string(camera) + " is not an Aravis camera");
+  sim_rig_->fakes().SetPresent(static_cast<int>(camera), present);
+  if (present) cam->NotifyArrived();
+  else cam->NotifyRemoved();
+  spdlog::warn("simulated rig: camera {} {}", cam->id(), present ? "plugged back" : "unplugged");
+  server_->Reply(r.client.id, r.id, {{"camera", cam->id()}, {"present", present}});
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -128,6 +128,7 @@ class Daemon {
   void Export(const Request& r);
   void Subscribe(const Request& r);
   void Unsubscribe(const Request& r);
+  void SimCamera(const Request& r);
 
   void FinishRecording();
   void FinishInStore(std::int64_t id, RecordingState state, const std::string& coverage,

@@ -237,6 +237,8 @@ void LivePipeline::TrackLoop() {
     lf.last_host_ns = pf.last_host_ns;
     lf.points_ready_ns = pf.ready_host_ns;
     lf.cameras_present = pf.cameras_present;
+    lf.present_mask = pf.present_mask;
+    lf.num_cameras = capture_->num_cameras();
     lf.points = std::move(pf.points);
     lf.model_version = model_version_;
     const auto t0 = std::chrono::steady_clock::now();

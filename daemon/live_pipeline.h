@@ -49,6 +49,8 @@ struct LiveFrame {
   std::uint64_t points_ready_ns = 0;  // triangulation done
   std::uint64_t tracked_ns = 0;       // tracker done (the frame is published)
   int cameras_present = 0;
+  std::uint64_t present_mask = 0;     // bit c: camera c's image is in the set
+  int num_cameras = 0;                // of the rig
   std::vector<Eigen::Vector3d> points;  // unlabelled 3D points (metres)
   // The tracker's view (empty when no subject is selected).
   int tracker_state = -1;            // -1 no tracker, else ekf::TrackState

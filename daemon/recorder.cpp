@@ -63,7 +63,17 @@ void Recorder::Begin(std::int64_t id, DoneFn done) {
   ending_ = false;
   error_ = Status::Ok();
   chunk_.clear();
+  gaps_.clear();
+  in_gap_.clear();
   frames_ = 0;
+}
+
+std::vector<CameraGap> Recorder::CameraGaps() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<CameraGap> out;
+  for (const CameraGap& g : gaps_)
+    if (g.missing_frames > 0) out.push_back(g);
+  return out;
 }
 
 void Recorder::End() {
@@ -89,7 +99,24 @@ void Recorder::Loop() {
     std::unique_lock<std::mutex> lock(mutex_);
     if (got) {
       idle_polls = 0;
-      if (recording_ != 0 && error_) chunk_.push_back(ToRecordedFrame(f));
+      if (recording_ != 0 && error_) {
+        chunk_.push_back(ToRecordedFrame(f));
+        if (static_cast<int>(gaps_.size()) < f.num_cameras) {
+          gaps_.resize(f.num_cameras);
+          in_gap_.resize(f.num_cameras, 0);
+          for (int c = 0; c < f.num_cameras; ++c) gaps_[c].camera = c;
+        }
+        for (int c = 0; c < f.num_cameras && c < 64; ++c) {
+          const bool missing = !(f.present_mask >> c & 1);
+          if (missing) {
+            CameraGap& g = gaps_[c];
+            if (!in_gap_[c]) ++g.outages;
+            if (g.missing_frames++ == 0) g.first_frame = f.frame;
+            g.last_frame = f.frame;
+          }
+          in_gap_[c] = missing;
+        }
+      }
     } else {
       ++idle_polls;
     }

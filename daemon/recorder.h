@@ -13,6 +13,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <vector>
 #include <string>
 #include <thread>
 
@@ -23,6 +24,14 @@ namespace mocap::daemon {
 
 // A LiveFrame as stored.
 RecordedFrame ToRecordedFrame(const LiveFrame& frame);
+
+// One camera's absence from a recording's frame sets (unplugged, lost, its images dropped).
+struct CameraGap {
+  int camera = -1;
+  std::int64_t missing_frames = 0;  // sets recorded without it
+  int outages = 0;                  // separate runs of such sets
+  std::uint64_t first_frame = 0, last_frame = 0;  // the first and last set without it
+};
 
 class Recorder {
  public:
@@ -46,6 +55,9 @@ class Recorder {
   // The caller has turned the pipeline's recording off: commit what is queued, then `done`.
   void End();
   std::int64_t frames() const { return frames_.load(); }
+  // The cameras missing from the current (or the last finished) recording's sets; kept until the
+  // next Begin, so the loop reads them once `done` has been called.
+  std::vector<CameraGap> CameraGaps() const;
 
  private:
   void Loop();
@@ -61,12 +73,14 @@ class Recorder {
   std::condition_variable stop_cv_;
   std::atomic<bool> running_{false};
 
-  std::mutex mutex_;
+  mutable std::mutex mutex_;
   std::int64_t recording_ = 0;  // 0: none
   bool ending_ = false;
   DoneFn done_;
   Status error_;
   std::vector<RecordedFrame> chunk_;
+  std::vector<CameraGap> gaps_;     // per camera of the rig
+  std::vector<char> in_gap_;
   std::atomic<std::int64_t> frames_{0};
 };
 

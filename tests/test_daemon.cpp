@@ -443,6 +443,10 @@ TEST(Daemon, ProtocolEveryRequestAndEveryError) {
   EXPECT_TRUE(call("subscribe", {{"streams", {"status"}}, {"decimation", 50}}).ok());
   EXPECT_TRUE(call("unsubscribe", {}).ok());
   EXPECT_EQ(call("no.such.method", {}).error_code, "unknown_method");
+  EXPECT_EQ(call("sim.camera", {{"camera", 5}, {"present", false}}).error_code, "invalid_params");
+  EXPECT_EQ(call("sim.camera", {{"camera", 1}}).error_code, "invalid_params");
+  EXPECT_TRUE(call("sim.camera", {{"camera", 1}, {"present", false}}).ok());
+  EXPECT_TRUE(call("sim.camera", {{"camera", 1}, {"present", true}}).ok());
 
   // Envelopes the client library never sends, on a raw connection.
   RawConnection raw(d.socket());
