@@ -6,7 +6,7 @@ PKGS=(cmake ninja-build g++ pkg-config
       libceres-dev libcli11-dev nlohmann-json3-dev libspdlog-dev
       libgtest-dev libgmock-dev libbenchmark-dev libtinyxml2-dev libtomlplusplus-dev
       libaravis-dev aravis-tools libusb-1.0-0-dev libopencv-dev
-      libsystemd-dev  # mocapd: sd-event, sd-daemon
+      libsqlite3-dev libsystemd-dev  # mocapd: the store (SQLite), sd-event, sd-daemon
       systemd dpkg-dev  # tests/test_daemon_systemd: systemd-socket-activate, systemd-analyze, dpkg-shlibdeps (cpack -G DEB)
       jq bc  # scripts/demo.sh reads mocapctl --json
       chromium  # tests/test_report: the fit report page opened headless; scripts/report_screenshot.sh
