@@ -232,7 +232,8 @@ void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
     first = std::min(first, set.cameras[c].host_timestamp_ns);
     last = std::max(last, set.cameras[c].host_timestamp_ns);
   }
-  if (options_.keep_detections) out.detections = set.cameras;
+  if (options_.keep_detections || keep_detections_.load(std::memory_order_relaxed))
+    out.detections = set.cameras;
   const std::uint64_t now = MonotonicNs();
   out.latency_ms = first <= now ? (now - first) * 1e-6 : 0.0;
   out.first_host_ns = first == UINT64_MAX ? now : first;

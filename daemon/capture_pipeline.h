@@ -122,7 +122,8 @@ struct CapturePipelineOptions {
   // it (kSequence, 64 bits), with a window of at least its timeout's worth of sets. 0: frame ids
   // as the cameras number them (hardware trigger).
   double device_clock_rate_hz = 0;
-  bool keep_detections = false;  // hand each set's 2D detections out with its points
+  bool keep_detections = false;  // hand each set's 2D detections out with its points (see also
+                                 // CapturePipeline::KeepDetections, switched while running)
   // The recording starts once `start_complete_sets` consecutive sets had every camera (it starts
   // with the last of them), or `start_timeout_ms` after the first set, whichever comes first.
   // false: at the first set.
@@ -185,6 +186,10 @@ class CapturePipeline {
   // Figures so far (timing percentiles over the recent samples). The percentiles sort up to
   // 65,536 samples each (milliseconds of CPU): callers that poll often pass timings = false.
   CapturePipelineStats Stats(bool timings = true) const;
+  // Hands the 2D detections out from the next set on, or stops (as options.keep_detections, but
+  // while running: the daemon needs them only while it collects wand frames, and copying every
+  // camera's centroids for every set otherwise is per-frame work for nothing).
+  void KeepDetections(bool keep) { keep_detections_.store(keep); }
   drivers::CameraSource& camera(int c) { return *cameras_[c]; }
   int num_cameras() const { return static_cast<int>(cameras_.size()); }
 
@@ -206,6 +211,7 @@ class CapturePipeline {
   BoundedQueue<PointFrame> points_;
 
   std::atomic<bool> grabbing_{false};
+  std::atomic<bool> keep_detections_{false};
   std::vector<std::thread> grab_threads_, detect_threads_;
   std::thread sync_thread_;
   bool started_ = false;

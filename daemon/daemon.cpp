@@ -120,32 +120,6 @@ const char* TrackStateName(int s) {
   return ekf::ToString(static_cast<ekf::TrackState>(s));
 }
 
-// The coordinates of a recording's tracked frames as a table in degrees (rotational) for the
-// protocol's coverage check.
-formats::CoordinateTable TrackedTable(const Model& model, const std::vector<RecordedFrame>& frames) {
-  formats::CoordinateTable t;
-  t.in_degrees = true;
-  for (const auto& c : model.coordinates()) t.column_names.push_back(c.name);
-  int rows = 0;
-  for (const auto& f : frames)
-    if (f.tracker_state == static_cast<int>(ekf::TrackState::kTracking) &&
-        f.coordinates.size() == model.num_coordinates())
-      ++rows;
-  t.values.resize(rows, model.num_coordinates());
-  int r = 0;
-  for (const auto& f : frames) {
-    if (f.tracker_state != static_cast<int>(ekf::TrackState::kTracking) ||
-        f.coordinates.size() != model.num_coordinates())
-      continue;
-    t.times.push_back(f.time_s);
-    for (int c = 0; c < model.num_coordinates(); ++c)
-      t.values(r, c) = model.coordinates()[c].rotational ? f.coordinates[c] * 180.0 / M_PI
-                                                         : f.coordinates[c];
-    ++r;
-  }
-  return t;
-}
-
 }  // namespace
 
 namespace {
@@ -1120,11 +1094,25 @@ void Daemon::FinishRecording() {
   Json coverage = {{"ok", false}, {"excitations", Json::array()}};
   std::string advice;
   double tracking = 0;
+  // The tracker's coordinates in degrees (recording_export.h); frames it was not tracking are
+  // NaN, which the check ignores.
+  formats::CoordinateTable table;
+  int tracked = 0;
   if (s) {
-    const formats::CoordinateTable table = TrackedTable(*live_model_, frames);
-    tracking = frames.empty() ? 0.0 : static_cast<double>(table.num_frames()) / frames.size();
+    RecordingInfo info;
+    std::vector<bool> rotational;
+    s = store_->GetRecording(rec.id, &info);
+    if (s) s = RotationalCoordinates(*live_model_, info.coordinate_names, &rotational);
+    if (s) s = RecordingToCoordinateTable(info, frames, rotational, true, {}, &table);
+    for (std::size_t f = 0; s && f < frames.size(); ++f) {
+      if (frames[f].tracker_state == static_cast<int>(ekf::TrackState::kTracking)) ++tracked;
+      else table.values.row(static_cast<Eigen::Index>(f)).setConstant(std::numeric_limits<double>::quiet_NaN());
+    }
+  }
+  if (s) {
+    tracking = frames.empty() ? 0.0 : static_cast<double>(tracked) / frames.size();
     const sim::Movement* m = protocol_.Find(rec.movement);
-    bool ok = m != nullptr && table.num_frames() > 0;
+    bool ok = m != nullptr && tracked > 0;
     // The tracker runs the subject's current model, before the fit a nominal one: its angles
     // carry that model's zero offsets and gain errors, so the span reached is checked, within
     // 3 deg or 15 % of it, and the range may sit up to 20 deg from the protocol's
@@ -1154,7 +1142,7 @@ void Daemon::FinishRecording() {
         }
       }
     }
-    if (table.num_frames() == 0) advice = "repeat " + rec.movement + ": the subject was never tracked";
+    if (tracked == 0) advice = "repeat " + rec.movement + ": the subject was never tracked";
     coverage["ok"] = ok;
   }
   // Cameras missing from the recording's sets (unplugged, lost): noted with the recording.

@@ -32,7 +32,6 @@ LivePipeline::LivePipeline(std::vector<std::unique_ptr<drivers::CameraSource>> c
       wake_(std::move(wake)),
       loop_queue_(static_cast<std::size_t>(std::max(1, options_.loop_queue_capacity))),
       recorder_queue_(static_cast<std::size_t>(std::max(1, options_.recorder_queue_capacity))) {
-  options_.capture.keep_detections = true;  // the wand collector reads them
   auto workspace = std::make_shared<reconstruction::TriangulationWorkspace>();
   auto buffer = std::make_shared<std::vector<reconstruction::TriangulatedPoint>>();
   // Runs on the sync thread, once per set: the calibration in force is whatever pointer it
@@ -140,6 +139,7 @@ Status LivePipeline::SwapModel(std::shared_ptr<const Model> model, int version,
 }
 
 void LivePipeline::StartWandCollection() {
+  capture_->KeepDetections(true);  // the 2D detections are handed out only while collecting
   std::lock_guard<std::mutex> lock(wand_mutex_);
   collecting_ = true;
   wand_seen_ = 0;
@@ -149,6 +149,7 @@ void LivePipeline::StartWandCollection() {
 }
 
 std::vector<reconstruction::DetectionSet> LivePipeline::StopWandCollection() {
+  capture_->KeepDetections(false);
   std::lock_guard<std::mutex> lock(wand_mutex_);
   collecting_ = false;
   return std::move(wand_frames_);
@@ -167,7 +168,7 @@ void LivePipeline::WandProgress(int* frames, std::vector<int>* per_camera,
   }
 }
 
-void LivePipeline::CollectWand(const PointFrame& pf) {
+void LivePipeline::CollectWand(PointFrame& pf) {
   std::lock_guard<std::mutex> lock(wand_mutex_);
   if (!collecting_) return;
   if (wand_seen_++ % options_.wand_subsample != 0) return;
@@ -175,13 +176,13 @@ void LivePipeline::CollectWand(const PointFrame& pf) {
   reconstruction::DetectionSet set;
   set.sequence = pf.sequence;
   set.timestamp_ns = pf.timestamp_ns;
-  set.cameras = pf.detections;
-  set.present.assign(pf.detections.size(), false);
+  set.cameras = std::move(pf.detections);  // not needed downstream of the collector
+  set.present.assign(set.cameras.size(), false);
   int seen = 0;
-  for (std::size_t c = 0; c < pf.detections.size(); ++c) {
+  for (std::size_t c = 0; c < set.cameras.size(); ++c) {
     set.present[c] = c < 64 && (pf.present_mask >> c & 1);
     if (!set.present[c]) continue;
-    const auto& d = pf.detections[c];
+    const auto& d = set.cameras[c];
     if (d.centroids.size() >= 3) {
       ++seen;
       if (c < wand_per_camera_.size()) ++wand_per_camera_[c];

@@ -141,7 +141,7 @@ class LivePipeline {
  private:
   void TrackLoop();
   void Publish(LiveFrame&& frame);
-  void CollectWand(const PointFrame& pf);
+  void CollectWand(PointFrame& pf);  // takes pf's detections
 
   LivePipelineOptions options_;
   std::function<void()> wake_;
