@@ -28,6 +28,22 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
                  {"seconds", r.coarse.coarse.total_seconds},
                  {"pose_seconds", r.coarse.pose_seconds},
                  {"start_cost", r.coarse.fine_start_cost}};
+  // The schedule's stages (solver/global_fit.h, FitModel).
+  j["stages"] = nlohmann::json::array();
+  for (const FitStageSummary& st : r.stages)
+    j["stages"].push_back({{"name", st.name},
+                           {"groups", st.groups},
+                           {"iterations", st.iterations},
+                           {"termination", ToString(st.termination)},
+                           {"initial_marker_rms_mm", st.initial_marker_rms_mm},
+                           {"marker_rms_mm", st.marker_rms_mm},
+                           {"marker_sigma_mm", st.marker_sigma_mm},
+                           {"residual_correlation_frames", st.residual_correlation_frames},
+                           {"seconds", st.seconds}});
+  j["held_joints"] = nlohmann::json::object();
+  for (const auto& [joint, why] : r.held_joints) j["held_joints"][joint] = why;
+  j["residual_sigma_mm"] = r.residual_sigma_mm;
+  j["residual_correlation_frames"] = r.residual_correlation_frames;
   j["reposed"] = r.reposed;
   j["rescued_frames"] = r.rescued_frames;
   j["initial_cost"] = r.solver.initial_cost;
