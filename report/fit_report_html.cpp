@@ -52,6 +52,8 @@ th, td { padding: 3px 8px; border-bottom: 1px solid #e4e6e9; text-align: right; 
 th:first-child, td:first-child { text-align: left; }
 th { background: #f5f6f7; font-weight: 600; }
 tr.undetermined td, li.undetermined { color: var(--grey); font-style: italic; }
+td.functional { text-align: left; }
+span.notexcited { color: var(--grey); font-style: italic; }
 td.bad, span.bad { color: var(--bad); font-weight: 600; }
 td.okc { color: var(--ok); }
 .views { display: flex; flex-wrap: wrap; gap: 8px; }
@@ -399,6 +401,35 @@ std::string ConvergenceHtml(const json& report) {
   return html;
 }
 
+// One joint's checks: a line per trial that excites it, or why there is no reference.
+std::string FunctionalCell(const json& joint) {
+  if (!joint.is_object()) return "–";
+  std::string html, reasons;
+  bool estimated = false;
+  for (const auto& t : joint.value("trials", json::array())) {
+    const std::string trial = t.value("trial", std::string());
+    estimated |= t.value("estimated", false);
+    if (!t.value("excited", false)) {
+      reasons += (reasons.empty() ? "" : "; ") + trial + ": " + t.value("note", std::string());
+      continue;
+    }
+    const bool far = t.value("far", false);
+    html += std::string(html.empty() ? "" : "<br>") + "<span class=\"" + (far ? "bad" : "fd") + "\">";
+    if (joint.value("axis_joint", false))
+      html += Fixed(Number(t, "axis_angle_deg"), 1) + "° axis</span>, centre " +
+              Fixed(Number(t, "axis_line_distance_mm"), 1) + " mm off it, on " + Esc(trial) +
+              " <small>(spread " + Fixed(Number(t, "axis_spread_deg"), 1) + "°, SARA sd " +
+              Fixed(Number(t, "functional_axis_std_deg"), 2) + "°)</small>";
+    else
+      html += Fixed(Number(t, "centre_distance_mm"), 1) + " mm</span> on " + Esc(trial) + " <small>(spread " +
+              Fixed(Number(t, "centre_spread_mm"), 1) + " mm, SCoRE sd " + Fixed(Number(t, "functional_std_mm"), 2) +
+              " mm)</small>";
+  }
+  if (!html.empty()) return html;
+  return std::string("<span class=\"notexcited\" title=\"") + Esc(reasons) + "\">" +
+         (estimated ? "not excited by any trial" : "no reference: fewer than 3 markers on a segment") + "</span>";
+}
+
 std::string JointTableHtml(const FitReportPage& in) {
   const auto sds = CentreSds(in.report);
   const ModelDrawing fit = DrawModel(in.fitted), nom = DrawModel(in.initial);
@@ -408,6 +439,11 @@ std::string JointTableHtml(const FitReportPage& in) {
   std::string html =
       "<table class=\"joints\"><tr><th>joint</th><th>type</th><th>fitted centre in parent (mm)</th>"
       "<th>generic centre (mm)</th><th>fitted − generic (mm)</th><th>sd (mm)</th>";
+  // The joint checks (solver/fit_trust.h) when the report has them.
+  std::map<std::string, json> checks;
+  for (const auto& c : in.report.value("joint_checks", json::array()))
+    if (c.is_object()) checks[c.value("joint", std::string())] = c;
+  if (!checks.empty()) html += "<th>fitted − functional estimate (per trial that excites the joint)</th>";
   if (any_functional) html += "<th>fitted − functional (mm RMS)</th>";
   html += "<th></th></tr>";
   const Geometry gf(in.fitted), gn(in.initial);
@@ -417,7 +453,7 @@ std::string JointTableHtml(const FitReportPage& in) {
     if (jn < 0) continue;
     if (jf.parent < 0) {  // the root: its "centre" is the pose's translation, not a parameter
       html += "<tr data-joint=\"" + Esc(jf.name) + "\"><td>" + Esc(jf.name) + "</td><td>" +
-              ToString(jf.type) + "</td><td colspan=\"" + (any_functional ? "6" : "5") +
+              ToString(jf.type) + "</td><td colspan=\"" + std::to_string(5 + any_functional + !checks.empty()) +
               "\">the root: placed by each frame's pose</td></tr>";
       continue;
     }
@@ -433,6 +469,7 @@ std::string JointTableHtml(const FitReportPage& in) {
             Esc(jf.name) + "\"><td>" + Esc(jf.name) + "</td><td>" + ToString(jf.type) + "</td><td>" +
             mm(cf) + "</td><td>" + mm(cn) + "</td><td>" + Fixed(1000 * (cf - cn).norm(), 1) +
             "</td><td>" + (fitted ? Fixed(sd, 1) : "not fitted") + "</td>";
+    if (!checks.empty()) html += "<td class=\"functional\">" + FunctionalCell(checks[jf.name]) + "</td>";
     if (any_functional) {
       const std::string key = jf.name + "@functional";
       html += "<td>" + (per_marker.contains(key) ? Fixed(Number(per_marker, key.c_str()), 1) : "–") + "</td>";
@@ -442,7 +479,15 @@ std::string JointTableHtml(const FitReportPage& in) {
   return html + "</table><p class=\"legend\"><span>centres in the parent segment's frame, scaled; "
                 "sd: √(sd<sub>x</sub>² + sd<sub>y</sub>² + sd<sub>z</sub>²) of the centre from the "
                 "fit's covariance; greyed: the data did not determine the centre (it stayed near the "
-                "generic model)</span></p>";
+                "generic model)</span>" +
+         (checks.empty() ? std::string()
+                         : "<span>functional estimate: SCoRE's centre (ball and custom joints) or SARA's "
+                           "axis (hinges) from the two segments' markers alone, independent of the fit; "
+                           "both centres expressed in the fitted parent segment's frame in every frame of "
+                           "the trial and averaged, the distance is between the averages; spread: RMS of "
+                           "the per-frame functional centre (axis) about its average; red: far from the "
+                           "estimate (the fit's threshold)</span>") +
+         "</p>";
 }
 
 std::string ParametersHtml(const json& report) {
@@ -621,6 +666,18 @@ Status WriteFitReportHtml(const FitReportPage& in, std::string* html) {
   if (!outliers.empty())
     out += "<div class=\"alert\" id=\"outliers\"><b>Outlying markers</b> (mislabelled, slipping, or on "
            "another body than the model's?): " + outlier_text + "</div>";
+  std::string far;
+  for (const auto& joint : r.value("joint_checks", json::array()))
+    for (const auto& t : joint.value("trials", json::array()))
+      if (t.value("far", false))
+        far += std::string(far.empty() ? "" : "; ") + "<b>" + Esc(joint.value("joint", std::string())) + "</b> " +
+               (joint.value("axis_joint", false) ? Fixed(Number(t, "axis_angle_deg"), 1) + "° (axis)"
+                                                 : Fixed(Number(t, "centre_distance_mm"), 1) + " mm") +
+               " on " + Esc(t.value("trial", std::string()));
+  if (!far.empty())
+    out += "<div class=\"alert\" id=\"functional-far\"><b>Fitted joints far from their functional "
+           "estimates</b> (which need no model: a wrong minimum, or a model that cannot take this "
+           "subject's joint?): " + far + "</div>";
   if (n_undetermined > 0)
     out += "<div class=\"note\"><b>" + std::to_string(n_undetermined) +
            " parameters were not determined</b> by these trials; they are greyed below.</div>";

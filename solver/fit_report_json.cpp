@@ -78,6 +78,7 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
       nlohmann::json cj = {{"trial", c.trial}, {"estimated", c.estimated}, {"excited", c.excited},
                            {"note", c.note}, {"frames", c.frames}};
       if (c.excited) {
+        cj["far"] = c.far;
         cj["centre_distance_mm"] = c.centre_distance_mm;
         cj["centre_spread_mm"] = c.centre_spread_mm;
         cj["functional_std_mm"] = c.functional_std_mm;

@@ -98,6 +98,10 @@ bool FitTrustOptions::IsValid(std::string* error) const {
     if (error) *error = "functional: " + why;
     return false;
   }
+  if (!(far_mm > 0) || !(far_deg > 0)) {
+    if (error) *error = "far_mm and far_deg must be > 0";
+    return false;
+  }
   return true;
 }
 
@@ -184,8 +188,11 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
         const FunctionalFit& primary = jtr.axis_joint ? fj.axis.fit : fj.centre.fit;
         check.excited = primary.excited;
         check.note = primary.note;
-        if (check.excited)
+        if (check.excited) {
           CompareWithFunctional(fitted, g_fit, j, fj, fit.coordinates[t], jtr.axis_joint, &check);
+          check.far = check.excited && (jtr.axis_joint ? check.axis_angle_deg > options.far_deg
+                                                       : check.centre_distance_mm > options.far_mm);
+        }
       }
       if (check.excited &&
           (jtr.best_check < 0 || check.frames > jtr.checks[jtr.best_check].frames))

@@ -42,6 +42,11 @@ struct FitTrustOptions {
   FunctionalJointOptions functional;
   // Joints to check; empty: every joint with a parent segment.
   std::vector<std::string> joints;
+  // A check further than this is flagged `far` (the log warns, the page shows it in red): issue
+  // 14's targets for a hip centre and a knee axis on their functional trials; the estimates' own
+  // errors are a few mm and a degree or two.
+  double far_mm = 10.0;
+  double far_deg = 5.0;
   FitTrustOptions() { functional.bootstrap_samples = 50; }
   bool IsValid(std::string* error) const;
 };
@@ -62,6 +67,8 @@ struct FunctionalCheck {
   double axis_spread_deg = 0;      // RMS angle of the per-frame functional axis about its average
   double functional_axis_std_deg = 0;  // SARA's own bootstrap standard deviation
   double axis_line_distance_mm = 0;  // fitted centre's distance from the functional axis line
+  bool far = false;  // excited, and the distance (centre joints) or the angle (axis joints) is
+                     // above FitTrustOptions::far_mm / far_deg
 };
 
 struct JointTrust {

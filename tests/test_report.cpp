@@ -243,6 +243,31 @@ TEST_F(Report, FunctionalEstimatesAndProtocolCoverageWhenGiven) {
   ASSERT_NE(row, std::string::npos);
   EXPECT_EQ(html.find(cell, row), html.find("</tr>", row) - std::strlen(cell) + 5) << cell;
   EXPECT_EQ(html.find("data-marker=\"hip_l@functional\""), std::string::npos) << "a virtual marker drawn as a marker";
+  // The joint checks (solver/fit_trust.h): hip_l against SCoRE on its star arc, knee_l against
+  // SARA on its flexion, in their rows; a joint without 3 markers a segment says so.
+  ASSERT_TRUE(report.contains("joint_checks"));
+  for (const auto& [joint, trial, unit] : {std::tuple{"hip_l", "hip_star_arc_l", "centre_distance_mm"},
+                                           std::tuple{"knee_l", "knee_flexion_l", "axis_angle_deg"}}) {
+    SCOPED_TRACE(joint);
+    const nlohmann::json* check = nullptr;
+    for (const auto& jc : report["joint_checks"])
+      for (const auto& t : jc["trials"])
+        if (jc["joint"] == joint && t["trial"] == trial) check = &t;
+    ASSERT_NE(check, nullptr);
+    ASSERT_TRUE((*check)["excited"].get<bool>()) << check->dump();
+    const double figure = (*check)[unit];
+    EXPECT_LT(figure, std::string(unit) == "axis_angle_deg" ? 2.0 : 3.0);
+    std::snprintf(cell, sizeof cell, std::string(unit) == "axis_angle_deg" ? "%.1f° axis</span>" : "%.1f mm</span> on ",
+                  figure);
+    const size_t at = html.find("data-joint=\"" + std::string(joint) + "\"><td>");
+    ASSERT_NE(at, std::string::npos);
+    const size_t found = html.find(cell, at);
+    EXPECT_LT(found, html.find("</tr>", at)) << cell;
+  }
+  const size_t elbow = html.find("data-joint=\"elbow_l\"><td>");
+  ASSERT_NE(elbow, std::string::npos);
+  EXPECT_LT(html.find("no reference: fewer than 3 markers", elbow), html.find("</tr>", elbow));
+  EXPECT_EQ(html.find("id=\"functional-far\""), std::string::npos);
   // Every excitation of the two movements has its row.
   int rows = 0;
   for (const char* name : {"hip_star_arc_l", "knee_flexion_l"}) {
@@ -256,6 +281,35 @@ TEST_F(Report, FunctionalEstimatesAndProtocolCoverageWhenGiven) {
   ASSERT_GT(rows, 2);
   EXPECT_EQ(html.find("No protocol coverage"), std::string::npos);
   EXPECT_NE(ReadBytes(P("good/report.html")).find("No protocol coverage"), std::string::npos);
+}
+
+// A check far from its functional estimate raises an alert naming the joint, its figure and
+// trial, and its cell is red (the page reads the report's `far`, it does not re-judge).
+TEST_F(Report, JointFarFromItsFunctionalEstimateIsFlagged) {
+  report::FitReportPage page;
+  ASSERT_TRUE(report::FitReportPageFromJson(ReadBytes(P("good/report.json")),
+                                            ReadBytes(P("sim/nominal.model.json")),
+                                            ReadBytes(P("good/fitted.json")), &page));
+  page.report["joint_checks"] = nlohmann::json::array(
+      {{{"joint", "hip_l"}, {"axis_joint", false}, {"best_trial", "hip_star_arc_l"},
+        {"trials", {{{"trial", "hip_star_arc_l"}, {"estimated", true}, {"excited", true}, {"far", true},
+                     {"frames", 250}, {"centre_distance_mm", 23.44}, {"centre_spread_mm", 4.0},
+                     {"functional_std_mm", 1.5}}}}},
+       {{"joint", "knee_l"}, {"axis_joint", true}, {"best_trial", nullptr},
+        {"trials", {{{"trial", "static"}, {"estimated", true}, {"excited", false}, {"note", "too still"}}}}}});
+  std::string html;
+  ASSERT_TRUE(report::WriteFitReportHtml(page, &html));
+  const size_t at = html.find("id=\"functional-far\"");
+  ASSERT_NE(at, std::string::npos);
+  EXPECT_NE(html.substr(at, html.find("</div>", at) - at).find("<b>hip_l</b> 23.4 mm on hip_star_arc_l"),
+            std::string::npos);
+  EXPECT_NE(html.find("<span class=\"bad\">23.4 mm</span> on hip_star_arc_l"), std::string::npos);
+  const size_t knee = html.find("data-joint=\"knee_l\"><td>");
+  ASSERT_NE(knee, std::string::npos);
+  EXPECT_LT(html.find("title=\"static: too still\">not excited by any trial", knee), html.find("</tr>", knee));
+  page.report["joint_checks"][0]["trials"][0]["far"] = false;
+  ASSERT_TRUE(report::WriteFitReportHtml(page, &html));
+  EXPECT_EQ(html.find("id=\"functional-far\""), std::string::npos);
 }
 
 struct ShellRun {

@@ -66,12 +66,6 @@ formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerT
   return out;
 }
 
-// A fitted centre further than this from its functional estimate is worth a warning: the issue's
-// targets for a hip centre and a knee axis on their functional trials (the estimates' own errors
-// are a few mm, a degree or two).
-constexpr double kFunctionalWarnMm = 10.0;
-constexpr double kFunctionalWarnDeg = 5.0;
-
 void LogJointChecks(const solver::FitTrust& trust) {
   std::string never_excited, no_clusters;
   for (const solver::JointTrust& j : trust.joints) {
@@ -85,15 +79,14 @@ void LogJointChecks(const solver::FitTrust& trust) {
       continue;
     }
     const solver::FunctionalCheck& c = j.checks[j.best_check];
-    const bool far = j.axis_joint ? c.axis_angle_deg > kFunctionalWarnDeg : c.centre_distance_mm > kFunctionalWarnMm;
     if (j.axis_joint)
-      spdlog::log(far ? spdlog::level::warn : spdlog::level::info,
+      spdlog::log(c.far ? spdlog::level::warn : spdlog::level::info,
                   "{}: fitted axis {:.1f} deg from its functional (SARA) axis on {} (spread {:.1f} deg, SARA sd "
                   "{:.2f} deg), fitted centre {:.1f} mm from that axis; centre {}",
                   j.joint, c.axis_angle_deg, c.trial, c.axis_spread_deg, c.functional_axis_std_deg,
                   c.axis_line_distance_mm, generic);
     else
-      spdlog::log(far ? spdlog::level::warn : spdlog::level::info,
+      spdlog::log(c.far ? spdlog::level::warn : spdlog::level::info,
                   "{}: fitted centre {:.1f} mm from its functional (SCoRE) centre on {} (spread {:.1f} mm, SCoRE "
                   "sd {:.2f} mm), {}",
                   j.joint, c.centre_distance_mm, c.trial, c.centre_spread_mm, c.functional_std_mm, generic);
