@@ -378,16 +378,29 @@ std::string LogPlot(const std::vector<double>& values, const std::string& title,
 }
 
 std::string ConvergenceHtml(const json& report) {
+  const json history = report.value("iteration_history", json::array());
   std::vector<double> cost = {Number(report, "initial_cost")};
-  for (const auto& it : report.value("iteration_history", json::array())) cost.push_back(Number(it, "cost"));
-  // The cost is 1/2 the sum of squared residuals in units of their sigmas (marker rows at 1 mm
-  // unless the options say otherwise), so sqrt(2 cost / residuals) is the residual RMS in sigma
-  // units; it includes the priors' rows, hence its own name.
-  const double residuals = Number(report, "residuals", 0);
-  std::vector<double> rms;
-  for (double c : cost) rms.push_back(residuals > 0 ? std::sqrt(2 * c / residuals) : kNaN);
-  std::string html = "<div class=\"two\">" + LogPlot(cost, "cost", "1/2 Σ r²", "") +
-                     LogPlot(rms, "residual RMS √(2 cost / residuals)", "σ", "alt") + "</div>";
+  for (const auto& it : history) cost.push_back(Number(it, "cost"));
+  // The marker RMS the solver measured after each iteration (mm, the priors' rows left out),
+  // from the fit's start (iteration 0). A report stored before the solver measured it has none:
+  // then the residual RMS in sigma units, sqrt(2 cost / residuals), priors included, under its
+  // own name.
+  std::vector<double> rms = {Number(report, "initial_marker_rms_mm")};
+  bool measured = !history.empty();
+  for (const auto& it : history) {
+    rms.push_back(Number(it, "marker_rms_mm"));
+    measured &= std::isfinite(rms.back());
+  }
+  std::string rms_plot;
+  if (measured) {
+    rms_plot = LogPlot(rms, "marker RMS", "mm", "alt");
+  } else {
+    const double residuals = Number(report, "residuals", 0);
+    rms.clear();
+    for (double c : cost) rms.push_back(residuals > 0 ? std::sqrt(2 * c / residuals) : kNaN);
+    rms_plot = LogPlot(rms, "residual RMS √(2 cost / residuals)", "σ", "alt");
+  }
+  std::string html = "<div class=\"two\">" + LogPlot(cost, "cost", "1/2 Σ r²", "") + rms_plot + "</div>";
   const bool converged = report.value("converged", false);
   html += std::string("<p class=\"") + (converged ? "good" : "alert") + "\">Termination: <b>" +
           Esc(report.value("termination", std::string("?"))) + "</b> after " +

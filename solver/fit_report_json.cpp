@@ -14,12 +14,14 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["unknowns"] = r.unknowns;
   j["residuals"] = r.residuals;
   j["iterations"] = r.solver.num_iterations();  // on the whole problem
-  // The solve's history (the report page's convergence plot): cost after each iteration.
+  // The solve's history (the report page's convergence plot): cost and marker RMS (without the
+  // priors; null where the solver did not measure it) after each iteration.
   j["iteration_history"] = nlohmann::json::array();
   for (const IterationSummary& it : r.solver.iterations)
-    j["iteration_history"].push_back({{"iteration", it.iteration}, {"cost", it.cost},
-                                      {"accepted", it.step_accepted}, {"lambda", it.lambda},
-                                      {"seconds", it.total_seconds}});
+    j["iteration_history"].push_back(
+        {{"iteration", it.iteration}, {"cost", it.cost},
+         {"marker_rms_mm", std::isfinite(it.data_rms) ? nlohmann::json(it.data_rms) : nlohmann::json()},
+         {"accepted", it.step_accepted}, {"lambda", it.lambda}, {"seconds", it.total_seconds}});
   // The coarse-to-fine start (solver/coarse_to_fine.h): its subset, iterations and pose pass.
   j["coarse"] = {{"used", r.coarse.used},
                  {"fallback", r.coarse.fallback},

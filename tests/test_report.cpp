@@ -144,6 +144,17 @@ TEST_F(Report, GoodFitShowsNoAlarmAndIsSelfContained) {
   // Per-frame RMS in the JSON: one value per frame of each trial.
   for (const auto& t : report["per_trial"]) EXPECT_EQ(t["per_frame_rms_mm"].size(), t["frames"].get<size_t>());
   EXPECT_EQ(report["iteration_history"].size(), report["iterations"].get<size_t>());
+  // The convergence plot's marker RMS is the solver's, measured after each iteration (not derived
+  // from the cost, which holds the priors): it ends at the report's marker RMS.
+  ASSERT_FALSE(report["iteration_history"].empty());
+  for (const auto& it : report["iteration_history"]) {
+    ASSERT_TRUE(it["marker_rms_mm"].is_number()) << it.dump();
+    EXPECT_LT(it["marker_rms_mm"].get<double>(), report["initial_marker_rms_mm"].get<double>());
+  }
+  EXPECT_NEAR(report["iteration_history"].back()["marker_rms_mm"].get<double>(), report["marker_rms_mm"].get<double>(),
+              1e-9);
+  EXPECT_NE(html.find("marker RMS (mm, log scale)"), std::string::npos);
+  EXPECT_EQ(html.find("√(2 cost / residuals)"), std::string::npos);
   // Nothing fetched: no script, stylesheet link, import, url() or remote address (the SVG
   // namespace is an identifier, not fetched).
   std::string stripped = std::regex_replace(html, std::regex("xmlns=\"http://www.w3.org/2000/svg\""), "");
