@@ -81,6 +81,8 @@ svg .mean { stroke: var(--bad); stroke-width: 1; stroke-dasharray: 4 3; }
 svg .bar { fill: var(--fit); }
 svg .bar.outlier { fill: var(--bad); }
 svg .band { fill: #eef1f5; }
+svg .phase { fill: #dfe6f0; }
+svg .phase.alt { fill: #e9e2d3; }
 svg .required { fill: #d6dbe2; }
 svg .reached { fill: var(--fit); }
 svg .reached.fail { fill: var(--bad); }
@@ -272,7 +274,7 @@ double NiceCeil(double v) {
   return 10 * p;
 }
 
-std::string RmsStripsHtml(const json& report) {
+std::string RmsStripsHtml(const json& report, const std::vector<TrialBand>& bands) {
   const json trials = report.value("per_trial", json::array());
   double top = 0;
   for (const auto& t : trials)
@@ -295,12 +297,22 @@ std::string RmsStripsHtml(const json& report) {
       svg.Text(kL - 4, Y(q * top) + 4, Fixed(q * top, top < 2 ? 2 : 1), "lbl small", "end");
     }
     svg.Text(kL - 4, Y(0) + 4, "0", "lbl small", "end");
+    const std::string name = t.value("name", std::string("trial"));
+    int shade = 0;
+    for (const TrialBand& b : bands) {
+      if (b.trial != name) continue;
+      const double x0 = X(std::clamp(b.first_frame, 0, std::max(0, n - 1))),
+                   x1 = X(std::clamp(b.last_frame, 0, std::max(0, n - 1)));
+      svg.Rect(x0, kT, std::max(0.0, x1 - x0), kH - kT - kB, shade++ % 2 ? "phase alt" : "phase",
+               {{"data-band", b.label}}, b.label + ": frames " + std::to_string(b.first_frame) + "–" +
+                                             std::to_string(b.last_frame));
+      svg.Text(x0 + 3, kT + 10, b.label, "lbl small");
+    }
     if (std::isfinite(overall)) svg.Line(kL, Y(overall), kW - kR, Y(overall), "mean");
     std::vector<std::pair<double, double>> pts;
     for (int f = 0; f < n; ++f)
       pts.emplace_back(X(f), frames[f].is_number() ? Y(frames[f].get<double>()) : kNaN);
     svg.Polyline(pts, "curve");
-    const std::string name = t.value("name", std::string("trial"));
     svg.Text(kL + 4, 13, name + " — " + std::to_string(n) + " frames" +
                              (rate > 0 ? ", " + Fixed(n / rate, 1) + " s" : "") + ", RMS " +
                              Fixed(Number(t, "marker_rms_mm"), 2) + " mm",
@@ -310,7 +322,9 @@ std::string RmsStripsHtml(const json& report) {
     html += svg.Finish();
   }
   return html + "<p class=\"legend\"><span>marker RMS per frame (mm); dashed red: the fit's overall RMS " +
-         Fixed(overall, 2) + " mm; one strip per trial (each trial is one movement of the protocol)</span></p>";
+         Fixed(overall, 2) + " mm; one strip per trial (each trial is one movement of the protocol); "
+                            "shaded bands: the movement's phases (the protocol's windows, e.g. left "
+                            "side then right), as fractions of the trial</span></p>";
 }
 
 std::string MarkerBarsHtml(const json& report, const std::set<std::string>& outliers) {
@@ -696,7 +710,7 @@ Status WriteFitReportHtml(const FitReportPage& in, std::string* html) {
            " parameters were not determined</b> by these trials; they are greyed below.</div>";
 
   out += "<section><h2>Skeleton: fitted against nominal</h2>" + SkeletonViewsHtml(in, outliers) + "</section>";
-  out += "<section><h2>Marker RMS over time</h2>" + RmsStripsHtml(r) + "</section>";
+  out += "<section><h2>Marker RMS over time</h2>" + RmsStripsHtml(r, in.bands) + "</section>";
   out += "<section><h2>Per-marker residuals</h2>" + MarkerBarsHtml(r, outliers) + "</section>";
   out += "<section><h2>Joints</h2>" + JointTableHtml(in) + "</section>";
   out += "<section><h2>Scales and undetermined parameters</h2>" + ParametersHtml(r) + "</section>";

@@ -240,7 +240,7 @@ TEST_F(Report, FunctionalEstimatesAndProtocolCoverageWhenGiven) {
   CommandResult r = Mocap("sim --out " + P("medial") + " --seed 3 --duration-scale 0.5 --medial");
   ASSERT_EQ(r.status, 0) << r.output;
   r = Mocap("fit --model " + P("medial/nominal.model.json") + " " + P("medial/static.trc") + " " +
-            P("medial/hip_star_arc_l.trc") + " " + P("medial/knee_flexion_l.trc") +
+            P("medial/hip_star_arc_l.trc") + " " + P("medial/knee_flexion_l.trc") + " " + P("medial/ankle_circles.trc") +
             " --threads 2 --functional hip_l --protocol default --out " + P("functional/fitted.json") +
             " --report " + P("functional/report.json") + " --html " + P("functional/report.html"));
   ASSERT_EQ(r.status, 0) << r.output;
@@ -290,6 +290,24 @@ TEST_F(Report, FunctionalEstimatesAndProtocolCoverageWhenGiven) {
     }
   }
   ASSERT_GT(rows, 2);
+  // The ankle circles move the left side, then the right (the protocol's windows): two bands in
+  // its strip, where the frames put them; the one-phase movements get none.
+  int ankle_frames = 0;
+  for (const auto& t : report["per_trial"])
+    if (t["name"] == "ankle_circles") ankle_frames = t["frames"];
+  ASSERT_GT(ankle_frames, 100);
+  static const std::regex kBand(R"re(<rect[^>]*class="phase[^"]*"[^>]*>)re");
+  std::vector<std::map<std::string, std::string>> bands;
+  for (std::sregex_iterator b(html.begin(), html.end(), kBand), e; b != e; ++b) bands.push_back(AttributesOf(b->str()));
+  ASSERT_EQ(bands.size(), 2u);
+  EXPECT_EQ(bands[0]["data-band"], "ankle_angle_l, subtalar_angle_l");
+  EXPECT_EQ(bands[1]["data-band"], "ankle_angle_r, subtalar_angle_r");
+  const double plot_left = 46, plot_width = 1000 - 46 - 10;  // RmsStripsHtml's strip geometry
+  const int middle = static_cast<int>(std::lround(0.5 * (ankle_frames - 1)));
+  EXPECT_NEAR(std::stod(bands[0]["x"]), plot_left, 0.01);
+  EXPECT_NEAR(std::stod(bands[1]["x"]), plot_left + plot_width * middle / (ankle_frames - 1), 0.01);
+  EXPECT_NEAR(std::stod(bands[1]["x"]) + std::stod(bands[1]["width"]), plot_left + plot_width, 0.01);
+  EXPECT_EQ(ReadBytes(P("good/report.html")).find("class=\"phase"), std::string::npos);
   EXPECT_EQ(html.find("No protocol coverage"), std::string::npos);
   EXPECT_NE(ReadBytes(P("good/report.html")).find("No protocol coverage"), std::string::npos);
 }

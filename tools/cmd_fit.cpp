@@ -299,6 +299,16 @@ int RunFit(const FitArgs& args) {
           table.column_names.push_back(fitted.coordinates()[c].name);
           if (fitted.coordinates()[c].rotational) table.values.col(c) *= 180.0 / M_PI;
         }
+        // A movement in parts (its excitations' windows) gets its phases as bands in its strip.
+        const std::vector<sim::MovementPhase> phases = sim::MovementPhases(*movement);
+        const int last = std::max(0, static_cast<int>(table.values.rows()) - 1);
+        if (phases.size() > 1)
+          for (const sim::MovementPhase& p : phases) {
+            std::string label;
+            for (const std::string& c : p.coordinates) label += (label.empty() ? "" : ", ") + c;
+            page.bands.push_back({movement->name, label, static_cast<int>(std::lround(p.begin * last)),
+                                  static_cast<int>(std::lround(p.end * last))});
+          }
         for (const sim::ExcitationCheck& e : sim::CheckExcitations(*movement, table, sim::ExcitationCheckOptions()))
           page.coverage.push_back({movement->name, e.coordinate, e.min_deg, e.max_deg, e.reached_min_deg,
                                    e.reached_max_deg, e.required, e.ok});
