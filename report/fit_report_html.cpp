@@ -306,7 +306,7 @@ std::string RmsStripsHtml(const json& report, const std::vector<TrialBand>& band
       svg.Rect(x0, kT, std::max(0.0, x1 - x0), kH - kT - kB, shade++ % 2 ? "phase alt" : "phase",
                {{"data-band", b.label}}, b.label + ": frames " + std::to_string(b.first_frame) + "–" +
                                              std::to_string(b.last_frame));
-      svg.Text(x0 + 3, kT + 10, b.label, "lbl small");
+      svg.Text(x0 + 3, kH - kB - 4, b.label, "lbl small");  // low: the curve runs high
     }
     if (std::isfinite(overall)) svg.Line(kL, Y(overall), kW - kR, Y(overall), "mean");
     std::vector<std::pair<double, double>> pts;
