@@ -63,6 +63,8 @@ TEST(FitTrust, FittedCentresAgreeWithFunctionalOnTheTrialsThatExciteThem) {
   const Status s = solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &trust);
   ASSERT_TRUE(s.ok()) << s.message();
   ASSERT_EQ(trust.joints.size(), 2u);
+  EXPECT_EQ(trust.undetermined, fit.result.report.undetermined);
+  EXPECT_EQ(trust.outlier_markers, fit.result.report.outlier_markers);
 
   const solver::JointTrust& hip = Joint(trust, "hip_r");
   EXPECT_FALSE(hip.axis_joint);
