@@ -81,14 +81,15 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
                            {"note", c.note}, {"frames", c.frames}};
       if (c.excited) {
         cj["far"] = c.far;
-        cj["centre_distance_mm"] = c.centre_distance_mm;
-        cj["centre_spread_mm"] = c.centre_spread_mm;
-        cj["functional_std_mm"] = c.functional_std_mm;
         if (jt.axis_joint) {
           cj["axis_angle_deg"] = c.axis_angle_deg;
           cj["axis_spread_deg"] = c.axis_spread_deg;
           cj["functional_axis_std_deg"] = c.functional_axis_std_deg;
           cj["axis_line_distance_mm"] = c.axis_line_distance_mm;
+        } else {
+          cj["centre_distance_mm"] = c.centre_distance_mm;
+          cj["centre_spread_mm"] = c.centre_spread_mm;
+          cj["functional_std_mm"] = c.functional_std_mm;
         }
       }
       checks.push_back(std::move(cj));

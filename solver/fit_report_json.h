@@ -20,9 +20,9 @@ nlohmann::json FitReportJson(const FitReport& report, const std::vector<FitTrial
 // The per-joint trust table (solver/fit_trust.h) as the report's "joint_checks" array: one object
 // per joint {joint, type, axis_joint, from_generic_mm, axis_from_generic_deg, fitted_std_mm
 // (null: centre not fitted), undetermined, best_trial (null: no trial excites it), trials:
-// [{trial, estimated, excited, note, frames, and when excited: far, centre_distance_mm,
-// centre_spread_mm, functional_std_mm, and for axis joints axis_angle_deg, axis_spread_deg,
-// functional_axis_std_deg, axis_line_distance_mm}]}. The page (report/fit_report_html.h) reads it
+// [{trial, estimated, excited, note, frames, and when excited: far, and centre_distance_mm,
+// centre_spread_mm, functional_std_mm (centre joints) or axis_angle_deg, axis_spread_deg,
+// functional_axis_std_deg, axis_line_distance_mm (axis joints)}]}. The page (report/fit_report_html.h) reads it
 // from the report, so `mocap fit` adds it with report["joint_checks"] = FitTrustJson(trust).
 nlohmann::json FitTrustJson(const FitTrust& trust);
 

@@ -69,14 +69,16 @@ void CompareWithFunctional(const Model& fitted, const Geometry& g, int j, const 
   }
   const double n = static_cast<double>(centres.size());
   fit_centre /= n;
-  for (const Eigen::Vector3d& c : centres) fun_centre += c;
-  fun_centre /= n;
-  double spread = 0;
-  for (const Eigen::Vector3d& c : centres) spread += (c - fun_centre).squaredNorm();
-  check->centre_distance_mm = 1000.0 * (fit_centre - fun_centre).norm();
-  check->centre_spread_mm = 1000.0 * std::sqrt(spread / n);
-  check->functional_std_mm = fj.centre.std_mm;
-  if (!axis_joint) return;
+  if (!axis_joint) {  // a hinge's motion does not show a centre: SCoRE's is no reference there
+    for (const Eigen::Vector3d& c : centres) fun_centre += c;
+    fun_centre /= n;
+    double spread = 0;
+    for (const Eigen::Vector3d& c : centres) spread += (c - fun_centre).squaredNorm();
+    check->centre_distance_mm = 1000.0 * (fit_centre - fun_centre).norm();
+    check->centre_spread_mm = 1000.0 * std::sqrt(spread / n);
+    check->functional_std_mm = fj.centre.std_mm;
+    return;
+  }
   fun_axis.normalize();
   fun_point /= n;
   double angle = 180.0;  // the fitted rotation axis nearest the functional one

@@ -58,11 +58,11 @@ struct FunctionalCheck {
   bool excited = false;     // the trial moved the joint enough for its estimate (see above)
   std::string note;         // why not estimated or not excited; empty otherwise
   int frames = 0;           // frames with both the functional point and the fitted pose
-  // Centre joints (SCoRE).
+  // Centre joints (SCoRE); 0 for axis joints.
   double centre_distance_mm = 0;  // fitted centre to functional centre, averaged in the parent
   double centre_spread_mm = 0;    // RMS of the per-frame functional centre about its average
   double functional_std_mm = 0;   // SCoRE's own bootstrap standard deviation
-  // Axis joints (SARA).
+  // Axis joints (SARA); 0 for centre joints.
   double axis_angle_deg = 0;       // fitted axis to functional axis, averaged in the parent
   double axis_spread_deg = 0;      // RMS angle of the per-frame functional axis about its average
   double functional_axis_std_deg = 0;  // SARA's own bootstrap standard deviation

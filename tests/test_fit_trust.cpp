@@ -120,6 +120,8 @@ TEST(FitTrust, FittedCentresAgreeWithFunctionalOnTheTrialsThatExciteThem) {
   EXPECT_FALSE(j[0]["trials"][1]["excited"].get<bool>());
   EXPECT_FALSE(j[0]["trials"][1].contains("centre_distance_mm"));
   EXPECT_TRUE(j[1]["trials"][1].contains("axis_angle_deg"));
+  EXPECT_FALSE(j[1]["trials"][1].contains("centre_distance_mm"));  // SCoRE's centre: no hinge reference
+  EXPECT_FALSE(j[0]["trials"][0].contains("axis_angle_deg"));
 }
 
 // A fitted model whose hip centre is moved 10 mm along the pelvis's x axis: the check reports
