@@ -369,12 +369,19 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
 
   const auto solve_start = Clock::now();
   ArrowSchurProblem schur(&problem, threads);
-  LmOptions first = options.lm;
+  LmOptions lm = options.lm;  // with the marker RMS per iteration (the report's convergence plot)
+  lm.data_rms = [&problem, threads](const Eigen::VectorXd& at) {
+    Eigen::VectorXd sum;
+    Eigen::VectorXi count;
+    if (!problem.MarkerErrors(at, threads, &sum, &count)) return std::numeric_limits<double>::quiet_NaN();
+    return 1000.0 * std::sqrt(sum.sum() / std::max(1, count.sum()));
+  };
+  LmOptions first = lm;
   first.max_iterations = std::min(options.lm.max_iterations, options.repose_after_iterations);
   report.solver = SolveCoarseToFine(&problem, &schur, first, options.coarse, threads, &x, &report.coarse);
   // The solve continued from x for at most `max_iterations` more, appended to the report's.
   auto continue_solve = [&](int max_iterations) {
-    LmOptions rest = options.lm;
+    LmOptions rest = lm;
     rest.max_iterations = max_iterations;
     LmSummary more = Solve(rest, &schur, &x);
     more.initial_cost = report.solver.initial_cost;
