@@ -44,6 +44,14 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
                            {"seconds", st.seconds}});
   j["held_joints"] = nlohmann::json::object();
   for (const auto& [joint, why] : r.held_joints) j["held_joints"][joint] = why;
+  j["attached_markers"] = nlohmann::json::array();
+  for (const AttachedMarker& a : r.attached_markers)
+    j["attached_markers"].push_back({{"name", a.name},
+                                     {"segment", a.segment},
+                                     {"spread_mm", a.spread_mm},
+                                     {"runner_up_mm", a.runner_up_mm},
+                                     {"samples", a.samples},
+                                     {"why_not", a.why_not}});
   j["residual_sigma_mm"] = r.residual_sigma_mm;
   j["residual_correlation_frames"] = r.residual_correlation_frames;
   j["reposed"] = r.reposed;

@@ -183,7 +183,7 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
       FunctionalCheck check;
       check.trial = trials[t].markers.name;
       FunctionalJoint fj;
-      if (Status s = EstimateFunctionalJoint(initial, trials[t].markers, jt.name, options.functional, &fj); !s) {
+      if (Status s = EstimateFunctionalJoint(fitted, trials[t].markers, jt.name, options.functional, &fj); !s) {
         check.note = s.message();
       } else {
         check.estimated = true;

@@ -170,6 +170,7 @@ bool FitOptions::IsValid(std::string* error) const {
   if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
   if (staged_iterations < 1) return fail("staged_iterations must be >= 1");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
+  if (!attach.IsValid(&why)) return fail("attach: " + why);
   if (!(frame_prior_sigma_rad > 0) || !(frame_prior_sigma_m > 0))
     return fail("frame prior sigmas must be > 0");
   if (num_threads < 0) return fail("num_threads must be >= 0");
@@ -491,7 +492,7 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
   const Geometry geometry(result->model);
   ModelData data(result->model);
   // Residuals' lag products for their integrated autocorrelation time (FitReport).
-  double lag_sum = 0, zero_lag = 0, samples = 0;
+  double lag_sum = 0, samples = 0;
   for (size_t t = 0; t < trials.size(); ++t) {
     Eigen::MatrixXd& z = result->coordinates[t];
     z.resize(trials[t].markers.num_frames(), nz);
@@ -540,10 +541,11 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
       trial_lags += rho;
     }
     lag_sum += trial_lags * trial_n;
-    zero_lag += c0;
     samples += trial_n;
   }
-  report.residual_sigma_mm = samples > 0 ? 1000.0 * std::sqrt(zero_lag / (3.0 * samples)) : 0.0;
+  // The median marker's RMS per coordinate: a few markers far off (a held joint's, a slipping
+  // one) say nothing about the others' error.
+  report.residual_sigma_mm = report.median_marker_rms_mm / std::sqrt(3.0);
   report.residual_correlation_frames = samples > 0 ? 1.0 + 2.0 * lag_sum / samples : 1.0;
   report.wall_seconds = Since(start);
   result->report = std::move(report);
@@ -668,6 +670,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   FitReport totals;
   int iterations_left = options.lm.max_iterations;
   double effective_sigma_m = options.marker_sigma_m;
+  std::vector<AttachedMarker> attached;
   for (const Stage& stage : stages) {
     FitOptions o = options;
     o.marker_sigma_m = effective_sigma_m;
@@ -698,6 +701,14 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     // markers they are its misplacement.
     if (stage.markers) effective_sigma_m = EffectiveMarkerSigma(options, out.report);
     placed = std::move(out);
+    if (stage.scales && options.attach_trial_markers) {
+      std::vector<formats::MarkerTrial> markers;
+      for (const FitTrial& t : trials) markers.push_back(t.markers);
+      Model with_extra;
+      MOCAP_RETURN_IF_ERROR(AttachTrialMarkers(placed.model, markers, placed.coordinates,
+                                               options.attach, &with_extra, &attached));
+      placed.model = std::move(with_extra);
+    }
     model = &placed.model;
     for (size_t t = 0; t < trials.size(); ++t) stage_trials[t].initial_coordinates = placed.coordinates[t];
   }
@@ -729,6 +740,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   report.rescued_frames += totals.rescued_frames;
   report.reposed = report.reposed || totals.reposed;
   report.held_joints = std::move(held);
+  report.attached_markers = std::move(attached);
   // The caller's model is the parameters' starting point, not a stage's.
   const Eigen::VectorXd p0 = initial.InitialParameters();
   for (ParameterEstimate& e : report.parameters) {

@@ -22,6 +22,7 @@
 #include "formats/marker_data.h"
 #include "model/model.h"
 #include "model/status.h"
+#include "solver/attach_markers.h"
 #include "solver/coarse_to_fine.h"
 #include "solver/inverse_kinematics.h"
 #include "solver/levenberg_marquardt.h"
@@ -94,6 +95,10 @@ struct FitOptions {
   // 400 mm for a 0.01 mm better RMS. Clean simulated data (white noise, tau ~ 1) keep
   // marker_sigma_m.
   bool effective_marker_sigma = true;
+  // After the schedule's first stage, trial markers the model lacks are attached to the segment
+  // they ride on (solver/attach_markers.h) and fitted with the others.
+  bool attach_trial_markers = true;
+  AttachOptions attach;
   int num_threads = 0;                  // 0: all cores
   LmOptions lm;
   IkOptions ik;
@@ -160,6 +165,8 @@ struct FitReport {
   // Joints whose centre and axes the final stage held (FitOptions::min_excitation_deg): name and
   // why, e.g. "knee_l: rotation spread 1.2 deg (hinge), below 5 deg".
   std::vector<std::pair<std::string, std::string>> held_joints;
+  // Trial markers the model lacked: attached to a segment, or left out and why.
+  std::vector<AttachedMarker> attached_markers;
   int trials = 0;
   int frames = 0;
   int markers = 0;                 // model markers with data
@@ -185,7 +192,7 @@ struct FitReport {
   double solve_seconds = 0;
   double covariance_seconds = 0;
   double wall_seconds = 0;
-  // The residuals at the end: RMS per coordinate, and their integrated autocorrelation time in
+  // The residuals at the end: the median marker's RMS per coordinate, and their integrated autocorrelation time in
   // frames, 1 + 2 sum_k rho(k) (rho pooled over markers and axes, per trial, summed while above
   // 0.05): white noise gives 1; skin motion, which follows the movement, tens.
   double residual_sigma_mm = 0;

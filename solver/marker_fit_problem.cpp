@@ -246,6 +246,15 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
     residual_scale_[m] = std::sqrt(model.markers()[m].weight) / marker_sigma_m;
   }
   hold_hinge_centres_ = options.hold_hinge_centres_along_axis;
+  held_centre_.assign(model.num_joints(), 0);
+  for (int j = 0; j < model.num_joints(); ++j) {
+    const int base = model.centre_index(j);
+    if (base < 0) continue;
+    for (int k = 0; k < 3; ++k)
+      if (std::find(options.fixed_parameters.begin(), options.fixed_parameters.end(),
+                    model.parameters()[base + k].name) != options.fixed_parameters.end())
+        held_centre_[j] = 1;
+  }
   BuildGaugeRows(options.gauge_sigma_m);
   frame_prior_weight_.resize(model.num_coordinates());
   for (int c = 0; c < model.num_coordinates(); ++c)
@@ -291,6 +300,10 @@ void MarkerFitProblem::BuildGaugeRows(double gauge_sigma_m) {
     for (int j = 0; j < model_.num_joints(); ++j) {
       if (model_.joints()[j].parent != s) continue;
       const int base = model_.centre_index(j);
+      // A centre held because its joint does not move in the trials (FitModel's schedule) does
+      // not break the gauge: the data cannot see it move with the frame either, and without the
+      // rows the frame would float against its markers along with it.
+      if (held_centre_[j]) continue;
       all_free = all_free && free3(base);
       centres.emplace_back(base, p0_.segment<3>(base));
     }

@@ -97,6 +97,7 @@ class MarkerFitProblem : public ArrowProblem {
   std::vector<std::string> gauge_names_;
   void BuildGaugeRows(double gauge_sigma_m);
   bool hold_hinge_centres_ = true;
+  std::vector<char> held_centre_;  // per joint: centre in FitOptions::fixed_parameters
   int samples_ = 0;
 };
 

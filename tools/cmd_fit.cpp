@@ -196,6 +196,14 @@ int RunFit(const FitArgs& args) {
     spdlog::error("{}", s.message());
     return 1;
   }
+  for (const solver::AttachedMarker& a : result.report.attached_markers) {
+    if (a.why_not.empty())
+      spdlog::info("trial marker {} (not in the model) attached to {}: it moves {:.1f} mm RMS in its frame, "
+                   "{:.1f} mm in the next best segment's",
+                   a.name, a.segment, a.spread_mm, a.runner_up_mm);
+    else
+      spdlog::warn("trial marker {} (not in the model) left out: {}", a.name, a.why_not);
+  }
   for (const auto& [joint, why] : result.report.held_joints)
     spdlog::info("{}: centre and axes held at the model's (the trials do not move it: {})", joint, why);
   const solver::FitReport& r = result.report;

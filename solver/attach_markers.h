@@ -1,0 +1,49 @@
+// Markers a trial has and the model lacks — a thigh or shank cluster a lab adds to a generic
+// marker set, an extra medial marker — are data the fit would otherwise throw away, and they are
+// often the best data there is (a rigid four-marker plate moves far less on the skin than one
+// thigh wand). Each one is attached to the segment it rides on, found from the poses a first
+// solve gives: in the frame of the segment that carries it, a marker stays put; in the frame of
+// any other segment it moves as that segment's joints move. So for every segment the marker's
+// position in the segment frame is taken over every frame where it is seen, and its spread (RMS
+// distance from the mean) measured; the segment with the smallest spread wins if that spread is
+// small (AttachOptions::max_spread_mm, the skin motion of a cluster) and clearly smaller than
+// the runner-up's (min_ratio: in a trial where a joint does not move, the two segments it joins
+// carry every marker alike, and a guess between them would be a silent wrong answer). The
+// marker joins the model at its mean position, optional (other labs' data lack it); markers that
+// no segment carries clearly are left out and named, with why.
+#pragma once
+
+#include <Eigen/Core>
+#include <string>
+#include <vector>
+
+#include "formats/marker_data.h"
+#include "model/model.h"
+#include "model/status.h"
+
+namespace mocap::solver {
+
+struct AttachOptions {
+  double max_spread_mm = 15.0;  // a cluster's skin motion is 10-30 mm peak (Leardini et al. 2005)
+  double min_ratio = 2.0;       // runner-up's spread / winner's
+  int min_samples = 20;         // frames in which the marker and a pose are both there
+  bool IsValid(std::string* error) const;
+};
+
+struct AttachedMarker {
+  std::string name;
+  std::string segment;       // empty when not attached
+  double spread_mm = 0;      // on the chosen (or best) segment
+  double runner_up_mm = 0;   // on the second best segment
+  int samples = 0;
+  std::string why_not;       // empty when attached
+};
+
+// `poses[t]`: trial t's coordinates (frames x model coordinates) for `model`'s geometry. Every
+// trial marker whose name `model` lacks is considered. *out: `model` with the attached markers
+// appended (unscaled positions, optional); *report: every marker considered, attached or not.
+Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                          const std::vector<Eigen::MatrixXd>& poses, const AttachOptions& options,
+                          Model* out, std::vector<AttachedMarker>* report);
+
+}  // namespace mocap::solver
