@@ -3,8 +3,10 @@
 // and by Ceres Solver — the identical residuals from the identical starting point, timed in one
 // process run.
 //
-//   fit_vs_ceres --frames N [--json] [--threads T] [--skip-ceres] [--ceres-solvers schur,normal,dense]
-//                [--ceres-residuals marker|frame] [--ceres-shared split|single]
+//   fit_vs_ceres --frames N [--json] [--json-out FILE] [--threads T] [--skip-ceres]
+//                [--ceres-solvers schur,normal,dense] [--ceres-residuals marker|frame]
+//                [--ceres-shared split,segment,single] [--ceres-start cold,same]
+//                [--ceres-radius R1,R2,...] [--ceres-pose-tolerance T] [--ceres-pose-iterations K]
 //                [--ceres-max-seconds S] [--repeat R] [--verbose] [--plain]
 //                [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]
 //                [--pose-tolerance T] [--fine-lambda L] [--no-inner]
@@ -38,6 +40,22 @@
 // limit is 100, ours FitModel's 50: on a few poorly exciting frames (the first trial alone) both
 // stop at their limit, and only the time per iteration compares.
 //
+// Ceres variants (issue 14 item 4: the ratio is against the best a Ceres user could write). Every
+// combination of the listed starts, shared layouts, linear solvers and (cold start) radii is run:
+//  * --ceres-start cold: Ceres's LM on the whole problem from x0 (earlier sessions' comparison);
+//    same: ours's strategy in Ceres (RunCeresVariant): LM on the same coarse subset, a pose pass
+//    with every shared block constant, then the whole problem at ours's small initial damping.
+//  * --ceres-shared split: a block per model object; segment: a block per segment's geometry
+//    (scale, its joint's centre and axes, its markers); single: all of p in one block.
+//  * --ceres-radius: the cold start's initial_trust_region_radius (default 1 / our initial
+//    lambda, 1e4, which is also Ceres's default); several values give several runs.
+// Each run's Solver::Summary breakdown (preprocessor, linear solver, residual and Jacobian
+// evaluation, the minimizer's other time, counts) is printed and written per stage to the JSON.
+// The headline ratio is the fastest variant's time over ours; the cold plain-LM ratio (per-object
+// blocks, default radius) and the same strategy's are printed beside it. Final costs are printed
+// relative to ours: with gaps the solvers can end in different minima, and a ratio between
+// different costs compares different work.
+//
 // Ours is what FitModel runs: solver::SolveCoarseToFine (solver/coarse_to_fine.h), LM on an
 // evenly spaced subset of the frames, every pose re-solved for that geometry, then LM on the
 // whole problem with the same tolerances. Its final cost is the whole problem's, so it compares
@@ -57,6 +75,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -64,12 +83,14 @@
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <map>
 #include <memory>
 #include <set>
 #include <sstream>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -169,12 +190,20 @@ double LoadAverage() {
 struct Args {
   int frames = 1000;
   bool json = false;
+  std::string json_out;  // also write the JSON there (the text report still goes to stdout)
   int threads = 0;  // 0: every core
   bool skip_ceres = false;
   double ceres_max_seconds = 600;
   std::vector<std::string> ceres_solvers = {"schur", "normal", "dense"};
   std::string ceres_residuals = "marker";  // one cost function per (frame, marker) or per frame
-  std::string ceres_shared = "split";      // shared p as one block per model object, or one block
+  // Shared p as one block per model object (split), per segment, or one block; each one run.
+  std::vector<std::string> ceres_shared = {"split"};
+  // Ceres's start: cold (LM on the whole problem from x0) and/or same (ours's strategy).
+  std::vector<std::string> ceres_starts = {"cold"};
+  // The cold start's initial_trust_region_radius, one run each; empty: 1 / LmOptions::initial_lambda.
+  std::vector<double> ceres_radius;
+  double ceres_pose_tolerance = 1e-3;  // the same start's pose pass (CeresSettings)
+  int ceres_pose_iterations = -1;      // -1: CoarseToFineOptions::pose_iterations
   int repeat = 1;  // solves per solver; the fastest counts (the machine is shared and noisy)
   bool verbose = false;
   bool plain = false;  // also time our plain LM (no coarse-to-fine start) in the same run
@@ -191,15 +220,30 @@ struct Args {
 [[noreturn]] void Usage(const std::string& error) {
   std::fprintf(stderr,
                "fit_vs_ceres: %s\n"
-               "usage: fit_vs_ceres --frames N [--json] [--threads T] [--skip-ceres]\n"
+               "usage: fit_vs_ceres --frames N [--json] [--json-out FILE] [--threads T] [--skip-ceres]\n"
                "         [--ceres-solvers schur,normal,dense] [--ceres-residuals marker|frame]\n"
-               "         [--ceres-shared split|single] [--ceres-max-seconds S] [--repeat R] [--verbose]\n"
+               "         [--ceres-shared split,segment,single] [--ceres-start cold,same]\n"
+               "         [--ceres-radius R1,R2] [--ceres-pose-tolerance T] [--ceres-pose-iterations K]\n"
+               "         [--ceres-max-seconds S] [--repeat R] [--verbose]\n"
                "         [--plain] [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]\n"
                "         [--pose-tolerance T] [--fine-lambda L] [--no-inner]\n"
                "         [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA]\n"
                "         [--min-diagonal D] [--fit-model] [--rescue-rounds N]\n",
                error.c_str());
   std::exit(2);
+}
+
+// A comma-separated list of a flag's values, each one of `allowed` (any if empty).
+std::vector<std::string> List(const std::string& text, const std::set<std::string>& allowed,
+                              const std::string& flag) {
+  std::vector<std::string> items;
+  std::stringstream ss(text);
+  for (std::string item; std::getline(ss, item, ',');) {
+    if (!allowed.empty() && !allowed.count(item)) Usage("unknown value for " + flag + ": " + item);
+    items.push_back(item);
+  }
+  if (items.empty()) Usage(flag + " is empty");
+  return items;
 }
 
 Args ParseArgs(int argc, char** argv) {
@@ -219,6 +263,7 @@ Args ParseArgs(int argc, char** argv) {
     };
     if (a == "--frames") args.frames = static_cast<int>(number(1));
     else if (a == "--json") args.json = true;
+    else if (a == "--json-out") args.json_out = value();
     else if (a == "--plain") args.plain = true;
     else if (a == "--coarse-frames") args.coarse.coarse_frames = static_cast<int>(number(1));
     else if (a == "--coarse-tolerance") args.coarse.coarse_function_tolerance = number(0);
@@ -241,21 +286,27 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--verbose") args.verbose = true;
     else if (a == "--repeat") args.repeat = static_cast<int>(number(1));
     else if (a == "--ceres-solvers") {
-      args.ceres_solvers.clear();
-      std::stringstream ss(value());
-      for (std::string s; std::getline(ss, s, ',');) {
-        if (s != "schur" && s != "normal" && s != "dense") Usage("unknown Ceres solver " + s);
-        args.ceres_solvers.push_back(s);
-      }
-      if (args.ceres_solvers.empty()) Usage("--ceres-solvers is empty");
+      args.ceres_solvers = List(value(), {"schur", "normal", "dense"}, a);
     } else if (a == "--ceres-residuals") {
       args.ceres_residuals = value();
       if (args.ceres_residuals != "marker" && args.ceres_residuals != "frame")
         Usage("--ceres-residuals is marker or frame");
     } else if (a == "--ceres-shared") {
-      args.ceres_shared = value();
-      if (args.ceres_shared != "split" && args.ceres_shared != "single")
-        Usage("--ceres-shared is split or single");
+      args.ceres_shared = List(value(), {"split", "segment", "single"}, a);
+    } else if (a == "--ceres-start") {
+      args.ceres_starts = List(value(), {"cold", "same"}, a);
+    } else if (a == "--ceres-radius") {
+      args.ceres_radius.clear();
+      for (const std::string& v : List(value(), {}, a)) {
+        char* end = nullptr;
+        const double r = std::strtod(v.c_str(), &end);
+        if (end == v.c_str() || *end != '\0' || !(r > 0)) Usage("bad value for --ceres-radius: " + v);
+        args.ceres_radius.push_back(r);
+      }
+    } else if (a == "--ceres-pose-tolerance") {
+      args.ceres_pose_tolerance = number(0);
+    } else if (a == "--ceres-pose-iterations") {
+      args.ceres_pose_iterations = static_cast<int>(number(1));
     } else if (a == "--help" || a == "-h") Usage("help");
     else Usage("unknown argument " + a);
   }
@@ -419,9 +470,28 @@ Eigen::VectorXd InitialGuess(const BenchData& d, const solver::MarkerFitProblem&
 // ---------------------------------------------------------------------------------------------
 // The problem as Ceres sees it
 
-// A Ceres parameter block of shared parameters: a contiguous range of the free vector.
+// How the shared parameters p are split into Ceres parameter blocks.
+enum class SharedLayout {
+  kObject,   // one block per model object: segment scale, joint centre, axis element, marker
+  kSegment,  // one block per segment's geometry: its scale, its own joint's centre and axes, its
+             // markers (fewer, larger blocks: less block bookkeeping, denser Jacobian blocks)
+  kSingle,   // all of p in one block
+};
+
+SharedLayout ParseSharedLayout(const std::string& s) {
+  return s == "split" ? SharedLayout::kObject : s == "segment" ? SharedLayout::kSegment : SharedLayout::kSingle;
+}
+
+std::uint64_t NextContextId() {
+  static std::atomic<std::uint64_t> next{1};
+  return next++;
+}
+
+// A Ceres parameter block of shared parameters: free indices (into p) in the block's order. Ceres
+// stores the blocks one after another, so p is stored permuted (CeresFit::SetX / GetX).
 struct SharedBlock {
-  int begin = 0, size = 0;
+  std::vector<int> free;
+  int offset = 0;  // in the stored p
 };
 
 // The parameter blocks and Jacobian columns of one kind of marker cost function.
@@ -433,10 +503,52 @@ struct MarkerLayout {
 };
 
 struct CeresContext {
+  // Unique per context: a thread's Workspace belongs to one (ThreadWorkspace).
+  const std::uint64_t id = NextContextId();
   const solver::MarkerFitProblem* problem = nullptr;
   std::vector<SharedBlock> blocks;
   std::vector<int> block_of_free;  // free index -> shared block
+  std::vector<int> slot_of_free;   // free index -> position in its block
+  std::vector<int> stored_of_free;  // free index -> position in the stored p
 };
+
+// The shared blocks of `layout`, in order of their first free parameter.
+void MakeSharedBlocks(const solver::MarkerFitProblem& problem, SharedLayout layout, CeresContext* c) {
+  const Model& model = problem.model();
+  const auto& info = model.parameters();
+  const int np = problem.shared_dim();
+  std::map<std::tuple<int, int, int>, int> block_of_key;
+  c->block_of_free.assign(np, -1);
+  c->slot_of_free.assign(np, -1);
+  c->stored_of_free.assign(np, -1);
+  for (int k = 0; k < np; ++k) {
+    const ParameterInfo& a = info[problem.free_parameters()[k]];
+    std::tuple<int, int, int> key{0, 0, 0};
+    if (layout == SharedLayout::kObject) {
+      key = {static_cast<int>(a.group), a.object, a.element};
+    } else if (layout == SharedLayout::kSegment) {
+      int segment = -1;
+      switch (a.group) {
+        case ParameterGroup::kScale: segment = a.object; break;
+        case ParameterGroup::kCentre:
+        case ParameterGroup::kAxis: segment = model.joints()[a.object].child; break;
+        case ParameterGroup::kMarker: segment = model.markers()[a.object].segment; break;
+      }
+      key = {segment, 0, 0};
+    }
+    auto [it, added] = block_of_key.emplace(key, static_cast<int>(c->blocks.size()));
+    if (added) c->blocks.emplace_back();
+    c->block_of_free[k] = it->second;
+    c->slot_of_free[k] = static_cast<int>(c->blocks[it->second].free.size());
+    c->blocks[it->second].free.push_back(k);
+  }
+  int offset = 0;
+  for (SharedBlock& b : c->blocks) {
+    b.offset = offset;
+    for (size_t i = 0; i < b.free.size(); ++i) c->stored_of_free[b.free[i]] = offset + static_cast<int>(i);
+    offset += static_cast<int>(b.free.size());
+  }
+}
 
 // What one thread needs to evaluate marker residuals: a Geometry for the shared values it last saw
 // and the forward kinematics of the pose it last saw. Ceres hands residual blocks to threads with
@@ -451,13 +563,17 @@ struct CeresContext {
 // exactly the blocks it passes in, and those are always current.
 struct Workspace {
   explicit Workspace(const CeresContext& c)
-      : owner(&c), shared(c.problem->InitialShared()), full(c.problem->FullParameters(shared)),
-        geometry(c.problem->model()), data(c.problem->model()), z(c.problem->frame_dim()),
+      : owner(&c), owner_id(c.id), stored(c.problem->shared_dim()),
+        full(c.problem->FullParameters(c.problem->InitialShared())), geometry(c.problem->model()), data(c.problem->model()), z(c.problem->frame_dim()),
         jz(3, c.problem->model().max_chain_coordinates()),
-        jp(3, c.problem->model().max_chain_parameters()) {}
+        jp(3, c.problem->model().max_chain_parameters()) {
+    const Eigen::VectorXd p = c.problem->InitialShared();
+    for (int k = 0; k < p.size(); ++k) stored[c.stored_of_free[k]] = p[k];
+  }
 
   const CeresContext* owner;
-  Eigen::VectorXd shared, full;  // free and full parameter vectors behind `geometry`
+  std::uint64_t owner_id;  // a later context may reuse the address, with another layout
+  Eigen::VectorXd stored, full;  // stored (block-ordered) and full parameters behind `geometry`
   Geometry geometry;
   bool geometry_valid = false;
   ModelData data;
@@ -468,7 +584,7 @@ struct Workspace {
 
 Workspace& ThreadWorkspace(const CeresContext& context) {
   thread_local std::unique_ptr<Workspace> ws;
-  if (!ws || ws->owner != &context) ws = std::make_unique<Workspace>(context);
+  if (!ws || ws->owner != &context || ws->owner_id != context.id) ws = std::make_unique<Workspace>(context);
   return *ws;
 }
 
@@ -479,7 +595,8 @@ class MarkerCost final : public ceres::CostFunction {
       : context_(context), layout_(layout), frame_(frame) {
     set_num_residuals(3 * static_cast<int>(layout->markers.size()));
     mutable_parameter_block_sizes()->push_back(context->problem->frame_dim());
-    for (int b : layout->blocks) mutable_parameter_block_sizes()->push_back(context->blocks[b].size);
+    for (int b : layout->blocks)
+      mutable_parameter_block_sizes()->push_back(static_cast<int>(context->blocks[b].free.size()));
   }
 
   bool Evaluate(double const* const* parameters, double* residuals,
@@ -534,11 +651,11 @@ class MarkerCost final : public ceres::CostFunction {
     const Model& model = problem.model();
     for (size_t i = 0; i < layout_->blocks.size(); ++i) {
       const SharedBlock& b = context_->blocks[layout_->blocks[i]];
-      double* cached = ws->shared.data() + b.begin;
-      if (std::memcmp(cached, parameters[1 + i], b.size * sizeof(double)) == 0) continue;
-      std::memcpy(cached, parameters[1 + i], b.size * sizeof(double));
-      for (int k = b.begin; k < b.begin + b.size; ++k)
-        ws->full[problem.free_parameters()[k]] = ws->shared[k];
+      const size_t size = b.free.size();
+      double* cached = ws->stored.data() + b.offset;
+      if (std::memcmp(cached, parameters[1 + i], size * sizeof(double)) == 0) continue;
+      std::memcpy(cached, parameters[1 + i], size * sizeof(double));
+      for (size_t k = 0; k < size; ++k) ws->full[problem.free_parameters()[b.free[k]]] = cached[k];
       ws->geometry_valid = false;
     }
     if (!ws->geometry_valid) {
@@ -591,7 +708,8 @@ class PriorCost final : public ceres::CostFunction {
   explicit PriorCost(const CeresContext* context) : context_(context) {
     const auto& problem = *context->problem;
     set_num_residuals(problem.shared_dim() + static_cast<int>(problem.shared_rows().rows()));
-    for (const SharedBlock& b : context->blocks) mutable_parameter_block_sizes()->push_back(b.size);
+    for (const SharedBlock& b : context->blocks)
+      mutable_parameter_block_sizes()->push_back(static_cast<int>(b.free.size()));
   }
 
   bool Evaluate(double const* const* parameters, double* residuals,
@@ -603,7 +721,7 @@ class PriorCost final : public ceres::CostFunction {
     const auto& blocks = context_->blocks;
     Eigen::VectorXd delta(np);
     for (size_t b = 0; b < blocks.size(); ++b)
-      for (int k = 0; k < blocks[b].size; ++k) delta[blocks[b].begin + k] = parameters[b][k];
+      for (size_t k = 0; k < blocks[b].free.size(); ++k) delta[blocks[b].free[k]] = parameters[b][k];
     delta -= problem.prior_target();
     Eigen::Map<Eigen::VectorXd> r(residuals, num_residuals());
     r.head(np) = w.cwiseProduct(delta);
@@ -612,12 +730,15 @@ class PriorCost final : public ceres::CostFunction {
     if (jacobians == nullptr) return true;
     for (size_t b = 0; b < blocks.size(); ++b) {
       if (!jacobians[b]) continue;
-      const int begin = blocks[b].begin, size = blocks[b].size;
+      const std::vector<int>& free = blocks[b].free;
+      const int size = static_cast<int>(free.size());
       Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>> j(
           jacobians[b], num_residuals(), size);
       j.setZero();
-      for (int k = 0; k < size; ++k) j(begin + k, k) = w[begin + k];
-      j.bottomRows(g.rows()) = g.middleCols(begin, size);
+      for (int k = 0; k < size; ++k) {
+        j(free[k], k) = w[free[k]];
+        j.col(k).tail(g.rows()) = g.col(free[k]);
+      }
     }
     return true;
   }
@@ -626,44 +747,35 @@ class PriorCost final : public ceres::CostFunction {
   const CeresContext* context_;
 };
 
-// The Ceres problem over its own copy of x (Ceres's parameter blocks point into it).
+// The Ceres problem over its own copy of x (Ceres's parameter blocks point into it): every frame
+// of `problem`, or the frames listed (the coarse subset: the same residuals, frame priors, p
+// priors and gauge rows; only the frame set differs, as solver::FrameSubsetProblem). x is stored
+// as [z of each listed frame, p in the blocks' order]; SetX and GetX translate from and to the
+// problem's x = [z_1 ... z_F, p].
 class CeresFit {
  public:
-  CeresFit(const solver::MarkerFitProblem& problem, const Eigen::VectorXd& x0, bool per_marker,
-           bool split_shared)
-      : x_(x0) {
-    const int nf = problem.num_frames(), nz = problem.frame_dim(), np = problem.shared_dim();
+  CeresFit(const solver::MarkerFitProblem& problem, std::vector<int> frames, bool per_marker,
+           SharedLayout layout)
+      : problem_ref_(&problem), frames_(std::move(frames)) {
+    const int nz = problem.frame_dim(), np = problem.shared_dim();
+    if (frames_.empty())
+      for (int f = 0; f < problem.num_frames(); ++f) frames_.push_back(f);
+    const int nf = static_cast<int>(frames_.size());
+    x_.setZero(static_cast<Eigen::Index>(nf) * nz + np);
     context_.problem = &problem;
-    // Shared blocks: one per model object (segment scale, joint centre, axis element, marker
-    // position), so a marker's cost touches only its chain's parameters and Ceres's Jacobian and
-    // Schur complement stay sparse; or all of p as one block.
-    const auto& info = problem.model().parameters();
-    for (int k = 0; k < np; ++k) {
-      const ParameterInfo& a = info[problem.free_parameters()[k]];
-      if (k > 0 && split_shared) {
-        const ParameterInfo& prev = info[problem.free_parameters()[k - 1]];
-        if (a.group == prev.group && a.object == prev.object && a.element == prev.element) {
-          ++context_.blocks.back().size;
-          context_.block_of_free.push_back(static_cast<int>(context_.blocks.size()) - 1);
-          continue;
-        }
-      }
-      if (k == 0 || split_shared) context_.blocks.push_back({k, 0});
-      ++context_.blocks.back().size;
-      context_.block_of_free.push_back(static_cast<int>(context_.blocks.size()) - 1);
-    }
+    MakeSharedBlocks(problem, layout, &context_);
 
     // Parameter blocks in x's order, so the Ceres gradient lines up with ours.
     ceres::Problem::Options options;
     options.cost_function_ownership = ceres::TAKE_OWNERSHIP;
     problem_ = std::make_unique<ceres::Problem>(options);
-    for (int f = 0; f < nf; ++f) {
-      parameter_blocks_.push_back(frame_block(f, nz));
+    for (int i = 0; i < nf; ++i) {
+      parameter_blocks_.push_back(frame_block(i));
       problem_->AddParameterBlock(parameter_blocks_.back(), nz);
     }
-    for (const SharedBlock& b : context_.blocks) {
-      parameter_blocks_.push_back(x_.data() + static_cast<Eigen::Index>(nf) * nz + b.begin);
-      problem_->AddParameterBlock(parameter_blocks_.back(), b.size);
+    for (const SharedBlock& sb : context_.blocks) {
+      parameter_blocks_.push_back(shared_block(sb));
+      problem_->AddParameterBlock(parameter_blocks_.back(), static_cast<int>(sb.free.size()));
     }
 
     // Layouts depend only on which markers a cost function covers: per marker, or per frame's
@@ -677,44 +789,75 @@ class CeresFit {
     };
     const int nm = problem.model().num_markers();
     std::vector<int> present;
-    for (int f = 0; f < nf; ++f) {
-      const double* meas = problem.measurements().row(f).data();
+    for (int i = 0; i < nf; ++i) {
+      const double* meas = problem.measurements().row(frames_[i]).data();
       present.clear();
       for (int m = 0; m < nm; ++m)
         if (std::isfinite(meas[3 * m])) present.push_back(m);
       if (present.empty()) continue;
       if (per_marker) {
-        for (int m : present) AddMarkerCost(layout_for({m}), f, nz, nf);
+        for (int m : present) AddMarkerCost(layout_for({m}), i);
       } else {
-        AddMarkerCost(layout_for(present), f, nz, nf);
+        AddMarkerCost(layout_for(present), i);
       }
     }
-    for (int f = 0; f < nf; ++f) {
+    for (int i = 0; i < nf; ++i) {
       const double *w, *target;
-      if (problem.FramePrior(f, &w, &target))
-        problem_->AddResidualBlock(new FramePriorCost(w, target, nz), nullptr, frame_block(f, nz));
+      if (problem.FramePrior(frames_[i], &w, &target))
+        problem_->AddResidualBlock(new FramePriorCost(w, target, nz), nullptr, frame_block(i));
     }
     std::vector<double*> shared(parameter_blocks_.begin() + nf, parameter_blocks_.end());
     problem_->AddResidualBlock(new PriorCost(&context_), nullptr, shared);
 
     // Schur solvers eliminate the frames (group 0) and keep p (group 1).
     ordering_ = std::make_shared<ceres::ParameterBlockOrdering>();
-    for (int f = 0; f < nf; ++f) ordering_->AddElementToGroup(parameter_blocks_[f], 0);
-    for (double* b : shared) ordering_->AddElementToGroup(b, 1);
+    for (int i = 0; i < nf; ++i) ordering_->AddElementToGroup(parameter_blocks_[i], 0);
+    for (double* sb : shared) ordering_->AddElementToGroup(sb, 1);
   }
 
+  int num_frames() const { return static_cast<int>(frames_.size()); }
   int num_shared_blocks() const { return static_cast<int>(context_.blocks.size()); }
   int num_residual_blocks() const { return problem_->NumResidualBlocks(); }
-  Eigen::VectorXd& x() { return x_; }
 
-  // Cost and gradient at the current x, gradient in x's order.
+  // The listed frames' poses and p from the problem's x (in place: Ceres points into x_).
+  void SetX(const Eigen::VectorXd& x) {
+    const int nz = problem_ref_->frame_dim(), np = problem_ref_->shared_dim();
+    const Eigen::Index full_frames = static_cast<Eigen::Index>(problem_ref_->num_frames()) * nz;
+    for (int i = 0; i < num_frames(); ++i)
+      x_.segment(static_cast<Eigen::Index>(i) * nz, nz) =
+          x.segment(static_cast<Eigen::Index>(frames_[i]) * nz, nz);
+    for (int k = 0; k < np; ++k) x_[stored_begin() + context_.stored_of_free[k]] = x[full_frames + k];
+  }
+  // Writes the listed frames' poses and p into the problem's x (other frames untouched).
+  void GetX(Eigen::VectorXd* x) const {
+    const int nz = problem_ref_->frame_dim(), np = problem_ref_->shared_dim();
+    const Eigen::Index full_frames = static_cast<Eigen::Index>(problem_ref_->num_frames()) * nz;
+    for (int i = 0; i < num_frames(); ++i)
+      x->segment(static_cast<Eigen::Index>(frames_[i]) * nz, nz) =
+          x_.segment(static_cast<Eigen::Index>(i) * nz, nz);
+    for (int k = 0; k < np; ++k) (*x)[full_frames + k] = x_[stored_begin() + context_.stored_of_free[k]];
+  }
+
+  // Holds p constant (SetParameterBlockConstant on every shared block) or frees it again.
+  void SetSharedConstant(bool constant) {
+    for (const SharedBlock& sb : context_.blocks) {
+      if (constant) problem_->SetParameterBlockConstant(shared_block(sb));
+      else problem_->SetParameterBlockVariable(shared_block(sb));
+    }
+  }
+
+  // Cost and gradient at the current x, gradient in the problem's order (frames, then p).
   void Evaluate(int threads, double* cost, Eigen::VectorXd* gradient) {
     ceres::Problem::EvaluateOptions options;
     options.parameter_blocks = parameter_blocks_;
     options.num_threads = threads;
     std::vector<double> g;
     problem_->Evaluate(options, cost, nullptr, &g, nullptr);
-    *gradient = Eigen::Map<Eigen::VectorXd>(g.data(), static_cast<Eigen::Index>(g.size()));
+    gradient->resize(static_cast<Eigen::Index>(g.size()));
+    const Eigen::Index nfz = stored_begin();
+    for (Eigen::Index i = 0; i < nfz; ++i) (*gradient)[i] = g[i];
+    for (size_t k = 0; k < context_.stored_of_free.size(); ++k)
+      (*gradient)[nfz + static_cast<Eigen::Index>(k)] = g[nfz + context_.stored_of_free[k]];
   }
 
   ceres::Solver::Summary Solve(ceres::Solver::Options options) {
@@ -727,7 +870,11 @@ class CeresFit {
   }
 
  private:
-  double* frame_block(int f, int nz) { return x_.data() + static_cast<Eigen::Index>(f) * nz; }
+  Eigen::Index stored_begin() const {
+    return static_cast<Eigen::Index>(num_frames()) * problem_ref_->frame_dim();
+  }
+  double* frame_block(int i) { return x_.data() + static_cast<Eigen::Index>(i) * problem_ref_->frame_dim(); }
+  double* shared_block(const SharedBlock& sb) { return x_.data() + stored_begin() + sb.offset; }
 
   std::unique_ptr<MarkerLayout> MakeLayout(const solver::MarkerFitProblem& problem,
                                            const std::vector<int>& markers) {
@@ -748,20 +895,20 @@ class CeresFit {
           cols.emplace_back(-1, -1);
           continue;
         }
-        const int block = context_.block_of_free[free];
-        cols.emplace_back(slot[block], free - context_.blocks[block].begin);
+        cols.emplace_back(slot[context_.block_of_free[free]], context_.slot_of_free[free]);
       }
     }
     return layout;
   }
 
-  void AddMarkerCost(const MarkerLayout* layout, int f, int nz, int nf) {
-    std::vector<double*> blocks{frame_block(f, nz)};
-    for (int b : layout->blocks)
-      blocks.push_back(x_.data() + static_cast<Eigen::Index>(nf) * nz + context_.blocks[b].begin);
-    problem_->AddResidualBlock(new MarkerCost(&context_, layout, f), nullptr, blocks);
+  void AddMarkerCost(const MarkerLayout* layout, int i) {
+    std::vector<double*> blocks{frame_block(i)};
+    for (int b : layout->blocks) blocks.push_back(shared_block(context_.blocks[b]));
+    problem_->AddResidualBlock(new MarkerCost(&context_, layout, frames_[i]), nullptr, blocks);
   }
 
+  const solver::MarkerFitProblem* problem_ref_;
+  std::vector<int> frames_;  // problem frame of each Ceres frame block
   Eigen::VectorXd x_;
   CeresContext context_;
   std::vector<std::unique_ptr<MarkerLayout>> layouts_;
@@ -792,28 +939,161 @@ ceres::Solver::Options CeresOptions(const solver::LmOptions& lm, ceres::LinearSo
   return o;
 }
 
-struct CeresRun {
-  std::string name;
-  double seconds = 0;
-  double cpu_seconds = 0;  // of the fastest run
-  double others_cpu = 0;  // of the fastest run
-  ceres::Solver::Summary summary;
-  bool capped = false;
-  int iterations() const { return summary.num_successful_steps + summary.num_unsuccessful_steps; }
-};
-
 const char* CeresSolverName(const std::string& s) {
   return s == "schur" ? "SPARSE_SCHUR" : s == "normal" ? "SPARSE_NORMAL_CHOLESKY" : "DENSE_SCHUR";
 }
 
-std::string CeresJsonKey(const std::string& s) {
-  return s == "schur" ? "ceres_schur_s" : s == "normal" ? "ceres_normal_s" : "ceres_dense_schur_s";
+// One ceres::Solve of a variant and what it cost.
+struct CeresStage {
+  std::string name;       // "whole", or the same strategy's "subset", "poses", "whole"
+  double build_s = 0;     // building this stage's ceres::Problem (the subset's), inside the timing
+  ceres::Solver::Summary summary;
+};
+
+// One Ceres variant: its start (cold: LM on the whole problem from x0; same: ours's strategy),
+// shared-block layout, linear solver and initial trust-region radius; the fastest of its repeats.
+struct CeresRun {
+  std::string start, layout, solver;
+  double radius = 0;  // the whole-problem stage's initial_trust_region_radius
+  double seconds = 0;
+  double cpu_seconds = 0;  // of the fastest run
+  double others_cpu = 0;   // of the fastest run
+  std::vector<CeresStage> stages;
+  bool fallback = false;  // same: the subset did not converge; the whole problem solved cold
+  bool capped = false;
+  const ceres::Solver::Summary& whole() const { return stages.back().summary; }
+  int iterations() const { return whole().num_successful_steps + whole().num_unsuccessful_steps; }
+  std::string name() const {
+    char radius_text[32];
+    std::snprintf(radius_text, sizeof(radius_text), "%g", radius);
+    return start + "/" + layout + "/" + CeresSolverName(solver) + "/r=" + radius_text;
+  }
+};
+
+// Ceres's own time breakdown of one solve (Solver::Summary), in seconds and counts.
+json CeresBreakdown(const ceres::Solver::Summary& sm) {
+  const double evaluation = sm.residual_evaluation_time_in_seconds + sm.jacobian_evaluation_time_in_seconds;
+  return {{"total_s", sm.total_time_in_seconds},
+          {"preprocessor_s", sm.preprocessor_time_in_seconds},
+          {"minimizer_s", sm.minimizer_time_in_seconds},
+          {"postprocessor_s", sm.postprocessor_time_in_seconds},
+          {"linear_solver_s", sm.linear_solver_time_in_seconds},
+          {"residual_evaluation_s", sm.residual_evaluation_time_in_seconds},
+          {"jacobian_evaluation_s", sm.jacobian_evaluation_time_in_seconds},
+          {"inner_iteration_s", sm.inner_iteration_time_in_seconds},
+          // the minimizer's time outside the linear solver and evaluations (step bookkeeping,
+          // Jacobi scaling, trust-region logic)
+          {"minimizer_other_s",
+           sm.minimizer_time_in_seconds - sm.linear_solver_time_in_seconds - evaluation -
+               std::max(0.0, sm.inner_iteration_time_in_seconds)},
+          {"num_linear_solves", sm.num_linear_solves},
+          {"num_residual_evaluations", sm.num_residual_evaluations},
+          {"num_jacobian_evaluations", sm.num_jacobian_evaluations},
+          {"successful_steps", sm.num_successful_steps},
+          {"unsuccessful_steps", sm.num_unsuccessful_steps},
+          {"initial_cost", sm.initial_cost},
+          {"final_cost", sm.final_cost},
+          {"termination", ceres::TerminationTypeToString(sm.termination_type)},
+          {"message", sm.message},
+          {"linear_solver_used", ceres::LinearSolverTypeToString(sm.linear_solver_type_used)},
+          {"threads_used", sm.num_threads_used}};
 }
 
 ceres::LinearSolverType CeresSolverType(const std::string& s) {
   return s == "schur" ? ceres::SPARSE_SCHUR
          : s == "normal" ? ceres::SPARSE_NORMAL_CHOLESKY
                          : ceres::DENSE_SCHUR;
+}
+
+// The whole problem's coarse subset as solver::SolveCoarseToFine picks it: every
+// (nf / coarse_frames)-th frame, centred in its stretch (solver/coarse_to_fine.cpp, stage 1).
+std::vector<int> CoarseFrames(int nf, int coarse_frames) {
+  std::vector<int> frames(coarse_frames);
+  for (int i = 0; i < coarse_frames; ++i) frames[i] = static_cast<int>((i + 0.5) * nf / coarse_frames);
+  return frames;
+}
+
+// What a variant's solves need besides the problem.
+struct CeresSettings {
+  solver::LmOptions lm;
+  solver::CoarseToFineOptions coarse;
+  int threads = 1;
+  double max_seconds = 600;
+  bool per_marker = true;
+  SharedLayout layout = SharedLayout::kObject;
+  double pose_tolerance = 1e-3;  // the same strategy's pose pass: Ceres's function_tolerance
+  int pose_iterations = 8;       // ... and its max_num_iterations
+};
+
+// One run of a variant from x0 on `whole` (the whole problem's Ceres problem, built untimed as
+// ours's problem is). Cold: Ceres's LM on the whole problem at `run->radius`. Same: ours's
+// strategy step by step, each stage a ceres::Solve:
+//  1. LM on the same coarse subset of frames (a Ceres problem of its own, built inside the timing),
+//     to the same loose tolerance and iteration cap as ours (CoarseToFineOptions); if it does not
+//     converge, the whole problem is solved cold from x0, as ours falls back;
+//  2. every pose re-solved for the subset's p with p held constant (SetParameterBlockConstant on
+//     every shared block): independent 38-unknown frames, so SPARSE_NORMAL_CHOLESKY (a Schur
+//     solver with nothing left to keep would fall back to a dense one);
+//  3. LM on the whole problem from there at ours's small initial damping (run->radius, which the
+//     caller sets to 1 / CoarseToFineOptions::fine_initial_lambda; the pose pass uses it too).
+// Ours's stage 3 also re-solves the poses after each step (inner iterations); Ceres's own
+// use_inner_iterations cannot be restricted to the frames here (its groups must be independent
+// sets and the prior couples every shared block), and with its automatic ordering it made the
+// solve slower (issue 14: 53 s), so it is not used.
+void RunCeresVariant(const solver::MarkerFitProblem& problem, CeresFit* whole, const Eigen::VectorXd& x0,
+                     const CeresSettings& settings, CeresRun* run) {
+  const auto start = Clock::now();
+  auto options = [&](ceres::LinearSolverType type, double radius) {
+    ceres::Solver::Options o = CeresOptions(settings.lm, type, settings.threads,
+                                            std::max(1e-3, settings.max_seconds - Since(start)));
+    o.initial_trust_region_radius = radius;
+    return o;
+  };
+  const ceres::LinearSolverType type = CeresSolverType(run->solver);
+  run->stages.clear();
+  run->fallback = false;
+  const int nf = problem.num_frames();
+  const bool coarse = run->start == "same" && settings.coarse.enabled && nf >= settings.coarse.min_frames;
+  // Below min_frames ours solves plainly, at the LM's own initial damping: so does "same".
+  if (run->start == "same" && !coarse) run->radius = 1.0 / settings.lm.initial_lambda;
+  if (coarse) {
+    const auto build_start = Clock::now();
+    CeresFit subset(problem, CoarseFrames(nf, settings.coarse.coarse_frames), settings.per_marker,
+                    settings.layout);
+    subset.SetX(x0);
+    CeresStage stage{"subset", Since(build_start), {}};
+    ceres::Solver::Options o = options(type, 1.0 / settings.lm.initial_lambda);
+    o.function_tolerance = std::max(settings.lm.function_tolerance, settings.coarse.coarse_function_tolerance);
+    o.max_num_iterations = std::min(settings.lm.max_iterations, settings.coarse.coarse_max_iterations);
+    stage.summary = subset.Solve(o);
+    const bool converged = stage.summary.termination_type == ceres::CONVERGENCE;
+    run->stages.push_back(std::move(stage));
+    if (converged) {
+      // The subset's p with every pose from x0, as ours: the subset's frames are re-solved like
+      // the others.
+      Eigen::VectorXd from_subset = x0;
+      subset.GetX(&from_subset);
+      Eigen::VectorXd x = x0;
+      x.tail(problem.shared_dim()) = from_subset.tail(problem.shared_dim());
+      whole->SetX(x);
+      whole->SetSharedConstant(true);
+      ceres::Solver::Options po = options(ceres::SPARSE_NORMAL_CHOLESKY, run->radius);
+      po.function_tolerance = settings.pose_tolerance;
+      po.max_num_iterations = settings.pose_iterations;
+      CeresStage poses{"poses", 0, whole->Solve(po)};
+      whole->SetSharedConstant(false);
+      run->stages.push_back(std::move(poses));
+    } else {
+      run->fallback = true;
+      whole->SetX(x0);
+    }
+  } else {
+    whole->SetX(x0);
+  }
+  // A fallback goes cold, at the LM's own initial damping, as ours's does.
+  CeresStage last{"whole", 0, {}};
+  last.summary = whole->Solve(options(type, run->fallback ? 1.0 / settings.lm.initial_lambda : run->radius));
+  run->stages.push_back(std::move(last));
 }
 
 double RelativeDifference(double a, double b) {
@@ -953,13 +1233,20 @@ int main(int argc, char** argv) {
   out["ours_peak_rss_mb"] = ours_rss;
 
   std::vector<CeresRun> runs;
-  if (!args.skip_ceres) {
+  const double default_radius = 1.0 / fit_options.lm.initial_lambda;
+  const std::vector<double> cold_radii =
+      args.ceres_radius.empty() ? std::vector<double>{default_radius} : args.ceres_radius;
+  // Ours's stage 3 damping as a radius; the same start's pose pass and whole problem use it.
+  const double same_radius = 1.0 / std::clamp(args.coarse.fine_initial_lambda, fit_options.lm.min_lambda,
+                                               fit_options.lm.max_lambda);
+  for (const std::string& layout : args.skip_ceres ? std::vector<std::string>{} : args.ceres_shared) {
+    // One Ceres problem per layout, built untimed (as ours's problem), freed before the next.
     const auto build_start = Clock::now();
-    CeresFit ceres_fit(problem, x0, args.ceres_residuals == "marker", args.ceres_shared == "split");
-    out["ceres_build_s"] = Since(build_start);
+    CeresFit ceres_fit(problem, {}, args.ceres_residuals == "marker", ParseSharedLayout(layout));
+    ceres_fit.SetX(x0);
+    out["ceres_build_s"][layout] = Since(build_start);
     out["ceres_residuals"] = args.ceres_residuals;
-    out["ceres_shared"] = args.ceres_shared;
-    out["ceres_shared_blocks"] = ceres_fit.num_shared_blocks();
+    out["ceres_shared_blocks"][layout] = ceres_fit.num_shared_blocks();
     out["ceres_residual_blocks"] = ceres_fit.num_residual_blocks();
 
     // Sanity check: the same cost and gradient at x0.
@@ -972,79 +1259,133 @@ int main(int argc, char** argv) {
       const double cost_rel = RelativeDifference(ceres_cost, our_cost);
       const double gradient_rel =
           (ceres_gradient - our_gradient).norm() / std::max(our_gradient.norm(), 1e-300);
-      out["check"] = {{"initial_cost_rel", cost_rel}, {"gradient_rel", gradient_rel}};
+      out["check"][layout] = {{"initial_cost_rel", cost_rel}, {"gradient_rel", gradient_rel}};
       if (!(cost_rel <= 1e-9))
-        std::fprintf(stderr, "fit_vs_ceres: ERROR: initial costs differ: ours %.12e, Ceres %.12e (rel %.2e)\n",
-                     our_cost, ceres_cost, cost_rel);
+        std::fprintf(stderr, "fit_vs_ceres: ERROR: %s layout: initial costs differ: ours %.12e, Ceres %.12e (rel %.2e)\n",
+                     layout.c_str(), our_cost, ceres_cost, cost_rel);
       if (!(gradient_rel <= 1e-9))
-        std::fprintf(stderr, "fit_vs_ceres: ERROR: initial gradients differ (relative %.2e)\n",
-                     gradient_rel);
+        std::fprintf(stderr, "fit_vs_ceres: ERROR: %s layout: initial gradients differ (relative %.2e)\n",
+                     layout.c_str(), gradient_rel);
     }
 
-    for (const std::string& s : args.ceres_solvers) {
-      const auto options =
-          CeresOptions(fit_options.lm, CeresSolverType(s), args.threads, args.ceres_max_seconds);
-      CeresRun run;
-      run.name = s;
-      run.seconds = std::numeric_limits<double>::infinity();
-      std::vector<double> times;
-      const bool own_peak = memory.Reset();
-      for (int rep = 0; rep < args.repeat; ++rep) {
-        ceres_fit.x() = x0;  // in place: Ceres's parameter blocks point into it
-        const SolveTimer timer;
-        ceres::Solver::Summary summary = ceres_fit.Solve(options);
-        times.push_back(timer.wall());
-        if (times.back() < run.seconds) {
-          run.seconds = times.back();
-          run.cpu_seconds = timer.cpu();
-          run.others_cpu = timer.others();
-          run.summary = std::move(summary);
+    CeresSettings settings;
+    settings.lm = fit_options.lm;
+    settings.coarse = args.coarse;
+    settings.threads = args.threads;
+    settings.max_seconds = args.ceres_max_seconds;
+    settings.per_marker = args.ceres_residuals == "marker";
+    settings.layout = ParseSharedLayout(layout);
+    settings.pose_tolerance = args.ceres_pose_tolerance;
+    settings.pose_iterations =
+        args.ceres_pose_iterations > 0 ? args.ceres_pose_iterations : args.coarse.pose_iterations;
+    for (const std::string& start : args.ceres_starts)
+      for (const std::string& s : args.ceres_solvers)
+        for (double radius : start == "same" ? std::vector<double>{same_radius} : cold_radii) {
+          CeresRun run;
+          run.start = start;
+          run.layout = layout;
+          run.solver = s;
+          run.radius = radius;
+          run.seconds = std::numeric_limits<double>::infinity();
+          std::vector<double> times;
+          const bool own_peak = memory.Reset();
+          for (int rep = 0; rep < args.repeat; ++rep) {
+            CeresRun attempt = run;
+            const SolveTimer timer;
+            RunCeresVariant(problem, &ceres_fit, x0, settings, &attempt);
+            times.push_back(timer.wall());
+            if (times.back() < run.seconds) {
+              run = std::move(attempt);
+              run.seconds = times.back();
+              run.cpu_seconds = timer.cpu();
+              run.others_cpu = timer.others();
+            }
+          }
+          const ceres::Solver::Summary& sm = run.whole();
+          run.capped = sm.termination_type == ceres::NO_CONVERGENCE &&
+                       sm.message.find("time") != std::string::npos;
+          const double initial = run.stages.front().summary.initial_cost;
+          if (run.stages.front().name == "whole" && RelativeDifference(initial, ours.initial_cost) > 1e-9)
+            std::fprintf(stderr, "fit_vs_ceres: ERROR: %s initial cost %.12e differs from ours %.12e\n",
+                         run.name().c_str(), initial, ours.initial_cost);
+          if (args.verbose)
+            for (const CeresStage& st : run.stages)
+              std::fprintf(stderr, "--- Ceres %s, %s ---\n%s\n", run.name().c_str(), st.name.c_str(),
+                           st.summary.FullReport().c_str());
+          json stages = json::array();
+          for (const CeresStage& st : run.stages) {
+            json j = CeresBreakdown(st.summary);
+            j["stage"] = st.name;
+            j["build_s"] = st.build_s;
+            stages.push_back(std::move(j));
+          }
+          out["ceres_runs"].push_back(
+              {{"variant", run.name()},
+               {"start", run.start},
+               {"shared_layout", run.layout},
+               {"shared_blocks", ceres_fit.num_shared_blocks()},
+               {"linear_solver", CeresSolverName(s)},
+               {"initial_trust_region_radius", run.radius},
+               {"seconds", run.seconds},
+               {"seconds_all", times},
+               {"cpu_s", run.cpu_seconds},
+               {"others_cpu", run.others_cpu},
+               {"cost", sm.final_cost},
+               {"cost_rel_to_ours", (sm.final_cost - ours.final_cost) / ours.final_cost},
+               {"iterations", run.iterations()},
+               {"termination", ceres::TerminationTypeToString(sm.termination_type)},
+               {"capped", run.capped},
+               {"fallback", run.fallback},
+               {"ratio", run.seconds / ours_seconds},
+               {"stages", std::move(stages)},
+               {own_peak ? "peak_rss_mb" : "process_peak_rss_mb_so_far", PeakMemory::CurrentMarkMb()}});
+          // Progress on stderr as each run ends: a long sweep killed midway keeps what it did.
+          std::fprintf(stderr, "fit_vs_ceres: %s: %.3f s (cpu %.3f, others %.0f%%), cost %.9e, %d "
+                       "iterations, %s; ours %.3f s, cost %.9e\n",
+                       run.name().c_str(), run.seconds, run.cpu_seconds, 100 * run.others_cpu,
+                       sm.final_cost, run.iterations(), ceres::TerminationTypeToString(sm.termination_type),
+                       ours_seconds, ours.final_cost);
+          runs.push_back(std::move(run));
         }
-      }
-      run.capped = run.summary.termination_type == ceres::NO_CONVERGENCE &&
-                   run.summary.message.find("time") != std::string::npos;
-      if (RelativeDifference(run.summary.initial_cost, ours.initial_cost) > 1e-9)
-        std::fprintf(stderr,
-                     "fit_vs_ceres: ERROR: %s initial cost %.12e differs from ours %.12e\n",
-                     CeresSolverName(s), run.summary.initial_cost, ours.initial_cost);
-      if (args.verbose)
-        std::fprintf(stderr, "--- Ceres %s ---\n%s\n", CeresSolverName(s),
-                     run.summary.FullReport().c_str());
-      const auto& sm = run.summary;
-      out[CeresJsonKey(s)] = run.seconds;
-      out["ceres_runs"].push_back(
-          {{"linear_solver", CeresSolverName(s)},
-           {"seconds", run.seconds},
-           {"seconds_all", times},
-           {"cpu_s", run.cpu_seconds},
-           {"others_cpu", run.others_cpu},
-           {"cost", sm.final_cost},
-           {"iterations", run.iterations()},
-           {"successful_steps", sm.num_successful_steps},
-           {"termination", ceres::TerminationTypeToString(sm.termination_type)},
-           {"capped", run.capped},
-           {"preprocessor_s", sm.preprocessor_time_in_seconds},
-           {"residual_evaluation_s", sm.residual_evaluation_time_in_seconds},
-           {"jacobian_evaluation_s", sm.jacobian_evaluation_time_in_seconds},
-           {"linear_solver_s", sm.linear_solver_time_in_seconds},
-           {"minimizer_s", sm.minimizer_time_in_seconds},
-           {own_peak ? "peak_rss_mb" : "process_peak_rss_mb_so_far", PeakMemory::CurrentMarkMb()}});
-      runs.push_back(std::move(run));
-    }
   }
-  if (!runs.empty()) {
-    // Ceres at its best: the fastest of the linear solvers tried.
-    const CeresRun& best = *std::min_element(
-        runs.begin(), runs.end(), [](const CeresRun& a, const CeresRun& b) { return a.seconds < b.seconds; });
-    out["ceres_s"] = best.seconds;
-    out["ceres_linear_solver"] = CeresSolverName(best.name);
-    out["ratio"] = best.seconds / ours_seconds;
-    out["ceres_cost"] = best.summary.final_cost;
-    out["ceres_iterations"] = best.iterations();
-    out["ceres_capped"] = best.capped;
-    out["ceres_cpu_s"] = best.cpu_seconds;
-    out["ceres_others_cpu"] = best.others_cpu;
-    out["cpu_ratio"] = best.cpu_seconds / ours_cpu;
+  // The headline: ours against the fastest Ceres variant. Beside it, the cold plain-LM Ceres of
+  // earlier sessions (per-object blocks, Ceres's default radius) and the same strategy's best.
+  auto best_of = [&](const std::function<bool(const CeresRun&)>& keep) -> const CeresRun* {
+    const CeresRun* best = nullptr;
+    for (const CeresRun& r : runs)
+      if (keep(r) && (!best || r.seconds < best->seconds)) best = &r;
+    return best;
+  };
+  const CeresRun* fastest = best_of([](const CeresRun&) { return true; });
+  const CeresRun* cold_default = best_of([&](const CeresRun& r) {
+    return r.start == "cold" && r.layout == "split" && r.radius == default_radius;
+  });
+  const CeresRun* same = best_of([](const CeresRun& r) { return r.start == "same"; });
+  auto record = [&](const char* key, const CeresRun* r) {
+    if (!r) {
+      out[key] = nullptr;
+      return;
+    }
+    out[key] = {{"variant", r->name()},
+                {"seconds", r->seconds},
+                {"ratio", r->seconds / ours_seconds},
+                {"cpu_ratio", r->cpu_seconds / ours_cpu},
+                {"cost", r->whole().final_cost},
+                {"iterations", r->iterations()}};
+  };
+  record("ceres_fastest", fastest);
+  record("ceres_cold_default", cold_default);
+  record("ceres_same_best", same);
+  if (fastest) {
+    out["ceres_s"] = fastest->seconds;
+    out["ceres_variant"] = fastest->name();
+    out["ratio"] = fastest->seconds / ours_seconds;
+    out["ceres_cost"] = fastest->whole().final_cost;
+    out["ceres_iterations"] = fastest->iterations();
+    out["ceres_capped"] = fastest->capped;
+    out["ceres_cpu_s"] = fastest->cpu_seconds;
+    out["ceres_others_cpu"] = fastest->others_cpu;
+    out["cpu_ratio"] = fastest->cpu_seconds / ours_cpu;
   } else {
     for (const char* k : {"ceres_s", "ratio", "ceres_cost", "ceres_iterations"}) out[k] = nullptr;
   }
@@ -1052,6 +1393,11 @@ int main(int argc, char** argv) {
   out["blas"] = LoadedBlas();
   out["machine"] = {{"nproc", NumProcessors()}, {"cpu", CpuModel()}};
 
+  if (!args.json_out.empty()) {
+    std::ofstream file(args.json_out);
+    file << out.dump(1) << std::endl;
+    if (!file) std::fprintf(stderr, "fit_vs_ceres: cannot write %s\n", args.json_out.c_str());
+  }
   if (args.json) {
     std::cout << out.dump() << std::endl;
     return 0;
@@ -1079,20 +1425,44 @@ int main(int argc, char** argv) {
                 r.solve_seconds, r.ik_seconds, r.rescued_frames, r.reposed ? ", reposed" : "",
                 r.marker_rms_mm, worst_trial);
   }
+  // Each Ceres variant (start/layout/linear solver/initial radius), then Ceres's own breakdown of
+  // each of its solves (Solver::Summary).
   for (const CeresRun& r : runs) {
-    const std::string name = std::string("Ceres ") + CeresSolverName(r.name);
-    std::printf("  %-30s %9.3f %9.3f %15.9e %5d %6.0f%%  %s%s\n", name.c_str(), r.seconds,
-                r.cpu_seconds, r.summary.final_cost, r.iterations(), 100 * r.others_cpu,
-                ceres::TerminationTypeToString(r.summary.termination_type),
-                r.capped ? " (time cap)" : "");
+    std::printf("  %-30s %9.3f %9.3f %15.9e %5d %6.0f%%  %s%s%s  (%.1fx ours, cost %+.1e rel)\n",
+                ("Ceres " + r.name()).c_str(), r.seconds, r.cpu_seconds, r.whole().final_cost,
+                r.iterations(), 100 * r.others_cpu,
+                ceres::TerminationTypeToString(r.whole().termination_type), r.capped ? " (time cap)" : "",
+                r.fallback ? " (subset not converged: cold)" : "", r.seconds / ours_seconds,
+                (r.whole().final_cost - ours.final_cost) / ours.final_cost);
+    for (const CeresStage& st : r.stages) {
+      const auto& sm = st.summary;
+      std::printf("      %-6s %7.3f s: build %.3f, preprocessor %.3f, linear solver %.3f, residuals %.3f, "
+                  "Jacobians %.3f, minimizer other %.3f, postprocessor %.3f; %d+%d steps, %d linear "
+                  "solves, %d Jacobians, cost %.6e -> %.9e, %s\n",
+                  st.name.c_str(), st.build_s + sm.total_time_in_seconds, st.build_s,
+                  sm.preprocessor_time_in_seconds, sm.linear_solver_time_in_seconds,
+                  sm.residual_evaluation_time_in_seconds, sm.jacobian_evaluation_time_in_seconds,
+                  CeresBreakdown(sm)["minimizer_other_s"].get<double>(), sm.postprocessor_time_in_seconds,
+                  sm.num_successful_steps, sm.num_unsuccessful_steps, sm.num_linear_solves,
+                  sm.num_jacobian_evaluations, sm.initial_cost, sm.final_cost,
+                  ceres::LinearSolverTypeToString(sm.linear_solver_type_used));
+    }
   }
-  if (!runs.empty())
-    std::printf("  ratio (best Ceres / ours): wall %.2f, cpu %.2f\n", out["ratio"].get<double>(),
-                out["cpu_ratio"].get<double>());
+  auto ratio_line = [&](const char* label, const char* key) {
+    if (!out.contains(key) || out[key].is_null()) return;
+    const json& j = out[key];
+    std::printf("  %-44s %6.2f wall, %6.2f cpu  (%s, %.3f s, cost %.9e)\n", label,
+                j["ratio"].get<double>(), j["cpu_ratio"].get<double>(),
+                j["variant"].get<std::string>().c_str(), j["seconds"].get<double>(),
+                j["cost"].get<double>());
+  };
+  ratio_line("ratio, fastest Ceres variant / ours:", "ceres_fastest");
+  ratio_line("ratio, cold plain-LM Ceres (default radius):", "ceres_cold_default");
+  ratio_line("ratio, Ceres with ours's strategy (same):", "ceres_same_best");
   if (out.contains("check"))
-    std::printf("  check at x0: cost rel diff %.1e, gradient rel diff %.1e\n",
-                out["check"]["initial_cost_rel"].get<double>(),
-                out["check"]["gradient_rel"].get<double>());
+    for (const auto& [layout, c] : out["check"].items())
+      std::printf("  check at x0 (%s blocks): cost rel diff %.1e, gradient rel diff %.1e\n",
+                  layout.c_str(), c["initial_cost_rel"].get<double>(), c["gradient_rel"].get<double>());
   std::printf("  peak RSS: ours %.0f MB, total %.0f MB\n", ours_rss, out["peak_rss_mb"].get<double>());
   std::printf("  BLAS: %s\n  machine: %d x %s\n", out["blas"].get<std::string>().c_str(),
               NumProcessors(), CpuModel().c_str());
