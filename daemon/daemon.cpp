@@ -17,6 +17,7 @@
 #include <fstream>
 #include <limits>
 
+#include "daemon/export_path.h"
 #include "daemon/recorder.h"
 #include "daemon/recording_export.h"
 #include "drivers/aravis_camera.h"
@@ -194,6 +195,9 @@ Status Daemon::Start() {
     std::unique_ptr<Store> store;
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &store));
     store_ = std::move(store);
+    // The default export directory (daemon/export_path.h); a failure shows at the first export.
+    std::error_code ec;
+    fs::create_directories(config_.state_dir + "/exports", ec);
   }
 
   // 4. The cameras.
@@ -640,6 +644,7 @@ void Daemon::ConfigReload(const Request& r) {
   // Command-line overrides stay in force.
   fresh.state_dir = config_.state_dir;
   fresh.socket_path = config_.socket_path;
+  if (!options_.export_dirs.empty()) fresh.export_dirs = options_.export_dirs;
   Json applied = Json::array(), restart = Json::array();
   for (const ConfigChange& c : DiffConfig(config_, fresh)) {
     (c.needs_restart ? restart : applied).push_back(c.key);
@@ -667,6 +672,7 @@ void Daemon::ConfigReload(const Request& r) {
   config_.fit_max_iterations = fresh.fit_max_iterations;
   config_.fit_groups = fresh.fit_groups;
   config_.fit_coarse_frames = fresh.fit_coarse_frames;
+  config_.export_dirs = fresh.export_dirs;
   server_->SetLimits(fresh.max_clients, fresh.max_line_bytes, fresh.max_pending_requests);
   server_->SetControlGroup(fresh.control_group);
   spdlog::info("config reloaded from {}: {} applied, {} need a restart", options_.config_path,
@@ -1432,10 +1438,32 @@ void Daemon::Export(const Request& r) {
     return Fail(r, error_code::kInvalidParams, p.error);
   if (inline_ == !path.empty())
     return Fail(r, error_code::kInvalidParams, "give one of params.path or params.inline: true");
-  if (!path.empty() && (path.empty() || path[0] != '/'))
+  if (!path.empty() && path[0] != '/')
     return Fail(r, error_code::kInvalidParams, "params.path: an absolute path, got '" + path + "'");
+  // The format names the staging file: only the formats some kind exports (each kind checks its
+  // own below).
+  static const std::set<std::string> kFormats = {"c3d", "trc", "mot", "json", "osim", "html"};
+  if (!kFormats.count(format))
+    return Fail(r, error_code::kInvalidParams,
+                "params.format: one of c3d, trc, mot, json, osim, html, got '" + format + "'");
+  // A path is checked (and opened, not truncated) before any work: a path outside the allowed
+  // directories is refused at once (daemon/export_path.h). The export is written to a staging
+  // file in the state directory and copied into the path only once it succeeded.
+  ExportFile out;
+  if (!inline_) {
+    if (Status open = OpenExportFile(path, config_.AllowedExportDirs(), config_.state_dir, &out); !open) {
+      spdlog::warn("export refused for uid {}: {}", r.client.uid, open.message());
+      return Fail(r, out.forbidden ? error_code::kForbidden : error_code::kFailed, open.message());
+    }
+  }
+  struct CloseOnReturn {
+    int fd;
+    ~CloseOnReturn() {
+      if (fd >= 0) close(fd);
+    }
+  } close_out{out.fd};
   const std::string target =
-      inline_ ? config_.state_dir + "/.export-" + std::to_string(r.client.id) + "." + format : path;
+      config_.state_dir + "/.export-" + std::to_string(r.client.id) + "." + format;
   Status s;
   if (kind == "recording") {
     RecordingInfo info;
@@ -1515,12 +1543,18 @@ void Daemon::Export(const Request& r) {
     return Fail(r, error_code::kInvalidParams,
                 "params.kind: recording, model or report, got '" + kind + "'");
   }
-  if (!s) return Fail(r, error_code::kFailed, s.message());
   std::error_code ec;
+  if (!s) {
+    fs::remove(target, ec);
+    return Fail(r, error_code::kFailed, s.message());
+  }
   const auto bytes = fs::file_size(target, ec);
   if (!inline_) {
-    spdlog::info("exported {} {} as {} to {}", kind, id, format, target);
-    return server_->Reply(r.client.id, r.id, {{"path", target}, {"bytes", bytes}});
+    s = CopyIntoExportFile(target, out.fd, out.path);
+    fs::remove(target, ec);
+    if (!s) return Fail(r, error_code::kFailed, s.message());
+    spdlog::info("exported {} {} as {} to {}", kind, id, format, out.path);
+    return server_->Reply(r.client.id, r.id, {{"path", out.path}, {"bytes", bytes}});
   }
   std::string content;
   s = formats::detail::ReadWholeFile(target, &content);

@@ -56,6 +56,8 @@ class Recorder;
 struct DaemonOptions {
   std::string config_path;  // for config.reload / SIGHUP
   int listen_fd = -1;       // socket activation: a listening socket from systemd
+  // mocapd --export-dir: overrides [storage] export_dirs, at start and at every reload.
+  std::vector<std::string> export_dirs;
   std::string version = "0.1.0";
   // systemd's notifications (daemon/service_notify.h), fed by the loop's tick; null: none.
   ServiceNotifier* notifier = nullptr;

@@ -39,7 +39,7 @@ class DaemonProcess {
   // Writes `toml` to DIR/mocapd.toml and starts mocapd on it with DIR/state and DIR/control.sock.
   DaemonProcess(const std::string& dir, const std::string& toml,
                 std::string executable = MOCAPD_PATH)
-      : dir_(dir), executable_(std::move(executable)) {
+      : dir_(dir), executable_(std::move(executable)), export_dirs_{dir} {
     std::ofstream(dir_ + "/mocapd.toml") << toml;
   }
   ~DaemonProcess() { Kill(SIGKILL); }
@@ -47,6 +47,8 @@ class DaemonProcess {
   // A command the daemon runs under (e.g. an `unshare -m` that mounts a small tmpfs on the state
   // directory first); its last argument is followed by mocapd's command line.
   void SetWrapper(std::vector<std::string> wrapper) { wrapper_ = std::move(wrapper); }
+  // Where `export` may write (mocapd --export-dir); by default DIR, where the tests export.
+  void SetExportDirs(std::vector<std::string> dirs) { export_dirs_ = std::move(dirs); }
   std::string socket() const { return dir_ + "/control.sock"; }
   std::string state_dir() const { return dir_ + "/state"; }
   std::string log_path() const { return dir_ + "/mocapd.log"; }
@@ -65,6 +67,7 @@ class DaemonProcess {
       for (const std::string& a : {executable_, std::string("--config"), config,
                                    std::string("--state-dir"), state, std::string("--socket"), sock})
         args.push_back(a);
+      for (const std::string& d : export_dirs_) args.insert(args.end(), {"--export-dir", d});
       std::vector<char*> argv;
       for (std::string& a : args) argv.push_back(a.data());
       argv.push_back(nullptr);
@@ -132,6 +135,7 @@ class DaemonProcess {
   std::string dir_;
   std::string executable_;
   std::vector<std::string> wrapper_;
+  std::vector<std::string> export_dirs_;
   pid_t pid_ = -1;
 };
 
