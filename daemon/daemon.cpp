@@ -299,8 +299,10 @@ Status Daemon::Start() {
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &checkpointer, so));
     so.wal_autocheckpoint_pages = 0;  // the checkpointer's thread does it (daemon/store.h)
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &store, so));
-    // Chunks of 80 ms: a frame reaches the recorder a few ms after its exposure, so a crash loses
-    // at most the last 100 ms of the recording (tests/test_daemon_faults.cpp measures it).
+    // Chunks of 80 ms, each commit fsynced (synchronous=FULL, daemon/store.h "Power cuts"): a
+    // frame reaches the recorder a few ms after its exposure and the commit's fsync takes a few
+    // more, so a crash or a power cut loses at most the last 100 ms of the recording
+    // (tests/test_daemon_faults.cpp measures the crash; bench/store_append the commit).
     recorder_ = std::make_unique<Recorder>(pipeline_.get(), std::move(store),
                                            std::move(checkpointer), /*chunk_ms=*/80);
     recorder_->Start();

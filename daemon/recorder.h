@@ -1,6 +1,6 @@
 // The recorder: frames of the running recording from the live pipeline to SQLite, in chunks of at
-// most `chunk_ms` per transaction, so a crash or a power cut loses at most that much (the store's
-// WAL settings: daemon/store.h).
+// most `chunk_ms` per transaction, each fsynced before it returns, so a crash or a power cut loses
+// at most that much plus one commit (daemon/store.h, "Power cuts").
 //
 // It runs on its own thread with its own store connection (SQLite in WAL mode lets it write while
 // the loop's connection reads), so neither a slow disk nor a big commit ever holds the event loop
