@@ -299,12 +299,12 @@ Status Daemon::Start() {
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &checkpointer, so));
     so.wal_autocheckpoint_pages = 0;  // the checkpointer's thread does it (daemon/store.h)
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &store, so));
-    // Chunks of 80 ms, each commit fsynced (synchronous=FULL, daemon/store.h "Power cuts"): a
-    // frame reaches the recorder a few ms after its exposure and the commit's fsync takes a few
-    // more, so a crash or a power cut loses at most the last 100 ms of the recording
-    // (tests/test_daemon_faults.cpp measures the crash; bench/store_append the commit).
+    // Each chunk committed within 100 ms of its oldest frame's last image reaching the host and
+    // the WAL synced after it on a thread of the recorder's (daemon/recorder.h, store.h "Crashes
+    // and power cuts"): a crash loses at most the last 100 ms of the recording
+    // (tests/test_daemon_faults.cpp measures it), a power cut as much where fsync keeps up.
     recorder_ = std::make_unique<Recorder>(pipeline_.get(), std::move(store),
-                                           std::move(checkpointer), /*chunk_ms=*/80);
+                                           std::move(checkpointer), /*loss_budget_ms=*/100);
     recorder_->Start();
   }
 

@@ -7,7 +7,7 @@
 //     the live pipeline's bounded queue, woken by an eventfd; work done elsewhere comes back as a
 //     task posted to the loop (PostToLoop), also through an eventfd.
 //   - the pipeline (daemon/live_pipeline.h), which knows nothing of clients, and its recorder
-//     thread (frames to SQLite in chunks of <= 100 ms, daemon/recorder.h);
+//     thread (frames to SQLite, each committed and fsynced within 100 ms, daemon/recorder.h);
 //   - workers for long jobs (rig calibration, the fit) that report progress through the loop and
 //     can be cancelled; a job's result becomes state only when the loop applies it.
 //

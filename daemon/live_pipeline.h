@@ -16,7 +16,7 @@
 //
 // Why a recorder queue separate from the loop's: the loop may be busy (a client's 1 MB request,
 // a burst of replies) and is allowed to lose frames for the live stream; a recording is not. The
-// recorder (daemon/recorder.h) drains its own queue and commits every <= 100 ms.
+// recorder (daemon/recorder.h) drains its own queue and commits each frame within 100 ms.
 #pragma once
 #include <atomic>
 #include <condition_variable>
@@ -66,7 +66,7 @@ struct LivePipelineOptions {
   CapturePipelineOptions capture;
   ekf::TrackerOptions tracker;
   int loop_queue_capacity = 64;       // frames waiting for the event loop (320 ms at 200 Hz)
-  int recorder_queue_capacity = 2000; // 10 s at 200 Hz: the recorder commits every 100 ms
+  int recorder_queue_capacity = 2000; // 10 s at 200 Hz: the recorder commits within 100 ms
   int wand_subsample = 4;             // keep every n-th set while collecting wand frames
   int max_wand_frames = 4000;
   double exposure_us = 500;           // t_mid = set time + exposure / 2

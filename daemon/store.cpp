@@ -622,9 +622,9 @@ Status Store::Open(const std::string& state_dir, std::unique_ptr<Store>* out,
                            (row ? q.Text(0) : std::string()) + "')");
     }
   }
-  // FULL: the WAL is fsynced before each COMMIT returns, so a power cut loses only what was not
-  // yet committed -- at most the recorder's 80 ms chunk and the commit in flight (store.h, "Power
-  // cuts"). NORMAL would sync the WAL only at checkpoints (seconds apart).
+  // NORMAL: a commit reaches the OS, so a crash of the process loses nothing committed; the
+  // recorder makes each commit durable against a power cut by syncing the WAL from its own
+  // thread, so the writer never waits for the disk (store.h, "Crashes and power cuts").
   const char* synchronous = options.sync_every_commit ? "PRAGMA synchronous=FULL"
                                                       : "PRAGMA synchronous=NORMAL";
   MOCAP_RETURN_IF_ERROR(store->Exec(synchronous, std::string("setting ") + (synchronous + 7)));

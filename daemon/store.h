@@ -9,9 +9,9 @@
 // - WAL journal: readers never block the writer and the writer never blocks readers, so a Store
 //   per thread (the event loop's, a fit worker's, an export worker's) can work side by side; a
 //   write waits up to `busy_timeout_ms` for another writer instead of failing at once.
-// - synchronous=FULL (StoreOptions::sync_every_commit; see "Power cuts" below): a commit is on
-//   the disk, not only in the OS's cache, when it returns. The recorder commits a chunk every
-//   80 ms, so a crash of the process or a power cut loses at most the last 100 ms of a recording.
+// - synchronous=NORMAL, and the recorder's own WAL syncs ("Crashes and power cuts" below): a
+//   crash of the process or a power cut loses at most the last 100 ms of a recording on a disk
+//   whose fsync keeps up (daemon/recorder.h).
 // - Frames are stored in chunks (one BLOB per AppendFrames call, one transaction each) rather than
 //   one row per frame: at 200 Hz a row per frame would be 200 transactions or index entries a
 //   second; a chunk is one, and reading a recording back is a scan of a few hundred blobs.
@@ -23,8 +23,7 @@
 // that commit then takes tens of ms, once hundreds. The recorder's commits are on the live path, so
 // the daemon opens the recorder's Store with `wal_autocheckpoint_pages = 0` and calls Checkpoint()
 // every few seconds from another thread's Store (a passive checkpoint never blocks the writer).
-// (Under synchronous=NORMAL a power cut would then lose what came after the last checkpoint's
-// fsync, a few seconds: hence FULL, below.) bench/store_append (BENCHMARKS.md; the default
+// bench/store_append (BENCHMARKS.md; the default
 // model's 43 markers and 38 coordinates, 48 points a frame, 60 s at 200 Hz, 20-frame chunks at
 // the rig's pace), AppendFrames per chunk:
 //   automatic checkpoints          p50 0.55 ms  p99 10-23 ms  max 22-449 ms (5 runs)
@@ -33,24 +32,26 @@
 //   Checkpoint() every 100 ms      p50 1.9-2.4  p99 7-11 ms   max 11-14 ms (an fsync in each gap)
 // 2.7 kB a frame (32 MB a minute); ReadFrames of the 12,000 frames 47-132 ms.
 //
-// Power cuts. In WAL mode a commit appends its pages and a commit record to the WAL file; SQLite
-// recovers, after a crash or a power cut, every transaction whose commit record reached the disk
-// intact (the WAL's frames are checksummed, so a torn tail is ignored, never half-applied).
+// Crashes and power cuts. In WAL mode a commit appends its pages and a commit record to the WAL
+// file; SQLite recovers, after a crash or a power cut, every transaction whose commit record
+// reached the disk intact, in order (the WAL's frames are checksummed in a chain, so a torn tail
+// is ignored, never half-applied).
 //   - synchronous=NORMAL writes the WAL at each commit but fsyncs it only at checkpoints: a
-//     crash of the PROCESS loses nothing committed (the OS has the pages), a power cut loses
-//     everything since the last checkpoint's fsync (up to the checkpoint interval, 5 s).
-//   - synchronous=FULL fsyncs the WAL at every commit, before COMMIT returns: once AppendFrames
-//     returns, its chunk survives a power cut. (The database file itself is fsynced only by the
-//     checkpoints, which copy from the already durable WAL.)
-// So with FULL, what a power cut can lose is the frames not yet committed: those the recorder is
-// still gathering (at most one chunk interval, 80 ms) and the one commit in flight (its fsync).
-// bench/store_append measured the commit with its fsync on this project's machine (ext4 on a
-// virtual disk, loaded by other agents, BENCHMARKS.md "The store"): p99 well under the 20 ms the
-// 100 ms bound leaves after the 80 ms cadence. On a disk whose fsync takes longer (a spinning
-// disk with its write cache off: ~10-30 ms) the bound holds as long as commit p99 stays < 20 ms;
-// the cost is ~12 fsyncs a second while recording, nothing while idle. A disk that lies about
-// fsync (a consumer SSD without power-loss protection, a write cache left on) can lose more:
-// no setting of SQLite's helps there.
+//     crash of the PROCESS loses nothing committed (the OS has the pages and writes them), a
+//     power cut everything since the last fsync of the WAL.
+//   - synchronous=FULL fsyncs the WAL inside every commit: durable against a power cut when
+//     COMMIT returns, but the writer waits for the disk. bench/store_append on this project's
+//     machine (ext4 on a virtual disk, loaded by other agents; BENCHMARKS.md "The store"),
+//     50 ms chunks at 200 Hz: FULL commit p50 8 ms, p99 38 ms, max 55 ms (NORMAL p50 0.5 ms);
+//     and single fsyncs of 400 ms under load.
+// The daemon takes NORMAL and has the recorder fdatasync the WAL file from a thread of its own
+// after each commit (daemon/recorder.h): the same durability as FULL once that sync returns,
+// without a slow disk holding the writer -- so a crash never loses more than the 100 ms the
+// recorder's commit deadline allows, and a power cut loses at most that on a disk whose fsync
+// keeps up (the deadline keeps the slowest recent syncs in reserve). Syncing a file that SQLite
+// writes is safe: an fsync only makes durable what SQLite already wrote, in any order the OS
+// could have chosen itself. A disk that lies about fsync (a write cache without power-loss
+// protection) can lose more: no setting of SQLite's helps there.
 //
 // A recording that was still "recording" when the daemon stopped (crash, power cut, kill) becomes
 // "interrupted" at the next Open: its committed chunks stay readable and exportable.
@@ -183,10 +184,9 @@ struct StoreOptions {
   // default, 1000). 0: never on this connection's commits; then some Store must call Checkpoint()
   // regularly, or the WAL grows without bound (see "Checkpoints" above).
   int wal_autocheckpoint_pages = 1000;
-  // synchronous=FULL: every commit fsyncs the WAL, so it survives a power cut ("Power cuts"
-  // above). false: synchronous=NORMAL, durable against a crash of the process only (the
-  // benchmark's comparison; nothing in the daemon turns it off).
-  bool sync_every_commit = true;
+  // true: synchronous=FULL, every commit fsyncs the WAL before it returns. false (the daemon's):
+  // NORMAL, the recorder syncs the WAL from its own thread ("Crashes and power cuts" above).
+  bool sync_every_commit = false;
 
   bool IsValid(std::string* error) const;
 };
