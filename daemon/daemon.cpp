@@ -540,9 +540,11 @@ Json Daemon::CamerasJson() const {
   Json cams = Json::array();
   if (!pipeline_) return {{"cameras", cams}};
   const double up = std::max(1e-3, SecondsSince(started_ns_));
+  const std::vector<CameraHealth> health = pipeline_->DetectionHealthSnapshot();
   for (int c = 0; c < pipeline_->num_cameras(); ++c) {
     drivers::CameraSource& cam = pipeline_->camera(c);
     const auto& k = cam.Counters();
+    const CameraHealth& h = health[static_cast<std::size_t>(c)];
     cams.push_back({{"id", cam.id()},
                     {"connected", cam.State() == drivers::CameraState::kStreaming},
                     {"frames", k.complete.load()},
@@ -550,6 +552,11 @@ Json Daemon::CamerasJson() const {
                     {"incomplete", k.missing_packets.load() + k.size_mismatches.load()},
                     {"dropped", k.underruns.load()},
                     {"losses", k.losses.load()},
+                    {"nonfinite_centroids", h.nonfinite_centroids},
+                    {"overfull_sets", h.overfull_sets},
+                    {"reprojection_px", h.reprojection_samples > 0 && h.reprojection_px > 0
+                                            ? Json(h.reprojection_px) : Json()},
+                    {"calibration_suspect", h.calibration_suspect},
                     {"width", config_.width},
                     {"height", config_.height}});
   }
@@ -572,6 +579,19 @@ Json Daemon::Status_() const {
   }
   j["rig"] = rig;
   j["cameras"] = CamerasJson()["cameras"];
+  {
+    // Bad data, summed over the cameras; the cameras whose calibration looks off, by id.
+    Json suspect = Json::array();
+    std::uint64_t nonfinite = 0, overfull = 0;
+    for (const Json& cam : j["cameras"]) {
+      nonfinite += cam.value("nonfinite_centroids", std::uint64_t{0});
+      overfull += cam.value("overfull_sets", std::uint64_t{0});
+      if (cam.value("calibration_suspect", false)) suspect.push_back(cam["id"]);
+    }
+    j["health"] = {{"nonfinite_centroids", nonfinite},
+                   {"overfull_sets", overfull},
+                   {"calibration_suspect", suspect}};
+  }
   if (pipeline_) {
     // The timing percentiles cost milliseconds: at most once a second, however many clients ask
     // (a flood of status requests must not hold the loop off the frames).
