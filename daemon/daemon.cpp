@@ -511,7 +511,10 @@ void Daemon::OnRequest(const ClientInfo& client, const Json& id, const std::stri
   }
   bool needs_control = it->second.control;
   // Exporting back over the socket only reads.
-  if (method == "export" && params.value("inline", false) == true) needs_control = false;
+  // (Compared as JSON: `params.value("inline", false)` threw on a non-boolean "inline", outside
+  // the try below, and any client could stop the daemon with one line.)
+  if (method == "export" && params.contains("inline") && params["inline"] == true)
+    needs_control = false;
   if (needs_control && !client.may_control) {
     Fail(r, error_code::kForbidden,
          method + " changes state: it needs root or membership of group '" +

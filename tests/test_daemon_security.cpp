@@ -5,7 +5,10 @@
 //    refused `forbidden`, and afterwards root sees the state exactly as before (subjects, the
 //    selected subject, models, calibrations, recordings, cameras, the config, the daemon alive);
 //  - `export` writes only beneath the directories the config allows: `..`, symlinks, absolute
-//    paths elsewhere and the daemon's own database are refused `forbidden` and nothing is written.
+//    paths elsewhere and the daemon's own database are refused `forbidden` and nothing is written;
+//  - random requests (every method, random params of random types) dispatched into the real
+//    daemon: each is answered with a result or a documented error, never `internal` (a type the
+//    method's checks missed), and the daemon stays up (fuzz/fuzz_control.cpp fuzzes the framing).
 #include <grp.h>
 #include <pwd.h>
 #include <sys/stat.h>
@@ -15,6 +18,7 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <random>
 #include <regex>
 #include <set>
 #include <sstream>
@@ -253,6 +257,90 @@ TEST_F(DaemonSecurity, ExportPathsCannotEscapeTheAllowedDirectories) {
   EXPECT_EQ(Send(root_.get(), "export", bad).error_code, "invalid_params");
   // The daemon is intact and its store readable.
   EXPECT_EQ(MustCall(root_.get(), "model.list")["models"].size(), 1u);
+}
+
+// A random JSON value of a random type, biased to the edges a parameter check must handle.
+json RandomValue(std::mt19937& rng, int depth = 0) {
+  static const std::vector<std::string> kStrings = {
+      "", "S01", "A", "default", "squats", "static", "c3d", "json", "html", "osim", "recording",
+      "model", "report", "markers", "points", "pose", "status", "../../etc/passwd", "/etc/passwd",
+      "/nonexistent.osim", "\u00e9\u4e2d", std::string(5000, 'x'), "scales,centres", "null", "1e999"};
+  switch (std::uniform_int_distribution<int>(0, depth > 1 ? 6 : 8)(rng)) {
+    case 0: return nullptr;
+    case 1: return std::uniform_int_distribution<int>(0, 1)(rng) == 1;
+    case 2: {
+      static const std::vector<std::int64_t> kInts = {0, 1, 2, 3, 5, -1, -3, 7, 600, 601, 100000,
+                                                      INT32_MAX, INT64_MAX, INT64_MIN};
+      return kInts[std::uniform_int_distribution<std::size_t>(0, kInts.size() - 1)(rng)];
+    }
+    case 3: {
+      static const std::vector<double> kReals = {0.0, -0.0, 0.5, 1.7, 2.6, 1e-300, 1e308, -1e308,
+                                                 0.1, 100.5};
+      return kReals[std::uniform_int_distribution<std::size_t>(0, kReals.size() - 1)(rng)];
+    }
+    case 4:
+    case 5:
+    case 6: return kStrings[std::uniform_int_distribution<std::size_t>(0, kStrings.size() - 1)(rng)];
+    case 7: {
+      json a = json::array();
+      for (int i = std::uniform_int_distribution<int>(0, 3)(rng); i > 0; --i) a.push_back(RandomValue(rng, depth + 1));
+      return a;
+    }
+    default: {
+      json o = json::object();
+      for (int i = std::uniform_int_distribution<int>(0, 2)(rng); i > 0; --i) o["k" + std::to_string(i)] = RandomValue(rng, depth + 1);
+      return o;
+    }
+  }
+}
+
+TEST_F(DaemonSecurity, RandomRequestsAreEachAnsweredAndNeverAnInternalError) {
+  // Every documented method but shutdown, and some that do not exist; params with the keys the
+  // methods read (and others), each a random value.
+  std::vector<std::string> methods;
+  for (const std::string& m : DocumentedMethods())
+    if (m != "shutdown") methods.push_back(m);
+  methods.push_back("no.such");
+  methods.push_back("");
+  const std::vector<std::string> keys = {
+      "name", "height_m", "model", "version", "id", "kind", "format", "path", "inline", "subject",
+      "movement", "duration_s", "sim_amplitude", "sim_duration_scale", "seconds", "streams",
+      "decimation", "camera", "present", "max_iterations", "groups", "threads", "other"};
+  std::set<std::string> codes = {"parse_error", "invalid_request", "unknown_method", "invalid_params",
+                                 "forbidden", "not_found", "conflict", "busy", "unavailable",
+                                 "failed", "cancelled"};  // PROTOCOL.md's, but `internal`
+  std::mt19937 rng(17);
+  std::map<std::string, int> seen;
+  const int requests = 4000;
+  for (int i = 0; i < requests; ++i) {
+    const std::string method = methods[std::uniform_int_distribution<std::size_t>(0, methods.size() - 1)(rng)];
+    json params = json::object();
+    for (int k = std::uniform_int_distribution<int>(0, 4)(rng); k > 0; --k)
+      params[keys[std::uniform_int_distribution<std::size_t>(0, keys.size() - 1)(rng)]] = RandomValue(rng);
+    ControlReply r;
+    const Status s = root_->Call(method, params, &r);
+    ASSERT_TRUE(s.ok()) << "request " << i << " " << method << " " << params.dump().substr(0, 300)
+                        << ": no reply: " << s.message();
+    if (!r.ok()) {
+      EXPECT_TRUE(codes.count(r.error_code)) << method << " " << params.dump().substr(0, 300) << " -> "
+                                             << r.error_code << ": " << r.error_message;
+      EXPECT_FALSE(r.error_message.empty());
+    }
+    ++seen[r.ok() ? "ok" : r.error_code];
+    // A recording or a collection a random request started ends, so the next ones see the rig.
+    if (method == "record.start" || method == "rig.calibrate.start") {
+      ControlReply ignored;
+      (void)root_->Call("record.stop", json::object(), &ignored);
+      (void)root_->Call("rig.calibrate.cancel", json::object(), &ignored);
+    }
+  }
+  std::string summary;
+  for (const auto& [code, n] : seen) summary += code + " " + std::to_string(n) + ", ";
+  std::printf("%d random requests: %s\n", requests, summary.c_str());
+  EXPECT_GT(seen["ok"], 50);               // the generator reaches the methods' work...
+  EXPECT_GT(seen["invalid_params"], 200);  // ... and their checks
+  ASSERT_TRUE(daemon_->running());
+  EXPECT_EQ(MustCall(root_.get(), "status")["state"], "running");
 }
 
 }  // namespace
