@@ -4,6 +4,8 @@
 // would. No GoogleTest here: the benchmark uses it too.
 #pragma once
 #include <fcntl.h>
+#include <grp.h>
+#include <pwd.h>
 #include <signal.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
@@ -13,6 +15,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <memory>
 #include <string>
 #include <thread>
@@ -32,6 +35,33 @@ inline std::string MakeTempDir(const std::string& prefix) {
 inline std::string SimulatedRigToml(int cameras, int seed, const std::string& extra = "") {
   return "[rig]\nsimulated = " + std::to_string(cameras) + "\nsubject_seed = " +
          std::to_string(seed) + "\nrate = 200\n" + extra;
+}
+
+// Runs `body` in a child process as `user` (its group, no supplementary groups) and returns
+// what it returned, through a pipe: how a test is a client outside the control group. "setuid
+// failed" when the child could not become that user; "" when the user does not exist.
+inline std::string RunAsUser(const std::string& user, const std::function<std::string()>& body) {
+  const passwd* pw = getpwnam(user.c_str());
+  int pipefd[2];
+  if (!pw || pipe(pipefd) != 0) return "";
+  const uid_t uid = pw->pw_uid;
+  const gid_t gid = pw->pw_gid;
+  const pid_t child = fork();
+  if (child == 0) {
+    close(pipefd[0]);
+    const std::string out = setgroups(0, nullptr) == 0 && setgid(gid) == 0 && setuid(uid) == 0
+                                ? body()
+                                : std::string("setuid failed");
+    [[maybe_unused]] ssize_t n = write(pipefd[1], out.data(), out.size());
+    _exit(0);
+  }
+  close(pipefd[1]);
+  std::string got;
+  char buf[4096];
+  for (ssize_t n; (n = read(pipefd[0], buf, sizeof buf)) > 0;) got.append(buf, static_cast<std::size_t>(n));
+  close(pipefd[0]);
+  waitpid(child, nullptr, 0);
+  return got;
 }
 
 class DaemonProcess {

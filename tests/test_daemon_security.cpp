@@ -9,8 +9,6 @@
 //  - random requests (every method, random params of random types) dispatched into the real
 //    daemon: each is answered with a result or a documented error, never `internal` (a type the
 //    method's checks missed), and the daemon stays up (fuzz/fuzz_control.cpp fuzzes the framing).
-#include <grp.h>
-#include <pwd.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -155,44 +153,22 @@ TEST_F(DaemonSecurity, OutsideTheControlGroupNoMethodChangesState) {
   const json before = StateSnapshot(root_.get());
 
   // `nobody` sends every method, then an inline export (read-only); each reply as "method code".
-  const passwd* nobody = getpwnam("nobody");
-  ASSERT_NE(nobody, nullptr);
-  int pipefd[2];
-  ASSERT_EQ(pipe(pipefd), 0);
-  const pid_t child = fork();
-  if (child == 0) {
-    close(pipefd[0]);
-    std::string out;
-    if (setgroups(0, nullptr) != 0 || setgid(nobody->pw_gid) != 0 || setuid(nobody->pw_uid) != 0) {
-      out = "setuid failed\n";
-    } else {
-      std::unique_ptr<ControlClient> u;
-      daemon::ControlClientOptions o;
-      o.socket_path = daemon_->socket();
-      o.reply_timeout_ms = 20000;
-      if (!ControlClient::Connect(o, &u).ok()) {
-        out = "connect failed\n";
-      } else {
-        out += std::string("hello ") + (u->hello().may_control ? "control" : "read") + "\n";
-        auto send = [&](const std::string& name, const std::string& method, const json& p) {
-          ControlReply r;
-          const Status s = u->Call(method, p, &r);
-          out += name + " " + (!s ? "io" : r.ok() ? "ok" : r.error_code) + "\n";
-        };
-        for (const auto& [method, p] : params) send(method, method, p);
-        send("export.inline", "export",
-             {{"kind", "model"}, {"id", 1}, {"format", "json"}, {"inline", true}});
-      }
-    }
-    [[maybe_unused]] ssize_t n = write(pipefd[1], out.data(), out.size());
-    _exit(0);
-  }
-  close(pipefd[1]);
-  std::string got;
-  char buf[4096];
-  for (ssize_t n; (n = read(pipefd[0], buf, sizeof buf)) > 0;) got.append(buf, n);
-  close(pipefd[0]);
-  waitpid(child, nullptr, 0);
+  const std::string got = testing::RunAsUser("nobody", [&] {
+    std::unique_ptr<ControlClient> u;
+    daemon::ControlClientOptions o;
+    o.socket_path = daemon_->socket();
+    o.reply_timeout_ms = 20000;
+    if (!ControlClient::Connect(o, &u).ok()) return std::string("connect failed\n");
+    std::string out = std::string("hello ") + (u->hello().may_control ? "control" : "read") + "\n";
+    auto send = [&](const std::string& name, const std::string& method, const json& p) {
+      ControlReply r;
+      const Status s = u->Call(method, p, &r);
+      out += name + " " + (!s ? "io" : r.ok() ? "ok" : r.error_code) + "\n";
+    };
+    for (const auto& [method, p] : params) send(method, method, p);
+    send("export.inline", "export", {{"kind", "model"}, {"id", 1}, {"format", "json"}, {"inline", true}});
+    return out;
+  });
 
   std::map<std::string, std::string> code;
   std::istringstream lines(got);
