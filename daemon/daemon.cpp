@@ -650,6 +650,13 @@ Json Daemon::Status_() const {
   if (statvfs(config_.state_dir.c_str(), &vfs) == 0)
     free_bytes = static_cast<std::uint64_t>(vfs.f_bavail) * vfs.f_frsize;
   j["storage"] = {{"dir", config_.state_dir}, {"db_bytes", db}, {"free_bytes", free_bytes}};
+  if (recorder_) {
+    // What the recorder's commit deadline keeps in reserve (daemon/recorder.h): a disk whose
+    // WAL sync outgrows the 100 ms budget shows here before a power cut would show it.
+    j["storage"]["commit_ms_max"] = recorder_->slowest_recent_commit_ms();
+    j["storage"]["wal_sync_ms_max"] = recorder_->slowest_recent_sync_ms();
+    j["storage"]["wal_sync_failures"] = recorder_->sync_failures();
+  }
   j["clients"] = server_ ? server_->client_count() : 0;
   return j;
 }

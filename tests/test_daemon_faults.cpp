@@ -336,6 +336,13 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   EXPECT_GT(gaps[unplugged]["missing_frames"].get<int>(), 250) << gaps.dump();
   EXPECT_LT(gaps[unplugged]["missing_frames"].get<int>(), 200 * 4) << gaps.dump();
   EXPECT_NE(d.Log().find("MOCAPSIM3 missing from"), std::string::npos);
+  // The recorder's commits were each followed by a WAL sync of its own (power-cut durability,
+  // daemon/recorder.h), none failed.
+  const json storage = Call(c.get(), "status")["storage"];
+  std::printf("recorder: slowest recent commit %.2f ms, WAL sync %.2f ms\n",
+              storage["commit_ms_max"].get<double>(), storage["wal_sync_ms_max"].get<double>());
+  EXPECT_GT(storage["wal_sync_ms_max"].get<double>(), 0.0) << storage.dump();
+  EXPECT_EQ(storage["wal_sync_failures"], 0) << storage.dump();
   EXPECT_EQ(d.Stop(), 0) << d.Log();
 }
 
