@@ -98,27 +98,36 @@ void DetectionHealth::Observe(const reconstruction::DetectionSet& set,
       h.ring[static_cast<std::size_t>(h.next)] = static_cast<float>(error);
       h.next = (h.next + 1) % options_.window;
       h.filled = std::min(h.filled + 1, options_.window);
+      h.changed = true;
     }
   }
 }
 
 void DetectionHealth::ResetReprojection() {
   std::lock_guard<std::mutex> lock(mutex_);
-  for (PerCamera& c : cameras_) c.next = c.filled = 0;
+  for (PerCamera& c : cameras_) {
+    c.next = c.filled = 0;
+    c.median = 0;
+    c.changed = false;
+  }
 }
 
 std::vector<CameraHealth> DetectionHealth::Snapshot() const {
   std::lock_guard<std::mutex> lock(mutex_);
   std::vector<CameraHealth> out;
   out.reserve(cameras_.size());
-  for (const PerCamera& c : cameras_) {
+  for (PerCamera& c : cameras_) {
     CameraHealth h = c.counts;
     h.reprojection_samples = c.filled;
     if (c.filled >= options_.min_samples) {
-      sort_scratch_.assign(c.ring.begin(), c.ring.begin() + c.filled);
-      auto mid = sort_scratch_.begin() + c.filled / 2;
-      std::nth_element(sort_scratch_.begin(), mid, sort_scratch_.end());
-      h.reprojection_px = *mid;
+      if (c.changed) {
+        sort_scratch_.assign(c.ring.begin(), c.ring.begin() + c.filled);
+        auto mid = sort_scratch_.begin() + c.filled / 2;
+        std::nth_element(sort_scratch_.begin(), mid, sort_scratch_.end());
+        c.median = *mid;
+        c.changed = false;
+      }
+      h.reprojection_px = c.median;
       h.calibration_suspect = h.reprojection_px > options_.suspect_px;
     }
     out.push_back(h);

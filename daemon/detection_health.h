@@ -75,10 +75,13 @@ class DetectionHealth {
     std::vector<float> ring;  // the last `window` reprojection errors
     int next = 0;
     int filled = 0;
+    bool changed = false;  // since the median was last taken (a flood of status requests
+                           // must not sort the window each time)
+    double median = 0;
   };
   DetectionHealthOptions options_;
   mutable std::mutex mutex_;
-  std::vector<PerCamera> cameras_;
+  mutable std::vector<PerCamera> cameras_;  // Snapshot caches the medians
   std::uint64_t observed_ = 0;
   mutable std::vector<float> sort_scratch_;
 };
