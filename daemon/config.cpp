@@ -264,6 +264,10 @@ bool Validate(const DaemonConfig& c, const ErrorFormatter& fail, std::string* er
                                            std::to_string(c.socket_path.size()) +
                                            " bytes long; a Unix socket path holds at most " +
                                            std::to_string(kMaxSocketPath));
+  for (std::size_t i = 0; i < c.export_dirs.size(); ++i)
+    if (c.export_dirs[i].empty() || c.export_dirs[i][0] != '/')
+      return set_error("storage.export_dirs[" + std::to_string(i) + "]",
+                       "expected an absolute path, got \"" + c.export_dirs[i] + "\"");
   if (Status s = solver::FitOptions().SetGroups(c.fit_groups); !s)
     return set_error("fit.groups", s.message());
 
@@ -363,9 +367,14 @@ class Reader {
           MOCAP_RETURN_IF_ERROR(Cameras(value, config));
           continue;
         }
+        if (name == "storage" && key_name == "export_dirs") {
+          MOCAP_RETURN_IF_ERROR(PathList(value, "storage.export_dirs", &config->export_dirs));
+          continue;
+        }
         MOCAP_RETURN_IF_ERROR(
             Value(DaemonFields(), name, name + "." + key_name, key_name, value, config,
-                  name == "rig" ? "camera ([[rig.camera]])" : nullptr));
+                  name == "rig" ? "camera ([[rig.camera]])"
+                                : name == "storage" ? "export_dirs" : nullptr));
       }
     }
     return Status::Ok();
@@ -434,6 +443,23 @@ class Reader {
       if (camera.id.empty())
         return Error(table, prefix + ".id", "missing: each camera needs its GenICam id or serial");
       config->cameras.push_back(std::move(camera));
+    }
+    return Status::Ok();
+  }
+
+  // An array of paths, each resolved against the file's directory as a single path key is.
+  Status PathList(const toml::node& node, const std::string& key, std::vector<std::string>* out) {
+    const toml::array* array = node.as_array();
+    if (!array) return Error(node, key, "expected an array of paths, got " + Shown(node));
+    (*lines_)[key] = LineOf(node);
+    out->clear();
+    for (std::size_t i = 0; i < array->size(); ++i) {
+      const toml::node& item = (*array)[i];
+      const auto* s = item.as_string();
+      const std::string item_key = key + "[" + std::to_string(i) + "]";
+      if (!s) return Error(item, item_key, "expected a path (a string), got " + Shown(item));
+      if (s->get().empty()) return Error(item, item_key, "must not be empty");
+      out->push_back((base_dir_ / fs::path(s->get())).lexically_normal().string());
     }
     return Status::Ok();
   }
@@ -510,6 +536,8 @@ std::vector<ConfigChange> DiffConfig(const DaemonConfig& a, const DaemonConfig& 
                                                               : a.*(f.text) != b.*(f.text);
     if (differs) changes.push_back({f.Name(), !f.live});
   }
+  // The next export checks its path against them.
+  if (a.export_dirs != b.export_dirs) changes.push_back({"storage.export_dirs", false});
   if (a.cameras != b.cameras) changes.push_back({"rig.camera", true});
   return changes;
 }

@@ -23,6 +23,8 @@
 //   exposure_us = 0             # 0: the rig's; gain_db = -1: the rig's; detection_threshold = 0: the rig's
 //   masks = [ { x = 0, y = 900, width = 1280, height = 124 } ]   # pixels never detected (reflections)
 //   [storage]   state_dir = "/var/lib/mocapd"
+//               export_dirs = ["/srv/mocap/exports"]   # where `export` may write (default:
+//                                                      # state_dir/exports; daemon/export_path.h)
 //   [control]   socket = "/run/mocapd/control.sock", group = "mocap", max_clients = 64,
 //               max_line_bytes = 1048576, subscriber_queue_frames = 400, max_pending_requests = 64
 //   [protocol]  file = "protocol.json"          # absent: the built-in protocol
@@ -46,7 +48,8 @@
 //
 // Reload (SIGHUP, config.reload): the new file is parsed and validated completely before
 // anything changes; DiffConfig says what changed and which of those changes can be applied to
-// the running daemon (limits, the control group, the protocol, fit defaults) and which need a
+// the running daemon (limits, the control group, the export directories, the protocol, fit
+// defaults) and which need a
 // restart (the rig, the storage directory, the socket).
 #pragma once
 #include <cstddef>
@@ -94,6 +97,12 @@ struct DaemonConfig {
 
   // [storage]
   std::string state_dir = "/var/lib/mocapd";
+  // The directories `export` may write beneath (absolute). Empty: state_dir/exports only, so a
+  // client cannot have the daemon's user write anywhere it was not told to (daemon/export_path.h).
+  std::vector<std::string> export_dirs;
+  std::vector<std::string> AllowedExportDirs() const {
+    return export_dirs.empty() ? std::vector<std::string>{state_dir + "/exports"} : export_dirs;
+  }
 
   // [control]
   std::string socket_path = "/run/mocapd/control.sock";

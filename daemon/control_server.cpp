@@ -326,25 +326,25 @@ void ControlServer::HandleLine(Client* c, std::string_view line) {
   try {
     request = nlohmann::json::parse(line.begin(), line.end());
   } catch (const nlohmann::json::parse_error& e) {
-    ReplyError(c->id, nullptr, error_code::kParseError, std::string("not JSON: ") + e.what());
+    EnvelopeError(c, nullptr, error_code::kParseError, std::string("not JSON: ") + e.what());
     return;
   }
   const nlohmann::json id = UsableId(request);
   if (!request.is_object()) {
-    ReplyError(c->id, nullptr, error_code::kInvalidRequest, "a request is a JSON object");
+    EnvelopeError(c, nullptr, error_code::kInvalidRequest, "a request is a JSON object");
     return;
   }
   if (!request.contains("id")) {
-    ReplyError(c->id, nullptr, error_code::kInvalidRequest, "id: missing");
+    EnvelopeError(c, nullptr, error_code::kInvalidRequest, "id: missing");
     return;
   }
   if (id.is_null()) {
-    ReplyError(c->id, nullptr, error_code::kInvalidRequest, "id: expected a number or a string");
+    EnvelopeError(c, nullptr, error_code::kInvalidRequest, "id: expected a number or a string");
     return;
   }
   auto m = request.find("method");
   if (m == request.end() || !m->is_string()) {
-    ReplyError(c->id, id, error_code::kInvalidRequest,
+    EnvelopeError(c, id, error_code::kInvalidRequest,
                m == request.end() ? "method: missing" : "method: expected a string");
     return;
   }
@@ -352,14 +352,14 @@ void ControlServer::HandleLine(Client* c, std::string_view line) {
   if (auto p = request.find("params"); p != request.end()) {
     if (p->is_null()) {
     } else if (!p->is_object()) {
-      ReplyError(c->id, id, error_code::kInvalidRequest, "params: expected an object");
+      EnvelopeError(c, id, error_code::kInvalidRequest, "params: expected an object");
       return;
     } else {
       params = *p;
     }
   }
   if (c->pending >= options_.max_pending) {
-    ReplyError(c->id, id, error_code::kBusy,
+    EnvelopeError(c, id, error_code::kBusy,
                "too many requests pending on this connection (" +
                    std::to_string(options_.max_pending) + "); wait for their replies");
     return;
@@ -382,8 +382,14 @@ void ControlServer::ReplyError(std::uint64_t client, const nlohmann::json& id,
   auto it = clients_.find(client);
   if (it == clients_.end()) return;
   Client* c = it->second.get();
-  // Envelope errors are answered before a request is counted as pending.
-  if (!id.is_null() && c->pending > 0) --c->pending;
+  if (c->pending > 0) --c->pending;
+  Queue(c, Dump({{"id", id}, {"error", {{"code", code}, {"message", message}}}}));
+}
+
+void ControlServer::EnvelopeError(Client* c, const nlohmann::json& id, const std::string& code,
+                                  const std::string& message) {
+  // Not counted as pending, so not uncounted: a `busy` (or a bad envelope) must not free a slot
+  // of the requests still running, or a flood would get past max_pending.
   Queue(c, Dump({{"id", id}, {"error", {{"code", code}, {"message", message}}}}));
 }
 

@@ -130,6 +130,10 @@ class ControlServer {
   void Accept();
   void ReadFrom(Client* c);
   void HandleLine(Client* c, std::string_view line);
+  // An error answered by the server itself (parse, envelope, busy): the request never reached the
+  // handler, so it is not one of the client's pending ones.
+  void EnvelopeError(Client* c, const nlohmann::json& id, const std::string& code,
+                     const std::string& message);
   void LineTooLong(Client* c);  // error, then close once it is sent
   void Queue(Client* c, const std::string& line);
   void Flush(Client* c);

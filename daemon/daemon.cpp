@@ -17,6 +17,7 @@
 #include <fstream>
 #include <limits>
 
+#include "daemon/export_path.h"
 #include "daemon/recorder.h"
 #include "daemon/recording_export.h"
 #include "drivers/aravis_camera.h"
@@ -194,6 +195,9 @@ Status Daemon::Start() {
     std::unique_ptr<Store> store;
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &store));
     store_ = std::move(store);
+    // The default export directory (daemon/export_path.h); a failure shows at the first export.
+    std::error_code ec;
+    fs::create_directories(config_.state_dir + "/exports", ec);
   }
 
   // 4. The cameras.
@@ -295,10 +299,12 @@ Status Daemon::Start() {
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &checkpointer, so));
     so.wal_autocheckpoint_pages = 0;  // the checkpointer's thread does it (daemon/store.h)
     MOCAP_RETURN_IF_ERROR(Store::Open(config_.state_dir, &store, so));
-    // Chunks of 80 ms: a frame reaches the recorder a few ms after its exposure, so a crash loses
-    // at most the last 100 ms of the recording (tests/test_daemon_faults.cpp measures it).
+    // Each chunk committed within 100 ms of its oldest frame's last image reaching the host and
+    // the WAL synced after it on a thread of the recorder's (daemon/recorder.h, store.h "Crashes
+    // and power cuts"): a crash loses at most the last 100 ms of the recording
+    // (tests/test_daemon_faults.cpp measures it), a power cut as much where fsync keeps up.
     recorder_ = std::make_unique<Recorder>(pipeline_.get(), std::move(store),
-                                           std::move(checkpointer), /*chunk_ms=*/80);
+                                           std::move(checkpointer), /*loss_budget_ms=*/100);
     recorder_->Start();
   }
 
@@ -505,7 +511,10 @@ void Daemon::OnRequest(const ClientInfo& client, const Json& id, const std::stri
   }
   bool needs_control = it->second.control;
   // Exporting back over the socket only reads.
-  if (method == "export" && params.value("inline", false) == true) needs_control = false;
+  // (Compared as JSON: `params.value("inline", false)` threw on a non-boolean "inline", outside
+  // the try below, and any client could stop the daemon with one line.)
+  if (method == "export" && params.contains("inline") && params["inline"] == true)
+    needs_control = false;
   if (needs_control && !client.may_control) {
     Fail(r, error_code::kForbidden,
          method + " changes state: it needs root or membership of group '" +
@@ -534,9 +543,11 @@ Json Daemon::CamerasJson() const {
   Json cams = Json::array();
   if (!pipeline_) return {{"cameras", cams}};
   const double up = std::max(1e-3, SecondsSince(started_ns_));
+  const std::vector<CameraHealth> health = pipeline_->DetectionHealthSnapshot();
   for (int c = 0; c < pipeline_->num_cameras(); ++c) {
     drivers::CameraSource& cam = pipeline_->camera(c);
     const auto& k = cam.Counters();
+    const CameraHealth& h = health[static_cast<std::size_t>(c)];
     cams.push_back({{"id", cam.id()},
                     {"connected", cam.State() == drivers::CameraState::kStreaming},
                     {"frames", k.complete.load()},
@@ -544,6 +555,11 @@ Json Daemon::CamerasJson() const {
                     {"incomplete", k.missing_packets.load() + k.size_mismatches.load()},
                     {"dropped", k.underruns.load()},
                     {"losses", k.losses.load()},
+                    {"nonfinite_centroids", h.nonfinite_centroids},
+                    {"overfull_sets", h.overfull_sets},
+                    {"reprojection_px", h.reprojection_samples > 0 && h.reprojection_px > 0
+                                            ? Json(h.reprojection_px) : Json()},
+                    {"calibration_suspect", h.calibration_suspect},
                     {"width", config_.width},
                     {"height", config_.height}});
   }
@@ -566,6 +582,19 @@ Json Daemon::Status_() const {
   }
   j["rig"] = rig;
   j["cameras"] = CamerasJson()["cameras"];
+  {
+    // Bad data, summed over the cameras; the cameras whose calibration looks off, by id.
+    Json suspect = Json::array();
+    std::uint64_t nonfinite = 0, overfull = 0;
+    for (const Json& cam : j["cameras"]) {
+      nonfinite += cam.value("nonfinite_centroids", std::uint64_t{0});
+      overfull += cam.value("overfull_sets", std::uint64_t{0});
+      if (cam.value("calibration_suspect", false)) suspect.push_back(cam["id"]);
+    }
+    j["health"] = {{"nonfinite_centroids", nonfinite},
+                   {"overfull_sets", overfull},
+                   {"calibration_suspect", suspect}};
+  }
   if (pipeline_) {
     // The timing percentiles cost milliseconds: at most once a second, however many clients ask
     // (a flood of status requests must not hold the loop off the frames).
@@ -621,6 +650,13 @@ Json Daemon::Status_() const {
   if (statvfs(config_.state_dir.c_str(), &vfs) == 0)
     free_bytes = static_cast<std::uint64_t>(vfs.f_bavail) * vfs.f_frsize;
   j["storage"] = {{"dir", config_.state_dir}, {"db_bytes", db}, {"free_bytes", free_bytes}};
+  if (recorder_) {
+    // What the recorder's commit deadline keeps in reserve (daemon/recorder.h): a disk whose
+    // WAL sync outgrows the 100 ms budget shows here before a power cut would show it.
+    j["storage"]["commit_ms_max"] = recorder_->slowest_recent_commit_ms();
+    j["storage"]["wal_sync_ms_max"] = recorder_->slowest_recent_sync_ms();
+    j["storage"]["wal_sync_failures"] = recorder_->sync_failures();
+  }
   j["clients"] = server_ ? server_->client_count() : 0;
   return j;
 }
@@ -640,6 +676,7 @@ void Daemon::ConfigReload(const Request& r) {
   // Command-line overrides stay in force.
   fresh.state_dir = config_.state_dir;
   fresh.socket_path = config_.socket_path;
+  if (!options_.export_dirs.empty()) fresh.export_dirs = options_.export_dirs;
   Json applied = Json::array(), restart = Json::array();
   for (const ConfigChange& c : DiffConfig(config_, fresh)) {
     (c.needs_restart ? restart : applied).push_back(c.key);
@@ -667,6 +704,7 @@ void Daemon::ConfigReload(const Request& r) {
   config_.fit_max_iterations = fresh.fit_max_iterations;
   config_.fit_groups = fresh.fit_groups;
   config_.fit_coarse_frames = fresh.fit_coarse_frames;
+  config_.export_dirs = fresh.export_dirs;
   server_->SetLimits(fresh.max_clients, fresh.max_line_bytes, fresh.max_pending_requests);
   server_->SetControlGroup(fresh.control_group);
   spdlog::info("config reloaded from {}: {} applied, {} need a restart", options_.config_path,
@@ -1439,10 +1477,32 @@ void Daemon::Export(const Request& r) {
     return Fail(r, error_code::kInvalidParams, p.error);
   if (inline_ == !path.empty())
     return Fail(r, error_code::kInvalidParams, "give one of params.path or params.inline: true");
-  if (!path.empty() && (path.empty() || path[0] != '/'))
+  if (!path.empty() && path[0] != '/')
     return Fail(r, error_code::kInvalidParams, "params.path: an absolute path, got '" + path + "'");
+  // The format names the staging file: only the formats some kind exports (each kind checks its
+  // own below).
+  static const std::set<std::string> kFormats = {"c3d", "trc", "mot", "json", "osim", "html"};
+  if (!kFormats.count(format))
+    return Fail(r, error_code::kInvalidParams,
+                "params.format: one of c3d, trc, mot, json, osim, html, got '" + format + "'");
+  // A path is checked (and opened, not truncated) before any work: a path outside the allowed
+  // directories is refused at once (daemon/export_path.h). The export is written to a staging
+  // file in the state directory and copied into the path only once it succeeded.
+  ExportFile out;
+  if (!inline_) {
+    if (Status open = OpenExportFile(path, config_.AllowedExportDirs(), config_.state_dir, &out); !open) {
+      spdlog::warn("export refused for uid {}: {}", r.client.uid, open.message());
+      return Fail(r, out.forbidden ? error_code::kForbidden : error_code::kFailed, open.message());
+    }
+  }
+  struct CloseOnReturn {
+    int fd;
+    ~CloseOnReturn() {
+      if (fd >= 0) close(fd);
+    }
+  } close_out{out.fd};
   const std::string target =
-      inline_ ? config_.state_dir + "/.export-" + std::to_string(r.client.id) + "." + format : path;
+      config_.state_dir + "/.export-" + std::to_string(r.client.id) + "." + format;
   Status s;
   if (kind == "recording") {
     RecordingInfo info;
@@ -1522,12 +1582,18 @@ void Daemon::Export(const Request& r) {
     return Fail(r, error_code::kInvalidParams,
                 "params.kind: recording, model or report, got '" + kind + "'");
   }
-  if (!s) return Fail(r, error_code::kFailed, s.message());
   std::error_code ec;
+  if (!s) {
+    fs::remove(target, ec);
+    return Fail(r, error_code::kFailed, s.message());
+  }
   const auto bytes = fs::file_size(target, ec);
   if (!inline_) {
-    spdlog::info("exported {} {} as {} to {}", kind, id, format, target);
-    return server_->Reply(r.client.id, r.id, {{"path", target}, {"bytes", bytes}});
+    s = CopyIntoExportFile(target, out.fd, out.path);
+    fs::remove(target, ec);
+    if (!s) return Fail(r, error_code::kFailed, s.message());
+    spdlog::info("exported {} {} as {} to {}", kind, id, format, out.path);
+    return server_->Reply(r.client.id, r.id, {{"path", out.path}, {"bytes", bytes}});
   }
   std::string content;
   s = formats::detail::ReadWholeFile(target, &content);

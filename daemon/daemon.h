@@ -7,7 +7,7 @@
 //     the live pipeline's bounded queue, woken by an eventfd; work done elsewhere comes back as a
 //     task posted to the loop (PostToLoop), also through an eventfd.
 //   - the pipeline (daemon/live_pipeline.h), which knows nothing of clients, and its recorder
-//     thread (frames to SQLite in chunks of <= 100 ms, daemon/recorder.h);
+//     thread (frames to SQLite, each committed and fsynced within 100 ms, daemon/recorder.h);
 //   - workers for long jobs (rig calibration, the fit) that report progress through the loop and
 //     can be cancelled; a job's result becomes state only when the loop applies it.
 //
@@ -56,6 +56,8 @@ class Recorder;
 struct DaemonOptions {
   std::string config_path;  // for config.reload / SIGHUP
   int listen_fd = -1;       // socket activation: a listening socket from systemd
+  // mocapd --export-dir: overrides [storage] export_dirs, at start and at every reload.
+  std::vector<std::string> export_dirs;
   std::string version = "0.1.0";
   // systemd's notifications (daemon/service_notify.h), fed by the loop's tick; null: none.
   ServiceNotifier* notifier = nullptr;

@@ -23,6 +23,7 @@ bool LivePipelineOptions::IsValid(std::string* error) const {
   if (wand_subsample < 1) return fail("wand_subsample must be >= 1");
   if (max_wand_frames < 1) return fail("max_wand_frames must be >= 1");
   if (!(exposure_us >= 0)) return fail("exposure_us must be >= 0");
+  if (std::string e; !health.IsValid(&e)) return fail("health: " + e);
   return true;
 }
 
@@ -32,12 +33,14 @@ LivePipeline::LivePipeline(std::vector<std::unique_ptr<drivers::CameraSource>> c
       wake_(std::move(wake)),
       loop_queue_(static_cast<std::size_t>(std::max(1, options_.loop_queue_capacity))),
       recorder_queue_(static_cast<std::size_t>(std::max(1, options_.recorder_queue_capacity))) {
+  health_ = std::make_unique<DetectionHealth>(static_cast<int>(cameras.size()), options_.health);
   auto workspace = std::make_shared<reconstruction::TriangulationWorkspace>();
   auto buffer = std::make_shared<std::vector<reconstruction::TriangulatedPoint>>();
+  auto scratch = std::make_shared<reconstruction::DetectionSet>();
   // Runs on the sync thread, once per set: the calibration in force is whatever pointer it
   // loads here, so a new calibration takes effect between two sets.
-  TriangulateFn triangulate = [this, workspace, buffer](const reconstruction::DetectionSet& set,
-                                                        PointFrame* out) {
+  TriangulateFn triangulate = [this, workspace, buffer, scratch](
+                                  const reconstruction::DetectionSet& set, PointFrame* out) {
     std::shared_ptr<reconstruction::Triangulator> t;
     {
       std::lock_guard<std::mutex> lock(triangulator_mutex_);
@@ -47,7 +50,10 @@ LivePipeline::LivePipeline(std::vector<std::unique_ptr<drivers::CameraSource>> c
     out->residual_px.clear();
     out->camera_count.clear();
     if (!t) return Status::Ok();  // uncalibrated: 2D detections only
-    MOCAP_RETURN_IF_ERROR(t->Triangulate(set, workspace.get(), buffer.get()));
+    // Without the non-finite centroids and the cameras flooded with blobs (counted).
+    const reconstruction::DetectionSet& clean = health_->Sanitize(set, scratch.get());
+    MOCAP_RETURN_IF_ERROR(t->Triangulate(clean, workspace.get(), buffer.get()));
+    health_->Observe(clean, *buffer, t->rig());
     for (const auto& p : *buffer) {
       out->points.push_back(p.position);
       out->residual_px.push_back(static_cast<float>(p.residual_px));
@@ -103,6 +109,7 @@ Status LivePipeline::SetCalibration(const std::vector<reconstruction::CameraMode
   std::shared_ptr<reconstruction::Triangulator> shared(std::move(t));
   std::lock_guard<std::mutex> lock(triangulator_mutex_);
   triangulator_ = std::move(shared);
+  health_->ResetReprojection();  // the errors of the old calibration say nothing of the new
   return Status::Ok();
 }
 

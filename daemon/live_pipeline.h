@@ -16,7 +16,7 @@
 //
 // Why a recorder queue separate from the loop's: the loop may be busy (a client's 1 MB request,
 // a burst of replies) and is allowed to lose frames for the live stream; a recording is not. The
-// recorder (daemon/recorder.h) drains its own queue and commits every <= 100 ms.
+// recorder (daemon/recorder.h) drains its own queue and commits each frame within 100 ms.
 #pragma once
 #include <atomic>
 #include <condition_variable>
@@ -32,6 +32,7 @@
 
 #include "daemon/bounded_queue.h"
 #include "daemon/capture_pipeline.h"
+#include "daemon/detection_health.h"
 #include "ekf/tracker.h"
 #include "model/model.h"
 #include "model/status.h"
@@ -66,10 +67,11 @@ struct LivePipelineOptions {
   CapturePipelineOptions capture;
   ekf::TrackerOptions tracker;
   int loop_queue_capacity = 64;       // frames waiting for the event loop (320 ms at 200 Hz)
-  int recorder_queue_capacity = 2000; // 10 s at 200 Hz: the recorder commits every 100 ms
+  int recorder_queue_capacity = 2000; // 10 s at 200 Hz: the recorder commits within 100 ms
   int wand_subsample = 4;             // keep every n-th set while collecting wand frames
   int max_wand_frames = 4000;
   double exposure_us = 500;           // t_mid = set time + exposure / 2
+  DetectionHealthOptions health;      // bad data at the triangulation stage
   bool IsValid(std::string* error) const;
 };
 
@@ -134,6 +136,9 @@ class LivePipeline {
   // timings = false: the counters only (cheap; see CapturePipeline::Stats).
   LivePipelineStats Stats(bool timings = true) const;
   int num_cameras() const { return capture_ ? capture_->num_cameras() : 0; }
+  // Bad data per camera (daemon/detection_health.h): non-finite centroids dropped, sets sat out
+  // for too many blobs, the reprojection error against the others and whether it is suspect.
+  std::vector<CameraHealth> DetectionHealthSnapshot() const { return health_->Snapshot(); }
   drivers::CameraSource& camera(int c) { return capture_->camera(c); }
   // Camera image size, for the coverage grid.
   void SetImageSize(int width, int height) { width_ = width; height_ = height; }
@@ -153,6 +158,8 @@ class LivePipeline {
   std::thread track_thread_;
 
   // Triangulation: the sync thread loads it per set.
+  // Before the capture pipeline: its sync thread uses it from the first set on.
+  std::unique_ptr<DetectionHealth> health_;
   mutable std::mutex triangulator_mutex_;
   std::shared_ptr<reconstruction::Triangulator> triangulator_;
 

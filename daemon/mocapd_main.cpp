@@ -1,5 +1,6 @@
 // mocapd: the motion-capture daemon (daemon/daemon.h). Usage:
-//   mocapd [--config /etc/mocapd/mocapd.toml] [--state-dir DIR] [--socket PATH] [--check-config]
+//   mocapd [--config /etc/mocapd/mocapd.toml] [--state-dir DIR] [--socket PATH]
+//          [--export-dir DIR ...] [--check-config]
 // Logs to stderr with syslog priority prefixes ("<6>...") so that journald files each line at its
 // level; run by hand on a terminal, the lines are plain. Under systemd (mocapd.service,
 // Type=notify) it reports readiness, status and health through sd_notify
@@ -17,7 +18,9 @@
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
 #include <memory>
+#include <vector>
 #include <string>
 #include <thread>
 
@@ -97,6 +100,9 @@ int main(int argc, char** argv) {
   app.add_option("--config", config_path, "configuration file (TOML)")->capture_default_str();
   app.add_option("--state-dir", state_dir, "storage directory (overrides [storage] dir)");
   app.add_option("--socket", socket_path, "control socket path (overrides [control] socket)");
+  std::vector<std::string> export_dirs;
+  app.add_option("--export-dir", export_dirs,
+                 "a directory `export` may write beneath (repeatable; overrides [storage] export_dirs)");
   app.add_flag("--check-config", check, "validate the configuration and exit");
   app.set_version_flag("--version", "mocapd 0.1.0");
   CLI11_PARSE(app, argc, argv);
@@ -111,6 +117,8 @@ int main(int argc, char** argv) {
   }
   if (!state_dir.empty()) config.state_dir = state_dir;
   if (!socket_path.empty()) config.socket_path = socket_path;
+  for (std::string& d : export_dirs) d = std::filesystem::absolute(d).lexically_normal().string();
+  if (!export_dirs.empty()) config.export_dirs = export_dirs;
   std::string error;
   if (!config.IsValid(&error)) {
     spdlog::error("{}: {}", config_path, error);
@@ -128,6 +136,7 @@ int main(int argc, char** argv) {
 
   md::DaemonOptions options;
   options.config_path = config_path;
+  options.export_dirs = export_dirs;
   // Socket activation: systemd hands over the listening control socket (mocapd.socket).
   const int fds = sd_listen_fds(1);
   if (fds == 1) options.listen_fd = SD_LISTEN_FDS_START;

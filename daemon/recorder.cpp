@@ -1,8 +1,21 @@
 #include "daemon/recorder.h"
 
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <algorithm>
 #include <chrono>
+#include <iterator>
+
+#include "drivers/frame.h"
 
 namespace mocap::daemon {
+namespace {
+
+constexpr double kPollMs = 10;  // how long the recorder waits for a frame before it looks again
+constexpr double kMinWaitMs = 20;  // the smallest chunk, in time (4 frames at 200 Hz)
+
+}  // namespace
 
 RecordedFrame ToRecordedFrame(const LiveFrame& f) {
   RecordedFrame r;
@@ -19,11 +32,11 @@ RecordedFrame ToRecordedFrame(const LiveFrame& f) {
 }
 
 Recorder::Recorder(LivePipeline* pipeline, std::unique_ptr<Store> store,
-                   std::unique_ptr<Store> checkpointer, int chunk_ms, double checkpoint_s)
+                   std::unique_ptr<Store> checkpointer, int loss_budget_ms, double checkpoint_s)
     : pipeline_(pipeline),
       store_(std::move(store)),
       checkpointer_(std::move(checkpointer)),
-      chunk_ms_(chunk_ms),
+      loss_budget_ms_(loss_budget_ms),
       checkpoint_s_(checkpoint_s) {}
 
 Recorder::~Recorder() { Stop(); }
@@ -31,6 +44,7 @@ Recorder::~Recorder() { Stop(); }
 void Recorder::Start() {
   running_ = true;
   thread_ = std::thread([this] { Loop(); });
+  sync_thread_ = std::thread([this] { SyncLoop(); });
   if (checkpointer_) {
     checkpoint_thread_ = std::thread([this] {
       NameThisThread("checkpoint");
@@ -52,6 +66,11 @@ void Recorder::Stop() {
   }
   stop_cv_.notify_all();
   if (thread_.joinable()) thread_.join();
+  {
+    std::lock_guard<std::mutex> lock(sync_mutex_);  // so the syncer cannot miss the wake-up
+  }
+  sync_cv_.notify_all();
+  if (sync_thread_.joinable()) sync_thread_.join();
   if (checkpoint_thread_.joinable()) checkpoint_thread_.join();
   if (checkpointer_) checkpointer_->Checkpoint();
 }
@@ -81,25 +100,70 @@ void Recorder::End() {
   if (recording_ != 0) ending_ = true;
 }
 
-Status Recorder::Commit() {
-  if (chunk_.empty() || recording_ == 0) return Status::Ok();
-  Status s = store_->AppendFrames(recording_, chunk_);
-  if (s) frames_ += static_cast<std::int64_t>(chunk_.size());
-  chunk_.clear();
+Status Recorder::Commit(std::unique_lock<std::mutex>& lock) {
+  oldest_host_ns_ = 0;
+  if (chunk_.empty() || recording_ == 0) {
+    chunk_.clear();
+    return Status::Ok();
+  }
+  std::vector<RecordedFrame> frames;
+  frames.swap(chunk_);
+  const std::int64_t id = recording_;  // Begin() only comes after this recording's `done`
+  lock.unlock();
+  const auto t0 = std::chrono::steady_clock::now();
+  Status s = store_->AppendFrames(id, frames);
+  const double ms =
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  lock.lock();
+  commit_ms_[commit_index_++ % 32] = ms;
+  slowest_commit_ms_ = *std::max_element(std::begin(commit_ms_), std::end(commit_ms_));
+  if (s) frames_ += static_cast<std::int64_t>(frames.size());
+  {
+    std::lock_guard<std::mutex> sync_lock(sync_mutex_);
+    ++commits_;
+  }
+  sync_cv_.notify_one();
   return s;
+}
+
+void Recorder::SyncLoop() {
+  NameThisThread("wal-sync");
+  // Any descriptor of the WAL file syncs its data (fdatasync works on the file, not the
+  // descriptor); SQLite keeps the same file while a connection is open (a checkpoint restarts it
+  // from its start, it does not replace it).
+  const std::string wal = store_ ? store_->path() + "-wal" : std::string();
+  int fd = -1;
+  std::unique_lock<std::mutex> lock(sync_mutex_);
+  for (;;) {
+    sync_cv_.wait(lock, [this] { return commits_ > synced_ || !running_.load(); });
+    if (commits_ == synced_) break;  // stopping, nothing left to sync
+    const std::uint64_t target = commits_;
+    lock.unlock();
+    if (fd < 0 && !wal.empty()) fd = open(wal.c_str(), O_RDONLY | O_CLOEXEC);
+    const auto t0 = std::chrono::steady_clock::now();
+    const bool ok = fd >= 0 && fdatasync(fd) == 0;
+    const double ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    if (!ok) ++sync_failures_;  // the next commit tries again; the checkpoints sync too
+    sync_ms_[sync_index_++ % 32] = ms;
+    slowest_sync_ms_ = *std::max_element(std::begin(sync_ms_), std::end(sync_ms_));
+    lock.lock();
+    synced_ = target;
+  }
+  if (fd >= 0) close(fd);
 }
 
 void Recorder::Loop() {
   NameThisThread("recorder");
-  auto last_commit = std::chrono::steady_clock::now();
   int idle_polls = 0;
   for (;;) {
     LiveFrame f;
-    const bool got = pipeline_->PopRecorded(&f, 10);
+    const bool got = pipeline_->PopRecorded(&f, static_cast<int>(kPollMs));
     std::unique_lock<std::mutex> lock(mutex_);
     if (got) {
       idle_polls = 0;
       if (recording_ != 0 && error_) {
+        if (chunk_.empty()) oldest_host_ns_ = f.last_host_ns ? f.last_host_ns : drivers::MonotonicNs();
         chunk_.push_back(ToRecordedFrame(f));
         if (static_cast<int>(gaps_.size()) < f.num_cameras) {
           gaps_.resize(f.num_cameras);
@@ -120,18 +184,20 @@ void Recorder::Loop() {
     } else {
       ++idle_polls;
     }
-    const auto now = std::chrono::steady_clock::now();
-    const bool due =
-        std::chrono::duration<double, std::milli>(now - last_commit).count() >= chunk_ms_;
+    // Due once the oldest frame waiting has used the budget but a poll, the slowest recent
+    // commit and two of the slowest recent syncs (recorder.h); never more often than kMinWaitMs.
+    const double oldest_ms =
+        oldest_host_ns_ ? (static_cast<double>(drivers::MonotonicNs()) - static_cast<double>(oldest_host_ns_)) / 1e6
+                        : 0;
+    const double wait_ms = std::max(kMinWaitMs, loss_budget_ms_ - kPollMs - slowest_commit_ms_.load() -
+                                                    2 * slowest_sync_ms_.load());
+    const bool due = !chunk_.empty() && oldest_ms >= wait_ms;
     // The last frames of a recording: the pipeline's flag is off, so once the queue has been
     // empty for two polls (20 ms) nothing more is coming for it.
     const bool finishing = ending_ && !got && idle_polls >= 2;
-    if ((due || finishing) && error_) {
-      error_ = Commit();
-      last_commit = now;
-    }
+    if ((due || finishing) && error_) error_ = Commit(lock);
     if (recording_ != 0 && (finishing || !error_ || !running_)) {
-      if (error_) error_ = Commit();
+      if (error_) error_ = Commit(lock);
       DoneFn done = std::move(done_);
       const std::int64_t id = recording_;
       const Status status = error_;

@@ -40,6 +40,12 @@ std::string StatusLine(const ServiceSnapshot& s, bool gave_up_waiting) {
       line += (i ? ", " : "") + s.missing_cameras[i];
     line += ")";
   }
+  if (!s.suspect_calibration.empty()) {
+    line += " (calibration off: ";
+    for (std::size_t i = 0; i < s.suspect_calibration.size(); ++i)
+      line += (i ? ", " : "") + s.suspect_calibration[i];
+    line += ")";
+  }
   std::string activity;
   if (!s.subject.empty()) {
     activity = "tracking subject " + s.subject +
@@ -148,6 +154,9 @@ ServiceSnapshot PipelineSnapshot(LivePipeline& pipeline, const DaemonConfig& con
     if (cam.State() == drivers::CameraState::kStreaming) ++s.progress.cameras_streaming;
     else s.missing_cameras.push_back(cam.id());
   }
+  const std::vector<CameraHealth> health = pipeline.DetectionHealthSnapshot();
+  for (int c = 0; c < s.cameras && c < static_cast<int>(health.size()); ++c)
+    if (health[c].calibration_suspect) s.suspect_calibration.push_back(pipeline.camera(c).id());
   s.rate_hz = config.rate_hz;
   s.simulated = config.simulated_cameras > 0;
   s.rig_live = st.capture.recording;

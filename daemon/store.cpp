@@ -622,12 +622,12 @@ Status Store::Open(const std::string& state_dir, std::unique_ptr<Store>* out,
                            (row ? q.Text(0) : std::string()) + "')");
     }
   }
-  // synchronous=NORMAL: in WAL mode a commit is durable against a crash of the PROCESS at once
-  // (the WAL write reached the OS before COMMIT returned), and against a power cut up to the last
-  // WAL sync (at each checkpoint). FULL would fsync on every commit, ten a second while
-  // recording, for nothing a power cut could not also take from the cameras' frames in flight:
-  // the daemon commits a chunk at least every 100 ms, so a crash loses at most 100 ms.
-  MOCAP_RETURN_IF_ERROR(store->Exec("PRAGMA synchronous=NORMAL", "setting synchronous=NORMAL"));
+  // NORMAL: a commit reaches the OS, so a crash of the process loses nothing committed; the
+  // recorder makes each commit durable against a power cut by syncing the WAL from its own
+  // thread, so the writer never waits for the disk (store.h, "Crashes and power cuts").
+  const char* synchronous = options.sync_every_commit ? "PRAGMA synchronous=FULL"
+                                                      : "PRAGMA synchronous=NORMAL";
+  MOCAP_RETURN_IF_ERROR(store->Exec(synchronous, std::string("setting ") + (synchronous + 7)));
   MOCAP_RETURN_IF_ERROR(store->Exec("PRAGMA foreign_keys=ON", "enabling foreign keys"));
   if (sqlite3_wal_autocheckpoint(db, options.wal_autocheckpoint_pages) != SQLITE_OK) {
     return SqlError(db, path, "setting wal_autocheckpoint");

@@ -9,9 +9,9 @@
 // - WAL journal: readers never block the writer and the writer never blocks readers, so a Store
 //   per thread (the event loop's, a fit worker's, an export worker's) can work side by side; a
 //   write waits up to `busy_timeout_ms` for another writer instead of failing at once.
-// - synchronous=NORMAL (see store.cpp): a commit is durable against a crash of the process as soon
-//   as it returns, and against a power cut up to the last WAL sync/checkpoint. The recorder commits
-//   a chunk at least every 100 ms, so a crash loses at most the last 100 ms of a recording.
+// - synchronous=NORMAL, and the recorder's own WAL syncs ("Crashes and power cuts" below): a
+//   crash of the process or a power cut loses at most the last 100 ms of a recording on a disk
+//   whose fsync keeps up (daemon/recorder.h).
 // - Frames are stored in chunks (one BLOB per AppendFrames call, one transaction each) rather than
 //   one row per frame: at 200 Hz a row per frame would be 200 transactions or index entries a
 //   second; a chunk is one, and reading a recording back is a scan of a few hundred blobs.
@@ -23,8 +23,7 @@
 // that commit then takes tens of ms, once hundreds. The recorder's commits are on the live path, so
 // the daemon opens the recorder's Store with `wal_autocheckpoint_pages = 0` and calls Checkpoint()
 // every few seconds from another thread's Store (a passive checkpoint never blocks the writer).
-// A power cut then loses what came after the last checkpoint (its fsync): a few seconds; a crash
-// of the process still at most the last 100 ms. bench/store_append (BENCHMARKS.md; the default
+// bench/store_append (BENCHMARKS.md; the default
 // model's 43 markers and 38 coordinates, 48 points a frame, 60 s at 200 Hz, 20-frame chunks at
 // the rig's pace), AppendFrames per chunk:
 //   automatic checkpoints          p50 0.55 ms  p99 10-23 ms  max 22-449 ms (5 runs)
@@ -32,6 +31,27 @@
 //   Checkpoint() every 1 s         p50 0.54 ms  p99 8.1 ms    max 12 ms
 //   Checkpoint() every 100 ms      p50 1.9-2.4  p99 7-11 ms   max 11-14 ms (an fsync in each gap)
 // 2.7 kB a frame (32 MB a minute); ReadFrames of the 12,000 frames 47-132 ms.
+//
+// Crashes and power cuts. In WAL mode a commit appends its pages and a commit record to the WAL
+// file; SQLite recovers, after a crash or a power cut, every transaction whose commit record
+// reached the disk intact, in order (the WAL's frames are checksummed in a chain, so a torn tail
+// is ignored, never half-applied).
+//   - synchronous=NORMAL writes the WAL at each commit but fsyncs it only at checkpoints: a
+//     crash of the PROCESS loses nothing committed (the OS has the pages and writes them), a
+//     power cut everything since the last fsync of the WAL.
+//   - synchronous=FULL fsyncs the WAL inside every commit: durable against a power cut when
+//     COMMIT returns, but the writer waits for the disk. bench/store_append on this project's
+//     machine (ext4 on a virtual disk, loaded by other agents; BENCHMARKS.md "The store"),
+//     50 ms chunks at 200 Hz: FULL commit p50 8 ms, p99 38 ms, max 55 ms (NORMAL p50 0.5 ms);
+//     and single fsyncs of 400 ms under load.
+// The daemon takes NORMAL and has the recorder fdatasync the WAL file from a thread of its own
+// after each commit (daemon/recorder.h): the same durability as FULL once that sync returns,
+// without a slow disk holding the writer -- so a crash never loses more than the 100 ms the
+// recorder's commit deadline allows, and a power cut loses at most that on a disk whose fsync
+// keeps up (the deadline keeps the slowest recent syncs in reserve). Syncing a file that SQLite
+// writes is safe: an fsync only makes durable what SQLite already wrote, in any order the OS
+// could have chosen itself. A disk that lies about fsync (a write cache without power-loss
+// protection) can lose more: no setting of SQLite's helps there.
 //
 // A recording that was still "recording" when the daemon stopped (crash, power cut, kill) becomes
 // "interrupted" at the next Open: its committed chunks stay readable and exportable.
@@ -164,6 +184,9 @@ struct StoreOptions {
   // default, 1000). 0: never on this connection's commits; then some Store must call Checkpoint()
   // regularly, or the WAL grows without bound (see "Checkpoints" above).
   int wal_autocheckpoint_pages = 1000;
+  // true: synchronous=FULL, every commit fsyncs the WAL before it returns. false (the daemon's):
+  // NORMAL, the recorder syncs the WAL from its own thread ("Crashes and power cuts" above).
+  bool sync_every_commit = false;
 
   bool IsValid(std::string* error) const;
 };

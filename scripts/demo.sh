@@ -27,7 +27,7 @@ mocap=./build/tools/mocap
 scale=${MOCAP_DEMO_DURATION_SCALE:-0.5}
 
 "$mocapd" --config daemon/examples/simulated-rig.toml --state-dir "$out/state" \
-    --socket "$out/control.sock" 2>"$out/mocapd.log" &
+    --socket "$out/control.sock" --export-dir "$out" 2>"$out/mocapd.log" &
 pid=$!
 trap 'kill "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true' EXIT
 for _ in $(seq 150); do "${ctl[@]}" status >/dev/null 2>&1 && break; sleep 0.2; done

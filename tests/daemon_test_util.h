@@ -4,6 +4,8 @@
 // would. No GoogleTest here: the benchmark uses it too.
 #pragma once
 #include <fcntl.h>
+#include <grp.h>
+#include <pwd.h>
 #include <signal.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
@@ -13,6 +15,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <memory>
 #include <string>
 #include <thread>
@@ -34,12 +37,39 @@ inline std::string SimulatedRigToml(int cameras, int seed, const std::string& ex
          std::to_string(seed) + "\nrate = 200\n" + extra;
 }
 
+// Runs `body` in a child process as `user` (its group, no supplementary groups) and returns
+// what it returned, through a pipe: how a test is a client outside the control group. "setuid
+// failed" when the child could not become that user; "" when the user does not exist.
+inline std::string RunAsUser(const std::string& user, const std::function<std::string()>& body) {
+  const passwd* pw = getpwnam(user.c_str());
+  int pipefd[2];
+  if (!pw || pipe(pipefd) != 0) return "";
+  const uid_t uid = pw->pw_uid;
+  const gid_t gid = pw->pw_gid;
+  const pid_t child = fork();
+  if (child == 0) {
+    close(pipefd[0]);
+    const std::string out = setgroups(0, nullptr) == 0 && setgid(gid) == 0 && setuid(uid) == 0
+                                ? body()
+                                : std::string("setuid failed");
+    [[maybe_unused]] ssize_t n = write(pipefd[1], out.data(), out.size());
+    _exit(0);
+  }
+  close(pipefd[1]);
+  std::string got;
+  char buf[4096];
+  for (ssize_t n; (n = read(pipefd[0], buf, sizeof buf)) > 0;) got.append(buf, static_cast<std::size_t>(n));
+  close(pipefd[0]);
+  waitpid(child, nullptr, 0);
+  return got;
+}
+
 class DaemonProcess {
  public:
   // Writes `toml` to DIR/mocapd.toml and starts mocapd on it with DIR/state and DIR/control.sock.
   DaemonProcess(const std::string& dir, const std::string& toml,
                 std::string executable = MOCAPD_PATH)
-      : dir_(dir), executable_(std::move(executable)) {
+      : dir_(dir), executable_(std::move(executable)), export_dirs_{dir} {
     std::ofstream(dir_ + "/mocapd.toml") << toml;
   }
   ~DaemonProcess() { Kill(SIGKILL); }
@@ -47,6 +77,8 @@ class DaemonProcess {
   // A command the daemon runs under (e.g. an `unshare -m` that mounts a small tmpfs on the state
   // directory first); its last argument is followed by mocapd's command line.
   void SetWrapper(std::vector<std::string> wrapper) { wrapper_ = std::move(wrapper); }
+  // Where `export` may write (mocapd --export-dir); by default DIR, where the tests export.
+  void SetExportDirs(std::vector<std::string> dirs) { export_dirs_ = std::move(dirs); }
   std::string socket() const { return dir_ + "/control.sock"; }
   std::string state_dir() const { return dir_ + "/state"; }
   std::string log_path() const { return dir_ + "/mocapd.log"; }
@@ -65,6 +97,7 @@ class DaemonProcess {
       for (const std::string& a : {executable_, std::string("--config"), config,
                                    std::string("--state-dir"), state, std::string("--socket"), sock})
         args.push_back(a);
+      for (const std::string& d : export_dirs_) args.insert(args.end(), {"--export-dir", d});
       std::vector<char*> argv;
       for (std::string& a : args) argv.push_back(a.data());
       argv.push_back(nullptr);
@@ -132,6 +165,7 @@ class DaemonProcess {
   std::string dir_;
   std::string executable_;
   std::vector<std::string> wrapper_;
+  std::vector<std::string> export_dirs_;
   pid_t pid_ = -1;
 };
 

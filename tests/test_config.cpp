@@ -99,6 +99,7 @@ const std::vector<BadValue> kBadValues = {
     {"rig", "calibration", "5", "expected a path (a string), got 5"},
     {"storage", "state_dir", "false", "expected a path (a string), got false"},
     {"storage", "state_dir", "\"\"", "must not be empty"},
+    {"storage", "export_dirs", "\"/srv\"", "expected an array of paths, got \"/srv\""},
     {"control", "socket", "1", "expected a path (a string), got 1"},
     {"control", "socket", "\"/" + std::string(120, 's') + "\"",
      "\"/" + std::string(120, 's') + "\" is 121 bytes long; a Unix socket path holds at most 107"},
@@ -164,7 +165,7 @@ TEST(Config, EveryDocumentedKeyIsTestedWithABadValue) {
     EXPECT_TRUE(tested) << table << "." << key << " has no bad-value test";
     ++keys;
   }
-  EXPECT_EQ(keys, 25);
+  EXPECT_EQ(keys, 26);
 }
 
 TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
@@ -283,6 +284,7 @@ TEST(Config, RelativePathsAreRelativeToTheFilesDirectory) {
   testutil::WriteBytes(file.string(), kSimulatedRig +
                                           "calibration = \"calib/./rig.json\"\n"
                                           "[storage]\nstate_dir = \"../state\"\n"
+                                          "export_dirs = [\"out/../exports\", \"/srv/x/\"]\n"
                                           "[control]\nsocket = \"/run/x/control.sock\"\n"
                                           "[protocol]\nfile = \"protocol.json\"\n");
   DaemonConfig config;
@@ -297,6 +299,21 @@ TEST(Config, RelativePathsAreRelativeToTheFilesDirectory) {
   EXPECT_EQ(config.state_dir, (abs_dir.parent_path() / "state").string());
   EXPECT_EQ(config.socket_path, "/run/x/control.sock");
   EXPECT_EQ(config.protocol_file, (abs_dir / "protocol.json").string());
+  EXPECT_EQ(config.export_dirs, (std::vector<std::string>{(abs_dir / "exports").string(), "/srv/x/"}));
+  EXPECT_EQ(config.AllowedExportDirs(), config.export_dirs);
+  // Without the key: the state directory's exports/ folder only.
+  DaemonConfig defaults;
+  ASSERT_TRUE(Parse(kSimulatedRig, &defaults).ok());
+  EXPECT_EQ(defaults.AllowedExportDirs(), std::vector<std::string>{"/var/lib/mocapd/exports"});
+  // Each item a non-empty path, named by its index and line.
+  EXPECT_EQ(ParseError(kSimulatedRig + "[storage]\nexport_dirs = [\"/a\", 5]\n"),
+            kSource + ":4: storage.export_dirs[1]: expected a path (a string), got 5");
+  EXPECT_EQ(ParseError(kSimulatedRig + "[storage]\nexport_dirs = [\"\"]\n"),
+            kSource + ":4: storage.export_dirs[0]: must not be empty");
+  defaults.export_dirs = {"relative"};
+  std::string error;
+  EXPECT_FALSE(defaults.IsValid(&error));
+  EXPECT_EQ(error, "storage.export_dirs[0]: expected an absolute path, got \"relative\"");
 }
 
 TEST(Config, IsValidNamesTheKeyWithoutALine) {
@@ -329,6 +346,7 @@ TEST(Config, DiffSaysWhatChangedAndWhatNeedsARestart) {
   b.fit_max_iterations = 20;
   b.socket_path = "/tmp/other.sock";
   b.calibration_file = "/var/lib/mocapd/calibration.json";
+  b.export_dirs = {"/srv/exports"};
   CameraConfig camera;
   camera.id = "cam-A";
   b.cameras.push_back(camera);
@@ -339,6 +357,7 @@ TEST(Config, DiffSaysWhatChangedAndWhatNeedsARestart) {
                                                          {"control.max_clients", false},
                                                          {"control.subscriber_queue_frames", false},
                                                          {"fit.max_iterations", false},
+                                                         {"storage.export_dirs", false},
                                                          {"rig.camera", true}}));
   // A 64-bit seed is compared exactly, not as a double.
   DaemonConfig c = a, d = a;

@@ -1,7 +1,6 @@
 // The daemon tier: the real mocapd executable on a simulated rig (8 Aravis fake cameras drawn by
 // the renderer from a virtual subject who does what the operator asks), driven through its
 // control socket with the real client, as an operator would drive it with mocapctl.
-#include <pwd.h>
 #include <sys/socket.h>
 #include <sys/un.h>
 #include <unistd.h>
@@ -486,38 +485,18 @@ TEST(Daemon, ProtocolEveryRequestAndEveryError) {
   // A user outside the control group may read, not change state.
   chmod(dir.c_str(), 0755);  // mkdtemp's 0700 would keep `nobody` from the socket's directory
   chmod(d.socket().c_str(), 0666);
-  const passwd* nobody = getpwnam("nobody");
-  ASSERT_NE(nobody, nullptr);
-  int pipefd[2];
-  ASSERT_EQ(pipe(pipefd), 0);
-  const pid_t child = fork();
-  if (child == 0) {
-    close(pipefd[0]);
-    std::string out = "setuid";
-    if (setgid(nobody->pw_gid) == 0 && setuid(nobody->pw_uid) == 0) {
-      std::unique_ptr<ControlClient> u;
-      daemon::ControlClientOptions o;
-      o.socket_path = d.socket();
-      if (!ControlClient::Connect(o, &u).ok()) {
-        out = "connect";
-      } else {
-        ControlReply a, b;
-        const bool ok1 = u->Call("status", json::object(), &a).ok();
-        const bool ok2 = u->Call("subject.create", {{"name", "Z"}, {"height_m", 1.7}}, &b).ok();
-        out = std::string(u->hello().may_control ? "control" : "read") + "|" +
-              (ok1 && a.ok() ? "status-ok" : "status-bad") + "|" + (ok2 ? b.error_code : "io") +
-              "|" + b.error_message;
-      }
-    }
-    [[maybe_unused]] ssize_t n = write(pipefd[1], out.data(), out.size());
-    _exit(0);
-  }
-  close(pipefd[1]);
-  std::string got;
-  char buf[512];
-  for (ssize_t n; (n = read(pipefd[0], buf, sizeof buf)) > 0;) got.append(buf, n);
-  close(pipefd[0]);
-  waitpid(child, nullptr, 0);
+  const std::string got = testing::RunAsUser("nobody", [&] {
+    std::unique_ptr<ControlClient> u;
+    daemon::ControlClientOptions o;
+    o.socket_path = d.socket();
+    if (!ControlClient::Connect(o, &u).ok()) return std::string("connect");
+    ControlReply a, b;
+    const bool ok1 = u->Call("status", json::object(), &a).ok();
+    const bool ok2 = u->Call("subject.create", {{"name", "Z"}, {"height_m", 1.7}}, &b).ok();
+    return std::string(u->hello().may_control ? "control" : "read") + "|" +
+           (ok1 && a.ok() ? "status-ok" : "status-bad") + "|" + (ok2 ? b.error_code : "io") + "|" +
+           b.error_message;
+  });
   EXPECT_EQ(got.substr(0, got.find("|forbidden") + 10), "read|status-ok|forbidden") << got;
   EXPECT_NE(got.find("group"), std::string::npos) << got;
   codes.insert("forbidden");

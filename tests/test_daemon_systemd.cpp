@@ -165,6 +165,9 @@ TEST(ServiceStatus, OneLineSummary) {
   s.job = "fit";
   EXPECT_EQ(daemon::StatusLine(s),
             "degraded: 6/8 cameras 200 Hz (missing cam3, cam7), tracking subject S012 (model v3), fitting");
+  s.suspect_calibration = {"cam5"};  // daemon/detection_health.h
+  EXPECT_EQ(daemon::StatusLine(s), "degraded: 6/8 cameras 200 Hz (missing cam3, cam7) (calibration off: cam5), "
+                                   "tracking subject S012 (model v3), fitting");
   s = {};
   s.cameras = 2;
   s.rate_hz = 100;

@@ -1,0 +1,83 @@
+// The control socket's server alone (daemon/control_server.h), with a stand-in handler: every
+// request line answered once and in order, blank lines ignored, the pending-request bound kept
+// under a flood, an over-long line refused and the connection closed.
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+#include "tests/control_server_test_util.h"
+
+namespace mocap {
+namespace {
+
+using nlohmann::json;
+
+std::vector<json> Lines(const std::string& text) {
+  std::vector<json> out;
+  std::istringstream in(text);
+  for (std::string line; std::getline(in, line);) out.push_back(json::parse(line));
+  return out;
+}
+
+TEST(ControlServer, EveryRequestLineIsAnsweredOnceInOrder) {
+  testing::ControlServerHarness h({});
+  ASSERT_TRUE(h.ok());
+  const std::vector<json> got = Lines(h.Exchange(
+      "{\"id\":1,\"method\":\"a\"}\n"
+      "\n  \t\r\n"                                       // blank lines: no-ops
+      "{\"id\":\"two\",\"method\":\"b\",\"params\":{\"x\":[1,2]}}\r\n"
+      "garbage\n"
+      "{\"id\":3}\n"
+      "{\"id\":4,\"method\":\"c\",\"params\":5}\n"
+      "{\"id\":5,\"method\":\"d\",\"params\":null}\n"
+      "{\"id\":6,\"method\":\"partial\"}"));           // no newline: never a request
+  ASSERT_EQ(got.size(), 7u);
+  EXPECT_EQ(got[0]["event"], "hello");
+  EXPECT_EQ(got[1]["id"], 1);
+  EXPECT_EQ(got[1]["result"]["method"], "a");
+  EXPECT_EQ(got[2]["id"], "two");
+  EXPECT_EQ(got[2]["result"]["params"], (json{{"x", {1, 2}}}));
+  EXPECT_EQ(got[3]["error"]["code"], "parse_error");
+  EXPECT_EQ(got[4]["id"], 3);
+  EXPECT_EQ(got[4]["error"]["code"], "invalid_request");
+  EXPECT_EQ(got[5]["error"]["code"], "invalid_request");
+  EXPECT_EQ(got[6]["id"], 5);
+  EXPECT_EQ(got[6]["result"]["params"], json::object());
+  EXPECT_EQ(h.requests(), 3);
+}
+
+TEST(ControlServer, BusyRepliesDoNotFreePendingSlots) {
+  // A handler that never answers: the first max_pending requests wait, every later one is
+  // `busy`, however many come (a busy reply is not one of the pending requests finishing).
+  daemon::ControlServerOptions o;
+  o.max_pending = 8;
+  testing::ControlServerHarness h(o, /*answer=*/false);
+  ASSERT_TRUE(h.ok());
+  std::string flood;
+  for (int i = 0; i < 40; ++i) flood += "{\"id\":" + std::to_string(i) + ",\"method\":\"slow\"}\n";
+  // Envelope errors between them must not free slots either.
+  flood += "{\"id\":99,\"method\":7}\n{\"id\":100,\"method\":\"slow\"}\n";
+  const std::vector<json> got = Lines(h.Exchange(flood, /*keep_open=*/true));
+  EXPECT_EQ(h.requests(), 8);
+  int busy = 0;
+  for (const json& j : got) busy += j.contains("error") && j["error"]["code"] == "busy";
+  EXPECT_EQ(busy, 33);  // 32 of the first 40, and id 100
+}
+
+TEST(ControlServer, OverLongLineIsRefusedAndTheConnectionClosed) {
+  daemon::ControlServerOptions o;
+  o.max_line_bytes = 1024;
+  testing::ControlServerHarness h(o);
+  ASSERT_TRUE(h.ok());
+  const std::vector<json> got = Lines(h.Exchange("{\"id\":1,\"method\":\"a\"}\n" + std::string(5000, 'x') +
+                                                 "\n{\"id\":2,\"method\":\"b\"}\n", true));
+  ASSERT_EQ(got.size(), 3u);
+  EXPECT_EQ(got[1]["id"], 1);
+  EXPECT_EQ(got[2]["error"]["code"], "line_too_long");
+  EXPECT_EQ(h.requests(), 1);  // nothing after it
+}
+
+}  // namespace
+}  // namespace mocap
