@@ -266,7 +266,10 @@ Status Daemon::Start() {
   // 5. The pipeline.
   LivePipelineOptions po;
   po.capture.detection_threads = config_.detection_threads;
-  po.capture.device_clock_rate_hz = config_.simulated_cameras > 0 ? config_.rate_hz : 0;
+  po.capture.rig_sync = config_.simulated_cameras > 0
+                           ? CapturePipelineOptions::RigSync::kSharedClock
+                           : CapturePipelineOptions::RigSync::kTrigger;
+  po.capture.rate_hz = config_.rate_hz;
   po.capture.detection.threshold = config_.detection_threshold;
   po.capture.detection.sigma_floor_px = std::max(0.01, config_.centroid_noise_px);
   po.tracker.rate_hz = config_.rate_hz;

@@ -68,7 +68,8 @@ struct Frame {
   std::uint16_t frame_id = 0;       // as the device numbers it (wraps)
   std::uint64_t sequence = 0;       // frame_id unwrapped (FrameIdUnwrapper)
   std::uint64_t device_timestamp_ns = 0;
-  std::uint64_t host_timestamp_ns = 0;  // CLOCK_MONOTONIC when the buffer was handed over
+  std::uint64_t host_timestamp_ns = 0;  // CLOCK_MONOTONIC when the buffer was filled (see the source)
+  std::uint32_t stream_epoch = 0;  // set by the capture pipeline: +1 after each loss of the camera
   FrameStatus status = FrameStatus::kComplete;
   ImageView image;
   const void* handle = nullptr;     // the source's buffer, for CameraSource::Release

@@ -33,7 +33,7 @@ namespace mocap::reconstruction {
 struct ClockFitOptions {
   int window = 1024;                // recent samples fitted (5 s at 200 Hz)
   int segments = 16;                // runs of the window whose earliest arrivals are fitted
-  int min_samples_for_drift = 64;   // before: the offset only
+  int min_samples_for_drift = 128;  // before: the offset only (8 frames a run at least)
   int refit_every = 16;             // samples between two fits (a fit reads the whole window)
   // A fitted drift beyond this is clamped to it: a clock that far off is broken, not drifting,
   // and a wild slope would throw the camera's frames out of every set.
