@@ -47,6 +47,8 @@ Status SimulatedCamera::Open(const CameraSettings& settings) {
     return Status::Error(id_ + ": Open() while frames are still held");
   }
   settings_ = settings;
+  // Packing is a matter of the wire: in process the frames are what a source hands out, Mono12.
+  if (settings_.pixel_format == PixelFormat::kMono12Packed) settings_.pixel_format = PixelFormat::kMono12;
   width_ = w;
   height_ = h;
   stride_ = static_cast<std::ptrdiff_t>(w) * BytesPerPixel(settings.pixel_format);
