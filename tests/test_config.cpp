@@ -497,3 +497,42 @@ TEST(RigBandwidth, MocapdCheckConfigRefusesAnOverBudgetRigWithoutCameras) {
 
 }  // namespace
 }  // namespace mocap::daemon
+
+#include "daemon/rig_setup.h"
+
+namespace mocap::daemon {
+namespace {
+
+TEST(RigSetup, TriggerMasterFreeRunsAndStrobesTheOthersWaitOnTheirLine) {
+  DaemonConfig c;
+  ASSERT_TRUE(ParseConfig("[rig]\nrate = 100\nsync = \"trigger\"\ntrigger_master = \"m\"\n"
+                          "trigger_line = 2\npixel_format = \"Mono12Packed\"\npacket_size = 9000\n"
+                          "packet_resend = \"never\"\n"
+                          "[[rig.camera]]\nid = \"m\"\nstrobe_line = 1\n"
+                          "[[rig.camera]]\nid = \"s\"\noptional = \" LineSource , GevSCPD\"\n",
+                          kSource, &c).ok());
+  const drivers::CameraSettings master = CameraSettingsOf(c, 0), slave = CameraSettingsOf(c, 1);
+  EXPECT_EQ(master.trigger, drivers::TriggerMode::kFreeRun);
+  EXPECT_EQ(master.strobe_line, 1);
+  EXPECT_EQ(slave.trigger, drivers::TriggerMode::kHardwareLine);
+  EXPECT_EQ(slave.trigger_line, 2);
+  EXPECT_EQ(slave.strobe_line, -1);
+  EXPECT_EQ(slave.optional_features, (std::vector<std::string>{"LineSource", "GevSCPD"}));
+  EXPECT_EQ(slave.pixel_format, drivers::PixelFormat::kMono12Packed);
+  EXPECT_EQ(slave.packet_size, 9000);
+  EXPECT_FALSE(slave.packet_resend);
+  EXPECT_FALSE(slave.ptp);
+  EXPECT_EQ(RigSyncOf(c), CapturePipelineOptions::RigSync::kTrigger);
+  // The master must drive a line.
+  EXPECT_THAT(ParseError("[rig]\ntrigger_master = \"m\"\n[[rig.camera]]\nid = \"m\"\n"),
+              HasSubstr("rig.camera[0].strobe_line: -1 (none) on the trigger master \"m\""));
+  c.sync = "ptp";
+  EXPECT_TRUE(CameraSettingsOf(c, 1).ptp);
+  EXPECT_EQ(RigSyncOf(c), CapturePipelineOptions::RigSync::kSharedClock);
+  c.sync = "free-run";
+  EXPECT_EQ(RigSyncOf(c), CapturePipelineOptions::RigSync::kFreeRun);
+  EXPECT_EQ(CameraSettingsOf(c, 1).trigger, drivers::TriggerMode::kFreeRun);
+}
+
+}  // namespace
+}  // namespace mocap::daemon
