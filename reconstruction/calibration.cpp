@@ -1,7 +1,9 @@
 #include "reconstruction/calibration.h"
 
+
 #include <Eigen/Dense>
 #include <algorithm>
+#include <limits>
 #include <array>
 #include <chrono>
 #include <cmath>
@@ -13,6 +15,7 @@
 #include <opencv2/core.hpp>
 #include <sstream>
 
+#include "model/rigid_align.h"
 #include "reconstruction/calibration_problem.h"
 #include "solver/schur_solver.h"
 
@@ -193,24 +196,18 @@ void CameraPoseError(const CameraModel& estimated, const CameraModel& truth, dou
 
 namespace {
 
-// The rigid transform (Q, q) minimising sum |Q a_i + q - b_i|^2 (Kabsch / Umeyama without scale).
+// The rigid transform (Q, q) minimising sum |Q a_i + q - b_i|^2 (model/rigid_align.h) and its
+// RMS residual; infinite when the points cannot fix it (fewer than 3, or collinear).
 double RigidAlign(const std::vector<Eigen::Vector3d>& a, const std::vector<Eigen::Vector3d>& b,
                   Eigen::Matrix3d* q_rot, Eigen::Vector3d* q_trans) {
   const int n = static_cast<int>(a.size());
-  Eigen::Vector3d ma = Eigen::Vector3d::Zero(), mb = Eigen::Vector3d::Zero();
-  for (int i = 0; i < n; ++i) ma += a[i], mb += b[i];
-  ma /= n;
-  mb /= n;
-  Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
-  for (int i = 0; i < n; ++i) h += (a[i] - ma) * (b[i] - mb).transpose();
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d d = Eigen::Matrix3d::Identity();
-  d(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
-  *q_rot = svd.matrixV() * d * svd.matrixU().transpose();
-  *q_trans = mb - *q_rot * ma;
-  double ss = 0;
-  for (int i = 0; i < n; ++i) ss += (*q_rot * a[i] + *q_trans - b[i]).squaredNorm();
-  return std::sqrt(ss / n);
+  Eigen::Matrix3Xd src(3, n), dst(3, n);
+  for (int i = 0; i < n; ++i) src.col(i) = a[i], dst.col(i) = b[i];
+  const std::optional<RigidTransform> fit = mocap::RigidAlign(src, dst);
+  if (!fit) return std::numeric_limits<double>::infinity();
+  *q_rot = fit->rotation;
+  *q_trans = fit->translation;
+  return std::sqrt(((fit->rotation * src).colwise() + fit->translation - dst).squaredNorm() / n);
 }
 
 // Relative pose of camera b to camera a (X_b = R X_a + t, |t| = baseline in metres) from the
