@@ -210,6 +210,27 @@ void ExpectSetsRight(const Rig& rig, const std::vector<daemon::PointFrame>& fram
     ASSERT_GT(frames[i].sequence, frames[i - 1].sequence) << after;
 }
 
+// Runs `rig` for 1.2 s (camera `late` starting late), reconnects camera `returning` missing
+// `missed` frames, and checks the sets once the late camera is in and after the return.
+daemon::CapturePipelineStats RunLateStartAndReconnect(Rig* rig, int late, int returning, int missed,
+                                                      const std::string& what) {
+  EXPECT_TRUE(rig->pipeline->Start().ok());
+  const std::vector<daemon::PointFrame> start = rig->Collect(1.2);
+  rig->sources[returning]->Reconnect(missed);
+  rig->Collect(0.5);  // the outage and the returned camera's first frames
+  const std::vector<daemon::PointFrame> after = rig->Collect(1.0);
+  rig->pipeline->Stop();
+  std::vector<daemon::PointFrame> late_started;
+  for (const auto& pf : start)
+    if (pf.present_mask >> late & 1) late_started.push_back(pf);
+  const int n = static_cast<int>(rig->sources.size());
+  ExpectSetsRight(*rig, late_started, ("a late start (" + what + ")").c_str(), n, 0.95);
+  ExpectSetsRight(*rig, after,
+                  ("a reconnect that missed " + std::to_string(missed) + " frames (" + what + ")").c_str(),
+                  n, 0.95);
+  return rig->pipeline->Stats();
+}
+
 // Free run: five cameras with clocks of their own (epochs seconds apart, drifts of -120..+150
 // ppm, 20 us of timestamp jitter), one starting 300 ms late, one unplugged for 25 frames, which
 // comes back with its ids and clock restarted. Sets are grouped by each camera's fitted host
@@ -228,18 +249,7 @@ TEST(CapturePipeline, FreeRunCamerasWithOwnClocksAreSetByFittedTime) {
   }
   co[3].start_delay_ms = 300;
   Rig rig(5, o, co);
-  ASSERT_TRUE(rig.pipeline->Start().ok());
-  const std::vector<daemon::PointFrame> start = rig.Collect(1.2);
-  rig.sources[1]->Reconnect(25);
-  rig.Collect(0.5);  // the outage and the new clock's first frames
-  const std::vector<daemon::PointFrame> after = rig.Collect(1.0);
-  rig.pipeline->Stop();
-  const daemon::CapturePipelineStats st = rig.pipeline->Stats();
-  std::vector<daemon::PointFrame> late_started;
-  for (const auto& pf : start)
-    if (pf.present_mask >> 3 & 1) late_started.push_back(pf);
-  ExpectSetsRight(rig, late_started, "a late start", 5, 0.95);
-  ExpectSetsRight(rig, after, "a reconnect that missed 25 frames", 5, 0.95);
+  const daemon::CapturePipelineStats st = RunLateStartAndReconnect(&rig, 3, 1, 25, "free run");
   EXPECT_EQ(st.camera_losses[1], 1u);
   EXPECT_EQ(st.camera_resyncs[1], 1u);
   for (int c = 1; c < 5; ++c)
@@ -262,18 +272,7 @@ TEST(CapturePipeline, TriggerRigPutsALateAndAReturningCameraOnTheRightTrigger) {
   for (int c = 0; c < 4; ++c) co[c].clock_offset_ns = 900'000'000LL * c;
   co[2].start_delay_ms = 250;
   Rig rig(4, o, co);
-  ASSERT_TRUE(rig.pipeline->Start().ok());
-  const std::vector<daemon::PointFrame> start = rig.Collect(1.2);
-  rig.sources[1]->Reconnect(30);
-  rig.Collect(0.5);
-  const std::vector<daemon::PointFrame> after = rig.Collect(1.0);
-  rig.pipeline->Stop();
-  const daemon::CapturePipelineStats st = rig.pipeline->Stats();
-  std::vector<daemon::PointFrame> late_started;
-  for (const auto& pf : start)
-    if (pf.present_mask >> 2 & 1) late_started.push_back(pf);
-  ExpectSetsRight(rig, late_started, "a late start (trigger)", 4, 0.95);
-  ExpectSetsRight(rig, after, "a reconnect that missed 30 frames (trigger)", 4, 0.95);
+  const daemon::CapturePipelineStats st = RunLateStartAndReconnect(&rig, 2, 1, 30, "trigger");
   EXPECT_EQ(st.camera_resyncs[1], 1u);
   std::printf("trigger rig: %llu sets mismatched by timestamps\n",
               static_cast<unsigned long long>(st.mismatched_sets));
