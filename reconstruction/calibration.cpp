@@ -17,6 +17,7 @@
 
 #include "model/rigid_align.h"
 #include "reconstruction/calibration_problem.h"
+#include "reconstruction/triangulation.h"
 #include "solver/schur_solver.h"
 
 namespace mocap::reconstruction {
@@ -148,39 +149,21 @@ bool TriangulatePoint(const std::vector<const CameraModel*>& cameras,
                       const std::vector<Eigen::Vector2d>& pixels, Eigen::Vector3d* point) {
   const int n = static_cast<int>(cameras.size());
   if (n < 2 || pixels.size() != cameras.size()) return false;
-  // Linear (DLT) on normalised coordinates: x (R_3 X + t_3) - (R_1 X + t_1) = 0, etc.
-  Eigen::MatrixXd a(2 * n, 4);
+  // The rig's triangulation (reconstruction/triangulation.h): linear, then refined on the pixel
+  // reprojection error, every view weighted alike.
+  std::vector<CameraModel> views;
+  std::vector<PointObservation> observations;
+  views.reserve(n);
+  observations.reserve(n);
   for (int i = 0; i < n; ++i) {
-    const CameraModel& c = *cameras[i];
-    const Eigen::Vector2d xy = c.Undistort(pixels[i]);
-    Eigen::Matrix<double, 3, 4> p;
-    p << c.R, c.t;
-    a.row(2 * i) = xy.x() * p.row(2) - p.row(0);
-    a.row(2 * i + 1) = xy.y() * p.row(2) - p.row(1);
+    views.push_back(*cameras[i]);
+    observations.push_back({i, pixels[i], 1.0});
   }
-  Eigen::JacobiSVD<Eigen::MatrixXd> svd(a, Eigen::ComputeFullV);
-  const Eigen::Vector4d h = svd.matrixV().col(3);
-  if (!(std::abs(h[3]) > 1e-12)) return false;
-  Eigen::Vector3d x = h.head<3>() / h[3];
-  // Gauss–Newton on the pixel reprojection error.
-  for (int it = 0; it < 10; ++it) {
-    Eigen::Matrix3d jtj = Eigen::Matrix3d::Zero();
-    Eigen::Vector3d jtr = Eigen::Vector3d::Zero();
-    for (int i = 0; i < n; ++i) {
-      const CameraModel& c = *cameras[i];
-      const Eigen::Vector3d xc = c.ToCamera(x);
-      if (!(xc.z() > 0)) return false;
-      Eigen::Matrix<double, 2, 3> j;
-      const Eigen::Vector2d r = c.ProjectCameraPoint(xc, &j) - pixels[i];
-      const Eigen::Matrix<double, 2, 3> jw = j * c.R;
-      jtj += jw.transpose() * jw;
-      jtr += jw.transpose() * r;
-    }
-    const Eigen::Vector3d dx = -jtj.ldlt().solve(jtr);
-    if (!dx.allFinite()) return false;
-    x += dx;
-    if (dx.norm() < 1e-10) break;
-  }
+  Eigen::Vector3d x;
+  double residual_px = 0;
+  if (!TriangulateLinear(views, observations, &x) ||
+      !RefinePosition(views, observations, 10, &x, &residual_px))
+    return false;
   for (int i = 0; i < n; ++i)
     if (!(cameras[i]->ToCamera(x).z() > 0)) return false;
   *point = x;
