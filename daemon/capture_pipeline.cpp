@@ -251,6 +251,7 @@ void CapturePipeline::DetectLoop(int worker) {
     d.stream_epoch = frame.stream_epoch;
     d.device_timestamp_ns = frame.device_timestamp_ns;
     d.host_timestamp_ns = frame.host_timestamp_ns;
+    d.received_ns = frame.received_ns;
     const auto t0 = std::chrono::steady_clock::now();
     const Status s = reconstruction::DetectMarkers(frame.image, options_.detection, nullptr,
                                                    &workspace, &d.centroids);
@@ -327,8 +328,10 @@ void CapturePipeline::EmitSet(reconstruction::DetectionSet& set) {
     if (!set.present[c]) continue;
     if (c < 64) out.present_mask |= std::uint64_t{1} << c;
     if (out.device_timestamp_ns == 0) out.device_timestamp_ns = set.cameras[c].device_timestamp_ns;
-    first = std::min(first, set.cameras[c].host_timestamp_ns);
-    last = std::max(last, set.cameras[c].host_timestamp_ns);
+    const auto& cam = set.cameras[c];
+    const std::uint64_t received = cam.received_ns != 0 ? cam.received_ns : cam.host_timestamp_ns;
+    first = std::min(first, received);
+    last = std::max(last, received);
   }
   if (options_.keep_detections || keep_detections_.load(std::memory_order_relaxed))
     out.detections = set.cameras;

@@ -33,8 +33,10 @@
 // stream cannot hold the rig hostage: `start_timeout_ms` after the first set, the recording
 // begins with the cameras it has, and Stats() names the ones missing at the start.
 //
-// Latency is measured from the host time the first image of a set was handed over by its
-// camera (Frame::host_timestamp_ns, CLOCK_MONOTONIC) to the moment its points are ready.
+// Latency is measured from the host time the first image of a set was received by the transport
+// (Frame::received_ns, Aravis's system timestamp, so the wait in the driver's queue counts; else
+// Frame::host_timestamp_ns, when it was handed over), CLOCK_MONOTONIC, to the moment its points
+// are ready.
 #pragma once
 #include <atomic>
 #include <cstdint>
@@ -95,8 +97,8 @@ struct PointFrame {
   std::vector<float> residual_px;
   std::vector<std::uint8_t> camera_count;
   double latency_ms = 0;
-  // CLOCK_MONOTONIC host times at which the first and the last image of the set were handed over
-  // by their cameras, and at which its points were ready (the live latency's stages).
+  // CLOCK_MONOTONIC host times at which the first and the last image of the set were received
+  // (see the header), and at which its points were ready (the live latency's stages).
   std::uint64_t first_host_ns = 0, last_host_ns = 0, ready_host_ns = 0;
   // The 2D detections the points came from (CapturePipelineOptions::keep_detections), per camera
   // of the rig; empty otherwise.

@@ -776,8 +776,8 @@ GrabResult AravisCamera::Classify(ArvBuffer* buffer, Frame* frame, Slot** slot) 
   frame->frame_id = id;
   frame->sequence = sequence;
   frame->device_timestamp_ns = arv_buffer_get_timestamp(buffer);
-  // The host time is when Aravis began receiving the image (its system timestamp, real time),
-  // not when we popped it: the wait in Aravis's output queue belongs in every latency figure.
+  // When Aravis began receiving the image (its system timestamp, real time) besides when we
+  // popped it: the wait in Aravis's output queue belongs in every latency figure.
   const std::uint64_t now = MonotonicNs();
   const std::uint64_t system_ns = arv_buffer_get_system_timestamp(buffer);
   std::uint64_t host = now;
@@ -789,7 +789,8 @@ GrabResult AravisCamera::Classify(ArvBuffer* buffer, Frame* frame, Slot** slot) 
     // A clock step (NTP) between the two readings would give nonsense: keep the pop time then.
     if (waited >= 0 && waited < 10'000'000'000LL) host = now - static_cast<std::uint64_t>(waited);
   }
-  frame->host_timestamp_ns = host;
+  frame->host_timestamp_ns = now;
+  frame->received_ns = host;
   frame->status = FrameStatus::kComplete;
   frame->image.width = w;
   frame->image.height = h;

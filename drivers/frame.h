@@ -81,7 +81,12 @@ struct Frame {
   std::uint16_t frame_id = 0;       // as the device numbers it (wraps)
   std::uint64_t sequence = 0;       // frame_id unwrapped (FrameIdUnwrapper)
   std::uint64_t device_timestamp_ns = 0;
-  std::uint64_t host_timestamp_ns = 0;  // CLOCK_MONOTONIC when the buffer was filled (see the source)
+  std::uint64_t host_timestamp_ns = 0;  // CLOCK_MONOTONIC when the source handed the buffer over
+  // CLOCK_MONOTONIC when the transport began receiving the image (Aravis: the buffer's system
+  // timestamp), earlier than host_timestamp_ns by the wait in the driver's queue; 0: unknown
+  // (then host_timestamp_ns). Latency figures and clock fits start here; the sync's timeouts
+  // count from host_timestamp_ns, when the pipeline could first have the frame.
+  std::uint64_t received_ns = 0;
   std::uint32_t stream_epoch = 0;  // set by the capture pipeline: +1 after each loss of the camera
   FrameStatus status = FrameStatus::kComplete;
   ImageView image;

@@ -106,7 +106,8 @@ Status FrameSync::Add(CameraDetections detections, std::vector<DetectionSet>* re
   std::int64_t key = 0;
   std::int64_t time = static_cast<std::int64_t>(detections.device_timestamp_ns);
   if (!fits_.empty()) {
-    fits_[c].Add(detections.device_timestamp_ns, host_now);
+    fits_[c].Add(detections.device_timestamp_ns,
+                 detections.received_ns != 0 ? detections.received_ns : host_now);
     time = fits_[c].ToHost(detections.device_timestamp_ns);
   } else if (by_time) {
     time -= offsets_[c];
