@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <ctime>
+#include <limits>
 
 namespace mocap::daemon {
 
@@ -103,7 +104,8 @@ Status CapturePipeline::Start() {
   MOCAP_RETURN_IF_ERROR(sync_.Reset(options_.sync));
   sync_epoch_.assign(cameras_.size(), 0);
   numbered_any_ = false;
-  rig_anchor_set_ = false;
+  rig_clock_.Reset();
+  rig_newest_sequence_ = 0;
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.camera_resyncs.assign(cameras_.size(), 0);
@@ -160,8 +162,11 @@ void CapturePipeline::GrabLoop(int c) {
   // on the rig's trigger count after a loss or a late start, and its last delivered frame.
   std::uint32_t epoch = 0;
   std::uint64_t sequence_shift = 0;  // modular
-  std::uint64_t last_sequence = 0, last_host_ns = 0, reopens_seen = cam.Counters().reopens.load();
+  std::uint64_t reopens_seen = cam.Counters().reopens.load();
   bool delivered = false;
+  int placing = 0;  // frames left to place it on the rig's trigger count
+  double best_excess_ns = 0;
+  bool force_shift = false;
   while (grabbing_) {
     if (options_.test_hold) options_.test_hold("grab");
     drivers::Frame frame;
@@ -174,41 +179,54 @@ void CapturePipeline::GrabLoop(int c) {
         reopens_seen = reopens;
       }
       was_lost = false;
-      if (options_.rig_sync == CapturePipelineOptions::RigSync::kTrigger && options_.rate_hz > 0 &&
-          (returned || !delivered)) {
-        // Its ids restarted (a return) or began while the rig was already running (a late
-        // start): its frame is the trigger that came the time since the rig's newest frame
-        // after that frame's (the camera's own last frame where no other camera delivered).
-        std::uint64_t ref_sequence = last_sequence, ref_host = last_host_ns;
-        bool have_ref = delivered;
-        {
-          std::lock_guard<std::mutex> lock(stats_mutex_);
-          if (rig_anchor_set_ && rig_anchor_camera_ != c) {
-            ref_sequence = rig_anchor_sequence_;
-            ref_host = rig_anchor_host_ns_;
-            have_ref = true;
-          }
-        }
-        const double period_ns = 1e9 / options_.rate_hz;
-        const double since = static_cast<double>(frame.host_timestamp_ns) - static_cast<double>(ref_host);
-        // At start-up the cameras' first frames are the same triggers: only a camera that
-        // starts more than half a period after the rig's newest frame is late.
-        if (have_ref && (returned || since > 0.5 * period_ns)) {
+      const bool trigger_count =
+          options_.rig_sync == CapturePipelineOptions::RigSync::kTrigger && options_.rate_hz > 0;
+      if (trigger_count && (returned || !delivered)) {
+        // Its ids restarted (a return) or began while the rig may already have been running (a
+        // start): over its next frames it is placed on the rig's count.
+        placing = kPlacementFrames;
+        best_excess_ns = std::numeric_limits<double>::infinity();
+        force_shift = returned;
+      }
+      const std::uint64_t arrived =
+          frame.received_ns != 0 ? frame.received_ns : frame.host_timestamp_ns;
+      if (placing > 0) {
+        // The trigger it is: the rig's clock (the lower envelope of the arrivals of the rig's
+        // triggers, below) says when trigger n reached the host; the frame that arrived
+        // closest to a trigger's time, over the first kPlacementFrames, waited least and says
+        // which trigger it was.
+        --placing;
+        std::lock_guard<std::mutex> lock(stats_mutex_);
+        if (rig_clock_.samples() > 0) {
+          const double period_ns = 1e9 / options_.rate_hz;
+          const std::uint64_t r = rig_newest_sequence_;
+          const double since = static_cast<double>(arrived) -
+                               static_cast<double>(rig_clock_.ToHost(
+                                   static_cast<std::uint64_t>(r * period_ns)));
           const long long steps = std::llround(since / period_ns);
-          sequence_shift = ref_sequence + static_cast<std::uint64_t>(steps) - frame.sequence;
+          const double excess = std::abs(since - steps * period_ns);
+          if (excess < best_excess_ns) {
+            best_excess_ns = excess;
+            const std::uint64_t expected = r + static_cast<std::uint64_t>(steps);
+            const std::uint64_t own = frame.sequence;  // its own count, not yet shifted
+            // At start-up the cameras' first frames are the same triggers, numbered alike: only
+            // a camera whose own count is two or more triggers off the rig's (it started after
+            // the triggers had begun) is renumbered. A returning camera always is.
+            const auto off = static_cast<std::int64_t>(expected - own);
+            if (force_shift || off >= 2 || off <= -2) sequence_shift = expected - own;
+          }
         }
       }
       frame.sequence += sequence_shift;
       frame.stream_epoch = epoch;
-      last_sequence = frame.sequence;
-      last_host_ns = frame.host_timestamp_ns;
       delivered = true;
       frame.camera = c;
       std::lock_guard<std::mutex> lock(stats_mutex_);
-      rig_anchor_set_ = true;
-      rig_anchor_camera_ = c;
-      rig_anchor_sequence_ = frame.sequence;
-      rig_anchor_host_ns_ = frame.host_timestamp_ns;
+      if (trigger_count && placing == 0) {
+        rig_clock_.Add(static_cast<std::uint64_t>(frame.sequence * (1e9 / options_.rate_hz)),
+                       arrived);
+        rig_newest_sequence_ = std::max(rig_newest_sequence_, frame.sequence);
+      }
       ++stats_.frames_grabbed;
       BoundedQueue<drivers::Frame>& queue = *frames_[c % frames_.size()];
       if (!queue.TryPush(std::move(frame))) {  // full: the frame is left to us

@@ -52,6 +52,7 @@
 #include "drivers/camera_source.h"
 #include "model/status.h"
 #include "reconstruction/centroid.h"
+#include "reconstruction/clock_fit.h"
 #include "reconstruction/detection.h"
 #include "reconstruction/frame_sync.h"
 
@@ -126,9 +127,10 @@ struct CapturePipelineOptions {
   //                is counted, Stats().
   //                mismatched_sets). A camera that comes back after a loss restarts its ids,
   //                and one that starts after the others counts from 1: its ids are put on the
-  //                rig's count from the host time since the rig's newest frame (round(dt x
-  //                rate_hz) triggers after it), which holds while the host's arrival jitter
-  //                stays under half a period (the timestamp check counts the sets when not).
+  //                rig's count from its arrival times against the rig's (the trigger whose
+  //                arrival time its least-delayed frame of the first ten is nearest), which
+  //                holds while that frame's wait stays under half a period (the timestamp check
+  //                counts the sets when not).
   //  kSharedClock  the cameras' clocks are one clock (PTP, IEEE 1588, locked; Aravis's fakes
   //                share the host's) and they expose on its ticks at rate_hz: a frame's sequence
   //                is its tick, floor(device timestamp x rate), the same for every camera at one
@@ -259,11 +261,12 @@ class CapturePipeline {
 
   mutable std::mutex stats_mutex_;
   CapturePipelineStats stats_;
-  // kTrigger: the rig's newest frame (any camera's), under stats_mutex_: where a camera that
-  // returns or starts late finds the trigger count.
-  bool rig_anchor_set_ = false;
-  int rig_anchor_camera_ = -1;
-  std::uint64_t rig_anchor_sequence_ = 0, rig_anchor_host_ns_ = 0;
+  // kTrigger, under stats_mutex_: the rig's trigger count against the host clock (a ClockFit of
+  // the arrival times of every placed camera's frames against sequence x period) and its newest
+  // trigger, where a camera that returns or starts late finds the count.
+  static constexpr int kPlacementFrames = 10;
+  reconstruction::ClockFit rig_clock_;
+  std::uint64_t rig_newest_sequence_ = 0;
   static constexpr std::size_t kTimingSamples = 1 << 16;
   RecentSamples detect_ms_{kTimingSamples}, triangulate_ms_{kTimingSamples},
       latency_ms_{kTimingSamples};
