@@ -34,6 +34,7 @@
 #include <string>
 #include <vector>
 
+#include "daemon/capture_pipeline.h"
 #include "reconstruction/triangulation.h"
 #include "sim/camera_rig.h"
 #include "sim/centroid_scene.h"
@@ -310,10 +311,9 @@ struct Timing {
     wall_us.push_back(std::chrono::duration<double, std::micro>(Clock::now() - wall0).count());
     cpu_us.push_back(ThreadCpuMicros() - cpu0);
   }
-  static double Percentile(std::vector<double>& v, double p) {
-    std::sort(v.begin(), v.end());
-    return v[std::min(v.size() - 1, static_cast<size_t>(p * v.size()))];
-  }
+  // The capture pipeline's percentile (nearest rank), so that the figures here and the live
+  // pipeline's are the same statistic.
+  static double Percentile(std::vector<double>& v, double p) { return daemon::Percentile(&v, 100 * p); }
 };
 
 void Report(const char* name, Timing& t, const Score& s) {

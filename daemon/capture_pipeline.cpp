@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <ctime>
+#include <limits>
 
 namespace mocap::daemon {
 
@@ -32,9 +33,14 @@ bool CapturePipelineOptions::IsValid(std::string* error) const {
   if (detection_threads < 1 || detection_threads > 64) {
     return fail("detection_threads must be in [1, 64]");
   }
-  if (!(device_clock_rate_hz >= 0) || device_clock_rate_hz > 100000) {
-    return fail("device_clock_rate_hz must be in [0, 100000]");
-  }
+  if (!(rate_hz >= 0) || rate_hz > 100000) return fail("rate_hz must be in [0, 100000]");
+  if (rig_sync != RigSync::kTrigger && rate_hz <= 0)
+    return fail(std::string(rig_sync == RigSync::kFreeRun ? "free-run" : "shared-clock") +
+                " sync needs rate_hz > 0 (the rig's frame rate)");
+  if (!(free_run_tolerance > 0 && free_run_tolerance < 0.5))
+    return fail("free_run_tolerance must be in (0, 0.5) of a frame period");
+  if (!(trigger_check_tolerance >= 0 && trigger_check_tolerance < 0.5))
+    return fail("trigger_check_tolerance must be in [0, 0.5) of a frame period");
   if (frame_queue_capacity < 1 || detection_queue_capacity < 1 || point_queue_capacity < 1) {
     return fail("queue capacities must be >= 1");
   }
@@ -68,18 +74,44 @@ Status CapturePipeline::Start() {
   if (cameras_.empty()) return Status::Error("capture pipeline: no cameras");
   if (!triangulate_) return Status::Error("capture pipeline: no triangulation stage");
   options_.sync.num_cameras = static_cast<int>(cameras_.size());
-  if (options_.device_clock_rate_hz > 0) {
-    options_.sync.mode = reconstruction::FrameSyncOptions::Mode::kSequence;
-    options_.sync.sequence_bits = 64;
+  const double rate = options_.rate_hz;
+  using Mode = reconstruction::FrameSyncOptions::Mode;
+  switch (options_.rig_sync) {
+    case CapturePipelineOptions::RigSync::kSharedClock:
+      options_.sync.mode = Mode::kSequence;
+      options_.sync.sequence_bits = 64;  // ticks of the one clock, the same on every camera
+      options_.sync.check_tolerance_ns = 0;
+      break;
+    case CapturePipelineOptions::RigSync::kTrigger:
+      options_.sync.mode = Mode::kSequence;
+      options_.sync.check_tolerance_ns =
+          rate > 0 ? static_cast<std::uint64_t>(options_.trigger_check_tolerance * 1e9 / rate) : 0;
+      break;
+    case CapturePipelineOptions::RigSync::kFreeRun:
+      options_.sync.mode = Mode::kTimestamp;
+      options_.sync.estimate_offsets = true;
+      options_.sync.tolerance_ns = static_cast<std::uint64_t>(options_.free_run_tolerance * 1e9 / rate);
+      break;
+  }
+  if (rate > 0) {
     // The sync waits up to its timeout for a camera that is behind; its window must hold that
     // many sets, or a camera 40 ms behind (8 sets at 200 Hz: a detection worker descheduled on a
     // loaded machine) loses its frames as late although the timeout would have waited.
-    const double timeout_sets =
-        std::ceil(options_.sync.timeout_ns * 1e-9 * options_.device_clock_rate_hz);
+    const double timeout_sets = std::ceil(options_.sync.timeout_ns * 1e-9 * rate);
     options_.sync.max_pending_sets = std::max(
         options_.sync.max_pending_sets, std::min(static_cast<int>(timeout_sets), 4096));
   }
   MOCAP_RETURN_IF_ERROR(sync_.Reset(options_.sync));
+  sync_epoch_.assign(cameras_.size(), 0);
+  numbered_any_ = false;
+  rig_clock_.Reset();
+  rig_newest_sequence_ = 0;
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    stats_.camera_resyncs.assign(cameras_.size(), 0);
+    stats_.camera_clock_offset_ms.assign(cameras_.size(), 0.0);
+    stats_.camera_clock_drift_ppm.assign(cameras_.size(), 0.0);
+  }
   frames_.clear();
   const int per_worker =
       std::max(1, options_.frame_queue_capacity / options_.detection_threads);
@@ -126,14 +158,75 @@ void CapturePipeline::GrabLoop(int c) {
   NameThisThread("grab-" + std::to_string(c));
   drivers::CameraSource& cam = *cameras_[c];
   bool was_lost = false;
+  // The camera's stream: its generation (+1 after each loss), the correction that puts its ids
+  // on the rig's trigger count after a loss or a late start, and its last delivered frame.
+  std::uint32_t epoch = 0;
+  std::uint64_t sequence_shift = 0;  // modular
+  std::uint64_t reopens_seen = cam.Counters().reopens.load();
+  bool delivered = false;
+  int placing = 0;  // frames left to place it on the rig's trigger count
+  double best_excess_ns = 0;
+  bool force_shift = false;
   while (grabbing_) {
     if (options_.test_hold) options_.test_hold("grab");
     drivers::Frame frame;
     const drivers::GrabResult r = cam.Grab(&frame);
     if (r == drivers::GrabResult::kFrame) {
+      const std::uint64_t reopens = cam.Counters().reopens.load();
+      const bool returned = was_lost || reopens != reopens_seen;
+      if (returned) {
+        ++epoch;
+        reopens_seen = reopens;
+      }
       was_lost = false;
+      const bool trigger_count =
+          options_.rig_sync == CapturePipelineOptions::RigSync::kTrigger && options_.rate_hz > 0;
+      if (trigger_count && (returned || !delivered)) {
+        // Its ids restarted (a return) or began while the rig may already have been running (a
+        // start): over its next frames it is placed on the rig's count.
+        placing = kPlacementFrames;
+        best_excess_ns = std::numeric_limits<double>::infinity();
+        force_shift = returned;
+      }
+      const std::uint64_t arrived =
+          frame.received_ns != 0 ? frame.received_ns : frame.host_timestamp_ns;
+      if (placing > 0) {
+        // The trigger it is: the rig's clock (the lower envelope of the arrivals of the rig's
+        // triggers, below) says when trigger n reached the host; the frame that arrived
+        // closest to a trigger's time, over the first kPlacementFrames, waited least and says
+        // which trigger it was.
+        --placing;
+        std::lock_guard<std::mutex> lock(stats_mutex_);
+        if (rig_clock_.samples() > 0) {
+          const double period_ns = 1e9 / options_.rate_hz;
+          const std::uint64_t r = rig_newest_sequence_;
+          const double since = static_cast<double>(arrived) -
+                               static_cast<double>(rig_clock_.ToHost(
+                                   static_cast<std::uint64_t>(r * period_ns)));
+          const long long steps = std::llround(since / period_ns);
+          const double excess = std::abs(since - steps * period_ns);
+          if (excess < best_excess_ns) {
+            best_excess_ns = excess;
+            const std::uint64_t expected = r + static_cast<std::uint64_t>(steps);
+            const std::uint64_t own = frame.sequence;  // its own count, not yet shifted
+            // At start-up the cameras' first frames are the same triggers, numbered alike: only
+            // a camera whose own count is two or more triggers off the rig's (it started after
+            // the triggers had begun) is renumbered. A returning camera always is.
+            const auto off = static_cast<std::int64_t>(expected - own);
+            if (force_shift || off >= 2 || off <= -2) sequence_shift = expected - own;
+          }
+        }
+      }
+      frame.sequence += sequence_shift;
+      frame.stream_epoch = epoch;
+      delivered = true;
       frame.camera = c;
       std::lock_guard<std::mutex> lock(stats_mutex_);
+      if (trigger_count && placing == 0) {
+        rig_clock_.Add(static_cast<std::uint64_t>(frame.sequence * (1e9 / options_.rate_hz)),
+                       arrived);
+        rig_newest_sequence_ = std::max(rig_newest_sequence_, frame.sequence);
+      }
       ++stats_.frames_grabbed;
       BoundedQueue<drivers::Frame>& queue = *frames_[c % frames_.size()];
       if (!queue.TryPush(std::move(frame))) {  // full: the frame is left to us
@@ -170,12 +263,13 @@ void CapturePipeline::DetectLoop(int worker) {
     if (options_.test_hold) options_.test_hold("detection");
     reconstruction::CameraDetections d;
     d.camera = frame.camera;
-    d.sequence = options_.device_clock_rate_hz > 0
-                     ? drivers::SequenceOfTimestamp(frame.device_timestamp_ns,
-                                                    options_.device_clock_rate_hz)
+    d.sequence = options_.rig_sync == CapturePipelineOptions::RigSync::kSharedClock
+                     ? drivers::SequenceOfTimestamp(frame.device_timestamp_ns, options_.rate_hz)
                      : frame.sequence;
+    d.stream_epoch = frame.stream_epoch;
     d.device_timestamp_ns = frame.device_timestamp_ns;
     d.host_timestamp_ns = frame.host_timestamp_ns;
+    d.received_ns = frame.received_ns;
     const auto t0 = std::chrono::steady_clock::now();
     const Status s = reconstruction::DetectMarkers(frame.image, options_.detection, nullptr,
                                                    &workspace, &d.centroids);
@@ -215,7 +309,30 @@ bool CapturePipeline::Recording(const reconstruction::DetectionSet& set) {
   return true;
 }
 
-void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
+void CapturePipeline::NumberByTime(reconstruction::DetectionSet* set) {
+  // A phase-locked count: the expected time of the next set runs on by whole periods and is
+  // pulled a tenth of the way towards each set's time, so that which cameras a set holds (its
+  // median time moves within the tolerance) does not change its number, while the cameras' rate
+  // error against the nominal rate (ppm) is followed.
+  const double period_ns = 1e9 / options_.rate_hz;
+  if (!numbered_any_) {
+    numbered_any_ = true;
+    numbered_sequence_ = set->sequence;
+    numbered_time_ns_ = set->timestamp_ns;
+    return;
+  }
+  const double dt = static_cast<double>(static_cast<std::int64_t>(set->timestamp_ns -
+                                                                  numbered_time_ns_));
+  const long long steps = std::max<long long>(1, std::llround(dt / period_ns));
+  const double expected = static_cast<double>(numbered_time_ns_) + steps * period_ns;
+  numbered_time_ns_ = static_cast<std::uint64_t>(
+      expected + 0.1 * (static_cast<double>(set->timestamp_ns) - expected));
+  numbered_sequence_ += static_cast<std::uint64_t>(steps);
+  set->sequence = numbered_sequence_;
+}
+
+void CapturePipeline::EmitSet(reconstruction::DetectionSet& set) {
+  if (options_.rig_sync == CapturePipelineOptions::RigSync::kFreeRun) NumberByTime(&set);
   if (!Recording(set)) return;
   PointFrame out;
   out.sequence = set.sequence;
@@ -229,8 +346,10 @@ void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
     if (!set.present[c]) continue;
     if (c < 64) out.present_mask |= std::uint64_t{1} << c;
     if (out.device_timestamp_ns == 0) out.device_timestamp_ns = set.cameras[c].device_timestamp_ns;
-    first = std::min(first, set.cameras[c].host_timestamp_ns);
-    last = std::max(last, set.cameras[c].host_timestamp_ns);
+    const auto& cam = set.cameras[c];
+    const std::uint64_t received = cam.received_ns != 0 ? cam.received_ns : cam.host_timestamp_ns;
+    first = std::min(first, received);
+    last = std::max(last, received);
   }
   if (options_.keep_detections || keep_detections_.load(std::memory_order_relaxed))
     out.detections = set.cameras;
@@ -241,6 +360,11 @@ void CapturePipeline::EmitSet(const reconstruction::DetectionSet& set) {
   out.ready_host_ns = now;
 
   std::lock_guard<std::mutex> lock(stats_mutex_);
+  for (std::size_t c = 0; c < cameras_.size(); ++c) {
+    stats_.camera_clock_offset_ms[c] = sync_.offset_ns(static_cast<int>(c)) * 1e-6;
+    stats_.camera_clock_drift_ppm[c] = sync_.drift_ppm(static_cast<int>(c));
+  }
+  stats_.mismatched_sets = sync_.counters().mismatched;
   triangulate_ms_.Add(std::chrono::duration<double, std::milli>(t1 - t0).count());
   if (!s) ++stats_.triangulation_errors;
   if (any_emitted_ && set.sequence > last_emitted_sequence_ + 1) {
@@ -265,18 +389,28 @@ void CapturePipeline::SyncLoop() {
     const bool got = detections_.Pop(&d, std::chrono::milliseconds(5));
     ready.clear();
     if (got) {
+      const int c = d.camera;
+      if (c >= 0 && c < static_cast<int>(sync_epoch_.size()) && d.stream_epoch != sync_epoch_[c]) {
+        // The camera came back from a loss: its clock restarted (a no-op error where the sync
+        // fits no clocks: shared clock, or a trigger count without a check).
+        sync_epoch_[c] = d.stream_epoch;
+        if (sync_.ResyncCamera(c).ok()) {
+          std::lock_guard<std::mutex> lock(stats_mutex_);
+          ++stats_.camera_resyncs[c];
+        }
+      }
       if (!sync_.Add(std::move(d), &ready)) {
         std::lock_guard<std::mutex> lock(stats_mutex_);
         ++stats_.sync_errors;
       }
     }
     sync_.Poll(MonotonicNs(), &ready);
-    for (const auto& set : ready) EmitSet(set);
+    for (auto& set : ready) EmitSet(set);
     if (!got && detections_.closed() && detections_.size() == 0) break;
   }
   ready.clear();
   sync_.Flush(&ready);
-  for (const auto& set : ready) EmitSet(set);
+  for (auto& set : ready) EmitSet(set);
   std::lock_guard<std::mutex> lock(stats_mutex_);
   stats_.late_frames = sync_.counters().late;
 }

@@ -33,8 +33,10 @@
 // stream cannot hold the rig hostage: `start_timeout_ms` after the first set, the recording
 // begins with the cameras it has, and Stats() names the ones missing at the start.
 //
-// Latency is measured from the host time the first image of a set was handed over by its
-// camera (Frame::host_timestamp_ns, CLOCK_MONOTONIC) to the moment its points are ready.
+// Latency is measured from the host time the first image of a set was received by the transport
+// (Frame::received_ns, Aravis's system timestamp, so the wait in the driver's queue counts; else
+// Frame::host_timestamp_ns, when it was handed over), CLOCK_MONOTONIC, to the moment its points
+// are ready.
 #pragma once
 #include <atomic>
 #include <cstdint>
@@ -50,6 +52,7 @@
 #include "drivers/camera_source.h"
 #include "model/status.h"
 #include "reconstruction/centroid.h"
+#include "reconstruction/clock_fit.h"
 #include "reconstruction/detection.h"
 #include "reconstruction/frame_sync.h"
 
@@ -95,8 +98,8 @@ struct PointFrame {
   std::vector<float> residual_px;
   std::vector<std::uint8_t> camera_count;
   double latency_ms = 0;
-  // CLOCK_MONOTONIC host times at which the first and the last image of the set were handed over
-  // by their cameras, and at which its points were ready (the live latency's stages).
+  // CLOCK_MONOTONIC host times at which the first and the last image of the set were received
+  // (see the header), and at which its points were ready (the live latency's stages).
   std::uint64_t first_host_ns = 0, last_host_ns = 0, ready_host_ns = 0;
   // The 2D detections the points came from (CapturePipelineOptions::keep_detections), per camera
   // of the rig; empty otherwise.
@@ -115,13 +118,42 @@ struct CapturePipelineOptions {
   int frame_queue_capacity = 128;
   int detection_queue_capacity = 64;  // detections waiting for sync
   int point_queue_capacity = 256;     // point frames waiting for the caller
-  // > 0: cameras whose clocks are one clock (PTP, IEEE 1588, on GigE Vision 2.0 rigs; Aravis's
-  // fake cameras share the host's) and that expose on the ticks of that clock at this rate: a
-  // frame's sequence becomes its tick, floor(device timestamp x rate), which is the same for
-  // every camera at one instant whatever each camera's own frame count, and the sync runs on
-  // it (kSequence, 64 bits), with a window of at least its timeout's worth of sets. 0: frame ids
-  // as the cameras number them (hardware trigger).
-  double device_clock_rate_hz = 0;
+  // How the rig's cameras are synchronised, which decides what "the same instant" is:
+  //  kTrigger      one trigger pulse (a master camera's strobe into the others' trigger line, or
+  //                a trigger generator) exposes every camera: sets by trigger count (the frame
+  //                ids, reconstruction/frame_sync.h kSequence), checked by timestamps (each
+  //                camera's clock fitted against the host: a set whose members' mapped times
+  //                spread beyond `trigger_check_tolerance` of a period
+  //                is counted, Stats().
+  //                mismatched_sets). A camera that comes back after a loss restarts its ids,
+  //                and one that starts after the others counts from 1: its ids are put on the
+  //                rig's count from its arrival times against the rig's (the trigger whose
+  //                arrival time its least-delayed frame of the first ten is nearest), which
+  //                holds while that frame's wait stays under half a period (the timestamp check
+  //                counts the sets when not).
+  //  kSharedClock  the cameras' clocks are one clock (PTP, IEEE 1588, locked; Aravis's fakes
+  //                share the host's) and they expose on its ticks at rate_hz: a frame's sequence
+  //                is its tick, floor(device timestamp x rate), the same for every camera at one
+  //                instant whatever each camera's own count, also after a reconnect.
+  //  kFreeRun      no common clock, no trigger: each camera's clock offset and drift against the
+  //                host are fitted from its frames' arrival times (reconstruction/clock_fit.h)
+  //                and frames are grouped by their time on the host clock, within
+  //                `free_run_tolerance` of a period. Sets are only as good as that estimate
+  //                (cameras on like links: tens of microseconds) and free-running cameras are
+  //                not exposed together at all: an instant's images are up to the tolerance
+  //                apart, which a moving marker turns into error. A set's sequence is the rig's
+  //                count from the set's time (the previous set's + round(dt x rate)). A camera
+  //                back from a loss has its clock fitted afresh (FrameSync::ResyncCamera).
+  enum class RigSync : std::uint8_t { kTrigger, kSharedClock, kFreeRun };
+  RigSync rig_sync = RigSync::kTrigger;
+  // The rig's frame rate: needed by kSharedClock and kFreeRun; kTrigger needs it to place a
+  // camera back after a loss and to check sets by timestamps (0: neither).
+  double rate_hz = 0;
+  // kTrigger with rate_hz, of a frame period (0: no check): a camera one trigger off is a whole
+  // period off, and the fits of clocks from arrival times on a loaded host scatter by a
+  // millisecond or two (a check at 0.5 ms counted a third of a 100 Hz rig's correct sets).
+  double trigger_check_tolerance = 0.25;
+  double free_run_tolerance = 0.45;         // kFreeRun: of a frame period, < 0.5
   bool keep_detections = false;  // hand each set's 2D detections out with its points (see also
                                  // CapturePipeline::KeepDetections, switched while running)
   // The recording starts once `start_complete_sets` consecutive sets had every camera (it starts
@@ -163,6 +195,13 @@ struct CapturePipelineStats {
   double warmup_ms = 0;
   std::vector<int> cameras_missing_at_start;
   std::vector<std::uint64_t> camera_losses;  // per camera
+  // Synchronisation (CapturePipelineOptions::rig_sync). Per camera: returns after a loss that
+  // the sync re-synchronised, and the clock's offset against the rig's common time (ms) and its
+  // drift against the host clock (ppm; 0 where not fitted: kSharedClock, or kTrigger without a
+  // check). mismatched_sets: kTrigger sets whose timestamps disagreed.
+  std::vector<std::uint64_t> camera_resyncs;
+  std::vector<double> camera_clock_offset_ms, camera_clock_drift_ppm;
+  std::uint64_t mismatched_sets = 0;
   double detect_ms_p50 = 0, detect_ms_p99 = 0;
   double triangulate_ms_p50 = 0, triangulate_ms_p99 = 0;
   double latency_ms_p50 = 0, latency_ms_p99 = 0;
@@ -197,7 +236,9 @@ class CapturePipeline {
   void GrabLoop(int camera);
   void DetectLoop(int worker);
   void SyncLoop();
-  void EmitSet(const reconstruction::DetectionSet& set);
+  void EmitSet(reconstruction::DetectionSet& set);
+  // kFreeRun: the set's sequence from its time (see RigSync).
+  void NumberByTime(reconstruction::DetectionSet* set);
   // Whether `set` belongs to the recording (start-up, see the header); counts warm-up sets.
   bool Recording(const reconstruction::DetectionSet& set);
 
@@ -220,11 +261,21 @@ class CapturePipeline {
 
   mutable std::mutex stats_mutex_;
   CapturePipelineStats stats_;
+  // kTrigger, under stats_mutex_: the rig's trigger count against the host clock (a ClockFit of
+  // the arrival times of every placed camera's frames against sequence x period) and its newest
+  // trigger, where a camera that returns or starts late finds the count.
+  static constexpr int kPlacementFrames = 10;
+  reconstruction::ClockFit rig_clock_;
+  std::uint64_t rig_newest_sequence_ = 0;
   static constexpr std::size_t kTimingSamples = 1 << 16;
   RecentSamples detect_ms_{kTimingSamples}, triangulate_ms_{kTimingSamples},
       latency_ms_{kTimingSamples};
   bool any_emitted_ = false;
   std::uint64_t last_emitted_sequence_ = 0;
+  // The sync thread's: the stream epoch each camera's detections last had; kFreeRun numbering.
+  std::vector<std::uint32_t> sync_epoch_;
+  bool numbered_any_ = false;
+  std::uint64_t numbered_sequence_ = 0, numbered_time_ns_ = 0;
   std::uint64_t first_set_host_ns_ = 0;  // the sync thread's: when the first set came out
   int complete_run_ = 0;                  // consecutive complete sets before the recording
 };

@@ -138,6 +138,18 @@ const std::vector<DaemonField>& DaemonFields() {
       // The running triangulation can switch calibration between two frame sets (as
       // rig.calibrate.apply does), so a new file applies live.
       Path("rig", "calibration", true, &DaemonConfig::calibration_file, false),
+      Text("rig", "sync", false, &DaemonConfig::sync, true, {"trigger", "ptp", "free-run"}),
+      Text("rig", "trigger_master", false, &DaemonConfig::trigger_master, false),
+      Number<&DaemonConfig::trigger_line>("rig", "trigger_line", false, {0, 15}),
+      Number<&DaemonConfig::ptp_lock_timeout_s>("rig", "ptp_lock_timeout_s", false, {0.1, 600}),
+      Text("rig", "pixel_format", false, &DaemonConfig::pixel_format, true,
+           {"Mono8", "Mono12", "Mono12Packed", "Mono16"}),
+      Number<&DaemonConfig::packet_size>("rig", "packet_size", false,
+                                         {576, 16384, false, 0.0, "negotiated"}),
+      Number<&DaemonConfig::packet_delay_ns>("rig", "packet_delay_ns", false, {0, 100000000}),
+      Text("rig", "packet_resend", false, &DaemonConfig::packet_resend, true, {"always", "never"}),
+      Number<&DaemonConfig::socket_buffer_bytes>("rig", "socket_buffer_bytes", false,
+                                                 {0, 1 << 30}),
       Path("storage", "state_dir", false, &DaemonConfig::state_dir, true),
       Path("control", "socket", false, &DaemonConfig::socket_path, true),
       Text("control", "group", true, &DaemonConfig::control_group, true),
@@ -170,6 +182,12 @@ const std::vector<CameraField>& CameraFields() {
                                      {0, 48, false, -1.0, "the rig's"}),
       Number<&CameraConfig::detection_threshold>("rig.camera", "detection_threshold", false,
                                                  {1, 65535, false, 0.0, "the rig's"}),
+      Text("rig.camera", "interface", false, &CameraConfig::interface, true,
+           {"gige", "10gige", "usb3"}),
+      Text("rig.camera", "link", false, &CameraConfig::link, false),
+      Number<&CameraConfig::strobe_line>("rig.camera", "strobe_line", false,
+                                         {0, 15, false, -1.0, "none"}),
+      Text("rig.camera", "optional", false, &CameraConfig::optional, false),
   };
   return fields;
 }
@@ -279,6 +297,21 @@ bool Validate(const DaemonConfig& c, const ErrorFormatter& fail, std::string* er
                               FormatNumber(c.rate_hz) + " Hz)");
   };
   if (!check_exposure("rig.exposure_us", c.exposure_us)) return false;
+  if (!c.trigger_master.empty()) {
+    if (c.simulated_cameras > 0)
+      return set_error("rig.trigger_master", "\"" + c.trigger_master +
+                                                 "\" on a simulated rig (its fake cameras share "
+                                                 "the host's clock; there is nothing to trigger)");
+    if (c.sync != "trigger")
+      return set_error("rig.trigger_master", "\"" + c.trigger_master +
+                                                 "\" given with rig.sync \"" + c.sync +
+                                                 "\" (a trigger master belongs to sync = \"trigger\")");
+    bool listed = false;
+    for (const CameraConfig& cam : c.cameras) listed |= cam.id == c.trigger_master;
+    if (!listed)
+      return set_error("rig.trigger_master", "\"" + c.trigger_master +
+                                                 "\" is not the id of a [[rig.camera]]");
+  }
 
   if (c.simulated_cameras == 0 && c.cameras.empty())
     return set_error("rig", "a real rig needs at least one [[rig.camera]] (or simulated = N for "
@@ -305,6 +338,10 @@ bool Validate(const DaemonConfig& c, const ErrorFormatter& fail, std::string* er
                                            std::to_string(it->second) + "]'s id");
     if (cam.exposure_us != 0 && !check_exposure(prefix + ".exposure_us", cam.exposure_us))
       return false;
+    if (cam.id == c.trigger_master && cam.strobe_line < 0)
+      return set_error(prefix + ".strobe_line",
+                       "-1 (none) on the trigger master \"" + cam.id +
+                           "\": its strobe output line triggers the other cameras");
     for (std::size_t m = 0; m < cam.masks.size(); ++m) {
       const MaskRect& r = cam.masks[m];
       if (r.x < 0 || r.y < 0 || r.width < 1 || r.height < 1 || r.x + r.width > c.width ||

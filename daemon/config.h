@@ -17,11 +17,29 @@
 //   centroid_noise_px = 0.1     # simulated rig only
 //   detection_threads = 2
 //   calibration = "calib.json"  # camera calibration; absent: uncalibrated until rig.calibrate
+//   sync = "trigger"            # "trigger" | "ptp" | "free-run" (daemon/capture_pipeline.h RigSync;
+//                               # a simulated rig's fakes share the host's clock: always as "ptp")
+//   trigger_master = ""         # trigger: the camera whose strobe triggers the others ("": an
+//                               # external trigger generator drives every camera)
+//   trigger_line = 1            # trigger: the cameras' trigger input, Line<n>
+//   ptp_lock_timeout_s = 10     # ptp: how long start-up waits for every camera to lock
+//   pixel_format = "Mono8"      # "Mono8" | "Mono12" | "Mono12Packed" | "Mono16"
+//   packet_size = 0             # GigE: bytes per stream packet (0: negotiated; > 1500: jumbo frames)
+//   packet_delay_ns = 0         # GigE: inter-packet delay (several cameras on one switch port)
+//   packet_resend = "always"    # GigE: "always" | "never" (Aravis's resend requests)
+//   socket_buffer_bytes = 0     # GigE: stream socket receive buffer (0: one payload, Aravis's auto)
 //   [[rig.camera]]              # one per camera (a simulated rig may omit them)
 //   id = "Aravis-Fake-GV01"     # GenICam id or serial
 //   backend = "aravis"          # "aravis" | "simulated"
 //   exposure_us = 0             # 0: the rig's; gain_db = -1: the rig's; detection_threshold = 0: the rig's
 //   masks = [ { x = 0, y = 900, width = 1280, height = 124 } ]   # pixels never detected (reflections)
+//   interface = "gige"          # "gige" | "10gige" | "usb3": what its link carries (rig check)
+//   link = ""                   # cameras with one link name share a link (a NIC port, a switch
+//                               # uplink, a USB host controller); "": a link of its own
+//   strobe_line = -1            # Line<n> driven by ExposureActive (the IR ring; a trigger
+//                               # master's output); -1: none
+//   optional = ""               # GenICam features this camera may refuse, comma separated
+//                               # ("ExposureAuto,GevSCPD"); any other refusal is an error
 //   [storage]   state_dir = "/var/lib/mocapd"
 //               export_dirs = ["/srv/mocap/exports"]   # where `export` may write (default:
 //                                                      # state_dir/exports; daemon/export_path.h)
@@ -76,6 +94,10 @@ struct CameraConfig {
   double gain_db = -1;             // -1: the rig's
   int detection_threshold = 0;     // 0: the rig's
   std::vector<MaskRect> masks;
+  std::string interface = "gige";  // "gige" | "10gige" | "usb3"
+  std::string link;                // "": its own
+  int strobe_line = -1;            // -1: none
+  std::string optional;            // features it may refuse, comma separated
   bool operator==(const CameraConfig&) const = default;
 };
 
@@ -94,6 +116,15 @@ struct DaemonConfig {
   int detection_threads = 2;
   std::vector<CameraConfig> cameras;  // [[rig.camera]]; a real rig needs at least one
   std::string calibration_file;       // empty: uncalibrated until rig.calibrate
+  std::string sync = "trigger";       // "trigger" | "ptp" | "free-run"
+  std::string trigger_master;         // "": an external trigger generator
+  int trigger_line = 1;
+  double ptp_lock_timeout_s = 10;
+  std::string pixel_format = "Mono8";
+  int packet_size = 0;                // 0: negotiated
+  int packet_delay_ns = 0;
+  std::string packet_resend = "always";
+  int socket_buffer_bytes = 0;        // 0: one payload
 
   // [storage]
   std::string state_dir = "/var/lib/mocapd";

@@ -20,6 +20,7 @@
 #include "daemon/export_path.h"
 #include "daemon/recorder.h"
 #include "daemon/recording_export.h"
+#include "daemon/rig_setup.h"
 #include "drivers/aravis_camera.h"
 #include "drivers/frame.h"
 #include "formats/osim.h"
@@ -202,12 +203,8 @@ Status Daemon::Start() {
 
   // 4. The cameras.
   std::vector<std::unique_ptr<drivers::CameraSource>> sources;
-  drivers::CameraSettings settings;
-  settings.frame_rate_hz = config_.rate_hz;
-  settings.exposure_us = config_.exposure_us;
-  settings.gain_db = config_.gain_db;
-  settings.pixel_format = drivers::PixelFormat::kMono8;
-  settings.buffer_count = 32;
+  drivers::CameraSettings settings = CameraSettingsOf(config_, -1);
+  settings.pixel_format = drivers::PixelFormat::kMono8;  // what the simulated rig draws
   if (config_.simulated_cameras > 0) {
     sim::LiveRigOptions ro;
     ro.cameras = config_.simulated_cameras;
@@ -221,16 +218,31 @@ Status Daemon::Start() {
     MOCAP_RETURN_IF_ERROR(sim_rig_->OpenCameras(settings, &sources));
     start_cameras_ = sim_rig_->IntrinsicsOnly();
   } else {
-    for (const CameraConfig& c : config_.cameras) {
+    std::vector<drivers::AravisCamera*> aravis;
+    for (std::size_t i = 0; i < config_.cameras.size(); ++i) {
+      const CameraConfig& c = config_.cameras[i];
       auto cam = std::make_unique<drivers::AravisCamera>(c.id);
-      drivers::CameraSettings s = settings;
-      if (c.exposure_us > 0) s.exposure_us = c.exposure_us;
-      if (c.gain_db >= 0) s.gain_db = c.gain_db;
-      if (Status st = cam->Open(s); !st)
+      if (Status st = cam->Open(CameraSettingsOf(config_, static_cast<int>(i))); !st)
         return Status::Error("camera '" + c.id + "': " + st.message());
+      for (const std::string& r : cam->Applied().refused_optional)
+        spdlog::warn("camera '{}': optional feature refused: {}", c.id, r);
+      aravis.push_back(cam.get());
       sources.push_back(std::move(cam));
     }
     if (sources.empty()) return Status::Error(config_.source + ": the rig has no cameras");
+    if (config_.sync == "ptp") {
+      std::vector<drivers::PtpState> ptp;
+      MOCAP_RETURN_IF_ERROR(WaitForPtpLock(aravis, config_.ptp_lock_timeout_s, &ptp));
+      for (std::size_t i = 0; i < ptp.size(); ++i)
+        spdlog::info("camera '{}': PTP {}{}", aravis[i]->id(), ptp[i].status,
+                     ptp[i].has_offset ? ", " + std::to_string(ptp[i].offset_from_master_ns) +
+                                             " ns from the master"
+                                       : "");
+    } else if (config_.sync == "free-run") {
+      spdlog::warn("[rig] sync = \"free-run\": frame sets are grouped by each camera's clock "
+                   "fitted against the host's; they are only as good as that estimate, and "
+                   "free-running cameras do not expose together");
+    }
   }
   // The rig calibration: the configured file, else the newest stored one.
   std::vector<reconstruction::CameraModel> calibrated;
@@ -270,7 +282,8 @@ Status Daemon::Start() {
   // 5. The pipeline.
   LivePipelineOptions po;
   po.capture.detection_threads = config_.detection_threads;
-  po.capture.device_clock_rate_hz = config_.simulated_cameras > 0 ? config_.rate_hz : 0;
+  po.capture.rig_sync = RigSyncOf(config_);
+  po.capture.rate_hz = config_.rate_hz;
   po.capture.detection.threshold = config_.detection_threshold;
   po.capture.detection.sigma_floor_px = std::max(0.01, config_.centroid_noise_px);
   po.tracker.rate_hz = config_.rate_hz;
@@ -544,6 +557,7 @@ Json Daemon::CamerasJson() const {
   if (!pipeline_) return {{"cameras", cams}};
   const double up = std::max(1e-3, SecondsSince(started_ns_));
   const std::vector<CameraHealth> health = pipeline_->DetectionHealthSnapshot();
+  const CapturePipelineStats sync = pipeline_->Stats(/*timings=*/false).capture;
   for (int c = 0; c < pipeline_->num_cameras(); ++c) {
     drivers::CameraSource& cam = pipeline_->camera(c);
     const auto& k = cam.Counters();
@@ -560,6 +574,11 @@ Json Daemon::CamerasJson() const {
                     {"reprojection_px", h.reprojection_samples > 0 && h.reprojection_px > 0
                                             ? Json(h.reprojection_px) : Json()},
                     {"calibration_suspect", h.calibration_suspect},
+                    {"resyncs", c < static_cast<int>(sync.camera_resyncs.size()) ? sync.camera_resyncs[c] : 0},
+                    {"clock_offset_ms", c < static_cast<int>(sync.camera_clock_offset_ms.size())
+                                            ? sync.camera_clock_offset_ms[c] : 0.0},
+                    {"clock_drift_ppm", c < static_cast<int>(sync.camera_clock_drift_ppm.size())
+                                            ? sync.camera_clock_drift_ppm[c] : 0.0},
                     {"width", config_.width},
                     {"height", config_.height}});
   }
@@ -611,7 +630,8 @@ Json Daemon::Status_() const {
     j["sets"] = {{"total", st.capture.frame_sets},
                  {"incomplete", st.capture.incomplete_sets},
                  {"dropped", st.capture.dropped_frame_sets},
-                 {"warmup", st.capture.warmup_sets}};
+                 {"warmup", st.capture.warmup_sets},
+                 {"mismatched", st.capture.mismatched_sets}};
     j["tracker"] = {{"state", TrackStateName(st.tracker_state)},
                     {"labelled", st.labelled},
                     {"markers", st.markers},

@@ -125,7 +125,14 @@ int main(int argc, char** argv) {
     if (!check) md::ServiceNotifier::StartFailed("configuration: " + error, md::kExitConfig);
     return md::kExitConfig;
   }
+  // The rig's bandwidth is a configuration error too (daemon/startup_checks.h).
+  if (const md::StartupCheck c = md::CheckRigBandwidth(config); !c.ok()) {
+    spdlog::error("{}: {}", config_path, c.status.message());
+    if (!check) md::ServiceNotifier::StartFailed(c.status.message(), c.exit_code);
+    return c.exit_code;
+  }
   if (check) {
+    std::printf("%s", md::DescribeRigBandwidth(config).c_str());
     std::printf("%s: ok (%s rig of %d cameras at %g Hz; state in %s; socket %s)\n",
                 config_path.c_str(), config.simulated_cameras > 0 ? "simulated" : "camera",
                 config.simulated_cameras > 0 ? config.simulated_cameras

@@ -5,6 +5,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
 
@@ -16,6 +17,33 @@ namespace mocap::daemon {
 namespace {
 
 StartupCheck Fail(int code, std::string message) { return {Status::Error(std::move(message)), code}; }
+
+std::string Mb(double v) {
+  char b[32];
+  std::snprintf(b, sizeof b, "%.1f", v);
+  return b;
+}
+
+constexpr int kDefaultPacketSize = 1500;
+constexpr int kGvspHeaderBytes = 36;   // IP 20 + UDP 8 + GVSP 8, inside the packet
+constexpr int kEthernetWireBytes = 38;  // header 14 + FCS 4 + preamble 8 + gap 12, around it
+
+// Image bytes per wire byte on a GigE Vision link.
+double GigeEfficiency(const DaemonConfig& c) {
+  const double packet = c.packet_size > 0 ? c.packet_size : kDefaultPacketSize;
+  return (packet - kGvspHeaderBytes) / (packet + kEthernetWireBytes);
+}
+
+double CapacityMbS(const std::string& interface) {
+  if (interface == "10gige") return 1250.0;
+  if (interface == "usb3") return 400.0;
+  return 125.0;
+}
+
+// The camera's configured bytes per buffer: the usbfs memory a stream buffer pins.
+double FrameBytes(const DaemonConfig& c) {
+  return static_cast<double>(c.width) * c.height * ConfiguredBytesPerPixel(c.pixel_format);
+}
 
 }  // namespace
 
@@ -55,6 +83,97 @@ StartupCheck CheckStartup(const DaemonConfig& config, bool socket_activated) {
   if (StartupCheck c = CheckStateDir(config.state_dir); !c.ok()) return c;
   if (!socket_activated) return CheckSocketPath(config.socket_path);
   return {};
+}
+
+double ConfiguredBytesPerPixel(const std::string& pixel_format) {
+  if (pixel_format == "Mono8") return 1.0;
+  if (pixel_format == "Mono12Packed") return 1.5;
+  if (pixel_format == "Mono12" || pixel_format == "Mono16") return 2.0;
+  return 0.0;
+}
+
+std::vector<LinkLoad> RigLinkLoads(const DaemonConfig& config) {
+  std::vector<LinkLoad> links;
+  if (config.simulated_cameras > 0) return links;
+  const double image_mb_s = FrameBytes(config) * config.rate_hz * 1e-6;
+  for (const CameraConfig& cam : config.cameras) {
+    const std::string name = cam.link.empty() ? cam.id : cam.link;
+    LinkLoad* link = nullptr;
+    for (LinkLoad& l : links)
+      if (l.link == name) link = &l;
+    if (!link) {
+      links.push_back({name, cam.interface, {}, CapacityMbS(cam.interface), 0, image_mb_s});
+      link = &links.back();
+    }
+    link->cameras.push_back(cam.id);
+    const bool gige = cam.interface != "usb3";
+    link->needed_mb_s += gige ? image_mb_s / GigeEfficiency(config) : image_mb_s;
+  }
+  return links;
+}
+
+StartupCheck CheckRigBandwidth(const DaemonConfig& config) {
+  for (const CameraConfig& cam : config.cameras) {
+    for (const CameraConfig& other : config.cameras) {
+      if (cam.link.empty() || cam.link != other.link || cam.interface == other.interface) continue;
+      return Fail(kExitConfig, "[rig] cameras '" + cam.id + "' (" + cam.interface + ") and '" +
+                                   other.id + "' (" + other.interface + ") share link '" +
+                                   cam.link + "': one link has one interface");
+    }
+  }
+  std::string problems;
+  for (const LinkLoad& l : RigLinkLoads(config)) {
+    if (l.needed_mb_s <= l.capacity_mb_s) continue;
+    const bool gige = l.interface != "usb3";
+    const double efficiency = gige ? GigeEfficiency(config) : 1.0;
+    const double n = static_cast<double>(l.cameras.size());
+    // What one camera may send of the link's images: its share.
+    const double share_bytes_s = l.capacity_mb_s * 1e6 * efficiency / n;
+    const double bpp = ConfiguredBytesPerPixel(config.pixel_format);
+    const int max_rate = static_cast<int>(share_bytes_s / FrameBytes(config));
+    const int max_height = static_cast<int>(share_bytes_s / (config.width * bpp * config.rate_hz));
+    std::string names;
+    for (const std::string& c : l.cameras) names += (names.empty() ? "'" : ", '") + c + "'";
+    std::string fix = "rig.rate <= " + std::to_string(max_rate) + " Hz, or a ROI of " +
+                      std::to_string(config.width) + " x <= " + std::to_string(max_height) +
+                      " px (rig.height) at " + Mb(config.rate_hz) + " Hz";
+    if (bpp > 1.5) fix += ", or pixel_format \"Mono12Packed\" (1.5 bytes/px) or \"Mono8\"";
+    if (l.interface == "gige") fix += ", or a 10gige link";
+    if (l.cameras.size() > 1) fix += ", or fewer cameras on the link (link = \"...\" per camera)";
+    if (gige && config.packet_size < 8000) fix += "; jumbo frames (packet_size = 9000) save a few %";
+    problems += std::string(problems.empty() ? "" : "; ") + "link '" + l.link + "' (" +
+                l.interface + ") carries " + std::to_string(l.cameras.size()) + " camera" +
+                (l.cameras.size() > 1 ? "s " : " ") + names + " needing " + Mb(l.needed_mb_s) +
+                " MB/s of its " + Mb(l.capacity_mb_s) + " MB/s (each camera " +
+                std::to_string(config.width) + "x" + std::to_string(config.height) + " " +
+                config.pixel_format + " at " + Mb(config.rate_hz) + " Hz is " + Mb(l.image_mb_s) +
+                " MB/s of images). To fit: " + fix;
+  }
+  if (problems.empty()) return {};
+  return Fail(kExitConfig, "[rig] bandwidth: " + problems);
+}
+
+std::string DescribeRigBandwidth(const DaemonConfig& config, const std::string& usbfs_path) {
+  std::string out;
+  int usb = 0;
+  for (const LinkLoad& l : RigLinkLoads(config)) {
+    char line[256];
+    std::snprintf(line, sizeof line, "link '%s' (%s): %zu camera%s need %.1f of %.1f MB/s (%.0f %%)\n",
+                  l.link.c_str(), l.interface.c_str(), l.cameras.size(),
+                  l.cameras.size() > 1 ? "s" : "", l.needed_mb_s, l.capacity_mb_s,
+                  100.0 * l.needed_mb_s / l.capacity_mb_s);
+    out += line;
+    if (l.interface == "usb3") usb += static_cast<int>(l.cameras.size());
+  }
+  if (usb > 0) {
+    // As Daemon::Start opens them: 32 buffers a camera.
+    const auto needed = static_cast<std::size_t>(usb * 32 * FrameBytes(config));
+    const Status s = drivers::CheckUsbfsMemory(needed, usbfs_path);
+    out += s.ok() ? "usbfs memory: enough for " + std::to_string(usb) + " USB3 cameras' buffers (" +
+                        Mb(needed / 1048576.0) + " MB)\n"
+                  : "warning: " + s.message() + "\n";
+  }
+  return out;
 }
 
 std::string UsbfsAdvice(const DaemonConfig& config, const std::string& usbfs_path) {

@@ -14,8 +14,25 @@
 // A rig of USB3 Vision cameras also needs the kernel's usbfs memory limit raised
 // (drivers/usb_hotplug.h CheckUsbfsMemory); UsbfsAdvice says what to set, as a warning: the
 // cameras still stream, losing frames, so it is not a reason to refuse to start.
+//
+// The rig's bandwidth (CheckRigBandwidth) is a configuration error, checked before any camera is
+// opened and by `mocapd --check-config`: a link asked to carry more than it can drops packets
+// and frames on every set, and no camera says why. So per link (the cameras sharing one NIC port,
+// switch uplink or USB host controller: [[rig.camera]] link), the bandwidth the cameras need,
+// width x height x bytes per pixel x rate plus the protocol's overhead, is set against what the
+// link carries, and an over-budget rig is refused with the link, its cameras, the figures and
+// what would fit (a lower rate, a smaller ROI, a packed pixel format, a faster link).
+// Figures (MB = 1e6 bytes):
+//   gige    125 MB/s on the wire; each GVSP packet of `packet_size` bytes (1500 unless
+//           configured; jumbo frames up to 9000) carries packet_size - 36 bytes of image (IP 20,
+//           UDP 8, GVSP 8) and costs packet_size + 38 on the wire (Ethernet header, FCS,
+//           preamble, inter-frame gap): 1500-byte packets leave 119 MB/s for images.
+//   10gige  the same at 1250 MB/s.
+//   usb3    400 MB/s of images: USB 3.0 (Gen 1) signals 5 Gb/s, 500 MB/s after 8b/10b, of
+//           which bulk transfers sustain about 400 on a host controller of its own.
 #pragma once
 #include <string>
+#include <vector>
 
 #include "model/status.h"
 
@@ -44,6 +61,28 @@ StartupCheck CheckStateDir(const std::string& state_dir);
 StartupCheck CheckSocketPath(const std::string& socket_path);
 // Both, for the configuration (skipping the socket when `socket_activated`).
 StartupCheck CheckStartup(const DaemonConfig& config, bool socket_activated);
+
+// One link of the rig and what its cameras need of it.
+struct LinkLoad {
+  std::string link;       // [[rig.camera]] link, or the camera's id for a link of its own
+  std::string interface;  // "gige" | "10gige" | "usb3"
+  std::vector<std::string> cameras;
+  double capacity_mb_s = 0;  // on the wire (GigE) or of images (USB3)
+  double needed_mb_s = 0;    // the same measure, of its cameras at the configured image and rate
+  double image_mb_s = 0;     // images alone, per camera
+};
+// Bytes per pixel of a configured pixel format (Mono12Packed: 1.5); 0 for an unknown name.
+double ConfiguredBytesPerPixel(const std::string& pixel_format);
+// Per link, in the order of the cameras' first appearance. Empty for a simulated rig.
+std::vector<LinkLoad> RigLinkLoads(const DaemonConfig& config);
+// Ok when every link carries its cameras; else kExitConfig and a message naming the link, its
+// cameras, the figures and what would fit.
+StartupCheck CheckRigBandwidth(const DaemonConfig& config);
+// One line per link ("link 'eth1' (gige): 2 cameras need 110.2 of 125.0 MB/s (88 %)"), and the
+// usbfs budget of the USB3 cameras read from `usbfs_path`: what `mocapd --check-config` prints.
+std::string DescribeRigBandwidth(const DaemonConfig& config,
+                                 const std::string& usbfs_path =
+                                     "/sys/module/usbcore/parameters/usbfs_memory_mb");
 
 // For a rig with USB3 Vision cameras (found among Aravis's devices by the configured ids or
 // serials): what to set when the usbfs memory limit is too small for their stream buffers ("" if

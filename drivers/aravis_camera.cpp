@@ -32,6 +32,7 @@ std::uint32_t ToArvPixelFormat(PixelFormat format) {
     case PixelFormat::kMono8: return ARV_PIXEL_FORMAT_MONO_8;
     case PixelFormat::kMono12: return ARV_PIXEL_FORMAT_MONO_12;
     case PixelFormat::kMono16: return ARV_PIXEL_FORMAT_MONO_16;
+    case PixelFormat::kMono12Packed: return ARV_PIXEL_FORMAT_MONO_12_PACKED;
   }
   return 0;
 }
@@ -41,6 +42,7 @@ bool FromArvPixelFormat(std::uint32_t arv_format, PixelFormat* format) {
     case ARV_PIXEL_FORMAT_MONO_8: *format = PixelFormat::kMono8; return true;
     case ARV_PIXEL_FORMAT_MONO_12: *format = PixelFormat::kMono12; return true;
     case ARV_PIXEL_FORMAT_MONO_16: *format = PixelFormat::kMono16; return true;
+    case ARV_PIXEL_FORMAT_MONO_12_PACKED: *format = PixelFormat::kMono12Packed; return true;
     default: return false;
   }
 }
@@ -317,9 +319,189 @@ Status AravisCamera::ApplySettings() {
   applied_.roi_y = ry;
   applied_.width = rw;
   applied_.height = rh;
+  MOCAP_RETURN_IF_ERROR(ApplyCameraFeatures());
   applied_.payload_bytes = arv_camera_get_payload(camera_, &e);
   if (e) return fail("cannot read the payload size");
   return Status::Ok();
+}
+
+Status AravisCamera::Refused(const std::string& feature, const std::string& why) {
+  const auto& optional = settings_.optional_features;
+  if (std::find(optional.begin(), optional.end(), feature) != optional.end()) {
+    applied_.refused_optional.push_back(feature + ": " + why);
+    return Status::Ok();
+  }
+  return Status::Error(id_ + ": " + feature + ": " + why +
+                       " (list it among the camera's optional features if the rig does without)");
+}
+
+Status AravisCamera::ApplyCameraFeatures() {
+  GError* e = nullptr;
+  const CameraSettings& s = settings_;
+  applied_.refused_optional.clear();
+  auto available = [&](const char* feature) {
+    const bool yes = arv_camera_is_feature_available(camera_, feature, &e);
+    g_clear_error(&e);
+    return yes;
+  };
+  auto set_string = [&](const char* feature, const std::string& value) -> Status {
+    arv_camera_set_string(camera_, feature, value.c_str(), &e);
+    if (e) return Refused(feature, "refused " + value + " (" + Take(&e) + ")");
+    const char* got = arv_camera_get_string(camera_, feature, &e);
+    const std::string back = got ? got : "";
+    if (e) return Refused(feature, "cannot be read back (" + Take(&e) + ")");
+    if (back != value) return Refused(feature, "set to " + value + ", reads back " + back);
+    return Status::Ok();
+  };
+
+  // Auto exposure and gain off: a camera that brightens a dark scene moves every marker's
+  // pixels across the detector's threshold.
+  applied_.exposure_auto.clear();
+  applied_.gain_auto.clear();
+  for (const char* feature : {"ExposureAuto", "GainAuto"}) {
+    if (!available(feature)) continue;
+    const Status st = set_string(feature, "Off");
+    MOCAP_RETURN_IF_ERROR(st);
+    const char* got = arv_camera_get_string(camera_, feature, &e);
+    g_clear_error(&e);
+    (std::string(feature) == "ExposureAuto" ? applied_.exposure_auto : applied_.gain_auto) =
+        got ? got : "";
+  }
+
+  // Strobe: Line<n> an output of ExposureActive.
+  applied_.strobe_source.clear();
+  if (s.strobe_line >= 0) {
+    const std::string line = "Line" + std::to_string(s.strobe_line);
+    if (!available("LineSelector") || !available("LineSource")) {
+      MOCAP_RETURN_IF_ERROR(Refused("LineSource", "the camera has no LineSelector/LineSource "
+                                                  "to drive " + line + " with ExposureActive"));
+    } else {
+      Status st = set_string("LineSelector", line);
+      if (st.ok() && available("LineMode")) st = set_string("LineMode", "Output");
+      if (st.ok()) st = set_string("LineSource", "ExposureActive");
+      MOCAP_RETURN_IF_ERROR(st);
+      const char* got = arv_camera_get_string(camera_, "LineSource", &e);
+      g_clear_error(&e);
+      applied_.strobe_source = got ? got : "";
+    }
+  }
+
+  // IEEE 1588: SFNC's PtpEnable, or GigE Vision 1.x's GevIEEE1588.
+  applied_.ptp_enabled = false;
+  if (s.ptp) {
+    const char* feature = available("PtpEnable")     ? "PtpEnable"
+                          : available("GevIEEE1588") ? "GevIEEE1588"
+                                                     : nullptr;
+    if (feature == nullptr) {
+      MOCAP_RETURN_IF_ERROR(Refused("PtpEnable", "the camera has neither PtpEnable nor "
+                                                 "GevIEEE1588 (no IEEE 1588 support)"));
+    } else {
+      arv_camera_set_boolean(camera_, feature, TRUE, &e);
+      if (e) MOCAP_RETURN_IF_ERROR(Refused(feature, "refused true (" + Take(&e) + ")"));
+      applied_.ptp_enabled = arv_camera_get_boolean(camera_, feature, &e);
+      g_clear_error(&e);
+      if (!applied_.ptp_enabled) MOCAP_RETURN_IF_ERROR(Refused(feature, "reads back false"));
+    }
+  }
+
+  // GigE Vision packets: size (configured, or the largest the path carries) and delay. The
+  // stream is created after this, with this packet size.
+  applied_.packet_size = 0;
+  applied_.packet_delay_ns = 0;
+  if (arv_camera_is_gv_device(camera_)) {
+    if (s.packet_size > 0) {
+      arv_camera_gv_set_packet_size(camera_, s.packet_size, &e);
+      if (e) MOCAP_RETURN_IF_ERROR(Refused("GevSCPSPacketSize", "refused " +
+                                           std::to_string(s.packet_size) + " (" + Take(&e) + ")"));
+    } else {
+      arv_camera_gv_auto_packet_size(camera_, &e);
+      if (e) MOCAP_RETURN_IF_ERROR(Refused("GevSCPSPacketSize",
+                                           "cannot negotiate the packet size (" + Take(&e) + ")"));
+    }
+    applied_.packet_size = static_cast<int>(arv_camera_gv_get_packet_size(camera_, &e));
+    g_clear_error(&e);
+    if (s.packet_size > 0 && applied_.packet_size != s.packet_size)
+      MOCAP_RETURN_IF_ERROR(Refused("GevSCPSPacketSize",
+                                    "set to " + std::to_string(s.packet_size) +
+                                        ", reads back " + std::to_string(applied_.packet_size)));
+    if (s.packet_delay_ns > 0 || available("GevSCPD")) {
+      arv_camera_gv_set_packet_delay(camera_, s.packet_delay_ns, &e);
+      if (e) MOCAP_RETURN_IF_ERROR(Refused("GevSCPD", "refused " + std::to_string(s.packet_delay_ns) +
+                                                      " ns (" + Take(&e) + ")"));
+      applied_.packet_delay_ns = arv_camera_gv_get_packet_delay(camera_, &e);
+      g_clear_error(&e);
+      // GevSCPD counts ticks of the camera's timestamp clock: the delay reads back rounded to
+      // one tick, not more.
+      if (std::llabs(applied_.packet_delay_ns - s.packet_delay_ns) > 1000)
+        MOCAP_RETURN_IF_ERROR(Refused("GevSCPD", "set to " + std::to_string(s.packet_delay_ns) +
+                                                     " ns, reads back " +
+                                                     std::to_string(applied_.packet_delay_ns) +
+                                                     " ns"));
+    }
+  }
+  return Status::Ok();
+}
+
+bool PtpLocked(const std::vector<std::string>& ids, const std::vector<PtpState>& states,
+               std::string* why) {
+  std::string not_locked;
+  int masters = 0;
+  std::string master_ids;
+  for (std::size_t i = 0; i < states.size(); ++i) {
+    const std::string id = i < ids.size() ? ids[i] : "camera " + std::to_string(i);
+    if (states[i].status == "Master") {
+      ++masters;
+      master_ids += (master_ids.empty() ? "" : ", ") + id;
+    } else if (states[i].status != "Slave") {
+      not_locked += (not_locked.empty() ? "" : ", ") + id + " (" +
+                    (states[i].status.empty() ? "no status" : states[i].status) + ")";
+    }
+  }
+  std::string problem;
+  if (!not_locked.empty()) problem = "not locked: " + not_locked;
+  if (masters > 1)
+    problem += std::string(problem.empty() ? "" : "; ") + std::to_string(masters) +
+               " cameras are PTP masters (" + master_ids + "): the rig has more than one clock";
+  if (why) *why = problem;
+  return problem.empty();
+}
+
+Status AravisCamera::Ptp(PtpState* state) {
+  if (camera_ == nullptr) return Status::Error(id_ + ": Ptp() while the camera is not open");
+  if (!applied_.ptp_enabled) return Status::Error(id_ + ": PTP is not enabled on this camera");
+  GError* e = nullptr;
+  const bool sfnc = arv_camera_is_feature_available(camera_, "PtpStatus", &e);
+  g_clear_error(&e);
+  const char* latch = sfnc ? "PtpDataSetLatch" : "GevIEEE1588DataSetLatch";
+  if (arv_camera_is_feature_available(camera_, latch, &e)) arv_camera_execute_command(camera_, latch, &e);
+  g_clear_error(&e);
+  const char* status = arv_camera_get_string(camera_, sfnc ? "PtpStatus" : "GevIEEE1588Status", &e);
+  if (e) return Status::Error(id_ + ": cannot read " + (sfnc ? "PtpStatus" : "GevIEEE1588Status") +
+                              " (" + Take(&e) + ")");
+  state->status = status ? status : "";
+  const char* offset = sfnc ? "PtpOffsetFromMaster" : "GevIEEE1588OffsetFromMaster";
+  state->has_offset = arv_camera_is_feature_available(camera_, offset, &e);
+  g_clear_error(&e);
+  if (state->has_offset) {
+    state->offset_from_master_ns = arv_camera_get_integer(camera_, offset, &e);
+    if (e) state->has_offset = false;
+    g_clear_error(&e);
+  }
+  return Status::Ok();
+}
+
+std::uint64_t AravisCamera::MissingPackets() const {
+  if (stream_ == nullptr || !ARV_IS_GV_STREAM(stream_)) return 0;
+  guint64 resent = 0, missing = 0;
+  arv_gv_stream_get_statistics(ARV_GV_STREAM(stream_), &resent, &missing);
+  return missing;
+}
+
+std::uint64_t AravisCamera::ResentPackets() const {
+  if (stream_ == nullptr || !ARV_IS_GV_STREAM(stream_)) return 0;
+  guint64 resent = 0, missing = 0;
+  arv_gv_stream_get_statistics(ARV_GV_STREAM(stream_), &resent, &missing);
+  return resent;
 }
 
 Status AravisCamera::CreateStreamAndPool() {
@@ -333,11 +515,31 @@ Status AravisCamera::CreateStreamAndPool() {
   if (stream == nullptr) {
     return Status::Error(id_ + ": cannot create the stream: " + Take(&e));
   }
-  if (ARV_IS_GV_STREAM(stream) && options_.auto_socket_buffer) {
-    g_object_set(stream, "socket-buffer", ARV_GV_STREAM_SOCKET_BUFFER_AUTO, nullptr);
+  applied_.packet_resend = false;
+  applied_.socket_buffer_bytes = 0;
+  if (ARV_IS_GV_STREAM(stream)) {
+    if (settings_.socket_buffer_bytes > 0) {
+      g_object_set(stream, "socket-buffer", ARV_GV_STREAM_SOCKET_BUFFER_FIXED,
+                   "socket-buffer-size", settings_.socket_buffer_bytes, nullptr);
+    } else if (options_.auto_socket_buffer) {
+      g_object_set(stream, "socket-buffer", ARV_GV_STREAM_SOCKET_BUFFER_AUTO, nullptr);
+    }
+    g_object_set(stream, "packet-resend",
+                 settings_.packet_resend ? ARV_GV_STREAM_PACKET_RESEND_ALWAYS
+                                         : ARV_GV_STREAM_PACKET_RESEND_NEVER,
+                 nullptr);
+    gint resend = 0, buffer_size = 0;
+    g_object_get(stream, "packet-resend", &resend, "socket-buffer-size", &buffer_size, nullptr);
+    applied_.packet_resend = resend == ARV_GV_STREAM_PACKET_RESEND_ALWAYS;
+    applied_.socket_buffer_bytes = buffer_size;
+    if (applied_.packet_resend != settings_.packet_resend) {
+      g_object_unref(stream);
+      return Status::Error(id_ + ": the stream's packet-resend reads back " +
+                           (applied_.packet_resend ? "always" : "never"));
+    }
   }
-  const std::size_t image_bytes = static_cast<std::size_t>(applied_.width) * applied_.height *
-                                  BytesPerPixel(applied_.pixel_format);
+  const std::size_t image_bytes =
+      WireRowBytes(applied_.pixel_format, applied_.width) * applied_.height;
   const std::size_t needed = std::max(image_bytes, applied_.payload_bytes);
 
   std::lock_guard<std::mutex> lock(pool_mutex_);
@@ -348,10 +550,19 @@ Status AravisCamera::CreateStreamAndPool() {
       (slots_.size() != static_cast<std::size_t>(settings_.buffer_count) || slot_bytes_ < needed)) {
     slots_.clear();
     slots_.resize(settings_.buffer_count);
-    for (Slot& s : slots_) s.memory.reset(new std::uint8_t[needed]);
+    for (Slot& s : slots_) {
+      s.memory.reset(new std::uint8_t[needed]);
+      if (applied_.pixel_format == PixelFormat::kMono12Packed)
+        s.unpacked.reset(new std::uint16_t[static_cast<std::size_t>(applied_.width) * applied_.height]);
+    }
     slot_bytes_ = needed;
   } else if (slot_bytes_ < needed) {
     return Status::Error(id_ + ": the payload grew while frames are still held");
+  }
+  if (applied_.pixel_format == PixelFormat::kMono12Packed) {
+    for (Slot& s : slots_)
+      if (!s.outstanding)
+        s.unpacked.reset(new std::uint16_t[static_cast<std::size_t>(applied_.width) * applied_.height]);
   }
   ++generation_;
   for (Slot& s : slots_) {
@@ -542,8 +753,7 @@ GrabResult AravisCamera::Classify(ArvBuffer* buffer, Frame* frame, Slot** slot) 
   const int h = arv_buffer_get_image_height(buffer);
   size_t reported = 0;
   const void* data = arv_buffer_get_image_data(buffer, &reported);
-  const std::size_t expected = static_cast<std::size_t>(applied_.width) * applied_.height *
-                               BytesPerPixel(format);
+  const std::size_t expected = WireRowBytes(format, applied_.width) * applied_.height;
   // The fake path reports 0: the size is then width x height x bytes per pixel.
   if (w != applied_.width || h != applied_.height || data == nullptr ||
       (reported != 0 && reported < expected) || expected > slot_bytes_) {
@@ -566,13 +776,36 @@ GrabResult AravisCamera::Classify(ArvBuffer* buffer, Frame* frame, Slot** slot) 
   frame->frame_id = id;
   frame->sequence = sequence;
   frame->device_timestamp_ns = arv_buffer_get_timestamp(buffer);
-  frame->host_timestamp_ns = MonotonicNs();
+  // When Aravis began receiving the image (its system timestamp, real time) besides when we
+  // popped it: the wait in Aravis's output queue belongs in every latency figure.
+  const std::uint64_t now = MonotonicNs();
+  const std::uint64_t system_ns = arv_buffer_get_system_timestamp(buffer);
+  std::uint64_t host = now;
+  if (system_ns != 0) {
+    timespec rt;
+    clock_gettime(CLOCK_REALTIME, &rt);
+    const std::int64_t realtime_now = static_cast<std::int64_t>(rt.tv_sec) * 1000000000LL + rt.tv_nsec;
+    const std::int64_t waited = realtime_now - static_cast<std::int64_t>(system_ns);
+    // A clock step (NTP) between the two readings would give nonsense: keep the pop time then.
+    if (waited >= 0 && waited < 10'000'000'000LL) host = now - static_cast<std::uint64_t>(waited);
+  }
+  frame->host_timestamp_ns = now;
+  frame->received_ns = host;
   frame->status = FrameStatus::kComplete;
-  frame->image.data = static_cast<const std::uint8_t*>(data);
   frame->image.width = w;
   frame->image.height = h;
-  frame->image.stride = static_cast<std::ptrdiff_t>(w) * BytesPerPixel(format);
-  frame->image.format = format;
+  if (format == PixelFormat::kMono12Packed) {
+    // Unpacked into the slot's own words: one pass over the image, the only copy on this path.
+    UnpackMono12Packed(static_cast<const std::uint8_t*>(data), WireRowBytes(format, w), w, h,
+                       (*slot)->unpacked.get(), static_cast<std::size_t>(w) * 2);
+    frame->image.data = reinterpret_cast<const std::uint8_t*>((*slot)->unpacked.get());
+    frame->image.stride = static_cast<std::ptrdiff_t>(w) * 2;
+    frame->image.format = PixelFormat::kMono12;
+  } else {
+    frame->image.data = static_cast<const std::uint8_t*>(data);
+    frame->image.stride = static_cast<std::ptrdiff_t>(w) * BytesPerPixel(format);
+    frame->image.format = format;
+  }
   frame->handle = buffer;
   counters_.complete++;
   return GrabResult::kFrame;

@@ -88,7 +88,30 @@ struct AppliedSettings {
   PixelFormat pixel_format = PixelFormat::kMono8;
   std::string trigger_source;  // "" for free run, else "Software" / "Line<n>"
   std::size_t payload_bytes = 0;
+  // "Off" as read back, or "" where the camera has no such feature (manual anyway).
+  std::string exposure_auto, gain_auto;
+  std::string strobe_source;   // LineSource read back for Line<strobe_line>, "" without strobe
+  bool ptp_enabled = false;
+  // GigE Vision, read back (0 / false elsewhere).
+  int packet_size = 0;
+  std::int64_t packet_delay_ns = 0;
+  bool packet_resend = false;
+  int socket_buffer_bytes = 0;
+  // Optional features the camera refused: "feature: why".
+  std::vector<std::string> refused_optional;
 };
+
+// A camera's IEEE 1588 state as it reports it.
+struct PtpState {
+  std::string status;          // PtpStatus / GevIEEE1588Status: "Master", "Slave", "Listening"...
+  bool has_offset = false;
+  std::int64_t offset_from_master_ns = 0;
+};
+// Whether a rig's cameras are locked to one clock: every camera "Slave" (to one master outside
+// the rig or on it) and at most one "Master". Otherwise false and *why names the cameras that
+// are not (ids[i] is states[i]'s camera).
+bool PtpLocked(const std::vector<std::string>& ids, const std::vector<PtpState>& states,
+               std::string* why);
 
 class AravisCamera final : public CameraSource {
  public:
@@ -120,6 +143,12 @@ class AravisCamera final : public CameraSource {
   const CameraCounters& Counters() const override { return counters_; }
 
   const AppliedSettings& Applied() const { return applied_; }
+  // IEEE 1588 state (latched, then read: PtpDataSetLatch / GevIEEE1588DataSetLatch where the
+  // camera has it). Error if PTP is not on (CameraSettings::ptp) or the camera is not open.
+  Status Ptp(PtpState* state);
+  // GigE Vision stream statistics: packets Aravis found missing and asked to be resent.
+  std::uint64_t MissingPackets() const;
+  std::uint64_t ResentPackets() const;
   // Hot-plug: the device left (same as control-lost) / arrived (reopen at the next Grab).
   void NotifyRemoved() { lost_flag_.store(true); }
   void NotifyArrived() { arrived_flag_.store(true); }
@@ -137,11 +166,15 @@ class AravisCamera final : public CameraSource {
     ArvBuffer* buffer = nullptr;  // wraps memory for the current stream generation
     int generation = -1;
     bool outstanding = false;     // held by the caller
+    std::unique_ptr<std::uint16_t[]> unpacked;  // Mono12Packed: the frame handed out
   };
   static void OnControlLost(ArvDevice* device, void* self);
 
   Status Connect();              // factory -> camera_, apply settings
   Status ApplySettings();
+  Status ApplyCameraFeatures();  // auto off, strobe, PTP, GigE packet size and delay
+  // A feature the camera refused: an error naming camera and feature, unless it is optional.
+  Status Refused(const std::string& feature, const std::string& why);
   Status CreateStreamAndPool();  // stream_, slots wrapped and pushed
   void TearDown(bool device_gone);
   void MarkLost();

@@ -14,6 +14,7 @@
 #include <cstdint>
 #include <functional>
 #include <string>
+#include <vector>
 
 #include "drivers/frame.h"
 #include "model/status.h"
@@ -34,6 +35,25 @@ struct CameraSettings {
   int trigger_line = 0;   // for kHardwareLine: Line<trigger_line>
   int buffer_count = 16;  // the pre-allocated pool
   double timeout_ms = 1000.0;
+  // Exposure and gain are always manual: a camera's ExposureAuto / GainAuto (where it has them)
+  // are switched Off and read back, so that the camera never changes the brightness the
+  // detector's threshold was set for.
+  // Line<strobe_line> becomes an output driven by ExposureActive (the IR ring's flash, and a
+  // trigger master's pulse into the other cameras' trigger inputs); -1: none.
+  int strobe_line = -1;
+  // IEEE 1588: PtpEnable (SFNC) or GevIEEE1588 (GigE Vision 1.x naming) switched on; the lock
+  // is read with AravisCamera::Ptp().
+  bool ptp = false;
+  // GigE Vision transport (other transports ignore these). packet_size 0: negotiated, the
+  // largest the path carries (jumbo frames where every NIC and switch allow them).
+  int packet_size = 0;
+  int packet_delay_ns = 0;      // GevSCPD: spreads a frame's packets (cameras sharing a link)
+  bool packet_resend = true;    // Aravis asks the camera again for a lost packet
+  int socket_buffer_bytes = 0;  // the stream socket's receive buffer; 0: one payload
+  // GenICam features the camera may refuse (a camera without a strobe line, without PTP, ...):
+  // refused, they are listed in AppliedSettings::refused_optional instead of failing Open().
+  // Any other feature the camera refuses fails Open() with the camera and the feature named.
+  std::vector<std::string> optional_features;
 
   bool IsValid(std::string* error) const;
 };

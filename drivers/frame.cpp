@@ -11,8 +11,24 @@ const char* ToString(PixelFormat f) {
     case PixelFormat::kMono8: return "Mono8";
     case PixelFormat::kMono12: return "Mono12";
     case PixelFormat::kMono16: return "Mono16";
+    case PixelFormat::kMono12Packed: return "Mono12Packed";
   }
   return "unknown";
+}
+
+void UnpackMono12Packed(const std::uint8_t* packed, std::size_t packed_stride, int width,
+                        int height, std::uint16_t* out, std::size_t out_stride_bytes) {
+  for (int y = 0; y < height; ++y) {
+    const std::uint8_t* in = packed + packed_stride * y;
+    auto* row = reinterpret_cast<std::uint16_t*>(reinterpret_cast<std::uint8_t*>(out) +
+                                                 out_stride_bytes * y);
+    int x = 0;
+    for (; x + 1 < width; x += 2, in += 3) {
+      row[x] = static_cast<std::uint16_t>(in[0] << 4 | (in[1] & 0x0F));
+      row[x + 1] = static_cast<std::uint16_t>(in[2] << 4 | in[1] >> 4);
+    }
+    if (x < width) row[x] = static_cast<std::uint16_t>(in[0] << 4 | (in[1] & 0x0F));
+  }
 }
 
 const char* ToString(FrameStatus s) {

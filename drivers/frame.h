@@ -11,15 +11,28 @@
 #include <cstddef>
 #include <cstdint>
 #include <ctime>
+#include <cstring>
 
 namespace mocap::drivers {
 
-enum class PixelFormat : std::uint8_t { kMono8, kMono12, kMono16 };
+// kMono12Packed is a format on the wire only (GigE Vision's Mono12Packed: two pixels in three
+// bytes, a quarter less bandwidth than Mono12): the source unpacks it, and the frames it hands
+// out are Mono12 (16-bit words), which is what BytesPerPixel and BitDepth describe.
+enum class PixelFormat : std::uint8_t { kMono8, kMono12, kMono16, kMono12Packed };
 
 inline int BytesPerPixel(PixelFormat f) { return f == PixelFormat::kMono8 ? 1 : 2; }
 inline int BitDepth(PixelFormat f) {
-  return f == PixelFormat::kMono8 ? 8 : (f == PixelFormat::kMono12 ? 12 : 16);
+  return f == PixelFormat::kMono8 ? 8 : (f == PixelFormat::kMono16 ? 16 : 12);
 }
+// Bytes of one row as the camera sends it.
+inline std::size_t WireRowBytes(PixelFormat f, int width) {
+  return f == PixelFormat::kMono12Packed ? (static_cast<std::size_t>(width) * 3 + 1) / 2
+                                         : static_cast<std::size_t>(width) * BytesPerPixel(f);
+}
+// Unpacks GigE Vision Mono12Packed rows (per pixel pair: byte 0 = p0 bits 11..4, byte 1 = p1
+// bits 3..0 << 4 | p0 bits 3..0, byte 2 = p1 bits 11..4) into 16-bit words.
+void UnpackMono12Packed(const std::uint8_t* packed, std::size_t packed_stride, int width,
+                        int height, std::uint16_t* out, std::size_t out_stride_bytes);
 const char* ToString(PixelFormat f);
 
 // Why a buffer did or did not become a usable frame. Only kComplete frames reach detection; the
@@ -68,7 +81,13 @@ struct Frame {
   std::uint16_t frame_id = 0;       // as the device numbers it (wraps)
   std::uint64_t sequence = 0;       // frame_id unwrapped (FrameIdUnwrapper)
   std::uint64_t device_timestamp_ns = 0;
-  std::uint64_t host_timestamp_ns = 0;  // CLOCK_MONOTONIC when the buffer was handed over
+  std::uint64_t host_timestamp_ns = 0;  // CLOCK_MONOTONIC when the source handed the buffer over
+  // CLOCK_MONOTONIC when the transport began receiving the image (Aravis: the buffer's system
+  // timestamp), earlier than host_timestamp_ns by the wait in the driver's queue; 0: unknown
+  // (then host_timestamp_ns). Latency figures and clock fits start here; the sync's timeouts
+  // count from host_timestamp_ns, when the pipeline could first have the frame.
+  std::uint64_t received_ns = 0;
+  std::uint32_t stream_epoch = 0;  // set by the capture pipeline: +1 after each loss of the camera
   FrameStatus status = FrameStatus::kComplete;
   ImageView image;
   const void* handle = nullptr;     // the source's buffer, for CameraSource::Release

@@ -3,12 +3,18 @@
 #include <time.h>
 
 #include <algorithm>
+#include <cmath>
 #include <thread>
 
 namespace mocap::drivers {
 bool SimulatedCameraOptions::IsValid(std::string* error) const {
   if (width < 1 || height < 1) {
     if (error) *error = "simulated camera options: width and height must be >= 1";
+    return false;
+  }
+  if (!(std::abs(clock_drift_ppm) <= 1e5) || !(timestamp_jitter_ns >= 0) || !(start_delay_ms >= 0)) {
+    if (error) *error = "simulated camera options: clock_drift_ppm must be within +-1e5, "
+                        "timestamp_jitter_ns and start_delay_ms >= 0";
     return false;
   }
   return true;
@@ -41,6 +47,8 @@ Status SimulatedCamera::Open(const CameraSettings& settings) {
     return Status::Error(id_ + ": Open() while frames are still held");
   }
   settings_ = settings;
+  // Packing is a matter of the wire: in process the frames are what a source hands out, Mono12.
+  if (settings_.pixel_format == PixelFormat::kMono12Packed) settings_.pixel_format = PixelFormat::kMono12;
   width_ = w;
   height_ = h;
   stride_ = static_cast<std::ptrdiff_t>(w) * BytesPerPixel(settings.pixel_format);
@@ -59,7 +67,13 @@ Status SimulatedCamera::Open(const CameraSettings& settings) {
 Status SimulatedCamera::Start() {
   if (!opened_) return Status::Error(id_ + ": Start() before a successful Open()");
   start_time_ = std::chrono::steady_clock::now();
-  next_sequence_ = first_sequence_;
+  // A late start: the first frame is the tick start_delay_ms after Start().
+  next_sequence_ =
+      first_sequence_ +
+      static_cast<std::uint64_t>(std::ceil(options_.start_delay_ms * 1e-3 * settings_.frame_rate_hz));
+  restart_sequence_ = next_sequence_;
+  reconnect_.store(-1);
+  jitter_rng_.seed(options_.jitter_seed + static_cast<std::uint64_t>(camera_));
   started_ = true;
   state_ = lose_.load() ? CameraState::kLost : CameraState::kStreaming;
   return Status::Ok();
@@ -114,6 +128,15 @@ GrabResult SimulatedCamera::Grab(Frame* frame) {
     return start_time_ + std::chrono::duration_cast<Clock::duration>(
                              period * static_cast<double>(seq - first_sequence_));
   };
+  if (const int missed = reconnect_.exchange(-1); missed >= 0) {
+    // Unplugged: this grab finds it gone; it comes back at the next one, `missed` frames on, with
+    // its ids and clock started again.
+    state_ = CameraState::kLost;
+    counters_.losses++;
+    next_sequence_ += static_cast<std::uint64_t>(missed);
+    restart_sequence_ = next_sequence_;
+    return GrabResult::kLost;
+  }
   if (lose_.load()) {
     if (state_.load() != CameraState::kLost) {
       state_ = CameraState::kLost;
@@ -198,12 +221,19 @@ GrabResult SimulatedCamera::Grab(Frame* frame) {
     }
     generator_(camera_, seq, slot->memory.get(), width_, height_, stride_, settings_.pixel_format);
     frame->camera = camera_;
-    frame->frame_id = IdOf(seq);
-    frame->sequence = seq;
-    frame->device_timestamp_ns =
-        options_.device_clock_origin_ns +
-        static_cast<std::uint64_t>(static_cast<double>(seq - first_sequence_) * 1e9 /
-                                   settings_.frame_rate_hz);
+    // Its own count and clock since the (re)start.
+    const std::uint64_t counted = first_sequence_ + (seq - restart_sequence_);
+    frame->frame_id = IdOf(counted);
+    frame->sequence = counted;
+    const double since_ns = static_cast<double>(seq - restart_sequence_) * 1e9 /
+                            settings_.frame_rate_hz * (1.0 + options_.clock_drift_ppm * 1e-6);
+    const double jitter = options_.timestamp_jitter_ns > 0
+                              ? std::normal_distribution<double>(0, options_.timestamp_jitter_ns)(
+                                    jitter_rng_)
+                              : 0.0;
+    frame->device_timestamp_ns = static_cast<std::uint64_t>(
+        static_cast<double>(options_.device_clock_origin_ns) +
+        static_cast<double>(options_.clock_offset_ns) + std::max(0.0, since_ns + jitter));
     frame->host_timestamp_ns = MonotonicNs();
     frame->status = FrameStatus::kComplete;
     frame->image.data = slot->memory.get();

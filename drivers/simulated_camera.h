@@ -16,7 +16,14 @@
 //     jumps), FailFrames(n, status) (incomplete frames, counted, not delivered), Lose() (the
 //     camera vanishes: Grab() returns kLost, counters.losses) and Restore() (it comes back; the
 //     next Grab() reopens it, counters.reopens, and the sequence continues with the time that
-//     passed).
+//     passed), Reconnect(n) (unplugged and back, as a real camera: it misses the next n frames,
+//     then its frame ids and its clock start again from the beginning).
+//   - a clock of its own, for the sync of rigs without a shared clock (free run, trigger checks):
+//     device time = origin + clock_offset_ns + (1 + clock_drift_ppm) x (time since its first
+//     frame), with gaussian jitter of timestamp_jitter_ns on each stamp; and a late start
+//     (start_delay_ms: its first frame is the tick that long after Start()). Whatever its clock
+//     says, frame n is exposed (drawn) at tick n of the host's steady clock, so the renderer's
+//     truth for a frame is its tick: Frame::sequence until a Reconnect() restarts the ids.
 //
 // Usage:
 //   drivers::SimulatedCamera cam(0, renderer.Generator(), {.width = 1280, .height = 1024});
@@ -30,6 +37,7 @@
 #include <cstdint>
 #include <memory>
 #include <mutex>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -44,6 +52,11 @@ struct SimulatedCameraOptions {
   std::uint16_t first_frame_id = 1;
   bool skip_zero_ids = true;            // ids 1..65535 (GigE Vision 1.x); false: 0..65535
   std::uint64_t device_clock_origin_ns = 0;
+  std::int64_t clock_offset_ns = 0;
+  double clock_drift_ppm = 0;       // > 0: the device clock runs fast
+  double timestamp_jitter_ns = 0;   // standard deviation
+  std::uint64_t jitter_seed = 1;
+  double start_delay_ms = 0;        // the first frame comes this late after Start()
 
   bool IsValid(std::string* error) const;
 };
@@ -68,6 +81,7 @@ class SimulatedCamera final : public CameraSource {
   void FailFrames(int n, FrameStatus status);
   void Lose() { lose_.store(true); }
   void Restore() { lose_.store(false); }
+  void Reconnect(int missed_frames) { reconnect_.store(missed_frames); }
 
  private:
   struct Slot {
@@ -100,6 +114,11 @@ class SimulatedCamera final : public CameraSource {
   std::atomic<int> fail_{0};
   std::atomic<FrameStatus> fail_status_{FrameStatus::kMissingPackets};
   std::atomic<bool> lose_{false};
+  std::atomic<int> reconnect_{-1};  // missed frames of a pending Reconnect(), -1: none
+  // Where the ids and the clock (re)started: the tick of the first frame after Start() or the
+  // last Reconnect().
+  std::uint64_t restart_sequence_ = 0;
+  std::mt19937_64 jitter_rng_;
   std::atomic<CameraState> state_{CameraState::kClosed};
   CameraCounters counters_;
 };

@@ -1,5 +1,6 @@
 #include "ekf/tracker.h"
 
+
 #include <Eigen/Cholesky>
 #include <Eigen/Geometry>
 #include <Eigen/SVD>
@@ -9,6 +10,7 @@
 #include <random>
 
 #include "ekf/assignment.h"
+#include "model/rigid_align.h"
 #include "ekf/filter.h"
 
 namespace mocap::ekf {
@@ -600,10 +602,7 @@ void Tracker::Impl::PickUpOnSegment(int np) {
     for (int a = 0; a < nm; ++a)
       if (a != m && row_to_col[a] >= 0 && model->markers()[a].segment == segment)
         H += (predicted.col(a) - cp) * (points.col(row_to_col[a]) - cq).transpose();
-    const Eigen::JacobiSVD<Eigen::Matrix3d> svd(H, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    Eigen::Matrix3d D = Eigen::Matrix3d::Identity();
-    D(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1.0 : 1.0;
-    const Eigen::Matrix3d R = svd.matrixV() * D * svd.matrixU().transpose();
+    const Eigen::Matrix3d R = KabschRotation(H);
     const Eigen::Vector3d where = R * (predicted.col(m) - cp) + cq;
     const double gate2 = options.gate_chi2 * (MeasurementVariance(m) + var / mates);
     if (!claims_known) {

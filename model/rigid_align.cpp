@@ -13,17 +13,21 @@ bool SpansPlane(const Eigen::Matrix3Xd& x) {
   return std::sqrt(std::max(0.0, eig.eigenvalues()[1])) > 1e-6;
 }
 
+Eigen::Matrix3d KabschRotation(const Eigen::Matrix3d& h) {
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d fix = Eigen::Matrix3d::Identity();
+  fix(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1.0 : 1.0;
+  return svd.matrixV() * fix * svd.matrixU().transpose();
+}
+
 std::optional<RigidTransform> RigidAlign(const Eigen::Matrix3Xd& src, const Eigen::Matrix3Xd& dst) {
   if (src.cols() < 3 || src.cols() != dst.cols() || !SpansPlane(src) || !SpansPlane(dst))
     return std::nullopt;
   // Written out because Eigen::umeyama trips GCC 12's -Warray-bounds under AVX.
   const Eigen::Vector3d cs = src.rowwise().mean(), cd = dst.rowwise().mean();
   const Eigen::Matrix3d h = (src.colwise() - cs) * (dst.colwise() - cd).transpose();
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d fix = Eigen::Matrix3d::Identity();
-  fix(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1.0 : 1.0;
   RigidTransform r;
-  r.rotation = svd.matrixV() * fix * svd.matrixU().transpose();
+  r.rotation = KabschRotation(h);
   r.translation = cd - r.rotation * cs;
   return r;
 }

@@ -18,6 +18,12 @@ struct RigidTransform {
 // True when the points (columns) are not all on one line (spread > 1 micrometre across it).
 bool SpansPlane(const Eigen::Matrix3Xd& points);
 
+// Kabsch's step, the one place it is written: the proper rotation R maximising trace(R H) for the
+// cross-covariance H = sum (src_i - mean src)(dst_i - mean dst)^T, i.e. the R of the best rigid
+// fit (the reflection a plain SVD may give is turned into the nearest rotation). For callers that
+// accumulate H themselves without allocating (the tracker, per marker per frame).
+Eigen::Matrix3d KabschRotation(const Eigen::Matrix3d& cross_covariance);
+
 // The proper rotation R and translation t minimising sum |R src_i + t - dst_i|^2 (columns
 // paired), or nothing when fewer than 3 points are given or either set is collinear.
 std::optional<RigidTransform> RigidAlign(const Eigen::Matrix3Xd& src, const Eigen::Matrix3Xd& dst);

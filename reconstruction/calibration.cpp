@@ -1,7 +1,9 @@
 #include "reconstruction/calibration.h"
 
+
 #include <Eigen/Dense>
 #include <algorithm>
+#include <limits>
 #include <array>
 #include <chrono>
 #include <cmath>
@@ -13,7 +15,9 @@
 #include <opencv2/core.hpp>
 #include <sstream>
 
+#include "model/rigid_align.h"
 #include "reconstruction/calibration_problem.h"
+#include "reconstruction/triangulation.h"
 #include "solver/schur_solver.h"
 
 namespace mocap::reconstruction {
@@ -145,39 +149,21 @@ bool TriangulatePoint(const std::vector<const CameraModel*>& cameras,
                       const std::vector<Eigen::Vector2d>& pixels, Eigen::Vector3d* point) {
   const int n = static_cast<int>(cameras.size());
   if (n < 2 || pixels.size() != cameras.size()) return false;
-  // Linear (DLT) on normalised coordinates: x (R_3 X + t_3) - (R_1 X + t_1) = 0, etc.
-  Eigen::MatrixXd a(2 * n, 4);
+  // The rig's triangulation (reconstruction/triangulation.h): linear, then refined on the pixel
+  // reprojection error, every view weighted alike.
+  std::vector<CameraModel> views;
+  std::vector<PointObservation> observations;
+  views.reserve(n);
+  observations.reserve(n);
   for (int i = 0; i < n; ++i) {
-    const CameraModel& c = *cameras[i];
-    const Eigen::Vector2d xy = c.Undistort(pixels[i]);
-    Eigen::Matrix<double, 3, 4> p;
-    p << c.R, c.t;
-    a.row(2 * i) = xy.x() * p.row(2) - p.row(0);
-    a.row(2 * i + 1) = xy.y() * p.row(2) - p.row(1);
+    views.push_back(*cameras[i]);
+    observations.push_back({i, pixels[i], 1.0});
   }
-  Eigen::JacobiSVD<Eigen::MatrixXd> svd(a, Eigen::ComputeFullV);
-  const Eigen::Vector4d h = svd.matrixV().col(3);
-  if (!(std::abs(h[3]) > 1e-12)) return false;
-  Eigen::Vector3d x = h.head<3>() / h[3];
-  // Gauss–Newton on the pixel reprojection error.
-  for (int it = 0; it < 10; ++it) {
-    Eigen::Matrix3d jtj = Eigen::Matrix3d::Zero();
-    Eigen::Vector3d jtr = Eigen::Vector3d::Zero();
-    for (int i = 0; i < n; ++i) {
-      const CameraModel& c = *cameras[i];
-      const Eigen::Vector3d xc = c.ToCamera(x);
-      if (!(xc.z() > 0)) return false;
-      Eigen::Matrix<double, 2, 3> j;
-      const Eigen::Vector2d r = c.ProjectCameraPoint(xc, &j) - pixels[i];
-      const Eigen::Matrix<double, 2, 3> jw = j * c.R;
-      jtj += jw.transpose() * jw;
-      jtr += jw.transpose() * r;
-    }
-    const Eigen::Vector3d dx = -jtj.ldlt().solve(jtr);
-    if (!dx.allFinite()) return false;
-    x += dx;
-    if (dx.norm() < 1e-10) break;
-  }
+  Eigen::Vector3d x;
+  double residual_px = 0;
+  if (!TriangulateLinear(views, observations, &x) ||
+      !RefinePosition(views, observations, 10, &x, &residual_px))
+    return false;
   for (int i = 0; i < n; ++i)
     if (!(cameras[i]->ToCamera(x).z() > 0)) return false;
   *point = x;
@@ -193,24 +179,18 @@ void CameraPoseError(const CameraModel& estimated, const CameraModel& truth, dou
 
 namespace {
 
-// The rigid transform (Q, q) minimising sum |Q a_i + q - b_i|^2 (Kabsch / Umeyama without scale).
+// The rigid transform (Q, q) minimising sum |Q a_i + q - b_i|^2 (model/rigid_align.h) and its
+// RMS residual; infinite when the points cannot fix it (fewer than 3, or collinear).
 double RigidAlign(const std::vector<Eigen::Vector3d>& a, const std::vector<Eigen::Vector3d>& b,
                   Eigen::Matrix3d* q_rot, Eigen::Vector3d* q_trans) {
   const int n = static_cast<int>(a.size());
-  Eigen::Vector3d ma = Eigen::Vector3d::Zero(), mb = Eigen::Vector3d::Zero();
-  for (int i = 0; i < n; ++i) ma += a[i], mb += b[i];
-  ma /= n;
-  mb /= n;
-  Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
-  for (int i = 0; i < n; ++i) h += (a[i] - ma) * (b[i] - mb).transpose();
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d d = Eigen::Matrix3d::Identity();
-  d(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
-  *q_rot = svd.matrixV() * d * svd.matrixU().transpose();
-  *q_trans = mb - *q_rot * ma;
-  double ss = 0;
-  for (int i = 0; i < n; ++i) ss += (*q_rot * a[i] + *q_trans - b[i]).squaredNorm();
-  return std::sqrt(ss / n);
+  Eigen::Matrix3Xd src(3, n), dst(3, n);
+  for (int i = 0; i < n; ++i) src.col(i) = a[i], dst.col(i) = b[i];
+  const std::optional<RigidTransform> fit = mocap::RigidAlign(src, dst);
+  if (!fit) return std::numeric_limits<double>::infinity();
+  *q_rot = fit->rotation;
+  *q_trans = fit->translation;
+  return std::sqrt(((fit->rotation * src).colwise() + fit->translation - dst).squaredNorm() / n);
 }
 
 // Relative pose of camera b to camera a (X_b = R X_a + t, |t| = baseline in metres) from the

@@ -156,9 +156,10 @@ Status CalibrateWand(const std::vector<CameraModel>& cameras,
                      const WandCalibrationOptions& options, std::vector<CameraModel>* calibrated,
                      WandCalibrationSummary* summary);
 
-// Least-squares triangulation of one point seen by several cameras (linear DLT on normalised
-// coordinates, then Gauss–Newton on the pixel reprojection error). False if fewer than two
-// views or the point is not in front of them.
+// Least-squares triangulation of one point seen by several cameras, through the rig's own
+// triangulation (reconstruction/triangulation.h: TriangulateLinear, then RefinePosition on the
+// pixel reprojection error, the views weighted alike), for cameras that are not a rig yet. False
+// if fewer than two views or the point is not in front of them.
 bool TriangulatePoint(const std::vector<const CameraModel*>& cameras,
                       const std::vector<Eigen::Vector2d>& pixels, Eigen::Vector3d* point);
 

@@ -22,6 +22,11 @@ struct CameraDetections {
   std::uint64_t sequence = 0;  // the frame's unwrapped id (drivers/frame.h)
   std::uint64_t device_timestamp_ns = 0;
   std::uint64_t host_timestamp_ns = 0;
+  std::uint64_t received_ns = 0;  // drivers::Frame::received_ns (0: host_timestamp_ns)
+  // The camera's stream generation: +1 each time it came back after a loss (its clock and ids
+  // restarted). The capture pipeline re-synchronises the camera (FrameSync::ResyncCamera) when
+  // it changes.
+  std::uint32_t stream_epoch = 0;
   std::vector<Centroid> centroids;
 };
 

@@ -21,16 +21,21 @@ bool FrameSyncOptions::IsValid(std::string* error) const {
                 " is outside [1, 4096]");
   if (mode == Mode::kTimestamp) {
     if (tolerance_ns == 0 || tolerance_ns > (1ull << 62)) return fail("tolerance_ns must be > 0");
-    if (estimate_offsets && offset_warmup_frames < 1)
-      return fail("offset_warmup_frames must be >= 1");
-    if (!(offset_tracking_gain >= 0 && offset_tracking_gain <= 1))
-      return fail("offset_tracking_gain must be in [0, 1]");
     if (!estimate_offsets && !camera_offsets_ns.empty() &&
         static_cast<int>(camera_offsets_ns.size()) != num_cameras)
       return fail("camera_offsets_ns has " + std::to_string(camera_offsets_ns.size()) +
                   " entries for " + std::to_string(num_cameras) + " cameras");
   }
+  if (mode == Mode::kTimestamp ? estimate_offsets : check_tolerance_ns > 0) {
+    std::string sub;
+    if (!clock.IsValid(&sub)) return fail(sub);
+  }
   return true;
+}
+
+bool FrameSync::Fitting() const {
+  return options_.mode == FrameSyncOptions::Mode::kTimestamp ? options_.estimate_offsets
+                                                            : options_.check_tolerance_ns > 0;
 }
 
 Status FrameSync::Reset(const FrameSyncOptions& options) {
@@ -51,7 +56,7 @@ Status FrameSync::Reset(const FrameSyncOptions& options) {
   offsets_.assign(options.num_cameras, 0);
   if (!options.estimate_offsets && !options.camera_offsets_ns.empty())
     offsets_ = options.camera_offsets_ns;
-  offset_frames_.assign(options.num_cameras, 0);
+  fits_.assign(Fitting() ? options.num_cameras : 0, ClockFit(options.clock));
   scratch_.reserve(options.num_cameras);
   initialised_ = true;
   return Status::Ok();
@@ -59,7 +64,13 @@ Status FrameSync::Reset(const FrameSyncOptions& options) {
 
 std::int64_t FrameSync::offset_ns(int camera) const {
   if (camera < 0 || camera >= static_cast<int>(offsets_.size())) return 0;
+  if (camera < static_cast<int>(fits_.size())) return -fits_[camera].offset_ns();
   return offsets_[camera];
+}
+
+double FrameSync::drift_ppm(int camera) const {
+  if (camera < 0 || camera >= static_cast<int>(fits_.size())) return 0;
+  return fits_[camera].drift_ppm();
 }
 
 std::int64_t FrameSync::UnwrapSequence(std::uint64_t sequence) {
@@ -94,6 +105,13 @@ Status FrameSync::Add(CameraDetections detections, std::vector<DetectionSet>* re
   // The frame's key and, for kTimestamp, the pending set it belongs to.
   std::int64_t key = 0;
   std::int64_t time = static_cast<std::int64_t>(detections.device_timestamp_ns);
+  if (!fits_.empty()) {
+    fits_[c].Add(detections.device_timestamp_ns,
+                 detections.received_ns != 0 ? detections.received_ns : host_now);
+    time = fits_[c].ToHost(detections.device_timestamp_ns);
+  } else if (by_time) {
+    time -= offsets_[c];
+  }
   int slot = -1;
   if (!by_time) {
     key = UnwrapSequence(detections.sequence);
@@ -105,13 +123,6 @@ Status FrameSync::Add(CameraDetections detections, std::vector<DetectionSet>* re
     for (int i = 0; i < static_cast<int>(pending_.size()); ++i)
       if (pending_[i].key == key) slot = i;
   } else {
-    if (options_.estimate_offsets && offset_frames_[c] < options_.offset_warmup_frames) {
-      const std::int64_t raw = static_cast<std::int64_t>(detections.device_timestamp_ns) -
-                               static_cast<std::int64_t>(detections.host_timestamp_ns);
-      offsets_[c] = offset_frames_[c] == 0 ? raw : std::min(offsets_[c], raw);
-      ++offset_frames_[c];
-    }
-    time -= offsets_[c];
     const auto tol = static_cast<std::int64_t>(options_.tolerance_ns);
     std::int64_t best = tol + 1;
     for (int i = 0; i < static_cast<int>(pending_.size()); ++i) {
@@ -187,14 +198,15 @@ Status FrameSync::ResyncCamera(int camera) {
     return Status::Error("frame sync: camera " + std::to_string(camera) +
                          " is outside the rig's " + std::to_string(options_.num_cameras) +
                          " cameras");
-  if (options_.mode != FrameSyncOptions::Mode::kTimestamp)
+  if (options_.mode != FrameSyncOptions::Mode::kTimestamp && fits_.empty())
     return Status::Error("frame sync: camera " + std::to_string(camera) +
-                         " cannot be re-synchronised in sequence mode (its frame ids restarted); "
-                         "use timestamp mode");
-  if (!options_.estimate_offsets)
+                         " cannot be re-synchronised in sequence mode without a timestamp check "
+                         "(its frame ids restarted); use timestamp mode, or put its ids back on "
+                         "the rig's count and set check_tolerance_ns");
+  if (fits_.empty())
     return Status::Error("frame sync: offsets are given (estimate_offsets = false); set camera " +
                          std::to_string(camera) + "'s new offset with Reset");
-  offset_frames_[camera] = 0;
+  fits_[camera].Reset();
   return Status::Ok();
 }
 
@@ -233,13 +245,18 @@ void FrameSync::EmitFront(std::vector<DetectionSet>* ready) {
     ++counters_.complete;
   else
     ++counters_.incomplete;
-  // Offset tracking: each present camera (past its warm-up) moves towards the set's median.
-  if (by_time && options_.estimate_offsets && m >= 2) {
+  // The trigger-count check: the members' corrected times, of the cameras whose clock is fitted.
+  if (!by_time && !fits_.empty()) {
+    std::int64_t lo = 0, hi = 0;
+    int checked = 0;
     for (int c = 0; c < n; ++c) {
-      if (!set.present[c] || offset_frames_[c] < options_.offset_warmup_frames) continue;
-      const double residual = static_cast<double>(p.times[c] - median);
-      offsets_[c] += static_cast<std::int64_t>(std::llround(options_.offset_tracking_gain * residual));
+      if (!set.present[c] || !fits_[c].drift_fitted()) continue;
+      lo = checked == 0 ? p.times[c] : std::min(lo, p.times[c]);
+      hi = checked == 0 ? p.times[c] : std::max(hi, p.times[c]);
+      ++checked;
     }
+    if (checked >= 2 && static_cast<std::uint64_t>(hi - lo) > options_.check_tolerance_ns)
+      ++counters_.mismatched;
   }
   if (!emitted_any_ || p.key > last_emitted_key_) last_emitted_key_ = p.key;
   emitted_any_ = true;

@@ -10,21 +10,27 @@
 //    newest id seen: id = newest + (low - newest) taken modulo 2^bits into [-2^(bits-1), 2^(bits-1)).
 //    Cameras whose counters were NOT reset together are not handled by this mode (use kTimestamp).
 //
-//  * kTimestamp: by device timestamp. Camera clocks are not one clock: each camera c has an
-//    offset o_c (its clock's epoch) that is estimated, not assumed. For the first
-//    `offset_warmup_frames` frames of a camera, o_c = min over its frames of (device - host
-//    arrival time): the host clock is common to all cameras and the transport only ever adds
-//    latency, so the minimum picks the fastest delivery and the cameras' corrected times
-//    t = device - o_c agree to within the difference of their best latencies (which must stay
-//    below the tolerance: cameras on like links). After the warm-up, every emitted set refines
-//    each present camera's offset by gain x (t_c - median of the set's t), which follows the
-//    slow relative drift of the camera clocks (tens of ppm) without reacting to single-frame
-//    jitter. A frame joins the pending set whose reference time (the running mean of its
-//    members' t) is within `tolerance_ns` of its own t. With PTP-synchronised cameras (GigE
-//    Vision 2.0), set estimate_offsets = false and give the known offsets (or none: zeros).
-//    A set's sequence is then the sequence of its lowest-numbered present camera, and its
-//    timestamp_ns the median of its members' CORRECTED times (device - o_c: the rig's common
-//    timeline, which runs with the host clock, offset by the fastest delivery latency).
+//  * kTimestamp: by device timestamp. Camera clocks are not one clock: each camera c has its
+//    own epoch and rate (free-running cameras: offsets of seconds, drifts of tens of ppm), and
+//    both are estimated, not assumed: a ClockFit per camera (reconstruction/clock_fit.h) fits
+//    the lower envelope of its frames' host arrival times against their device timestamps (the
+//    host clock is common to all cameras and the transport only ever adds latency), and a
+//    frame's corrected time is its device time mapped onto the host clock,
+//    t = ToHost(device). The cameras' corrected times agree to within the difference of their
+//    best latencies (which must stay below the tolerance: cameras on like links). A frame joins
+//    the pending set whose reference time (the running mean of its members' t) is within
+//    `tolerance_ns` of its own t. With PTP-synchronised cameras (GigE Vision 2.0), set
+//    estimate_offsets = false and give the known offsets (or none: zeros). A set's sequence is
+//    then the sequence of its lowest-numbered present camera, and its timestamp_ns the median
+//    of its members' corrected times (the rig's common timeline: the host clock, offset by the
+//    fastest delivery latency).
+//
+//  * Timestamp check in kSequence mode (check_tolerance_ns > 0): a hardware-triggered rig groups
+//    by trigger count, and a camera that missed a trigger without noticing (or came back from a
+//    reconnect on the wrong count) would be silently one frame off. The same per-camera clock
+//    fits map each frame onto the host clock, and a set whose members' corrected times spread
+//    beyond the tolerance is counted (counters.mismatched). Cameras whose fit has no drift yet
+//    (the first frames after a start or a ResyncCamera) are not checked.
 //
 // Emission, in order of sequence (or time): a set is emitted as soon as every camera has
 // contributed (complete). A pending set older than one that completes is emitted first, as
@@ -46,6 +52,7 @@
 
 #include "model/status.h"
 #include "reconstruction/centroid.h"
+#include "reconstruction/clock_fit.h"
 
 namespace mocap::reconstruction {
 
@@ -67,11 +74,12 @@ struct FrameSyncOptions {
   // the frame period.
   std::uint64_t tolerance_ns = 1'000'000;
   bool estimate_offsets = true;
-  int offset_warmup_frames = 20;
-  double offset_tracking_gain = 0.05;
+  ClockFitOptions clock;  // the per-camera fits (kTimestamp estimating; kSequence checking)
   // Known per-camera clock offsets (device - common time), used as given when estimate_offsets is
   // false; empty means zeros. Ignored when estimating.
   std::vector<std::int64_t> camera_offsets_ns;
+  // kSequence: > 0 checks each set's corrected times against this spread (see above).
+  std::uint64_t check_tolerance_ns = 0;
 
   bool IsValid(std::string* error) const;
 };
@@ -82,6 +90,7 @@ struct FrameSyncCounters {
   std::uint64_t incomplete = 0;  // sets emitted with a camera missing
   std::uint64_t late = 0;        // frames for a set already emitted, dropped
   std::uint64_t duplicate = 0;   // second frame of a camera for the same set, dropped
+  std::uint64_t mismatched = 0;  // kSequence with a check: sets whose times spread too far
   std::vector<std::uint64_t> missing;  // per camera: emitted sets without it
 };
 
@@ -99,15 +108,18 @@ class FrameSync {
   // Emits every pending set (at the end of a recording).
   void Flush(std::vector<DetectionSet>* ready);
   // A camera came back (unplugged and reconnected, restarted): its clock and its frame ids
-  // started again. kTimestamp: its offset is estimated afresh from its next frames (the warm-up
-  // above). kSequence: an error, as the new ids cannot be placed against the rig's without a
-  // common trigger count; run such rigs in kTimestamp mode.
+  // started again. kTimestamp: its clock is fitted afresh from its next frames. kSequence with
+  // a timestamp check: the check's fit is restarted (the caller must have put the camera's new
+  // ids back on the rig's count, as CapturePipeline does from the time it was away). kSequence
+  // without a check: an error, as the new ids cannot be placed against the rig's here.
   Status ResyncCamera(int camera);
 
   const FrameSyncCounters& counters() const { return counters_; }
   int pending() const { return static_cast<int>(pending_.size()); }
-  // kTimestamp: the current clock offset of camera c (device - common time), in ns.
+  // The current clock offset of camera c (device - common time), in ns, and its drift against
+  // the host clock (ppm; 0 until fitted): kTimestamp, or kSequence with a check.
   std::int64_t offset_ns(int camera) const;
+  double drift_ppm(int camera) const;
 
  private:
   struct Pending {
@@ -129,8 +141,9 @@ class FrameSync {
   std::int64_t last_emitted_key_ = 0;
   bool seen_any_ = false;
   std::int64_t newest_key_ = 0;
-  std::vector<std::int64_t> offsets_;
-  std::vector<int> offset_frames_;
+  bool Fitting() const;
+  std::vector<std::int64_t> offsets_;  // given offsets (estimate_offsets = false)
+  std::vector<ClockFit> fits_;
   std::vector<std::int64_t> scratch_;
 };
 

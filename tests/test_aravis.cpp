@@ -183,6 +183,104 @@ TEST(AravisFake, BadSettingsGiveClearErrors) {
   EXPECT_NEAR(cam->Applied().frame_rate_hz, 500, 1);
 }
 
+// Auto exposure/gain off and read back; a feature the camera lacks is an error naming camera and
+// feature unless the settings mark it optional (then it is listed as refused).
+TEST(AravisFake, AutoOffStrobeAndPtpRefusedUnlessOptional) {
+  AravisFakeRig rig(SmallRig(1), DrawPattern);
+  auto cam = rig.MakeCamera(0);
+  CameraSettings s;
+  ASSERT_TRUE(cam->Open(s).ok());
+  EXPECT_EQ(cam->Applied().gain_auto, "Off");   // the fake has GainAuto
+  EXPECT_EQ(cam->Applied().exposure_auto, "");  // ... and no ExposureAuto: manual anyway
+  EXPECT_TRUE(cam->Applied().refused_optional.empty());
+  EXPECT_EQ(cam->Applied().packet_size, 0);     // not a GigE device
+  s.strobe_line = 1;  // the fake has no digital I/O
+  Status st = cam->Open(s);
+  ASSERT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("MOCAPSIM0: LineSource: the camera has no LineSelector"),
+            std::string::npos) << st.message();
+  EXPECT_NE(st.message().find("optional"), std::string::npos) << st.message();
+  s.optional_features = {"LineSource"};
+  st = cam->Open(s);
+  ASSERT_TRUE(st.ok()) << st.message();
+  ASSERT_EQ(cam->Applied().refused_optional.size(), 1u);
+  EXPECT_EQ(cam->Applied().refused_optional[0].rfind("LineSource: ", 0), 0u);
+  EXPECT_EQ(cam->Applied().strobe_source, "");
+  s.ptp = true;
+  st = cam->Open(s);
+  ASSERT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("MOCAPSIM0: PtpEnable: the camera has neither PtpEnable nor "
+                              "GevIEEE1588"), std::string::npos) << st.message();
+  s.optional_features.push_back("PtpEnable");
+  ASSERT_TRUE(cam->Open(s).ok());
+  EXPECT_FALSE(cam->Applied().ptp_enabled);
+  PtpState ptp;
+  st = cam->Ptp(&ptp);
+  ASSERT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("PTP is not enabled"), std::string::npos);
+  // Mono12Packed where the camera does not offer it: named, with what it offers.
+  s = {};
+  s.pixel_format = PixelFormat::kMono12Packed;
+  st = cam->Open(s);
+  ASSERT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("Mono12Packed"), std::string::npos) << st.message();
+}
+
+// A frame's received time is when Aravis received it (the buffer's system timestamp), not when
+// it was popped: a frame left waiting in the output queue shows its wait.
+TEST(AravisFake, HostTimeIsTheBuffersSystemTimestamp) {
+  AravisFakeRig rig(SmallRig(1), DrawPattern);
+  auto cam = rig.MakeCamera(0);
+  CameraSettings s;
+  s.frame_rate_hz = 100;
+  ASSERT_TRUE(cam->Open(s).ok());
+  ASSERT_TRUE(cam->Start().ok());
+  Frame f;
+  ASSERT_EQ(cam->Grab(&f), GrabResult::kFrame);
+  cam->Release(f);
+  // Leave the next frames in the queue for 100 ms.
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ASSERT_EQ(cam->Grab(&f), GrabResult::kFrame);
+  const std::uint64_t popped = MonotonicNs();
+  const double waited_ms = (popped - f.received_ns) * 1e-6;
+  EXPECT_GE(f.host_timestamp_ns, f.received_ns);
+  EXPECT_LE(f.host_timestamp_ns, popped);
+  cam->Release(f);
+  cam->Stop();
+  std::printf("a frame left in the queue: host time %.1f ms before the pop\n", waited_ms);
+  EXPECT_GT(waited_ms, 50.0);   // it arrived ~90 ms before it was popped
+  EXPECT_LT(waited_ms, 1000.0);
+}
+
+TEST(Ptp, LockedMeansAllSlavesAndAtMostOneMaster) {
+  std::string why;
+  EXPECT_TRUE(PtpLocked({"a", "b", "c"}, {{"Master"}, {"Slave"}, {"Slave"}}, &why)) << why;
+  EXPECT_TRUE(PtpLocked({"a", "b"}, {{"Slave"}, {"Slave"}}, &why)) << why;  // external master
+  EXPECT_FALSE(PtpLocked({"a", "b", "c"}, {{"Master"}, {"Listening"}, {"Slave"}}, &why));
+  EXPECT_EQ(why, "not locked: b (Listening)");
+  EXPECT_FALSE(PtpLocked({"a", "b"}, {{"Master"}, {"Master"}}, &why));
+  EXPECT_EQ(why, "2 cameras are PTP masters (a, b): the rig has more than one clock");
+  EXPECT_FALSE(PtpLocked({"a"}, {{""}}, &why));
+  EXPECT_EQ(why, "not locked: a (no status)");
+}
+
+TEST(Mono12Packed, UnpacksTwoPixelsFromThreeBytes) {
+  // Pixels 0xABC, 0x123, 0xFFF (odd width: the last pair half used), two rows.
+  const std::uint8_t packed[] = {0xAB, 0x3C, 0x12, 0xFF, 0x0F, 0x00,   // row 0 (5 bytes + pad)
+                                 0x00, 0xF0, 0xFF, 0x80, 0x01, 0x00};  // row 1: 0x000, 0xFFF, 0x801
+  std::uint16_t out[2][3] = {};
+  UnpackMono12Packed(packed, 6, 3, 2, &out[0][0], sizeof out[0]);
+  EXPECT_EQ(out[0][0], 0xABC);
+  EXPECT_EQ(out[0][1], 0x123);
+  EXPECT_EQ(out[0][2], 0xFFF);
+  EXPECT_EQ(out[1][0], 0x000);
+  EXPECT_EQ(out[1][1], 0xFFF);
+  EXPECT_EQ(out[1][2], 0x801);
+  EXPECT_EQ(WireRowBytes(PixelFormat::kMono12Packed, 3), 5u);
+  EXPECT_EQ(WireRowBytes(PixelFormat::kMono12Packed, 1280), 1920u);
+  EXPECT_EQ(BitDepth(PixelFormat::kMono12Packed), 12);
+}
+
 // Frames of the wrong pixel format or size (the device changed behind the backend's back) are
 // counted and never delivered; good frames flow again once the device is back to the settings.
 TEST(AravisFake, WrongFormatAndSizeCountedNotDelivered) {

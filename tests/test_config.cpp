@@ -1,10 +1,14 @@
 // mocapd's configuration file (daemon/config.h): the shipped example, every key's type and range
 // errors with file:line:key, typos, missing files, relative paths and what a reload may apply.
 #include "daemon/config.h"
+#include "daemon/startup_checks.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <sys/wait.h>
+
+#include <cstdio>
 #include <filesystem>
 #include <string>
 #include <vector>
@@ -97,6 +101,30 @@ const std::vector<BadValue> kBadValues = {
     {"rig", "detection_threads", "\"two\"", "expected an integer in [1, 64], got \"two\""},
     {"rig", "detection_threads", "0", "expected an integer in [1, 64], got 0"},
     {"rig", "calibration", "5", "expected a path (a string), got 5"},
+    {"rig", "sync", "1", "expected a string, got 1"},
+    {"rig", "sync", "\"genlock\"",
+     "expected one of \"trigger\", \"ptp\", \"free-run\", got \"genlock\""},
+    {"rig", "trigger_master", "3", "expected a string, got 3"},
+    {"rig", "trigger_master", "\"cam-A\"",
+     "\"cam-A\" on a simulated rig (its fake cameras share the host's clock; there is nothing to "
+     "trigger)"},
+    {"rig", "trigger_line", "\"Line1\"", "expected an integer in [0, 15], got \"Line1\""},
+    {"rig", "trigger_line", "16", "expected an integer in [0, 15], got 16"},
+    {"rig", "ptp_lock_timeout_s", "\"10s\"", "expected a number in [0.1, 600], got \"10s\""},
+    {"rig", "ptp_lock_timeout_s", "0", "expected a number in [0.1, 600], got 0"},
+    {"rig", "pixel_format", "8", "expected a string, got 8"},
+    {"rig", "pixel_format", "\"Mono10\"",
+     "expected one of \"Mono8\", \"Mono12\", \"Mono12Packed\", \"Mono16\", got \"Mono10\""},
+    {"rig", "packet_size", "\"jumbo\"",
+     "expected an integer in [576, 16384] or 0 (negotiated), got \"jumbo\""},
+    {"rig", "packet_size", "100", "expected an integer in [576, 16384] or 0 (negotiated), got 100"},
+    {"rig", "packet_delay_ns", "1.5", "expected an integer in [0, 100000000], got 1.5"},
+    {"rig", "packet_delay_ns", "-1", "expected an integer in [0, 100000000], got -1"},
+    {"rig", "packet_resend", "true", "expected a string, got true"},
+    {"rig", "packet_resend", "\"sometimes\"",
+     "expected one of \"always\", \"never\", got \"sometimes\""},
+    {"rig", "socket_buffer_bytes", "\"auto\"", "expected an integer in [0, 1073741824], got \"auto\""},
+    {"rig", "socket_buffer_bytes", "-1", "expected an integer in [0, 1073741824], got -1"},
     {"storage", "state_dir", "false", "expected a path (a string), got false"},
     {"storage", "state_dir", "\"\"", "must not be empty"},
     {"storage", "export_dirs", "\"/srv\"", "expected an array of paths, got \"/srv\""},
@@ -158,6 +186,8 @@ TEST(Config, EveryDocumentedKeyIsTestedWithABadValue) {
     if (eq == std::string::npos || line[0] == '#' || line[0] == ' ' || table.empty()) continue;
     const std::string key = line.substr(0, eq);
     if (table == "rig" && (key == "id" || key == "backend" || key == "masks" ||
+                           key == "interface" || key == "link" || key == "strobe_line" ||
+                           key == "optional" ||
                            line.find("the rig's") != std::string::npos))
       continue;  // [[rig.camera]]'s keys, tested below
     bool tested = false;
@@ -165,7 +195,7 @@ TEST(Config, EveryDocumentedKeyIsTestedWithABadValue) {
     EXPECT_TRUE(tested) << table << "." << key << " has no bad-value test";
     ++keys;
   }
-  EXPECT_EQ(keys, 26);
+  EXPECT_EQ(keys, 35);
 }
 
 TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
@@ -195,9 +225,15 @@ TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
        "(rig.rate 200 Hz)"},
       {"backend = \"usb\"\n",
        "6: rig.camera[0].backend: expected one of \"aravis\", \"simulated\", got \"usb\""},
+      {"interface = \"firewire\"\n",
+       "6: rig.camera[0].interface: expected one of \"gige\", \"10gige\", \"usb3\", got \"firewire\""},
+      {"link = 1\n", "6: rig.camera[0].link: expected a string, got 1"},
+      {"strobe_line = -2\n",
+       "6: rig.camera[0].strobe_line: expected an integer in [0, 15] or -1 (none), got -2"},
+      {"optional = [\"GainAuto\"]\n", "6: rig.camera[0].optional: expected a string, got an array"},
       {second + "id2 = 3\n",
        "8: rig.camera[1].id2: unknown key (the keys of [rig.camera] are id, backend, exposure_us, "
-       "gain_db, detection_threshold, masks)"},
+       "gain_db, detection_threshold, interface, link, strobe_line, optional, masks)"},
       {"[[rig.camera]]\nid = \"cam-A\"\n", "7: rig.camera[1].id: \"cam-A\" is also rig.camera[0]'s id"},
       {"[[rig.camera]]\nbackend = \"aravis\"\n",
        "6: rig.camera[1].id: missing: each camera needs its GenICam id or serial"},
@@ -240,7 +276,9 @@ TEST(Config, UnknownKeysAndTablesAreErrorsNamingThem) {
   EXPECT_EQ(ParseError(kSimulatedRig + "rat = 200\n"),
             kSource + ":3: rig.rat: unknown key (the keys of [rig] are simulated, subject_seed, rate, "
                       "width, height, exposure_us, gain_db, detection_threshold, centroid_noise_px, "
-                      "detection_threads, calibration, camera ([[rig.camera]]))");
+                      "detection_threads, calibration, sync, trigger_master, trigger_line, "
+                      "ptp_lock_timeout_s, pixel_format, packet_size, packet_delay_ns, "
+                      "packet_resend, socket_buffer_bytes, camera ([[rig.camera]]))");
   EXPECT_EQ(ParseError(kSimulatedRig + "[control]\nmax_client = 8\n"),
             kSource + ":4: control.max_client: unknown key (the keys of [control] are socket, group, "
                       "max_clients, max_line_bytes, subscriber_queue_frames, max_pending_requests)");
@@ -368,6 +406,151 @@ TEST(Config, DiffSaysWhatChangedAndWhatNeedsARestart) {
   DaemonConfig e = b;
   e.cameras[0].masks.push_back({0, 0, 10, 10});
   EXPECT_EQ(DiffConfig(b, e), (std::vector<ConfigChange>{{"rig.camera", true}}));
+}
+
+}  // namespace
+}  // namespace mocap::daemon
+
+namespace mocap::daemon {
+namespace {
+
+// A real rig of `n` cameras (ids cam-0...) with `camera_keys` in each camera's table.
+DaemonConfig RealRig(int n, const std::string& rig_keys, const std::string& camera_keys) {
+  std::string text = "[rig]\n" + rig_keys;
+  for (int c = 0; c < n; ++c)
+    text += "[[rig.camera]]\nid = \"cam-" + std::to_string(c) + "\"\n" + camera_keys;
+  DaemonConfig config;
+  const Status s = ParseConfig(text, kSource, &config);
+  EXPECT_TRUE(s.ok()) << s.message();
+  return config;
+}
+
+// The default rig: 1280x1024 Mono8 at 200 Hz is 262.1 MB/s of images a camera, which no
+// GigE link carries (119 MB/s of images in 1500-byte packets): refused, naming the link, the
+// camera, the figures and what would fit (90 Hz or 464 rows: 119.0 MB/s of images each).
+TEST(RigBandwidth, TheDefaultRigDoesNotFitGigEAndTheMessageSaysWhatWould) {
+  const StartupCheck c = CheckRigBandwidth(RealRig(2, "", ""));
+  ASSERT_FALSE(c.ok());
+  EXPECT_EQ(c.exit_code, kExitConfig);
+  const std::string& m = c.status.message();
+  EXPECT_THAT(m, StartsWith("[rig] bandwidth: link 'cam-0' (gige) carries 1 camera 'cam-0' needing "
+                            "275.4 MB/s of its 125.0 MB/s (each camera 1280x1024 Mono8 at 200.0 Hz "
+                            "is 262.1 MB/s of images). To fit: rig.rate <= 90 Hz, or a ROI of "
+                            "1280 x <= 464 px (rig.height) at 200.0 Hz, or a 10gige link; jumbo "
+                            "frames (packet_size = 9000) save a few %; link 'cam-1'"))
+      << m;
+  // What it says fits, fits: 90 Hz, or 464 rows, or 10GigE.
+  EXPECT_TRUE(CheckRigBandwidth(RealRig(2, "rate = 90\n", "")).ok());
+  EXPECT_FALSE(CheckRigBandwidth(RealRig(2, "rate = 91\n", "")).ok());
+  EXPECT_TRUE(CheckRigBandwidth(RealRig(2, "height = 464\n", "")).ok());
+  EXPECT_FALSE(CheckRigBandwidth(RealRig(2, "height = 466\n", "")).ok());
+  EXPECT_TRUE(CheckRigBandwidth(RealRig(8, "", "interface = \"10gige\"\n")).ok());
+}
+
+TEST(RigBandwidth, ASharedLinkCountsEveryCameraOnItAndPackedFormatsAreSuggested) {
+  // Five 10GigE cameras behind one uplink: 5 x 264.1 MB/s on the wire (packets of 1500 bytes).
+  StartupCheck c = CheckRigBandwidth(RealRig(5, "", "interface = \"10gige\"\nlink = \"up\"\n"));
+  ASSERT_FALSE(c.ok());
+  EXPECT_THAT(c.status.message(),
+              HasSubstr("link 'up' (10gige) carries 5 cameras 'cam-0', 'cam-1', 'cam-2', 'cam-3', "
+                        "'cam-4' needing 1377.0 MB/s of its 1250.0 MB/s"));
+  EXPECT_THAT(c.status.message(), HasSubstr("or fewer cameras on the link"));
+  // Jumbo frames: 8964 of 9038 wire bytes are image, 1321.5 MB/s: still too much.
+  EXPECT_THAT(CheckRigBandwidth(RealRig(5, "packet_size = 9000\n",
+                                        "interface = \"10gige\"\nlink = \"up\"\n"))
+                  .status.message(),
+              HasSubstr("needing 1321.5 MB/s"));
+  // Mono16 doubles it and the message offers the packed format.
+  c = CheckRigBandwidth(RealRig(1, "pixel_format = \"Mono16\"\n", "interface = \"usb3\"\n"));
+  ASSERT_FALSE(c.ok());
+  EXPECT_THAT(c.status.message(), HasSubstr("needing 524.3 MB/s of its 400.0 MB/s"));
+  EXPECT_THAT(c.status.message(), HasSubstr("pixel_format \"Mono12Packed\" (1.5 bytes/px)"));
+  EXPECT_TRUE(CheckRigBandwidth(RealRig(1, "pixel_format = \"Mono12Packed\"\n",
+                                        "interface = \"usb3\"\n")).ok());
+  // One link, one interface.
+  DaemonConfig mixed = RealRig(2, "rate = 50\n", "link = \"x\"\n");
+  mixed.cameras[1].interface = "usb3";
+  c = CheckRigBandwidth(mixed);
+  ASSERT_FALSE(c.ok());
+  EXPECT_THAT(c.status.message(), HasSubstr("share link 'x': one link has one interface"));
+  // A simulated rig has no links.
+  DaemonConfig simulated;
+  simulated.simulated_cameras = 8;
+  EXPECT_TRUE(CheckRigBandwidth(simulated).ok());
+  EXPECT_TRUE(RigLinkLoads(simulated).empty());
+}
+
+TEST(RigBandwidth, TheReportNamesEachLinkAndTheUsbfsBudget) {
+  const std::string usbfs = testutil::TmpPath("rig_bandwidth", ".usbfs");
+  testutil::WriteBytes(usbfs, "16\n");  // the kernel's default, MB
+  const DaemonConfig rig = RealRig(2, "rate = 100\n", "interface = \"usb3\"\n");
+  std::string report = DescribeRigBandwidth(rig, usbfs);
+  EXPECT_THAT(report, HasSubstr("link 'cam-0' (usb3): 1 camera need 131.1 of 400.0 MB/s (33 %)"));
+  // 2 cameras x 32 buffers x 1.25 MiB = 80 MiB of usbfs memory.
+  EXPECT_THAT(report, HasSubstr("warning: usbfs memory: the limit is 16 MB"));
+  testutil::WriteBytes(usbfs, "0\n");  // unlimited
+  EXPECT_THAT(DescribeRigBandwidth(rig, usbfs),
+              HasSubstr("usbfs memory: enough for 2 USB3 cameras' buffers (80.0 MB)"));
+}
+
+// `mocapd --check-config` runs the check without a camera: exit 78 (EX_CONFIG) and the message.
+TEST(RigBandwidth, MocapdCheckConfigRefusesAnOverBudgetRigWithoutCameras) {
+  auto run = [](const std::string& toml, std::string* out) {
+    const std::string path = testutil::TmpPath("rig_bandwidth", ".toml");
+    testutil::WriteBytes(path, toml);
+    const std::string cmd = std::string(MOCAPD_PATH) + " --check-config --config '" + path + "' 2>&1";
+    FILE* pipe = popen(cmd.c_str(), "r");
+    char buf[4096];
+    out->clear();
+    while (pipe && fgets(buf, sizeof buf, pipe)) *out += buf;
+    const int rc = pipe ? pclose(pipe) : -1;
+    return WIFEXITED(rc) ? WEXITSTATUS(rc) : -1;
+  };
+  std::string out;
+  const std::string cameras = "[[rig.camera]]\nid = \"left\"\n[[rig.camera]]\nid = \"right\"\n";
+  EXPECT_EQ(run("[rig]\nrate = 200\n" + cameras, &out), kExitConfig) << out;
+  EXPECT_THAT(out, HasSubstr("[rig] bandwidth: link 'left' (gige) carries 1 camera 'left'"));
+  EXPECT_EQ(run("[rig]\nrate = 60\n" + cameras, &out), 0) << out;
+  EXPECT_THAT(out, HasSubstr("link 'right' (gige): 1 camera need 82.6 of 125.0 MB/s (66 %)"));
+}
+
+}  // namespace
+}  // namespace mocap::daemon
+
+#include "daemon/rig_setup.h"
+
+namespace mocap::daemon {
+namespace {
+
+TEST(RigSetup, TriggerMasterFreeRunsAndStrobesTheOthersWaitOnTheirLine) {
+  DaemonConfig c;
+  ASSERT_TRUE(ParseConfig("[rig]\nrate = 100\nsync = \"trigger\"\ntrigger_master = \"m\"\n"
+                          "trigger_line = 2\npixel_format = \"Mono12Packed\"\npacket_size = 9000\n"
+                          "packet_resend = \"never\"\n"
+                          "[[rig.camera]]\nid = \"m\"\nstrobe_line = 1\n"
+                          "[[rig.camera]]\nid = \"s\"\noptional = \" LineSource , GevSCPD\"\n",
+                          kSource, &c).ok());
+  const drivers::CameraSettings master = CameraSettingsOf(c, 0), slave = CameraSettingsOf(c, 1);
+  EXPECT_EQ(master.trigger, drivers::TriggerMode::kFreeRun);
+  EXPECT_EQ(master.strobe_line, 1);
+  EXPECT_EQ(slave.trigger, drivers::TriggerMode::kHardwareLine);
+  EXPECT_EQ(slave.trigger_line, 2);
+  EXPECT_EQ(slave.strobe_line, -1);
+  EXPECT_EQ(slave.optional_features, (std::vector<std::string>{"LineSource", "GevSCPD"}));
+  EXPECT_EQ(slave.pixel_format, drivers::PixelFormat::kMono12Packed);
+  EXPECT_EQ(slave.packet_size, 9000);
+  EXPECT_FALSE(slave.packet_resend);
+  EXPECT_FALSE(slave.ptp);
+  EXPECT_EQ(RigSyncOf(c), CapturePipelineOptions::RigSync::kTrigger);
+  // The master must drive a line.
+  EXPECT_THAT(ParseError("[rig]\ntrigger_master = \"m\"\n[[rig.camera]]\nid = \"m\"\n"),
+              HasSubstr("rig.camera[0].strobe_line: -1 (none) on the trigger master \"m\""));
+  c.sync = "ptp";
+  EXPECT_TRUE(CameraSettingsOf(c, 1).ptp);
+  EXPECT_EQ(RigSyncOf(c), CapturePipelineOptions::RigSync::kSharedClock);
+  c.sync = "free-run";
+  EXPECT_EQ(RigSyncOf(c), CapturePipelineOptions::RigSync::kFreeRun);
+  EXPECT_EQ(CameraSettingsOf(c, 1).trigger, drivers::TriggerMode::kFreeRun);
 }
 
 }  // namespace

@@ -216,7 +216,8 @@ int RunCapture(const CaptureArgs& a) {
   pipeline_options.keep_detections = true;  // to score the centroids against the truth
   // The fakes share the host clock and expose on its frame ticks, but each counts frames from its
   // own start: sets are gathered by tick (a PTP-synchronised rig).
-  pipeline_options.device_clock_rate_hz = a.rate_hz;
+  pipeline_options.rig_sync = daemon::CapturePipelineOptions::RigSync::kSharedClock;
+  pipeline_options.rate_hz = a.rate_hz;
   // The renderer's dark level is 3 % of full scale and a marker peaks near 90 %.
   pipeline_options.detection.threshold = 60;
   // Each centroid's uncertainty floor is the 2D error the rig actually has beyond the pixel

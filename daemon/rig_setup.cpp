@@ -1,0 +1,71 @@
+#include "daemon/rig_setup.h"
+
+#include <chrono>
+#include <sstream>
+#include <thread>
+
+namespace mocap::daemon {
+
+drivers::CameraSettings CameraSettingsOf(const DaemonConfig& config, int camera) {
+  drivers::CameraSettings s;
+  s.frame_rate_hz = config.rate_hz;
+  s.exposure_us = config.exposure_us;
+  s.gain_db = config.gain_db;
+  s.pixel_format = config.pixel_format == "Mono12"         ? drivers::PixelFormat::kMono12
+                   : config.pixel_format == "Mono16"       ? drivers::PixelFormat::kMono16
+                   : config.pixel_format == "Mono12Packed" ? drivers::PixelFormat::kMono12Packed
+                                                           : drivers::PixelFormat::kMono8;
+  s.buffer_count = 32;
+  s.packet_size = config.packet_size;
+  s.packet_delay_ns = config.packet_delay_ns;
+  s.packet_resend = config.packet_resend == "always";
+  s.socket_buffer_bytes = config.socket_buffer_bytes;
+  s.ptp = config.sync == "ptp" && config.simulated_cameras == 0;
+  if (camera < 0 || camera >= static_cast<int>(config.cameras.size())) return s;
+  const CameraConfig& c = config.cameras[camera];
+  if (c.exposure_us > 0) s.exposure_us = c.exposure_us;
+  if (c.gain_db >= 0) s.gain_db = c.gain_db;
+  s.strobe_line = c.strobe_line;
+  if (config.sync == "trigger" && c.id != config.trigger_master) {
+    s.trigger = drivers::TriggerMode::kHardwareLine;
+    s.trigger_line = config.trigger_line;
+  }
+  std::stringstream features(c.optional);
+  for (std::string f; std::getline(features, f, ',');) {
+    const auto b = f.find_first_not_of(' '), e = f.find_last_not_of(' ');
+    if (b != std::string::npos) s.optional_features.push_back(f.substr(b, e - b + 1));
+  }
+  return s;
+}
+
+CapturePipelineOptions::RigSync RigSyncOf(const DaemonConfig& config) {
+  if (config.simulated_cameras > 0 || config.sync == "ptp")
+    return CapturePipelineOptions::RigSync::kSharedClock;
+  if (config.sync == "free-run") return CapturePipelineOptions::RigSync::kFreeRun;
+  return CapturePipelineOptions::RigSync::kTrigger;
+}
+
+Status WaitForPtpLock(const std::vector<drivers::AravisCamera*>& cameras, double timeout_s,
+                      std::vector<drivers::PtpState>* states) {
+  const auto start = std::chrono::steady_clock::now();
+  std::vector<std::string> ids;
+  for (const auto* cam : cameras) ids.push_back(cam->id());
+  std::string why;
+  for (;;) {
+    states->assign(cameras.size(), {});
+    for (std::size_t i = 0; i < cameras.size(); ++i)
+      MOCAP_RETURN_IF_ERROR(cameras[i]->Ptp(&(*states)[i]));
+    if (drivers::PtpLocked(ids, *states, &why)) return Status::Ok();
+    const double waited =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (waited >= timeout_s) {
+      std::ostringstream m;
+      m << "[rig] sync = \"ptp\": the cameras did not lock to one clock within " << timeout_s
+        << " s (rig.ptp_lock_timeout_s): " << why;
+      return Status::Error(m.str());
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  }
+}
+
+}  // namespace mocap::daemon
