@@ -172,6 +172,11 @@ std::map<std::string, CentreSd> CentreSds(const json& report) {
         c.undetermined |= undetermined.count(name) > 0 || !p.value("determined", true);
       }
   }
+  // A joint the fit held (its trials do not move it) has no estimate, only the listing.
+  for (const std::string& name : undetermined) {
+    const size_t at = name.rfind(".centre.");
+    if (at != std::string::npos && name.size() == at + 9) out[name.substr(0, at)].undetermined = true;
+  }
   return out;
 }
 

@@ -677,7 +677,9 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     o.fit_scales = stage.scales;
     o.fit_markers = stage.markers;
     o.fit_centres = o.fit_axes = false;
-    o.lm.max_iterations = std::max(1, std::min(options.staged_iterations, iterations_left - 1));
+    // The final stage keeps at least one of the caller's iterations; a stage left none is skipped.
+    o.lm.max_iterations = std::min(options.staged_iterations, iterations_left - 1);
+    if (o.lm.max_iterations < 1) break;
     FitResult out;
     MOCAP_RETURN_IF_ERROR(FitStage(*model, stage_trials, o, &out));
     if (!out.report.solver.IsSolutionUsable())
@@ -713,6 +715,11 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     for (size_t t = 0; t < trials.size(); ++t) stage_trials[t].initial_coordinates = placed.coordinates[t];
   }
 
+  if (summaries.empty()) {  // no iteration to spare for a first stage: one stage, as asked
+    MOCAP_RETURN_IF_ERROR(FitStage(initial, trials, options, result));
+    result->report.stages = {StageSummary("all parameters", options, result->report)};
+    return Status::Ok();
+  }
   // The whole problem from the last stage's geometry and poses.
   FitOptions last = options;
   last.marker_sigma_m = effective_sigma_m;
@@ -739,6 +746,10 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   report.solve_seconds += totals.solve_seconds;
   report.rescued_frames += totals.rescued_frames;
   report.reposed = report.reposed || totals.reposed;
+  // A held joint's centre and axes are parameters these trials do not determine: listed as such.
+  for (const std::string& name : last.fixed_parameters)
+    if (std::find(report.undetermined.begin(), report.undetermined.end(), name) == report.undetermined.end())
+      report.undetermined.push_back(name);
   report.held_joints = std::move(held);
   report.attached_markers = std::move(attached);
   // The caller's model is the parameters' starting point, not a stage's.
