@@ -334,6 +334,31 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
   return Status::Ok();
 }
 
+std::vector<double> JointCentreTrackRmsMm(const SimulatedSession& session, const Model& fitted,
+                                          const std::vector<Eigen::MatrixXd>& coordinates) {
+  const Model& truth = session.truth;
+  const Geometry gt(truth), gf(fitted);
+  ModelData dt(truth), df(fitted);
+  std::vector<double> sum(truth.num_joints(), 0.0);
+  long n = 0;
+  for (size_t t = 0; t < session.trials.size() && t < coordinates.size(); ++t)
+    for (int f = 0; f < session.trials[t].markers.num_frames(); ++f) {
+      ForwardKinematics(truth, gt, TrueCoordinates(truth, session.trials[t].coordinates, f), &dt);
+      ForwardKinematics(fitted, gf, coordinates[t].row(f).transpose(), &df);
+      for (int j = 0; j < truth.num_joints(); ++j) {
+        Eigen::Vector3d d = JointCentre(fitted, df, j) - JointCentre(truth, dt, j);
+        if (truth.joints()[j].type == JointType::kHinge) {
+          const Eigen::Vector3d u = (dt.element_rotation[j][0] * gt.axis[j][0]).normalized();
+          d -= d.dot(u) * u;
+        }
+        sum[j] += d.squaredNorm();
+      }
+      ++n;
+    }
+  for (double& v : sum) v = 1000.0 * std::sqrt(v / std::max(1L, n));
+  return sum;
+}
+
 std::string SessionSummaryJson(const SimulatedSession& session) {
   using json = nlohmann::ordered_json;  // keeps "format" and "version" first
   const SimulationOptions& o = session.options;

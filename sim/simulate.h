@@ -116,6 +116,15 @@ Status MakeSessionModels(const VirtualSubject& subject, const std::vector<int>& 
 Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTable& table,
                                 int frame);
 
+// A fit of the session held against its truth where a lab reads it: per joint of the truth, the
+// RMS over every frame of every trial of the distance (mm) between the joint centre of `fitted`
+// posed by `coordinates` (one matrix per trial, frames x fitted.num_coordinates(), the fit's
+// poses) and the true centre of the truth posed by the true coordinates; for a hinge only the
+// part across its true axis (a hinge's centre along its axis is a convention). `fitted` must
+// have the truth's joints, in the same order.
+std::vector<double> JointCentreTrackRmsMm(const SimulatedSession& session, const Model& fitted,
+                                          const std::vector<Eigen::MatrixXd>& coordinates);
+
 // subject.json of `mocap sim`: seed, height, options, protocol name, markers and the movements
 // with their frame counts and file names.
 std::string SessionSummaryJson(const SimulatedSession& session);

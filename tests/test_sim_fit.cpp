@@ -14,37 +14,8 @@ namespace {
 struct Outcome {
   solver::FitResult fit;
   ModelComparison cmp;
-  std::vector<double> centre_track_rms_mm;  // per joint: lab-frame joint centre vs the truth
+  std::vector<double> centre_track_rms_mm;  // per joint: lab-frame joint centre vs the truth (sim/simulate.h)
 };
-
-// Per joint, the RMS over every frame of the distance between the fitted joint centre (fitted
-// model, fitted poses) and the true one (true model, true poses) in the lab; a hinge's centre only
-// across its true axis. What a lab reads off the joint-centre trajectories.
-std::vector<double> CentreTrackRms(const sim::SimulatedSession& session, const solver::FitResult& fit) {
-  const Model& truth = session.truth;
-  const Model& fitted = fit.model;
-  Geometry gt(truth), gf(fitted);
-  ModelData dt(truth), df(fitted);
-  std::vector<double> sum(truth.num_joints(), 0.0);
-  long n = 0;
-  for (size_t t = 0; t < session.trials.size(); ++t)
-    for (int f = 0; f < session.trials[t].markers.num_frames(); ++f) {
-      ForwardKinematics(truth, gt, sim::TrueCoordinates(truth, session.trials[t].coordinates, f), &dt);
-      ForwardKinematics(fitted, gf, fit.coordinates[t].row(f).transpose(), &df);
-      for (int j = 0; j < truth.num_joints(); ++j) {
-        Eigen::Vector3d d = JointCentre(fitted, df, j) - JointCentre(truth, dt, j);
-        const Joint& jt = truth.joints()[j];
-        if (jt.type == JointType::kHinge) {
-          const Eigen::Vector3d u = (dt.element_rotation[j][0] * gt.axis[j][0]).normalized();
-          d -= d.dot(u) * u;
-        }
-        sum[j] += d.squaredNorm();
-      }
-      ++n;
-    }
-  for (double& v : sum) v = 1000.0 * std::sqrt(v / std::max(1L, n));
-  return sum;
-}
 
 Outcome FitSession(const sim::SimulationOptions& options, bool start_from_truth_poses = false) {
   sim::SimulatedSession session;
@@ -65,7 +36,7 @@ Outcome FitSession(const sim::SimulationOptions& options, bool start_from_truth_
   s = solver::FitModel(session.nominal, trials, solver::FitOptions(), &out.fit);
   EXPECT_TRUE(s.ok()) << s.message();
   EXPECT_TRUE(CompareModels(session.truth, out.fit.model, &out.cmp).ok());
-  out.centre_track_rms_mm = CentreTrackRms(session, out.fit);
+  out.centre_track_rms_mm = sim::JointCentreTrackRmsMm(session, out.fit.model, out.fit.coordinates);
   std::printf("%s\n", out.fit.report.BriefReport().c_str());
   for (const auto& jd : out.cmp.joints)
     std::printf("  %-12s centre %7.3f mm  axis %7.3f deg  in the lab %7.3f mm RMS (%s)\n", jd.joint.c_str(),
