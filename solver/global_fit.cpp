@@ -420,9 +420,10 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     MOCAP_RETURN_IF_ERROR(rescue(&replaced));
     if (replaced > 0) continue_solve(options.rescue_iterations);
   }
-  // FitOptions::marker_sigma_rounds: each marker weighted by its own residual spread.
-  while (report.marker_sigma_rounds < options.marker_sigma_rounds &&
-         report.solver.IsSolutionUsable() && problem.MarkerErrors(x, threads, &sum_sq, &counts)) {
+  // FitOptions::marker_sigma_rounds: each marker weighted by its own residual spread, measured
+  // at a converged solve only (the residuals of a solve that stopped short are not the markers').
+  while (report.marker_sigma_rounds < options.marker_sigma_rounds && report.converged() &&
+         problem.MarkerErrors(x, threads, &sum_sq, &counts)) {
     double largest_change = 0;
     std::vector<double> sigma(nm);
     for (int m = 0; m < nm; ++m) {

@@ -67,19 +67,21 @@ struct FitOptions {
   int rescue_rounds = 2;
   int rescue_iterations = 12;  // the solve's iterations after each rescue that replaced poses
   // Per-marker sigmas re-estimated from the residuals (iteratively reweighted least squares, one
-  // weight per marker): after the solve, marker m's sigma becomes the RMS of its residual per
-  // coordinate, never below marker_sigma_m, and the solve continues with the residual scale
+  // weight per marker): after a converged solve, marker m's sigma becomes the RMS of its residual
+  // per coordinate, never below marker_sigma_m, and the solve continues with the residual scale
   // sqrt(weight_m) / sigma_m; at most `marker_sigma_rounds` rounds, fewer once no sigma moves by
-  // more than `marker_sigma_tolerance` (relative). Why: markers are not equally reliable. Skin
-  // over muscle (a thigh or upper-arm wand) moves 10-30 mm against the bone, skin over a
-  // malleolus or an epicondyle a few mm (sim/sta_table.h and its sources); with one sigma for all,
-  // the wobbling markers drag the joint centres that the bony landmarks would place well, most
-  // at the ankles, elbows and wrists, whose segments carry one to three markers. One noise
-  // variance per marker, estimated from the fit, is the maximum-likelihood weighting of such
-  // data, and it needs no marker classes: a slipping marker of a real session is weighted down
-  // the same way. The floor keeps a marker that fits better than the stated measurement noise
-  // from counting more than that noise allows, so a fit of clean data is unchanged (no round is
-  // run when every marker is within the floor). 0 rounds: one sigma for every marker.
+  // more than `marker_sigma_tolerance` (relative); each round's solve may take lm.max_iterations.
+  // Why: markers are not equally reliable. Skin over muscle (a thigh or upper-arm wand) moves
+  // 10-30 mm against the bone, skin over a malleolus or an epicondyle a few mm (sim/sta_table.h
+  // and its sources); with one sigma for all, the wobbling markers pull on the geometry as hard
+  // as the bony landmarks. One noise variance per marker, estimated from the fit, is the
+  // maximum-likelihood weighting of such data, and it needs no marker classes: a slipping or
+  // wobbling marker of a real session is weighted down the same way. The floor keeps a marker
+  // that fits better than the stated measurement noise from counting more than that noise
+  // allows, so a fit of clean data is unchanged (no round runs when every marker is within the
+  // floor). What it cannot do: an artefact that the poses and the geometry absorb leaves no
+  // residual, so it is not weighted down (BENCHMARKS.md, soft-tissue artefact: the elbow behind
+  // one forearm wand). 0 rounds: one sigma for every marker.
   int marker_sigma_rounds = 3;
   double marker_sigma_tolerance = 0.05;
   int num_threads = 0;                  // 0: all cores
