@@ -40,25 +40,12 @@ Status ParseStaTableJson(const std::string& text, const std::string& source_name
   using json = nlohmann::json;
   const JsonFields r{source_name};
   json doc;
-  try {
-    doc = json::parse(text);
-  } catch (const json::parse_error& e) {
-    return Status::Error(source_name + ": not valid JSON (byte " + std::to_string(e.byte) +
-                         "): " + e.what());
-  }
-  if (!doc.is_object()) return r.Fail("", "expected an object");
+  MOCAP_RETURN_IF_ERROR(r.Document(text, "mocap-sta-table", 1, &doc));
   for (const auto& [key, value] : doc.items()) {
     static const std::set<std::string> known = {"format",     "version", "name",   "description",
                                                 "references", "classes", "markers"};
     if (!known.count(key)) return r.Fail(key, "unknown field");
   }
-  std::string format;
-  MOCAP_RETURN_IF_ERROR(r.String(doc, "", "format", &format, true));
-  if (format != "mocap-sta-table")
-    return r.Fail("format", "expected \"mocap-sta-table\", found \"" + format + "\"");
-  double version = 0;
-  MOCAP_RETURN_IF_ERROR(r.Number(doc, "", "version", &version, true));
-  if (version != 1) return r.Fail("version", "unsupported version " + doc["version"].dump());
   StaTable t;
   MOCAP_RETURN_IF_ERROR(r.String(doc, "", "name", &t.name, false));
   MOCAP_RETURN_IF_ERROR(r.String(doc, "", "description", &t.description, false));

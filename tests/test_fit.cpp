@@ -26,6 +26,7 @@ TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
   std::vector<solver::FitTrial> trials(1);
   trials[0].markers = testutil::SimulateRandomMotion(truth, 1000, noise, rng);
   solver::FitOptions options;
+  options.marker_sigma_rounds = 3;  // none runs: every marker fits within the floor
   solver::FitResult result;
   Status s = solver::FitModel(nominal, trials, options, &result);
   ASSERT_TRUE(s.ok()) << s.message();
@@ -135,11 +136,11 @@ TEST(GlobalFit, AWobblingMarkerIsWeightedByItsOwnSpread) {
   for (int f = 0; f < t.num_frames(); ++f)
     for (int k = 0; k < 3; ++k) t.positions(f, 3 * wand + k) += wobble(rng);
 
-  solver::FitOptions one_sigma;
-  one_sigma.marker_sigma_rounds = 0;
+  solver::FitOptions own_sigmas;
+  own_sigmas.marker_sigma_rounds = 3;
   solver::FitResult plain, weighted;
-  ASSERT_TRUE(solver::FitModel(nominal, trials, one_sigma, &plain).ok());
-  const Status s = solver::FitModel(nominal, trials, solver::FitOptions(), &weighted);
+  ASSERT_TRUE(solver::FitModel(nominal, trials, solver::FitOptions(), &plain).ok());
+  const Status s = solver::FitModel(nominal, trials, own_sigmas, &weighted);
   ASSERT_TRUE(s.ok()) << s.message();
   const solver::FitReport& r = weighted.report;
   std::printf("%s\n", r.BriefReport().c_str());
