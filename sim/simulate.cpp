@@ -77,9 +77,10 @@ std::vector<StaMap> MakeStaMaps(const Model& truth, const std::vector<int>& mark
                                 const std::vector<double>& rms_mm, const std::vector<RowMatrix>& z,
                                 const Eigen::VectorXd& mean, const SimulationOptions& options) {
   // Second moments about the session mean, per movement: the artefact is scaled so that its RMS
-  // is sta_mm in the movement that moves the marker most. Scaling over the whole session instead
-  // would put all of a joint's artefact into the one movement that moves it (head markers swinging
-  // by four times sta_mm during neck range of motion).
+  // is the marker's amplitude (rms_mm: sta_mm x its STA table ratio) in the movement that moves
+  // the marker most. Scaling over the whole session instead would put all of a joint's artefact
+  // into the one movement that moves it (head markers swinging by four times their amplitude
+  // during neck range of motion).
   std::vector<Eigen::MatrixXd> covs;
   for (const RowMatrix& zm : z) {
     const Eigen::MatrixXd centred = zm.rowwise() - mean.transpose();

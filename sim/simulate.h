@@ -125,8 +125,8 @@ Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTab
 std::vector<double> JointCentreTrackRmsMm(const SimulatedSession& session, const Model& fitted,
                                           const std::vector<Eigen::MatrixXd>& coordinates);
 
-// subject.json of `mocap sim`: seed, height, options, protocol name, markers and the movements
-// with their frame counts and file names.
+// subject.json of `mocap sim`: seed, height, options, protocol name, markers, each marker's
+// artefact amplitude (sta_rms_mm) and the movements with their frame counts and file names.
 std::string SessionSummaryJson(const SimulatedSession& session);
 
 }  // namespace mocap::sim
