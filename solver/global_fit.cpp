@@ -170,6 +170,7 @@ bool FitOptions::IsValid(std::string* error) const {
   if (marker_sigma_rounds < 0) return fail("marker_sigma_rounds must be >= 0");
   if (!(marker_sigma_tolerance > 0)) return fail("marker_sigma_tolerance must be > 0");
   if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
+  if (staged_iterations < 1) return fail("staged_iterations must be >= 1");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
   if (!(frame_prior_sigma_rad > 0) || !(frame_prior_sigma_m > 0))
     return fail("frame prior sigmas must be > 0");
@@ -217,12 +218,19 @@ std::string FitReport::BriefReport() const {
     outliers += one;
   }
   if (outlier_markers.size() > 5) outliers += ", ...";
+  std::string staging;
+  if (stages.size() > 1) {
+    staging = " (";
+    for (size_t k = 0; k < stages.size(); ++k)
+      staging += (k ? " + " : "") + std::to_string(stages[k].iterations) + " " + stages[k].name;
+    staging += ")";
+  }
   char buf[1024];
   std::snprintf(buf, sizeof(buf),
                 "fit: %d trials, %d frames, %d markers, %d unknowns; marker RMS %.3f -> %.3f mm; "
-                "%d iterations%s, %s%s; %zu undetermined%s; %.2f s (IK %.2f s, solve %.2f s)",
+                "%d iterations%s%s, %s%s; %zu undetermined%s; %.2f s (IK %.2f s, solve %.2f s)",
                 trials, frames, markers, unknowns, initial_marker_rms_mm, marker_rms_mm,
-                solver.num_iterations(), coarse_note.c_str(), ToString(solver.termination),
+                solver.num_iterations(), staging.c_str(), coarse_note.c_str(), ToString(solver.termination),
                 rescued_frames > 0 ? (", " + std::to_string(rescued_frames) +
                                       " frame poses rescued").c_str()
                                    : "",
@@ -230,12 +238,11 @@ std::string FitReport::BriefReport() const {
   return buf;
 }
 
-Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
+namespace {
+// One solve of the whole problem for the groups `options` frees (FitModel's stage).
+Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
                 FitResult* result) {
   const auto start = Clock::now();
-  std::string why;
-  if (!options.IsValid(&why)) return Status::Error("fit options: " + why);
-  if (trials.empty()) return Status::Error("fit: no trials given");
   const int nm = initial.num_markers(), nz = initial.num_coordinates();
   FitReport report;
   report.trials = static_cast<int>(trials.size());
@@ -525,6 +532,180 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   }
   report.wall_seconds = Since(start);
   result->report = std::move(report);
+  return Status::Ok();
+}
+
+std::string GroupList(const FitOptions& o) {
+  std::string list;
+  auto add = [&](bool on, const char* name) {
+    if (on) list += (list.empty() ? "" : ",") + std::string(name);
+  };
+  add(o.fit_scales, "scales");
+  add(o.fit_centres, "centres");
+  add(o.fit_axes, "axes");
+  add(o.fit_markers, "markers");
+  return list.empty() ? "none" : list;
+}
+
+// FitOptions::min_excitation_deg: the joints whose centre or axes are free but whose rotation
+// the poses `z` (every trial's frames) hardly move, with the parameters to hold and why.
+void UnexcitedJoints(const Model& model, const std::vector<Eigen::MatrixXd>& z, const FitOptions& options,
+                     std::vector<std::pair<std::string, std::string>>* held,
+                     std::vector<std::string>* parameters) {
+  // Per trial (a joint moved in one trial and still in the others is excited: pooling the frames
+  // would dilute its spread), the largest.
+  const int nz = model.num_coordinates();
+  Eigen::VectorXd spread = Eigen::VectorXd::Zero(nz);
+  for (const Eigen::MatrixXd& t : z) {
+    if (t.rows() < 2) continue;
+    const Eigen::RowVectorXd mean = t.colwise().mean();
+    const Eigen::VectorXd s =
+        ((t.rowwise() - mean).colwise().squaredNorm().transpose() / t.rows()).cwiseSqrt();
+    spread = spread.cwiseMax(s * (180.0 / M_PI));
+  }
+  for (int j = 0; j < model.num_joints(); ++j) {
+    if (model.centre_index(j) < 0) continue;  // the root: its centre is no parameter
+    const Joint& joint = model.joints()[j];
+    std::vector<int> coordinates;
+    std::vector<std::string> names;
+    for (size_t e = 0; e < joint.elements.size(); ++e) {
+      const JointElement& el = joint.elements[e];
+      if (el.kind == ElementKind::kRotation && el.coordinate >= 0 &&
+          std::find(coordinates.begin(), coordinates.end(), el.coordinate) == coordinates.end())
+        coordinates.push_back(el.coordinate);
+      const int a = model.axis_index(j, static_cast<int>(e));
+      if (a >= 0) {
+        names.push_back(model.parameters()[a].name);
+        names.push_back(model.parameters()[a + 1].name);
+      }
+    }
+    const bool centre_free = options.fit_centres;
+    const bool axes_free = options.fit_axes && !names.empty();
+    if (!centre_free && !axes_free) continue;
+    std::vector<double> s;
+    for (int c : coordinates) s.push_back(spread[c]);
+    std::sort(s.rbegin(), s.rend());
+    const size_t needed = s.size() >= 2 ? 2 : 1;  // a centre needs two axes moved; a hinge its one
+    const double moved = s.size() >= needed ? s[needed - 1] : 0.0;
+    if (moved >= options.min_excitation_deg) continue;
+    char why[160];
+    std::snprintf(why, sizeof(why), "%s spread %.1f deg (%s), below %.0f deg",
+                  s.empty() ? "no rotation:" : needed == 2 ? "second rotation" : "rotation", moved,
+                  ToString(joint.type), options.min_excitation_deg);
+    held->emplace_back(joint.name, why);
+    if (centre_free)
+      for (int k = 0; k < 3; ++k) parameters->push_back(model.parameters()[model.centre_index(j) + k].name);
+    if (axes_free) parameters->insert(parameters->end(), names.begin(), names.end());
+  }
+}
+
+FitStageSummary StageSummary(const std::string& name, const FitOptions& o, const FitReport& r) {
+  FitStageSummary s;
+  s.name = name;
+  s.groups = GroupList(o);
+  s.iterations = r.solver.num_iterations();
+  s.termination = r.solver.termination;
+  s.initial_marker_rms_mm = r.initial_marker_rms_mm;
+  s.marker_rms_mm = r.marker_rms_mm;
+  s.seconds = r.wall_seconds;
+  return s;
+}
+}  // namespace
+
+Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
+                FitResult* result) {
+  const auto start = Clock::now();
+  std::string why;
+  if (!options.IsValid(&why)) return Status::Error("fit options: " + why);
+  if (trials.empty()) return Status::Error("fit: no trials given");
+  const bool staged = options.staged && (options.fit_centres || options.fit_axes) &&
+                      (options.fit_scales || options.fit_markers);
+  if (!staged) {
+    MOCAP_RETURN_IF_ERROR(FitStage(initial, trials, options, result));
+    result->report.stages = {StageSummary("all parameters", options, result->report)};
+    return Status::Ok();
+  }
+
+  // The schedule (see the header): scales with the model's markers, then the markers with those
+  // scales, then everything; each stage starts from the previous one's geometry and poses.
+  struct Stage {
+    const char* name;
+    bool scales, markers;
+  };
+  std::vector<Stage> stages;
+  if (options.fit_scales) stages.push_back({"scales", true, false});
+  if (options.fit_markers) stages.push_back({"markers", false, true});
+  FitResult placed;
+  const Model* model = &initial;
+  std::vector<FitTrial> stage_trials = trials;
+  std::vector<FitStageSummary> summaries;
+  LmSummary before;
+  FitReport totals;
+  int iterations_left = options.lm.max_iterations;
+  for (const Stage& stage : stages) {
+    FitOptions o = options;
+    o.fit_scales = stage.scales;
+    o.fit_markers = stage.markers;
+    o.fit_centres = o.fit_axes = false;
+    o.marker_sigma_rounds = 0;  // the markers' spread is the final stage's, not a start's
+    o.lm.max_iterations = std::max(1, std::min(options.staged_iterations, iterations_left - 1));
+    FitResult out;
+    MOCAP_RETURN_IF_ERROR(FitStage(*model, stage_trials, o, &out));
+    if (!out.report.solver.IsSolutionUsable())
+      return Status::Error(std::string("fit, stage '") + stage.name + "': " + out.report.solver.message);
+    iterations_left -= out.report.solver.num_iterations();
+    summaries.push_back(StageSummary(stage.name, o, out.report));
+    if (before.iterations.empty()) {
+      before = out.report.solver;
+      totals.initial_marker_rms_mm = out.report.initial_marker_rms_mm;
+    } else {
+      before.iterations.insert(before.iterations.end(), out.report.solver.iterations.begin(),
+                               out.report.solver.iterations.end());
+      before.num_linear_solves += out.report.solver.num_linear_solves;
+      before.total_seconds += out.report.solver.total_seconds;
+    }
+    totals.ik_seconds += out.report.ik_seconds;
+    totals.solve_seconds += out.report.solve_seconds;
+    totals.rescued_frames += out.report.rescued_frames;
+    totals.reposed = totals.reposed || out.report.reposed;
+    placed = std::move(out);
+    model = &placed.model;
+    for (size_t t = 0; t < trials.size(); ++t) stage_trials[t].initial_coordinates = placed.coordinates[t];
+  }
+
+  // The whole problem from the last stage's geometry and poses.
+  FitOptions last = options;
+  // Scales stay as the first stage found them: with a segment's markers and centres free its
+  // scale is a convention (the growth gauge, marker_fit_problem.h), and where a child centre is
+  // held it is a back door through which the held centre moves after all.
+  last.fit_scales = false;
+  std::vector<std::pair<std::string, std::string>> held;
+  UnexcitedJoints(placed.model, placed.coordinates, options, &held, &last.fixed_parameters);
+  last.lm.max_iterations = std::max(1, iterations_left);
+  const Model placed_model = placed.model;  // *result may be `placed`'s storage
+  MOCAP_RETURN_IF_ERROR(FitStage(placed_model, stage_trials, last, result));
+
+  FitReport& report = result->report;
+  summaries.push_back(StageSummary("all parameters", last, report));
+  report.stages = std::move(summaries);
+  report.initial_marker_rms_mm = totals.initial_marker_rms_mm;
+  report.solver.initial_cost = before.initial_cost;
+  report.solver.iterations.insert(report.solver.iterations.begin(), before.iterations.begin(),
+                                  before.iterations.end());
+  report.solver.num_linear_solves += before.num_linear_solves;
+  report.solver.total_seconds += before.total_seconds;
+  report.ik_seconds += totals.ik_seconds;
+  report.solve_seconds += totals.solve_seconds;
+  report.rescued_frames += totals.rescued_frames;
+  report.reposed = report.reposed || totals.reposed;
+  report.held_joints = std::move(held);
+  // The caller's model is the parameters' starting point, not a stage's.
+  const Eigen::VectorXd p0 = initial.InitialParameters();
+  for (ParameterEstimate& e : report.parameters) {
+    const int i = initial.FindParameter(e.name);
+    if (i >= 0) e.initial = p0[i];
+  }
+  report.wall_seconds = Since(start);
   return Status::Ok();
 }
 

@@ -100,6 +100,7 @@ class MarkerFitProblem : public ArrowProblem {
   formats::RowMatrix frame_prior_target_;
   std::vector<std::string> gauge_names_;
   void BuildGaugeRows(double gauge_sigma_m);
+  bool hold_hinge_centres_ = true;
   int samples_ = 0;
 };
 

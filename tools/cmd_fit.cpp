@@ -39,12 +39,13 @@ struct FitArgs {
   std::string protocol;  // for --html: the protocol whose coverage the page shows ("default" or a file)
   int threads = 0;
   std::string groups = "scales,centres,axes,markers";
-  int max_iterations = 50;
+  int max_iterations = 150;  // over every stage of the schedule
   int coarse_frames = solver::CoarseToFineOptions().coarse_frames;  // 0: no coarse-to-fine start
   int marker_sigma_rounds = solver::FitOptions().marker_sigma_rounds;  // 0: one sigma for all
   std::vector<std::string> initial;  // one .mot per trial: starting poses instead of IK
   std::string functional;  // joints (comma-separated) whose SCoRE centres join the fit as data
   double functional_sigma_mm = 5.0;
+  bool single_stage = false;  // no automatic schedule (solver::FitOptions::staged)
 };
 
 formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerTrial& trial,
@@ -104,6 +105,7 @@ int RunFit(const FitArgs& args) {
     return 2;
   }
   options.num_threads = args.threads;
+  options.staged = !args.single_stage;
   options.lm.max_iterations = args.max_iterations;
   options.marker_sigma_rounds = args.marker_sigma_rounds;
   options.coarse.enabled = args.coarse_frames > 0;
@@ -160,6 +162,8 @@ int RunFit(const FitArgs& args) {
     spdlog::error("{}", s.message());
     return 1;
   }
+  for (const auto& [joint, why] : result.report.held_joints)
+    spdlog::info("{}: centre and axes held at the model's (the trials do not move it: {})", joint, why);
   const solver::FitReport& r = result.report;
   for (const auto& [name, rms] : r.per_marker_rms_mm)
     for (const std::string& v : virtual_markers)
@@ -231,6 +235,7 @@ int RunFit(const FitArgs& args) {
                     {"max_iterations", args.max_iterations},
                     {"coarse_frames", args.coarse_frames},
                     {"marker_sigma_rounds", args.marker_sigma_rounds},
+                    {"schedule", args.single_stage ? "single stage" : "automatic"},
                     {"threads", args.threads},
                     {"initial poses", args.initial.empty() ? "inverse kinematics" : "given (.mot)"}};
     if (!args.functional.empty()) {
@@ -310,6 +315,9 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
                   "how far (mm, 1 sigma) a fitted centre may sit from its functional estimate")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  cmd->add_flag("--single-stage", args->single_stage,
+               "no automatic schedule: every group free from the first iteration (by default, with "
+               "centres or axes fitted, scales and markers are fitted first, then everything)");
   cmd->add_option("--initial", args->initial,
                   "starting poses: one .mot per trial, same order (e.g. coordinates.mot of `mocap "
                   "track`), instead of per-frame IK; NaN rows are solved by IK");

@@ -13,6 +13,7 @@
 #include "model/compare.h"
 #include "model/default_model.h"
 #include "model/model.h"
+#include "formats/osim.h"
 #include "model/model_io.h"
 #include "tools/command.h"
 
@@ -54,7 +55,14 @@ bool CheckArguments(const CLI::App* command, const ModelOptions& options, size_t
 }
 
 bool Load(const char* command, const std::string& path, Model* model) {
-  Status s = LoadModelJson(path, model);
+  Status s;
+  if (path.size() > 5 && path.compare(path.size() - 5, 5, ".osim") == 0) {
+    formats::OsimImport imported;
+    s = formats::ImportOsim(path, &imported);
+    if (s.ok()) *model = std::move(imported.model);
+  } else {
+    s = LoadModelJson(path, model);
+  }
   if (s.ok()) return true;
   // LoadModelJson's messages start with the path; make sure the file is named either way.
   const std::string& m = s.message();
@@ -220,7 +228,7 @@ const CommandRegistrar registrar("model", [](CLI::App& app, int* exit_code) {
   auto diff_options = std::make_shared<ModelOptions>();
   show->add_option("model", show_options->files, "Model file (JSON)");
   show->allow_extras();
-  diff->add_option("models", diff_options->files, "A.json B.json: reference and compared model");
+  diff->add_option("models", diff_options->files, "A B: reference and compared model (.json or OpenSim .osim)");
   diff->add_flag("--json", diff_options->json, "Print one JSON object instead of tables");
   diff->allow_extras();
 
