@@ -89,8 +89,9 @@ struct FitOptions {
   // one forearm wand). Off by default (0 rounds: one sigma for every marker), measured: on the
   // simulated subject at 10 mm of soft-tissue artefact 3 rounds lower the joint centres' RMS by
   // 2-16 % (seeds 1-4) but leave the worst joint where it was; on real recordings, whose models
-  // misfit some markers by 10-30 mm, every round is a new solve (gait2354: 202 -> 318 iterations;
-  // welk007's scaling: 78 iterations converged -> 178 and not converged within its 100 a round).
+  // misfit some markers by 10-30 mm, every round is a new solve (single-stage fits, before the
+  // schedule: gait2354 202 -> 318 iterations; welk007's scaling 78 iterations, converged -> 178,
+  // not converged within its 100 a round). In the schedule, the rounds run in its final stage.
   int marker_sigma_rounds = 0;
   double marker_sigma_tolerance = 0.05;
   // The automatic schedule (FitModel): from a generic model, joint centres and axes are freed
