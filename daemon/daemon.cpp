@@ -1316,6 +1316,13 @@ void Daemon::FitStart(const Request& r) {
     std::string report_text, model_text;
     if (s) {
       Json report = solver::FitReportJson(result.report, trials, names);
+      // Each joint against its functional estimate per recording (solver/fit_trust.h): the
+      // stored report and its page say whether to trust the model, as `mocap fit`'s do.
+      solver::FitTrust trust;
+      if (Status t = solver::CheckFitTrust(*model, result, trials, solver::FitTrustOptions(), &trust); t)
+        report["joint_checks"] = solver::FitTrustJson(trust);
+      else
+        spdlog::warn("fit: joint checks: {}", t.message());
       report_text = report.dump();
       model_text = ModelToJsonString(result.model);
       ModelComparison diff;

@@ -52,6 +52,8 @@ th, td { padding: 3px 8px; border-bottom: 1px solid #e4e6e9; text-align: right; 
 th:first-child, td:first-child { text-align: left; }
 th { background: #f5f6f7; font-weight: 600; }
 tr.undetermined td, li.undetermined { color: var(--grey); font-style: italic; }
+td.functional { text-align: left; }
+span.notexcited { color: var(--grey); font-style: italic; }
 td.bad, span.bad { color: var(--bad); font-weight: 600; }
 td.okc { color: var(--ok); }
 .views { display: flex; flex-wrap: wrap; gap: 8px; }
@@ -79,6 +81,8 @@ svg .mean { stroke: var(--bad); stroke-width: 1; stroke-dasharray: 4 3; }
 svg .bar { fill: var(--fit); }
 svg .bar.outlier { fill: var(--bad); }
 svg .band { fill: #eef1f5; }
+svg .phase { fill: #dfe6f0; }
+svg .phase.alt { fill: #e9e2d3; }
 svg .required { fill: #d6dbe2; }
 svg .reached { fill: var(--fit); }
 svg .reached.fail { fill: var(--bad); }
@@ -270,7 +274,7 @@ double NiceCeil(double v) {
   return 10 * p;
 }
 
-std::string RmsStripsHtml(const json& report) {
+std::string RmsStripsHtml(const json& report, const std::vector<TrialBand>& bands) {
   const json trials = report.value("per_trial", json::array());
   double top = 0;
   for (const auto& t : trials)
@@ -293,12 +297,22 @@ std::string RmsStripsHtml(const json& report) {
       svg.Text(kL - 4, Y(q * top) + 4, Fixed(q * top, top < 2 ? 2 : 1), "lbl small", "end");
     }
     svg.Text(kL - 4, Y(0) + 4, "0", "lbl small", "end");
+    const std::string name = t.value("name", std::string("trial"));
+    int shade = 0;
+    for (const TrialBand& b : bands) {
+      if (b.trial != name) continue;
+      const double x0 = X(std::clamp(b.first_frame, 0, std::max(0, n - 1))),
+                   x1 = X(std::clamp(b.last_frame, 0, std::max(0, n - 1)));
+      svg.Rect(x0, kT, std::max(0.0, x1 - x0), kH - kT - kB, shade++ % 2 ? "phase alt" : "phase",
+               {{"data-band", b.label}}, b.label + ": frames " + std::to_string(b.first_frame) + "–" +
+                                             std::to_string(b.last_frame));
+      svg.Text(x0 + 3, kH - kB - 4, b.label, "lbl small");  // low: the curve runs high
+    }
     if (std::isfinite(overall)) svg.Line(kL, Y(overall), kW - kR, Y(overall), "mean");
     std::vector<std::pair<double, double>> pts;
     for (int f = 0; f < n; ++f)
       pts.emplace_back(X(f), frames[f].is_number() ? Y(frames[f].get<double>()) : kNaN);
     svg.Polyline(pts, "curve");
-    const std::string name = t.value("name", std::string("trial"));
     svg.Text(kL + 4, 13, name + " — " + std::to_string(n) + " frames" +
                              (rate > 0 ? ", " + Fixed(n / rate, 1) + " s" : "") + ", RMS " +
                              Fixed(Number(t, "marker_rms_mm"), 2) + " mm",
@@ -308,7 +322,9 @@ std::string RmsStripsHtml(const json& report) {
     html += svg.Finish();
   }
   return html + "<p class=\"legend\"><span>marker RMS per frame (mm); dashed red: the fit's overall RMS " +
-         Fixed(overall, 2) + " mm; one strip per trial (each trial is one movement of the protocol)</span></p>";
+         Fixed(overall, 2) + " mm; one strip per trial (each trial is one movement of the protocol); "
+                            "shaded bands: the movement's phases (the protocol's windows, e.g. left "
+                            "side then right), as fractions of the trial</span></p>";
 }
 
 std::string MarkerBarsHtml(const json& report, const std::set<std::string>& outliers) {
@@ -376,16 +392,29 @@ std::string LogPlot(const std::vector<double>& values, const std::string& title,
 }
 
 std::string ConvergenceHtml(const json& report) {
+  const json history = report.value("iteration_history", json::array());
   std::vector<double> cost = {Number(report, "initial_cost")};
-  for (const auto& it : report.value("iteration_history", json::array())) cost.push_back(Number(it, "cost"));
-  // The cost is 1/2 the sum of squared residuals in units of their sigmas (marker rows at 1 mm
-  // unless the options say otherwise), so sqrt(2 cost / residuals) is the residual RMS in sigma
-  // units; it includes the priors' rows, hence its own name.
-  const double residuals = Number(report, "residuals", 0);
-  std::vector<double> rms;
-  for (double c : cost) rms.push_back(residuals > 0 ? std::sqrt(2 * c / residuals) : kNaN);
-  std::string html = "<div class=\"two\">" + LogPlot(cost, "cost", "1/2 Σ r²", "") +
-                     LogPlot(rms, "residual RMS √(2 cost / residuals)", "σ", "alt") + "</div>";
+  for (const auto& it : history) cost.push_back(Number(it, "cost"));
+  // The marker RMS the solver measured after each iteration (mm, the priors' rows left out),
+  // from the fit's start (iteration 0). A report stored before the solver measured it has none:
+  // then the residual RMS in sigma units, sqrt(2 cost / residuals), priors included, under its
+  // own name.
+  std::vector<double> rms = {Number(report, "initial_marker_rms_mm")};
+  bool measured = !history.empty();
+  for (const auto& it : history) {
+    rms.push_back(Number(it, "marker_rms_mm"));
+    measured &= std::isfinite(rms.back());
+  }
+  std::string rms_plot;
+  if (measured) {
+    rms_plot = LogPlot(rms, "marker RMS", "mm", "alt");
+  } else {
+    const double residuals = Number(report, "residuals", 0);
+    rms.clear();
+    for (double c : cost) rms.push_back(residuals > 0 ? std::sqrt(2 * c / residuals) : kNaN);
+    rms_plot = LogPlot(rms, "residual RMS √(2 cost / residuals)", "σ", "alt");
+  }
+  std::string html = "<div class=\"two\">" + LogPlot(cost, "cost", "1/2 Σ r²", "") + rms_plot + "</div>";
   const bool converged = report.value("converged", false);
   html += std::string("<p class=\"") + (converged ? "good" : "alert") + "\">Termination: <b>" +
           Esc(report.value("termination", std::string("?"))) + "</b> after " +
@@ -399,6 +428,35 @@ std::string ConvergenceHtml(const json& report) {
   return html;
 }
 
+// One joint's checks: a line per trial that excites it, or why there is no reference.
+std::string FunctionalCell(const json& joint) {
+  if (!joint.is_object()) return "–";
+  std::string html, reasons;
+  bool estimated = false;
+  for (const auto& t : joint.value("trials", json::array())) {
+    const std::string trial = t.value("trial", std::string());
+    estimated |= t.value("estimated", false);
+    if (!t.value("excited", false)) {
+      reasons += (reasons.empty() ? "" : "; ") + trial + ": " + t.value("note", std::string());
+      continue;
+    }
+    const bool far = t.value("far", false);
+    html += std::string(html.empty() ? "" : "<br>") + "<span class=\"" + (far ? "bad" : "fd") + "\">";
+    if (joint.value("axis_joint", false))
+      html += Fixed(Number(t, "axis_angle_deg"), 1) + "° axis</span>, centre " +
+              Fixed(Number(t, "axis_line_distance_mm"), 1) + " mm off it, on " + Esc(trial) +
+              " <small>(spread " + Fixed(Number(t, "axis_spread_deg"), 1) + "°, SARA sd " +
+              Fixed(Number(t, "functional_axis_std_deg"), 2) + "°)</small>";
+    else
+      html += Fixed(Number(t, "centre_distance_mm"), 1) + " mm</span> on " + Esc(trial) + " <small>(spread " +
+              Fixed(Number(t, "centre_spread_mm"), 1) + " mm, SCoRE sd " + Fixed(Number(t, "functional_std_mm"), 2) +
+              " mm)</small>";
+  }
+  if (!html.empty()) return html;
+  return std::string("<span class=\"notexcited\" title=\"") + Esc(reasons) + "\">" +
+         (estimated ? "not excited by any trial" : "no reference: fewer than 3 markers on a segment") + "</span>";
+}
+
 std::string JointTableHtml(const FitReportPage& in) {
   const auto sds = CentreSds(in.report);
   const ModelDrawing fit = DrawModel(in.fitted), nom = DrawModel(in.initial);
@@ -408,6 +466,11 @@ std::string JointTableHtml(const FitReportPage& in) {
   std::string html =
       "<table class=\"joints\"><tr><th>joint</th><th>type</th><th>fitted centre in parent (mm)</th>"
       "<th>generic centre (mm)</th><th>fitted − generic (mm)</th><th>sd (mm)</th>";
+  // The joint checks (solver/fit_trust.h) when the report has them.
+  std::map<std::string, json> checks;
+  for (const auto& c : in.report.value("joint_checks", json::array()))
+    if (c.is_object()) checks[c.value("joint", std::string())] = c;
+  if (!checks.empty()) html += "<th>fitted − functional estimate (per trial that excites the joint)</th>";
   if (any_functional) html += "<th>fitted − functional (mm RMS)</th>";
   html += "<th></th></tr>";
   const Geometry gf(in.fitted), gn(in.initial);
@@ -417,7 +480,7 @@ std::string JointTableHtml(const FitReportPage& in) {
     if (jn < 0) continue;
     if (jf.parent < 0) {  // the root: its "centre" is the pose's translation, not a parameter
       html += "<tr data-joint=\"" + Esc(jf.name) + "\"><td>" + Esc(jf.name) + "</td><td>" +
-              ToString(jf.type) + "</td><td colspan=\"" + (any_functional ? "6" : "5") +
+              ToString(jf.type) + "</td><td colspan=\"" + std::to_string(5 + any_functional + !checks.empty()) +
               "\">the root: placed by each frame's pose</td></tr>";
       continue;
     }
@@ -433,6 +496,7 @@ std::string JointTableHtml(const FitReportPage& in) {
             Esc(jf.name) + "\"><td>" + Esc(jf.name) + "</td><td>" + ToString(jf.type) + "</td><td>" +
             mm(cf) + "</td><td>" + mm(cn) + "</td><td>" + Fixed(1000 * (cf - cn).norm(), 1) +
             "</td><td>" + (fitted ? Fixed(sd, 1) : "not fitted") + "</td>";
+    if (!checks.empty()) html += "<td class=\"functional\">" + FunctionalCell(checks[jf.name]) + "</td>";
     if (any_functional) {
       const std::string key = jf.name + "@functional";
       html += "<td>" + (per_marker.contains(key) ? Fixed(Number(per_marker, key.c_str()), 1) : "–") + "</td>";
@@ -442,7 +506,15 @@ std::string JointTableHtml(const FitReportPage& in) {
   return html + "</table><p class=\"legend\"><span>centres in the parent segment's frame, scaled; "
                 "sd: √(sd<sub>x</sub>² + sd<sub>y</sub>² + sd<sub>z</sub>²) of the centre from the "
                 "fit's covariance; greyed: the data did not determine the centre (it stayed near the "
-                "generic model)</span></p>";
+                "generic model)</span>" +
+         (checks.empty() ? std::string()
+                         : "<span>functional estimate: SCoRE's centre (ball and custom joints) or SARA's "
+                           "axis (hinges) from the two segments' markers alone, independent of the fit; "
+                           "both centres expressed in the fitted parent segment's frame in every frame of "
+                           "the trial and averaged, the distance is between the averages; spread: RMS of "
+                           "the per-frame functional centre (axis) about its average; red: far from the "
+                           "estimate (the fit's threshold)</span>") +
+         "</p>";
 }
 
 std::string ParametersHtml(const json& report) {
@@ -621,12 +693,24 @@ Status WriteFitReportHtml(const FitReportPage& in, std::string* html) {
   if (!outliers.empty())
     out += "<div class=\"alert\" id=\"outliers\"><b>Outlying markers</b> (mislabelled, slipping, or on "
            "another body than the model's?): " + outlier_text + "</div>";
+  std::string far;
+  for (const auto& joint : r.value("joint_checks", json::array()))
+    for (const auto& t : joint.value("trials", json::array()))
+      if (t.value("far", false))
+        far += std::string(far.empty() ? "" : "; ") + "<b>" + Esc(joint.value("joint", std::string())) + "</b> " +
+               (joint.value("axis_joint", false) ? Fixed(Number(t, "axis_angle_deg"), 1) + "° (axis)"
+                                                 : Fixed(Number(t, "centre_distance_mm"), 1) + " mm") +
+               " on " + Esc(t.value("trial", std::string()));
+  if (!far.empty())
+    out += "<div class=\"alert\" id=\"functional-far\"><b>Fitted joints far from their functional "
+           "estimates</b> (which need no model: a wrong minimum, or a model that cannot take this "
+           "subject's joint?): " + far + "</div>";
   if (n_undetermined > 0)
     out += "<div class=\"note\"><b>" + std::to_string(n_undetermined) +
            " parameters were not determined</b> by these trials; they are greyed below.</div>";
 
   out += "<section><h2>Skeleton: fitted against nominal</h2>" + SkeletonViewsHtml(in, outliers) + "</section>";
-  out += "<section><h2>Marker RMS over time</h2>" + RmsStripsHtml(r) + "</section>";
+  out += "<section><h2>Marker RMS over time</h2>" + RmsStripsHtml(r, in.bands) + "</section>";
   out += "<section><h2>Per-marker residuals</h2>" + MarkerBarsHtml(r, outliers) + "</section>";
   out += "<section><h2>Joints</h2>" + JointTableHtml(in) + "</section>";
   out += "<section><h2>Scales and undetermined parameters</h2>" + ParametersHtml(r) + "</section>";

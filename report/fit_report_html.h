@@ -44,6 +44,15 @@ struct CoverageRow {
   bool ok = false;
 };
 
+// A part of a trial drawn as a band inside its RMS strip: a protocol movement's phase
+// (sim/protocol.h MovementPhases), frames [first_frame, last_frame] of the trial named `trial`
+// (the report's per_trial name).
+struct TrialBand {
+  std::string trial;
+  std::string label;
+  int first_frame = 0, last_frame = 0;
+};
+
 struct FitReportPage {
   nlohmann::json report;   // solver/fit_report_json.h FitReportJson
   Model initial;           // the nominal model the fit started from
@@ -52,6 +61,7 @@ struct FitReportPage {
   std::string model_file;  // where the initial model came from
   nlohmann::json options = nlohmann::json::object();  // the fit's options, shown as given
   std::vector<CoverageRow> coverage;                  // empty: none given
+  std::vector<TrialBand> bands;                       // empty: none drawn
   std::string software_version;
   std::string date;        // shown as given (the caller's clock or the store's created_at)
   // How much the standard-deviation ellipses are magnified in the views (a 2 mm sd is a

@@ -1,5 +1,7 @@
 #include "sim/protocol.h"
 
+#include <algorithm>
+
 #include <cmath>
 #include <cstdio>
 #include <fstream>
@@ -107,6 +109,23 @@ const Excitation* Movement::Find(const std::string& coordinate) const {
   for (const Excitation& e : excitations)
     if (e.coordinate == coordinate) return &e;
   return nullptr;
+}
+
+std::vector<MovementPhase> MovementPhases(const Movement& movement) {
+  std::vector<MovementPhase> phases;
+  for (const Excitation& e : movement.excitations) {
+    if (!e.required) continue;
+    auto it = std::find_if(phases.begin(), phases.end(), [&](const MovementPhase& p) {
+      return p.begin == e.window_begin && p.end == e.window_end;
+    });
+    if (it == phases.end()) it = phases.insert(phases.end(), {e.window_begin, e.window_end, {}});
+    it->coordinates.push_back(e.coordinate);
+  }
+  std::stable_sort(phases.begin(), phases.end(), [](const MovementPhase& a, const MovementPhase& b) {
+    return a.begin != b.begin ? a.begin < b.begin : a.end < b.end;
+  });
+  if (phases.empty()) phases.push_back({});
+  return phases;
 }
 
 double Protocol::TotalDuration() const {

@@ -54,6 +54,14 @@ struct Movement {
   const Excitation* Find(const std::string& coordinate) const;
 };
 
+// A part of a movement with its own required excitations (their "window"): the ankle circles
+// move the left ankle in the first half, then the right. The report draws them as bands inside
+// the trial's RMS strip, so a rise of the residual is seen against what the subject was moving.
+struct MovementPhase {
+  double begin = 0.0, end = 1.0;         // fractions of the movement's duration
+  std::vector<std::string> coordinates;  // the required excitations active in it, in order
+};
+
 struct Protocol {
   std::string name;
   std::vector<Movement> movements;
@@ -61,6 +69,12 @@ struct Protocol {
   double TotalDuration() const;
   const Movement* Find(const std::string& movement) const;
 };
+
+// The movement's phases, one per distinct window of its required excitations, ordered by
+// begin (then end); a movement whose excitations all span it is one phase [0, 1]. A trial is one
+// movement (the daemon records one per recording, `mocap sim` writes <movement>.trc), so these
+// are the only parts a trial has.
+std::vector<MovementPhase> MovementPhases(const Movement& movement);
 
 // The default full-body calibration protocol (sim/default_protocol.json, embedded at build time;
 // ~60 s in total). Its coordinates are those of mocap::DefaultFullBodyModel.

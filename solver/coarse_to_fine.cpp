@@ -352,6 +352,7 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   coarse_lm.function_tolerance = std::max(options.function_tolerance, coarse.coarse_function_tolerance);
   coarse_lm.max_iterations = std::min(options.max_iterations, coarse.coarse_max_iterations);
   coarse_lm.callbacks.clear();
+  coarse_lm.data_rms = nullptr;  // of the whole problem's x, not the subset's
   for (const IterationCallback& cb : options.callbacks)
     coarse_lm.callbacks.push_back([cb](const IterationSummary& it) {
       IterationSummary tagged = it;

@@ -14,12 +14,14 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["unknowns"] = r.unknowns;
   j["residuals"] = r.residuals;
   j["iterations"] = r.solver.num_iterations();  // on the whole problem
-  // The solve's history (the report page's convergence plot): cost after each iteration.
+  // The solve's history (the report page's convergence plot): cost and marker RMS (without the
+  // priors; null where the solver did not measure it) after each iteration.
   j["iteration_history"] = nlohmann::json::array();
   for (const IterationSummary& it : r.solver.iterations)
-    j["iteration_history"].push_back({{"iteration", it.iteration}, {"cost", it.cost},
-                                      {"accepted", it.step_accepted}, {"lambda", it.lambda},
-                                      {"seconds", it.total_seconds}});
+    j["iteration_history"].push_back(
+        {{"iteration", it.iteration}, {"cost", it.cost},
+         {"marker_rms_mm", std::isfinite(it.data_rms) ? nlohmann::json(it.data_rms) : nlohmann::json()},
+         {"accepted", it.step_accepted}, {"lambda", it.lambda}, {"seconds", it.total_seconds}});
   // The coarse-to-fine start (solver/coarse_to_fine.h): its subset, iterations and pose pass.
   j["coarse"] = {{"used", r.coarse.used},
                  {"fallback", r.coarse.fallback},
@@ -28,6 +30,22 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
                  {"seconds", r.coarse.coarse.total_seconds},
                  {"pose_seconds", r.coarse.pose_seconds},
                  {"start_cost", r.coarse.fine_start_cost}};
+  // The schedule's stages (solver/global_fit.h, FitModel).
+  j["stages"] = nlohmann::json::array();
+  for (const FitStageSummary& st : r.stages)
+    j["stages"].push_back({{"name", st.name},
+                           {"groups", st.groups},
+                           {"iterations", st.iterations},
+                           {"termination", ToString(st.termination)},
+                           {"initial_marker_rms_mm", st.initial_marker_rms_mm},
+                           {"marker_rms_mm", st.marker_rms_mm},
+                           {"marker_sigma_mm", st.marker_sigma_mm},
+                           {"residual_correlation_frames", st.residual_correlation_frames},
+                           {"seconds", st.seconds}});
+  j["held_joints"] = nlohmann::json::object();
+  for (const auto& [joint, why] : r.held_joints) j["held_joints"][joint] = why;
+  j["residual_sigma_mm"] = r.residual_sigma_mm;
+  j["residual_correlation_frames"] = r.residual_correlation_frames;
   j["reposed"] = r.reposed;
   j["rescued_frames"] = r.rescued_frames;
   j["initial_cost"] = r.solver.initial_cost;
@@ -72,6 +90,42 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
     j["parameters"].push_back({{"name", e.name}, {"group", ToString(e.group)}, {"initial", e.initial},
                                {"value", e.value}, {"std", e.std}, {"determined", e.determined}});
   return j;
+}
+
+nlohmann::json FitTrustJson(const FitTrust& trust) {
+  nlohmann::json joints = nlohmann::json::array();
+  for (const JointTrust& jt : trust.joints) {
+    nlohmann::json checks = nlohmann::json::array();
+    for (const FunctionalCheck& c : jt.checks) {
+      nlohmann::json cj = {{"trial", c.trial}, {"estimated", c.estimated}, {"excited", c.excited},
+                           {"note", c.note}, {"frames", c.frames}};
+      if (c.excited) {
+        cj["far"] = c.far;
+        if (jt.axis_joint) {
+          cj["axis_angle_deg"] = c.axis_angle_deg;
+          cj["axis_spread_deg"] = c.axis_spread_deg;
+          cj["functional_axis_std_deg"] = c.functional_axis_std_deg;
+          cj["axis_line_distance_mm"] = c.axis_line_distance_mm;
+        } else {
+          cj["centre_distance_mm"] = c.centre_distance_mm;
+          cj["centre_spread_mm"] = c.centre_spread_mm;
+          cj["functional_std_mm"] = c.functional_std_mm;
+        }
+      }
+      checks.push_back(std::move(cj));
+    }
+    joints.push_back({{"joint", jt.joint},
+                      {"type", ToString(jt.type)},
+                      {"axis_joint", jt.axis_joint},
+                      {"from_generic_mm", jt.from_generic_mm},
+                      {"axis_from_generic_deg", jt.axis_from_generic_deg},
+                      {"fitted_std_mm", jt.centre_fitted ? nlohmann::json(jt.fitted_std_mm) : nlohmann::json()},
+                      {"undetermined", jt.undetermined},
+                      {"best_trial", jt.best_check >= 0 ? nlohmann::json(jt.checks[jt.best_check].trial)
+                                                        : nlohmann::json()},
+                      {"trials", std::move(checks)}});
+  }
+  return joints;
 }
 
 }  // namespace mocap::solver

@@ -371,12 +371,19 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
 
   const auto solve_start = Clock::now();
   ArrowSchurProblem schur(&problem, threads);
-  LmOptions first = options.lm;
+  LmOptions lm = options.lm;  // with the marker RMS per iteration (the report's convergence plot)
+  lm.data_rms = [&problem, threads](const Eigen::VectorXd& at) {
+    Eigen::VectorXd sum;
+    Eigen::VectorXi count;
+    if (!problem.MarkerErrors(at, threads, &sum, &count)) return std::numeric_limits<double>::quiet_NaN();
+    return 1000.0 * std::sqrt(sum.sum() / std::max(1, count.sum()));
+  };
+  LmOptions first = lm;
   first.max_iterations = std::min(options.lm.max_iterations, options.repose_after_iterations);
   report.solver = SolveCoarseToFine(&problem, &schur, first, options.coarse, threads, &x, &report.coarse);
   // The solve continued from x for at most `max_iterations` more, appended to the report's.
   auto continue_solve = [&](int max_iterations) {
-    LmOptions rest = options.lm;
+    LmOptions rest = lm;
     rest.max_iterations = max_iterations;
     LmSummary more = Solve(rest, &schur, &x);
     more.initial_cost = report.solver.initial_cost;
@@ -505,9 +512,13 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
   result->coordinates.resize(trials.size());
   const Geometry geometry(result->model);
   ModelData data(result->model);
+  // Residuals' lag products for their integrated autocorrelation time (FitReport).
+  double lag_sum = 0, zero_lag = 0, samples = 0;
   for (size_t t = 0; t < trials.size(); ++t) {
     Eigen::MatrixXd& z = result->coordinates[t];
     z.resize(trials[t].markers.num_frames(), nz);
+    formats::RowMatrix residual(z.rows(), 3 * nm);
+    residual.setConstant(std::numeric_limits<double>::quiet_NaN());
     double trial_sq = 0;
     int trial_n = 0;
     std::vector<double>& frame_rms = report.per_frame_rms_mm.emplace_back(z.rows());
@@ -519,8 +530,10 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
       const auto row = problem.measurements().row(first_frame[t] + f);
       for (int m = 0; m < nm; ++m) {
         if (!std::isfinite(row[3 * m])) continue;
-        frame_sq += (MarkerPosition(result->model, geometry, data, m) -
-                     row.segment<3>(3 * m).transpose()).squaredNorm();
+        const Eigen::Vector3d r =
+            MarkerPosition(result->model, geometry, data, m) - row.segment<3>(3 * m).transpose();
+        residual.row(f).segment<3>(3 * m) = r.transpose();
+        frame_sq += r.squaredNorm();
         ++frame_n;
       }
       frame_rms[f] = frame_n > 0 ? 1000.0 * std::sqrt(frame_sq / frame_n)
@@ -529,7 +542,31 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
       trial_n += frame_n;
     }
     report.per_trial_rms_mm.push_back(1000.0 * std::sqrt(trial_sq / std::max(1, trial_n)));
+    // rho(k) pooled over the trial's markers and axes, summed while it stays above 0.05 (the
+    // noise floor of the estimate), for at most a quarter of the trial.
+    auto lag = [&](int k) {
+      double sum = 0;
+      for (int f = 0; f + k < residual.rows(); ++f)
+        for (int c = 0; c < residual.cols(); ++c) {
+          const double a = residual(f, c), b = residual(f + k, c);
+          if (std::isfinite(a) && std::isfinite(b)) sum += a * b;
+        }
+      return sum;
+    };
+    const double c0 = lag(0);
+    if (!(c0 > 0)) continue;
+    double trial_lags = 0;
+    for (int k = 1; k <= residual.rows() / 4; ++k) {
+      const double rho = lag(k) / c0;
+      if (rho < 0.05) break;
+      trial_lags += rho;
+    }
+    lag_sum += trial_lags * trial_n;
+    zero_lag += c0;
+    samples += trial_n;
   }
+  report.residual_sigma_mm = samples > 0 ? 1000.0 * std::sqrt(zero_lag / (3.0 * samples)) : 0.0;
+  report.residual_correlation_frames = samples > 0 ? 1.0 + 2.0 * lag_sum / samples : 1.0;
   report.wall_seconds = Since(start);
   result->report = std::move(report);
   return Status::Ok();
@@ -599,6 +636,14 @@ void UnexcitedJoints(const Model& model, const std::vector<Eigen::MatrixXd>& z, 
   }
 }
 
+// FitOptions::effective_marker_sigma: the data's weight for the next stage from this stage's
+// residuals, never below the nominal marker sigma.
+double EffectiveMarkerSigma(const FitOptions& options, const FitReport& r) {
+  if (!options.effective_marker_sigma) return options.marker_sigma_m;
+  const double sigma = 1e-3 * r.residual_sigma_mm * std::sqrt(std::max(1.0, r.residual_correlation_frames));
+  return std::isfinite(sigma) ? std::max(options.marker_sigma_m, sigma) : options.marker_sigma_m;
+}
+
 FitStageSummary StageSummary(const std::string& name, const FitOptions& o, const FitReport& r) {
   FitStageSummary s;
   s.name = name;
@@ -608,6 +653,8 @@ FitStageSummary StageSummary(const std::string& name, const FitOptions& o, const
   s.initial_marker_rms_mm = r.initial_marker_rms_mm;
   s.marker_rms_mm = r.marker_rms_mm;
   s.seconds = r.wall_seconds;
+  s.marker_sigma_mm = 1000.0 * o.marker_sigma_m;
+  s.residual_correlation_frames = r.residual_correlation_frames;
   return s;
 }
 }  // namespace
@@ -642,8 +689,10 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   LmSummary before;
   FitReport totals;
   int iterations_left = options.lm.max_iterations;
+  double effective_sigma_m = options.marker_sigma_m;
   for (const Stage& stage : stages) {
     FitOptions o = options;
+    o.marker_sigma_m = effective_sigma_m;
     o.fit_scales = stage.scales;
     o.fit_markers = stage.markers;
     o.fit_centres = o.fit_axes = false;
@@ -668,6 +717,9 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     totals.solve_seconds += out.report.solve_seconds;
     totals.rescued_frames += out.report.rescued_frames;
     totals.reposed = totals.reposed || out.report.reposed;
+    // Only residuals left with the markers placed measure the data's error; with the model's
+    // markers they are its misplacement.
+    if (stage.markers) effective_sigma_m = EffectiveMarkerSigma(options, out.report);
     placed = std::move(out);
     model = &placed.model;
     for (size_t t = 0; t < trials.size(); ++t) stage_trials[t].initial_coordinates = placed.coordinates[t];
@@ -675,6 +727,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
 
   // The whole problem from the last stage's geometry and poses.
   FitOptions last = options;
+  last.marker_sigma_m = effective_sigma_m;
   // Scales stay as the first stage found them: with a segment's markers and centres free its
   // scale is a convention (the growth gauge, marker_fit_problem.h), and where a child centre is
   // held it is a back door through which the held centre moves after all.

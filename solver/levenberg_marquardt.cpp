@@ -185,6 +185,7 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         }
         it.cost_change = old_cost - cost;
         it.cost = cost;
+        if (options.data_rms) it.data_rms = options.data_rms(*x);
         it.gradient_max_norm = gradient.lpNorm<Eigen::Infinity>();
         it.iteration_seconds = Since(iteration_start);
         it.total_seconds = Since(start);
@@ -202,6 +203,7 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
       ++rejections;
       if (lambda > options.max_lambda || rejections >= options.max_consecutive_rejections) {
         it.cost = cost;
+        if (!summary.iterations.empty()) it.data_rms = summary.iterations.back().data_rms;
         it.lambda = lambda;
         it.gradient_max_norm = gradient.lpNorm<Eigen::Infinity>();
         it.iteration_seconds = Since(iteration_start);

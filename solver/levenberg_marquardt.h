@@ -14,6 +14,7 @@
 
 #include <Eigen/Core>
 #include <functional>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -41,6 +42,8 @@ struct IterationSummary {
   double iteration_seconds = 0;
   double total_seconds = 0;
   bool coarse = false;          // of a coarse stage on a subset of the frames (coarse_to_fine.h)
+  // LmOptions::data_rms at the iterate this iteration ended on; NaN without one.
+  double data_rms = std::numeric_limits<double>::quiet_NaN();
 };
 
 // Return false to stop the solve (the summary then says kUserCancelled).
@@ -60,6 +63,13 @@ struct LmOptions {
   double min_gain_ratio = 1e-3;       // eta: accept steps whose gain ratio exceeds this
   int max_consecutive_rejections = 10;
   std::vector<IterationCallback> callbacks;
+  // Optional: how well x fits the data alone, in the problem's own unit (the body fit: marker
+  // RMS in mm, without the priors' rows that the cost also holds), evaluated after each
+  // accepted step, before the callbacks, into IterationSummary::data_rms. The cost mixes data and
+  // priors in units of sigma; a lab reads millimetres. It costs the problem one pass over its data
+  // per iteration. x has the size of the problem being solved: a caller that solves a smaller
+  // problem with these options (a coarse subset) must clear it.
+  std::function<double(const Eigen::VectorXd& x)> data_rms;
   // Set by another thread (a daemon's fit.cancel): the solve stops before its next linear solve,
   // accepted or not, with x at the last accepted step (kUserCancelled). A callback's `false` is
   // only seen after an accepted step; a solve stuck rejecting steps would not see it for a while.

@@ -72,7 +72,15 @@ std::vector<double> FrameCosts(solver::ArrowProblem* problem, const Eigen::Vecto
 
 TEST(CoarseToFine, ReachesThePlainMinimumWithFewerWholeProblemIterations) {
   Session s(1500, 0.03);
-  const solver::FitOptions fit;
+  solver::FitOptions fit;
+  // The data measure (LmOptions::data_rms) is the whole problem's: never called with the coarse
+  // subset's x; after each whole-problem iteration, with the x that iteration ended on.
+  int measured = 0;
+  const Eigen::Index whole = s.x0.size();
+  fit.lm.data_rms = [&](const Eigen::VectorXd& x) {
+    EXPECT_EQ(x.size(), whole);
+    return static_cast<double>(++measured);
+  };
   Eigen::VectorXd x_plain = s.x0, x_c2f = s.x0;
   solver::ArrowSchurProblem plain_schur(s.problem.get(), 2);
   const solver::LmSummary plain = solver::Solve(fit.lm, &plain_schur, &x_plain);
@@ -96,10 +104,16 @@ TEST(CoarseToFine, ReachesThePlainMinimumWithFewerWholeProblemIterations) {
   Eigen::VectorXd x_ref = s.x0;
   solver::LmOptions tight = fit.lm;
   tight.function_tolerance = 1e-12;
+  tight.data_rms = nullptr;
   solver::ArrowSchurProblem ref_schur(s.problem.get(), 2);
   const solver::LmSummary ref = solver::Solve(tight, &ref_schur, &x_ref);
   EXPECT_LE(c2f.final_cost - ref.final_cost, 1e-6 * ref.final_cost);
   EXPECT_LE(c2f.final_cost, plain.final_cost * (1 + 1e-9));
+  int accepted = 0;  // a last iteration that found no step measures nothing new
+  for (const solver::LmSummary* summary : {&plain, &c2f})
+    for (const solver::IterationSummary& it : summary->iterations) accepted += it.step_accepted;
+  EXPECT_EQ(measured, accepted);
+  for (const solver::IterationSummary& it : c2f.iterations) EXPECT_TRUE(std::isfinite(it.data_rms)) << it.iteration;
   EXPECT_LT(c2f.num_iterations(), plain.num_iterations())
       << "coarse-to-fine " << c2f.num_iterations() << ", plain " << plain.num_iterations();
   std::printf("plain: %d iterations to %.6f; coarse-to-fine: %d coarse + %d whole to %.6f\n",

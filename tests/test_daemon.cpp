@@ -281,6 +281,11 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
   EXPECT_NE(html.find(rms), std::string::npos) << rms;
   EXPECT_NE(html.find("after " + std::to_string(fit["report"]["iterations"].get<int>()) + " iterations"),
             std::string::npos);
+  // Each joint checked against its functional estimate per recording (solver/fit_trust.h), in
+  // the stored report and on its page, as `mocap fit` does.
+  ASSERT_TRUE(fit["report"].contains("joint_checks"));
+  EXPECT_FALSE(fit["report"]["joint_checks"].empty());
+  EXPECT_NE(html.find("fitted − functional estimate"), std::string::npos);
   {
     std::unique_ptr<daemon::Store> store;
     daemon::StoreOptions so;

@@ -144,6 +144,17 @@ TEST_F(Report, GoodFitShowsNoAlarmAndIsSelfContained) {
   // Per-frame RMS in the JSON: one value per frame of each trial.
   for (const auto& t : report["per_trial"]) EXPECT_EQ(t["per_frame_rms_mm"].size(), t["frames"].get<size_t>());
   EXPECT_EQ(report["iteration_history"].size(), report["iterations"].get<size_t>());
+  // The convergence plot's marker RMS is the solver's, measured after each iteration (not derived
+  // from the cost, which holds the priors): it ends at the report's marker RMS.
+  ASSERT_FALSE(report["iteration_history"].empty());
+  for (const auto& it : report["iteration_history"]) {
+    ASSERT_TRUE(it["marker_rms_mm"].is_number()) << it.dump();
+    EXPECT_LT(it["marker_rms_mm"].get<double>(), report["initial_marker_rms_mm"].get<double>());
+  }
+  EXPECT_NEAR(report["iteration_history"].back()["marker_rms_mm"].get<double>(), report["marker_rms_mm"].get<double>(),
+              1e-9);
+  EXPECT_NE(html.find("marker RMS (mm, log scale)"), std::string::npos);
+  EXPECT_EQ(html.find("√(2 cost / residuals)"), std::string::npos);
   // Nothing fetched: no script, stylesheet link, import, url() or remote address (the SVG
   // namespace is an identifier, not fetched).
   std::string stripped = std::regex_replace(html, std::regex("xmlns=\"http://www.w3.org/2000/svg\""), "");
@@ -229,7 +240,7 @@ TEST_F(Report, FunctionalEstimatesAndProtocolCoverageWhenGiven) {
   CommandResult r = Mocap("sim --out " + P("medial") + " --seed 3 --duration-scale 0.5 --medial");
   ASSERT_EQ(r.status, 0) << r.output;
   r = Mocap("fit --model " + P("medial/nominal.model.json") + " " + P("medial/static.trc") + " " +
-            P("medial/hip_star_arc_l.trc") + " " + P("medial/knee_flexion_l.trc") +
+            P("medial/hip_star_arc_l.trc") + " " + P("medial/knee_flexion_l.trc") + " " + P("medial/ankle_circles.trc") +
             " --threads 2 --functional hip_l --protocol default --out " + P("functional/fitted.json") +
             " --report " + P("functional/report.json") + " --html " + P("functional/report.html"));
   ASSERT_EQ(r.status, 0) << r.output;
@@ -243,6 +254,31 @@ TEST_F(Report, FunctionalEstimatesAndProtocolCoverageWhenGiven) {
   ASSERT_NE(row, std::string::npos);
   EXPECT_EQ(html.find(cell, row), html.find("</tr>", row) - std::strlen(cell) + 5) << cell;
   EXPECT_EQ(html.find("data-marker=\"hip_l@functional\""), std::string::npos) << "a virtual marker drawn as a marker";
+  // The joint checks (solver/fit_trust.h): hip_l against SCoRE on its star arc, knee_l against
+  // SARA on its flexion, in their rows; a joint without 3 markers a segment says so.
+  ASSERT_TRUE(report.contains("joint_checks"));
+  for (const auto& [joint, trial, unit] : {std::tuple{"hip_l", "hip_star_arc_l", "centre_distance_mm"},
+                                           std::tuple{"knee_l", "knee_flexion_l", "axis_angle_deg"}}) {
+    SCOPED_TRACE(joint);
+    const nlohmann::json* check = nullptr;
+    for (const auto& jc : report["joint_checks"])
+      for (const auto& t : jc["trials"])
+        if (jc["joint"] == joint && t["trial"] == trial) check = &t;
+    ASSERT_NE(check, nullptr);
+    ASSERT_TRUE((*check)["excited"].get<bool>()) << check->dump();
+    const double figure = (*check)[unit];
+    EXPECT_LT(figure, std::string(unit) == "axis_angle_deg" ? 2.0 : 3.0);
+    std::snprintf(cell, sizeof cell, std::string(unit) == "axis_angle_deg" ? "%.1f° axis</span>" : "%.1f mm</span> on ",
+                  figure);
+    const size_t at = html.find("data-joint=\"" + std::string(joint) + "\"><td>");
+    ASSERT_NE(at, std::string::npos);
+    const size_t found = html.find(cell, at);
+    EXPECT_LT(found, html.find("</tr>", at)) << cell;
+  }
+  const size_t elbow = html.find("data-joint=\"elbow_l\"><td>");
+  ASSERT_NE(elbow, std::string::npos);
+  EXPECT_LT(html.find("no reference: fewer than 3 markers", elbow), html.find("</tr>", elbow));
+  EXPECT_EQ(html.find("id=\"functional-far\""), std::string::npos);
   // Every excitation of the two movements has its row.
   int rows = 0;
   for (const char* name : {"hip_star_arc_l", "knee_flexion_l"}) {
@@ -254,8 +290,55 @@ TEST_F(Report, FunctionalEstimatesAndProtocolCoverageWhenGiven) {
     }
   }
   ASSERT_GT(rows, 2);
+  // The ankle circles move the left side, then the right (the protocol's windows): two bands in
+  // its strip, where the frames put them; the one-phase movements get none.
+  int ankle_frames = 0;
+  for (const auto& t : report["per_trial"])
+    if (t["name"] == "ankle_circles") ankle_frames = t["frames"];
+  ASSERT_GT(ankle_frames, 100);
+  static const std::regex kBand(R"re(<rect[^>]*class="phase[^"]*"[^>]*>)re");
+  std::vector<std::map<std::string, std::string>> bands;
+  for (std::sregex_iterator b(html.begin(), html.end(), kBand), e; b != e; ++b) bands.push_back(AttributesOf(b->str()));
+  ASSERT_EQ(bands.size(), 2u);
+  EXPECT_EQ(bands[0]["data-band"], "ankle_angle_l, subtalar_angle_l");
+  EXPECT_EQ(bands[1]["data-band"], "ankle_angle_r, subtalar_angle_r");
+  const double plot_left = 46, plot_width = 1000 - 46 - 10;  // RmsStripsHtml's strip geometry
+  const int middle = static_cast<int>(std::lround(0.5 * (ankle_frames - 1)));
+  EXPECT_NEAR(std::stod(bands[0]["x"]), plot_left, 0.01);
+  EXPECT_NEAR(std::stod(bands[1]["x"]), plot_left + plot_width * middle / (ankle_frames - 1), 0.01);
+  EXPECT_NEAR(std::stod(bands[1]["x"]) + std::stod(bands[1]["width"]), plot_left + plot_width, 0.01);
+  EXPECT_EQ(ReadBytes(P("good/report.html")).find("class=\"phase"), std::string::npos);
   EXPECT_EQ(html.find("No protocol coverage"), std::string::npos);
   EXPECT_NE(ReadBytes(P("good/report.html")).find("No protocol coverage"), std::string::npos);
+}
+
+// A check far from its functional estimate raises an alert naming the joint, its figure and
+// trial, and its cell is red (the page reads the report's `far`, it does not re-judge).
+TEST_F(Report, JointFarFromItsFunctionalEstimateIsFlagged) {
+  report::FitReportPage page;
+  ASSERT_TRUE(report::FitReportPageFromJson(ReadBytes(P("good/report.json")),
+                                            ReadBytes(P("sim/nominal.model.json")),
+                                            ReadBytes(P("good/fitted.json")), &page));
+  page.report["joint_checks"] = nlohmann::json::array(
+      {{{"joint", "hip_l"}, {"axis_joint", false}, {"best_trial", "hip_star_arc_l"},
+        {"trials", {{{"trial", "hip_star_arc_l"}, {"estimated", true}, {"excited", true}, {"far", true},
+                     {"frames", 250}, {"centre_distance_mm", 23.44}, {"centre_spread_mm", 4.0},
+                     {"functional_std_mm", 1.5}}}}},
+       {{"joint", "knee_l"}, {"axis_joint", true}, {"best_trial", nullptr},
+        {"trials", {{{"trial", "static"}, {"estimated", true}, {"excited", false}, {"note", "too still"}}}}}});
+  std::string html;
+  ASSERT_TRUE(report::WriteFitReportHtml(page, &html));
+  const size_t at = html.find("id=\"functional-far\"");
+  ASSERT_NE(at, std::string::npos);
+  EXPECT_NE(html.substr(at, html.find("</div>", at) - at).find("<b>hip_l</b> 23.4 mm on hip_star_arc_l"),
+            std::string::npos);
+  EXPECT_NE(html.find("<span class=\"bad\">23.4 mm</span> on hip_star_arc_l"), std::string::npos);
+  const size_t knee = html.find("data-joint=\"knee_l\"><td>");
+  ASSERT_NE(knee, std::string::npos);
+  EXPECT_LT(html.find("title=\"static: too still\">not excited by any trial", knee), html.find("</tr>", knee));
+  page.report["joint_checks"][0]["trials"][0]["far"] = false;
+  ASSERT_TRUE(report::WriteFitReportHtml(page, &html));
+  EXPECT_EQ(html.find("id=\"functional-far\""), std::string::npos);
 }
 
 struct ShellRun {

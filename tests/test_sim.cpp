@@ -885,3 +885,31 @@ TEST(SimCommand, BadOptionsExitWithStatus2AndNameTheOption) {
   EXPECT_EQ(RunTool("sim", &out), 2) << out;  // --out is required
   EXPECT_NE(out.find("--out"), std::string::npos) << out;
 }
+
+// A movement's phases are its required excitations' windows: the ankle circles' left half and
+// right half; a movement without windows is one phase; optional excitations make none.
+TEST(Protocol, MovementPhasesAreTheWindowsOfTheRequiredExcitations) {
+  const Movement* ankles = DefaultProtocol().Find("ankle_circles");
+  ASSERT_NE(ankles, nullptr);
+  const std::vector<MovementPhase> phases = MovementPhases(*ankles);
+  ASSERT_EQ(phases.size(), 2u);
+  EXPECT_EQ(phases[0].begin, 0.0);
+  EXPECT_EQ(phases[0].end, 0.5);
+  EXPECT_EQ(phases[0].coordinates, (std::vector<std::string>{"ankle_angle_l", "subtalar_angle_l"}));
+  EXPECT_EQ(phases[1].begin, 0.5);
+  EXPECT_EQ(phases[1].end, 1.0);
+  EXPECT_EQ(phases[1].coordinates, (std::vector<std::string>{"ankle_angle_r", "subtalar_angle_r"}));
+  const std::vector<MovementPhase> squats = MovementPhases(*DefaultProtocol().Find("squats"));
+  ASSERT_EQ(squats.size(), 1u);
+  EXPECT_EQ(squats[0].begin, 0.0);
+  EXPECT_EQ(squats[0].end, 1.0);
+  // Listed out of order, and an optional excitation with its own window: sorted, and no phase.
+  Movement m;
+  m.excitations = {{"b", 0, 10, true, "", false, 0.6, 1.0}, {"a", 0, 10, true, "", false, 0.0, 0.6},
+                   {"c", 0, 10, false, "", false, 0.2, 0.3}};
+  const std::vector<MovementPhase> sorted = MovementPhases(m);
+  ASSERT_EQ(sorted.size(), 2u);
+  EXPECT_EQ(sorted[0].coordinates, std::vector<std::string>{"a"});
+  EXPECT_EQ(sorted[1].coordinates, std::vector<std::string>{"b"});
+  EXPECT_EQ(MovementPhases(Movement()).size(), 1u);
+}

@@ -20,6 +20,7 @@
 #include "report/fit_report_html.h"
 #include "sim/protocol.h"
 #include "solver/fit_report_json.h"
+#include "solver/fit_trust.h"
 #include "solver/functional_joints.h"
 #include "solver/global_fit.h"
 #include "tools/command.h"
@@ -67,6 +68,38 @@ formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerT
   return out;
 }
 
+void LogJointChecks(const solver::FitTrust& trust) {
+  std::string never_excited, no_clusters;
+  for (const solver::JointTrust& j : trust.joints) {
+    const std::string generic = fmt::format("{:.1f} mm from the generic model's{}", j.from_generic_mm,
+                                            j.centre_fitted ? fmt::format(" (fit sd {:.1f} mm)", j.fitted_std_mm)
+                                                            : std::string(" (not fitted)"));
+    if (j.best_check < 0) {
+      bool estimated = false;
+      for (const auto& c : j.checks) estimated |= c.estimated;
+      (estimated ? never_excited : no_clusters) += (estimated ? never_excited : no_clusters).empty() ? j.joint : ", " + j.joint;
+      continue;
+    }
+    const solver::FunctionalCheck& c = j.checks[j.best_check];
+    if (j.axis_joint)
+      spdlog::log(c.far ? spdlog::level::warn : spdlog::level::info,
+                  "{}: fitted axis {:.1f} deg from its functional (SARA) axis on {} (spread {:.1f} deg, SARA sd "
+                  "{:.2f} deg), fitted centre {:.1f} mm from that axis; centre {}",
+                  j.joint, c.axis_angle_deg, c.trial, c.axis_spread_deg, c.functional_axis_std_deg,
+                  c.axis_line_distance_mm, generic);
+    else
+      spdlog::log(c.far ? spdlog::level::warn : spdlog::level::info,
+                  "{}: fitted centre {:.1f} mm from its functional (SCoRE) centre on {} (spread {:.1f} mm, SCoRE "
+                  "sd {:.2f} mm), {}",
+                  j.joint, c.centre_distance_mm, c.trial, c.centre_spread_mm, c.functional_std_mm, generic);
+  }
+  if (!never_excited.empty())
+    spdlog::info("joints no trial excites (no functional reference): {}", never_excited);
+  if (!no_clusters.empty())
+    spdlog::info("joints without 3 markers on each segment in any trial (no functional reference): {}",
+                 no_clusters);
+}
+
 int RunFit(const FitArgs& args) {
   const bool osim_out = HasExtension(args.out, ".osim");
   if (!osim_out && !HasExtension(args.out, ".json")) {
@@ -81,6 +114,9 @@ int RunFit(const FitArgs& args) {
   Inputs inputs;
   if (!LoadInputs(args.in, &inputs)) return 1;
   const int model_markers = inputs.model.model.num_markers();
+  // The generic model as given: its markers make the clusters of the joint checks (without the
+  // virtual markers --functional adds), and the report compares the fitted centres with its.
+  const Model generic = inputs.model.model;
   std::vector<std::string> virtual_markers;
   if (!args.functional.empty()) {
     std::vector<std::string> joints, notes;
@@ -187,6 +223,14 @@ int RunFit(const FitArgs& args) {
     spdlog::warn("marker {} fits to {:.1f} mm RMS, {:.1f}x the median marker's {:.1f} mm: mislabelled, "
                  "slipping, or attached to another body than the model's?",
                  name, rms, rms / std::max(1e-9, r.median_marker_rms_mm), r.median_marker_rms_mm);
+  // Whether to trust the model (issue 14): each joint against its functional estimate on every
+  // trial, and against the generic model.
+  solver::FitTrust trust;
+  if (Status t = solver::CheckFitTrust(generic, result, trials, solver::FitTrustOptions(), &trust); !t) {
+    spdlog::error("joint checks: {}", t.message());
+    return 1;
+  }
+  LogJointChecks(trust);
   if (r.coarse.used || r.coarse.fallback) std::printf("%s\n", r.coarse.BriefReport().c_str());
   std::printf("%s\n%s\n", r.solver.BriefReport().c_str(), r.BriefReport().c_str());
 
@@ -216,7 +260,8 @@ int RunFit(const FitArgs& args) {
   spdlog::info("wrote {} and, per trial, <trial>.fitted.mot and <trial>.joint_centres.trc in {}",
                args.out, dir.string());
 
-  const nlohmann::json report_json = solver::FitReportJson(r, trials, args.in.trials);
+  nlohmann::json report_json = solver::FitReportJson(r, trials, args.in.trials);
+  report_json["joint_checks"] = solver::FitTrustJson(trust);
   if (!args.report.empty()) {
     std::ofstream f(args.report);
     f << report_json.dump(1) << "\n";
@@ -262,6 +307,16 @@ int RunFit(const FitArgs& args) {
           table.column_names.push_back(fitted.coordinates()[c].name);
           if (fitted.coordinates()[c].rotational) table.values.col(c) *= 180.0 / M_PI;
         }
+        // A movement in parts (its excitations' windows) gets its phases as bands in its strip.
+        const std::vector<sim::MovementPhase> phases = sim::MovementPhases(*movement);
+        const int last = std::max(0, static_cast<int>(table.values.rows()) - 1);
+        if (phases.size() > 1)
+          for (const sim::MovementPhase& p : phases) {
+            std::string label;
+            for (const std::string& c : p.coordinates) label += (label.empty() ? "" : ", ") + c;
+            page.bands.push_back({movement->name, label, static_cast<int>(std::lround(p.begin * last)),
+                                  static_cast<int>(std::lround(p.end * last))});
+          }
         for (const sim::ExcitationCheck& e : sim::CheckExcitations(*movement, table, sim::ExcitationCheckOptions()))
           page.coverage.push_back({movement->name, e.coordinate, e.min_deg, e.max_deg, e.reached_min_deg,
                                    e.reached_max_deg, e.required, e.ok});

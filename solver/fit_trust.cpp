@@ -1,0 +1,210 @@
+#include "solver/fit_trust.h"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <set>
+
+#include "model/kinematics.h"
+
+namespace mocap::solver {
+namespace {
+
+constexpr double kRadToDeg = 180.0 / M_PI;
+
+double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {  // sign-free
+  const double c = std::abs(a.normalized().dot(b.normalized()));
+  return kRadToDeg * std::acos(std::min(1.0, c));
+}
+
+bool AxisJoint(JointType type) { return type == JointType::kHinge || type == JointType::kUniversal; }
+
+// A point and the rotation axes of joint j in its parent segment's frame, for the pose in `data`.
+struct InParent {
+  Eigen::Vector3d centre;
+  std::vector<Eigen::Vector3d> axes;  // the joint's rotation elements, in element order
+};
+InParent JointInParent(const Model& model, const Geometry& g, const ModelData& d, int j) {
+  const Joint& jt = model.joints()[j];
+  const Eigen::Matrix3d& r = d.segment_rotation[jt.parent];
+  InParent out;
+  out.centre = r.transpose() * (JointCentre(model, d, j) - d.segment_position[jt.parent]);
+  for (size_t e = 0; e < jt.elements.size(); ++e)
+    if (jt.elements[e].kind == ElementKind::kRotation)
+      out.axes.push_back(r.transpose() * d.element_rotation[j][e] * g.axis[j][e]);
+  return out;
+}
+
+// The fitted model against one trial's functional estimate of joint j (see the header's "Frame
+// of the comparison").
+void CompareWithFunctional(const Model& fitted, const Geometry& g, int j, const FunctionalJoint& fj,
+                           const Eigen::MatrixXd& z, bool axis_joint, FunctionalCheck* check) {
+  const Joint& jt = fitted.joints()[j];
+  ModelData d(fitted);
+  Eigen::Vector3d fit_centre = Eigen::Vector3d::Zero(), fun_centre = Eigen::Vector3d::Zero(),
+                  fun_axis = Eigen::Vector3d::Zero(), fun_point = Eigen::Vector3d::Zero();
+  std::vector<Eigen::Vector3d> fit_axes, centres, axes;
+  for (int f = 0; f < z.rows(); ++f) {
+    const Eigen::Vector3d c = fj.CentreInLab(f);
+    if (!c.allFinite() || !z.row(f).allFinite()) continue;
+    ForwardKinematics(fitted, g, z.row(f).transpose(), &d);
+    const InParent p = JointInParent(fitted, g, d, j);
+    const Eigen::Matrix3d rt = d.segment_rotation[jt.parent].transpose();
+    const Eigen::Vector3d& o = d.segment_position[jt.parent];
+    centres.push_back(rt * (c - o));
+    fit_centre += p.centre;
+    if (fit_axes.empty()) fit_axes.assign(p.axes.size(), Eigen::Vector3d::Zero());
+    for (size_t k = 0; k < p.axes.size(); ++k) fit_axes[k] += p.axes[k];
+    Eigen::Vector3d a = rt * fj.AxisInLab(f);
+    if (!axes.empty() && a.dot(axes.front()) < 0) a = -a;
+    axes.push_back(a);
+    fun_axis += a;
+    fun_point += rt * (fj.AxisPointInLab(f) - o);
+  }
+  check->frames = static_cast<int>(centres.size());
+  if (centres.empty()) {
+    check->excited = false;
+    check->note = "no frame has both segments' clusters and a fitted pose";
+    return;
+  }
+  const double n = static_cast<double>(centres.size());
+  fit_centre /= n;
+  if (!axis_joint) {  // a hinge's motion does not show a centre: SCoRE's is no reference there
+    for (const Eigen::Vector3d& c : centres) fun_centre += c;
+    fun_centre /= n;
+    double spread = 0;
+    for (const Eigen::Vector3d& c : centres) spread += (c - fun_centre).squaredNorm();
+    check->centre_distance_mm = 1000.0 * (fit_centre - fun_centre).norm();
+    check->centre_spread_mm = 1000.0 * std::sqrt(spread / n);
+    check->functional_std_mm = fj.centre.std_mm;
+    return;
+  }
+  fun_axis.normalize();
+  fun_point /= n;
+  double angle = 180.0;  // the fitted rotation axis nearest the functional one
+  for (const Eigen::Vector3d& a : fit_axes) angle = std::min(angle, AngleDeg(a, fun_axis));
+  double spread_deg = 0;
+  for (const Eigen::Vector3d& a : axes) spread_deg += std::pow(AngleDeg(a, fun_axis), 2);
+  const Eigen::Vector3d off = fit_centre - fun_point;
+  check->axis_angle_deg = angle;
+  check->axis_spread_deg = std::sqrt(spread_deg / n);
+  check->functional_axis_std_deg = fj.axis.direction_std_deg;
+  check->axis_line_distance_mm = 1000.0 * (off - off.dot(fun_axis) * fun_axis).norm();
+}
+
+}  // namespace
+
+bool FitTrustOptions::IsValid(std::string* error) const {
+  std::string why;
+  if (!functional.IsValid(&why)) {
+    if (error) *error = "functional: " + why;
+    return false;
+  }
+  if (!(far_mm > 0) || !(far_deg > 0)) {
+    if (error) *error = "far_mm and far_deg must be > 0";
+    return false;
+  }
+  return true;
+}
+
+Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vector<FitTrial>& trials,
+                     const FitTrustOptions& options, FitTrust* trust) {
+  std::string why;
+  if (!options.IsValid(&why)) return Status::Error("fit trust: " + why);
+  const Model& fitted = fit.model;
+  if (fit.coordinates.size() != trials.size())
+    return Status::Error("fit trust: " + std::to_string(trials.size()) + " trials but coordinates of " +
+                         std::to_string(fit.coordinates.size()));
+  for (size_t t = 0; t < trials.size(); ++t)
+    if (fit.coordinates[t].rows() != trials[t].markers.num_frames() ||
+        fit.coordinates[t].cols() != fitted.num_coordinates())
+      return Status::Error("fit trust: trial '" + trials[t].markers.name + "' has " +
+                           std::to_string(trials[t].markers.num_frames()) + " frames, its fitted coordinates " +
+                           std::to_string(fit.coordinates[t].rows()) + " x " +
+                           std::to_string(fit.coordinates[t].cols()) + " (expected x " +
+                           std::to_string(fitted.num_coordinates()) + ")");
+  if (fitted.num_joints() != initial.num_joints())
+    return Status::Error("fit trust: the fitted model has " + std::to_string(fitted.num_joints()) +
+                         " joints, the initial model '" + initial.name() + "' " +
+                         std::to_string(initial.num_joints()));
+  for (int j = 0; j < fitted.num_joints(); ++j)
+    if (fitted.joints()[j].name != initial.joints()[j].name)
+      return Status::Error("fit trust: joint " + std::to_string(j) + " is '" + fitted.joints()[j].name +
+                           "' in the fitted model, '" + initial.joints()[j].name + "' in the initial one");
+  std::vector<int> joints;
+  if (options.joints.empty()) {
+    for (int j = 0; j < fitted.num_joints(); ++j)
+      if (fitted.joints()[j].parent >= 0) joints.push_back(j);
+  } else {
+    for (const std::string& name : options.joints) {
+      const int j = fitted.FindJoint(name);
+      if (j < 0) return Status::Error("fit trust: the model has no joint '" + name + "'");
+      if (fitted.joints()[j].parent < 0)
+        return Status::Error("fit trust: joint '" + name + "' joins its segment to the lab: no functional estimate");
+      joints.push_back(j);
+    }
+  }
+
+  const FitReport& report = fit.report;
+  const std::set<std::string> undetermined(report.undetermined.begin(), report.undetermined.end());
+  std::map<std::string, const ParameterEstimate*> parameters;
+  for (const ParameterEstimate& e : report.parameters) parameters[e.name] = &e;
+
+  const Geometry g_fit(fitted), g_initial(initial);
+  ModelData d_fit(fitted), d_initial(initial);
+  ForwardKinematics(fitted, g_fit, fitted.DefaultCoordinates(), &d_fit);
+  ForwardKinematics(initial, g_initial, initial.DefaultCoordinates(), &d_initial);
+
+  FitTrust out;
+  out.outlier_markers = report.outlier_markers;
+  out.undetermined = report.undetermined;
+  for (int j : joints) {
+    const Joint& jt = fitted.joints()[j];
+    JointTrust jtr;
+    jtr.joint = jt.name;
+    jtr.type = jt.type;
+    jtr.axis_joint = AxisJoint(jt.type);
+    const InParent pf = JointInParent(fitted, g_fit, d_fit, j), pi = JointInParent(initial, g_initial, d_initial, j);
+    jtr.from_generic_mm = 1000.0 * (pf.centre - pi.centre).norm();
+    for (size_t k = 0; k < std::min(pf.axes.size(), pi.axes.size()); ++k)
+      jtr.axis_from_generic_deg = std::max(jtr.axis_from_generic_deg, AngleDeg(pf.axes[k], pi.axes[k]));
+    double variance = 0;
+    for (const char* xyz : {"x", "y", "z"}) {
+      const std::string name = jt.name + ".centre." + xyz;
+      auto it = parameters.find(name);
+      if (it == parameters.end() || !it->second->fitted) continue;
+      jtr.centre_fitted = true;
+      variance += it->second->std * it->second->std;
+      jtr.undetermined |= !it->second->determined || undetermined.count(name) > 0;
+    }
+    // The centre parameter is unscaled in the parent; the report's figures are scaled.
+    jtr.fitted_std_mm = 1000.0 * g_fit.scale[jt.parent] * std::sqrt(variance);
+    for (size_t t = 0; t < trials.size(); ++t) {
+      FunctionalCheck check;
+      check.trial = trials[t].markers.name;
+      FunctionalJoint fj;
+      if (Status s = EstimateFunctionalJoint(initial, trials[t].markers, jt.name, options.functional, &fj); !s) {
+        check.note = s.message();
+      } else {
+        check.estimated = true;
+        const FunctionalFit& primary = jtr.axis_joint ? fj.axis.fit : fj.centre.fit;
+        check.excited = primary.excited;
+        check.note = primary.note;
+        if (check.excited) {
+          CompareWithFunctional(fitted, g_fit, j, fj, fit.coordinates[t], jtr.axis_joint, &check);
+          check.far = check.excited && (jtr.axis_joint ? check.axis_angle_deg > options.far_deg
+                                                       : check.centre_distance_mm > options.far_mm);
+        }
+      }
+      if (check.excited &&
+          (jtr.best_check < 0 || check.frames > jtr.checks[jtr.best_check].frames))
+        jtr.best_check = static_cast<int>(jtr.checks.size());
+      jtr.checks.push_back(std::move(check));
+    }
+    out.joints.push_back(std::move(jtr));
+  }
+  *trust = std::move(out);
+  return Status::Ok();
+}
+
+}  // namespace mocap::solver

@@ -1,0 +1,105 @@
+// Whether a lab can trust a fitted model (issue 14, item 5): each joint of the fit held against
+// references that do not come from the fit itself, and the fit's own warnings in one place.
+//
+// Per joint:
+//  - its functional estimate on every trial (solver/functional_joints.h, from the markers of the
+//    two segments alone): SCoRE's centre for a ball or custom joint, SARA's axis for a hinge or a
+//    universal joint. A trial that does not excite the joint (or whose segments carry fewer than
+//    3 markers) gives no figure, only the reason: a centre the motion never showed is not a
+//    reference, and saying "not excited" is more honest than a large or a small number;
+//  - the generic (initial) model's centre, and the fit's own standard deviation of the centre
+//    (the report's covariance), so a shift from the generic model can be read against what the
+//    data could resolve; the centre's parameters the data did not determine are flagged.
+//
+// Frame of the comparison. Both centres are compared in the PARENT segment's frame (scaled, as
+// the fitted model poses it in each frame of the trial): per frame, the functional centre (SCoRE's
+// symmetric lab point, the midpoint of its two clusters' points) and the fitted joint centre are
+// expressed in the fitted parent segment's frame, and each is averaged over the frames where both
+// exist. The figure is the distance between the two AVERAGED points: the systematic offset a lab
+// cares about. The functional point's spread about its average (RMS, mm) is given beside it: it is
+// what soft-tissue artefact and the clusters' pose noise move it frame to frame, and it is why a
+// per-frame distance would overstate the offset. Axes likewise: both directions in the parent's
+// frame, averaged (signs aligned), the angle between the averages, and the functional axis's RMS
+// angular spread; for a universal joint, the fitted rotation axis nearest the functional one.
+// The generic model is compared in its default pose (centres in the parent's frame, each model's
+// own scale): the distance the fit moved the centre.
+#pragma once
+
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "model/model.h"
+#include "model/status.h"
+#include "solver/functional_joints.h"
+#include "solver/global_fit.h"
+
+namespace mocap::solver {
+
+struct FitTrustOptions {
+  // The functional estimates' options. Fewer bootstrap resamples than `mocap functional`'s
+  // default: the report runs one estimate per joint and trial.
+  FunctionalJointOptions functional;
+  // Joints to check; empty: every joint with a parent segment.
+  std::vector<std::string> joints;
+  // A check further than this is flagged `far` (the log warns, the page shows it in red): issue
+  // 14's targets for a hip centre and a knee axis on their functional trials; the estimates' own
+  // errors are a few mm and a degree or two.
+  double far_mm = 10.0;
+  double far_deg = 5.0;
+  FitTrustOptions() { functional.bootstrap_samples = 50; }
+  bool IsValid(std::string* error) const;
+};
+
+// One joint against its functional estimate on one trial.
+struct FunctionalCheck {
+  std::string trial;
+  bool estimated = false;   // both segments had >= 3 markers and an estimate was made
+  bool excited = false;     // the trial moved the joint enough for its estimate (see above)
+  std::string note;         // why not estimated or not excited; empty otherwise
+  int frames = 0;           // frames with both the functional point and the fitted pose
+  // Centre joints (SCoRE); 0 for axis joints.
+  double centre_distance_mm = 0;  // fitted centre to functional centre, averaged in the parent
+  double centre_spread_mm = 0;    // RMS of the per-frame functional centre about its average
+  double functional_std_mm = 0;   // SCoRE's own bootstrap standard deviation
+  // Axis joints (SARA); 0 for centre joints.
+  double axis_angle_deg = 0;       // fitted axis to functional axis, averaged in the parent
+  double axis_spread_deg = 0;      // RMS angle of the per-frame functional axis about its average
+  double functional_axis_std_deg = 0;  // SARA's own bootstrap standard deviation
+  double axis_line_distance_mm = 0;  // fitted centre's distance from the functional axis line
+  bool far = false;  // excited, and the distance (centre joints) or the angle (axis joints) is
+                     // above FitTrustOptions::far_mm / far_deg
+};
+
+struct JointTrust {
+  std::string joint;
+  JointType type = JointType::kCustom;
+  bool axis_joint = false;           // hinge or universal: the functional reference is SARA's axis
+  double from_generic_mm = 0;        // fitted centre to the generic model's, parent frame
+  double axis_from_generic_deg = 0;  // axis joints: fitted axis to the generic model's
+  double fitted_std_mm = 0;          // the fit's sd of the centre (0: the centre was not fitted)
+  bool centre_fitted = false;
+  bool undetermined = false;         // a centre parameter the data did not determine
+  std::vector<FunctionalCheck> checks;  // one per trial, in trial order
+  // The excited check with the most frames (-1: no trial excites the joint): the headline.
+  int best_check = -1;
+};
+
+struct FitTrust {
+  std::vector<JointTrust> joints;   // in the model's joint order
+  // The report's own warnings, gathered here so the reader needs one structure.
+  std::vector<std::pair<std::string, double>> outlier_markers;  // name, RMS mm (FitReport)
+  std::vector<std::string> undetermined;                        // parameter names (FitReport)
+};
+
+// `initial` is the generic model the fit started from: its markers say which trial columns make
+// each segment's cluster (markers of the fit's own making, such as AddFunctionalCentres's
+// "<joint>@functional", must not be in it). `fit` has the fitted model (the same joints and
+// segments) and, per trial, the fitted coordinates of every frame. Errors: invalid options, a
+// joint of `options.joints` not in the model, trials and coordinates that do not match, models
+// with different joints. A trial on which a joint cannot be estimated is not an error: its check
+// says why.
+Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vector<FitTrial>& trials,
+                     const FitTrustOptions& options, FitTrust* trust);
+
+}  // namespace mocap::solver

@@ -1,0 +1,234 @@
+// The report's per-joint trust table (solver/fit_trust.h): the fitted centre against its functional
+// estimate on each trial and against the generic model, on a simulated session whose truth is
+// known, on welk007's real hip trial through `mocap fit --report`, and the inputs it refuses.
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <nlohmann/json.hpp>
+
+#include "model/kinematics.h"
+#include "sim/protocol.h"
+#include "sim/simulate.h"
+#include "solver/fit_report_json.h"
+#include "solver/fit_trust.h"
+#include "solver/global_fit.h"
+#include "tests/file_test_util.h"
+
+using namespace mocap;
+
+namespace {
+
+// A hip star arc and a knee flexion, rigid clusters (the medial markers give femur and tibia
+// three markers each), fitted from the nominal model.
+struct SimulatedFit {
+  sim::SimulatedSession session;
+  std::vector<solver::FitTrial> trials;
+  solver::FitResult result;
+};
+
+const SimulatedFit& Fit() {
+  static const SimulatedFit* fit = [] {
+    auto* out = new SimulatedFit;
+    sim::Protocol protocol;
+    protocol.name = "trust";
+    for (const char* name : {"hip_star_arc_r", "knee_flexion_r"})
+      protocol.movements.push_back(*sim::DefaultProtocol().Find(name));
+    sim::SimulationOptions options;
+    options.seed = 11;
+    options.noise_mm = 0.5;
+    options.medial_markers = true;
+    Status s = sim::SimulateSession(options, protocol, &out->session);
+    EXPECT_TRUE(s.ok()) << s.message();
+    for (const sim::SimulatedTrial& t : out->session.trials) out->trials.push_back({t.markers, {}});
+    s = solver::FitModel(out->session.nominal, out->trials, solver::FitOptions(), &out->result);
+    EXPECT_TRUE(s.ok()) << s.message();
+    return out;
+  }();
+  return *fit;
+}
+
+const solver::JointTrust& Joint(const solver::FitTrust& trust, const std::string& name) {
+  for (const auto& j : trust.joints)
+    if (j.joint == name) return j;
+  ADD_FAILURE() << "no joint " << name;
+  return trust.joints.front();
+}
+
+TEST(FitTrust, FittedCentresAgreeWithFunctionalOnTheTrialsThatExciteThem) {
+  const SimulatedFit& fit = Fit();
+  ASSERT_TRUE(fit.result.report.converged()) << fit.result.report.BriefReport();
+  solver::FitTrustOptions options;
+  options.joints = {"hip_r", "knee_r"};
+  solver::FitTrust trust;
+  const Status s = solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &trust);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ASSERT_EQ(trust.joints.size(), 2u);
+  EXPECT_EQ(trust.undetermined, fit.result.report.undetermined);
+  EXPECT_EQ(trust.outlier_markers, fit.result.report.outlier_markers);
+
+  const solver::JointTrust& hip = Joint(trust, "hip_r");
+  EXPECT_FALSE(hip.axis_joint);
+  ASSERT_EQ(hip.checks.size(), 2u);
+  const solver::FunctionalCheck& arc = hip.checks[0];
+  const solver::FunctionalCheck& knee_trial = hip.checks[1];
+  EXPECT_EQ(arc.trial, "hip_star_arc_r");
+  std::printf("hip_r: %.2f mm from SCoRE on %s (spread %.2f mm, SCoRE sd %.2f mm, %d frames); %.2f mm from "
+              "the generic, fit sd %.2f mm\n",
+              arc.centre_distance_mm, arc.trial.c_str(), arc.centre_spread_mm, arc.functional_std_mm, arc.frames,
+              hip.from_generic_mm, hip.fitted_std_mm);
+  ASSERT_TRUE(arc.excited) << arc.note;
+  EXPECT_GT(arc.frames, 400);
+  // Both the fit and SCoRE are within about 1 mm of the truth on rigid clusters.
+  EXPECT_LT(arc.centre_distance_mm, 2.0);
+  EXPECT_GT(arc.functional_std_mm, 0.0);
+  EXPECT_LT(arc.centre_spread_mm, 3.0);
+  // The knee flexion trial does not show the hip's centre: no figure, a reason.
+  EXPECT_TRUE(knee_trial.estimated);
+  EXPECT_FALSE(knee_trial.excited);
+  EXPECT_NE(knee_trial.note.find("two axes"), std::string::npos) << knee_trial.note;
+  EXPECT_EQ(hip.best_check, 0);
+  // The hip has no translation: its centre in the parent is the geometry's scaled centre, in
+  // either model.
+  const int hip_index = fit.session.nominal.FindJoint("hip_r");
+  EXPECT_NEAR(hip.from_generic_mm,
+              1000.0 * (Geometry(fit.result.model).centre_scaled[hip_index] - Geometry(fit.session.nominal).centre_scaled[hip_index]).norm(),
+              1e-6);
+  EXPECT_GT(hip.from_generic_mm, 1.0);
+  EXPECT_TRUE(hip.centre_fitted);
+  EXPECT_GT(hip.fitted_std_mm, 0.0);
+  EXPECT_LT(hip.fitted_std_mm, 2.0);
+  EXPECT_FALSE(hip.undetermined);
+
+  const solver::JointTrust& knee = Joint(trust, "knee_r");
+  EXPECT_TRUE(knee.axis_joint);
+  const solver::FunctionalCheck& flex = knee.checks[1];
+  std::printf("knee_r: axis %.3f deg from SARA on %s (spread %.3f deg, SARA sd %.3f deg), centre %.2f mm from "
+              "its line\n",
+              flex.axis_angle_deg, flex.trial.c_str(), flex.axis_spread_deg, flex.functional_axis_std_deg,
+              flex.axis_line_distance_mm);
+  ASSERT_TRUE(flex.excited) << flex.note;
+  EXPECT_LT(flex.axis_angle_deg, 1.0);
+  EXPECT_LT(flex.axis_line_distance_mm, 2.0);
+  EXPECT_EQ(knee.best_check, 1);
+
+  // The JSON the report page reads.
+  const nlohmann::json j = solver::FitTrustJson(trust);
+  ASSERT_EQ(j.size(), 2u);
+  EXPECT_EQ(j[0]["joint"], "hip_r");
+  EXPECT_EQ(j[0]["best_trial"], "hip_star_arc_r");
+  EXPECT_NEAR(j[0]["trials"][0]["centre_distance_mm"].get<double>(), arc.centre_distance_mm, 1e-12);
+  EXPECT_FALSE(j[0]["trials"][1]["excited"].get<bool>());
+  EXPECT_FALSE(j[0]["trials"][1].contains("centre_distance_mm"));
+  EXPECT_TRUE(j[1]["trials"][1].contains("axis_angle_deg"));
+  EXPECT_FALSE(j[1]["trials"][1].contains("centre_distance_mm"));  // SCoRE's centre: no hinge reference
+  EXPECT_FALSE(j[0]["trials"][0].contains("axis_angle_deg"));
+}
+
+// A fitted model whose hip centre is moved 10 mm along the pelvis's x axis: the check reports
+// the 10 mm (the functional estimate does not depend on the model's geometry).
+TEST(FitTrust, AMovedCentreShowsItsDistance) {
+  const SimulatedFit& fit = Fit();
+  solver::FitResult moved = fit.result;
+  const Model& m = fit.result.model;
+  const int j = m.FindJoint("hip_r");
+  Eigen::VectorXd p = m.InitialParameters();
+  p[m.centre_index(j)] += 0.010 / p[m.scale_index(m.joints()[j].parent)];
+  ASSERT_TRUE(m.WithParameters(p, &moved.model).ok());
+  solver::FitTrustOptions options;
+  options.joints = {"hip_r"};
+  solver::FitTrust before, after;
+  ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &before).ok());
+  ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, moved, fit.trials, options, &after).ok());
+  const double d0 = before.joints[0].checks[0].centre_distance_mm, d1 = after.joints[0].checks[0].centre_distance_mm;
+  std::printf("hip_r moved 10 mm: %.2f mm from SCoRE (was %.2f)\n", d1, d0);
+  EXPECT_NEAR(d1, 10.0, d0 + 0.01);
+  EXPECT_EQ(after.joints[0].checks[0].functional_std_mm, before.joints[0].checks[0].functional_std_mm);
+}
+
+// Every joint by default; a segment with too few markers is a note, not an error.
+TEST(FitTrust, EveryJointByDefaultWithReasons) {
+  const SimulatedFit& fit = Fit();
+  solver::FitTrust trust;
+  const Status s = solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, {}, &trust);
+  ASSERT_TRUE(s.ok()) << s.message();
+  EXPECT_EQ(static_cast<int>(trust.joints.size()), fit.session.nominal.num_joints() - 1);  // all but the root
+  int unestimated = 0;
+  for (const auto& j : trust.joints)
+    for (const auto& c : j.checks)
+      if (!c.estimated) {
+        ++unestimated;
+        EXPECT_NE(c.note.find("at least 3 on each segment"), std::string::npos) << j.joint << ": " << c.note;
+      }
+  EXPECT_GT(unestimated, 0);
+}
+
+TEST(FitTrust, RefusesWhatDoesNotMatch) {
+  const SimulatedFit& fit = Fit();
+  solver::FitTrust trust;
+  solver::FitTrustOptions options;
+  options.joints = {"hip_q"};
+  Status s = solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &trust);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("no joint 'hip_q'"), std::string::npos) << s.message();
+  options.joints = {fit.session.nominal.joints()[0].name};
+  s = solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &trust);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("to the lab"), std::string::npos) << s.message();
+  options.joints = {};
+  std::vector<solver::FitTrial> one = {fit.trials[0]};
+  s = solver::CheckFitTrust(fit.session.nominal, fit.result, one, options, &trust);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("1 trials but coordinates of 2"), std::string::npos) << s.message();
+  solver::FitResult cut = fit.result;
+  cut.coordinates[1].conservativeResize(10, Eigen::NoChange);
+  s = solver::CheckFitTrust(fit.session.nominal, cut, fit.trials, options, &trust);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("trial 'knee_flexion_r'"), std::string::npos) << s.message();
+  options.functional.min_frames = 1;
+  s = solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &trust);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("min_frames"), std::string::npos) << s.message();
+}
+
+// welk007, one `mocap fit` of the generic model to the static and the hip functional trial: the
+// report's joint checks hold hip_r against SCoRE on the functional trial and say the static
+// trial does not excite it. 10 iterations keep the test short (its first IK alone takes most of
+// its time); the figures are printed, the fit's accuracy on this subject is issue 14's business
+// (measured: 18 mm from SCoRE after 10 iterations, 48 mm after 50, NO_CONVERGENCE).
+TEST(FitTrust, RealHipTrialInTheFitReport) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const std::string dir = testutil::SharedData() + "/welk007_hipfunc/";
+  const std::string report = testutil::TmpPath("fit_trust", ".report.json");
+  const std::string fitted = testutil::TmpPath("fit_trust", ".fitted.osim");
+  const testutil::CommandResult r =
+      testutil::Mocap("fit --model " + dir + "unscaled_generic.osim " + dir + "c3d_Trimmed_static1.c3d " + dir +
+                      "c3d_Trimmed_RHJC1.c3d --out " + fitted + " --report " + report +
+                      " --threads 2 --max-iterations 10");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("hip_r: fitted centre"), std::string::npos) << r.output;
+  const nlohmann::json j = nlohmann::json::parse(testutil::ReadBytes(report), nullptr, false);
+  ASSERT_TRUE(j.contains("joint_checks")) << "no joint_checks in " << report;
+  const nlohmann::json* hip = nullptr;
+  for (const auto& jc : j["joint_checks"])
+    if (jc["joint"] == "hip_r") hip = &jc;
+  ASSERT_NE(hip, nullptr);
+  ASSERT_EQ((*hip)["trials"].size(), 2u);
+  const auto& fstatic = (*hip)["trials"][0];
+  const auto& func = (*hip)["trials"][1];
+  EXPECT_EQ(fstatic["trial"], "c3d_Trimmed_static1");
+  EXPECT_FALSE(fstatic["excited"].get<bool>());
+  EXPECT_FALSE(fstatic["note"].get<std::string>().empty());
+  ASSERT_TRUE(func["excited"].get<bool>()) << func.dump();
+  EXPECT_EQ((*hip)["best_trial"], "c3d_Trimmed_RHJC1");
+  EXPECT_GT(func["frames"].get<int>(), 1000);
+  const double distance = func["centre_distance_mm"], sd = func["functional_std_mm"];
+  std::printf("welk007 hip_r: %.1f mm from SCoRE (SCoRE sd %.2f mm, spread %.1f mm), %.1f mm from the "
+              "generic model (fit sd %.2f mm); marker RMS %.2f mm\n",
+              distance, sd, func["centre_spread_mm"].get<double>(), (*hip)["from_generic_mm"].get<double>(),
+              (*hip)["fitted_std_mm"].get<double>(), j["marker_rms_mm"].get<double>());
+  EXPECT_GT(sd, 0.1);
+  EXPECT_LT(sd, 10.0);
+  EXPECT_TRUE(std::isfinite(distance));
+}
+
+}  // namespace
