@@ -73,7 +73,8 @@ struct FitOptions {
   int rescue_iterations = 12;  // the solve's iterations after each rescue that replaced poses
   // Per-marker sigmas re-estimated from the residuals (iteratively reweighted least squares, one
   // weight per marker): after a converged solve, marker m's sigma becomes the RMS of its residual
-  // per coordinate, never below marker_sigma_m, and the solve continues with the residual scale
+  // per coordinate, never below marker_sigma_m (in the schedule, the final stage's effective
+  // sigma, effective_marker_sigma), and the solve continues with the residual scale
   // sqrt(weight_m) / sigma_m; at most `marker_sigma_rounds` rounds, fewer once no sigma moves by
   // more than `marker_sigma_tolerance` (relative); each round's solve may take lm.max_iterations.
   // Why: markers are not equally reliable. Skin over muscle (a thigh or upper-arm wand) moves

@@ -360,7 +360,7 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--marker-sigma-rounds", args->marker_sigma_rounds,
                   "rounds of re-weighting each marker by its own residual spread after a converged "
-                  "solve (never above the 1 mm sigma; 0: one sigma for every marker; see README)")
+                  "solve (never above the stage's marker sigma; 0: one sigma for every marker; see README)")
       ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
   cmd->add_option("--functional", args->functional,
