@@ -58,6 +58,27 @@ class JsonFields {
     if (!out->allFinite()) return Fail(Join(path, key), "not finite");
     return Status::Ok();
   }
+  // Parses `text` as a JSON object whose "format" is `format` and whose "version" is `version`:
+  // the opening every versioned file of the project shares.
+  Status Document(const std::string& text, const std::string& format, double version,
+                  json* doc) const {
+    try {
+      *doc = json::parse(text);
+    } catch (const json::parse_error& e) {
+      return Status::Error(source_ + ": not valid JSON (byte " + std::to_string(e.byte) +
+                           "): " + e.what());
+    }
+    if (!doc->is_object()) return Fail("", "expected an object");
+    std::string found;
+    MOCAP_RETURN_IF_ERROR(String(*doc, "", "format", &found, true));
+    if (found != format)
+      return Fail("format", "expected \"" + format + "\", found \"" + found + "\"");
+    double found_version = 0;
+    MOCAP_RETURN_IF_ERROR(Number(*doc, "", "version", &found_version, true));
+    if (found_version != version)
+      return Fail("version", "unsupported version " + (*doc)["version"].dump());
+    return Status::Ok();
+  }
   Status Array(const json& obj, const std::string& path, const char* key) const {
     if (!obj.contains(key)) return Fail(Join(path, key), "missing");
     if (!obj[key].is_array()) return Fail(Join(path, key), "expected an array");

@@ -159,20 +159,7 @@ Status ParseProtocolJson(const std::string& text, const std::string& source_name
                          Protocol* protocol) {
   Reader r{source_name};
   json doc;
-  try {
-    doc = json::parse(text);
-  } catch (const json::parse_error& e) {
-    return Status::Error(source_name + ": not valid JSON (byte " + std::to_string(e.byte) +
-                         "): " + e.what());
-  }
-  if (!doc.is_object()) return r.Fail("(top level)", "expected an object");
-  std::string format;
-  MOCAP_TRY(r.String(doc, "", "format", &format, true));
-  if (format != "mocap-protocol")
-    return r.Fail("format", "expected \"mocap-protocol\", found \"" + format + "\"");
-  double version = 0;
-  MOCAP_TRY(r.Number(doc, "", "version", &version, true));
-  if (version != 1) return r.Fail("version", "unsupported version " + doc["version"].dump());
+  MOCAP_TRY(r.Document(text, "mocap-protocol", 1, &doc));
   Protocol p;
   MOCAP_TRY(r.String(doc, "", "name", &p.name, false));
   if (!doc.contains("movements")) return r.Fail("movements", "missing");

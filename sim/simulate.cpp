@@ -9,6 +9,7 @@
 #include "model/kinematics.h"
 #include "sim/motion.h"
 #include "sim/random.h"
+#include "sim/sta_table.h"
 
 namespace mocap::sim {
 namespace {
@@ -73,13 +74,13 @@ struct StaMap {
 };
 
 std::vector<StaMap> MakeStaMaps(const Model& truth, const std::vector<int>& markers,
-                                const std::vector<RowMatrix>& z, const Eigen::VectorXd& mean,
-                                const SimulationOptions& options) {
-  const int nc = truth.num_coordinates();
+                                const std::vector<double>& rms_mm, const std::vector<RowMatrix>& z,
+                                const Eigen::VectorXd& mean, const SimulationOptions& options) {
   // Second moments about the session mean, per movement: the artefact is scaled so that its RMS
-  // is sta_mm in the movement that moves the marker most. Scaling over the whole session instead
-  // would put all of a joint's artefact into the one movement that moves it (head markers swinging
-  // by four times sta_mm during neck range of motion).
+  // is the marker's amplitude (rms_mm: sta_mm x its STA table ratio) in the movement that moves
+  // the marker most. Scaling over the whole session instead would put all of a joint's artefact
+  // into the one movement that moves it (head markers swinging by four times their amplitude
+  // during neck range of motion).
   std::vector<Eigen::MatrixXd> covs;
   for (const RowMatrix& zm : z) {
     const Eigen::MatrixXd centred = zm.rowwise() - mean.transpose();
@@ -115,7 +116,7 @@ std::vector<StaMap> MakeStaMaps(const Model& truth, const std::vector<int>& mark
       map.gain.setZero();  // nothing moves this segment relative to its neighbours
       continue;
     }
-    map.gain *= options.sta_mm * 1e-3 / std::sqrt(mean_square);
+    map.gain *= rms_mm[i] * 1e-3 / std::sqrt(mean_square);
   }
   return maps;
 }
@@ -275,17 +276,21 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
     PoseMovement(truth, geometry, root, feet, plans[i], markers, options.rate_hz, &z[i],
                  &positions[i]);
 
+  std::vector<double> sta_rms_mm;
+  for (int m : markers)
+    sta_rms_mm.push_back(options.sta_mm * DefaultStaTable().RatioOf(truth.markers()[m].name));
   if (options.sta_mm > 0.0) {
     Eigen::VectorXd mean = Eigen::VectorXd::Zero(truth.num_coordinates());
     for (const RowMatrix& zm : z) mean += zm.colwise().sum().transpose();
     mean /= static_cast<double>(std::max(1L, total));
-    const std::vector<StaMap> maps = MakeStaMaps(truth, markers, z, mean, options);
+    const std::vector<StaMap> maps = MakeStaMaps(truth, markers, sta_rms_mm, z, mean, options);
     for (int i = 0; i < nmov; ++i) AddSta(truth, geometry, markers, maps, mean, z[i], &positions[i]);
   }
 
   SimulatedSession out;
   out.options = options;
   out.height_m = subject.height_m;
+  out.sta_rms_mm = std::move(sta_rms_mm);
   SessionModels models;
   MOCAP_RETURN_IF_ERROR(MakeSessionModels(subject, markers, &models));
   out.nominal = std::move(models.nominal);
@@ -330,6 +335,31 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
   return Status::Ok();
 }
 
+std::vector<double> JointCentreTrackRmsMm(const SimulatedSession& session, const Model& fitted,
+                                          const std::vector<Eigen::MatrixXd>& coordinates) {
+  const Model& truth = session.truth;
+  const Geometry gt(truth), gf(fitted);
+  ModelData dt(truth), df(fitted);
+  std::vector<double> sum(truth.num_joints(), 0.0);
+  long n = 0;
+  for (size_t t = 0; t < session.trials.size() && t < coordinates.size(); ++t)
+    for (int f = 0; f < session.trials[t].markers.num_frames(); ++f) {
+      ForwardKinematics(truth, gt, TrueCoordinates(truth, session.trials[t].coordinates, f), &dt);
+      ForwardKinematics(fitted, gf, coordinates[t].row(f).transpose(), &df);
+      for (int j = 0; j < truth.num_joints(); ++j) {
+        Eigen::Vector3d d = JointCentre(fitted, df, j) - JointCentre(truth, dt, j);
+        if (truth.joints()[j].type == JointType::kHinge) {
+          const Eigen::Vector3d u = (dt.element_rotation[j][0] * gt.axis[j][0]).normalized();
+          d -= d.dot(u) * u;
+        }
+        sum[j] += d.squaredNorm();
+      }
+      ++n;
+    }
+  for (double& v : sum) v = 1000.0 * std::sqrt(v / std::max(1L, n));
+  return sum;
+}
+
 std::string SessionSummaryJson(const SimulatedSession& session) {
   using json = nlohmann::ordered_json;  // keeps "format" and "version" first
   const SimulationOptions& o = session.options;
@@ -360,6 +390,11 @@ std::string SessionSummaryJson(const SimulatedSession& session) {
   if (!session.trials.empty())
     for (const std::string& n : session.trials.front().markers.marker_names) markers.push_back(n);
   doc["markers"] = markers;
+  // Each marker's artefact amplitude (sta_mm x its class's ratio, sim/sta_table.h).
+  json sta = json::object();
+  for (size_t i = 0; i < session.sta_rms_mm.size() && i < markers.size(); ++i)
+    sta[markers[i].get<std::string>()] = session.sta_rms_mm[i];
+  doc["sta_rms_mm"] = sta;
   json movements = json::array();
   for (size_t i = 0; i < session.trials.size(); ++i) {
     const SimulatedTrial& t = session.trials[i];

@@ -23,9 +23,13 @@
 //   - soft-tissue artefact (sta_mm > 0): marker m on segment S moves, in S's frame, by
 //     B_m (q_adj - mean q_adj), with q_adj the rotational coordinates of the joints adjacent to S
 //     (its own proximal joint unless it is the root, and its child joints) and B_m a random
-//     3 x k matrix scaled so that the RMS length of the displacement is sta_mm in the movement
-//     that moves the marker most (and less in the others): smooth, correlated with the joint
-//     angles;
+//     3 x k matrix scaled so that the RMS length of the displacement is sta_mm x ratio(m) in the
+//     movement that moves the marker most (and less in the others): smooth, correlated with the
+//     joint angles. ratio(m) comes from the marker's class in the STA table (sim/sta_table.h,
+//     sim/default_sta_table.json, with its sources): 1 for a thigh wand, 0.6-0.8 for the other
+//     soft-tissue markers, 0.25 for bony landmarks, 1 for a marker the table does not name. So
+//     sta_mm is the artefact of soft tissue (the thigh's), not of every marker: skin over a
+//     malleolus does not move like skin over the quadriceps;
 //   - Gaussian noise of standard deviation noise_mm on each coordinate, independent per sample;
 //   - occlusions (missing > 0): gaps of 5..30 frames at random markers and times until that
 //     fraction of the trial's marker samples is NaN.
@@ -48,7 +52,9 @@ namespace mocap::sim {
 struct SimulationOptions {
   std::uint64_t seed = 1;
   double noise_mm = 0.5;        // standard deviation per coordinate
-  double sta_mm = 0.0;          // soft-tissue artefact: RMS per marker in its most active movement
+  // Soft-tissue artefact: RMS of a thigh marker in its most active movement, mm; every other
+  // marker gets sta_mm x its class's ratio in DefaultStaTable() (bony landmarks a quarter).
+  double sta_mm = 0.0;
   double missing = 0.0;         // fraction of marker samples lost, in [0, 0.9)
   double rate_hz = 100.0;
   double duration_scale = 1.0;  // multiplies each movement's duration: more cycles, same speeds
@@ -72,6 +78,9 @@ struct SimulatedTrial {
 struct SimulatedSession {
   SimulationOptions options;
   double height_m = 0.0;
+  // Per recorded marker (trial column order): its artefact's RMS in its most active movement,
+  // mm (sta_mm x its STA table ratio).
+  std::vector<double> sta_rms_mm;
   Model nominal;  // the fit's starting point, with the markers the session records
   Model truth;    // the true geometry, with the same markers
   Eigen::VectorXd truth_parameters;  // p of the truth in the nominal model's layout
@@ -107,8 +116,17 @@ Status MakeSessionModels(const VirtualSubject& subject, const std::vector<int>& 
 Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTable& table,
                                 int frame);
 
-// subject.json of `mocap sim`: seed, height, options, protocol name, markers and the movements
-// with their frame counts and file names.
+// A fit of the session held against its truth where a lab reads it: per joint of the truth, the
+// RMS over every frame of every trial of the distance (mm) between the joint centre of `fitted`
+// posed by `coordinates` (one matrix per trial, frames x fitted.num_coordinates(), the fit's
+// poses) and the true centre of the truth posed by the true coordinates; for a hinge only the
+// part across its true axis (a hinge's centre along its axis is a convention). `fitted` must
+// have the truth's joints, in the same order.
+std::vector<double> JointCentreTrackRmsMm(const SimulatedSession& session, const Model& fitted,
+                                          const std::vector<Eigen::MatrixXd>& coordinates);
+
+// subject.json of `mocap sim`: seed, height, options, protocol name, markers, each marker's
+// artefact amplitude (sta_rms_mm) and the movements with their frame counts and file names.
 std::string SessionSummaryJson(const SimulatedSession& session);
 
 }  // namespace mocap::sim

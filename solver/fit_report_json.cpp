@@ -77,6 +77,10 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   }
   j["per_marker_rms_mm"] = nlohmann::json::object();
   for (const auto& [name, v] : r.per_marker_rms_mm) j["per_marker_rms_mm"][name] = v;
+  // FitOptions::marker_sigma_rounds: the rounds run and each marker's sigma in the final solve.
+  j["marker_sigma_rounds"] = r.marker_sigma_rounds;
+  j["marker_sigma_mm"] = nlohmann::json::object();
+  for (const auto& [name, v] : r.marker_sigma_mm) j["marker_sigma_mm"][name] = v;
   j["wall_seconds"] = r.wall_seconds;
   j["ik_seconds"] = r.ik_seconds;
   j["solve_seconds"] = r.solve_seconds;

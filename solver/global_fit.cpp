@@ -167,6 +167,8 @@ bool FitOptions::IsValid(std::string* error) const {
   if (!(outlier_marker_ratio > 1) || !(outlier_marker_min_mm >= 0))
     return fail("outlier_marker_ratio must be > 1 and outlier_marker_min_mm >= 0");
   if (rescue_rounds < 0) return fail("rescue_rounds must be >= 0");
+  if (marker_sigma_rounds < 0) return fail("marker_sigma_rounds must be >= 0");
+  if (!(marker_sigma_tolerance > 0)) return fail("marker_sigma_tolerance must be > 0");
   if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
   if (staged_iterations < 1) return fail("staged_iterations must be >= 1");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
@@ -433,6 +435,26 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
     MOCAP_RETURN_IF_ERROR(rescue(&replaced));
     if (replaced > 0) continue_solve(options.rescue_iterations);
   }
+  // FitOptions::marker_sigma_rounds: each marker weighted by its own residual spread, measured
+  // at a converged solve only (the residuals of a solve that stopped short are not the markers').
+  while (report.marker_sigma_rounds < options.marker_sigma_rounds && report.converged() &&
+         problem.MarkerErrors(x, threads, &sum_sq, &counts)) {
+    double largest_change = 0;
+    std::vector<double> sigma(nm);
+    for (int m = 0; m < nm; ++m) {
+      sigma[m] = problem.marker_sigma(m);
+      if (counts[m] == 0) continue;
+      sigma[m] = std::max(options.marker_sigma_m, std::sqrt(sum_sq[m] / (3.0 * counts[m])));
+      largest_change = std::max(largest_change, std::abs(sigma[m] / problem.marker_sigma(m) - 1));
+    }
+    if (largest_change <= options.marker_sigma_tolerance) break;
+    for (int m = 0; m < nm; ++m) problem.SetMarkerSigma(m, sigma[m]);
+    ++report.marker_sigma_rounds;
+    continue_solve(options.lm.max_iterations);
+  }
+  for (int m = 0; m < nm; ++m)
+    if (problem.observed(m))
+      report.marker_sigma_mm.emplace_back(initial.markers()[m].name, 1000.0 * problem.marker_sigma(m));
   report.solve_seconds = Since(solve_start);
   if (!report.solver.IsSolutionUsable())
     return Status::Error("fit: the solver failed: " + report.solver.message);
@@ -677,6 +699,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     o.fit_scales = stage.scales;
     o.fit_markers = stage.markers;
     o.fit_centres = o.fit_axes = false;
+    o.marker_sigma_rounds = 0;  // the markers' spread is the final stage's, not a start's
     // The final stage keeps at least one of the caller's iterations; a stage left none is skipped.
     o.lm.max_iterations = std::min(options.staged_iterations, iterations_left - 1);
     if (o.lm.max_iterations < 1) break;

@@ -241,9 +241,10 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
   prior_target_ = InitialShared();
   marker_free_columns_.resize(nm);
   residual_scale_.resize(nm);
+  marker_sigma_.resize(nm);
   for (int m = 0; m < nm; ++m) {
     for (int p : model.marker_parameters(m)) marker_free_columns_[m].push_back(free_index_[p]);
-    residual_scale_[m] = std::sqrt(model.markers()[m].weight) / marker_sigma_m;
+    SetMarkerSigma(m, marker_sigma_m);
   }
   hold_hinge_centres_ = options.hold_hinge_centres_along_axis;
   held_centre_.assign(model.num_joints(), 0);
@@ -260,6 +261,11 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
   for (int c = 0; c < model.num_coordinates(); ++c)
     frame_prior_weight_[c] = 1.0 / (model.coordinates()[c].rotational ? options.frame_prior_sigma_rad
                                                                         : options.frame_prior_sigma_m);
+}
+
+void MarkerFitProblem::SetMarkerSigma(int m, double sigma_m) {
+  marker_sigma_[m] = sigma_m;
+  residual_scale_[m] = std::sqrt(model_.markers()[m].weight) / sigma_m;
 }
 
 void MarkerFitProblem::SetFramePriorTargets(const Eigen::VectorXd& x) {

@@ -66,6 +66,10 @@ class MarkerFitProblem : public ArrowProblem {
   // Free index of each column of marker_parameters(m) (-1 = fixed).
   const std::vector<int>& marker_free_columns(int m) const { return marker_free_columns_[m]; }
   double residual_scale(int m) const { return residual_scale_[m]; }
+  // Marker m's residual sigma (metres), the residual scale then being sqrt(weight_m) / sigma
+  // (FitOptions::marker_sigma_rounds re-estimates it; the constructor sets marker_sigma_m).
+  void SetMarkerSigma(int m, double sigma_m);
+  double marker_sigma(int m) const { return marker_sigma_[m]; }
   bool observed(int m) const { return observed_[m]; }
   // Index of marker m's residual block in BlockStructure (-1 if never observed).
   int block_kind(int m) const { return block_kind_[m]; }
@@ -87,7 +91,7 @@ class MarkerFitProblem : public ArrowProblem {
   Eigen::VectorXd p0_;
   std::vector<int> free_parameters_, free_index_;
   std::vector<std::vector<int>> marker_free_columns_;
-  std::vector<double> residual_scale_;
+  std::vector<double> residual_scale_, marker_sigma_;
   std::vector<char> observed_;
   std::vector<int> block_kind_;
   Eigen::VectorXd prior_weight_, prior_target_;

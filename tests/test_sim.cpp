@@ -21,6 +21,7 @@
 #include "sim/protocol.h"
 #include "sim/random.h"
 #include "sim/simulate.h"
+#include "sim/sta_table.h"
 #include "sim/subject.h"
 #include "tests/sim_test_util.h"
 
@@ -178,6 +179,71 @@ TEST(Protocol, ParseErrorsNameTheField) {
   Status s = LoadProtocolJson("/nonexistent/protocol.json", &p);
   EXPECT_FALSE(s.ok());
   EXPECT_NE(s.message().find("/nonexistent/protocol.json"), std::string::npos);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Soft-tissue artefact table
+
+// The embedded table classes every marker of the default model (optional ones too), cites its
+// sources, and gives bony landmarks a quarter of the thigh's amplitude.
+TEST(StaTable, DefaultTableClassesEveryDefaultMarker) {
+  StaTable parsed;
+  const Status s = ParseStaTableJson(DefaultStaTableJson(), "default_sta_table.json", &parsed);
+  ASSERT_TRUE(s.ok()) << s.message();
+  const StaTable& t = DefaultStaTable();
+  EXPECT_EQ(t.marker_class, parsed.marker_class);
+  EXPECT_GE(t.references.size(), 3u);
+  const Model model = DefaultFullBodyModel(1.75);
+  for (const Marker& m : model.markers()) EXPECT_FALSE(t.ClassOf(m.name).empty()) << m.name;
+  EXPECT_EQ(t.marker_class.size(), static_cast<size_t>(model.num_markers()));
+  EXPECT_DOUBLE_EQ(t.RatioOf("LTHI"), 1.0);
+  EXPECT_DOUBLE_EQ(t.RatioOf("RTHI"), 1.0);
+  for (const char* bony : {"LANK", "RHEE", "LTOE", "RKNE", "LELB", "RWRA", "LWRB", "RFIN", "LASI", "C7"}) {
+    EXPECT_EQ(t.ClassOf(bony), "bony_landmark") << bony;
+    EXPECT_DOUBLE_EQ(t.RatioOf(bony), 0.25) << bony;
+  }
+  for (const char* soft : {"LTIB", "RUPA", "LFRM", "RBAK"}) {
+    EXPECT_GT(t.RatioOf(soft), 0.5) << soft;
+    EXPECT_LE(t.RatioOf(soft), 1.0) << soft;
+  }
+  for (const auto& [name, c] : t.classes) EXPECT_FALSE(c.basis.empty()) << name;
+  // A marker of an imported model that the table does not know: soft tissue, the pessimistic
+  // choice.
+  EXPECT_EQ(t.ClassOf("L_FLE_cluster3"), "");
+  EXPECT_DOUBLE_EQ(t.RatioOf("L_FLE_cluster3"), 1.0);
+}
+
+TEST(StaTable, ParseErrorsNameTheField) {
+  const std::string minimal =
+      R"({"format": "mocap-sta-table", "version": 1,
+          "classes": {"bony": {"ratio": 0.25}, "thigh": {"ratio": 1}},
+          "markers": {"LANK": "bony", "LTHI": "thigh"}})";
+  StaTable t;
+  ASSERT_TRUE(ParseStaTableJson(minimal, "t.json", &t).ok());
+  EXPECT_DOUBLE_EQ(t.RatioOf("LANK"), 0.25);
+  auto edited = [&](const std::string& from, const std::string& to) {
+    std::string text = minimal;
+    text.replace(text.find(from), from.size(), to);
+    return text;
+  };
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"{not json", "t.json: not valid JSON"},
+      {edited("mocap-sta-table", "mocap-protocol"), "t.json: format"},
+      {edited("\"version\": 1", "\"version\": 2"), "t.json: version"},
+      {edited("\"ratio\": 0.25", "\"ratio\": -0.25"), "t.json: classes.bony.ratio: must be >= 0"},
+      {edited("\"ratio\": 0.25", "\"ratio\": \"a quarter\""), "t.json: classes.bony.ratio: expected a number"},
+      {edited("{\"ratio\": 1}", "{}"), "t.json: classes.thigh.ratio: missing"},
+      {edited("{\"ratio\": 1}", "{\"ratio\": 1, \"rato\": 2}"), "t.json: classes.thigh.rato: unknown field"},
+      {edited("\"LTHI\": \"thigh\"", "\"LTHI\": \"thig\""), "t.json: markers.LTHI: class 'thig' is not in classes"},
+      {edited("\"LTHI\": \"thigh\"", "\"LTHI\": 1"), "t.json: markers.LTHI: expected a class name"},
+      {edited("\"markers\"", "\"marker\""), "t.json: marker: unknown field"},
+  };
+  for (const auto& [text, expected] : cases) {
+    const Status s = ParseStaTableJson(text, "t.json", &t);
+    EXPECT_FALSE(s.ok()) << text;
+    EXPECT_NE(s.message().find(expected), std::string::npos)
+        << "message: " << s.message() << "\nexpected to contain: " << expected;
+  }
 }
 
 TEST(Protocol, ValidateAgainstTheModel) {
@@ -664,7 +730,17 @@ TEST(Simulation, SoftTissueArtefactHasTheRequestedRmsAndIsSmooth) {
     for (int f = 2; f < d.rows(); ++f)
       max_step2 = std::max(max_step2, (d.row(f) - 2 * d.row(f - 1) + d.row(f - 2)).cwiseAbs().maxCoeff());
   }
-  for (int m = 0; m < nm; ++m) EXPECT_NEAR(worst[m], 0.010, 0.002) << rigid.trials[0].markers.marker_names[m];
+  // Each marker's amplitude is 10 mm times its class's ratio in the STA table: a thigh wand
+  // 10 mm, a malleolus 2.5 mm.
+  ASSERT_EQ(static_cast<int>(soft.sta_rms_mm.size()), nm);
+  const auto& names = rigid.trials[0].markers.marker_names;
+  for (int m = 0; m < nm; ++m) {
+    const double expected = 0.010 * DefaultStaTable().RatioOf(names[m]);
+    EXPECT_DOUBLE_EQ(soft.sta_rms_mm[m], 1e3 * expected) << names[m];
+    EXPECT_NEAR(worst[m], expected, 0.2 * expected) << names[m];
+  }
+  EXPECT_NEAR(worst[std::find(names.begin(), names.end(), "LTHI") - names.begin()], 0.010, 0.002);
+  EXPECT_NEAR(worst[std::find(names.begin(), names.end(), "LANK") - names.begin()], 0.0025, 0.0005);
   // Smooth: it follows the joint angles, so it changes little between frames (unlike noise, whose
   // second difference would be about 2.4 x its RMS).
   std::printf("STA 10 mm RMS: largest change between frames %.2f mm, largest second difference %.3f mm\n",
@@ -696,6 +772,7 @@ TEST(Simulation, SummaryJsonDescribesTheSession) {
   EXPECT_DOUBLE_EQ(j["height_m"].get<double>(), s.height_m);
   EXPECT_EQ(j["options"]["duration_scale"], 0.5);
   EXPECT_EQ(j["markers"].size(), 39u);
+  EXPECT_EQ(j["sta_rms_mm"].size(), 39u);  // every marker's artefact amplitude
   ASSERT_EQ(j["movements"].size(), s.trials.size());
   int frames = 0;
   for (size_t i = 0; i < s.trials.size(); ++i) {

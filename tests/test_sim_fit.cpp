@@ -14,37 +14,8 @@ namespace {
 struct Outcome {
   solver::FitResult fit;
   ModelComparison cmp;
-  std::vector<double> centre_track_rms_mm;  // per joint: lab-frame joint centre vs the truth
+  std::vector<double> centre_track_rms_mm;  // per joint: lab-frame joint centre vs the truth (sim/simulate.h)
 };
-
-// Per joint, the RMS over every frame of the distance between the fitted joint centre (fitted
-// model, fitted poses) and the true one (true model, true poses) in the lab; a hinge's centre only
-// across its true axis. What a lab reads off the joint-centre trajectories.
-std::vector<double> CentreTrackRms(const sim::SimulatedSession& session, const solver::FitResult& fit) {
-  const Model& truth = session.truth;
-  const Model& fitted = fit.model;
-  Geometry gt(truth), gf(fitted);
-  ModelData dt(truth), df(fitted);
-  std::vector<double> sum(truth.num_joints(), 0.0);
-  long n = 0;
-  for (size_t t = 0; t < session.trials.size(); ++t)
-    for (int f = 0; f < session.trials[t].markers.num_frames(); ++f) {
-      ForwardKinematics(truth, gt, sim::TrueCoordinates(truth, session.trials[t].coordinates, f), &dt);
-      ForwardKinematics(fitted, gf, fit.coordinates[t].row(f).transpose(), &df);
-      for (int j = 0; j < truth.num_joints(); ++j) {
-        Eigen::Vector3d d = JointCentre(fitted, df, j) - JointCentre(truth, dt, j);
-        const Joint& jt = truth.joints()[j];
-        if (jt.type == JointType::kHinge) {
-          const Eigen::Vector3d u = (dt.element_rotation[j][0] * gt.axis[j][0]).normalized();
-          d -= d.dot(u) * u;
-        }
-        sum[j] += d.squaredNorm();
-      }
-      ++n;
-    }
-  for (double& v : sum) v = 1000.0 * std::sqrt(v / std::max(1L, n));
-  return sum;
-}
 
 Outcome FitSession(const sim::SimulationOptions& options, bool start_from_truth_poses = false) {
   sim::SimulatedSession session;
@@ -65,7 +36,7 @@ Outcome FitSession(const sim::SimulationOptions& options, bool start_from_truth_
   s = solver::FitModel(session.nominal, trials, solver::FitOptions(), &out.fit);
   EXPECT_TRUE(s.ok()) << s.message();
   EXPECT_TRUE(CompareModels(session.truth, out.fit.model, &out.cmp).ok());
-  out.centre_track_rms_mm = CentreTrackRms(session, out.fit);
+  out.centre_track_rms_mm = sim::JointCentreTrackRmsMm(session, out.fit.model, out.fit.coordinates);
   std::printf("%s\n", out.fit.report.BriefReport().c_str());
   for (const auto& jd : out.cmp.joints)
     std::printf("  %-12s centre %7.3f mm  axis %7.3f deg  in the lab %7.3f mm RMS (%s)\n", jd.joint.c_str(),
@@ -127,6 +98,13 @@ void ExpectAccurate(const Outcome& o, double centre_mm, double axis_deg, double 
   }
 }
 
+// Every joint centre's lab trajectory (sim::JointCentreTrackRmsMm) within `bound_mm` RMS of the
+// truth, the distal joints included.
+void ExpectCentreTracksWithin(const Outcome& o, double bound_mm) {
+  for (int j = 1; j < o.fit.model.num_joints(); ++j)
+    EXPECT_LE(o.centre_track_rms_mm[j], bound_mm) << o.fit.model.joints()[j].name;
+}
+
 }  // namespace
 
 // 0.5 mm noise, default protocol, all groups free: centres <= 1 mm, axes <= 0.5 deg, segment
@@ -150,19 +128,26 @@ TEST(SimFit, TenPercentMissingKeepsTheBounds) {
   EXPECT_NEAR(o.fit.report.marker_samples, 0.9 * 6000 * 39, 0.011 * 6000 * 39);
 }
 
+// The soft-tissue artefact of sim/default_sta_table.json: 5 mm RMS on the thigh wands, 3.5-4 mm
+// on the other wands, 1.25 mm on the bony landmarks. Every joint centre in the lab within 10 mm
+// (measured: at most 7.9 mm, the right elbow; seed 1).
 TEST(SimFit, SoftTissueArtefactOfFiveMillimetres) {
   sim::SimulationOptions options;
   options.sta_mm = 5;
-  const Outcome o = FitSession(options);
-  // Joint centres where the lab reads them (joint-centre trajectories against the truth): the
-  // issue's 10 mm. Ankles, elbows and wrists fall short today: their centres hang on one or two
-  // nearby distal markers (the Plug-in Gait foot and hand), which a correlated 5 mm artefact
-  // drags by 11-17 mm. That shortfall is kept visible by its own, separate guard.
-  constexpr double kTargetMm = 10.0;
-  constexpr double kDistalShortfallGuardMm = 20.0;
-  for (int j = 1; j < o.fit.model.num_joints(); ++j) {
-    const std::string& name = o.fit.model.joints()[j].name;
-    const bool distal = name.rfind("ankle", 0) == 0 || name.rfind("elbow", 0) == 0 || name.rfind("wrist", 0) == 0;
-    EXPECT_LE(o.centre_track_rms_mm[j], distal ? kDistalShortfallGuardMm : kTargetMm) << name;
-  }
+  ExpectCentreTracksWithin(FitSession(options), 10.0);
+}
+
+// Issue 19's target: 10 mm on the thigh wands (bony landmarks 2.5 mm), every joint centre within
+// 10 mm. NOT REACHED, hence disabled (run it with --gtest_also_run_disabled_tests): the right
+// elbow comes out 16.1 mm RMS in the lab (13.3 mm of it along the flexion axis), every other
+// joint at most 8.8 mm (bench/sta_accuracy, BENCHMARKS.md). The elbow is a universal joint: its
+// centre along the flexion axis is fixed only by where the pronation-supination axis passes near
+// the elbow, and there only the forearm wand (RFRM, 7 mm RMS) sees it; its artefact, linear in
+// the elbow and wrist angles, is absorbed by the poses and the geometry (residual 1.4 mm), so no
+// weighting of the residuals can find it. The same minimum is reached from the true poses; with
+// RFRM at the bony landmarks' amplitude the elbow comes out at 9.8 mm.
+TEST(SimFit, DISABLED_SoftTissueArtefactOfTenMillimetres) {
+  sim::SimulationOptions options;
+  options.sta_mm = 10;
+  ExpectCentreTracksWithin(FitSession(options), 10.0);
 }

@@ -42,6 +42,7 @@ struct FitArgs {
   std::string groups = "scales,centres,axes,markers";
   int max_iterations = 150;  // over every stage of the schedule
   int coarse_frames = solver::CoarseToFineOptions().coarse_frames;  // 0: no coarse-to-fine start
+  int marker_sigma_rounds = solver::FitOptions().marker_sigma_rounds;  // 0: one sigma for all
   std::vector<std::string> initial;  // one .mot per trial: starting poses instead of IK
   std::string functional;  // joints (comma-separated) whose SCoRE centres join the fit as data
   double functional_sigma_mm = 5.0;
@@ -142,6 +143,7 @@ int RunFit(const FitArgs& args) {
   options.num_threads = args.threads;
   options.staged = !args.single_stage;
   options.lm.max_iterations = args.max_iterations;
+  options.marker_sigma_rounds = args.marker_sigma_rounds;
   options.coarse.enabled = args.coarse_frames > 0;
   if (args.coarse_frames > 0) {
     options.coarse.coarse_frames = args.coarse_frames;
@@ -285,6 +287,7 @@ int RunFit(const FitArgs& args) {
     page.options = {{"fit", args.groups},
                     {"max_iterations", args.max_iterations},
                     {"coarse_frames", args.coarse_frames},
+                    {"marker_sigma_rounds", args.marker_sigma_rounds},
                     {"schedule", args.single_stage ? "single stage" : "automatic"},
                     {"threads", args.threads},
                     {"initial poses", args.initial.empty() ? "inverse kinematics" : "given (.mot)"}};
@@ -363,6 +366,11 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
                   "frames of the coarse-to-fine start, used from 3,000 frames (or twice this) on "
                   "(0: LM on all frames from the start)")
       ->check(CLI::NonNegativeNumber);
+  cmd->add_option("--marker-sigma-rounds", args->marker_sigma_rounds,
+                  "rounds of re-weighting each marker by its own residual spread after a converged "
+                  "solve (never above the stage's marker sigma; 0: one sigma for every marker; see README)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   cmd->add_option("--functional", args->functional,
                   "joints (e.g. hip_r,hip_l) whose functional centres (SCoRE, per trial that "
                   "excites them) pull the fit's centres, as a virtual marker at each");

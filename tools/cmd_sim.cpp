@@ -106,7 +106,10 @@ void SetupSim(CLI::App& app, int* exit_code) {
   cmd->add_option("--noise-mm", args->options.noise_mm,
                   "Marker noise, standard deviation per coordinate (mm)")
       ->capture_default_str();
-  cmd->add_option("--sta-mm", args->options.sta_mm, "Soft-tissue artefact, RMS per marker (mm)")
+  cmd->add_option("--sta-mm", args->options.sta_mm,
+                  "Soft-tissue artefact (mm): RMS on a soft-tissue thigh marker; every marker gets "
+                  "this times its class's ratio in sim/default_sta_table.json (bony landmarks "
+                  "0.25, unlisted markers 1)")
       ->capture_default_str();
   cmd->add_option("--missing", args->options.missing,
                   "Fraction of marker samples lost in 5..30-frame gaps, [0, 0.9)")
