@@ -27,6 +27,8 @@ constexpr double kRigidTolerance = 0.01;
 // How long the record of a point seen beside a marker holds (SeenBeside): about the longest life
 // of a stray reflection.
 constexpr double kBesideSeconds = 2.0;
+// The error of a predicted joint centre (a nominal model's centres are 1-2 cm off).
+constexpr double kJointCentreTolerance = 0.02;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 bool Fail(std::string* error, const char* message) {
@@ -195,6 +197,9 @@ struct Tracker::Impl {
   int frame_index = 0;
   mutable std::vector<int> pred_cache;  // per point of this frame: Predecessor, -2 not yet known
   int Predecessor(int k, int np) const;
+  // Per point of this frame: the marker whose track it continues (see FollowLabelledTracks), or -1.
+  std::vector<int> track_owner;
+  void FollowLabelledTracks(int np);
   bool SeenBeside(int m, int k, int np) const;
 
   // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
@@ -267,6 +272,7 @@ struct Tracker::Impl {
   bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
   static constexpr double kFreshTrackSeconds = 1.0;
   bool RigidlyPlausible(int m, int k) const;
+  bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
   bool ReacquireLimb(int joint, int np);
   double LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius);
 };
@@ -439,6 +445,7 @@ void Tracker::Impl::Allocate() {
   prev_free_list.assign(mp, 0);
   prev_np = prev_free_count = 0;
   pred_cache.assign(mp, -2);
+  track_owner.assign(mp, -1);
   last_point.setZero(3, nm);
   last_predicted.setZero(3, nm);
   llocal.assign(nz, -1);
@@ -526,6 +533,7 @@ void Tracker::Impl::LabelByGating(int np) {
   std::fill(gated_by.begin(), gated_by.begin() + np, 0);
   std::fill(pred_cache.begin(), pred_cache.begin() + np, -2);
   bool contested = false;
+  FollowLabelledTracks(np);
   for (int m = 0; m < nm; ++m) {
     const Eigen::Vector3d p = predicted.col(m);
     double best = gate;
@@ -538,9 +546,10 @@ void Tracker::Impl::LabelByGating(int np) {
     for (int k = 0; k < np; ++k) {
       const Eigen::Vector3d e = points.col(k) - p;
       double d2 = kForbidden;
-      if (e.squaredNorm() < reject_sq[m]) {
+      if (e.squaredNorm() < reject_sq[m] && (track_owner[k] < 0 || track_owner[k] == m)) {
         const double q = e.dot(s_inv[m] * e);
-        if (q < gate && (labelled_run[m] > 0 || !NonRigidTrack(m, points.col(k))) &&
+        if (q < gate && OnSegmentSphere(m, points.col(k)) &&
+            (labelled_run[m] > 0 || !NonRigidTrack(m, points.col(k))) &&
             !SeenBeside(m, k, np)) {
           d2 = q;
           contested |= ++gated_by[k] > 1;
@@ -562,6 +571,42 @@ void Tracker::Impl::LabelByGating(int np) {
     C(m, np + m) = gate;
   }
   lap.Solve(C, row_to_col.data());
+}
+
+// Labels follow point tracks. A point that continues the point a marker was labelled on in the
+// last frame (mutual nearest neighbours between the two frames, after moving the last point as the
+// marker's prediction moved, within a frame's motion kTrackStep) is that marker's or nobody's: no
+// other marker's gate takes it. Markers are centimetres apart and a frame is 5 ms, so a point
+// track does not jump from one marker to another; what the frame-by-frame assignment alone did
+// was let a marker back from an occlusion, with a wide gate, take its neighbour's point (a wrist
+// marker on the other wrist marker's point, the neighbour left unlabelled) and the filter then
+// settle in the shifted pose for seconds.
+void Tracker::Impl::FollowLabelledTracks(int np) {
+  std::fill(track_owner.begin(), track_owner.begin() + np, -1);
+  if (prev_np == 0) return;
+  const double step2 = kTrackStep * kTrackStep;
+  for (int a = 0; a < nm; ++a) {
+    if (labelled_run[a] <= 0) continue;
+    const Eigen::Vector3d shift = predicted.col(a) - last_predicted.col(a);
+    const Eigen::Vector3d q = last_point.col(a) + shift;
+    int nearest = -1;
+    double best = step2;
+    for (int k = 0; k < np; ++k) {
+      const double d2 = (points.col(k) - q).squaredNorm();
+      if (d2 < best) {
+        best = d2;
+        nearest = k;
+      }
+    }
+    if (nearest < 0) continue;
+    // Mutual: no other point of the last frame is nearer to it.
+    const Eigen::Vector3d back = points.col(nearest) - shift;
+    bool mutual = true;
+    for (int j = 0; j < prev_np && mutual; ++j)
+      mutual = (prev_points.col(j) - back).squaredNorm() >= best ||
+               (prev_points.col(j) - last_point.col(a)).squaredNorm() < 1e-18;
+    if (mutual) track_owner[nearest] = track_owner[nearest] < 0 ? a : nm;  // two claims: nobody's
+  }
 }
 
 // A marker the gates left unlabelled while three or more other markers of its segment are
@@ -1443,6 +1488,23 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
     }
   }
   return true;
+}
+
+// Whether point p lies at marker m's distance from its segment's joint centre (within the
+// marker's noise and the predicted centre's error): a segment turns about its joint, so that
+// distance is the one thing about a marker that no error in the segment's angles changes. The
+// Mahalanobis gate is long along the directions an uncertain joint angle moves the marker; a
+// point of the neighbouring segment can sit inside it (a finger marker's gate, its hand held by
+// that marker alone, over a wrist marker's point 4-5 cm nearer the wrist) and the filter then
+// bends the limb to keep it. The root's origin is as uncertain as the root itself: not tested.
+bool Tracker::Impl::OnSegmentSphere(int m, const Eigen::Vector3d& p) const {
+  const int segment = model->markers()[m].segment;
+  if (marker_depth[m] == 0) return true;
+  const Eigen::Vector3d centre = centre_now[segment];
+  const double radius = (predicted.col(m) - centre).norm();
+  const double tol = std::sqrt(options.gate_chi2 * (MeasurementVariance(m) + model_error[m])) +
+                     kJointCentreTolerance;
+  return std::abs((p - centre).norm() - radius) <= tol;
 }
 
 // Whether point k could be marker m with m's segment anywhere: within kLimbNearRadius of its
