@@ -43,7 +43,19 @@
 // of markers to gated points, where each marker may also stay unassigned at the price of the gate,
 // so two labels never take one point and a marker takes a point only when it is the best use of
 // that point. Unassigned points are ghosts or strays (label -1). A marker missing for a while has a
-// growing S_m and is picked up again when it reappears inside its gate. On probation: a marker
+// growing S_m and is picked up again when it reappears inside its gate. Two rigid-body facts hold
+// whatever the pose estimate, and the gate keeps to them. Labels follow point tracks: a point that
+// continues the point a marker held in the last frame (mutual nearest neighbours, moved as the
+// marker's prediction moved, within a frame's motion) is that marker's or nobody's, so a marker
+// back from an occlusion with a grown gate cannot take its neighbour's point (a wrist marker on the
+// other wrist marker's, the neighbour left unlabelled, the forearm then turned to fit for seconds).
+// And a point can be a marker only at the marker's distance from its segment's joint centre
+// (within the marker's gate on its own variance plus 2 cm for the predicted centre; not for the
+// root): a segment turns about its joint, so that distance does not depend on the angles the gate
+// is long along (a finger marker's gate, its hand held by that marker alone, over a wrist marker).
+// The code is in three files, one question each: ekf/tracker.cpp (the filter and a frame's
+// sequence), ekf/tracker_labelling.cpp (which point is which marker), and
+// ekf/tracker_initialisation.cpp (finding the subject, or a limb, without labels). On probation: a marker
 // coming back is labelled at once, but its measurement enters the update only from its second
 // consecutive labelled frame, when its point moved from the first one as its prediction did
 // (within 1 cm). Half the ghosts near a body are single-frame reflections; one inside the long
