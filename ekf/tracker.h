@@ -136,8 +136,8 @@
 // learnt offset stale by 25-40 mm (a knee marker in a deep squat), steadily so, while its limb
 // tracks (no search finds a better pose). When it is due a limb search, the one unclaimed point
 // within 5 cm of its prediction that has been followed for 5 frames rigid with its segment and
-// was never seen beside it moves the marker's offset onto itself (RejoinAtOffset in tracker_initialisation.cpp);
-// the next frame's gate takes it, through probation.
+// was never seen beside it moves the marker's offset onto itself (RejoinAtOffset in
+// tracker_initialisation.cpp); the next frame's gate takes it, through probation.
 //
 // Unobserved coordinates. Velocities and accelerations decay between frames (time constants in
 // the options), and coordinates are kept in the model's ranges, so a segment that loses markers
