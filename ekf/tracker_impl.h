@@ -16,7 +16,8 @@
 #include "model/kinematics.h"
 
 namespace mocap::ekf::internal {
-inline constexpr double kForbidden = 1e9;  // cost of a pair the gate excludes (finite: see assignment.h)
+// The cost of a pair the gate excludes (finite: see assignment.h).
+inline constexpr double kForbidden = 1e9;
 // A point that continues a marker's first point after a gap moves as the prediction does within
 // this (a frame is 5 ms: 1 cm is 2 m/s of unpredicted motion; random ghosts jump decimetres).
 inline constexpr double kProbationDistance = 0.01;
