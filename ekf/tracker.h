@@ -57,8 +57,8 @@
 // sequence), ekf/tracker_labelling.cpp (which point is which marker), and
 // ekf/tracker_initialisation.cpp (finding the subject, or a limb, without labels).
 // On probation: a marker coming back is labelled at once, but its measurement enters the update
-// only from its second consecutive labelled frame, when its point moved from the first one as its prediction did
-// (within 1 cm). Half the ghosts near a body are single-frame reflections; one inside the long
+// only from its second consecutive labelled frame, when its point moved from the first one as
+// its prediction did (within 1 cm). Half the ghosts near a body are single-frame reflections; one inside the long
 // gate of a hidden marker on a loosely held segment (a toe with only the heel seen) would
 // otherwise move the segment by centimetres at the marker's full precision and leave the true
 // marker outside its gate when it reappears. Lasting ghosts (reflections fixed in the lab or
