@@ -43,36 +43,48 @@
 // of markers to gated points, where each marker may also stay unassigned at the price of the gate,
 // so two labels never take one point and a marker takes a point only when it is the best use of
 // that point. Unassigned points are ghosts or strays (label -1). A marker missing for a while has a
-// growing S_m and is picked up again when it reappears inside its gate. On probation: a marker
-// coming back is labelled at once, but its measurement enters the update only from its second
-// consecutive labelled frame, when its point moved from the first one as its prediction did
-// (within 1 cm). Half the ghosts near a body are single-frame reflections; one inside the long
-// gate of a hidden marker on a loosely held segment (a toe with only the heel seen) would
-// otherwise move the segment by centimetres at the marker's full precision and leave the true
-// marker outside its gate when it reappears. Lasting ghosts (reflections fixed in the lab or
-// riding along with a marker, alive for up to seconds) are told by their past: the tracker keeps
-// the last 20 frames' points, and a point that a marker without a label in the last frame would
-// take is followed back through the unclaimed points (nearest within 2.5 cm a frame); seen for 5
-// frames or more with its distance to the marker's joint centre varying by over 1 cm, it is not
-// on that segment and stays out of the marker's gate. A marker back from an occlusion has no past
-// and is not judged. A reflection that rides along with a marker (or sits where it passed) keeps
-// its distances to the segment and outlives that 20-frame ring, and in the frame its marker is
-// occluded it is the nearest point in the gate: so each unclaimed point carries, for as long as
-// it is followed (mutual nearest neighbours between frames), which markers were measured on
-// other points beside it in the last 2 s, and stays out of those markers' gates -- one marker is
-// one point. In the first second of a track, whose labels may be wrong, this holds only for a
-// marker labelled in the last frame or that has held its point for 20 frames; a marker that loses
-// its label while another marker takes its last point held the wrong one, and its records go.
-// The gate of a marker labelled in the last frame also holds its own model error: the mean square
-// of its residuals after the update (an average over the offsets' time constant), which with a
-// nominal model grows with the pose (joint centres 15 mm off) and would otherwise push a tracked
-// marker out of its gate in a deep squat or trunk bend; the same variance weighs its measurement.
-// A marker coming back is gated without it (a wide gate at a hidden marker takes ghosts).
-// Segment pick-up: a marker that stays unlabelled while three or more markers of its segment are
-// labelled is looked for where those put it (their rigid motion from prediction to points,
-// Kabsch), within its gate: the pelvis, the root, is posed by its four markers and by all the
-// others through the joints, and with a nominal model a pelvis marker back from an occlusion is
-// 2-5 cm from the pose's prediction but where it belongs among its segment's labelled markers.
+// growing S_m and is picked up again when it reappears inside its gate. Two rigid-body facts hold
+// whatever the pose estimate, and the gate keeps to them. Labels follow point tracks: a point that
+// continues the point a marker held in the last frame (mutual nearest neighbours, moved as the
+// marker's prediction moved, within a frame's motion) is that marker's or nobody's, so a marker
+// back from an occlusion with a grown gate cannot take its neighbour's point (a wrist marker on the
+// other wrist marker's, the neighbour left unlabelled, the forearm then turned to fit for seconds).
+// And a point can be a marker only at the marker's distance from its segment's joint centre
+// (within the marker's gate on its own variance plus 2 cm for the predicted centre; not for the
+// root): a segment turns about its joint, so that distance does not depend on the angles the gate
+// is long along (a finger marker's gate, its hand held by that marker alone, over a wrist marker).
+// The code is in three files, one question each: ekf/tracker.cpp (the filter and a frame's
+// sequence), ekf/tracker_labelling.cpp (which point is which marker), and
+// ekf/tracker_initialisation.cpp (finding the subject, or a limb, without labels).
+// On probation: a marker coming back is labelled at once, but its measurement enters the update
+// only from its second consecutive labelled frame, when its point moved from the first one as its
+// prediction did (within 1 cm). Half the ghosts near a body are single-frame reflections; one
+// inside the long gate of a hidden marker on a loosely held segment (a toe with only the heel seen)
+// would otherwise move the segment by centimetres at the marker's full precision and leave the true
+// marker outside its gate when it reappears. Lasting ghosts (reflections fixed in the lab or riding
+// along with a marker, alive for up to seconds) are told by their past: the tracker keeps the last
+// 20 frames' points, and a point that a marker without a label in the last frame would take is
+// followed back through the unclaimed points (nearest within 2.5 cm a frame); seen for 5 frames or
+// more with its distance to the marker's joint centre varying by over 1 cm, it is not on that
+// segment and stays out of the marker's gate. A marker back from an occlusion has no past and is
+// not judged. A reflection that rides along with a marker (or sits where it passed) keeps its
+// distances to the segment and outlives that 20-frame ring, and in the frame its marker is occluded
+// it is the nearest point in the gate: so each unclaimed point carries, for as long as it is
+// followed (mutual nearest neighbours between frames), which markers were measured on other points
+// beside it in the last 2 s, and stays out of those markers' gates -- one marker is one point. In
+// the first second of a track, whose labels may be wrong, this holds only for a marker labelled in
+// the last frame or that has held its point for 20 frames; a marker that loses its label while
+// another marker takes its last point held the wrong one, and its records go. The gate of a marker
+// labelled in the last frame also holds its own model error: the mean square of its residuals after
+// the update (an average over the offsets' time constant), which with a nominal model grows with
+// the pose (joint centres 15 mm off) and would otherwise push a tracked marker out of its gate in a
+// deep squat or trunk bend; the same variance weighs its measurement. A marker coming back is gated
+// without it (a wide gate at a hidden marker takes ghosts). Segment pick-up: a marker that stays
+// unlabelled while three or more markers of its segment are labelled is looked for where those put
+// it (their rigid motion from prediction to points, Kabsch), within its gate: the pelvis, the root,
+// is posed by its four markers and by all the others through the joints, and with a nominal model a
+// pelvis marker back from an occlusion is 2-5 cm from the pose's prediction but where it belongs
+// among its segment's labelled markers.
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (the points turned so that the lab's
@@ -124,8 +136,8 @@
 // learnt offset stale by 25-40 mm (a knee marker in a deep squat), steadily so, while its limb
 // tracks (no search finds a better pose). When it is due a limb search, the one unclaimed point
 // within 5 cm of its prediction that has been followed for 5 frames rigid with its segment and
-// was never seen beside it moves the marker's offset onto itself (RejoinAtOffset in tracker.cpp);
-// the next frame's gate takes it, through probation.
+// was never seen beside it moves the marker's offset onto itself (RejoinAtOffset in
+// tracker_initialisation.cpp); the next frame's gate takes it, through probation.
 //
 // Unobserved coordinates. Velocities and accelerations decay between frames (time constants in
 // the options), and coordinates are kept in the model's ranges, so a segment that loses markers

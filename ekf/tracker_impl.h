@@ -1,0 +1,233 @@
+// Private to the tracker: the state and workspace that ekf/tracker.cpp (the filter and the
+// frame's sequence), ekf/tracker_labelling.cpp (which point is which marker) and
+// ekf/tracker_initialisation.cpp (finding the subject without labels, and a limb again) share.
+// Not installed, not included outside ekf/. See ekf/tracker.h for the design.
+#pragma once
+
+#include <Eigen/Cholesky>
+#include <Eigen/Core>
+#include <limits>
+#include <memory>
+#include <vector>
+
+#include "ekf/assignment.h"
+#include "ekf/filter.h"
+#include "ekf/tracker.h"
+#include "model/kinematics.h"
+
+namespace mocap::ekf::internal {
+// The cost of a pair the gate excludes (finite: see assignment.h).
+inline constexpr double kForbidden = 1e9;
+// A point that continues a marker's first point after a gap moves as the prediction does within
+// this (a frame is 5 ms: 1 cm is 2 m/s of unpredicted motion; random ghosts jump decimetres).
+inline constexpr double kProbationDistance = 0.01;
+// Following a point back in time (NonRigidTrack): its largest step between frames (5 m/s at
+// 200 Hz), the frames it must have been seen to be judged, and how much its distance to a joint
+// centre may vary on a rigid segment (noise, and the predicted centre's error).
+inline constexpr double kTrackStep = 0.025;
+inline constexpr int kMinTrackFrames = 5;
+inline constexpr double kRigidTolerance = 0.01;
+// How long the record of a point seen beside a marker holds (SeenBeside): about the longest life
+// of a stray reflection.
+inline constexpr double kBesideSeconds = 2.0;
+// The error of a predicted joint centre (a nominal model's centres are 1-2 cm off).
+inline constexpr double kJointCentreTolerance = 0.02;
+inline constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+}  // namespace mocap::ekf::internal
+
+namespace mocap::ekf {
+
+using namespace internal;  // the shared constants, for the members' defaults
+
+struct Tracker::Impl {
+  // --- model ---
+  std::shared_ptr<const Model> model;
+  TrackerOptions options;
+  Geometry geometry;
+  ModelData data;
+  int nz = 0, nm = 0;
+  // Per marker: whether the data can show it (not in options.unseen_markers); how many can.
+  std::vector<char> seen;
+  int nm_seen = 0;
+  // Turns the lab's vertical (options.up) onto the model's (options.model_up): every input point
+  // goes through it, so the model's root angles describe a subject standing as the model stands
+  // whatever the lab's axes (an upside-down lab would need pelvis tilt and list near 180 degrees,
+  // outside their ranges, which the search and the filter keep to).
+  Eigen::Matrix3d lab_to_model = Eigen::Matrix3d::Identity();
+  std::vector<char> rotational, wraps;
+  Eigen::VectorXd marker_variance;  // sigma_m^2 / w_m
+  // Online marker offsets (see tracker.h): per marker, in its segment's frame, and how many
+  // frames have contributed since the last (re)initialisation.
+  std::vector<Eigen::Vector3d> offset;
+  std::vector<double> offset_unknown;  // (1 - gain)^frames seen: the part still unknown
+  // Per marker: the mean square (per coordinate) of its residuals after the update, averaged
+  // like the offsets: the model error that the pose and the offset do not explain.
+  std::vector<double> model_error;
+  // The root joint, for placing hypotheses: its rotations as signed coordinate axes (for an
+  // Euler decomposition) and its translations before any rotation (moving along fixed axes).
+  bool root_euler = false;
+  int root_rot_coord[3] = {-1, -1, -1}, root_rot_axis[3] = {0, 0, 0};
+  double root_rot_sign[3] = {1, 1, 1};
+  std::vector<std::pair<int, Eigen::Vector3d>> root_translations;
+  std::vector<char> root_free;
+  // Depth in the tree (root joint 0) of each coordinate's joint and each marker's segment.
+  std::vector<int> coordinate_depth, marker_depth;
+  int max_depth = 0;
+
+  // --- state ---
+  Eigen::VectorXd x;  // [z; z'; z'']
+  Eigen::MatrixXd P;
+  Eigen::VectorXd jerk_psd;
+  double last_time = kNaN;
+  bool had_track = false;
+  Eigen::VectorXd z_good;  // last pose that passed the divergence test
+  int bad_frames = 0;
+  TrackOutput out;
+  InitialisationSummary init;
+
+  // --- per-frame workspace (sized in Allocate) ---
+  std::vector<int> valid;  // input indices of the finite points, compacted
+  Eigen::Matrix3Xd points;
+  Eigen::VectorXd zbuf, dz;
+  Eigen::Matrix3Xd predicted;
+  std::vector<Eigen::Matrix<double, 3, Eigen::Dynamic>> jac;
+  Eigen::Matrix<double, 3, Eigen::Dynamic> jp;
+  std::vector<Eigen::Matrix3d> s_inv;
+  std::vector<double> reject_sq;
+  std::vector<int> gated_by;  // per point: how many markers' gates hold it
+  Eigen::MatrixXd cost;
+  std::vector<int> row_to_col;
+  LinearAssignment lap;
+  Eigen::MatrixXd A;
+  Eigen::VectorXd b;
+  CoordinateUpdate update;
+  // Probation of a marker coming back (see tracker.h): per marker, whether this frame's update
+  // uses its label, how many consecutive frames it has been labelled, and where its point and
+  // prediction were in the last frame.
+  std::vector<char> measured;
+  std::vector<int> labelled_run;
+  Eigen::Matrix3Xd last_point, last_predicted;
+  int measured_count = 0;
+  void ChooseMeasurements();
+  // The last kHistory tracking frames' points and predicted joint centres (a ring), to follow a
+  // point back in time (NonRigidTrack).
+  static constexpr int kHistory = 20;
+  std::vector<Eigen::Matrix3Xd> hist_points;
+  std::vector<int> hist_count;
+  std::vector<std::vector<char>> hist_claimed;  // per frame, per point: a marker's
+  std::vector<std::vector<Eigen::Vector3d>> hist_centre;
+  std::vector<Eigen::Vector3d> centre_now;  // this frame's predicted joint centres
+  int hist_head = 0, hist_size = 0;
+  void PushHistory(int np);
+  bool NonRigidTrack(int m, const Eigen::Vector3d& p) const;
+  // Follows p back (see NonRigidTrack): the frames it was seen, and the spread of its distance
+  // to marker m's joint centre over them.
+  int TrackBack(int m, const Eigen::Vector3d& p, double* spread) const;
+  bool RejoinAtOffset(int m, int np);
+  // The one point not in ltaken within sqrt(radius2) of `where`; -1 when none or several.
+  int OnlyFreePointNear(const Eigen::Vector3d& where, double radius2, int np) const {
+    int found = -1;
+    for (int k = 0; k < np; ++k)
+      if (!ltaken[k] && (points.col(k) - where).squaredNorm() < radius2) {
+        if (found >= 0) return -1;
+        found = k;
+      }
+    return found;
+  }
+  // Which markers each unclaimed point has been seen beside (see SeenBeside): per point of the
+  // last good frame, per marker, the last tracking frame in which that marker was measured on
+  // another point while this point's track was alive (kNever: not within its track).
+  static constexpr int kNever = std::numeric_limits<int>::min() / 2;
+  std::vector<int> beside_prev, beside_now;
+  // Per marker: its longest run of labelled frames since the (re)initialisation.
+  std::vector<int> held_run;
+  static constexpr int kHeldFrames = 20;
+  Eigen::Matrix3Xd prev_points;
+  std::vector<char> prev_free;
+  std::vector<int> prev_free_list;  // the indices of prev_free's points
+  int prev_np = 0, prev_free_count = 0;
+  int frame_index = 0;
+  mutable std::vector<int> pred_cache;  // per point of this frame: Predecessor, -2 not yet known
+  int Predecessor(int k, int np) const;
+  // Per point of this frame: the marker whose track it continues (see FollowLabelledTracks), or -1.
+  std::vector<int> track_owner;
+  void FollowLabelledTracks(int np);
+  bool SeenBeside(int m, int k, int np) const;
+
+  // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
+  double MeasurementVariance(int m) const {
+    const double s0 = options.marker_offset_sigma, s1 = options.marker_offset_floor;
+    return marker_variance[m] + s0 * s0 * offset_unknown[m] + s1 * s1;
+  }
+  double OffsetGain() const {
+    return 1.0 / std::max(1.0, options.marker_offset_time_constant_s * options.rate_hz);
+  }
+  void LearnOffsets(const Eigen::VectorXd& dz);
+  void ClearOffsets(int count) {
+    std::fill(offset.begin(), offset.end(), Eigen::Vector3d::Zero());
+    std::fill(offset_unknown.begin(), offset_unknown.end(), std::pow(1.0 - OffsetGain(), count));
+    std::fill(model_error.begin(), model_error.end(), 0.0);
+  }
+  void SetModel(std::shared_ptr<const Model> m);
+  void Allocate();
+  void ResetState();
+  double Dt(double time_s) const;
+  void Predict(double dt);
+  void Linearise(const Eigen::VectorXd& z);
+  void LabelByGating(int np);
+  void PickUpOnSegment(int np);
+  int ApplyLabels(int np);
+  bool FilterUpdate(double* nis);
+  void Wrap(Eigen::VectorXd* z) const;
+  bool TryInitialise(int np);
+
+  // Initialisation pieces.
+  struct Hypothesis {
+    double score = std::numeric_limits<double>::infinity();
+    double rms = 0;
+    int labelled = 0;
+    std::vector<int> assignment;  // per marker: compact point index or -1
+    Eigen::VectorXd z;
+  };
+  bool PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3d& turn,
+                 const Eigen::Vector3d& centroid, Eigen::VectorXd* z);
+  Hypothesis Icp(Eigen::VectorXd z, int np);
+
+  // Local re-acquisition of a limb (see tracker.h): per marker, consecutive tracking frames
+  // without a label; per joint, the coordinates and markers of its subtree; per marker, the
+  // joint whose subtree is searched again when it stays unlabelled. Workspace sized in Allocate.
+  std::vector<int> unlabelled_run, marker_limb;
+  std::vector<std::vector<char>> limb_coord;
+  std::vector<std::vector<int>> limb_markers;
+  static constexpr int kMaxLimbCoords = 12;  // larger subtrees are left to the global search
+  using LimbMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, kMaxLimbCoords,
+                                   kMaxLimbCoords>;
+  using LimbVector = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kMaxLimbCoords, 1>;
+  LimbMatrix lN, lNd;
+  LimbVector lg, lstep;
+  Eigen::Matrix3Xd lsaved;  // predicted, kept across a search (predicted_markers())
+  Eigen::VectorXd ltrial, lz, lstart, lbest, lz0;
+  Eigen::LLT<LimbMatrix> lllt;
+  std::vector<std::vector<int>> limb_coord_list;
+  std::vector<int> llocal;  // per coordinate: its index among the limb's, or -1
+  void LineariseLimb(int joint, const Eigen::VectorXd& z);
+  std::vector<int> lcand, lassign, lbest_assign, lrow_to_col, lfree;
+  std::vector<char> ltaken;
+  void Reacquire(int np);
+  // Frames tracked since the last (re)initialisation. The labels of a fresh track come from a
+  // search over one frame and can be wrong on a whole limb (self-consistently: a thigh turned
+  // about its long axis); labels that tracking has kept are not. So for the first second a limb
+  // search may relabel the limb's markers and is tried whenever any unclaimed point is near;
+  // after it, it keeps the labels the limb has and is tried only for a point at the rigid-body
+  // distances of the marker (RigidlyPlausible).
+  int tracked_frames = 0;
+  bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
+  static constexpr double kFreshTrackSeconds = 1.0;
+  bool RigidlyPlausible(int m, int k) const;
+  bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
+  bool ReacquireLimb(int joint, int np);
+  double LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius);
+};
+
+}  // namespace mocap::ekf

@@ -1,0 +1,673 @@
+// The tracker's (re)initialisation: finding the subject in a cloud of unlabelled points with no
+// labels to go on (TryInitialise: headings about the vertical, ICP-like placement from the root
+// outwards, restarts, an ambiguity test), and finding one limb again while the rest of the body
+// tracks (Reacquire, ReacquireLimb, RejoinAtOffset). ekf/tracker.h ("Initialisation and recovery",
+// "Limb re-acquisition") has the design. What it decides: whether a placement is good and
+// unambiguous enough to start (or restart a limb of) the track, and with which labels; a search
+// that cannot tell two labellings apart refuses rather than guesses.
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <random>
+
+#include "ekf/tracker_impl.h"
+
+namespace mocap::ekf {
+
+using namespace internal;
+
+// ---------------------------------------------------------------------------------------------
+// Initialisation
+
+// z = start with the root turned by `turn` (world, about the root's origin) and shifted so that
+// the model's marker centroid lands on `centroid`.
+bool Tracker::Impl::PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3d& turn,
+                              const Eigen::Vector3d& centroid, Eigen::VectorXd* z) {
+  *z = start;
+  const Joint& root = model->joints()[0];
+  if (!turn.isIdentity(1e-12)) {
+    if (!root_euler) return false;
+    ForwardKinematics(*model, geometry, *z, &data);
+    const Eigen::Matrix3d target = turn * data.segment_rotation[root.child];
+    // The root's rotation elements compose root.orientation * R(a0) R(a1) R(a2); earlier
+    // translations do not rotate.
+    const Eigen::Vector3d angles = (root.orientation.transpose() * target)
+                                       .eulerAngles(root_rot_axis[0], root_rot_axis[1],
+                                                    root_rot_axis[2]);
+    // Two angle triples give the same rotation, (a0, a1, a2) and (a0 + pi, pi - a1, a2 + pi)
+    // ((a0 + pi, -a1, a2 + pi) for a proper Euler sequence); Eigen returns a0 in [0, pi]. Take
+    // the one nearer the start, or a subject facing the other half of the room would be tracked
+    // upside down in its root angles (same markers, tilt and list near pi).
+    const bool proper = root_rot_axis[0] == root_rot_axis[2];
+    Eigen::Vector3d other(angles[0] + M_PI, proper ? -angles[1] : M_PI - angles[1],
+                          angles[2] + M_PI);
+    double da = 0, db = 0;
+    for (int i = 0; i < 3; ++i) {
+      const double s0 = start[root_rot_coord[i]] * root_rot_sign[i];
+      da += std::pow(std::remainder(angles[i] - s0, 2 * M_PI), 2);
+      db += std::pow(std::remainder(other[i] - s0, 2 * M_PI), 2);
+    }
+    const Eigen::Vector3d& chosen = db < da ? other : angles;
+    for (int i = 0; i < 3; ++i)
+      (*z)[root_rot_coord[i]] =
+          root_rot_sign[i] * std::remainder(chosen[i], 2 * M_PI);
+  }
+  ForwardKinematics(*model, geometry, *z, &data);
+  Eigen::Vector3d mc = Eigen::Vector3d::Zero();
+  for (int m = 0; m < nm; ++m)
+    if (seen[m]) mc += MarkerPosition(*model, geometry, data, m);
+  const Eigen::Vector3d shift = centroid - mc / std::max(1, nm_seen);
+  for (const auto& [coord, axis] : root_translations) (*z)[coord] += axis.dot(shift);
+  return true;
+}
+
+// ICP-like search from z: assign markers to points by distance (optimal assignment), one damped
+// Gauss-Newton step on the pose, reassign. The body is placed from the root outwards: stage d
+// frees the joints at depth <= d of the tree and assigns only the markers they carry, so a
+// distal marker is paired only once its parent segments are in place (the two wrist markers,
+// 7 cm apart, would otherwise cross while the arm is still beside the body, and the forearm turn
+// half a revolution into a mirrored local minimum). A final stage refines everything with a
+// radius shrinking to 4 cm.
+Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
+  const Eigen::VectorXd start = z;
+  // Weak prior towards the start (metres^2 per rad^2 / per m^2): pins what the markers leave free.
+  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
+  const int stages = max_depth + 1, per_stage = 3;
+  const int iters = stages * per_stage + options.init_iterations;
+  Eigen::MatrixXd N(nz, nz), Nd(nz, nz);
+  Eigen::VectorXd g(nz), step(nz), trial(nz);
+  Eigen::LLT<Eigen::MatrixXd> llt(nz);
+  std::vector<int> assign(nm, -1), previous(nm, -2);
+  std::vector<char> free(nz, 1), active(nm, 1);
+  Eigen::VectorXd lower(nz), upper(nz);
+  for (int i = 0; i < nz; ++i) {
+    // The start itself may be outside (a user's static pose): never clamp it back.
+    lower[i] = std::min(model->coordinates()[i].min_value, z[i]);
+    upper[i] = std::max(model->coordinates()[i].max_value, z[i]);
+  }
+  auto Cost = [&](const Eigen::VectorXd& zz) {
+    ForwardKinematics(*model, geometry, zz, &data);
+    double s = 0;
+    for (int m = 0; m < nm; ++m)
+      if (assign[m] >= 0)
+        s += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
+    for (int i = 0; i < nz; ++i)
+      if (free[i])
+        s += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) * (zz[i] - start[i]);
+    return s;
+  };
+  double radius = 0.25;
+  double lambda = 1e-3;
+  for (int it = 0; it < iters; ++it) {
+    const int stage = it / per_stage;  // >= stages: the final stage
+    const bool final_stage = stage >= stages;
+    const int depth = final_stage ? max_depth : stage;
+    for (int i = 0; i < nz; ++i) free[i] = coordinate_depth[i] <= depth;
+    for (int m = 0; m < nm; ++m) active[m] = seen[m] && marker_depth[m] <= depth;
+    radius = stage == 0 ? 0.25
+             : !final_stage ? 0.15
+                            : std::max(options.init_radius_m,
+                                       0.12 - 0.02 * (it - stages * per_stage));
+    Linearise(z);
+    auto C = cost.topLeftCorner(nm, np + nm);
+    const double r2 = radius * radius;
+    for (int m = 0; m < nm; ++m) {
+      for (int k = 0; k < np; ++k) {
+        const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
+        C(m, k) = active[m] && d2 < r2 ? d2 : kForbidden;
+      }
+      C.row(m).tail(nm).setConstant(kForbidden);
+      C(m, np + m) = r2;
+    }
+    lap.Solve(C, row_to_col.data());
+    for (int m = 0; m < nm; ++m) assign[m] = row_to_col[m] < np ? row_to_col[m] : -1;
+    const bool same = assign == previous;
+    previous = assign;
+
+    // Normal equations of the assigned markers + prior.
+    N.setZero();
+    g.setZero();
+    for (int m = 0; m < nm; ++m) {
+      if (assign[m] < 0) continue;
+      const Eigen::Vector3d r = predicted.col(m) - points.col(assign[m]);
+      const std::vector<int>& cols = model->marker_coordinates(m);
+      const auto& J = jac[m];
+      for (size_t a = 0; a < cols.size(); ++a) {
+        g[cols[a]] += J.col(a).dot(r);
+        for (size_t k = 0; k < cols.size(); ++k) N(cols[a], cols[k]) += J.col(a).dot(J.col(k));
+      }
+    }
+    for (int i = 0; i < nz; ++i) {
+      const double w = rotational[i] ? prior_rot : prior_trans;
+      N(i, i) += w;
+      g[i] += w * (z[i] - start[i]);
+      if (!free[i]) {
+        N.row(i).setZero();
+        N.col(i).setZero();
+        N(i, i) = 1;
+        g[i] = 0;
+      }
+    }
+    const double c0 = Cost(z);
+    bool accepted = false;
+    for (int tries = 0; tries < 6 && !accepted; ++tries) {
+      Nd = N;
+      Nd.diagonal() += lambda * N.diagonal();
+      llt.compute(Nd);
+      if (llt.info() != Eigen::Success) {
+        lambda *= 10;
+        continue;
+      }
+      step = -llt.solve(g);
+      trial = z + step;
+      // Within the model's joint ranges: a foot turned 120 degrees can match heel and toe
+      // markers to each other's points, a pose no subject takes.
+      for (int i = 0; i < nz; ++i)
+        if (!wraps[i]) trial[i] = std::clamp(trial[i], lower[i], upper[i]);
+      if (Cost(trial) < c0) {
+        z = trial;
+        lambda = std::max(1e-7, lambda * 0.3);
+        accepted = true;
+      } else {
+        lambda *= 10;
+      }
+    }
+    if (final_stage && same && (!accepted || step.norm() < 1e-6) && radius <= options.init_radius_m)
+      break;
+  }
+  // Final assignment at the final pose and its score.
+  Hypothesis h;
+  Linearise(z);
+  const double r2 = radius * radius;
+  auto C = cost.topLeftCorner(nm, np + nm);
+  for (int m = 0; m < nm; ++m) {
+    for (int k = 0; k < np; ++k) {
+      const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
+      C(m, k) = seen[m] && d2 < r2 ? d2 : kForbidden;
+    }
+    C.row(m).tail(nm).setConstant(kForbidden);
+    C(m, np + m) = r2;
+  }
+  h.score = lap.Solve(C, row_to_col.data());
+  h.assignment.assign(nm, -1);
+  double sum = 0;
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] < np) {
+      h.assignment[m] = row_to_col[m];
+      sum += C(m, row_to_col[m]);
+      ++h.labelled;
+    }
+  h.rms = h.labelled > 0 ? std::sqrt(sum / h.labelled) : std::numeric_limits<double>::infinity();
+  Wrap(&z);
+  h.z = z;
+  return h;
+}
+
+bool Tracker::Impl::TryInitialise(int np) {
+  ++init.attempts;
+  init.accepted = false;
+  init.hypotheses = 0;
+  init.best_score = init.runner_up_score = init.rms_m = 0;
+  init.labelled = 0;
+  if (np < options.init_min_fraction * nm_seen) {
+    init.reason = "too few points";
+    return false;
+  }
+  ClearOffsets(0);
+  const Eigen::Vector3d centroid = points.leftCols(np).rowwise().mean();
+  std::vector<Eigen::VectorXd> starts;
+  starts.push_back(options.static_pose.size() == nz ? options.static_pose
+                                                    : model->DefaultCoordinates());
+  if (had_track) starts.push_back(z_good);
+  // The points are turned so that the lab's vertical is the model's (lab_to_model).
+  const Eigen::Vector3d up = options.model_up.normalized();
+  std::vector<Hypothesis> hyps;
+  for (const Eigen::VectorXd& s : starts) {
+    const int headings = root_euler ? options.init_headings : 1;
+    for (int k = 0; k < headings; ++k) {
+      const Eigen::Matrix3d turn =
+          Eigen::AngleAxisd(2 * M_PI * k / headings, up).toRotationMatrix();
+      Eigen::VectorXd z;
+      if (!PlaceRoot(s, turn, centroid, &z)) continue;
+      hyps.push_back(Icp(z, np));
+    }
+  }
+  if (hyps.empty()) {
+    init.reason = "the root cannot be placed";
+    return false;
+  }
+  auto Best = [&] {
+    int b = 0;
+    for (size_t i = 1; i < hyps.size(); ++i)
+      if (hyps[i].score < hyps[b].score) b = static_cast<int>(i);
+    return b;
+  };
+  // Variants: the best placement with the joints of the static pose perturbed. A few limbs can
+  // settle in a wrong but self-consistent configuration (a ghost standing in for a wrist
+  // marker); starting them elsewhere lets the right configuration win on its score.
+  {
+    const Eigen::VectorXd base = hyps[Best()].z;
+    const Eigen::VectorXd& pose = starts[0];
+    // First the static pose blended towards the middle of each joint's range (bent elbows and
+    // knees: the wrist markers of a straight arm sit, 7 cm apart, along the very direction in
+    // which a 15 degree elbow flexion moves them, so a straight start pairs each with the
+    // other's point), then random perturbations.
+    std::mt19937 rng(12345);
+    std::uniform_real_distribution<double> u(-1.0, 1.0);
+    const double blends[] = {0.1, 0.2, 0.3};
+    const int blend_count = options.init_variants > 0 ? 3 : 0;
+    for (int v = 0; v < blend_count + options.init_variants; ++v) {
+      Eigen::VectorXd z = pose;
+      for (int i = 0; i < nz; ++i) {
+        const Coordinate& co = model->coordinates()[i];
+        if (root_free[i]) {
+          z[i] = base[i];
+        } else if (!rotational[i]) {
+          continue;
+        } else if (v < blend_count) {
+          if (co.max_value - co.min_value < 2 * M_PI)
+            z[i] += blends[v] * (0.5 * (co.min_value + co.max_value) - z[i]);
+        } else {
+          z[i] += options.init_variant_rad * u(rng);
+        }
+      }
+      hyps.push_back(Icp(z, np));
+    }
+  }
+  init.hypotheses = static_cast<int>(hyps.size());
+  const int best = Best();
+  const Hypothesis& h = hyps[best];
+  init.best_score = h.score;
+  init.rms_m = h.rms;
+  init.labelled = h.labelled;
+  // Unambiguous: no hypothesis that labels >= 3 markers differently comes close.
+  double runner_up = std::numeric_limits<double>::infinity();
+  for (const Hypothesis& o : hyps) {
+    int differ = 0;
+    for (int m = 0; m < nm; ++m) differ += o.assignment[m] != h.assignment[m];
+    if (differ >= 3) runner_up = std::min(runner_up, o.score);
+  }
+  init.runner_up_score = std::isfinite(runner_up) ? runner_up : 0.0;
+  if (h.labelled < options.init_min_fraction * nm_seen) {
+    init.reason = "too few markers labelled";
+    return false;
+  }
+  if (!(h.rms <= options.init_max_rms_m)) {
+    init.reason = "residual too large";
+    return false;
+  }
+  const double variance = std::max(h.rms * h.rms / 3.0, 1e-6);
+  if (runner_up < options.init_ambiguity_ratio * h.score ||
+      runner_up - h.score < options.init_ambiguity_margin * variance) {
+    init.reason = "ambiguous";
+    return false;
+  }
+
+  // Start the filter at the found pose, at rest, and update it with the found labels.
+  x.setZero();
+  x.head(nz) = h.z;
+  P.setZero();
+  for (int i = 0; i < nz; ++i) {
+    const bool r = rotational[i];
+    const double s0 = r ? options.init_sigma_rotational : options.init_sigma_translational;
+    const double s1 =
+        r ? options.init_sigma_velocity_rotational : options.init_sigma_velocity_translational;
+    const double s2 = r ? options.init_sigma_acceleration_rotational
+                        : options.init_sigma_acceleration_translational;
+    P(i, i) = s0 * s0;
+    P(nz + i, nz + i) = s1 * s1;
+    P(2 * nz + i, 2 * nz + i) = s2 * s2;
+  }
+  zbuf = x.head(nz);
+  Linearise(zbuf);
+  for (int m = 0; m < nm; ++m) row_to_col[m] = h.assignment[m];
+  ApplyLabels(np);
+  // The search's labels are all measured at once (they were chosen together, not one by one).
+  for (int m = 0; m < nm; ++m) {
+    measured[m] = row_to_col[m] >= 0;
+    labelled_run[m] = measured[m] ? 2 : 0;
+    if (measured[m]) {
+      last_point.col(m) = points.col(row_to_col[m]);
+      last_predicted.col(m) = predicted.col(m);
+    }
+  }
+  double nis = 0;
+  if (!FilterUpdate(&nis)) {
+    init.reason = "the first update failed";
+    return false;
+  }
+  zbuf = x.head(nz);
+  Wrap(&zbuf);
+  x.head(nz) = zbuf;
+  out.nis = nis;
+  out.nis_dof = 3 * out.labelled;
+  std::fill(unlabelled_run.begin(), unlabelled_run.end(), 0);
+  tracked_frames = 0;
+  hist_size = 0;
+  prev_np = 0;
+  std::fill(held_run.begin(), held_run.end(), 0);
+  init.accepted = true;
+  init.reason.clear();
+  return true;
+}
+
+
+// ---------------------------------------------------------------------------------------------
+// Local re-acquisition of a limb. While the rest of the body tracks, a limb can settle in a wrong
+// but self-consistent pose (a foot left with its heel marker only, a thigh turned about its long
+// axis after a re-initialisation) from which its other markers' gates never meet their points
+// again. When a marker has been unlabelled for kLimbFrames tracking frames, the subtree of the
+// joint that moves it is searched again ICP-like among the points the rest of the body did not
+// take, from its current pose and a few restarts; a clearly better, unambiguous placement that
+// keeps the limb's present labels replaces the limb's coordinates, with their velocities and
+// accelerations zeroed and their covariance reset to the initialisation's. Allocation-free.
+namespace {
+constexpr int kLimbFrames = 20;        // 0.1 s at 200 Hz
+constexpr int kLimbIterations = 10;
+constexpr double kLimbFinalRadius = 0.05;
+constexpr double kLimbMaxRms = 0.03;
+constexpr double kRejoinRadius = 0.05;    // RejoinAtOffset: twice a nominal model's marker error
+constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
+constexpr double kLimbCentreTolerance = 0.02;
+}  // namespace
+
+// Assigns the limb's markers among the candidate points by distance at z (within radius);
+// lassign receives compact point indices (or -1); returns the truncated cost.
+// Predictions and Jacobians of the limb's markers only.
+void Tracker::Impl::LineariseLimb(int joint, const Eigen::VectorXd& z) {
+  ForwardKinematics(*model, geometry, z, &data);
+  for (int m : limb_markers[joint]) {
+    predicted.col(m) = MarkerPosition(*model, geometry, data, m) +
+                       data.segment_rotation[model->markers()[m].segment] * offset[m];
+    MarkerJacobian(*model, geometry, data, m, &jac[m], static_cast<Eigen::Matrix3Xd*>(nullptr));
+  }
+}
+
+double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius) {
+  LineariseLimb(joint, z);
+  const double r2 = radius * radius;
+  // The limb's labelled markers keep their points: only its unlabelled ones are assigned.
+  double total = 0;
+  int ns = 0;
+  for (int m : limb_markers[joint]) {
+    if (row_to_col[m] >= 0 && !FreshTrack()) {
+      lassign[m] = row_to_col[m];
+      total += std::min(r2, (points.col(row_to_col[m]) - predicted.col(m)).squaredNorm());
+    } else {
+      lfree[ns++] = m;
+    }
+  }
+  if (ns == 0) return total;
+  auto C = cost.topLeftCorner(ns, nc + ns);
+  for (int r = 0; r < ns; ++r) {
+    const int m = lfree[r];
+    for (int c = 0; c < nc; ++c) {
+      const double d2 = (points.col(lcand[c]) - predicted.col(m)).squaredNorm();
+      C(r, c) = d2 < r2 ? d2 : kForbidden;
+    }
+    C.row(r).tail(ns).setConstant(kForbidden);
+    C(r, nc + r) = r2;
+  }
+  total += lap.Solve(C, lrow_to_col.data());
+  for (int r = 0; r < ns; ++r)
+    lassign[lfree[r]] = lrow_to_col[r] < nc ? lcand[lrow_to_col[r]] : -1;
+  return total;
+}
+
+bool Tracker::Impl::ReacquireLimb(int joint, int np) {
+  const std::vector<int>& rows = limb_markers[joint];
+  const std::vector<char>& freec = limb_coord[joint];
+  const int ns = static_cast<int>(rows.size());
+  const std::vector<int>& lcoords = limb_coord_list[joint];
+  const int nl = static_cast<int>(lcoords.size());
+  if (ns < 2 || nl < 1 || nl > kMaxLimbCoords) return false;
+  for (int l = 0; l < nl; ++l) llocal[lcoords[l]] = l;
+  lsaved = predicted;
+  struct Restore {  // llocal back to all -1 and the predictions back, on every return
+    Impl& s;
+    const std::vector<int>& c;
+    ~Restore() {
+      for (int i : c) s.llocal[i] = -1;
+      s.predicted = s.lsaved;
+    }
+  } restore{*this, lcoords};
+  // Candidates: the points no marker took (the limb's labelled markers keep theirs).
+  std::fill(ltaken.begin(), ltaken.begin() + np, 0);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= 0) ltaken[row_to_col[m]] = 1;
+  int current = 0;
+  for (int m : rows) current += row_to_col[m] >= 0;
+  if (FreshTrack())
+    for (int m : rows)
+      if (row_to_col[m] >= 0) ltaken[row_to_col[m]] = 0;
+  int nc = 0;
+  for (int k = 0; k < np; ++k)
+    if (!ltaken[k]) lcand[nc++] = k;
+  if (nc == 0 || current == ns) return false;
+
+  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
+  auto Cost = [&](const Eigen::VectorXd& zz) {
+    ForwardKinematics(*model, geometry, zz, &data);
+    double c = 0;
+    for (int m : rows)
+      if (lassign[m] >= 0)
+        c += (MarkerPosition(*model, geometry, data, m) +
+              data.segment_rotation[model->markers()[m].segment] * offset[m] -
+              points.col(lassign[m]))
+                 .squaredNorm();
+    for (int i = 0; i < nz; ++i)
+      if (freec[i])
+        c += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - lstart[i]) * (zz[i] - lstart[i]);
+    return c;
+  };
+  lz0 = x.head(nz);
+  std::mt19937 rng(777);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  const int starts = 5;
+  double best = std::numeric_limits<double>::infinity(), runner_up = best;
+  int best_labelled = 0;
+  double best_sum = 0;
+  for (int v = 0; v < starts; ++v) {
+    lstart = lz0;
+    for (int i = 0; i < nz; ++i) {
+      if (!freec[i] || !rotational[i]) continue;
+      const Coordinate& co = model->coordinates()[i];
+      if (v == 1 || v == 2) {
+        if (co.max_value - co.min_value < 2 * M_PI)
+          lstart[i] += (v == 1 ? 0.25 : 0.5) * (0.5 * (co.min_value + co.max_value) - lstart[i]);
+      } else if (v > 2) {
+        lstart[i] += options.init_variant_rad * u(rng);
+      }
+    }
+    Wrap(&lstart);
+    lz = lstart;
+    double lambda = 1e-3;
+    for (int it = 0; it < kLimbIterations; ++it) {
+      const double radius = std::max(kLimbFinalRadius, 0.15 - 0.01 * it);
+      LimbAssign(joint, lz, nc, radius);
+      lN.setZero(nl, nl);
+      lg.setZero(nl);
+      for (int m : rows) {
+        if (lassign[m] < 0) continue;
+        const Eigen::Vector3d r = predicted.col(m) - points.col(lassign[m]);
+        const std::vector<int>& cols = model->marker_coordinates(m);
+        const auto& J = jac[m];
+        for (size_t a = 0; a < cols.size(); ++a) {
+          const int la = llocal[cols[a]];
+          if (la < 0) continue;
+          lg[la] += J.col(a).dot(r);
+          for (size_t k = 0; k < cols.size(); ++k)
+            if (llocal[cols[k]] >= 0) lN(la, llocal[cols[k]]) += J.col(a).dot(J.col(k));
+        }
+      }
+      for (int l = 0; l < nl; ++l) {
+        const int i = lcoords[l];
+        const double w = rotational[i] ? prior_rot : prior_trans;
+        lN(l, l) += w;
+        lg[l] += w * (lz[i] - lstart[i]);
+      }
+      const double c0 = Cost(lz);
+      bool accepted = false;
+      for (int tries = 0; tries < 6 && !accepted; ++tries) {
+        lNd = lN;
+        lNd.diagonal() += lambda * lN.diagonal();
+        lllt.compute(lNd);
+        if (lllt.info() != Eigen::Success) {
+          lambda *= 10;
+          continue;
+        }
+        lstep = lllt.solve(lg);
+        ltrial = lz;
+        for (int l = 0; l < nl; ++l) ltrial[lcoords[l]] -= lstep[l];
+        Wrap(&ltrial);
+        if (Cost(ltrial) < c0) {
+          lz = ltrial;
+          lambda = std::max(1e-7, lambda * 0.3);
+          accepted = true;
+        } else {
+          lambda *= 10;
+        }
+      }
+    }
+    const double score = LimbAssign(joint, lz, nc, kLimbFinalRadius);
+    int labelled = 0;
+    double sum = 0;
+    for (int m : rows)
+      if (lassign[m] >= 0) {
+        ++labelled;
+        sum += (points.col(lassign[m]) - predicted.col(m)).squaredNorm();
+      }
+    int differ = 0;
+    if (std::isfinite(best))
+      for (int m : rows) differ += lassign[m] != lbest_assign[m];
+    if (score < best) {
+      if (differ >= 2) runner_up = best;
+      best = score;
+      best_labelled = labelled;
+      best_sum = sum;
+      lbest = lz;
+      for (int m : rows) lbest_assign[m] = lassign[m];
+    } else if (differ >= 2) {
+      runner_up = std::min(runner_up, score);
+    }
+  }
+  if (best_labelled <= current) return false;
+  const double rms = std::sqrt(best_sum / best_labelled);
+  if (!(rms <= kLimbMaxRms)) return false;
+  // Every marker of the placement, kept or new, within its own gate on the measurement noise
+  // alone (what it would be gated with once the limb's covariance has shrunk again): an RMS
+  // within kLimbMaxRms also passes a placement that puts one marker on a ghost 3 cm away.
+  LineariseLimb(joint, lbest);
+  for (int m : rows)
+    if (lbest_assign[m] >= 0 &&
+        (points.col(lbest_assign[m]) - predicted.col(m)).squaredNorm() >
+            options.gate_chi2 * MeasurementVariance(m))
+      return false;
+  // A new label on a point that has been around without keeping its distance to the marker's
+  // joint centre is a lasting ghost (a lone finger marker's two angles fit any point at the right
+  // distance from the wrist).
+  for (int m : rows)
+    if (lbest_assign[m] >= 0 && row_to_col[m] < 0 &&
+        (NonRigidTrack(m, points.col(lbest_assign[m])) ||
+         SeenBeside(m, lbest_assign[m], np)))
+      return false;
+  const double variance = std::max(rms * rms / 3.0, 1e-6);
+  if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
+    return false;
+  // Accept: the limb's coordinates at rest at the found pose, their covariance reset.
+  for (int i = 0; i < nz; ++i) {
+    if (!freec[i]) continue;
+    const bool r = rotational[i];
+    const double s[3] = {
+        r ? options.init_sigma_rotational : options.init_sigma_translational,
+        r ? options.init_sigma_velocity_rotational : options.init_sigma_velocity_translational,
+        r ? options.init_sigma_acceleration_rotational
+          : options.init_sigma_acceleration_translational};
+    x[i] = lbest[i];
+    x[nz + i] = 0;
+    x[2 * nz + i] = 0;
+    for (int blk = 0; blk < 3; ++blk) {
+      const int idx = blk * nz + i;
+      P.row(idx).setZero();
+      P.col(idx).setZero();
+      P(idx, idx) = s[blk] * s[blk];
+    }
+  }
+  return true;
+}
+
+// Whether point k could be marker m with m's segment anywhere: within kLimbNearRadius of its
+// prediction, and at m's distance from the segment's other labelled markers and from its joint
+// centre (rigid-body distances, whatever the pose). Ghosts near the body are nearly always within
+// the radius; few also sit on these spheres, so a hidden marker rarely sets off a search.
+bool Tracker::Impl::RigidlyPlausible(int m, int k) const {
+  const Eigen::Vector3d p = points.col(k), pm = predicted.col(m);
+  if ((p - pm).squaredNorm() >= kLimbNearRadius * kLimbNearRadius) return false;
+  const int segment = model->markers()[m].segment;
+  const double var_m = MeasurementVariance(m);
+  // The joint centre is predicted, not measured: allow for the parent's pose and for a nominal
+  // model's joint centres.
+  const Eigen::Vector3d centre = data.segment_position[segment];
+  if (std::abs((p - centre).norm() - (pm - centre).norm()) >
+      std::sqrt(options.gate_chi2 * var_m) + kLimbCentreTolerance)
+    return false;
+  for (int a = 0; a < nm; ++a) {
+    if (a == m || row_to_col[a] < 0 || model->markers()[a].segment != segment) continue;
+    const double tol = std::sqrt(options.gate_chi2 * (var_m + MeasurementVariance(a)));
+    if (std::abs((p - points.col(row_to_col[a])).norm() - (pm - predicted.col(a)).norm()) > tol)
+      return false;
+  }
+  return true;
+}
+
+void Tracker::Impl::Reacquire(int np) {
+  ++tracked_frames;
+  for (int m = 0; m < nm; ++m) unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
+  // One search per frame: the largest limb (nearest the root) among those due, and only when an
+  // unclaimed point lies near the marker's prediction (a hidden marker costs nothing).
+  int joint = -1;
+  bool claimed_known = false;
+  for (int m = 0; m < nm; ++m) {
+    const int run = unlabelled_run[m];
+    if (run < kLimbFrames || run % kLimbFrames != 0 || marker_limb[m] < 0) continue;
+    if (!claimed_known) {
+      std::fill(ltaken.begin(), ltaken.begin() + np, 0);
+      for (int k = 0; k < nm; ++k)
+        if (row_to_col[k] >= 0) ltaken[row_to_col[k]] = 1;
+      claimed_known = true;
+    }
+    bool near = false;
+    for (int k = 0; k < np && !near; ++k)
+      near = !ltaken[k] && (FreshTrack() ? (points.col(k) - predicted.col(m)).squaredNorm() <
+                                               kLimbNearRadius * kLimbNearRadius
+                                         : RigidlyPlausible(m, k));
+    if (!near || RejoinAtOffset(m, np)) continue;
+    if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
+  }
+  if (joint >= 0) ReacquireLimb(joint, np);
+}
+
+// A marker back from an occlusion outside its gate, where the pose it is predicted from carries
+// a nominal model's error that its learnt offset no longer matches (a knee marker in a deep
+// squat, an elbow marker in a shoulder circle: 25-40 mm off, and steadily so), while the rest of
+// the limb is tracked, so the limb search finds no better pose. Its point is recognised by its
+// past instead of its place: the one unclaimed point within kRejoinRadius of the prediction that
+// has been followed for kMinTrackFrames at a constant distance from the marker's joint centre
+// (rigid with the segment) and was never seen beside the marker (SeenBeside: not a reflection
+// that came with it). The marker's offset is moved onto that point; the next frame's gate takes
+// it, through probation like any returning marker. Not in a fresh track, whose pasts are not
+// judged.
+bool Tracker::Impl::RejoinAtOffset(int m, int np) {
+  if (FreshTrack()) return false;
+  const int found = OnlyFreePointNear(predicted.col(m), kRejoinRadius * kRejoinRadius, np);
+  if (found < 0) return false;
+  double spread = 0;
+  if (TrackBack(m, points.col(found), &spread) < kMinTrackFrames || spread > kRigidTolerance ||
+      SeenBeside(m, found, np))
+    return false;
+  const int segment = model->markers()[m].segment;
+  offset[m] += data.segment_rotation[segment].transpose() * (points.col(found) - predicted.col(m));
+  return true;
+}
+
+}  // namespace mocap::ekf

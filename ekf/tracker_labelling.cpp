@@ -1,0 +1,390 @@
+// The tracker's labelling: which of this frame's unlabelled points is which model marker
+// (ekf/tracker.h, "Labelling", has the design). What it decides, in order:
+//   1. Labels follow point tracks (FollowLabelledTracks): a point that continues the point a marker
+//      held in the last frame is that marker's or nobody's.
+//   2. Gating (LabelByGating): a marker can take a point inside its Mahalanobis gate, at its
+//      rigid-body distance from its segment's joint centre (OnSegmentSphere), whose past does not
+//      rule it out (NonRigidTrack, SeenBeside); the optimal assignment decides contested points.
+//   3. Segment pick-up (PickUpOnSegment): a marker whose segment's other markers are labelled is
+//      looked for where they put it.
+//   4. Probation (ChooseMeasurements): a returning marker's label enters the update from its
+//      second consecutive frame.
+//   5. The records the next frames judge points by (PushHistory): the last frames' points, and
+//      which markers each unclaimed point has been seen beside.
+// Why: the frame-by-frame assignment alone let a marker whose gate had grown take a neighbour's
+// point and the filter settle in that wrong pose; each step removes one way for that to happen
+// with evidence that does not depend on the pose being right (point continuity, rigid-body
+// distances, a point's past). A marker the evidence does not place stays unlabelled.
+#include <Eigen/SVD>
+#include <algorithm>
+#include <cmath>
+
+#include "ekf/tracker_impl.h"
+#include "model/rigid_align.h"
+
+namespace mocap::ekf {
+
+using namespace internal;
+
+// Mahalanobis gating with S_m = J_m P_zz J_m^T + R_m and the optimal assignment.
+void Tracker::Impl::LabelByGating(int np) {
+  const double gate = options.gate_chi2;
+  for (int m = 0; m < nm; ++m) {
+    const std::vector<int>& cols = model->marker_coordinates(m);
+    const int k = static_cast<int>(cols.size());
+    const auto& J = jac[m];
+    auto JP = jp.leftCols(k);
+    // Summed in a register, not into JP: accumulating in memory made every term wait for the
+    // previous one's store (this loop was most of the labelling's time).
+    for (int bcol = 0; bcol < k; ++bcol) {
+      const double* p_col = &P(0, cols[bcol]);
+      Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+      for (int a = 0; a < k; ++a) sum += J.col(a) * p_col[cols[a]];
+      JP.col(bcol) = sum;
+    }
+    Eigen::Matrix3d S = JP.lazyProduct(J.transpose());  // 3 x k x 3: no GEMM machinery
+    S.diagonal().array() += MeasurementVariance(m) + (labelled_run[m] > 0 ? model_error[m] : 0.0);
+    s_inv[m] = S.inverse();
+    // d^2 >= |e|^2 / lambda_max(S) >= |e|^2 / trace(S): a cheap test before the quadratic form.
+    reject_sq[m] = gate * S.trace();
+  }
+  auto C = cost.topLeftCorner(nm, np + nm);
+  std::fill(gated_by.begin(), gated_by.begin() + np, 0);
+  std::fill(pred_cache.begin(), pred_cache.begin() + np, -2);
+  bool contested = false;
+  FollowLabelledTracks(np);
+  for (int m = 0; m < nm; ++m) {
+    const Eigen::Vector3d p = predicted.col(m);
+    double best = gate;
+    int best_k = np + m;  // its own "missing" column
+    if (!seen[m]) {
+      C.row(m).head(np).setConstant(kForbidden);
+      row_to_col[m] = best_k;
+      continue;
+    }
+    for (int k = 0; k < np; ++k) {
+      const Eigen::Vector3d e = points.col(k) - p;
+      double d2 = kForbidden;
+      if (e.squaredNorm() < reject_sq[m] && (track_owner[k] < 0 || track_owner[k] == m)) {
+        const double q = e.dot(s_inv[m] * e);
+        if (q < gate && OnSegmentSphere(m, points.col(k)) &&
+            (labelled_run[m] > 0 || !NonRigidTrack(m, points.col(k))) &&
+            !SeenBeside(m, k, np)) {
+          d2 = q;
+          contested |= ++gated_by[k] > 1;
+          if (q < best) {
+            best = q;
+            best_k = k;
+          }
+        }
+      }
+      C(m, k) = d2;
+    }
+    row_to_col[m] = best_k;
+  }
+  // When no point lies in two gates, each marker's nearest gated point is the optimum; only
+  // contested frames (markers crossing, a ghost between two markers) need the assignment.
+  if (!contested) return;
+  for (int m = 0; m < nm; ++m) {
+    C.row(m).tail(nm).setConstant(kForbidden);
+    C(m, np + m) = gate;
+  }
+  lap.Solve(C, row_to_col.data());
+}
+
+// Labels follow point tracks. A point that continues the point a marker was labelled on in the
+// last frame (mutual nearest neighbours between the two frames, after moving the last point as the
+// marker's prediction moved, within a frame's motion kTrackStep) is that marker's or nobody's: no
+// other marker's gate takes it. Markers are centimetres apart and a frame is 5 ms, so a point
+// track does not jump from one marker to another; what the frame-by-frame assignment alone did
+// was let a marker back from an occlusion, with a wide gate, take its neighbour's point (a wrist
+// marker on the other wrist marker's point, the neighbour left unlabelled) and the filter then
+// settle in the shifted pose for seconds.
+void Tracker::Impl::FollowLabelledTracks(int np) {
+  std::fill(track_owner.begin(), track_owner.begin() + np, -1);
+  if (prev_np == 0) return;
+  const double step2 = kTrackStep * kTrackStep;
+  for (int a = 0; a < nm; ++a) {
+    if (labelled_run[a] <= 0) continue;
+    const Eigen::Vector3d shift = predicted.col(a) - last_predicted.col(a);
+    const Eigen::Vector3d q = last_point.col(a) + shift;
+    int nearest = -1;
+    double best = step2;
+    for (int k = 0; k < np; ++k) {
+      const double d2 = (points.col(k) - q).squaredNorm();
+      if (d2 < best) {
+        best = d2;
+        nearest = k;
+      }
+    }
+    if (nearest < 0) continue;
+    // Mutual: no other point of the last frame is nearer to it.
+    const Eigen::Vector3d back = points.col(nearest) - shift;
+    bool mutual = true;
+    for (int j = 0; j < prev_np && mutual; ++j)
+      mutual = (prev_points.col(j) - back).squaredNorm() >= best ||
+               (prev_points.col(j) - last_point.col(a)).squaredNorm() < 1e-18;
+    if (mutual) track_owner[nearest] = track_owner[nearest] < 0 ? a : nm;  // two claims: nobody's
+  }
+}
+
+// A marker the gates left unlabelled while three or more other markers of its segment are
+// labelled this frame is looked for where those markers put it: the rigid motion that carries
+// their predictions onto their points (Kabsch), applied to its own prediction. The gate measures
+// a marker against the pose, and the pose of a segment held by few of its own markers and many of
+// the rest of the body (the pelvis, the root, under the legs' and the trunk's) carries the whole
+// chain's model error with a nominal model: a marker back from an occlusion is found 2-5 cm from
+// its prediction, beyond its gate for as long as that error lasts, while where it sits among its
+// segment's labelled markers does not depend on the pose. It takes the one unclaimed point within
+// its gate around that position (its variance and its neighbours'), when that point's past does
+// not rule it out; the label goes through probation like any other (ChooseMeasurements). Not in
+// a fresh track, whose points' past is not judged (FreshTrack): there the gates are still wide.
+void Tracker::Impl::PickUpOnSegment(int np) {
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= np) row_to_col[m] = -1;
+  if (FreshTrack()) return;
+  bool claims_known = false;
+  for (int m = 0; m < nm; ++m) {
+    if (row_to_col[m] >= 0 || !seen[m]) continue;
+    const int segment = model->markers()[m].segment;
+    int mates = 0;
+    Eigen::Vector3d cp = Eigen::Vector3d::Zero(), cq = Eigen::Vector3d::Zero();
+    double var = 0;
+    for (int a = 0; a < nm; ++a)
+      if (a != m && row_to_col[a] >= 0 && model->markers()[a].segment == segment) {
+        ++mates;
+        cp += predicted.col(a);
+        cq += points.col(row_to_col[a]);
+        var += MeasurementVariance(a);
+      }
+    if (mates < 3) continue;
+    cp /= mates;
+    cq /= mates;
+    Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
+    for (int a = 0; a < nm; ++a)
+      if (a != m && row_to_col[a] >= 0 && model->markers()[a].segment == segment)
+        H += (predicted.col(a) - cp) * (points.col(row_to_col[a]) - cq).transpose();
+    const Eigen::Matrix3d R = KabschRotation(H);
+    const Eigen::Vector3d where = R * (predicted.col(m) - cp) + cq;
+    const double gate2 = options.gate_chi2 * (MeasurementVariance(m) + var / mates);
+    if (!claims_known) {
+      std::fill(ltaken.begin(), ltaken.begin() + np, 0);
+      for (int a = 0; a < nm; ++a)
+        if (row_to_col[a] >= 0) ltaken[row_to_col[a]] = 1;
+      claims_known = true;
+    }
+    const int found = OnlyFreePointNear(where, gate2, np);
+    if (found < 0 || NonRigidTrack(m, points.col(found)) || SeenBeside(m, found, np)) continue;
+    row_to_col[m] = found;
+    ltaken[found] = 1;
+  }
+}
+
+// Turns row_to_col (columns < np are points) into the output labels; returns the count.
+int Tracker::Impl::ApplyLabels(int np) {
+  int labelled = 0;
+  for (int m = 0; m < nm; ++m) {
+    const int col = row_to_col[m];
+    if (col < 0 || col >= np) {
+      row_to_col[m] = -1;
+      continue;
+    }
+    const int input = valid[col];
+    out.point_of_marker[m] = input;
+    out.marker_of_point[input] = m;
+    ++labelled;
+  }
+  out.labelled = labelled;
+  return labelled;
+}
+
+void Tracker::Impl::PushHistory(int np) {
+  hist_points[hist_head].leftCols(np) = points.leftCols(np);
+  hist_count[hist_head] = np;
+  std::vector<char>& claimed = hist_claimed[hist_head];
+  std::fill(claimed.begin(), claimed.begin() + np, 0);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= 0) claimed[row_to_col[m]] = 1;
+  for (size_t i = 0; i < centre_now.size(); ++i) hist_centre[hist_head][i] = centre_now[i];
+  hist_head = (hist_head + 1) % kHistory;
+  hist_size = std::min(hist_size + 1, kHistory);
+
+  // A marker that lost its label this frame while another marker now holds its last point (one
+  // marker is one point) held the wrong one: what it was seen beside was recorded under that
+  // label (a head initialised turned about, its front markers on the back markers' points, their
+  // own points unclaimed beside them), so it is forgotten, and the label no longer counts as held.
+  for (int m = 0; m < nm; ++m) {
+    if (row_to_col[m] >= 0 || unlabelled_run[m] != 1) continue;
+    for (int a = 0; a < nm; ++a)
+      if (a != m && row_to_col[a] >= 0 &&
+          (points.col(row_to_col[a]) - last_point.col(m)).squaredNorm() < kTrackStep * kTrackStep) {
+        for (size_t j = static_cast<size_t>(m); j < beside_prev.size(); j += nm) beside_prev[j] = kNever;
+        held_run[m] = 0;
+        break;
+      }
+  }
+  // Each unclaimed point inherits its predecessor's record and adds the markers measured now.
+  ++frame_index;
+  for (int k = 0; k < np; ++k) {
+    int* now = beside_now.data() + static_cast<size_t>(k) * nm;
+    if (claimed[k]) continue;
+    const int pred = Predecessor(k, np);
+    const int* before = pred >= 0 ? beside_prev.data() + static_cast<size_t>(pred) * nm : nullptr;
+    for (int a = 0; a < nm; ++a)
+      now[a] = row_to_col[a] >= 0 && row_to_col[a] != k && measured[a] ? frame_index
+               : before ? before[a]
+                        : kNever;
+  }
+  beside_prev.swap(beside_now);
+  prev_points.leftCols(np) = points.leftCols(np);
+  prev_free_count = 0;
+  for (int k = 0; k < np; ++k) {
+    prev_free[k] = !claimed[k];
+    if (!claimed[k]) prev_free_list[prev_free_count++] = k;
+  }
+  prev_np = np;
+}
+
+// The last good frame's unclaimed point that point k continues: its nearest point of that frame
+// within a frame's motion (kTrackStep), when k is also that point's nearest of this frame (mutual
+// nearest neighbours: a reflection riding 15 mm from its marker is not confused with it) and
+// it was not a marker's (k then continues that marker); -1 otherwise.
+int Tracker::Impl::Predecessor(int k, int np) const {
+  if (pred_cache[k] != -2) return pred_cache[k];
+  const Eigen::Vector3d p = points.col(k);
+  int pred = -1;
+  double best = kTrackStep * kTrackStep;
+  // The few unclaimed points first: most points (the markers') have none near and stop here.
+  for (int f = 0; f < prev_free_count; ++f) {
+    const int j = prev_free_list[f];
+    const double d2 = (prev_points.col(j) - p).squaredNorm();
+    if (d2 < best) {
+      best = d2;
+      pred = j;
+    }
+  }
+  for (int j = 0; j < prev_np && pred >= 0; ++j)
+    if (!prev_free[j] && (prev_points.col(j) - p).squaredNorm() < best) pred = -1;
+  for (int i = 0; i < np && pred >= 0; ++i)
+    if (i != k && (points.col(i) - prev_points.col(pred)).squaredNorm() < best) pred = -1;
+  pred_cache[k] = pred;
+  return pred;
+}
+
+// Whether point p has been seen beside marker m: followed back frame by frame, it was there, as
+// another point, while m was measured, within the last kBesideSeconds. One marker is one point,
+// so p is not m: it is a reflection that came with m (riding along with it, or fixed near where
+// it passed) and outlived m's occlusion. Such a ghost keeps its distances to m's segment (it
+// moves with the marker), so NonRigidTrack passes it, and its history ring (kHistory frames) is
+// shorter than an occlusion; this record is carried for as long as the point is followed. The
+// evidence expires, so that a point the track wrongly left unclaimed beside a wrong label is not
+// kept from its marker for good.
+bool Tracker::Impl::SeenBeside(int m, int k, int np) const {
+  // A fresh track's labels may be wrong (see FreshTrack): there only a marker labelled in the last
+  // frame, or one that held its point for kHeldFrames, is kept from the reflection beside the
+  // point it loses (an ankle marker hidden in the static pose, a lab-fixed ghost 8 cm away in its
+  // still wide gate); a marker without either may be the one whose point was measured as
+  // another's. A held label that proves wrong loses its records (PushHistory).
+  if (prev_np == 0 || (FreshTrack() && labelled_run[m] == 0 && held_run[m] < kHeldFrames))
+    return false;
+  const int pred = Predecessor(k, np);
+  if (pred < 0) return false;
+  return frame_index - beside_prev[static_cast<size_t>(pred) * nm + m] <=
+         kBesideSeconds * options.rate_hz;
+}
+
+// Whether point p, followed back through the last frames (the nearest unclaimed point within a
+// frame's motion), changed its distance to marker m's joint centre: a marker keeps it (rigid
+// body), a ghost does not -- a reflection fixed in the lab or riding along with another marker,
+// which can live for seconds near the body. Only a point seen for kMinTrackFrames can be judged;
+// a marker coming back from an occlusion has no past and passes (the labelled points it may
+// pass near, a hand sliding over the thigh marker, are other markers' past, not its own).
+bool Tracker::Impl::NonRigidTrack(int m, const Eigen::Vector3d& p) const {
+  // A fresh track's limb may be wrongly placed, its joint centres with it (see FreshTrack).
+  if (FreshTrack()) return false;
+  double spread = 0;
+  return TrackBack(m, p, &spread) >= kMinTrackFrames && spread > kRigidTolerance;
+}
+
+int Tracker::Impl::TrackBack(int m, const Eigen::Vector3d& p, double* spread) const {
+  const int segment = model->markers()[m].segment;
+  Eigen::Vector3d q = p;
+  const double r0 = (p - centre_now[segment]).norm();
+  double lo = r0, hi = r0;
+  int length = 1;
+  for (int h = 1; h <= hist_size; ++h) {
+    const int slot = (hist_head - h + kHistory) % kHistory;
+    const Eigen::Matrix3Xd& pts = hist_points[slot];
+    int nearest = -1;
+    double best = kTrackStep * kTrackStep;
+    const std::vector<char>& claimed = hist_claimed[slot];
+    for (int k = 0; k < hist_count[slot]; ++k) {
+      if (claimed[k]) continue;
+      const double d2 = (pts.col(k) - q).squaredNorm();
+      if (d2 < best) {
+        best = d2;
+        nearest = k;
+      }
+    }
+    if (nearest < 0) break;
+    q = pts.col(nearest);
+    const double r = (q - hist_centre[slot][segment]).norm();
+    lo = std::min(lo, r);
+    hi = std::max(hi, r);
+    ++length;
+  }
+  *spread = hi - lo;
+  return length;
+}
+
+// A marker coming back after frames without a label is labelled at once but enters the update
+// only from its second consecutive frame, and only if its point moved from the first frame's
+// as its prediction did. Half of the ghosts near a body are single-frame reflections: one in the
+// gate of a hidden marker whose segment is loosely held (a toe with only the heel seen: the gate
+// is several centimetres long) would otherwise be trusted at the marker's full precision, move
+// the segment by as much, shrink its covariance there, and leave the true marker outside the
+// gate when it reappears (a limb lost for the 20 frames before its search). The next frame's
+// point of a ghost is another one or none. A true marker costs one frame of information.
+void Tracker::Impl::ChooseMeasurements() {
+  measured_count = 0;
+  for (int m = 0; m < nm; ++m) {
+    const int col = row_to_col[m];
+    if (col < 0) {
+      measured[m] = 0;
+      labelled_run[m] = 0;
+      continue;
+    }
+    const Eigen::Vector3d p = points.col(col), q = predicted.col(m);
+    if (labelled_run[m] == 1) {
+      const Eigen::Vector3d moved = (p - last_point.col(m)) - (q - last_predicted.col(m));
+      measured[m] = moved.squaredNorm() <= kProbationDistance * kProbationDistance;
+      if (!measured[m]) labelled_run[m] = 0;  // a different point: this is its first frame
+    } else {
+      measured[m] = labelled_run[m] > 1;
+    }
+    ++labelled_run[m];
+    held_run[m] = std::max(held_run[m], labelled_run[m]);
+    last_point.col(m) = p;
+    last_predicted.col(m) = q;
+    measured_count += measured[m];
+  }
+}
+
+// Whether point p lies at marker m's distance from its segment's joint centre (within the
+// marker's noise and the predicted centre's error): a segment turns about its joint, so that
+// distance is the one thing about a marker that no error in the segment's angles changes. The
+// Mahalanobis gate is long along the directions an uncertain joint angle moves the marker; a
+// point of the neighbouring segment can sit inside it (a finger marker's gate, its hand held by
+// that marker alone, over a wrist marker's point 4-5 cm nearer the wrist) and the filter then
+// bends the limb to keep it. The root's origin is as uncertain as the root itself: not tested.
+bool Tracker::Impl::OnSegmentSphere(int m, const Eigen::Vector3d& p) const {
+  const int segment = model->markers()[m].segment;
+  if (marker_depth[m] == 0) return true;
+  const Eigen::Vector3d centre = centre_now[segment];
+  const double radius = (predicted.col(m) - centre).norm();
+  const double tol = std::sqrt(options.gate_chi2 * (MeasurementVariance(m) + model_error[m])) +
+                     kJointCentreTolerance;
+  return std::abs((p - centre).norm() - radius) <= tol;
+}
+
+}  // namespace mocap::ekf
