@@ -325,7 +325,9 @@ void ControlServer::HandleLine(Client* c, std::string_view line) {
   nlohmann::json request;
   try {
     request = nlohmann::json::parse(line.begin(), line.end());
-  } catch (const nlohmann::json::parse_error& e) {
+  } catch (const nlohmann::json::exception& e) {
+    // parse_error, and out_of_range for a number beyond a double ("1e9999"): the fuzzer's find,
+    // which ended the daemon when only parse_error was caught.
     EnvelopeError(c, nullptr, error_code::kParseError, std::string("not JSON: ") + e.what());
     return;
   }

@@ -39,6 +39,14 @@ inline std::string ReadBytes(const std::string& path) {
   return ss.str();
 }
 
+// An empty scratch directory MOCAP_TEST_TMP/group/name (emptied if it exists).
+inline std::filesystem::path FreshDir(const std::string& group, const std::string& name) {
+  const std::filesystem::path dir = std::filesystem::path(MOCAP_TEST_TMP) / group / name;
+  std::filesystem::remove_all(dir);
+  std::filesystem::create_directories(dir);
+  return dir;
+}
+
 inline void WriteBytes(const std::string& path, const std::string& bytes) {
   std::ofstream(path, std::ios::binary | std::ios::trunc) << bytes;
 }

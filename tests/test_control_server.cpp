@@ -48,6 +48,21 @@ TEST(ControlServer, EveryRequestLineIsAnsweredOnceInOrder) {
   EXPECT_EQ(h.requests(), 3);
 }
 
+// A number beyond a double makes nlohmann::json throw out_of_range, not parse_error: the fuzzer
+// found that one such line ended the daemon.
+TEST(ControlServer, ANumberBeyondADoubleIsAParseErrorNotACrash) {
+  testing::ControlServerHarness h({});
+  ASSERT_TRUE(h.ok());
+  const std::vector<json> got = Lines(h.Exchange(
+      "{\"id\":1,\"method\":\"a\",\"params\":{\"x\":1.75e7502}}\n"
+      "{\"id\":2,\"method\":\"b\"}\n"));
+  ASSERT_EQ(got.size(), 3u);
+  EXPECT_EQ(got[1]["error"]["code"], "parse_error");
+  EXPECT_NE(got[1]["error"]["message"].get<std::string>().find("not JSON"), std::string::npos);
+  EXPECT_EQ(got[2]["id"], 2);
+  EXPECT_EQ(h.requests(), 1);
+}
+
 TEST(ControlServer, BusyRepliesDoNotFreePendingSlots) {
   // A handler that never answers: the first max_pending requests wait, every later one is
   // `busy`, however many come (a busy reply is not one of the pending requests finishing).

@@ -538,8 +538,10 @@ TEST(MocapdUnderSystemd, BadInputAtStartUpNamesTheCauseAndExitsWithItsCode) {
   EXPECT_TRUE(std::filesystem::is_regular_file(dir + "/plain")) << "the file was removed";
 
   // A real rig whose camera is not there: unavailable (systemd retries; the camera may come back).
+  // 50 Hz: the default 1280 x 1024 Mono8 at 100 Hz would not fit a GigE link, and the bandwidth
+  // check (startup_checks.h) refuses that first, as a configuration error.
   const std::string real = dir + "/real.toml";
-  std::ofstream(real) << "[rig]\nrate = 100\n[[rig.camera]]\nid = \"No-Such-Camera-0\"\n";
+  std::ofstream(real) << "[rig]\nrate = 50\n[[rig.camera]]\nid = \"No-Such-Camera-0\"\n";
   r = StartMocapd(dir, {"--config", real, "--state-dir", dir + "/state", "--socket", dir + "/c.sock"});
   EXPECT_EQ(r.code, daemon::kExitUnavailable) << r.log;
   ASSERT_EQ(r.errors.size(), 1u) << r.log;

@@ -33,12 +33,7 @@ std::string Gait(const std::string& f) { return SharedData() + "/opensim_gait235
 std::string Welk(const std::string& f) { return SharedData() + "/welk007_hipfunc/" + f; }
 std::string Bio(const std::string& f) { return SharedData() + "/biobuddy_p01_lowerlimb/" + f; }
 
-fs::path Dir(const std::string& name) {
-  const fs::path dir = fs::path(MOCAP_TEST_TMP) / "real_data" / name;
-  fs::remove_all(dir);
-  fs::create_directories(dir);
-  return dir;
-}
+fs::path Dir(const std::string& name) { return testutil::FreshDir("real_data", name); }
 
 nlohmann::json ReadJson(const fs::path& path) {
   std::ifstream in(path);

@@ -7,6 +7,7 @@
 // - headless Chromium (Debian's `chromium`) opens the page: no console error, a screenshot of
 //   the right size that is not blank, and the rendered text holds the JSON report's figures.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cmath>
 #include <cstdio>
@@ -33,12 +34,15 @@ namespace fs = std::filesystem;
 using testutil::Mocap;
 using testutil::ReadBytes;
 
-fs::path Dir() { return fs::path(MOCAP_TEST_TMP) / "report"; }
+// Per process: ctest runs each test in its own process, side by side, and each one's
+// SetUpTestSuite rebuilds the directory (a shared one raced: the tests were skipped).
+fs::path Dir() { return fs::path(MOCAP_TEST_TMP) / ("report-" + std::to_string(::getpid())); }
 std::string P(const std::string& rel) { return (Dir() / rel).string(); }
 
 // The sim subject and two fits, shared by the tests (each fit takes seconds).
 class Report : public ::testing::Test {
  protected:
+  static void TearDownTestSuite() { fs::remove_all(Dir()); }
   static void SetUpTestSuite() {
     fs::remove_all(Dir());
     fs::create_directories(Dir());
