@@ -1105,6 +1105,9 @@ double RelativeDifference(double a, double b) {
 int main(int argc, char** argv) {
   const Args args = ParseArgs(argc, argv);
   solver::FitOptions fit_options;  // defaults: all four groups free, FitModel's LM settings
+  // One problem, solved by both from the same start: FitModel's schedule (generic models) would
+  // change the problem between stages; Ceres gets the single problem, so ours does too.
+  fit_options.staged = false;
   if (args.min_diagonal > 0) fit_options.lm.min_diagonal = args.min_diagonal;
   if (args.frame_prior_sigma > 0) {
     fit_options.frame_prior_sigma_rad = args.frame_prior_sigma;
