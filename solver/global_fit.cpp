@@ -241,8 +241,11 @@ std::string FitReport::BriefReport() const {
 
 namespace {
 // One solve of the whole problem for the groups `options` frees (FitModel's stage).
+// `measure_correlation`: the residuals' autocorrelation time (FitReport) is measured; it costs a
+// pass over the residuals per lag, and after a stage with the model's markers it would measure
+// their misplacement, not the data's error.
 Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
-                FitResult* result) {
+                bool measure_correlation, FitResult* result) {
   const auto start = Clock::now();
   const int nm = initial.num_markers(), nz = initial.num_coordinates();
   FitReport report;
@@ -518,7 +521,7 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
   for (size_t t = 0; t < trials.size(); ++t) {
     Eigen::MatrixXd& z = result->coordinates[t];
     z.resize(trials[t].markers.num_frames(), nz);
-    formats::RowMatrix residual(z.rows(), 3 * nm);
+    formats::RowMatrix residual(measure_correlation ? z.rows() : 0, 3 * nm);
     residual.setConstant(std::numeric_limits<double>::quiet_NaN());
     double trial_sq = 0;
     int trial_n = 0;
@@ -533,7 +536,7 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
         if (!std::isfinite(row[3 * m])) continue;
         const Eigen::Vector3d r =
             MarkerPosition(result->model, geometry, data, m) - row.segment<3>(3 * m).transpose();
-        residual.row(f).segment<3>(3 * m) = r.transpose();
+        if (measure_correlation) residual.row(f).segment<3>(3 * m) = r.transpose();
         frame_sq += r.squaredNorm();
         ++frame_n;
       }
@@ -543,6 +546,7 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
       trial_n += frame_n;
     }
     report.per_trial_rms_mm.push_back(1000.0 * std::sqrt(trial_sq / std::max(1, trial_n)));
+    if (!measure_correlation) continue;
     // rho(k) pooled over the trial's markers and axes, summed while it stays above 0.05 (the
     // noise floor of the estimate), for at most a quarter of the trial.
     auto lag = [&](int k) {
@@ -670,7 +674,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   const bool staged = options.staged && (options.fit_centres || options.fit_axes) &&
                       (options.fit_scales || options.fit_markers);
   if (!staged) {
-    MOCAP_RETURN_IF_ERROR(FitStage(initial, trials, options, result));
+    MOCAP_RETURN_IF_ERROR(FitStage(initial, trials, options, true, result));
     result->report.stages = {StageSummary("all parameters", options, result->report)};
     return Status::Ok();
   }
@@ -704,7 +708,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     o.lm.max_iterations = std::min(options.staged_iterations, iterations_left - 1);
     if (o.lm.max_iterations < 1) break;
     FitResult out;
-    MOCAP_RETURN_IF_ERROR(FitStage(*model, stage_trials, o, &out));
+    MOCAP_RETURN_IF_ERROR(FitStage(*model, stage_trials, o, /*measure_correlation=*/stage.markers, &out));
     if (!out.report.solver.IsSolutionUsable())
       return Status::Error(std::string("fit, stage '") + stage.name + "': " + out.report.solver.message);
     iterations_left -= out.report.solver.num_iterations();
@@ -739,7 +743,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   }
 
   if (summaries.empty()) {  // no iteration to spare for a first stage: one stage, as asked
-    MOCAP_RETURN_IF_ERROR(FitStage(initial, trials, options, result));
+    MOCAP_RETURN_IF_ERROR(FitStage(initial, trials, options, true, result));
     result->report.stages = {StageSummary("all parameters", options, result->report)};
     return Status::Ok();
   }
@@ -754,7 +758,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   UnexcitedJoints(placed.model, placed.coordinates, options, &held, &last.fixed_parameters);
   last.lm.max_iterations = std::max(1, iterations_left);
   const Model placed_model = placed.model;  // *result may be `placed`'s storage
-  MOCAP_RETURN_IF_ERROR(FitStage(placed_model, stage_trials, last, result));
+  MOCAP_RETURN_IF_ERROR(FitStage(placed_model, stage_trials, last, true, result));
 
   FitReport& report = result->report;
   summaries.push_back(StageSummary("all parameters", last, report));

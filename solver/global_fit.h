@@ -177,7 +177,7 @@ struct FitStageSummary {
   TerminationType termination = TerminationType::kFailure;
   double initial_marker_rms_mm = 0, marker_rms_mm = 0;
   double marker_sigma_mm = 0;               // the data's weight in this stage (1 / sigma^2)
-  double residual_correlation_frames = 1;   // of its residuals (FitReport)
+  double residual_correlation_frames = 1;   // of its residuals (FitReport); 1: not measured (scales)
   double seconds = 0;
 };
 
