@@ -135,6 +135,7 @@ const std::vector<DaemonField>& DaemonFields() {
       Number<&DaemonConfig::detection_threshold>("rig", "detection_threshold", false, {1, 65535}),
       Number<&DaemonConfig::centroid_noise_px>("rig", "centroid_noise_px", false, {0, 10}),
       Number<&DaemonConfig::detection_threads>("rig", "detection_threads", false, {1, 64}),
+      Number<&DaemonConfig::min_cameras>("rig", "min_cameras", false, {1, 64}),
       // The running triangulation can switch calibration between two frame sets (as
       // rig.calibrate.apply does), so a new file applies live.
       Path("rig", "calibration", true, &DaemonConfig::calibration_file, false),

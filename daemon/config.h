@@ -16,6 +16,8 @@
 //   detection_threshold = 60    # image units (0..255 for Mono8)
 //   centroid_noise_px = 0.1     # simulated rig only
 //   detection_threads = 2
+//   min_cameras = 2             # start degraded while at least this many cameras open (the rest
+//                               # join when they appear); fewer: refuse to start (rig_setup.h)
 //   calibration = "calib.json"  # camera calibration; absent: uncalibrated until rig.calibrate
 //   sync = "trigger"            # "trigger" | "ptp" | "free-run" (daemon/capture_pipeline.h RigSync;
 //                               # a simulated rig's fakes share the host's clock: always as "ptp")
@@ -114,6 +116,7 @@ struct DaemonConfig {
   int detection_threshold = 60;
   double centroid_noise_px = 0.1;  // simulated rig only
   int detection_threads = 2;
+  int min_cameras = 2;  // fewer open at start: refuse to start; else degraded (rig_setup.h)
   std::vector<CameraConfig> cameras;  // [[rig.camera]]; a real rig needs at least one
   std::string calibration_file;       // empty: uncalibrated until rig.calibrate
   std::string sync = "trigger";       // "trigger" | "ptp" | "free-run"

@@ -201,11 +201,13 @@ Status Daemon::Start() {
     fs::create_directories(config_.state_dir + "/exports", ec);
   }
 
-  // 4. The cameras.
-  std::vector<std::unique_ptr<drivers::CameraSource>> sources;
-  drivers::CameraSettings settings = CameraSettingsOf(config_, -1);
-  settings.pixel_format = drivers::PixelFormat::kMono8;  // what the simulated rig draws
+  // 4. The cameras: each opened with its settings; one that does not open is awaited and the
+  // rig starts degraded, unless fewer than [rig] min_cameras open (rig_setup.h OpenRigCameras).
+  std::vector<std::unique_ptr<drivers::AravisCamera>> cameras;
+  std::vector<drivers::CameraSettings> camera_settings;
   if (config_.simulated_cameras > 0) {
+    drivers::CameraSettings settings = CameraSettingsOf(config_, -1);
+    settings.pixel_format = drivers::PixelFormat::kMono8;  // what the simulated rig draws
     sim::LiveRigOptions ro;
     ro.cameras = config_.simulated_cameras;
     ro.width = config_.width;
@@ -215,26 +217,47 @@ Status Daemon::Start() {
     ro.centroid_noise_px = config_.centroid_noise_px;
     ro.protocol = &protocol_;
     MOCAP_RETURN_IF_ERROR(sim::LiveRig::Create(ro, &sim_rig_));
-    MOCAP_RETURN_IF_ERROR(sim_rig_->OpenCameras(settings, &sources));
+    for (int c : options_.test_absent_cameras)
+      if (c >= 0 && c < config_.simulated_cameras) sim_rig_->fakes().SetPresent(c, false);
+    cameras = sim_rig_->MakeCameras();
+    camera_settings.assign(cameras.size(), settings);
     start_cameras_ = sim_rig_->IntrinsicsOnly();
   } else {
-    std::vector<drivers::AravisCamera*> aravis;
     for (std::size_t i = 0; i < config_.cameras.size(); ++i) {
-      const CameraConfig& c = config_.cameras[i];
-      auto cam = std::make_unique<drivers::AravisCamera>(c.id);
-      if (Status st = cam->Open(CameraSettingsOf(config_, static_cast<int>(i))); !st)
-        return Status::Error("camera '" + c.id + "': " + st.message());
-      for (const std::string& r : cam->Applied().refused_optional)
-        spdlog::warn("camera '{}': optional feature refused: {}", c.id, r);
-      aravis.push_back(cam.get());
-      sources.push_back(std::move(cam));
+      cameras.push_back(std::make_unique<drivers::AravisCamera>(config_.cameras[i].id));
+      camera_settings.push_back(CameraSettingsOf(config_, static_cast<int>(i)));
     }
-    if (sources.empty()) return Status::Error(config_.source + ": the rig has no cameras");
+  }
+  if (cameras.empty()) return Status::Error(config_.source + ": the rig has no cameras");
+  std::vector<drivers::AravisCamera*> aravis;
+  for (auto& cam : cameras) aravis.push_back(cam.get());
+  {
+    int code = 0;
+    if (Status st = OpenRigCameras(aravis, camera_settings, config_.min_cameras,
+                                   &missing_at_start_, &code);
+        !st) {
+      start_exit_code_ = code;
+      return Status::Error("[rig] " + st.message());
+    }
+  }
+  std::vector<drivers::AravisCamera*> opened;
+  for (drivers::AravisCamera* cam : aravis) {
+    const bool missing = std::any_of(missing_at_start_.begin(), missing_at_start_.end(),
+                                     [&](const MissingCamera& m) { return m.id == cam->id(); });
+    if (missing) continue;
+    opened.push_back(cam);
+    for (const std::string& r : cam->Applied().refused_optional)
+      spdlog::warn("camera '{}': optional feature refused: {}", cam->id(), r);
+  }
+  for (const MissingCamera& m : missing_at_start_)
+    spdlog::error("[[rig.camera]] '{}' did not open ({}); the rig starts without it, degraded, "
+                  "and takes it when it appears", m.id, m.why);
+  if (config_.simulated_cameras == 0) {
     if (config_.sync == "ptp") {
       std::vector<drivers::PtpState> ptp;
-      MOCAP_RETURN_IF_ERROR(WaitForPtpLock(aravis, config_.ptp_lock_timeout_s, &ptp));
+      MOCAP_RETURN_IF_ERROR(WaitForPtpLock(opened, config_.ptp_lock_timeout_s, &ptp));
       for (std::size_t i = 0; i < ptp.size(); ++i)
-        spdlog::info("camera '{}': PTP {}{}", aravis[i]->id(), ptp[i].status,
+        spdlog::info("camera '{}': PTP {}{}", opened[i]->id(), ptp[i].status,
                      ptp[i].has_offset ? ", " + std::to_string(ptp[i].offset_from_master_ns) +
                                              " ns from the master"
                                        : "");
@@ -243,7 +266,13 @@ Status Daemon::Start() {
                    "fitted against the host's; they are only as good as that estimate, and "
                    "free-running cameras do not expose together");
     }
+    for (const MissingCamera& m : missing_at_start_)
+      if (config_.sync == "trigger" && m.id == config_.trigger_master)
+        spdlog::error("[rig] trigger_master '{}' is missing: the other cameras get no trigger "
+                      "until it appears", m.id);
   }
+  std::vector<std::unique_ptr<drivers::CameraSource>> sources;
+  for (auto& cam : cameras) sources.push_back(std::move(cam));
   // The rig calibration: the configured file, else the newest stored one.
   std::vector<reconstruction::CameraModel> calibrated;
   {
@@ -564,6 +593,8 @@ Json Daemon::CamerasJson() const {
     const CameraHealth& h = health[static_cast<std::size_t>(c)];
     cams.push_back({{"id", cam.id()},
                     {"connected", cam.State() == drivers::CameraState::kStreaming},
+                    {"problem", cam.State() == drivers::CameraState::kStreaming
+                                    ? Json() : Json(cam.LastError())},
                     {"frames", k.complete.load()},
                     {"fps", k.complete.load() / up},
                     {"incomplete", k.missing_packets.load() + k.size_mismatches.load()},

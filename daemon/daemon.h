@@ -39,6 +39,7 @@
 #include "daemon/config.h"
 #include "daemon/control_server.h"
 #include "daemon/live_pipeline.h"
+#include "daemon/rig_setup.h"
 #include "daemon/service_notify.h"
 #include "daemon/store.h"
 #include "model/model.h"
@@ -63,6 +64,8 @@ struct DaemonOptions {
   ServiceNotifier* notifier = nullptr;
   // CapturePipelineOptions::test_hold (test builds only, daemon/mocapd_main.cpp).
   std::function<void(const char* stage)> test_hold;
+  // Simulated rig: cameras unplugged when mocapd starts (test builds only: a degraded start).
+  std::vector<int> test_absent_cameras;
 };
 
 class Daemon {
@@ -72,8 +75,10 @@ class Daemon {
   Daemon(const Daemon&) = delete;
   Daemon& operator=(const Daemon&) = delete;
 
-  // Starts everything in dependency order; on failure, what was started is stopped again.
+  // Starts everything in dependency order; on failure, what was started is stopped again and
+  // StartExitCode() is the exit code that names the cause (daemon/startup_checks.h).
   Status Start();
+  int StartExitCode() const { return start_exit_code_; }
   // Runs the loop until SIGTERM/SIGINT or `shutdown`; returns the exit code.
   int Run();
   // Stops everything in reverse order (idempotent).
@@ -170,6 +175,8 @@ class Daemon {
   std::uint64_t started_ns_ = 0;
   bool stopped_ = false;
   int exit_code_ = 0;
+  int start_exit_code_ = 69;  // kExitUnavailable
+  std::vector<MissingCamera> missing_at_start_;  // cameras that did not open at start
 
   // State (the loop's).
   std::optional<SubjectRecord> subject_;

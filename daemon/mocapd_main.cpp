@@ -20,6 +20,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <memory>
+#include <sstream>
 #include <vector>
 #include <string>
 #include <thread>
@@ -79,6 +80,12 @@ std::atomic<bool> g_stopping{false};
 // only in a test build, touches nothing else.
 void InstallTestHooks([[maybe_unused]] mocap::daemon::DaemonOptions* options) {
 #ifdef MOCAP_TEST_HOOKS
+  if (const char* absent = std::getenv("MOCAP_TEST_ABSENT_CAMERAS")) {
+    std::stringstream list(absent);
+    for (std::string item; std::getline(list, item, ',');)
+      if (!item.empty()) options->test_absent_cameras.push_back(std::atoi(item.c_str()));
+    spdlog::warn("test hook: simulated cameras {} unplugged at start", absent);
+  }
   const char* file = std::getenv("MOCAP_TEST_HOLD_FILE");
   const char* stage = std::getenv("MOCAP_TEST_HOLD_STAGE");
   if (!file || !stage) return;
@@ -162,10 +169,10 @@ int main(int argc, char** argv) {
   md::Daemon daemon(config, options);
   if (mocap::Status s = daemon.Start(); !s) {
     spdlog::error("start-up failed: {}", s.message());
-    md::ServiceNotifier::StartFailed(s.message(), md::kExitUnavailable);
+    md::ServiceNotifier::StartFailed(s.message(), daemon.StartExitCode());
     g_stopping = true;
     daemon.Stop();
-    return md::kExitUnavailable;
+    return daemon.StartExitCode();
   }
   // READY=1 follows from the loop's tick once the cameras stream (daemon/service_notify.h).
   notifier.Started(mocap::drivers::MonotonicNs());

@@ -1,8 +1,12 @@
 #include "daemon/rig_setup.h"
 
+#include <algorithm>
+
 #include <chrono>
 #include <sstream>
 #include <thread>
+
+#include "daemon/startup_checks.h"
 
 namespace mocap::daemon {
 
@@ -66,6 +70,37 @@ Status WaitForPtpLock(const std::vector<drivers::AravisCamera*>& cameras, double
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(200));
   }
+}
+
+Status OpenRigCameras(const std::vector<drivers::AravisCamera*>& cameras,
+                      const std::vector<drivers::CameraSettings>& settings, int min_cameras,
+                      std::vector<MissingCamera>* missing, int* exit_code) {
+  missing->clear();
+  *exit_code = 0;
+  if (settings.size() != cameras.size())
+    return Status::Error("OpenRigCameras: " + std::to_string(settings.size()) + " settings for " +
+                         std::to_string(cameras.size()) + " cameras");
+  for (std::size_t i = 0; i < cameras.size(); ++i) {
+    drivers::AravisCamera& cam = *cameras[i];
+    const Status st = cam.Open(settings[i]);
+    if (st.ok()) continue;
+    missing->push_back({static_cast<int>(i), cam.id(), st.message(), cam.DeviceFoundAtOpen()});
+    cam.AwaitDevice(settings[i], st.message());
+  }
+  const int configured = static_cast<int>(cameras.size());
+  const int needed = std::clamp(min_cameras, 1, std::max(1, configured));
+  const int opened = configured - static_cast<int>(missing->size());
+  if (opened >= needed) return Status::Ok();
+  std::string list;
+  bool all_refused = true;
+  for (const MissingCamera& m : *missing) {
+    list += (list.empty() ? "" : "; ") + m.why;
+    all_refused &= m.device_found;
+  }
+  *exit_code = all_refused ? kExitConfig : kExitUnavailable;
+  return Status::Error(std::to_string(opened) + " of " + std::to_string(configured) +
+                       " cameras opened, fewer than min_cameras = " + std::to_string(needed) + ": " +
+                       list);
 }
 
 }  // namespace mocap::daemon

@@ -36,4 +36,27 @@ CapturePipelineOptions::RigSync RigSyncOf(const DaemonConfig& config);
 Status WaitForPtpLock(const std::vector<drivers::AravisCamera*>& cameras, double timeout_s,
                       std::vector<drivers::PtpState>* states);
 
+// A configured camera that did not open at start, and why (AravisCamera::Open's error).
+struct MissingCamera {
+  int index = 0;         // in the rig's order
+  std::string id;
+  std::string why;
+  bool device_found = false;  // the device answered and refused a setting (vs absent)
+};
+
+// Opens the rig's cameras, camera i with settings[i]. Why a rig starts degraded rather than not
+// at all: a lab PC booted before a PoE switch, or with one camera's cable pulled, must still
+// come up — its socket serves stored recordings, exports and fits, and the camera joins the
+// rig when it appears, without a restart (systemd restarting a daemon whose camera is away is
+// a crash loop that also drops every client). So a camera that does not open is kept awaiting
+// its device (AravisCamera::AwaitDevice: opened when it appears, as after a loss) and listed in
+// *missing. Only when fewer than `min_cameras` open (clamped to the number configured; a rig
+// of fewer than two cannot triangulate) does start-up fail: the error lists every missing
+// camera and why, and *exit_code is kExitConfig if each of them answered and refused a
+// setting (no restart cures a configuration: RestartPreventExitStatus=), else kExitUnavailable
+// (a camera may come back: systemd retries).
+Status OpenRigCameras(const std::vector<drivers::AravisCamera*>& cameras,
+                      const std::vector<drivers::CameraSettings>& settings, int min_cameras,
+                      std::vector<MissingCamera>* missing, int* exit_code);
+
 }  // namespace mocap::daemon

@@ -118,6 +118,7 @@ Status AravisCamera::Open(const CameraSettings& settings) {
   lost_flag_ = false;
   arrived_flag_ = false;
   Status s = Connect();
+  device_found_at_open_ = camera_ != nullptr;
   if (s.ok()) s = CreateStreamAndPool();
   if (!s.ok()) {
     TearDown(false);
@@ -125,6 +126,7 @@ Status AravisCamera::Open(const CameraSettings& settings) {
     return s;
   }
   opened_ = true;
+  awaiting_device_ = false;
   acquiring_ = false;
   state_ = CameraState::kClosed;
   unwrapper_ = FrameIdUnwrapper();
@@ -609,8 +611,35 @@ void AravisCamera::TearDown(bool device_gone) {
   }
 }
 
+void AravisCamera::AwaitDevice(const CameraSettings& settings, std::string why) {
+  if (opened_) TearDown(state_.load() == CameraState::kLost);
+  settings_ = settings;
+  lost_flag_ = false;
+  arrived_flag_ = false;
+  opened_ = true;  // configured: Reopen() has its settings
+  acquiring_ = false;
+  awaiting_device_ = true;
+  state_ = CameraState::kLost;
+  unwrapper_ = FrameIdUnwrapper();
+  delivered_any_ = false;
+  resume_sequence_ = false;
+  sequence_offset_ = 0;
+  last_reopen_attempt_ = std::chrono::steady_clock::now();
+  std::lock_guard<std::mutex> lock(error_mutex_);
+  last_error_ = std::move(why);
+}
+
+std::string AravisCamera::LastError() const {
+  std::lock_guard<std::mutex> lock(error_mutex_);
+  return last_error_;
+}
+
 Status AravisCamera::Start() {
   if (!opened_) return Status::Error(id_ + ": Start() before a successful Open()");
+  if (state_.load() == CameraState::kLost && awaiting_device_) {
+    acquiring_ = true;  // streams from its first successful open (Grab -> Reopen)
+    return Status::Ok();
+  }
   if (state_.load() == CameraState::kLost) return Status::Error(id_ + ": camera lost");
   GError* e = nullptr;
   arv_camera_start_acquisition(camera_, &e);
@@ -666,13 +695,21 @@ Status AravisCamera::Reopen() {
     if (e) s = Status::Error(id_ + ": cannot restart acquisition: " + Take(&e));
   }
   if (!s.ok()) {
-    last_error_ = s.message();
+    {
+      std::lock_guard<std::mutex> lock(error_mutex_);
+      last_error_ = s.message();
+    }
     TearDown(true);
     state_ = CameraState::kLost;
     return s;
   }
   unwrapper_ = FrameIdUnwrapper();
   resume_sequence_ = delivered_any_;
+  awaiting_device_ = false;
+  {
+    std::lock_guard<std::mutex> lock(error_mutex_);
+    last_error_.clear();
+  }
   counters_.reopens++;
   state_ = acquiring_ ? CameraState::kStreaming : CameraState::kClosed;
   return Status::Ok();

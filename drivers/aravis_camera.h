@@ -154,7 +154,17 @@ class AravisCamera final : public CameraSource {
   void NotifyArrived() { arrived_flag_.store(true); }
   // Tries once to reopen a lost camera with the settings of the last Open(); Ok if streaming.
   Status Reopen();
-  const std::string& LastError() const { return last_error_; }
+  // A configured camera that Open() could not open at start (its device absent, or it refused a
+  // setting): it is kept as a lost camera with these settings, so Start() arms it and Grab()
+  // opens it when it can, every reopen_interval_ms or at NotifyArrived(), as after a loss. A
+  // rig therefore starts degraded instead of refusing to start (daemon/rig_setup.h
+  // OpenRigCameras). `why` (Open()'s error) is LastError() until it opens.
+  void AwaitDevice(const CameraSettings& settings, std::string why);
+  // After a failed Open(): whether the device answered (and refused a setting or the stream)
+  // rather than being absent.
+  bool DeviceFoundAtOpen() const { return device_found_at_open_; }
+  // Why the camera is not streaming: the last failed open or reopen ("" if none failed).
+  std::string LastError() const override;
   // The sequence the next delivered frame gets after a reopen (last delivered + 1), or 0 if
   // none was delivered yet. The fake rig's factory reads it (from the reopening thread) so the
   // images it draws are numbered like the frames the caller receives.
@@ -186,6 +196,7 @@ class AravisCamera final : public CameraSource {
   AravisCameraOptions options_;
   CameraSettings settings_;
   AppliedSettings applied_;
+  mutable std::mutex error_mutex_;  // last_error_: set by the grab thread, read by any
   std::string last_error_;
 
   ArvCamera* camera_ = nullptr;
@@ -193,6 +204,8 @@ class AravisCamera final : public CameraSource {
   unsigned long control_lost_handler_ = 0;
   bool acquiring_ = false;
   bool opened_ = false;
+  bool awaiting_device_ = false;  // AwaitDevice(): never opened yet
+  bool device_found_at_open_ = false;
 
   std::mutex pool_mutex_;  // slots_ and stream_ against Release from another thread
   std::vector<Slot> slots_;

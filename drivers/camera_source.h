@@ -91,6 +91,8 @@ class CameraSource {
   virtual Status Trigger() = 0;
   virtual CameraState State() const = 0;
   virtual const CameraCounters& Counters() const = 0;
+  // Why the camera is not streaming, when it is not (its last failed open); "" otherwise.
+  virtual std::string LastError() const { return {}; }
 };
 
 // Draws the image of one camera for one frame: the fake and simulated backends call it to fill

@@ -93,17 +93,10 @@ std::vector<reconstruction::CameraModel> LiveRig::IntrinsicsOnly() const {
   return out;
 }
 
-Status LiveRig::OpenCameras(const drivers::CameraSettings& settings,
-                            std::vector<std::unique_ptr<drivers::CameraSource>>* out) {
-  std::vector<std::unique_ptr<drivers::CameraSource>> sources;
-  for (int c = 0; c < fakes_->size(); ++c) {
-    std::unique_ptr<drivers::AravisCamera> camera = fakes_->MakeCamera(c);
-    if (Status s = camera->Open(settings); !s)
-      return Status::Error("simulated rig: camera " + camera->id() + ": " + s.message());
-    sources.push_back(std::move(camera));
-  }
-  *out = std::move(sources);
-  return Status::Ok();
+std::vector<std::unique_ptr<drivers::AravisCamera>> LiveRig::MakeCameras() {
+  std::vector<std::unique_ptr<drivers::AravisCamera>> cameras;
+  for (int c = 0; c < fakes_->size(); ++c) cameras.push_back(fakes_->MakeCamera(c));
+  return cameras;
 }
 
 }  // namespace mocap::sim

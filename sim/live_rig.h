@@ -66,10 +66,10 @@ class LiveRig {
   // from (reconstruction/calibration.h: intrinsics known, extrinsics to find).
   std::vector<reconstruction::CameraModel> IntrinsicsOnly() const;
 
-  // Opens every camera (in rig order) with `settings` (frame_rate_hz should be rate_hz: the
-  // fakes are clocked at rate_hz whatever they are told). The sources are not started.
-  Status OpenCameras(const drivers::CameraSettings& settings,
-                     std::vector<std::unique_ptr<drivers::CameraSource>>* out);
+  // Every camera (in rig order), not yet opened: open each with settings whose frame_rate_hz
+  // is rate_hz (the fakes are clocked at rate_hz whatever they are told). A camera made absent
+  // (fakes().SetPresent) refuses to open until it is present again.
+  std::vector<std::unique_ptr<drivers::AravisCamera>> MakeCameras();
 
   // The renderer's sequence of a grabbed frame (its clock tick), and its scene time.
   std::uint64_t RenderedSequence(const drivers::Frame& frame) const {

@@ -19,6 +19,7 @@
 #include <memory>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "daemon/control_client.h"
@@ -79,6 +80,8 @@ class DaemonProcess {
   void SetWrapper(std::vector<std::string> wrapper) { wrapper_ = std::move(wrapper); }
   // Where `export` may write (mocapd --export-dir); by default DIR, where the tests export.
   void SetExportDirs(std::vector<std::string> dirs) { export_dirs_ = std::move(dirs); }
+  // Environment variables set for mocapd (NOTIFY_SOCKET, test hooks).
+  void SetEnvironment(std::vector<std::pair<std::string, std::string>> env) { env_ = std::move(env); }
   std::string socket() const { return dir_ + "/control.sock"; }
   std::string state_dir() const { return dir_ + "/state"; }
   std::string log_path() const { return dir_ + "/mocapd.log"; }
@@ -92,6 +95,7 @@ class DaemonProcess {
         dup2(log, STDERR_FILENO);
         dup2(log, STDOUT_FILENO);
       }
+      for (const auto& [name, value] : env_) setenv(name.c_str(), value.c_str(), 1);
       const std::string config = dir_ + "/mocapd.toml", state = state_dir(), sock = socket();
       std::vector<std::string> args = wrapper_;
       for (const std::string& a : {executable_, std::string("--config"), config,
@@ -166,6 +170,7 @@ class DaemonProcess {
   std::string executable_;
   std::vector<std::string> wrapper_;
   std::vector<std::string> export_dirs_;
+  std::vector<std::pair<std::string, std::string>> env_;
   pid_t pid_ = -1;
 };
 

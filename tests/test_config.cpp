@@ -100,6 +100,7 @@ const std::vector<BadValue> kBadValues = {
     {"rig", "centroid_noise_px", "-0.1", "expected a number in [0, 10], got -0.1"},
     {"rig", "detection_threads", "\"two\"", "expected an integer in [1, 64], got \"two\""},
     {"rig", "detection_threads", "0", "expected an integer in [1, 64], got 0"},
+    {"rig", "min_cameras", "0", "expected an integer in [1, 64], got 0"},
     {"rig", "calibration", "5", "expected a path (a string), got 5"},
     {"rig", "sync", "1", "expected a string, got 1"},
     {"rig", "sync", "\"genlock\"",
@@ -195,7 +196,7 @@ TEST(Config, EveryDocumentedKeyIsTestedWithABadValue) {
     EXPECT_TRUE(tested) << table << "." << key << " has no bad-value test";
     ++keys;
   }
-  EXPECT_EQ(keys, 35);
+  EXPECT_EQ(keys, 36);
 }
 
 TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
@@ -276,7 +277,7 @@ TEST(Config, UnknownKeysAndTablesAreErrorsNamingThem) {
   EXPECT_EQ(ParseError(kSimulatedRig + "rat = 200\n"),
             kSource + ":3: rig.rat: unknown key (the keys of [rig] are simulated, subject_seed, rate, "
                       "width, height, exposure_us, gain_db, detection_threshold, centroid_noise_px, "
-                      "detection_threads, calibration, sync, trigger_master, trigger_line, "
+                      "detection_threads, min_cameras, calibration, sync, trigger_master, trigger_line, "
                       "ptp_lock_timeout_s, pixel_format, packet_size, packet_delay_ns, "
                       "packet_resend, socket_buffer_bytes, camera ([[rig.camera]]))");
   EXPECT_EQ(ParseError(kSimulatedRig + "[control]\nmax_client = 8\n"),

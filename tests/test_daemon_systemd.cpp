@@ -26,7 +26,9 @@
 
 #include <gtest/gtest.h>
 
+#include "daemon/rig_setup.h"
 #include "daemon/service_notify.h"
+#include "drivers/aravis_fake.h"
 #include "daemon/startup_checks.h"
 #include "tests/daemon_test_util.h"
 
@@ -147,6 +149,86 @@ int WaitExit(pid_t pid, double timeout_s) {
 
 // ---------------------------------------------------------------------------------------------
 // The decisions, without a service manager.
+
+// The rig's cameras at start: an absent camera and one that refuses a setting are awaited (the
+// rig starts degraded) unless fewer than min_cameras open; the exit code tells a configuration
+// (every missing camera answered and refused: no restart cures it) from an absence.
+TEST(RigCameras, MissingCamerasAreAwaitedUnlessFewerThanTheMinimumOpen) {
+  drivers::FakeRigOptions fo;
+  fo.cameras = 3;
+  fo.width = 64;
+  fo.height = 48;
+  fo.serial_prefix = "DEGRADED";
+  drivers::AravisFakeRig fakes(fo, [](int, std::uint64_t, std::uint8_t*, int, int, std::ptrdiff_t,
+                                         drivers::PixelFormat) {});
+  auto make = [&] {
+    std::vector<std::unique_ptr<drivers::AravisCamera>> cams;
+    for (int i = 0; i < 3; ++i) cams.push_back(fakes.MakeCamera(i));
+    return cams;
+  };
+  drivers::CameraSettings good;
+  good.frame_rate_hz = 50;
+  good.timeout_ms = 100;
+  drivers::CameraSettings refused = good;
+  refused.pixel_format = drivers::PixelFormat::kMono12Packed;  // the fakes do not offer it
+
+  // Camera 0 refuses its pixel format, camera 2 is unplugged: one opens.
+  fakes.SetPresent(2, false);
+  {
+    auto cams = make();
+    std::vector<drivers::AravisCamera*> p{cams[0].get(), cams[1].get(), cams[2].get()};
+    std::vector<daemon::MissingCamera> missing;
+    int code = -1;
+    Status st = daemon::OpenRigCameras(p, {refused, good, good}, 2, &missing, &code);
+    ASSERT_FALSE(st.ok());
+    EXPECT_EQ(code, daemon::kExitUnavailable);  // camera 2 may come back
+    EXPECT_NE(st.message().find("1 of 3 cameras opened, fewer than min_cameras = 2"), std::string::npos)
+        << st.message();
+    EXPECT_NE(st.message().find("Mono12Packed"), std::string::npos) << st.message();
+    EXPECT_NE(st.message().find("DEGRADED2"), std::string::npos) << st.message();
+    ASSERT_EQ(missing.size(), 2u);
+    EXPECT_EQ(missing[0].index, 0);
+    EXPECT_TRUE(missing[0].device_found);
+    EXPECT_EQ(missing[1].index, 2);
+    EXPECT_FALSE(missing[1].device_found);
+
+    // With one camera enough: a degraded start. The absent camera, started, streams once it
+    // is plugged in.
+    st = daemon::OpenRigCameras(p, {refused, good, good}, 1, &missing, &code);
+    ASSERT_TRUE(st.ok()) << st.message();
+    EXPECT_EQ(code, 0);
+    ASSERT_EQ(missing.size(), 2u);
+    ASSERT_TRUE(cams[2]->Start().ok());
+    EXPECT_EQ(cams[2]->State(), drivers::CameraState::kLost);
+    EXPECT_NE(cams[2]->LastError().find("device not found"), std::string::npos) << cams[2]->LastError();
+    drivers::Frame f;
+    EXPECT_EQ(cams[2]->Grab(&f), drivers::GrabResult::kLost);
+    fakes.SetPresent(2, true);
+    bool got = false;
+    for (int i = 0; i < 200 && !got; ++i) {
+      if (cams[2]->Grab(&f) == drivers::GrabResult::kFrame) {
+        got = true;
+        EXPECT_EQ(f.image.width, 64);
+        cams[2]->Release(f);
+      }
+    }
+    EXPECT_TRUE(got) << cams[2]->LastError();
+    EXPECT_EQ(cams[2]->State(), drivers::CameraState::kStreaming);
+    EXPECT_EQ(cams[2]->LastError(), "");
+    cams[2]->Stop();
+  }
+
+  // Only refusals short of the minimum: a configuration error, which no restart cures.
+  {
+    auto cams = make();
+    std::vector<drivers::AravisCamera*> p{cams[0].get(), cams[1].get(), cams[2].get()};
+    std::vector<daemon::MissingCamera> missing;
+    int code = -1;
+    const Status st = daemon::OpenRigCameras(p, {refused, good, good}, 3, &missing, &code);
+    ASSERT_FALSE(st.ok());
+    EXPECT_EQ(code, daemon::kExitConfig) << st.message();
+  }
+}
 
 TEST(ServiceStatus, OneLineSummary) {
   ServiceSnapshot s;
@@ -480,11 +562,13 @@ struct StartResult {
   std::string log;
 };
 
-StartResult StartMocapd(const std::string& dir, const std::vector<std::string>& args) {
+StartResult StartMocapd(const std::string& dir, const std::vector<std::string>& args,
+                        const std::vector<std::pair<std::string, std::string>>& env = {}) {
   const std::string log = dir + "/start.log";
   unlink(log.c_str());
   const pid_t pid = fork();
   if (pid == 0) {
+    for (const auto& [name, value] : env) setenv(name.c_str(), value.c_str(), 1);
     const int fd = open(log.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
     dup2(fd, STDERR_FILENO);
     dup2(fd, STDOUT_FILENO);
@@ -546,6 +630,84 @@ TEST(MocapdUnderSystemd, BadInputAtStartUpNamesTheCauseAndExitsWithItsCode) {
   EXPECT_EQ(r.code, daemon::kExitUnavailable) << r.log;
   ASSERT_EQ(r.errors.size(), 1u) << r.log;
   EXPECT_NE(r.errors[0].find("camera 'No-Such-Camera-0'"), std::string::npos) << r.errors[0];
+}
+
+// A camera missing at start (unplugged): the rig starts without it, READY says "degraded" and
+// names it, `status` says why; plugged in, it joins the rig without a restart and STATUS says
+// so. With [rig] min_cameras above what opened, start-up fails naming the camera instead.
+TEST(MocapdUnderSystemd, ACameraMissingAtStartIsADegradedStartAndJoinsWhenItAppears) {
+  const std::string dir = testing::MakeTempDir("mocapd-degraded");
+  ASSERT_FALSE(dir.empty());
+  NotifyListener notify(dir + "/notify");
+  ASSERT_TRUE(notify.bound());
+  const std::string rig = testing::SimulatedRigToml(3, 5, "width = 640\nheight = 512\n");
+  {
+    testing::DaemonProcess d(dir, rig);
+    d.SetEnvironment({{"NOTIFY_SOCKET", dir + "/notify"}, {"MOCAP_TEST_ABSENT_CAMERAS", "1"}});
+    const Status started = d.Start();
+    ASSERT_TRUE(started.ok()) << started.message();
+    const int ready = notify.WaitFor("READY=1", 30);
+    ASSERT_GE(ready, 0) << d.Log();
+    std::unique_ptr<daemon::ControlClient> c;
+    ASSERT_TRUE(d.Connect(&c).ok());
+    daemon::ControlReply st;
+    ASSERT_TRUE(c->Call("status", json::object(), &st).ok());
+    ASSERT_TRUE(st.ok()) << st.error_message;
+    const json cams = st.result["cameras"];
+    ASSERT_EQ(cams.size(), 3u) << cams.dump();
+    const std::string missing = cams[1]["id"];
+    EXPECT_EQ(cams[1]["connected"], false) << cams.dump();
+    ASSERT_TRUE(cams[1]["problem"].is_string()) << cams.dump();
+    EXPECT_NE(cams[1]["problem"].get<std::string>().find(missing), std::string::npos) << cams.dump();
+    EXPECT_EQ(cams[0]["connected"], true);
+    EXPECT_EQ(cams[2]["connected"], true);
+    EXPECT_TRUE(cams[0]["problem"].is_null()) << cams.dump();
+    EXPECT_EQ(NotifyListener::Field(notify.Messages()[ready].text, "STATUS"),
+              "degraded: 2/3 simulated cameras 200 Hz (missing " + missing + "), idle");
+    // One error line in the journal names the camera, the setting and the way out.
+    const std::string log = d.Log();
+    int lines = 0;
+    std::istringstream in(log);
+    for (std::string l; std::getline(in, l);)
+      if (l.rfind("<3>", 0) == 0) {
+        ++lines;
+        EXPECT_NE(l.find("[[rig.camera]] '" + missing + "' did not open"), std::string::npos) << l;
+        EXPECT_NE(l.find("degraded"), std::string::npos) << l;
+      }
+    EXPECT_EQ(lines, 1) << log;
+
+    // Plugged in: streaming within 2 s, and STATUS no longer degraded.
+    const double plugged = notify.Now();
+    ASSERT_TRUE(c->Call("sim.camera", {{"camera", 1}, {"present", true}}, &st).ok());
+    ASSERT_TRUE(st.ok()) << st.error_message;
+    double joined_s = -1;
+    while (notify.Now() - plugged < 4) {
+      ASSERT_TRUE(c->Call("status", json::object(), &st).ok());
+      if (st.result["cameras"][1]["connected"] == true &&
+          st.result["cameras"][1]["frames"].get<std::uint64_t>() > 20) {
+        joined_s = notify.Now() - plugged;
+        break;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    std::printf("the missing camera streams %.2f s after it was plugged in\n", joined_s);
+    EXPECT_GE(joined_s, 0) << "the camera did not join; log:\n" << d.Log();
+    EXPECT_LE(joined_s, 2.0);
+    EXPECT_TRUE(st.result["cameras"][1]["problem"].is_null()) << st.result["cameras"].dump();
+    EXPECT_GE(notify.WaitFor("STATUS=3/3 simulated cameras 200 Hz, idle", 3, plugged), 0);
+    EXPECT_EQ(d.Stop(), 0) << d.Log();
+  }
+
+  // Fewer cameras than [rig] min_cameras: no degraded start, the camera named, unavailable.
+  std::ofstream(dir + "/strict.toml") << testing::SimulatedRigToml(3, 5, "width = 640\nheight = 512\nmin_cameras = 3\n");
+  const StartResult r =
+      StartMocapd(dir, {"--config", dir + "/strict.toml", "--state-dir", dir + "/state2", "--socket",
+                        dir + "/c2.sock"},
+                  {{"MOCAP_TEST_ABSENT_CAMERAS", "1"}});
+  EXPECT_EQ(r.code, daemon::kExitUnavailable) << r.log;
+  ASSERT_EQ(r.errors.size(), 1u) << r.log;
+  EXPECT_NE(r.errors[0].find("2 of 3 cameras opened, fewer than min_cameras = 3"), std::string::npos)
+      << r.errors[0];
 }
 
 }  // namespace
