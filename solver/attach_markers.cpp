@@ -19,78 +19,97 @@ bool AttachOptions::IsValid(std::string* error) const {
   return true;
 }
 
-Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerTrial>& trials,
-                          const std::vector<Eigen::MatrixXd>& poses, const AttachOptions& options,
-                          Model* out, std::vector<AttachedMarker>* report) {
-  std::string why;
-  if (!options.IsValid(&why)) return Status::Error("attach markers: " + why);
+Status MarkerSpreadOnSegments(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                              const std::vector<Eigen::MatrixXd>& poses,
+                              const std::vector<std::string>& names,
+                              std::vector<MarkerOnSegments>* out) {
   if (poses.size() != trials.size())
-    return Status::Error("attach markers: " + std::to_string(poses.size()) + " pose tables for " +
+    return Status::Error("marker spread: " + std::to_string(poses.size()) + " pose tables for " +
                          std::to_string(trials.size()) + " trials");
   const int ns = model.num_segments();
-  // Per candidate marker, per segment: sum and sum of squares of the local position, count.
-  struct Sums {
-    std::vector<Eigen::Vector3d> sum;
-    std::vector<double> sum_sq;
-    int n = 0;
-  };
-  std::map<std::string, Sums> candidates;
-  std::vector<std::string> order;
+  // Per marker, per segment: sum and sum of squares of the local position.
+  std::vector<std::vector<Eigen::Vector3d>> sum(names.size(),
+                                                std::vector<Eigen::Vector3d>(ns, Eigen::Vector3d::Zero()));
+  std::vector<std::vector<double>> sum_sq(names.size(), std::vector<double>(ns, 0.0));
+  std::vector<int> count(names.size(), 0);
   const Geometry geometry(model);
   ModelData data(model);
   for (size_t t = 0; t < trials.size(); ++t) {
     const formats::MarkerTrial& trial = trials[t];
     if (poses[t].rows() != trial.num_frames() || poses[t].cols() != model.num_coordinates())
-      return Status::Error("attach markers: trial '" + trial.name + "': poses are " +
-                           std::to_string(poses[t].rows()) + "x" + std::to_string(poses[t].cols()));
-    std::vector<int> columns;
-    for (int c = 0; c < trial.num_markers(); ++c) {
-      const std::string& name = trial.marker_names[c];
-      if (model.FindMarker(name) >= 0) continue;
-      columns.push_back(c);
-      if (candidates.emplace(name, Sums{std::vector<Eigen::Vector3d>(ns, Eigen::Vector3d::Zero()),
-                                        std::vector<double>(ns, 0.0), 0})
-              .second)
-        order.push_back(name);
-    }
+      return Status::Error("marker spread: trial '" + trial.name + "': poses are " +
+                           std::to_string(poses[t].rows()) + "x" + std::to_string(poses[t].cols()) +
+                           ", expected " + std::to_string(trial.num_frames()) + "x" +
+                           std::to_string(model.num_coordinates()));
+    std::vector<std::pair<int, int>> columns;  // (name index, trial column)
+    for (size_t i = 0; i < names.size(); ++i)
+      if (const int c = trial.FindMarker(names[i]); c >= 0) columns.emplace_back(static_cast<int>(i), c);
     if (columns.empty()) continue;
     for (int f = 0; f < trial.num_frames(); ++f) {
       if (!poses[t].row(f).allFinite()) continue;
       bool any = false;
-      for (int c : columns) any = any || trial.positions.row(f).segment<3>(3 * c).allFinite();
+      for (const auto& [i, c] : columns) any = any || trial.positions.row(f).segment<3>(3 * c).allFinite();
       if (!any) continue;
       ForwardKinematics(model, geometry, poses[t].row(f).transpose(), &data);
-      for (int c : columns) {
+      for (const auto& [i, c] : columns) {
         const Eigen::Vector3d x = trial.positions.row(f).segment<3>(3 * c).transpose();
         if (!x.allFinite()) continue;
-        Sums& s = candidates[trial.marker_names[c]];
         for (int k = 0; k < ns; ++k) {
           const Eigen::Vector3d local = data.segment_rotation[k].transpose() * (x - data.segment_position[k]);
-          s.sum[k] += local;
-          s.sum_sq[k] += local.squaredNorm();
+          sum[i][k] += local;
+          sum_sq[i][k] += local.squaredNorm();
         }
-        ++s.n;
+        ++count[i];
       }
     }
   }
+  out->assign(names.size(), MarkerOnSegments{});
+  for (size_t i = 0; i < names.size(); ++i) {
+    MarkerOnSegments& m = (*out)[i];
+    m.samples = count[i];
+    m.mean_local.assign(ns, Eigen::Vector3d::Zero());
+    m.spread_mm.assign(ns, 0.0);
+    if (count[i] == 0) continue;
+    for (int k = 0; k < ns; ++k) {
+      m.mean_local[k] = sum[i][k] / count[i];
+      m.spread_mm[k] = 1000.0 * std::sqrt(std::max(0.0, sum_sq[i][k] / count[i] - m.mean_local[k].squaredNorm()));
+    }
+  }
+  return Status::Ok();
+}
+
+Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                          const std::vector<Eigen::MatrixXd>& poses, const AttachOptions& options,
+                          Model* out, std::vector<AttachedMarker>* report) {
+  std::string why;
+  if (!options.IsValid(&why)) return Status::Error("attach markers: " + why);
+  const int ns = model.num_segments();
+  // The trial markers the model lacks, in order of first appearance.
+  std::vector<std::string> order;
+  for (const formats::MarkerTrial& trial : trials)
+    for (const std::string& name : trial.marker_names)
+      if (model.FindMarker(name) < 0 && std::find(order.begin(), order.end(), name) == order.end())
+        order.push_back(name);
+  std::vector<MarkerOnSegments> spreads;
+  if (Status s = MarkerSpreadOnSegments(model, trials, poses, order, &spreads); !s)
+    return Status::Error("attach markers: " + s.message());
   std::vector<Marker> markers = model.markers();
   report->clear();
-  for (const std::string& name : order) {
-    const Sums& s = candidates[name];
+  for (size_t i = 0; i < order.size(); ++i) {
+    const std::string& name = order[i];
+    const MarkerOnSegments& s = spreads[i];
     AttachedMarker a;
     a.name = name;
-    a.samples = s.n;
-    if (s.n < options.min_samples) {
-      a.why_not = "seen with a pose in " + std::to_string(s.n) + " frames, fewer than " +
+    a.samples = s.samples;
+    if (s.samples < options.min_samples) {
+      a.why_not = "seen with a pose in " + std::to_string(s.samples) + " frames, fewer than " +
                   std::to_string(options.min_samples);
       report->push_back(a);
       continue;
     }
     int best = -1, second = -1;
-    std::vector<double> spread(ns);
+    const std::vector<double>& spread = s.spread_mm;
     for (int k = 0; k < ns; ++k) {
-      const Eigen::Vector3d mean = s.sum[k] / s.n;
-      spread[k] = 1000.0 * std::sqrt(std::max(0.0, s.sum_sq[k] / s.n - mean.squaredNorm()));
       if (best < 0 || spread[k] < spread[best]) {
         second = best;
         best = k;
@@ -116,7 +135,7 @@ Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerT
       Marker m;
       m.name = name;
       m.segment = best;
-      m.position = s.sum[best] / s.n / model.segments()[best].scale;  // unscaled, like the model's
+      m.position = s.mean_local[best] / model.segments()[best].scale;  // unscaled, like the model's
       m.optional = true;
       markers.push_back(m);
     }

@@ -39,6 +39,22 @@ struct AttachedMarker {
   std::string why_not;       // empty when attached
 };
 
+// Where a marker's trajectory sits on every segment: per segment, its mean position in the
+// segment's frame (scaled, as measured) and its spread about that mean (RMS distance, mm), over
+// every frame where the marker and a finite pose are both there (`samples`). The carrying
+// segment is the one with the smallest spread; also used to diagnose a model's marker whose
+// residual stays high (solver/marker_diagnosis.h).
+struct MarkerOnSegments {
+  std::vector<Eigen::Vector3d> mean_local;  // per segment, m
+  std::vector<double> spread_mm;            // per segment
+  int samples = 0;
+};
+// `names[i]`'s result in (*out)[i]; a name no trial has gets samples = 0.
+Status MarkerSpreadOnSegments(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                              const std::vector<Eigen::MatrixXd>& poses,
+                              const std::vector<std::string>& names,
+                              std::vector<MarkerOnSegments>* out);
+
 // `poses[t]`: trial t's coordinates (frames x model coordinates) for `model`'s geometry. Every
 // trial marker whose name `model` lacks is considered. *out: `model` with the attached markers
 // appended (unscaled positions, optional); *report: every marker considered, attached or not.

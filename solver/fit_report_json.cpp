@@ -91,6 +91,22 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["median_marker_rms_mm"] = r.median_marker_rms_mm;
   j["outlier_markers"] = nlohmann::json::object();
   for (const auto& [name, rms] : r.outlier_markers) j["outlier_markers"][name] = rms;
+  j["marker_diagnoses"] = nlohmann::json::array();
+  for (const MarkerDiagnosis& d : r.marker_diagnoses) {
+    nlohmann::json e = {{"marker", d.marker},       {"rms_mm", d.rms_mm},
+                        {"kind", ToString(d.kind)}, {"segment", d.segment},
+                        {"rides_on", d.rides_on},   {"spread_on_segment_mm", d.spread_on_segment_mm},
+                        {"spread_on_best_mm", d.spread_on_best_mm}, {"text", d.text}};
+    if (!d.other_marker.empty()) e["other_marker"] = d.other_marker;
+    if (d.kind == MarkerDiagnosis::Kind::kStretch) {
+      e["trial"] = d.trial;
+      e["first_frame"] = d.first_frame;
+      e["last_frame"] = d.last_frame;
+      e["stretch_rms_mm"] = d.stretch_rms_mm;
+      e["elsewhere_rms_mm"] = d.elsewhere_rms_mm;
+    }
+    j["marker_diagnoses"].push_back(e);
+  }
   j["unmatched_trial_markers"] = r.unmatched_trial_markers;
   j["unobserved_model_markers"] = r.unobserved_model_markers;
   j["parameters"] = nlohmann::json::array();

@@ -173,6 +173,7 @@ bool FitOptions::IsValid(std::string* error) const {
   if (staged_iterations < 1) return fail("staged_iterations must be >= 1");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
   if (!attach.IsValid(&why)) return fail("attach: " + why);
+  if (!diagnosis.IsValid(&why)) return fail("diagnosis: " + why);
   if (!(frame_prior_sigma_rad > 0) || !(frame_prior_sigma_m > 0))
     return fail("frame prior sigmas must be > 0");
   if (num_threads < 0) return fail("num_threads must be >= 0");
@@ -665,6 +666,20 @@ FitStageSummary StageSummary(const std::string& name, const FitOptions& o, const
 }
 }  // namespace
 
+namespace {
+
+// The report's outlying markers explained (solver/marker_diagnosis.h), from the fitted result.
+Status DiagnoseOutliers(const std::vector<FitTrial>& trials, const FitOptions& options,
+                        FitResult* result) {
+  if (result->report.outlier_markers.empty()) return Status::Ok();
+  std::vector<formats::MarkerTrial> markers;
+  for (const FitTrial& t : trials) markers.push_back(t.markers);
+  return DiagnoseMarkers(result->model, markers, result->coordinates, result->report.outlier_markers,
+                         options.diagnosis, &result->report.marker_diagnoses);
+}
+
+}  // namespace
+
 Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
                 FitResult* result) {
   const auto start = Clock::now();
@@ -676,7 +691,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   if (!staged) {
     MOCAP_RETURN_IF_ERROR(FitStage(initial, trials, options, true, result));
     result->report.stages = {StageSummary("all parameters", options, result->report)};
-    return Status::Ok();
+    return DiagnoseOutliers(trials, options, result);
   }
 
   // The schedule (see the header): scales with the model's markers, then the markers with those
@@ -745,7 +760,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   if (summaries.empty()) {  // no iteration to spare for a first stage: one stage, as asked
     MOCAP_RETURN_IF_ERROR(FitStage(initial, trials, options, true, result));
     result->report.stages = {StageSummary("all parameters", options, result->report)};
-    return Status::Ok();
+    return DiagnoseOutliers(trials, options, result);
   }
   // The whole problem from the last stage's geometry and poses.
   FitOptions last = options;
@@ -785,6 +800,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     const int i = initial.FindParameter(e.name);
     if (i >= 0) e.initial = p0[i];
   }
+  MOCAP_RETURN_IF_ERROR(DiagnoseOutliers(trials, options, result));
   report.wall_seconds = Since(start);
   return Status::Ok();
 }

@@ -23,6 +23,7 @@
 #include "model/model.h"
 #include "model/status.h"
 #include "solver/attach_markers.h"
+#include "solver/marker_diagnosis.h"
 #include "solver/coarse_to_fine.h"
 #include "solver/inverse_kinematics.h"
 #include "solver/levenberg_marquardt.h"
@@ -69,6 +70,9 @@ struct FitOptions {
   std::vector<std::string> fixed_parameters;
   double outlier_marker_ratio = 3.0;
   double outlier_marker_min_mm = 5.0;
+  // Why each outlying marker is off (a stretch mislabelled, a swap, the wrong body, it moves):
+  // FitReport::marker_diagnoses (solver/marker_diagnosis.h).
+  MarkerDiagnosisOptions diagnosis;
   double rescue_ratio = 4.0;
   int rescue_rounds = 2;
   int rescue_iterations = 12;  // the solve's iterations after each rescue that replaced poses
@@ -203,6 +207,8 @@ struct FitReport {
   double median_marker_rms_mm = 0;
   // Markers far above the median (FitOptions::outlier_marker_ratio), worst first: name, RMS mm.
   std::vector<std::pair<std::string, double>> outlier_markers;
+  // Per outlying marker, the likeliest explanation, in the same order (FitModel only).
+  std::vector<MarkerDiagnosis> marker_diagnoses;
   std::vector<double> per_trial_rms_mm;        // RMS over each trial's marker samples, trial order
   // Per trial, per frame: the RMS over that frame's marker samples (NaN for a frame without
   // any), so a report can show where in a trial the model stops fitting (a slipping marker, a

@@ -2,10 +2,12 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <functional>
 
 #include "fit_test_util.h"
 #include "model/default_model.h"
 #include "model/compare.h"
+#include "model/kinematics.h"
 #include "solver/global_fit.h"
 #include "solver/marker_fit_problem.h"
 #include "solver/schur_solver.h"
@@ -107,6 +109,7 @@ TEST(GlobalFit, SwappedMarkersAreNamedInTheReport) {
   ASSERT_TRUE(s.ok()) << s.message();
   const solver::FitReport& r = result.report;
   std::printf("%s\n", r.BriefReport().c_str());
+  for (const auto& d : r.marker_diagnoses) std::printf("  %s\n", d.text.c_str());
   bool knee_named = false;
   for (const auto& [name, rms] : r.outlier_markers) {
     knee_named |= name == "RKNE";

@@ -227,10 +227,17 @@ int RunFit(const FitArgs& args) {
   if (!r.undetermined.empty())
     spdlog::warn("{} parameters not determined by these trials (kept near the initial model): {}{}",
                  r.undetermined.size(), r.undetermined.front(), r.undetermined.size() > 1 ? ", ..." : "");
-  for (const auto& [name, rms] : r.outlier_markers)
-    spdlog::warn("marker {} fits to {:.1f} mm RMS, {:.1f}x the median marker's {:.1f} mm: mislabelled, "
-                 "slipping, or attached to another body than the model's?",
-                 name, rms, rms / std::max(1e-9, r.median_marker_rms_mm), r.median_marker_rms_mm);
+  for (const auto& [name, rms] : r.outlier_markers) {
+    const auto d = std::find_if(r.marker_diagnoses.begin(), r.marker_diagnoses.end(),
+                                [&](const solver::MarkerDiagnosis& x) { return x.marker == name; });
+    if (d != r.marker_diagnoses.end())
+      spdlog::warn("marker {} ({:.1f}x the median marker's {:.1f} mm)", d->text,
+                   rms / std::max(1e-9, r.median_marker_rms_mm), r.median_marker_rms_mm);
+    else
+      spdlog::warn("marker {} fits to {:.1f} mm RMS, {:.1f}x the median marker's {:.1f} mm: mislabelled, "
+                   "slipping, or attached to another body than the model's?",
+                   name, rms, rms / std::max(1e-9, r.median_marker_rms_mm), r.median_marker_rms_mm);
+  }
   // Whether to trust the model (issue 14): each joint against its functional estimate on every
   // trial, and against the generic model.
   solver::FitTrust trust;
