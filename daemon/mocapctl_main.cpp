@@ -365,7 +365,12 @@ void PrintStatus(const json& r) {
                 st.value("free_bytes", json()).is_number()
                     ? Fixed(st["free_bytes"].get<double>() / 1e6, 0).c_str()
                     : "-");
-  if (r.contains("cameras")) PrintTable(r["cameras"], {"id", "connected", "fps", "frames", "incomplete", "dropped"});
+  if (r.contains("cameras")) {
+    PrintTable(r["cameras"], {"id", "connected", "fps", "frames", "incomplete", "dropped"});
+    for (const json& c : r["cameras"])  // why a camera is not streaming (a degraded start, a loss)
+      if (c.value("problem", json()).is_string())
+        std::printf("camera %s: %s\n", Text(c.value("id", json())).c_str(), c["problem"].get<std::string>().c_str());
+  }
 }
 
 void PrintCalibration(const json& r) {
