@@ -695,9 +695,17 @@ Status WriteFitReportHtml(const FitReportPage& in, std::string* html) {
            Esc(r.value("termination", std::string())) + "</b> (" + Esc(r.value("termination_message", std::string())) +
            ") after " + std::to_string(r.value("iterations", 0)) +
            " iterations. The model is the last iterate: check the convergence plot before using it.</div>";
-  if (!outliers.empty())
+  if (!outliers.empty()) {
+    // Each one's likeliest cause, where the fit diagnosed it (solver/marker_diagnosis.h).
+    std::string why;
+    for (const auto& d : r.value("marker_diagnoses", json::array()))
+      if (d.value("text", std::string()).size())
+        why += "<li data-marker=\"" + Esc(d.value("marker", std::string())) + "\" data-kind=\"" +
+               Esc(d.value("kind", std::string())) + "\">" + Esc(d.value("text", std::string())) + "</li>";
     out += "<div class=\"alert\" id=\"outliers\"><b>Outlying markers</b> (mislabelled, slipping, or on "
-           "another body than the model's?): " + outlier_text + "</div>";
+           "another body than the model's?): " + outlier_text +
+           (why.empty() ? "" : "<ul class=\"diagnoses\">" + why + "</ul>") + "</div>";
+  }
   std::string far;
   for (const auto& joint : r.value("joint_checks", json::array()))
     for (const auto& t : joint.value("trials", json::array()))

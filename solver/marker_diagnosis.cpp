@@ -271,6 +271,23 @@ Status DiagnoseMarkers(const Model& model, const std::vector<formats::MarkerTria
       if (other >= 0 && 1000.0 * other_rms < options.swap_ratio * d.stretch_rms_mm &&
           1000.0 * other_rms < options.swap_max_mm)
         d.other_marker = model.markers()[other].name;
+      // The whole of one trial: the marker was moved (re-applied) between trials, or that trial's
+      // label is another marker's.
+      int trial_first = -1, trial_last = -1;
+      for (int i = 0; i < n; ++i)
+        if (S[i].trial == S[best_begin].trial) {
+          if (trial_first < 0) trial_first = S[i].frame;
+          trial_last = S[i].frame;
+        }
+      const bool whole_trial = trial_first == d.first_frame && trial_last == d.last_frame;
+      if (whole_trial)
+        std::snprintf(text, sizeof text,
+                      "%s %.1f mm: off in trial '%s' alone, all its frames (%.1f mm there, %.1f mm "
+                      "elsewhere): moved between trials, or another marker's label there?%s%s%s",
+                      d.marker.c_str(), d.rms_mm, d.trial.c_str(), d.stretch_rms_mm, d.elsewhere_rms_mm,
+                      d.other_marker.empty() ? "" : " It lies at ", d.other_marker.c_str(),
+                      d.other_marker.empty() ? "" : "'s place");
+      else
       std::snprintf(text, sizeof text,
                     "%s %.1f mm: mislabelled in trial '%s', frames %d-%d (%.1f mm there, %.1f mm "
                     "elsewhere)%s%s%s",
