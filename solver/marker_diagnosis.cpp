@@ -212,6 +212,22 @@ Status DiagnoseMarkers(const Model& model, const std::vector<formats::MarkerTria
     d.spread_on_segment_mm = sp.spread_mm.empty() ? 0 : sp.spread_mm[seg];
     d.spread_on_best_mm = sp.spread_mm.empty() ? 0 : sp.spread_mm[best];
     char text[400];
+    // Steadier on another segment, though not steady enough to call it the wrong body: said with
+    // whatever the diagnosis is (a least-squares fit bends the joint towards a marker on the wrong
+    // body, which then also passes for a stretch).
+    const bool steadier_elsewhere =
+        best != seg && d.spread_on_segment_mm > options.wrong_body_ratio * d.spread_on_best_mm;
+    auto finish = [&] {
+      d.text = text;
+      if (steadier_elsewhere && d.kind != MarkerDiagnosis::Kind::kWrongBody) {
+        char more[200];
+        std::snprintf(more, sizeof more, "; it rides on %s (%.1f mm) better than on %s (%.1f mm), "
+                      "where the model attaches it", d.rides_on.c_str(), d.spread_on_best_mm,
+                      d.segment.c_str(), d.spread_on_segment_mm);
+        d.text += more;
+      }
+      out->push_back(d);
+    };
 
     // The wrong body first: its error grows with the joint angle between the two segments, so on
     // a trial with a few large flexions it also looks like a stretch.
@@ -223,8 +239,7 @@ Status DiagnoseMarkers(const Model& model, const std::vector<formats::MarkerTria
                     "where the model attaches it: attached to the wrong body?",
                     d.marker.c_str(), d.rms_mm, d.rides_on.c_str(), d.spread_on_best_mm,
                     d.segment.c_str(), d.spread_on_segment_mm);
-      d.text = text;
-      out->push_back(d);
+      finish();
       continue;
     }
 
@@ -295,8 +310,7 @@ Status DiagnoseMarkers(const Model& model, const std::vector<formats::MarkerTria
                     d.stretch_rms_mm, d.elsewhere_rms_mm,
                     d.other_marker.empty() ? "" : "; there it lies at ", d.other_marker.c_str(),
                     d.other_marker.empty() ? "" : "'s place");
-      d.text = text;
-      out->push_back(d);
+      finish();
       continue;
     }
 
@@ -317,20 +331,17 @@ Status DiagnoseMarkers(const Model& model, const std::vector<formats::MarkerTria
                     "own): swapped with %s?",
                     d.marker.c_str(), d.rms_mm, d.other_marker.c_str(), 1000.0 * other_rms,
                     own_rms_mm, d.other_marker.c_str());
-      d.text = text;
-      out->push_back(d);
+      finish();
       continue;
     }
 
     // 4. It moves.
     d.kind = MarkerDiagnosis::Kind::kMoves;
     std::snprintf(text, sizeof text,
-                  "%s %.1f mm: moves %.1f mm RMS on %s, its segment (%.1f mm on %s, the steadiest): "
-                  "slipping, loose, or soft tissue (weight it by its spread, or leave it out)?",
-                  d.marker.c_str(), d.rms_mm, d.spread_on_segment_mm, d.segment.c_str(),
-                  d.spread_on_best_mm, d.rides_on.c_str());
-    d.text = text;
-    out->push_back(d);
+                  "%s %.1f mm: moves %.1f mm RMS on %s, its segment: slipping, loose, or soft "
+                  "tissue (weight it by its spread, or leave it out)?",
+                  d.marker.c_str(), d.rms_mm, d.spread_on_segment_mm, d.segment.c_str());
+    finish();
   }
   return Status::Ok();
 }

@@ -54,7 +54,7 @@ struct MarkerDiagnosisOptions {
   // The wrong body: the best segment's spread is below wrong_body_max_spread_mm and the attached
   // segment's is above `wrong_body_ratio` x the best one's.
   double wrong_body_max_spread_mm = 15.0;
-  double wrong_body_ratio = 2.0;
+  double wrong_body_ratio = 1.5;
   bool IsValid(std::string* error) const;
 };
 
