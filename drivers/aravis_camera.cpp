@@ -135,6 +135,7 @@ Status AravisCamera::Open(const CameraSettings& settings) {
 }
 
 Status AravisCamera::Connect() {
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   if (camera_ == nullptr) {
     if (!factory_) return Status::Error(id_ + ": no camera and no way to open one");
     std::string error;
@@ -467,6 +468,7 @@ bool PtpLocked(const std::vector<std::string>& ids, const std::vector<PtpState>&
 }
 
 Status AravisCamera::Ptp(PtpState* state) {
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   if (camera_ == nullptr) return Status::Error(id_ + ": Ptp() while the camera is not open");
   if (!applied_.ptp_enabled) return Status::Error(id_ + ": PTP is not enabled on this camera");
   GError* e = nullptr;
@@ -490,17 +492,25 @@ Status AravisCamera::Ptp(PtpState* state) {
   return Status::Ok();
 }
 
+bool AravisCamera::PacketStatistics(std::uint64_t* resent, std::uint64_t* missing) const {
+  std::lock_guard<std::mutex> lock(pool_mutex_);
+  if (stream_ == nullptr || !ARV_IS_GV_STREAM(stream_)) return false;
+  guint64 r = 0, m = 0;
+  arv_gv_stream_get_statistics(ARV_GV_STREAM(stream_), &r, &m);
+  *resent = r;
+  *missing = m;
+  return true;
+}
+
 std::uint64_t AravisCamera::MissingPackets() const {
-  if (stream_ == nullptr || !ARV_IS_GV_STREAM(stream_)) return 0;
-  guint64 resent = 0, missing = 0;
-  arv_gv_stream_get_statistics(ARV_GV_STREAM(stream_), &resent, &missing);
+  std::uint64_t resent = 0, missing = 0;
+  PacketStatistics(&resent, &missing);
   return missing;
 }
 
 std::uint64_t AravisCamera::ResentPackets() const {
-  if (stream_ == nullptr || !ARV_IS_GV_STREAM(stream_)) return 0;
-  guint64 resent = 0, missing = 0;
-  arv_gv_stream_get_statistics(ARV_GV_STREAM(stream_), &resent, &missing);
+  std::uint64_t resent = 0, missing = 0;
+  PacketStatistics(&resent, &missing);
   return resent;
 }
 
@@ -582,6 +592,7 @@ std::uint64_t AravisCamera::StreamUnderruns() const {
 }
 
 void AravisCamera::TearDown(bool device_gone) {
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   GError* e = nullptr;
   underrun_base_ += StreamUnderruns();
   counters_.underruns = underrun_base_;
@@ -612,6 +623,7 @@ void AravisCamera::TearDown(bool device_gone) {
 Status AravisCamera::Start() {
   if (!opened_) return Status::Error(id_ + ": Start() before a successful Open()");
   if (state_.load() == CameraState::kLost) return Status::Error(id_ + ": camera lost");
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   GError* e = nullptr;
   arv_camera_start_acquisition(camera_, &e);
   if (e) return Status::Error(id_ + ": cannot start acquisition: " + Take(&e));
@@ -621,6 +633,7 @@ Status AravisCamera::Start() {
 }
 
 void AravisCamera::Stop() {
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   if (camera_ != nullptr && acquiring_ && state_.load() != CameraState::kLost) {
     GError* e = nullptr;
     arv_camera_stop_acquisition(camera_, &e);
@@ -661,6 +674,7 @@ Status AravisCamera::Reopen() {
   Status s = Connect();
   if (s.ok()) s = CreateStreamAndPool();
   if (s.ok() && acquiring_) {
+    std::lock_guard<std::mutex> device_lock(device_mutex_);
     GError* e = nullptr;
     arv_camera_start_acquisition(camera_, &e);
     if (e) s = Status::Error(id_ + ": cannot restart acquisition: " + Take(&e));

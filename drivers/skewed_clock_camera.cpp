@@ -1,0 +1,19 @@
+#include "drivers/skewed_clock_camera.h"
+
+namespace mocap::drivers {
+
+GrabResult SkewedClockCamera::Grab(Frame* frame) {
+  const GrabResult r = camera_->Grab(frame);
+  if (r != GrabResult::kFrame) return r;
+  if (!have_origin_) {
+    have_origin_ = true;
+    origin_ns_ = frame->device_timestamp_ns;
+  }
+  const double since = static_cast<double>(static_cast<std::int64_t>(frame->device_timestamp_ns - origin_ns_));
+  frame->device_timestamp_ns = static_cast<std::uint64_t>(
+      static_cast<std::int64_t>(frame->device_timestamp_ns) + skew_.offset_ns +
+      static_cast<std::int64_t>(skew_.drift_ppm * 1e-6 * since));
+  return r;
+}
+
+}  // namespace mocap::drivers
