@@ -29,6 +29,8 @@ bool RigCheckOptions::IsValid(std::string* error) const {
     return fail("max_lost_frame_fraction must be in [0, 1]");
   if (!(max_mismatched_set_fraction >= 0 && max_mismatched_set_fraction <= 1))
     return fail("max_mismatched_set_fraction must be in [0, 1]");
+  if (!(min_seconds_of_frames >= 0 && min_seconds_of_frames <= 3600))
+    return fail("min_seconds_of_frames must be in [0, 3600]");
   return true;
 }
 
@@ -103,7 +105,12 @@ Json RigCheckReport(const RigCheckInput& in, const RigCheckOptions& options) {
                    {"losses", c.losses},           {"reopens", c.reopens}};
     const double lost_fraction = c.complete > 0 ? static_cast<double>(lost) / c.complete : (lost > 0 ? 1.0 : 0.0);
     frames["lost_fraction"] = lost_fraction;
-    if (lost_fraction > options.max_lost_frame_fraction)
+    const double min_frames = options.min_seconds_of_frames * in.rate_hz;
+    if (static_cast<double>(c.complete) < min_frames)
+      fail("too few frames so far to judge (" + std::to_string(c.complete) + " of the " +
+           Fixed(min_frames, 0) + " of " + Fixed(options.min_seconds_of_frames, 1) +
+           " s): check again once the rig has streamed");
+    else if (lost_fraction > options.max_lost_frame_fraction)
       fail(std::to_string(lost) + " frames lost (" + std::to_string(incomplete) + " incomplete, " +
            std::to_string(c.underruns) + " underruns) of " + std::to_string(c.complete) + ": " +
            Fixed(100 * lost_fraction, 2) + " %, above " +

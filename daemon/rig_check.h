@@ -43,6 +43,10 @@ struct RigCheckOptions {
   // trigger: sets whose members' timestamps disagreed, beyond this fraction of the sets, fail the
   // rig; any frame whose count disagreed with its own timestamp fails its camera.
   double max_mismatched_set_fraction = 0.001;
+  // A camera with fewer complete frames than this many seconds at the rate is not judged on its
+  // fractions (its first buffers, a start-up underrun, would be percent of nothing): it fails
+  // with "too few frames so far" instead.
+  double min_seconds_of_frames = 1.0;
 
   bool IsValid(std::string* error) const;
 };
