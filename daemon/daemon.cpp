@@ -249,6 +249,12 @@ Status Daemon::Start() {
         return Status::Error("camera '" + c.id + "': " + st.message());
       for (const std::string& r : cam->Applied().refused_optional)
         spdlog::warn("camera '{}': optional feature refused: {}", c.id, r);
+      if (const drivers::AppliedUsbTransfer& u = cam->Applied().usb; u.applied)
+        spdlog::info("camera '{}': USB3 Vision {} I/O, throughput limit {} ({} MB/s), transfers "
+                     "of {} KiB, {} MiB submitted at most (Aravis 0.8's)",
+                     c.id, u.mode, u.throughput_limit_mode.empty() ? "-" : u.throughput_limit_mode,
+                     u.throughput_limit_mb_s, u.maximum_transfer_bytes / 1024,
+                     u.maximum_submit_bytes >> 20);
       aravis.push_back(cam.get());
       if (config_.sync == "ptp") ptp_sources_.push_back(std::make_unique<AravisPtpSource>(cam.get()));
       sources.push_back(std::move(cam));

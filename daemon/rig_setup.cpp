@@ -26,6 +26,8 @@ drivers::CameraSettings CameraSettingsOf(const DaemonConfig& config, int camera)
   if (c.exposure_us > 0) s.exposure_us = c.exposure_us;
   if (c.gain_db >= 0) s.gain_db = c.gain_db;
   s.strobe_line = c.strobe_line;
+  drivers::ParseUsbMode(c.usb_mode, &s.usb.mode);  // validated by the config
+  s.usb.throughput_limit_mb_s = c.usb_throughput_limit_mb_s;
   if (config.sync == "trigger" && c.id != config.trigger_master) {
     s.trigger = drivers::TriggerMode::kHardwareLine;
     s.trigger_line = config.trigger_line;

@@ -327,14 +327,64 @@ Status AravisCamera::ApplySettings() {
 }
 
 Status AravisCamera::Refused(const std::string& feature, const std::string& why) {
-  const auto& optional = settings_.optional_features;
-  if (std::find(optional.begin(), optional.end(), feature) != optional.end()) {
-    applied_.refused_optional.push_back(feature + ": " + why);
-    return Status::Ok();
-  }
-  return Status::Error(id_ + ": " + feature + ": " + why +
-                       " (list it among the camera's optional features if the rig does without)");
+  return RefusedFeature(id_, feature, why, settings_.optional_features, &applied_.refused_optional);
 }
+
+namespace {
+
+// USB3 Vision transfer settings' device calls (drivers/usb_transfer.h) on an ArvCamera.
+class AravisUsbDevice final : public UsbTransferDevice {
+ public:
+  explicit AravisUsbDevice(ArvCamera* camera) : camera_(camera) {}
+  void SetUsbMode(UsbMode mode) override {
+    arv_camera_uv_set_usb_mode(camera_, mode == UsbMode::kAsync ? ARV_UV_USB_MODE_ASYNC
+                                                                 : ARV_UV_USB_MODE_SYNC);
+  }
+  bool HasFeature(const std::string& feature) override {
+    GError* e = nullptr;
+    const bool yes = arv_camera_is_feature_available(camera_, feature.c_str(), &e);
+    g_clear_error(&e);
+    return yes;
+  }
+  Status SetInteger(const std::string& feature, std::int64_t value) override {
+    GError* e = nullptr;
+    arv_camera_set_integer(camera_, feature.c_str(), value, &e);
+    return Result(&e);
+  }
+  Status GetInteger(const std::string& feature, std::int64_t* value) override {
+    GError* e = nullptr;
+    *value = arv_camera_get_integer(camera_, feature.c_str(), &e);
+    return Result(&e);
+  }
+  Status IntegerBounds(const std::string& feature, std::int64_t* min, std::int64_t* max) override {
+    GError* e = nullptr;
+    gint64 lo = 0, hi = 0;
+    arv_camera_get_integer_bounds(camera_, feature.c_str(), &lo, &hi, &e);
+    *min = lo;
+    *max = hi;
+    return Result(&e);
+  }
+  Status SetString(const std::string& feature, const std::string& value) override {
+    GError* e = nullptr;
+    arv_camera_set_string(camera_, feature.c_str(), value.c_str(), &e);
+    return Result(&e);
+  }
+  Status GetString(const std::string& feature, std::string* value) override {
+    GError* e = nullptr;
+    const char* got = arv_camera_get_string(camera_, feature.c_str(), &e);
+    *value = got ? got : "";
+    return Result(&e);
+  }
+
+ private:
+  static Status Result(GError** e) {
+    if (*e == nullptr) return Status::Ok();
+    return Status::Error(Take(e));
+  }
+  ArvCamera* camera_;
+};
+
+}  // namespace
 
 Status AravisCamera::ApplyCameraFeatures() {
   GError* e = nullptr;
@@ -403,6 +453,14 @@ Status AravisCamera::ApplyCameraFeatures() {
       g_clear_error(&e);
       if (!applied_.ptp_enabled) MOCAP_RETURN_IF_ERROR(Refused(feature, "reads back false"));
     }
+  }
+
+  // USB3 Vision transfer: the I/O mode (before the stream is created) and the link limit.
+  applied_.usb = AppliedUsbTransfer{};
+  if (arv_camera_is_uv_device(camera_)) {
+    AravisUsbDevice usb(camera_);
+    MOCAP_RETURN_IF_ERROR(ApplyUsbTransfer(id_, s.usb, s.optional_features, &usb, &applied_.usb,
+                                           &applied_.refused_optional));
   }
 
   // GigE Vision packets: size (configured, or the largest the path carries) and delay. The

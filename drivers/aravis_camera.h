@@ -97,6 +97,8 @@ struct AppliedSettings {
   std::int64_t packet_delay_ns = 0;
   bool packet_resend = false;
   int socket_buffer_bytes = 0;
+  // USB3 Vision, as applied (applied.applied false elsewhere).
+  AppliedUsbTransfer usb;
   // Optional features the camera refused: "feature: why".
   std::vector<std::string> refused_optional;
 };

@@ -1,5 +1,7 @@
 #include "drivers/skewed_clock_camera.h"
 
+#include <cmath>
+
 namespace mocap::drivers {
 
 GrabResult SkewedClockCamera::Grab(Frame* frame) {
@@ -12,7 +14,7 @@ GrabResult SkewedClockCamera::Grab(Frame* frame) {
   const double since = static_cast<double>(static_cast<std::int64_t>(frame->device_timestamp_ns - origin_ns_));
   frame->device_timestamp_ns = static_cast<std::uint64_t>(
       static_cast<std::int64_t>(frame->device_timestamp_ns) + skew_.offset_ns +
-      static_cast<std::int64_t>(skew_.drift_ppm * 1e-6 * since));
+      std::llround(skew_.drift_ppm * 1e-6 * since));
   return r;
 }
 
