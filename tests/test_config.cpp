@@ -233,7 +233,7 @@ TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
       {"optional = [\"GainAuto\"]\n", "6: rig.camera[0].optional: expected a string, got an array"},
       {second + "id2 = 3\n",
        "8: rig.camera[1].id2: unknown key (the keys of [rig.camera] are id, backend, exposure_us, "
-       "gain_db, detection_threshold, interface, link, strobe_line, optional, masks)"},
+       "gain_db, detection_threshold, interface, link, strobe_line, optional, usb_mode, usb_throughput_limit_mb_s, sim_clock_offset_ms, sim_clock_drift_ppm, masks)"},
       {"[[rig.camera]]\nid = \"cam-A\"\n", "7: rig.camera[1].id: \"cam-A\" is also rig.camera[0]'s id"},
       {"[[rig.camera]]\nbackend = \"aravis\"\n",
        "6: rig.camera[1].id: missing: each camera needs its GenICam id or serial"},
