@@ -6,7 +6,12 @@
 //  - a link planned over its budget shows its negative headroom and fails the check (exit 5);
 //  - PTP: a camera that loses its lock (sim.camera ptp) fails the check, shows in status, gets
 //    record.start refused naming it, and marks a recording it happens during.
+#include <poll.h>
+#include <sys/socket.h>
+#include <sys/un.h>
+
 #include <cstdio>
+#include <cstdlib>
 #include <string>
 #include <thread>
 
@@ -52,6 +57,45 @@ int RigCheck(const DaemonProcess& d, json* report) {
 }
 
 std::string Camera(int i) { return "MOCAPSIM" + std::to_string(i); }
+
+// The service manager's end of NOTIFY_SOCKET, for the STATUS= lines mocapd sends.
+class NotifySocket {
+ public:
+  explicit NotifySocket(const std::string& path) : path_(path) {
+    fd_ = socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+    sockaddr_un a{};
+    a.sun_family = AF_UNIX;
+    std::snprintf(a.sun_path, sizeof a.sun_path, "%s", path.c_str());
+    bound_ = fd_ >= 0 && bind(fd_, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0;
+  }
+  ~NotifySocket() {
+    if (fd_ >= 0) close(fd_);
+    unlink(path_.c_str());
+  }
+  bool bound() const { return bound_; }
+  // The first STATUS= line containing `text` within `timeout_s`, or "".
+  std::string WaitForStatus(const std::string& text, double timeout_s) {
+    const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
+    char buf[4096];
+    while (std::chrono::steady_clock::now() < until) {
+      pollfd p{fd_, POLLIN, 0};
+      if (poll(&p, 1, 50) <= 0) continue;
+      const ssize_t n = recv(fd_, buf, sizeof buf, 0);
+      if (n <= 0) continue;
+      const std::string message(buf, static_cast<std::size_t>(n));
+      const std::size_t at = message.find("STATUS=");
+      if (at == std::string::npos) continue;
+      const std::string line = message.substr(at, message.find('\n', at) - at);
+      if (line.find(text) != std::string::npos) return line;
+    }
+    return "";
+  }
+
+ private:
+  std::string path_;
+  int fd_ = -1;
+  bool bound_ = false;
+};
 
 TEST(DaemonRigCheck, FreeRunReportsTheClockOffsetAndDriftEachCameraWasGiven) {
   const std::string dir = testing::MakeTempDir("mocapd-rigcheck-free");
@@ -137,7 +181,12 @@ TEST(DaemonRigCheck, ALinkOverItsBudgetShowsNegativeHeadroomAndFails) {
 TEST(DaemonRigCheck, APtpCameraLosingItsLockIsNamedRefusedAndMarksTheRecording) {
   const std::string dir = testing::MakeTempDir("mocapd-rigcheck-ptp");
   DaemonProcess d(dir, testing::SimulatedRigToml(6, 4, "sync = \"ptp\"\n"));
-  ASSERT_OK(d.Start());
+  NotifySocket notify(dir + "/notify");
+  ASSERT_TRUE(notify.bound());
+  setenv("NOTIFY_SOCKET", (dir + "/notify").c_str(), 1);  // mocapd inherits it
+  const Status started = d.Start();
+  unsetenv("NOTIFY_SOCKET");
+  ASSERT_OK(started);
   std::unique_ptr<ControlClient> c;
   ASSERT_OK(d.Connect(&c));
   json report;
@@ -155,6 +204,8 @@ TEST(DaemonRigCheck, APtpCameraLosingItsLockIsNamedRefusedAndMarksTheRecording) 
   const json st = Call(c.get(), "status");
   EXPECT_EQ(st["sync"]["locked"], false) << st["sync"].dump();
   EXPECT_EQ(st["sync"]["unlocked_cameras"], json({Camera(1)}));
+  const std::string line = notify.WaitForStatus("PTP unlocked", 3);
+  EXPECT_THAT(line, HasSubstr("STATUS=degraded: 6/6 simulated cameras 200 Hz (PTP unlocked: " + Camera(1) + ")"));
   EXPECT_EQ(RigCheck(d, &report), 5) << report.dump(1);
   EXPECT_EQ(report["cameras"][1]["ok"], false);
   EXPECT_EQ(report["cameras"][1]["sync"]["status"], "Listening");
