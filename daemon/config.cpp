@@ -196,6 +196,8 @@ const std::vector<CameraField>& CameraFields() {
                                                  {-1e6, 1e6}),
       Number<&CameraConfig::sim_clock_drift_ppm>("rig.camera", "sim_clock_drift_ppm", false,
                                                  {-1000, 1000}),
+      Number<&CameraConfig::sim_arrival_wait_us>("rig.camera", "sim_arrival_wait_us", false,
+                                                 {0, 100000}),
   };
   return fields;
 }
@@ -363,9 +365,11 @@ bool Validate(const DaemonConfig& c, const ErrorFormatter& fail, std::string* er
                              std::to_string(c.width) + "x" + std::to_string(c.height) + " " +
                              c.pixel_format + " at " + FormatNumber(c.rate_hz) + " Hz)");
     }
-    if ((cam.sim_clock_offset_ms != 0 || cam.sim_clock_drift_ppm != 0) &&
+    if ((cam.sim_clock_offset_ms != 0 || cam.sim_clock_drift_ppm != 0 || cam.sim_arrival_wait_us != 0) &&
         (c.simulated_cameras == 0 || c.sync != "free-run"))
-      return set_error(prefix + (cam.sim_clock_offset_ms != 0 ? ".sim_clock_offset_ms" : ".sim_clock_drift_ppm"),
+      return set_error(prefix + (cam.sim_clock_offset_ms != 0   ? ".sim_clock_offset_ms"
+                                 : cam.sim_clock_drift_ppm != 0 ? ".sim_clock_drift_ppm"
+                                                                : ".sim_arrival_wait_us"),
                        c.simulated_cameras == 0
                            ? "a simulated camera's clock on a real rig (its cameras have clocks of their own)"
                            : "needs rig.sync = \"free-run\" (got \"" + c.sync +

@@ -49,6 +49,7 @@
 //                               # camera sends at the configured image and rate is an error
 //   sim_clock_offset_ms = 0     # simulated rig, sync = "free-run": this fake's clock offset
 //   sim_clock_drift_ppm = 0     # ... and rate error (drivers/skewed_clock_camera.h)
+//   sim_arrival_wait_us = 0     # ... and the mean wait its frames' arrivals get (the fit's noise)
 //   [storage]   state_dir = "/var/lib/mocapd"
 //               export_dirs = ["/srv/mocap/exports"]   # where `export` may write (default:
 //                                                      # state_dir/exports; daemon/export_path.h)
@@ -115,6 +116,7 @@ struct CameraConfig {
   // (drivers/skewed_clock_camera.h) puts it on the fake's: an offset and a rate error.
   double sim_clock_offset_ms = 0;
   double sim_clock_drift_ppm = 0;
+  double sim_arrival_wait_us = 0;  // mean exponential wait added to each frame's arrival
   bool operator==(const CameraConfig&) const = default;
 };
 

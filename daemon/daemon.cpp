@@ -228,13 +228,17 @@ Status Daemon::Start() {
       }
       // Free run: each fake's clock as configured (its own offset and rate).
       const CameraConfig* c = i < config_.cameras.size() ? &config_.cameras[i] : nullptr;
-      if (c && (c->sim_clock_offset_ms != 0 || c->sim_clock_drift_ppm != 0)) {
+      if (c && (c->sim_clock_offset_ms != 0 || c->sim_clock_drift_ppm != 0 ||
+                c->sim_arrival_wait_us != 0)) {
         drivers::ClockSkew skew;
         skew.offset_ns = static_cast<std::int64_t>(std::llround(c->sim_clock_offset_ms * 1e6));
         skew.drift_ppm = c->sim_clock_drift_ppm;
+        skew.arrival_wait_us = c->sim_arrival_wait_us;
+        skew.seed = i + 1;
         sources[i] = std::make_unique<drivers::SkewedClockCamera>(std::move(sources[i]), skew);
-        spdlog::info("simulated camera {}: clock offset {} ms, drift {} ppm", sources[i]->id(),
-                     c->sim_clock_offset_ms, c->sim_clock_drift_ppm);
+        spdlog::info("simulated camera {}: clock offset {} ms, drift {} ppm, arrivals wait {} us "
+                     "on average", sources[i]->id(), c->sim_clock_offset_ms,
+                     c->sim_clock_drift_ppm, c->sim_arrival_wait_us);
       }
     }
     if (config_.sync == "free-run")
