@@ -281,6 +281,7 @@ Status Daemon::Start() {
                    ptp_.states[i].has_offset
                        ? ", " + std::to_string(ptp_.states[i].offset_from_master_ns) + " ns from the master"
                        : "");
+    ptp_.rounds = 0;  // the running monitor's rounds count from its own first
     ptp_monitor_ = std::make_unique<PtpMonitor>(ptp, PtpMonitorOptions{},
                                                 [this] { PostToLoop([this] { UpdatePtp(); }); });
   }
