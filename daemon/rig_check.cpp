@@ -29,6 +29,7 @@ bool RigCheckOptions::IsValid(std::string* error) const {
     return fail("max_lost_frame_fraction must be in [0, 1]");
   if (!(max_mismatched_set_fraction >= 0 && max_mismatched_set_fraction <= 1))
     return fail("max_mismatched_set_fraction must be in [0, 1]");
+  if (!(max_ptp_offset_us > 0)) return fail("max_ptp_offset_us must be > 0");
   if (!(min_seconds_of_frames >= 0 && min_seconds_of_frames <= 3600))
     return fail("min_seconds_of_frames must be in [0, 3600]");
   return true;
@@ -71,6 +72,10 @@ Json RigCheckReport(const RigCheckInput& in, const RigCheckOptions& options) {
       if (!c.ptp_error.empty()) fail("PTP state not read: " + c.ptp_error);
       else if (!locked)
         fail("PTP not locked (status " + (c.ptp.status.empty() ? std::string("none") : c.ptp.status) + ")");
+      else if (c.ptp.status == "Slave" && c.ptp.has_offset &&
+               std::abs(static_cast<double>(c.ptp.offset_from_master_ns)) > options.max_ptp_offset_us * 1e3)
+        fail("PTP offset from the master " + std::to_string(c.ptp.offset_from_master_ns) +
+             " ns exceeds " + Fixed(options.max_ptp_offset_us, 0) + " us (not converged)");
     } else if (in.sync == "free-run" || in.sync == "trigger") {
       sync["clock_fitted"] = c.clock_fitted;
       sync["clock_offset_ms"] = c.clock_offset_ms;

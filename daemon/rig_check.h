@@ -43,6 +43,9 @@ struct RigCheckOptions {
   // trigger: sets whose members' timestamps disagreed, beyond this fraction of the sets, fail the
   // rig; any frame whose count disagreed with its own timestamp fails its camera.
   double max_mismatched_set_fraction = 0.001;
+  // ptp: a slave further than this from its master fails: it has not converged (locked slaves
+  // with hardware timestamps sit within a microsecond or so); at 200 Hz it is 2 % of a period.
+  double max_ptp_offset_us = 100;
   // A camera with fewer complete frames than this many seconds at the rate is not judged on its
   // fractions (its first buffers, a start-up underrun, would be percent of nothing): it fails
   // with "too few frames so far" instead.

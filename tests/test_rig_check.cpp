@@ -297,6 +297,14 @@ TEST(RigCheck, VerdictsFollowTheFiguresAndNameWhatFails) {
   r = daemon::RigCheckReport(in);
   EXPECT_EQ(r["ok"], true) << r.dump(1);
   EXPECT_EQ(r["sync"]["master"], "c0");
+  in.cameras[1].ptp.has_offset = true;
+  in.cameras[1].ptp.offset_from_master_ns = -100'000;  // 100 us: at the limit, passes
+  EXPECT_EQ(daemon::RigCheckReport(in)["ok"], true);
+  in.cameras[1].ptp.offset_from_master_ns = -100'001;
+  r = daemon::RigCheckReport(in);
+  ASSERT_EQ(r["problems"].size(), 1u) << r.dump(1);
+  EXPECT_EQ(r["problems"][0], "camera 'c1': PTP offset from the master -100001 ns exceeds 100 us (not converged)");
+  in.cameras[1].ptp.offset_from_master_ns = 40;
   in.cameras[2].ptp_error = "c2: cannot read PtpStatus (timeout)";
   in.cameras[2].ptp.status.clear();
   in.ptp_locked = false;
