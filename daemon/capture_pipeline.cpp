@@ -111,6 +111,9 @@ Status CapturePipeline::Start() {
     stats_.camera_resyncs.assign(cameras_.size(), 0);
     stats_.camera_clock_offset_ms.assign(cameras_.size(), 0.0);
     stats_.camera_clock_drift_ppm.assign(cameras_.size(), 0.0);
+    stats_.camera_clock_residual_us.assign(cameras_.size(), 0.0);
+    stats_.camera_clock_fitted.assign(cameras_.size(), false);
+    stats_.camera_count_mismatches.assign(cameras_.size(), 0);
   }
   frames_.clear();
   const int per_worker =
@@ -167,6 +170,9 @@ void CapturePipeline::GrabLoop(int c) {
   int placing = 0;  // frames left to place it on the rig's trigger count
   double best_excess_ns = 0;
   bool force_shift = false;
+  // Its previous frame of this epoch (own count and timestamp): the count-vs-timestamp check.
+  bool have_previous = false;
+  std::uint64_t previous_sequence = 0, previous_device_ns = 0;
   while (grabbing_) {
     if (options_.test_hold) options_.test_hold("grab");
     drivers::Frame frame;
@@ -179,6 +185,16 @@ void CapturePipeline::GrabLoop(int c) {
         reopens_seen = reopens;
       }
       was_lost = false;
+      if (returned) have_previous = false;
+      bool count_mismatch = false;
+      if (have_previous && options_.rate_hz > 0 && frame.device_timestamp_ns > previous_device_ns) {
+        const double periods =
+            static_cast<double>(frame.device_timestamp_ns - previous_device_ns) * options_.rate_hz * 1e-9;
+        count_mismatch = static_cast<long long>(frame.sequence - previous_sequence) != std::llround(periods);
+      }
+      have_previous = true;
+      previous_sequence = frame.sequence;
+      previous_device_ns = frame.device_timestamp_ns;
       const bool trigger_count =
           options_.rig_sync == CapturePipelineOptions::RigSync::kTrigger && options_.rate_hz > 0;
       if (trigger_count && (returned || !delivered)) {
@@ -228,6 +244,7 @@ void CapturePipeline::GrabLoop(int c) {
         rig_newest_sequence_ = std::max(rig_newest_sequence_, frame.sequence);
       }
       ++stats_.frames_grabbed;
+      if (count_mismatch) ++stats_.camera_count_mismatches[c];
       BoundedQueue<drivers::Frame>& queue = *frames_[c % frames_.size()];
       if (!queue.TryPush(std::move(frame))) {  // full: the frame is left to us
         ++stats_.frames_dropped;
@@ -363,6 +380,8 @@ void CapturePipeline::EmitSet(reconstruction::DetectionSet& set) {
   for (std::size_t c = 0; c < cameras_.size(); ++c) {
     stats_.camera_clock_offset_ms[c] = sync_.offset_ns(static_cast<int>(c)) * 1e-6;
     stats_.camera_clock_drift_ppm[c] = sync_.drift_ppm(static_cast<int>(c));
+    stats_.camera_clock_residual_us[c] = sync_.clock_residual_ns(static_cast<int>(c)) * 1e-3;
+    stats_.camera_clock_fitted[c] = sync_.clock_fitted(static_cast<int>(c));
   }
   stats_.mismatched_sets = sync_.counters().mismatched;
   triangulate_ms_.Add(std::chrono::duration<double, std::milli>(t1 - t0).count());

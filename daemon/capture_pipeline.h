@@ -201,6 +201,16 @@ struct CapturePipelineStats {
   // check). mismatched_sets: kTrigger sets whose timestamps disagreed.
   std::vector<std::uint64_t> camera_resyncs;
   std::vector<double> camera_clock_offset_ms, camera_clock_drift_ppm;
+  // ... the clock fit's residual (reconstruction/clock_fit.h residual_ns, in us) and whether its
+  // drift is fitted yet (the rig check judges a fit only once it is).
+  std::vector<double> camera_clock_residual_us;
+  std::vector<bool> camera_clock_fitted;
+  // Per camera, its frame count against its own timestamps: frames whose id advanced by another
+  // number of frames than their timestamp did (round(dt x rate_hz)) since the camera's previous
+  // frame. With a hardware trigger that is a trigger the camera counted and did not expose, or
+  // exposed and did not count: its frames are then on the wrong sets (the rig check fails it).
+  // Frames lost in transport advance both alike and are not counted here.
+  std::vector<std::uint64_t> camera_count_mismatches;
   std::uint64_t mismatched_sets = 0;
   double detect_ms_p50 = 0, detect_ms_p99 = 0;
   double triangulate_ms_p50 = 0, triangulate_ms_p99 = 0;

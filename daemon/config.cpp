@@ -189,6 +189,16 @@ const std::vector<CameraField>& CameraFields() {
       Number<&CameraConfig::strobe_line>("rig.camera", "strobe_line", false,
                                          {0, 15, false, -1.0, "none"}),
       Text("rig.camera", "optional", false, &CameraConfig::optional, false),
+      Text("rig.camera", "usb_mode", false, &CameraConfig::usb_mode, true,
+           {"default", "sync", "async"}),
+      Number<&CameraConfig::usb_throughput_limit_mb_s>("rig.camera", "usb_throughput_limit_mb_s",
+                                                       false, {0, 100000}),
+      Number<&CameraConfig::sim_clock_offset_ms>("rig.camera", "sim_clock_offset_ms", false,
+                                                 {-1e6, 1e6}),
+      Number<&CameraConfig::sim_clock_drift_ppm>("rig.camera", "sim_clock_drift_ppm", false,
+                                                 {-1000, 1000}),
+      Number<&CameraConfig::sim_arrival_wait_us>("rig.camera", "sim_arrival_wait_us", false,
+                                                 {0, 100000}),
   };
   return fields;
 }
@@ -339,6 +349,32 @@ bool Validate(const DaemonConfig& c, const ErrorFormatter& fail, std::string* er
                                            std::to_string(it->second) + "]'s id");
     if (cam.exposure_us != 0 && !check_exposure(prefix + ".exposure_us", cam.exposure_us))
       return false;
+    if (cam.interface != "usb3" && cam.usb_mode != "default")
+      return set_error(prefix + ".usb_mode", "\"" + cam.usb_mode + "\" on a " + cam.interface +
+                                                 " camera (USB3 Vision transfer: interface = \"usb3\")");
+    if (cam.interface != "usb3" && cam.usb_throughput_limit_mb_s > 0)
+      return set_error(prefix + ".usb_throughput_limit_mb_s",
+                       FormatNumber(cam.usb_throughput_limit_mb_s) + " on a " + cam.interface +
+                           " camera (USB3 Vision transfer: interface = \"usb3\")");
+    if (cam.usb_throughput_limit_mb_s > 0) {
+      // What the camera sends: a limit below it drops frames every second or so, silently.
+      const double need = CameraImageMbS(c);
+      if (cam.usb_throughput_limit_mb_s < need)
+        return set_error(prefix + ".usb_throughput_limit_mb_s",
+                         FormatNumber(cam.usb_throughput_limit_mb_s) + " MB/s is below the " +
+                             FormatNumber(std::round(need * 10) / 10) + " MB/s the camera sends (" +
+                             std::to_string(c.width) + "x" + std::to_string(c.height) + " " +
+                             c.pixel_format + " at " + FormatNumber(c.rate_hz) + " Hz)");
+    }
+    if ((cam.sim_clock_offset_ms != 0 || cam.sim_clock_drift_ppm != 0 || cam.sim_arrival_wait_us != 0) &&
+        (c.simulated_cameras == 0 || c.sync != "free-run"))
+      return set_error(prefix + (cam.sim_clock_offset_ms != 0   ? ".sim_clock_offset_ms"
+                                 : cam.sim_clock_drift_ppm != 0 ? ".sim_clock_drift_ppm"
+                                                                : ".sim_arrival_wait_us"),
+                       c.simulated_cameras == 0
+                           ? "a simulated camera's clock on a real rig (its cameras have clocks of their own)"
+                           : "needs rig.sync = \"free-run\" (got \"" + c.sync +
+                                 "\": the fakes' one clock has no offsets to fit)");
     if (cam.id == c.trigger_master && cam.strobe_line < 0)
       return set_error(prefix + ".strobe_line",
                        "-1 (none) on the trigger master \"" + cam.id +
@@ -534,6 +570,18 @@ class Reader {
 
 bool DaemonConfig::IsValid(std::string* error) const {
   return Validate(*this, ErrorFormatter(source, nullptr), error);
+}
+
+double ConfiguredBytesPerPixel(const std::string& pixel_format) {
+  if (pixel_format == "Mono8") return 1.0;
+  if (pixel_format == "Mono12Packed") return 1.5;
+  if (pixel_format == "Mono12" || pixel_format == "Mono16") return 2.0;
+  return 0.0;
+}
+
+double CameraImageMbS(const DaemonConfig& c) {
+  return static_cast<double>(c.width) * c.height * ConfiguredBytesPerPixel(c.pixel_format) *
+         c.rate_hz * 1e-6;
 }
 
 Status ParseConfig(const std::string& text, const std::string& source, DaemonConfig* out) {

@@ -20,7 +20,9 @@
 //                               # join when they appear); fewer: refuse to start (rig_setup.h)
 //   calibration = "calib.json"  # camera calibration; absent: uncalibrated until rig.calibrate
 //   sync = "trigger"            # "trigger" | "ptp" | "free-run" (daemon/capture_pipeline.h RigSync;
-//                               # a simulated rig's fakes share the host's clock: always as "ptp")
+//                               # a simulated rig's fakes share the host's clock: "trigger" runs
+//                               # as "ptp"; "ptp" reads a simulated PTP state (sim.camera sets
+//                               # it); "free-run" fits each fake's clock, sim_clock_* skew them)
 //   trigger_master = ""         # trigger: the camera whose strobe triggers the others ("": an
 //                               # external trigger generator drives every camera)
 //   trigger_line = 1            # trigger: the cameras' trigger input, Line<n>
@@ -37,11 +39,19 @@
 //   masks = [ { x = 0, y = 900, width = 1280, height = 124 } ]   # pixels never detected (reflections)
 //   interface = "gige"          # "gige" | "10gige" | "usb3": what its link carries (rig check)
 //   link = ""                   # cameras with one link name share a link (a NIC port, a switch
-//                               # uplink, a USB host controller); "": a link of its own
+//                               # uplink, a USB host controller); "": a link of its own. On a
+//                               # simulated rig only cameras with a link are in the rig check
+//                               # (the rig being planned), and over budget is not refused
 //   strobe_line = -1            # Line<n> driven by ExposureActive (the IR ring; a trigger
 //                               # master's output); -1: none
 //   optional = ""               # GenICam features this camera may refuse, comma separated
 //                               # ("ExposureAuto,GevSCPD"); any other refusal is an error
+//   usb_mode = "default"        # usb3: "default" | "sync" | "async" (Aravis's libusb I/O)
+//   usb_throughput_limit_mb_s = 0   # usb3: DeviceLinkThroughputLimit (0: none); below what the
+//                               # camera sends at the configured image and rate is an error
+//   sim_clock_offset_ms = 0     # simulated rig, sync = "free-run": this fake's clock offset
+//   sim_clock_drift_ppm = 0     # ... and rate error (drivers/skewed_clock_camera.h)
+//   sim_arrival_wait_us = 0     # ... and the mean wait its frames' arrivals get (the fit's noise)
 //   [storage]   state_dir = "/var/lib/mocapd"
 //               export_dirs = ["/srv/mocap/exports"]   # where `export` may write (default:
 //                                                      # state_dir/exports; daemon/export_path.h)
@@ -100,6 +110,15 @@ struct CameraConfig {
   std::string link;                // "": its own
   int strobe_line = -1;            // -1: none
   std::string optional;            // features it may refuse, comma separated
+  // USB3 Vision transfer (interface "usb3" only): Aravis's libusb I/O mode, and the camera's
+  // DeviceLinkThroughputLimit (MB/s, 0: no limit). drivers/usb_transfer.h says what each does.
+  std::string usb_mode = "default";  // "default" | "sync" | "async"
+  double usb_throughput_limit_mb_s = 0;
+  // Simulated rigs with sync = "free-run" only: this camera's clock, as SkewedClockCamera
+  // (drivers/skewed_clock_camera.h) puts it on the fake's: an offset and a rate error.
+  double sim_clock_offset_ms = 0;
+  double sim_clock_drift_ppm = 0;
+  double sim_arrival_wait_us = 0;  // mean exponential wait added to each frame's arrival
   bool operator==(const CameraConfig&) const = default;
 };
 
@@ -168,6 +187,11 @@ struct DaemonConfig {
   // file spells it ("rig.camera[2].gain_db: ..."), without a line: this struct has none.
   bool IsValid(std::string* error) const;
 };
+
+// Bytes per pixel of a configured pixel format (Mono12Packed: 1.5); 0 for an unknown name.
+double ConfiguredBytesPerPixel(const std::string& pixel_format);
+// What one camera sends of images at the configured image, pixel format and rate, MB/s (1e6 B).
+double CameraImageMbS(const DaemonConfig& config);
 
 // Parses `text` (a TOML document) as the configuration read from `source` (a path: it names the
 // file in errors and relative paths are resolved against its directory). On error `out` is

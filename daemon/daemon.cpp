@@ -20,9 +20,11 @@
 #include "daemon/export_path.h"
 #include "daemon/recorder.h"
 #include "daemon/recording_export.h"
+#include "daemon/rig_check.h"
 #include "daemon/rig_setup.h"
 #include "drivers/aravis_camera.h"
 #include "drivers/frame.h"
+#include "drivers/skewed_clock_camera.h"
 #include "formats/osim.h"
 #include "formats/text_util.h"
 #include "model/compare.h"
@@ -240,28 +242,59 @@ Status Daemon::Start() {
       return Status::Error("[rig] " + st.message());
     }
   }
-  std::vector<drivers::AravisCamera*> opened;
-  for (drivers::AravisCamera* cam : aravis) {
-    const bool missing = std::any_of(missing_at_start_.begin(), missing_at_start_.end(),
-                                     [&](const MissingCamera& m) { return m.id == cam->id(); });
-    if (missing) continue;
-    opened.push_back(cam);
-    for (const std::string& r : cam->Applied().refused_optional)
-      spdlog::warn("camera '{}': optional feature refused: {}", cam->id(), r);
-  }
-  for (const MissingCamera& m : missing_at_start_)
+  std::vector<char> opened(aravis.size(), 1);
+  for (const MissingCamera& m : missing_at_start_) {
+    opened[m.index] = 0;
     spdlog::error("[[rig.camera]] '{}' did not open ({}); the rig starts without it, degraded, "
                   "and takes it when it appears", m.id, m.why);
-  if (config_.simulated_cameras == 0) {
-    if (config_.sync == "ptp") {
-      std::vector<drivers::PtpState> ptp;
-      MOCAP_RETURN_IF_ERROR(WaitForPtpLock(opened, config_.ptp_lock_timeout_s, &ptp));
-      for (std::size_t i = 0; i < ptp.size(); ++i)
-        spdlog::info("camera '{}': PTP {}{}", opened[i]->id(), ptp[i].status,
-                     ptp[i].has_offset ? ", " + std::to_string(ptp[i].offset_from_master_ns) +
-                                             " ns from the master"
-                                       : "");
-    } else if (config_.sync == "free-run") {
+  }
+  for (std::size_t i = 0; i < aravis.size(); ++i) {
+    if (!opened[i]) continue;
+    const drivers::AravisCamera& cam = *aravis[i];
+    for (const std::string& r : cam.Applied().refused_optional)
+      spdlog::warn("camera '{}': optional feature refused: {}", cam.id(), r);
+    if (const drivers::AppliedUsbTransfer& u = cam.Applied().usb; u.applied)
+      spdlog::info("camera '{}': USB3 Vision {} I/O, throughput limit {} ({} MB/s), transfers "
+                   "of {} KiB, {} MiB submitted at most (Aravis 0.8's)",
+                   cam.id(), u.mode, u.throughput_limit_mode.empty() ? "-" : u.throughput_limit_mode,
+                   u.throughput_limit_mb_s, u.maximum_transfer_bytes / 1024,
+                   u.maximum_submit_bytes >> 20);
+  }
+  aravis_cameras_ = aravis;
+  std::vector<std::unique_ptr<drivers::CameraSource>> sources;
+  for (auto& cam : cameras) sources.push_back(std::move(cam));
+  if (config_.simulated_cameras > 0) {
+    for (std::size_t i = 0; i < sources.size(); ++i) {
+      if (config_.sync == "ptp") {
+        auto ptp = std::make_unique<SimulatedPtpSource>(sources[i]->id());
+        sim_ptp_.push_back(ptp.get());
+        ptp_sources_.push_back(std::move(ptp));
+      }
+      // Free run: each fake's clock as configured (its own offset and rate).
+      const CameraConfig* c = i < config_.cameras.size() ? &config_.cameras[i] : nullptr;
+      if (c && (c->sim_clock_offset_ms != 0 || c->sim_clock_drift_ppm != 0 ||
+                c->sim_arrival_wait_us != 0)) {
+        drivers::ClockSkew skew;
+        skew.offset_ns = static_cast<std::int64_t>(std::llround(c->sim_clock_offset_ms * 1e6));
+        skew.drift_ppm = c->sim_clock_drift_ppm;
+        skew.arrival_wait_us = c->sim_arrival_wait_us;
+        skew.seed = i + 1;
+        sources[i] = std::make_unique<drivers::SkewedClockCamera>(std::move(sources[i]), skew);
+        spdlog::info("simulated camera {}: clock offset {} ms, drift {} ppm, arrivals wait {} us "
+                     "on average", sources[i]->id(), c->sim_clock_offset_ms,
+                     c->sim_clock_drift_ppm, c->sim_arrival_wait_us);
+      }
+    }
+    if (config_.sync == "free-run")
+      spdlog::warn("[rig] sync = \"free-run\" on a simulated rig: frame sets are grouped by each "
+                   "fake's clock fitted against the host's");
+  } else {
+    // PTP is checked on the cameras that opened; one that joins later is not monitored until a
+    // restart (noted in README "Cameras").
+    if (config_.sync == "ptp")
+      for (std::size_t i = 0; i < aravis.size(); ++i)
+        if (opened[i]) ptp_sources_.push_back(std::make_unique<AravisPtpSource>(aravis[i]));
+    if (config_.sync == "free-run") {
       spdlog::warn("[rig] sync = \"free-run\": frame sets are grouped by each camera's clock "
                    "fitted against the host's; they are only as good as that estimate, and "
                    "free-running cameras do not expose together");
@@ -271,8 +304,20 @@ Status Daemon::Start() {
         spdlog::error("[rig] trigger_master '{}' is missing: the other cameras get no trigger "
                       "until it appears", m.id);
   }
-  std::vector<std::unique_ptr<drivers::CameraSource>> sources;
-  for (auto& cam : cameras) sources.push_back(std::move(cam));
+  // PTP: every camera locked to one clock before the rig streams (daemon/ptp_monitor.h).
+  if (!ptp_sources_.empty()) {
+    std::vector<PtpStatusSource*> ptp;
+    for (auto& p : ptp_sources_) ptp.push_back(p.get());
+    MOCAP_RETURN_IF_ERROR(WaitForPtpLock(ptp, config_.ptp_lock_timeout_s, &ptp_));
+    for (std::size_t i = 0; i < ptp_.states.size(); ++i)
+      spdlog::info("camera '{}': PTP {}{}", ptp[i]->camera_id(), ptp_.states[i].status,
+                   ptp_.states[i].has_offset
+                       ? ", " + std::to_string(ptp_.states[i].offset_from_master_ns) + " ns from the master"
+                       : "");
+    ptp_.rounds = 0;  // the running monitor's rounds count from its own first
+    ptp_monitor_ = std::make_unique<PtpMonitor>(ptp, PtpMonitorOptions{},
+                                                [this] { PostToLoop([this] { UpdatePtp(); }); });
+  }
   // The rig calibration: the configured file, else the newest stored one.
   std::vector<reconstruction::CameraModel> calibrated;
   {
@@ -327,6 +372,7 @@ Status Daemon::Start() {
   pipeline_->SetImageSize(config_.width, config_.height);
   if (!calibrated.empty()) MOCAP_RETURN_IF_ERROR(pipeline_->SetCalibration(calibrated));
   MOCAP_RETURN_IF_ERROR(pipeline_->Start());
+  if (ptp_monitor_) MOCAP_RETURN_IF_ERROR(ptp_monitor_->Start());
   if (sim_rig_) {
     if (calibrated.empty()) sim_rig_->scene().ShowEmpty();
     else sim_rig_->scene().StandStatic();
@@ -407,6 +453,7 @@ void Daemon::Stop() {
     if (job_->thread.joinable()) job_->thread.join();
   }
   if (recorder_) recorder_->Stop();  // commits what is queued
+  if (ptp_monitor_) ptp_monitor_->Stop();  // reads the cameras: before they close
   if (pipeline_) pipeline_->Stop();
   if (recording_ && store_) {
     store_->FinishRecording(recording_->id, RecordingState::kInterrupted, "", "the daemon stopped");
@@ -418,6 +465,7 @@ void Daemon::Stop() {
     tasks_.clear();
   }
   recorder_.reset();
+  ptp_monitor_.reset();
   pipeline_.reset();
   sim_rig_.reset();
   server_.reset();
@@ -523,6 +571,7 @@ void Daemon::OnRequest(const ClientInfo& client, const Json& id, const std::stri
   static const std::map<std::string, Entry> kMethods = {
       {"status", {nullptr, false}},
       {"cameras", {nullptr, false}},
+      {"cameras.check", {&Daemon::CamerasCheck, false}},
       {"config.reload", {&Daemon::ConfigReload, true}},
       {"rig.calibrate.start", {&Daemon::RigCalibrateStart, true}},
       {"rig.calibrate.finish", {&Daemon::RigCalibrateFinish, true}},
@@ -631,6 +680,7 @@ Json Daemon::Status_() const {
                               {"seed", config_.subject_seed}};
   }
   j["rig"] = rig;
+  j["sync"] = SyncJson();
   j["cameras"] = CamerasJson()["cameras"];
   {
     // Bad data, summed over the cameras; the cameras whose calibration looks off, by id.
@@ -1099,6 +1149,13 @@ void Daemon::RecordStart(const Request& r) {
     return Fail(r, error_code::kNotFound,
                 "movement '" + movement + "' is not in the protocol (" + names + ")");
   }
+  if (ptp_monitor_) {
+    UpdatePtp();
+    if (!ptp_.locked)
+      return Fail(r, error_code::kUnavailable,
+                  "the rig is not locked to one PTP clock (" + ptp_.why +
+                      "): its frame sets would mix instants; recording refused");
+  }
   if (!subject_) return Fail(r, error_code::kConflict, "select a subject first (subject.select)");
   if (!pipeline_->calibrated())
     return Fail(r, error_code::kUnavailable, "the rig is not calibrated (rig.calibrate.*)");
@@ -1245,6 +1302,14 @@ void Daemon::FinishRecording() {
                  rec.id, id, g.missing_frames, g.outages, g.first_frame, g.last_frame);
   }
   coverage["camera_gaps"] = gaps;
+  // The rig's sync failed during the recording (PTP lock lost): its sets may mix instants, so
+  // it does not pass (the fit never uses it) and the advice says why.
+  coverage["sync_faults"] = rec.sync_faults;
+  if (!rec.sync_faults.empty()) {
+    coverage["ok"] = false;
+    advice = "repeat " + rec.movement + ": " + rec.sync_faults.front();
+    spdlog::warn("recording {}: {}", rec.id, rec.sync_faults.front());
+  }
   FinishInStore(rec.id, s ? RecordingState::kComplete : RecordingState::kFailed, coverage.dump(),
                 s ? "" : s.message());
   const double seconds = frames.empty() ? 0 : frames.back().time_s - frames.front().time_s;
@@ -1260,6 +1325,7 @@ void Daemon::FinishRecording() {
                   {"tracking_fraction", tracking},
                   {"coverage", coverage},
                   {"camera_gaps", gaps},
+                  {"sync_faults", rec.sync_faults},
                   {"advice", advice.empty() ? Json() : Json(advice)}});
 }
 
@@ -1684,16 +1750,126 @@ void Daemon::SimCamera(const Request& r) {
   Params p(r.params);
   std::int64_t camera = -1;
   bool present = true;
-  if (!p.Int("camera", &camera, 0, pipeline_->num_cameras() - 1, true) || !p.Bool("present", &present))
+  std::string ptp_status;
+  double ptp_offset_ns = 0;
+  if (!p.Int("camera", &camera, 0, pipeline_->num_cameras() - 1, true) || !p.Bool("present", &present) ||
+      !p.String("ptp", &ptp_status, false) || !p.Number("ptp_offset_ns", &ptp_offset_ns, -1e12, 1e12, false))
     return Fail(r, error_code::kInvalidParams, p.error);
+  if (p.Has("ptp")) {
+    // The camera's PTP state as its PtpStatus would read (the fakes have no PTP features).
+    if (sim_ptp_.empty())
+      return Fail(r, error_code::kUnavailable, "params.ptp: the simulated rig runs sync = \"" +
+                                                   config_.sync + "\", not \"ptp\"");
+    drivers::PtpState st;
+    st.status = ptp_status;
+    st.has_offset = true;
+    st.offset_from_master_ns = static_cast<std::int64_t>(ptp_offset_ns);
+    sim_ptp_[static_cast<std::size_t>(camera)]->Set(st);
+    spdlog::warn("simulated rig: camera {} PTP status {}", sim_ptp_[camera]->camera_id(), ptp_status);
+    if (!p.Has("present"))
+      return server_->Reply(r.client.id, r.id, {{"camera", sim_ptp_[camera]->camera_id()}, {"ptp", ptp_status}});
+  }
   if (!p.Has("present")) return Fail(r, error_code::kInvalidParams, "params.present: missing");
-  auto* cam = dynamic_cast<drivers::AravisCamera*>(&pipeline_->camera(static_cast<int>(camera)));
+  auto* cam = aravis_cameras_[static_cast<std::size_t>(camera)];
   if (!cam) return Fail(r, error_code::kInternal, "camera " + std::to_string(camera) + " is not an Aravis camera");
   sim_rig_->fakes().SetPresent(static_cast<int>(camera), present);
   if (present) cam->NotifyArrived();
   else cam->NotifyRemoved();
   spdlog::warn("simulated rig: camera {} {}", cam->id(), present ? "plugged back" : "unplugged");
   server_->Reply(r.client.id, r.id, {{"camera", cam->id()}, {"present", present}});
+}
+
+// ---------------------------------------------------------------------------------------------
+// Synchronisation and the rig check
+
+void Daemon::UpdatePtp() {
+  if (!ptp_monitor_) return;
+  const PtpRigState now = ptp_monitor_->Snapshot();
+  if (!now.checked || now.rounds == ptp_.rounds) return;
+  const bool was_locked = ptp_.locked;
+  ptp_ = now;
+  if (was_locked && !now.locked) {
+    spdlog::error("PTP lock lost: {}", now.why);
+    if (recording_) {
+      char at[32];
+      std::snprintf(at, sizeof at, "%.2f", SecondsSince(recording_->started_ns));
+      recording_->sync_faults.push_back("PTP lock lost " + std::string(at) + " s into the recording: " + now.why);
+    }
+  } else if (!was_locked && now.locked) {
+    spdlog::info("PTP: every camera locked to one clock again");
+  }
+}
+
+Json Daemon::SyncJson() const {
+  Json j = {{"mode", config_.sync}};
+  if (config_.simulated_cameras > 0 && config_.sync == "trigger") j["mode"] = "shared-clock";
+  if (ptp_monitor_) {
+    j["locked"] = ptp_.checked ? Json(ptp_.locked) : Json();
+    j["unlocked_cameras"] = ptp_.unlocked_cameras;
+    j["why"] = ptp_.locked ? Json() : Json(ptp_.why);
+    j["lock_losses"] = ptp_.lock_losses;
+  }
+  return j;
+}
+
+Json Daemon::RigCheckJson() const {
+  RigCheckInput in;
+  in.sync = SyncJson()["mode"].get<std::string>();
+  in.rate_hz = config_.rate_hz;
+  in.links = RigLinkLoads(config_);
+  if (!pipeline_) return RigCheckReport(in);
+  const CapturePipelineStats st = pipeline_->Stats(/*timings=*/false).capture;
+  auto at = [](const auto& v, int c, auto fallback) {
+    return c < static_cast<int>(v.size()) ? v[static_cast<std::size_t>(c)] : fallback;
+  };
+  for (int c = 0; c < pipeline_->num_cameras(); ++c) {
+    drivers::CameraSource& cam = pipeline_->camera(c);
+    const drivers::CameraCounters& k = cam.Counters();
+    CameraCheckInput ci;
+    ci.id = cam.id();
+    for (const LinkLoad& l : in.links)
+      for (const std::string& id : l.cameras)
+        if (id == ci.id) ci.link = l.link;
+    ci.streaming = cam.State() == drivers::CameraState::kStreaming;
+    ci.complete = k.complete.load();
+    ci.missing_packets = k.missing_packets.load();
+    ci.size_mismatches = k.size_mismatches.load();
+    ci.other_errors = k.other_errors.load() + k.wrong_format.load();
+    ci.underruns = k.underruns.load();
+    ci.timeouts = k.timeouts.load();
+    ci.losses = k.losses.load();
+    ci.reopens = k.reopens.load();
+    if (c < static_cast<int>(aravis_cameras_.size()) && aravis_cameras_[c])
+      ci.has_packet_statistics =
+          aravis_cameras_[c]->PacketStatistics(&ci.resent_packets, &ci.missing_stream_packets);
+    ci.clock_fitted = at(st.camera_clock_fitted, c, false);
+    ci.clock_offset_ms = at(st.camera_clock_offset_ms, c, 0.0);
+    ci.clock_drift_ppm = at(st.camera_clock_drift_ppm, c, 0.0);
+    ci.clock_residual_us = at(st.camera_clock_residual_us, c, 0.0);
+    ci.count_mismatches = at(st.camera_count_mismatches, c, std::uint64_t{0});
+    ci.trigger_master = !config_.trigger_master.empty() && ci.id == config_.trigger_master;
+    if (c < static_cast<int>(ptp_.states.size())) {
+      ci.ptp = ptp_.states[c];
+      ci.ptp_error = ptp_.errors[c];
+    }
+    in.cameras.push_back(ci);
+  }
+  in.sets = st.frame_sets;
+  in.incomplete_sets = st.incomplete_sets;
+  in.dropped_sets = st.dropped_frame_sets;
+  in.mismatched_sets = st.mismatched_sets;
+  in.ptp_checked = ptp_.checked;
+  in.ptp_locked = ptp_.locked;
+  in.ptp_why = ptp_.why;
+  return RigCheckReport(in);
+}
+
+void Daemon::CamerasCheck(const Request& r) {
+  UpdatePtp();
+  const Json report = RigCheckJson();
+  if (!report.value("ok", false))
+    spdlog::warn("cameras.check: {}", report["problems"].dump());
+  server_->Reply(r.client.id, r.id, report);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1805,8 +1981,10 @@ void Daemon::Tick() {
       }
     }
   }
+  UpdatePtp();
   if (options_.notifier && pipeline_) {
     ServiceSnapshot s = PipelineSnapshot(*pipeline_, config_);
+    if (ptp_monitor_ && ptp_.checked && !ptp_.locked) s.ptp_unlocked = ptp_.unlocked_cameras;
     if (subject_) s.subject = subject_->name;
     s.model_version = live_model_version_;
     if (recording_) s.recording = recording_->movement;

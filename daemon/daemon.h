@@ -40,6 +40,7 @@
 #include "daemon/control_server.h"
 #include "daemon/live_pipeline.h"
 #include "daemon/rig_setup.h"
+#include "daemon/ptp_monitor.h"
 #include "daemon/service_notify.h"
 #include "daemon/store.h"
 #include "model/model.h"
@@ -115,6 +116,11 @@ class Daemon {
 
   Json Status_() const;
   Json CamerasJson() const;
+  Json RigCheckJson() const;  // cameras.check (daemon/rig_check.h)
+  Json SyncJson() const;      // status.sync
+  // sync = "ptp": takes the monitor's newest reading (Tick): logs a change of lock and marks a
+  // running recording that lost it.
+  void UpdatePtp();
   void ConfigReload(const Request& r);
   void RigCalibrateStart(const Request& r);
   void RigCalibrateFinish(const Request& r);
@@ -136,6 +142,7 @@ class Daemon {
   void Subscribe(const Request& r);
   void Unsubscribe(const Request& r);
   void SimCamera(const Request& r);
+  void CamerasCheck(const Request& r);
 
   void FinishRecording();
   void FinishInStore(std::int64_t id, RecordingState state, const std::string& coverage,
@@ -170,6 +177,15 @@ class Daemon {
   std::unique_ptr<sim::LiveRig> sim_rig_;  // simulated rigs only
   std::vector<reconstruction::CameraModel> start_cameras_;  // intrinsics (poses unknown)
   std::unique_ptr<LivePipeline> pipeline_;
+  // The pipeline's cameras that are Aravis cameras (packet statistics, hot-plug), by index;
+  // nullptr where not.
+  std::vector<drivers::AravisCamera*> aravis_cameras_;
+  // sync = "ptp": each camera's state (real: AravisPtpSource; simulated: SimulatedPtpSource,
+  // set by sim.camera) and the monitor reading them while the rig streams.
+  std::vector<std::unique_ptr<PtpStatusSource>> ptp_sources_;
+  std::vector<SimulatedPtpSource*> sim_ptp_;
+  std::unique_ptr<PtpMonitor> ptp_monitor_;
+  PtpRigState ptp_;  // the loop's copy of the newest reading
   std::unique_ptr<Recorder> recorder_;
   std::unique_ptr<ControlServer> server_;
   std::uint64_t started_ns_ = 0;
@@ -198,6 +214,9 @@ class Daemon {
     double last_progress_s = -1;
     bool stopping = false;
     std::optional<Request> stopper;
+    // What went wrong with the rig's synchronisation while it ran (PTP lock lost: the cameras
+    // and when), noted with the recording; it then fails its coverage check.
+    std::vector<std::string> sync_faults;
   };
   std::optional<Recording> recording_;
 

@@ -3,7 +3,8 @@
 //
 // Exit status: 0 success; 1 the daemon answered with an error (its code and message are
 // printed); 2 a usage error; 3 the daemon is not reachable (not running, refused, gone, silent);
-// 4 a recording that did not pass its coverage check (the advice says which movement to repeat).
+// 4 a recording that did not pass its coverage check (the advice says which movement to repeat);
+// 5 `cameras --check` found the rig wanting (sync, lost frames, a link over budget: each printed).
 //
 // Long requests (calibration, recording, fit) show the daemon's progress: a bar with the ETA when
 // the output is a terminal, one plain line per progress event otherwise (logs, CI). Ctrl-C during
@@ -41,6 +42,7 @@ constexpr int kExitDaemonError = 1;
 constexpr int kExitUsage = 2;
 constexpr int kExitUnreachable = 3;
 constexpr int kExitCoverageFailed = 4;
+constexpr int kExitRigCheckFailed = 5;
 
 volatile std::sig_atomic_t g_interrupted = 0;
 void OnInterrupt(int) { g_interrupted = 1; }
@@ -321,6 +323,49 @@ std::string Absolute(const std::string& path) {
 }
 
 // ---- Human layouts of the main results --------------------------------------------------------
+
+// cameras.check (daemon/rig_check.h): per camera its sync and lost frames, per link its budget,
+// then every problem.
+void PrintRigCheck(const json& r) {
+  const json sync = r.value("sync", json::object());
+  const std::string mode = sync.value("mode", std::string("?"));
+  std::printf("sync: %s", mode.c_str());
+  if (mode == "ptp")
+    std::printf(", %s, master %s", sync.value("locked", json()) == true ? "locked" : "NOT locked",
+                Text(sync.value("master", json())).c_str());
+  if (mode == "trigger") std::printf(", %s mismatched sets", Text(sync.value("mismatched_sets", json())).c_str());
+  std::printf("\n");
+  for (const json& c : r.value("cameras", json::array())) {
+    const json cs = c.value("sync", json::object());
+    const json f = c.value("frames", json::object());
+    std::string line = Text(c.value("id", json())) + (c.value("ok", false) ? "  ok  " : "  FAIL");
+    if (mode == "ptp")
+      line += "  ptp " + Text(cs.value("status", json())) + " offset " +
+              Text(cs.value("offset_from_master_ns", json())) + " ns";
+    else if (mode == "free-run")
+      line += "  offset " + Fixed(cs.value("offset_from_rig_ms", json()), 3) + " ms from the rig, drift " +
+              Fixed(cs.value("clock_drift_ppm", json()), 1) + " ppm, residual " +
+              Fixed(cs.value("clock_residual_us", json()), 0) + " us";
+    else if (mode == "trigger")
+      line += "  " + Text(cs.value("role", json())) + ", count/timestamp mismatches " +
+              Text(cs.value("count_mismatches", json()));
+    line += "  frames " + Text(f.value("complete", json())) + ", incomplete " +
+            Text(f.value("incomplete", json())) + ", underruns " + Text(f.value("underruns", json()));
+    if (c.value("packets", json()).is_object())
+      line += ", packets resent " + Text(c["packets"].value("resent", json())) + " missing " +
+              Text(c["packets"].value("missing", json()));
+    std::printf("%s\n", line.c_str());
+  }
+  for (const json& l : r.value("links", json::array()))
+    std::printf("link %s (%s, %zu cameras): needs %s of %s MB/s, headroom %s MB/s%s\n",
+                Text(l.value("link", json())).c_str(), Text(l.value("interface", json())).c_str(),
+                l.value("cameras", json::array()).size(), Fixed(l.value("needed_mb_s", json()), 1).c_str(),
+                Fixed(l.value("capacity_mb_s", json()), 1).c_str(),
+                Fixed(l.value("headroom_mb_s", json()), 1).c_str(), l.value("ok", false) ? "" : "  OVER BUDGET");
+  const json problems = r.value("problems", json::array());
+  for (const json& p : problems) std::printf("problem: %s\n", Text(p).c_str());
+  std::printf("rig check: %s\n", r.value("ok", false) ? "ok" : "FAILED");
+}
 
 void PrintStatus(const json& r) {
   std::printf("mocapd %s, %s, up %s s, %s clients\n", Text(r.value("version", json())).c_str(),
@@ -640,11 +685,25 @@ int main(int argc, char** argv) {
 
   simple(app.add_subcommand("status", "the daemon, rig, tracker, subject, recording, job"), "status",
          PrintStatus);
-  simple(app.add_subcommand("cameras", "each camera's state and counters"), "cameras",
-         [](const json& r) {
-           PrintTable(r.value("cameras", json()),
-                      {"id", "connected", "fps", "frames", "incomplete", "dropped", "width", "height"});
-         });
+  // cameras [--check]
+  auto* cameras = app.add_subcommand("cameras", "each camera's state and counters; --check: the rig check");
+  bool cameras_check = false;
+  cameras->add_flag("--check", cameras_check,
+                    "check the rig (sync lock or clock fits, lost frames and packets, link "
+                    "bandwidth); exit status 5 when anything fails");
+  cameras->callback([&] {
+    action = [&]() -> int {
+      if (!cameras_check)
+        return Simple(ctl, "cameras", json::object(), [](const json& r) {
+          PrintTable(r.value("cameras", json()),
+                     {"id", "connected", "fps", "frames", "incomplete", "dropped", "width", "height"});
+        });
+      json result;
+      const int status = Output(ctl, ctl.Call("cameras.check", json::object(), &result), result, PrintRigCheck);
+      if (status != kExitOk) return status;
+      return result.value("ok", false) ? kExitOk : kExitRigCheckFailed;
+    };
+  });
   simple(app.add_subcommand("reload", "re-read the config file (config.reload)"), "config.reload",
          PrintReload);
   simple(app.add_subcommand("protocol", "the protocol's movements and what each must excite"),

@@ -30,6 +30,8 @@ drivers::CameraSettings CameraSettingsOf(const DaemonConfig& config, int camera)
   if (c.exposure_us > 0) s.exposure_us = c.exposure_us;
   if (c.gain_db >= 0) s.gain_db = c.gain_db;
   s.strobe_line = c.strobe_line;
+  drivers::ParseUsbMode(c.usb_mode, &s.usb.mode);  // validated by the config
+  s.usb.throughput_limit_mb_s = c.usb_throughput_limit_mb_s;
   if (config.sync == "trigger" && c.id != config.trigger_master) {
     s.trigger = drivers::TriggerMode::kHardwareLine;
     s.trigger_line = config.trigger_line;
@@ -43,33 +45,10 @@ drivers::CameraSettings CameraSettingsOf(const DaemonConfig& config, int camera)
 }
 
 CapturePipelineOptions::RigSync RigSyncOf(const DaemonConfig& config) {
+  if (config.sync == "free-run") return CapturePipelineOptions::RigSync::kFreeRun;
   if (config.simulated_cameras > 0 || config.sync == "ptp")
     return CapturePipelineOptions::RigSync::kSharedClock;
-  if (config.sync == "free-run") return CapturePipelineOptions::RigSync::kFreeRun;
   return CapturePipelineOptions::RigSync::kTrigger;
-}
-
-Status WaitForPtpLock(const std::vector<drivers::AravisCamera*>& cameras, double timeout_s,
-                      std::vector<drivers::PtpState>* states) {
-  const auto start = std::chrono::steady_clock::now();
-  std::vector<std::string> ids;
-  for (const auto* cam : cameras) ids.push_back(cam->id());
-  std::string why;
-  for (;;) {
-    states->assign(cameras.size(), {});
-    for (std::size_t i = 0; i < cameras.size(); ++i)
-      MOCAP_RETURN_IF_ERROR(cameras[i]->Ptp(&(*states)[i]));
-    if (drivers::PtpLocked(ids, *states, &why)) return Status::Ok();
-    const double waited =
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    if (waited >= timeout_s) {
-      std::ostringstream m;
-      m << "[rig] sync = \"ptp\": the cameras did not lock to one clock within " << timeout_s
-        << " s (rig.ptp_lock_timeout_s): " << why;
-      return Status::Error(m.str());
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(200));
-  }
 }
 
 Status OpenRigCameras(const std::vector<drivers::AravisCamera*>& cameras,

@@ -1,6 +1,5 @@
-// From the configuration's [rig] to what the cameras and the capture pipeline are given, and the
-// start-up wait of a PTP rig: one place, so that mocapd (daemon.cpp) and its tests read the
-// configuration alike.
+// From the configuration's [rig] to what the cameras and the capture pipeline are given: one
+// place, so that mocapd (daemon.cpp) and its tests read the configuration alike.
 //
 // Synchronisation ([rig] sync, README "Cameras"):
 //   trigger   every camera on its trigger input (Line<trigger_line>), except the trigger master
@@ -12,7 +11,10 @@
 //             record) otherwise; sets by the tick of the common clock (kSharedClock).
 //   free-run  every camera free-runs on its own clock; sets by each camera's clock fitted against
 //             the host (kFreeRun): only as good as that estimate, which mocapd says at start.
-// A simulated rig's fakes share the host's clock: always kSharedClock.
+// A simulated rig's fakes share the host's clock: kSharedClock, except with sync = "free-run",
+// whose clocks are fitted as a real free-running rig's (the fakes' clocks skewed by
+// [[rig.camera]] sim_clock_offset_ms / sim_clock_drift_ppm, drivers/skewed_clock_camera.h).
+// The PTP wait and the lock's monitoring while streaming: daemon/ptp_monitor.h.
 #pragma once
 #include <string>
 #include <vector>
@@ -29,12 +31,6 @@ namespace mocap::daemon {
 drivers::CameraSettings CameraSettingsOf(const DaemonConfig& config, int camera);
 // How the pipeline groups frames into sets for this configuration.
 CapturePipelineOptions::RigSync RigSyncOf(const DaemonConfig& config);
-
-// Polls the cameras' IEEE 1588 state until the rig is locked (drivers::PtpLocked) or
-// `timeout_s` passes; the states last read are left in *states. The error names the cameras
-// that are not locked and how long it waited.
-Status WaitForPtpLock(const std::vector<drivers::AravisCamera*>& cameras, double timeout_s,
-                      std::vector<drivers::PtpState>* states);
 
 // A configured camera that did not open at start, and why (AravisCamera::Open's error).
 struct MissingCamera {

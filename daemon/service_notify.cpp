@@ -30,7 +30,7 @@ std::uint64_t MonotonicUsec() {
 std::string StatusLine(const ServiceSnapshot& s, bool gave_up_waiting) {
   std::string line;
   if (!s.rig_live) line = gave_up_waiting ? "degraded: no frame set yet: " : "starting: ";
-  else if (!s.missing_cameras.empty()) line = "degraded: ";
+  else if (!s.missing_cameras.empty() || !s.ptp_unlocked.empty()) line = "degraded: ";
   const bool degraded = !s.missing_cameras.empty();
   line += std::to_string(s.progress.cameras_streaming) + "/" + std::to_string(s.cameras) +
           (s.simulated ? " simulated" : "") + " cameras " + Number(s.rate_hz) + " Hz";
@@ -44,6 +44,11 @@ std::string StatusLine(const ServiceSnapshot& s, bool gave_up_waiting) {
     line += " (calibration off: ";
     for (std::size_t i = 0; i < s.suspect_calibration.size(); ++i)
       line += (i ? ", " : "") + s.suspect_calibration[i];
+    line += ")";
+  }
+  if (!s.ptp_unlocked.empty()) {
+    line += " (PTP unlocked: ";
+    for (std::size_t i = 0; i < s.ptp_unlocked.size(); ++i) line += (i ? ", " : "") + s.ptp_unlocked[i];
     line += ")";
   }
   std::string activity;

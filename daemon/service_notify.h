@@ -58,6 +58,7 @@ struct ServiceSnapshot {
   int cameras = 0;                            // configured (and opened)
   std::vector<std::string> missing_cameras;   // ids of cameras not streaming
   std::vector<std::string> suspect_calibration;  // ids whose reprojection error is off
+  std::vector<std::string> ptp_unlocked;         // sync = "ptp": ids not locked to the clock
   double rate_hz = 0;
   bool simulated = false;
   bool rig_live = false;                      // the capture pipeline's first sets are out
@@ -71,6 +72,7 @@ struct ServiceSnapshot {
 //   "8/8 cameras 200 Hz, tracking subject S012 (model v3), recording squats"
 //   "degraded: 6/8 cameras 200 Hz (missing cam3, cam7), idle"
 //   "8/8 cameras 200 Hz (calibration off: cam3), idle"   (daemon/detection_health.h)
+//   "degraded: 8/8 cameras 200 Hz (PTP unlocked: cam2), idle"   (daemon/ptp_monitor.h)
 //   "starting: 3/8 cameras 200 Hz (missing ...), idle"   (no frame set out yet)
 // `gave_up_waiting`: no frame set came out within the start-up's timeout, the daemon runs
 // degraded ("degraded: no frame set yet: 0/8 cameras ...").

@@ -85,18 +85,12 @@ StartupCheck CheckStartup(const DaemonConfig& config, bool socket_activated) {
   return {};
 }
 
-double ConfiguredBytesPerPixel(const std::string& pixel_format) {
-  if (pixel_format == "Mono8") return 1.0;
-  if (pixel_format == "Mono12Packed") return 1.5;
-  if (pixel_format == "Mono12" || pixel_format == "Mono16") return 2.0;
-  return 0.0;
-}
-
 std::vector<LinkLoad> RigLinkLoads(const DaemonConfig& config) {
   std::vector<LinkLoad> links;
-  if (config.simulated_cameras > 0) return links;
-  const double image_mb_s = FrameBytes(config) * config.rate_hz * 1e-6;
+  const double image_mb_s = CameraImageMbS(config);
   for (const CameraConfig& cam : config.cameras) {
+    // A simulated rig's fakes carry nothing over a wire: only the links it plans are checked.
+    if (config.simulated_cameras > 0 && cam.link.empty()) continue;
     const std::string name = cam.link.empty() ? cam.id : cam.link;
     LinkLoad* link = nullptr;
     for (LinkLoad& l : links)

@@ -34,6 +34,7 @@
 #include <string>
 #include <vector>
 
+#include "daemon/config.h"  // ConfiguredBytesPerPixel
 #include "model/status.h"
 
 namespace mocap::daemon {
@@ -71,12 +72,12 @@ struct LinkLoad {
   double needed_mb_s = 0;    // the same measure, of its cameras at the configured image and rate
   double image_mb_s = 0;     // images alone, per camera
 };
-// Bytes per pixel of a configured pixel format (Mono12Packed: 1.5); 0 for an unknown name.
-double ConfiguredBytesPerPixel(const std::string& pixel_format);
-// Per link, in the order of the cameras' first appearance. Empty for a simulated rig.
+// Per link, in the order of the cameras' first appearance. A simulated rig's cameras count only
+// where they name a link ([[rig.camera]] link): the real rig it stands for, being planned.
 std::vector<LinkLoad> RigLinkLoads(const DaemonConfig& config);
 // Ok when every link carries its cameras; else kExitConfig and a message naming the link, its
-// cameras, the figures and what would fit.
+// cameras, the figures and what would fit. mocapd refuses to start a real rig over budget; a
+// simulated one starts (its fakes carry nothing) and its rig check (daemon/rig_check.h) fails.
 StartupCheck CheckRigBandwidth(const DaemonConfig& config);
 // One line per link ("link 'eth1' (gige): 2 cameras need 110.2 of 125.0 MB/s (88 %)"), and the
 // usbfs budget of the USB3 cameras read from `usbfs_path`: what `mocapd --check-config` prints.

@@ -137,6 +137,7 @@ Status AravisCamera::Open(const CameraSettings& settings) {
 }
 
 Status AravisCamera::Connect() {
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   if (camera_ == nullptr) {
     if (!factory_) return Status::Error(id_ + ": no camera and no way to open one");
     std::string error;
@@ -328,14 +329,64 @@ Status AravisCamera::ApplySettings() {
 }
 
 Status AravisCamera::Refused(const std::string& feature, const std::string& why) {
-  const auto& optional = settings_.optional_features;
-  if (std::find(optional.begin(), optional.end(), feature) != optional.end()) {
-    applied_.refused_optional.push_back(feature + ": " + why);
-    return Status::Ok();
-  }
-  return Status::Error(id_ + ": " + feature + ": " + why +
-                       " (list it among the camera's optional features if the rig does without)");
+  return RefusedFeature(id_, feature, why, settings_.optional_features, &applied_.refused_optional);
 }
+
+namespace {
+
+// USB3 Vision transfer settings' device calls (drivers/usb_transfer.h) on an ArvCamera.
+class AravisUsbDevice final : public UsbTransferDevice {
+ public:
+  explicit AravisUsbDevice(ArvCamera* camera) : camera_(camera) {}
+  void SetUsbMode(UsbMode mode) override {
+    arv_camera_uv_set_usb_mode(camera_, mode == UsbMode::kAsync ? ARV_UV_USB_MODE_ASYNC
+                                                                 : ARV_UV_USB_MODE_SYNC);
+  }
+  bool HasFeature(const std::string& feature) override {
+    GError* e = nullptr;
+    const bool yes = arv_camera_is_feature_available(camera_, feature.c_str(), &e);
+    g_clear_error(&e);
+    return yes;
+  }
+  Status SetInteger(const std::string& feature, std::int64_t value) override {
+    GError* e = nullptr;
+    arv_camera_set_integer(camera_, feature.c_str(), value, &e);
+    return Result(&e);
+  }
+  Status GetInteger(const std::string& feature, std::int64_t* value) override {
+    GError* e = nullptr;
+    *value = arv_camera_get_integer(camera_, feature.c_str(), &e);
+    return Result(&e);
+  }
+  Status IntegerBounds(const std::string& feature, std::int64_t* min, std::int64_t* max) override {
+    GError* e = nullptr;
+    gint64 lo = 0, hi = 0;
+    arv_camera_get_integer_bounds(camera_, feature.c_str(), &lo, &hi, &e);
+    *min = lo;
+    *max = hi;
+    return Result(&e);
+  }
+  Status SetString(const std::string& feature, const std::string& value) override {
+    GError* e = nullptr;
+    arv_camera_set_string(camera_, feature.c_str(), value.c_str(), &e);
+    return Result(&e);
+  }
+  Status GetString(const std::string& feature, std::string* value) override {
+    GError* e = nullptr;
+    const char* got = arv_camera_get_string(camera_, feature.c_str(), &e);
+    *value = got ? got : "";
+    return Result(&e);
+  }
+
+ private:
+  static Status Result(GError** e) {
+    if (*e == nullptr) return Status::Ok();
+    return Status::Error(Take(e));
+  }
+  ArvCamera* camera_;
+};
+
+}  // namespace
 
 Status AravisCamera::ApplyCameraFeatures() {
   GError* e = nullptr;
@@ -406,6 +457,14 @@ Status AravisCamera::ApplyCameraFeatures() {
     }
   }
 
+  // USB3 Vision transfer: the I/O mode (before the stream is created) and the link limit.
+  applied_.usb = AppliedUsbTransfer{};
+  if (arv_camera_is_uv_device(camera_)) {
+    AravisUsbDevice usb(camera_);
+    MOCAP_RETURN_IF_ERROR(ApplyUsbTransfer(id_, s.usb, s.optional_features, &usb, &applied_.usb,
+                                           &applied_.refused_optional));
+  }
+
   // GigE Vision packets: size (configured, or the largest the path carries) and delay. The
   // stream is created after this, with this packet size.
   applied_.packet_size = 0;
@@ -469,6 +528,7 @@ bool PtpLocked(const std::vector<std::string>& ids, const std::vector<PtpState>&
 }
 
 Status AravisCamera::Ptp(PtpState* state) {
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   if (camera_ == nullptr) return Status::Error(id_ + ": Ptp() while the camera is not open");
   if (!applied_.ptp_enabled) return Status::Error(id_ + ": PTP is not enabled on this camera");
   GError* e = nullptr;
@@ -492,17 +552,25 @@ Status AravisCamera::Ptp(PtpState* state) {
   return Status::Ok();
 }
 
+bool AravisCamera::PacketStatistics(std::uint64_t* resent, std::uint64_t* missing) const {
+  std::lock_guard<std::mutex> lock(pool_mutex_);
+  if (stream_ == nullptr || !ARV_IS_GV_STREAM(stream_)) return false;
+  guint64 r = 0, m = 0;
+  arv_gv_stream_get_statistics(ARV_GV_STREAM(stream_), &r, &m);
+  *resent = r;
+  *missing = m;
+  return true;
+}
+
 std::uint64_t AravisCamera::MissingPackets() const {
-  if (stream_ == nullptr || !ARV_IS_GV_STREAM(stream_)) return 0;
-  guint64 resent = 0, missing = 0;
-  arv_gv_stream_get_statistics(ARV_GV_STREAM(stream_), &resent, &missing);
+  std::uint64_t resent = 0, missing = 0;
+  PacketStatistics(&resent, &missing);
   return missing;
 }
 
 std::uint64_t AravisCamera::ResentPackets() const {
-  if (stream_ == nullptr || !ARV_IS_GV_STREAM(stream_)) return 0;
-  guint64 resent = 0, missing = 0;
-  arv_gv_stream_get_statistics(ARV_GV_STREAM(stream_), &resent, &missing);
+  std::uint64_t resent = 0, missing = 0;
+  PacketStatistics(&resent, &missing);
   return resent;
 }
 
@@ -584,6 +652,7 @@ std::uint64_t AravisCamera::StreamUnderruns() const {
 }
 
 void AravisCamera::TearDown(bool device_gone) {
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   GError* e = nullptr;
   underrun_base_ += StreamUnderruns();
   counters_.underruns = underrun_base_;
@@ -641,6 +710,7 @@ Status AravisCamera::Start() {
     return Status::Ok();
   }
   if (state_.load() == CameraState::kLost) return Status::Error(id_ + ": camera lost");
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   GError* e = nullptr;
   arv_camera_start_acquisition(camera_, &e);
   if (e) return Status::Error(id_ + ": cannot start acquisition: " + Take(&e));
@@ -650,6 +720,7 @@ Status AravisCamera::Start() {
 }
 
 void AravisCamera::Stop() {
+  std::lock_guard<std::mutex> device_lock(device_mutex_);
   if (camera_ != nullptr && acquiring_ && state_.load() != CameraState::kLost) {
     GError* e = nullptr;
     arv_camera_stop_acquisition(camera_, &e);
@@ -690,6 +761,7 @@ Status AravisCamera::Reopen() {
   Status s = Connect();
   if (s.ok()) s = CreateStreamAndPool();
   if (s.ok() && acquiring_) {
+    std::lock_guard<std::mutex> device_lock(device_mutex_);
     GError* e = nullptr;
     arv_camera_start_acquisition(camera_, &e);
     if (e) s = Status::Error(id_ + ": cannot restart acquisition: " + Take(&e));

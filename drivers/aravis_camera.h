@@ -97,6 +97,8 @@ struct AppliedSettings {
   std::int64_t packet_delay_ns = 0;
   bool packet_resend = false;
   int socket_buffer_bytes = 0;
+  // USB3 Vision, as applied (applied.applied false elsewhere).
+  AppliedUsbTransfer usb;
   // Optional features the camera refused: "feature: why".
   std::vector<std::string> refused_optional;
 };
@@ -144,11 +146,15 @@ class AravisCamera final : public CameraSource {
 
   const AppliedSettings& Applied() const { return applied_; }
   // IEEE 1588 state (latched, then read: PtpDataSetLatch / GevIEEE1588DataSetLatch where the
-  // camera has it). Error if PTP is not on (CameraSettings::ptp) or the camera is not open.
+  // camera has it). Error if PTP is not on (CameraSettings::ptp) or the camera is not open (or
+  // lost). Any thread: the rig's PTP monitor (daemon/ptp_monitor.h) reads it while streaming.
   Status Ptp(PtpState* state);
-  // GigE Vision stream statistics: packets Aravis found missing and asked to be resent.
+  // GigE Vision stream statistics: packets Aravis found missing and asked to be resent. Any
+  // thread. PacketStatistics: false (and nothing set) where the stream is not GigE Vision's
+  // (USB3 Vision, the in-process fakes) or there is none (lost).
   std::uint64_t MissingPackets() const;
   std::uint64_t ResentPackets() const;
+  bool PacketStatistics(std::uint64_t* resent, std::uint64_t* missing) const;
   // Hot-plug: the device left (same as control-lost) / arrived (reopen at the next Grab).
   void NotifyRemoved() { lost_flag_.store(true); }
   void NotifyArrived() { arrived_flag_.store(true); }
@@ -207,7 +213,10 @@ class AravisCamera final : public CameraSource {
   bool awaiting_device_ = false;  // AwaitDevice(): never opened yet
   bool device_found_at_open_ = false;
 
-  std::mutex pool_mutex_;  // slots_ and stream_ against Release from another thread
+  // camera_ (and talking to it) between the acquisition thread (Open, Reopen, Start, Stop) and
+  // Ptp() from a monitoring thread: GenICam access to one device is not thread-safe.
+  mutable std::mutex device_mutex_;
+  mutable std::mutex pool_mutex_;  // slots_ and stream_ against Release from another thread
   std::vector<Slot> slots_;
   std::size_t slot_bytes_ = 0;
   int generation_ = 0;

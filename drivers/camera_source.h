@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "drivers/frame.h"
+#include "drivers/usb_transfer.h"
 #include "model/status.h"
 
 namespace mocap::drivers {
@@ -50,6 +51,8 @@ struct CameraSettings {
   int packet_delay_ns = 0;      // GevSCPD: spreads a frame's packets (cameras sharing a link)
   bool packet_resend = true;    // Aravis asks the camera again for a lost packet
   int socket_buffer_bytes = 0;  // the stream socket's receive buffer; 0: one payload
+  // USB3 Vision transfer (other transports ignore it): drivers/usb_transfer.h.
+  UsbTransferSettings usb;
   // GenICam features the camera may refuse (a camera without a strobe line, without PTP, ...):
   // refused, they are listed in AppliedSettings::refused_optional instead of failing Open().
   // Any other feature the camera refuses fails Open() with the camera and the feature named.

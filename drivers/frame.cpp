@@ -81,6 +81,7 @@ bool CameraSettings::IsValid(std::string* error) const {
   if (trigger_line < 0) return fail("trigger_line must be >= 0");
   if (buffer_count < 2) return fail("buffer_count must be >= 2");
   if (!(timeout_ms > 0)) return fail("timeout_ms must be > 0");
+  if (std::string why; !usb.IsValid(&why)) return fail(why);
   return true;
 }
 

@@ -135,6 +135,7 @@ GrabResult SimulatedCamera::Grab(Frame* frame) {
     counters_.losses++;
     next_sequence_ += static_cast<std::uint64_t>(missed);
     restart_sequence_ = next_sequence_;
+    count_slip_ = 0;
     return GrabResult::kLost;
   }
   if (lose_.load()) {
@@ -222,7 +223,8 @@ GrabResult SimulatedCamera::Grab(Frame* frame) {
     generator_(camera_, seq, slot->memory.get(), width_, height_, stride_, settings_.pixel_format);
     frame->camera = camera_;
     // Its own count and clock since the (re)start.
-    const std::uint64_t counted = first_sequence_ + (seq - restart_sequence_);
+    count_slip_ += static_cast<std::uint64_t>(slip_.exchange(0));
+    const std::uint64_t counted = first_sequence_ + (seq - restart_sequence_) + count_slip_;
     frame->frame_id = IdOf(counted);
     frame->sequence = counted;
     const double since_ns = static_cast<double>(seq - restart_sequence_) * 1e9 /

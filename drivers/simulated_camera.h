@@ -17,7 +17,9 @@
 //     camera vanishes: Grab() returns kLost, counters.losses) and Restore() (it comes back; the
 //     next Grab() reopens it, counters.reopens, and the sequence continues with the time that
 //     passed), Reconnect(n) (unplugged and back, as a real camera: it misses the next n frames,
-//     then its frame ids and its clock start again from the beginning).
+//     then its frame ids and its clock start again from the beginning), SlipCount(n) (its frame
+//     counter runs n ahead of its exposures from the next frame on: a trigger pulse counted and
+//     not exposed, as a glitch on a trigger line gives; its clock does not slip).
 //   - a clock of its own, for the sync of rigs without a shared clock (free run, trigger checks):
 //     device time = origin + clock_offset_ns + (1 + clock_drift_ppm) x (time since its first
 //     frame), with gaussian jitter of timestamp_jitter_ns on each stamp; and a late start
@@ -82,6 +84,7 @@ class SimulatedCamera final : public CameraSource {
   void Lose() { lose_.store(true); }
   void Restore() { lose_.store(false); }
   void Reconnect(int missed_frames) { reconnect_.store(missed_frames); }
+  void SlipCount(int n) { slip_.fetch_add(n); }
 
  private:
   struct Slot {
@@ -115,6 +118,8 @@ class SimulatedCamera final : public CameraSource {
   std::atomic<FrameStatus> fail_status_{FrameStatus::kMissingPackets};
   std::atomic<bool> lose_{false};
   std::atomic<int> reconnect_{-1};  // missed frames of a pending Reconnect(), -1: none
+  std::atomic<int> slip_{0};        // pending SlipCount()
+  std::uint64_t count_slip_ = 0;    // how far its count runs ahead since the (re)start
   // Where the ids and the clock (re)started: the tick of the first frame after Start() or the
   // last Reconnect().
   std::uint64_t restart_sequence_ = 0;

@@ -33,6 +33,7 @@ void ClockFit::Reset() {
   device0_ = y0_ = last_device_ = 0;
   intercept_ = slope_ = 0;
   drift_fitted_ = false;
+  residual_ns_ = 0;
 }
 
 void ClockFit::Add(std::uint64_t device_ns, std::uint64_t host_ns) {
@@ -101,6 +102,8 @@ void ClockFit::Refit() {
   slope_ = best_b;
   intercept_ = best_a;
   drift_fitted_ = true;
+  residual_ns_ = 0;
+  for (int k = 0; k < s; ++k) residual_ns_ = std::max(residual_ns_, my_[k] - (best_a + best_b * mx_[k]));
 }
 
 std::int64_t ClockFit::ToHost(std::uint64_t device_ns) const {

@@ -57,6 +57,12 @@ class ClockFit {
   std::int64_t offset_ns() const;
   int samples() const { return static_cast<int>(count_); }
   bool drift_fitted() const { return drift_fitted_; }
+  // How well the line is known, ns: the largest height of the runs' earliest arrivals above the
+  // fitted line at the last fit (0 until the drift is fitted). Each run's best frame should lie
+  // ON the line; one that lies above it waited even at its best, so the mapped time of that
+  // stretch is uncertain by as much. A rig check (daemon/rig_check.h) sets it against the set
+  // tolerance: a residual of a sizeable fraction of a period means the sets are guesses.
+  double residual_ns() const { return residual_ns_; }
 
  private:
   void Refit();
@@ -70,6 +76,7 @@ class ClockFit {
   std::int64_t last_device_ = 0;
   double intercept_ = 0, slope_ = 0;  // y = intercept + slope x
   bool drift_fitted_ = false;
+  double residual_ns_ = 0;
   std::vector<double> mx_, my_;
 };
 

@@ -73,6 +73,16 @@ double FrameSync::drift_ppm(int camera) const {
   return fits_[camera].drift_ppm();
 }
 
+double FrameSync::clock_residual_ns(int camera) const {
+  if (camera < 0 || camera >= static_cast<int>(fits_.size())) return 0;
+  return fits_[camera].residual_ns();
+}
+
+bool FrameSync::clock_fitted(int camera) const {
+  if (camera < 0 || camera >= static_cast<int>(fits_.size())) return false;
+  return fits_[camera].drift_fitted();
+}
+
 std::int64_t FrameSync::UnwrapSequence(std::uint64_t sequence) {
   if (options_.sequence_bits >= 63) return static_cast<std::int64_t>(sequence);
   const std::uint64_t modulus = 1ull << options_.sequence_bits;

@@ -120,6 +120,10 @@ class FrameSync {
   // the host clock (ppm; 0 until fitted): kTimestamp, or kSequence with a check.
   std::int64_t offset_ns(int camera) const;
   double drift_ppm(int camera) const;
+  // Camera c's clock fit: its residual (ClockFit::residual_ns, 0 until fitted) and whether its
+  // drift is fitted yet (false where no clocks are fitted).
+  double clock_residual_ns(int camera) const;
+  bool clock_fitted(int camera) const;
 
  private:
   struct Pending {

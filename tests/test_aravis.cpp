@@ -194,6 +194,13 @@ TEST(AravisFake, AutoOffStrobeAndPtpRefusedUnlessOptional) {
   EXPECT_EQ(cam->Applied().exposure_auto, "");  // ... and no ExposureAuto: manual anyway
   EXPECT_TRUE(cam->Applied().refused_optional.empty());
   EXPECT_EQ(cam->Applied().packet_size, 0);     // not a GigE device
+  // USB3 transfer settings belong to USB3 Vision cameras only: this one takes none.
+  s.usb.mode = UsbMode::kAsync;
+  s.usb.throughput_limit_mb_s = 300;
+  ASSERT_TRUE(cam->Open(s).ok());
+  EXPECT_FALSE(cam->Applied().usb.applied);
+  EXPECT_TRUE(cam->Applied().refused_optional.empty());
+  s.usb = {};
   s.strobe_line = 1;  // the fake has no digital I/O
   Status st = cam->Open(s);
   ASSERT_FALSE(st.ok());

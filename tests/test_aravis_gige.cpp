@@ -217,6 +217,9 @@ TEST(AravisGigE, TransportSettingsAppliedReadBackAtRealisticSize) {
     cam.Release(f);
   }
   const std::uint64_t resent = cam.ResentPackets(), missing = cam.MissingPackets();
+  std::uint64_t stats_resent = 0, stats_missing = 0;  // what the rig check reports
+  EXPECT_TRUE(cam.PacketStatistics(&stats_resent, &stats_missing));
+  EXPECT_GE(stats_missing, missing);
   cam.Stop();
   const CameraCounters& c = cam.Counters();
   std::printf("1280x1024 in 8000-byte packets, 1%% lost: %d of 30 frames delivered, %llu packets "

@@ -188,7 +188,9 @@ TEST(Config, EveryDocumentedKeyIsTestedWithABadValue) {
     const std::string key = line.substr(0, eq);
     if (table == "rig" && (key == "id" || key == "backend" || key == "masks" ||
                            key == "interface" || key == "link" || key == "strobe_line" ||
-                           key == "optional" ||
+                           key == "optional" || key == "usb_mode" ||
+                           key == "usb_throughput_limit_mb_s" || key == "sim_clock_offset_ms" ||
+                           key == "sim_clock_drift_ppm" || key == "sim_arrival_wait_us" ||
                            line.find("the rig's") != std::string::npos))
       continue;  // [[rig.camera]]'s keys, tested below
     bool tested = false;
@@ -232,9 +234,19 @@ TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
       {"strobe_line = -2\n",
        "6: rig.camera[0].strobe_line: expected an integer in [0, 15] or -1 (none), got -2"},
       {"optional = [\"GainAuto\"]\n", "6: rig.camera[0].optional: expected a string, got an array"},
+      {"usb_mode = 3\n", "6: rig.camera[0].usb_mode: expected a string, got 3"},
+      {"usb_throughput_limit_mb_s = -5\n",
+       "6: rig.camera[0].usb_throughput_limit_mb_s: expected a number in [0, 100000], got -5"},
+      {"sim_clock_offset_ms = \"3 ms\"\n",
+       "6: rig.camera[0].sim_clock_offset_ms: expected a number in [-1000000, 1000000], got \"3 ms\""},
+      {"sim_clock_drift_ppm = 2000\n",
+       "6: rig.camera[0].sim_clock_drift_ppm: expected a number in [-1000, 1000], got 2000"},
+      {"sim_arrival_wait_us = -1\n",
+       "6: rig.camera[0].sim_arrival_wait_us: expected a number in [0, 100000], got -1"},
       {second + "id2 = 3\n",
        "8: rig.camera[1].id2: unknown key (the keys of [rig.camera] are id, backend, exposure_us, "
-       "gain_db, detection_threshold, interface, link, strobe_line, optional, masks)"},
+       "gain_db, detection_threshold, interface, link, strobe_line, optional, usb_mode, "
+       "usb_throughput_limit_mb_s, sim_clock_offset_ms, sim_clock_drift_ppm, sim_arrival_wait_us, masks)"},
       {"[[rig.camera]]\nid = \"cam-A\"\n", "7: rig.camera[1].id: \"cam-A\" is also rig.camera[0]'s id"},
       {"[[rig.camera]]\nbackend = \"aravis\"\n",
        "6: rig.camera[1].id: missing: each camera needs its GenICam id or serial"},

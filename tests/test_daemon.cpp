@@ -413,6 +413,10 @@ TEST(Daemon, ProtocolEveryRequestAndEveryError) {
   EXPECT_TRUE(call("status", {}).ok());
   EXPECT_TRUE(call("cameras", {}).ok());
   EXPECT_EQ(call("cameras", {}).result["cameras"].size(), 2u);
+  // The rig check, a moment after the start: its cameras have too few frames to judge yet.
+  const json check = call("cameras.check", {}).result;
+  EXPECT_EQ(check["cameras"].size(), 2u);
+  EXPECT_EQ(check["sync"]["mode"], "shared-clock");
   EXPECT_TRUE(call("protocol.show", {}).ok());
   EXPECT_EQ(call("config.reload", {}).result["reloaded"], true);
   EXPECT_EQ(call("rig.calibrate.finish", {}).error_code, "conflict");
@@ -451,6 +455,8 @@ TEST(Daemon, ProtocolEveryRequestAndEveryError) {
   EXPECT_EQ(call("sim.camera", {{"camera", 1}}).error_code, "invalid_params");
   EXPECT_TRUE(call("sim.camera", {{"camera", 1}, {"present", false}}).ok());
   EXPECT_TRUE(call("sim.camera", {{"camera", 1}, {"present", true}}).ok());
+  EXPECT_EQ(call("sim.camera", {{"camera", 1}, {"ptp", "Slave"}}).error_code, "unavailable");  // not ptp
+  EXPECT_EQ(call("sim.camera", {{"camera", 1}, {"ptp", 3}}).error_code, "invalid_params");
 
   // Envelopes the client library never sends, on a raw connection.
   RawConnection raw(d.socket());

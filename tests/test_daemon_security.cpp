@@ -117,6 +117,7 @@ TEST_F(DaemonSecurity, OutsideTheControlGroupNoMethodChangesState) {
   const std::map<std::string, json> params = {
       {"status", json::object()},
       {"cameras", json::object()},
+      {"cameras.check", json::object()},
       {"config.reload", json::object()},
       {"rig.calibrate.start", {{"seconds", 5}}},
       {"rig.calibrate.finish", json::object()},
@@ -141,7 +142,8 @@ TEST_F(DaemonSecurity, OutsideTheControlGroupNoMethodChangesState) {
       {"shutdown", json::object()},
   };
   // PROTOCOL.md's list of what anyone connected may do; everything else needs control.
-  const std::set<std::string> read_only = {"status",         "cameras",        "protocol.show",
+  const std::set<std::string> read_only = {"status",         "cameras",        "cameras.check",
+                                           "protocol.show",
                                            "subject.list",   "model.list",     "recording.list",
                                            "calibration.list", "subscribe",    "unsubscribe"};
   const std::set<std::string> documented = DocumentedMethods();

@@ -297,6 +297,34 @@ TEST(ClockFit, FindsOffsetAndDriftFromArrivalsThatOnlyEverWait) {
   EXPECT_FALSE(fit.drift_fitted());
 }
 
+// The residual says how well the line is known: near zero while every run has a frame that
+// barely waited, the loaded second's 4 ms while that second is in the window (its runs' best
+// frames all waited), near zero again once it has left the window (1024 frames, 5.1 s).
+TEST(ClockFit, ResidualIsTheWaitOfTheRunsWhoseBestFrameStillWaited) {
+  std::mt19937 rng(11);
+  std::exponential_distribution<double> wait(1.0 / 300'000.0);
+  ClockFit fit;
+  const std::uint64_t period = 5 * kMs;
+  double during = 0, after = 0, before = 0;
+  for (int f = 0; f < 3000; ++f) {
+    const std::uint64_t t = 10'000 * kMs + f * period;
+    double latency = 100'000 + wait(rng);
+    if (f >= 1200 && f < 1400) latency += 4 * kMs;
+    fit.Add(t + 777, t + static_cast<std::uint64_t>(latency));
+    if (f == 1199) before = fit.residual_ns();
+    if (f == 1450) during = fit.residual_ns();
+    if (f == 2999) after = fit.residual_ns();
+  }
+  std::printf("clock fit residual: %.1f us before, %.1f us with the loaded second, %.1f us after\n",
+              before * 1e-3, during * 1e-3, after * 1e-3);
+  EXPECT_LT(before, 30'000);
+  EXPECT_GT(during, 3.9 * kMs);
+  EXPECT_LT(during, 4.2 * kMs);
+  EXPECT_LT(after, 30'000);
+  fit.Reset();
+  EXPECT_EQ(fit.residual_ns(), 0);
+}
+
 TEST(ClockFit, BadOptionsAreNamed) {
   std::string error;
   ClockFitOptions o;

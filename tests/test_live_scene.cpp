@@ -614,8 +614,8 @@ TEST(LiveRig, CamerasShowTheLiveSubject) {
   settings.frame_rate_hz = o.rate_hz;
   settings.buffer_count = 8;
   settings.timeout_ms = 200;
-  std::vector<std::unique_ptr<drivers::CameraSource>> cameras;
-  ASSERT_TRUE(rig->OpenCameras(settings, &cameras).ok());
+  std::vector<std::unique_ptr<drivers::AravisCamera>> cameras = rig->MakeCameras();
+  for (auto& c : cameras) ASSERT_TRUE(c->Open(settings).ok());
   ASSERT_EQ(cameras.size(), 3u);
   for (int c = 0; c < 3; ++c) EXPECT_EQ(cameras[c]->id(), rig->true_cameras()[c].id);
   for (auto& c : cameras) ASSERT_TRUE(c->Start().ok());

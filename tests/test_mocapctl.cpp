@@ -98,6 +98,43 @@ TEST(Mocapctl, StatusHumanAndJson) {
   EXPECT_THAT(daemon.methods(), ElementsAre("status", "status"));
 }
 
+// cameras --check: the rig check's report for people (each camera's sync and frames, each link's
+// budget, every problem) and the exit status its verdict gives: 0 ok, 5 failed.
+TEST(Mocapctl, CamerasCheckPrintsTheReportAndExits5WhenItFails) {
+  json report = {
+      {"ok", true}, {"problems", json::array()}, {"rate_hz", 200},
+      {"sync", {{"mode", "free-run"}, {"median_offset_ms", 12.0}}},
+      {"cameras", {{{"id", "cam0"}, {"ok", true}, {"problems", json::array()}, {"link", "nic0"},
+                    {"sync", {{"mode", "free-run"}, {"offset_from_rig_ms", 3.0004}, {"clock_drift_ppm", 99.87},
+                              {"clock_residual_us", 17.2}}},
+                    {"frames", {{"complete", 2000}, {"incomplete", 1}, {"underruns", 0}}},
+                    {"packets", {{"resent", 4}, {"missing", 5}}}}}},
+      {"links", {{{"link", "nic0"}, {"interface", "gige"}, {"cameras", {"cam0"}}, {"capacity_mb_s", 125.0},
+                  {"needed_mb_s", 110.25}, {"headroom_mb_s", 14.75}, {"ok", true}}}},
+      {"sets", {{"total", 2000}}}};
+  testutil::ScriptedMocapd daemon(SocketPath(), [&](const json& r) {
+    return std::vector<std::string>{ResultLine(r, report)};
+  });
+  CtlResult ok = RunCtl(SocketPath(), "cameras --check");
+  EXPECT_EQ(ok.status, 0) << ok.err;
+  EXPECT_THAT(ok.out, HasSubstr("sync: free-run\n"));
+  EXPECT_THAT(ok.out, HasSubstr("cam0  ok    offset 3.000 ms from the rig, drift 99.9 ppm, residual 17 us  "
+                                "frames 2000, incomplete 1, underruns 0, packets resent 4 missing 5\n"));
+  EXPECT_THAT(ok.out, HasSubstr("link nic0 (gige, 1 cameras): needs 110.2 of 125.0 MB/s, headroom 14.8 MB/s\n"));
+  EXPECT_THAT(ok.out, HasSubstr("rig check: ok\n"));
+  report["ok"] = false;
+  report["problems"] = {"link 'nic0' (gige): over"};
+  report["links"][0]["ok"] = false;
+  CtlResult failed = RunCtl(SocketPath(), "cameras --check");
+  EXPECT_EQ(failed.status, 5) << failed.err;
+  EXPECT_THAT(failed.out, HasSubstr("OVER BUDGET\n"));
+  EXPECT_THAT(failed.out, HasSubstr("problem: link 'nic0' (gige): over\nrig check: FAILED\n"));
+  CtlResult machine = RunCtl(SocketPath(), "--json cameras --check");
+  EXPECT_EQ(machine.status, 5);
+  EXPECT_EQ(json::parse(machine.out), report);
+  EXPECT_THAT(daemon.methods(), ElementsAre("cameras.check", "cameras.check", "cameras.check"));
+}
+
 TEST(Mocapctl, ADaemonErrorExits1WithCodeAndMessage) {
   testutil::ScriptedMocapd daemon(SocketPath(), [](const json& r) {
     return std::vector<std::string>{ErrorLine(r, "forbidden", "subject.select needs group mocap")};
