@@ -687,6 +687,17 @@ Json Daemon::Status_() const {
     j["storage"]["wal_sync_failures"] = recorder_->sync_failures();
   }
   j["clients"] = server_ ? server_->client_count() : 0;
+  // Where a slow subscriber's frames went: the loop never waits for one, its frames are dropped
+  // at its connection (daemon/control_server.h) and counted here.
+  Json subscribers = Json::array();
+  for (const auto& [client, sub] : subscribers_) {
+    subscribers.push_back({{"client", client},
+                           {"streams", sub.streams},
+                           {"decimation", sub.decimation},
+                           {"sent", sub.sent},
+                           {"dropped", sub.dropped}});
+  }
+  j["subscribers"] = subscribers;
   return j;
 }
 
