@@ -16,7 +16,8 @@
 //     first subscriber in the interval (last image of a set handed over -> frame read from the
 //     socket, CLOCK_MONOTONIC), and the frame sets the daemon dropped so far (sets.dropped,
 //     tracker.loop_dropped, tracker.recorder_dropped), the frames the subscribers missed.
-// At the end: the slope of RSS (least squares over the rows after the first), the range of the
+// At the end: the slope of RSS (least squares over the rows after the first, and over those after
+// the first fit, whose working set may stay with the process as a step), the range of the
 // descriptors, the latency p99 range, and the totals; --json writes every row.
 //
 //   soak [--duration MIN] [--sample S] [--record-every MIN] [--fit-every MIN] [--cameras N]
@@ -344,16 +345,24 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "soak: subscriber %zu: %s\n", i, subs[i]->error.c_str()), failed = true;
   const int exit_status = d.Stop();
 
-  // RSS slope: least squares over the rows after the first (the first minute still warms up).
-  double slope_mb_per_h = 0;
-  if (rows.size() >= 3) {
+  // RSS slope (MB/hour), least squares over the rows after `from_min`: all but the first (the
+  // first minute still warms up), and those after the first fit (the fit's working set, hundreds
+  // of MB, may stay with the process: a step, not a leak; a leak keeps the slope after it).
+  auto rss_slope = [&rows](double from_min) {
     double n = 0, sx = 0, sy = 0, sxx = 0, sxy = 0;
-    for (std::size_t i = 1; i < rows.size(); ++i) {
-      const double x = rows[i]["minute"].get<double>() / 60.0, y = rows[i]["rss_mb"];
+    for (const json& r : rows) {
+      if (r["minute"].get<double>() <= from_min) continue;
+      const double x = r["minute"].get<double>() / 60.0, y = r["rss_mb"];
       n += 1, sx += x, sy += y, sxx += x * x, sxy += x * y;
     }
-    slope_mb_per_h = (n * sxy - sx * sy) / (n * sxx - sx * sx);
-  }
+    return n >= 3 ? (n * sxy - sx * sy) / (n * sxx - sx * sx) : 0.0;
+  };
+  const double slope_mb_per_h = rows.empty() ? 0.0 : rss_slope(rows[0]["minute"].get<double>());
+  double first_fit_min = -1;
+  for (const json& e : events)
+    if (first_fit_min < 0 && e["what"].get<std::string>().rfind("fit", 0) == 0)
+      first_fit_min = e["minute"];
+  const double slope_after_fit = first_fit_min >= 0 ? rss_slope(first_fit_min) : 0.0;
   int fd_min = 1 << 30, fd_max = 0;
   double p99_min = 1e300, p99_max = 0, rss_min = 1e300, rss_max = 0;
   for (const json& r : rows) {
@@ -368,6 +377,9 @@ int main(int argc, char** argv) {
               "%.2f-%.2f ms; daemon exit status %d\n",
               rss_min, rss_max, slope_mb_per_h, rows.size(), fd_min, fd_max, p99_min, p99_max,
               exit_status);
+  if (first_fit_min >= 0)
+    std::printf("RSS slope after the first fit (%.1f min): %+.2f MB/hour\n", first_fit_min,
+                slope_after_fit);
   for (std::size_t i = 0; i < subs.size(); ++i)
     std::printf("subscriber %zu (%s): %llu frames, %llu missing, %llu told dropped\n", i,
                 subs[i]->streams.dump().c_str(),
@@ -380,6 +392,7 @@ int main(int argc, char** argv) {
     std::ofstream(a.json_path) << json{{"rows", rows},
                                        {"events", events},
                                        {"rss_slope_mb_per_hour", slope_mb_per_h},
+                                       {"rss_slope_after_first_fit_mb_per_hour", slope_after_fit},
                                        {"daemon_exit_status", exit_status}}
                                       .dump(2);
   }

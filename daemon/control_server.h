@@ -42,14 +42,15 @@ struct ControlServerOptions {
   std::string control_group = "mocap";  // may change state (and root); others read only
   int max_clients = 64;
   std::size_t max_line_bytes = 1 << 20;
-  // Replies + events waiting: beyond, disconnect. 8 MiB holds the largest reply (an inline export
-  // of 4 MiB, base64) and bounds what 64 clients that never read can cost (512 MiB).
-  std::size_t max_output_bytes = 8u << 20;
-  // Stream frames waiting per client, and their bytes: beyond either, frames are dropped. 2 MiB
-  // holds 400 frames of the `markers` stream (about 3 kB each) and leaves room under
-  // max_output_bytes for the largest reply beside them.
+  // Replies + events + stream frames waiting: beyond, disconnect. 9 MiB holds the largest reply
+  // (an inline export of 4 MiB, base64: 5.4 MiB) beside a full stream backlog, and bounds what
+  // 64 clients that never read can cost (576 MiB).
+  std::size_t max_output_bytes = 9u << 20;
+  // Stream frames waiting per client, and their bytes: beyond either, frames are dropped. 3 MiB
+  // holds 400 frames of the `markers` stream (6.3 kB each with the default model's 43 markers,
+  // bench/daemon_latency --slow-subscriber); a subscriber to every stream holds fewer.
   int stream_queue_frames = 400;
-  std::size_t stream_output_bytes = 2u << 20;
+  std::size_t stream_output_bytes = 3u << 20;
   int max_pending = 64;
   bool IsValid(std::string* error) const;
 };
