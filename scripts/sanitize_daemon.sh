@@ -5,9 +5,14 @@
 # started, mocapctl) goes to build-fuzz/sanitizer-logs/ (ASAN_OPTIONS/UBSAN_OPTIONS log_path,
 # since a daemon's stderr is its log file) and fails the run, whatever the test concluded.
 #
-# The subset: what fits CI's budget (scripts/test.sh under 25 minutes on 2 cores, BENCHMARKS.md
-# "Faults": the build and run times) and does not depend on the real-time margin that the
-# sanitizers' 2-3x slowdown takes away (a rig at 200 Hz that drops sets under ASan is not a bug).
+# The subset: what fits CI's budget (scripts/test.sh under 25 minutes on 2 cores; BENCHMARKS.md
+# "The daemon tier under ASan and UBSan": building the ASan mocapd is most of the cost, the run
+# ~15 s) and does not depend on the real-time margin that the sanitizers' slowdown takes away:
+# every state-changing method refused outside the control group, export paths, 4,000 random
+# requests into the daemon, every documented request and error code, a bad config. Left out:
+# test_daemon_faults (the disk-full and misbehaving-clients tests failed under ASan on the
+# 8-camera rig at 200 Hz by timing alone: tracking lost, the loop queue full, RSS grown by ASan's
+# quarantine, with no sanitizer report) and the whole session and systemd tests (minutes each).
 #
 # Usage: scripts/sanitize_daemon.sh [build|run|all]   (default all)
 #   build: the fuzz targets and the daemon tier in build-fuzz/ (ctest's fixture, so that the
@@ -20,7 +25,6 @@ what=${1:-all}
 tier=(
   "test_daemon_security:*"
   "test_daemon:*ProtocolEveryRequestAndEveryError*:*RefusesABadConfig*"
-  "test_daemon_faults:*MisbehavingClients*:*DiskFull*"
 )
 if [ "$what" = build ] || [ "$what" = all ]; then
   targets=(mocapd mocapctl)
