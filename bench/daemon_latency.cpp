@@ -172,14 +172,8 @@ int SlowSubscriber(int cameras, double seconds, const std::vector<double>& rates
                    const std::vector<double>& pauses) {
   const std::string dir = mocap::testing::MakeTempDir("mocapd-slow");
   mocap::testing::DaemonProcess d(dir, mocap::testing::SimulatedRigToml(cameras, 1));
-  if (mocap::Status s = d.Start(); !s) {
-    std::fprintf(stderr, "daemon_latency: %s\n", s.message().c_str());
-    return 1;
-  }
   std::unique_ptr<ControlClient> c;
-  if (!d.Connect(&c).ok()) return 1;
-  std::fprintf(stderr, "daemon_latency: calibrating the rig, creating the subject...\n");
-  if (mocap::Status s = mocap::testing::CalibrateRigAndSelectSubject(c.get(), 12, "bench", 3); !s) {
+  if (mocap::Status s = mocap::testing::StartCalibratedSession(&d, &c, "daemon_latency", "bench"); !s) {
     std::fprintf(stderr, "daemon_latency: %s\n", s.message().c_str());
     return 1;
   }
@@ -244,14 +238,9 @@ int main(int argc, char** argv) {
   if (slow) return SlowSubscriber(cameras, seconds_given ? seconds : 20, rates, pauses);
   const std::string dir = mocap::testing::MakeTempDir("mocapd-latency");
   mocap::testing::DaemonProcess d(dir, mocap::testing::SimulatedRigToml(cameras, 1));
-  if (mocap::Status s = d.Start(); !s) {
-    std::fprintf(stderr, "daemon_latency: %s\n", s.message().c_str());
-    return 1;
-  }
   std::unique_ptr<ControlClient> c, sub;
-  if (!d.Connect(&c).ok() || !d.Connect(&sub).ok()) return 1;
-  std::fprintf(stderr, "daemon_latency: calibrating the rig, creating the subject...\n");
-  if (mocap::Status s = mocap::testing::CalibrateRigAndSelectSubject(c.get(), 12, "bench", 3); !s) {
+  if (mocap::Status s = mocap::testing::StartCalibratedSession(&d, &c, "daemon_latency", "bench");
+      !s || !(s = d.Connect(&sub)).ok()) {
     std::fprintf(stderr, "daemon_latency: %s\n", s.message().c_str());
     return 1;
   }

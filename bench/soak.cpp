@@ -174,14 +174,9 @@ int main(int argc, char** argv) {
   }
   const std::string dir = mocap::testing::MakeTempDir("mocapd-soak");
   mocap::testing::DaemonProcess d(dir, mocap::testing::SimulatedRigToml(a.cameras, 1));
-  if (mocap::Status s = d.Start(); !s) {
-    std::fprintf(stderr, "soak: %s\n", s.message().c_str());
-    return 1;
-  }
   std::unique_ptr<ControlClient> op, poller;
-  if (!d.Connect(&op, 3600 * 1000).ok() || !d.Connect(&poller).ok()) return 1;
-  std::fprintf(stderr, "soak: calibrating the rig, creating the subject...\n");
-  if (mocap::Status s = mocap::testing::CalibrateRigAndSelectSubject(op.get(), 12, "soak", 3); !s) {
+  if (mocap::Status s = mocap::testing::StartCalibratedSession(&d, &op, "soak", "soak", 3600 * 1000);
+      !s || !(s = d.Connect(&poller)).ok()) {
     std::fprintf(stderr, "soak: %s\n", s.message().c_str());
     return 1;
   }
