@@ -30,8 +30,10 @@
 #include <chrono>
 #include <cstdio>
 #include <fstream>
+#include <iterator>
 #include <memory>
 #include <mutex>
+#include <set>
 #include <string>
 #include <thread>
 #include <vector>
@@ -74,6 +76,26 @@ int CountEntries(const std::string& dir) {
   while (dirent* e = readdir(d)) n += e->d_name[0] != '.';
   closedir(d);
   return n;
+}
+
+// What each open descriptor of `pid` refers to (a file, socket:[inode], anon_inode:[eventfd], ...).
+std::multiset<std::string> FdTargets(pid_t pid) {
+  std::multiset<std::string> out;
+  const std::string dir = "/proc/" + std::to_string(pid) + "/fd";
+  DIR* d = opendir(dir.c_str());
+  if (!d) return out;
+  while (dirent* e = readdir(d)) {
+    if (e->d_name[0] == '.') continue;
+    char target[512];
+    const ssize_t n = readlink((dir + "/" + e->d_name).c_str(), target, sizeof target - 1);
+    if (n <= 0) continue;
+    std::string t(target, static_cast<std::size_t>(n));
+    // Sockets and pipes differ by inode from one connection to the next: the kind is what counts.
+    if (auto bracket = t.find(":["); bracket != std::string::npos) t = t.substr(0, bracket);
+    out.insert(t);
+  }
+  closedir(d);
+  return out;
 }
 
 double Minutes(Clock::time_point since) {
@@ -227,6 +249,7 @@ int main(int argc, char** argv) {
   DaemonDropped(status0, &sets0, &loop0, &rec0);
 
   // The operator: a recording every record_every, a fit (then model.apply) every fit_every.
+  const std::multiset<std::string> fds0 = FdTargets(d.pid());
   const auto start = Clock::now();
   const auto end = start + std::chrono::duration<double>(a.duration_min * 60);
   std::mutex events_mutex;
@@ -327,6 +350,13 @@ int main(int argc, char** argv) {
     std::fflush(stdout);
     rows.push_back(row);
   }
+  // Descriptors open at the end that were not at minute 0 (and the reverse), by what they are.
+  const std::multiset<std::string> fds1 = FdTargets(d.pid());
+  std::vector<std::string> fds_added, fds_gone;
+  std::set_difference(fds1.begin(), fds1.end(), fds0.begin(), fds0.end(),
+                      std::back_inserter(fds_added));
+  std::set_difference(fds0.begin(), fds0.end(), fds1.begin(), fds1.end(),
+                      std::back_inserter(fds_gone));
   done = true;
   {  // ends a running recording (the operator's connection is the operator thread's)
     std::unique_ptr<ControlClient> stopper;
@@ -372,6 +402,11 @@ int main(int argc, char** argv) {
               "%.2f-%.2f ms; daemon exit status %d\n",
               rss_min, rss_max, slope_mb_per_h, rows.size(), fd_min, fd_max, p99_min, p99_max,
               exit_status);
+  std::printf("descriptors opened since minute 0 and still open:");
+  for (const std::string& f : fds_added) std::printf(" %s", f.c_str());
+  std::printf("%s; closed:", fds_added.empty() ? " none" : "");
+  for (const std::string& f : fds_gone) std::printf(" %s", f.c_str());
+  std::printf("%s\n", fds_gone.empty() ? " none" : "");
   if (first_fit_min >= 0)
     std::printf("RSS slope after the first fit (%.1f min): %+.2f MB/hour\n", first_fit_min,
                 slope_after_fit);
