@@ -4,6 +4,11 @@
 // the producer learns at once (TryPush fails) and the frame set is counted as dropped, rather
 // than latency growing until memory runs out. Slots are pre-allocated (a ring of `capacity`
 // elements, moved in and out), so a push or pop allocates nothing of its own.
+//
+// Depth() says how full it is now and the most it ever held: a soak (bench/soak.cpp) samples the
+// depths of a daemon's queues through `status`, and an instantaneous depth sampled once a second
+// almost always reads 0 even when a stage falls behind for tens of milliseconds at a time; the
+// high-water mark does not miss those.
 #pragma once
 #include <chrono>
 #include <condition_variable>
@@ -13,6 +18,13 @@
 #include <vector>
 
 namespace mocap::daemon {
+
+// A queue's fill: items now, the most it held since it was made, its capacity.
+struct QueueDepth {
+  std::size_t depth = 0;
+  std::size_t max_depth = 0;
+  std::size_t capacity = 0;
+};
 
 template <typename T>
 class BoundedQueue {
@@ -26,6 +38,7 @@ class BoundedQueue {
       if (closed_ || size_ == slots_.size()) return false;
       slots_[(head_ + size_) % slots_.size()] = std::move(item);
       ++size_;
+      if (size_ > max_size_) max_size_ = size_;
     }
     not_empty_.notify_one();
     return true;
@@ -61,6 +74,10 @@ class BoundedQueue {
     return size_;
   }
   std::size_t capacity() const { return slots_.size(); }
+  QueueDepth Depth() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return {size_, max_size_, slots_.size()};
+  }
 
  private:
   mutable std::mutex mutex_;
@@ -68,6 +85,7 @@ class BoundedQueue {
   std::vector<T> slots_;
   std::size_t head_ = 0;
   std::size_t size_ = 0;
+  std::size_t max_size_ = 0;
   bool closed_ = false;
 };
 

@@ -441,6 +441,14 @@ bool CapturePipeline::PopPoints(PointFrame* out, int timeout_ms) {
 CapturePipelineStats CapturePipeline::Stats(bool timings) const {
   std::lock_guard<std::mutex> lock(stats_mutex_);
   CapturePipelineStats s = stats_;
+  for (const auto& q : frames_) {
+    const QueueDepth d = q->Depth();
+    s.frame_queue.depth = std::max(s.frame_queue.depth, d.depth);
+    s.frame_queue.max_depth = std::max(s.frame_queue.max_depth, d.max_depth);
+    s.frame_queue.capacity = d.capacity;
+  }
+  s.detection_queue = detections_.Depth();
+  s.point_queue = points_.Depth();
   if (!timings) return s;
   s.detect_ms_p50 = detect_ms_.Percentile(50);
   s.detect_ms_p99 = detect_ms_.Percentile(99);

@@ -212,6 +212,10 @@ struct CapturePipelineStats {
   // Frames lost in transport advance both alike and are not counted here.
   std::vector<std::uint64_t> camera_count_mismatches;
   std::uint64_t mismatched_sets = 0;
+  // The queues between the stages (daemon/bounded_queue.h): frames waiting for detection (the
+  // fullest worker's queue; capacity per worker), detections waiting for the sync, point frames
+  // waiting for the caller.
+  QueueDepth frame_queue, detection_queue, point_queue;
   double detect_ms_p50 = 0, detect_ms_p99 = 0;
   double triangulate_ms_p50 = 0, triangulate_ms_p99 = 0;
   double latency_ms_p50 = 0, latency_ms_p99 = 0;

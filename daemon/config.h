@@ -162,7 +162,8 @@ struct DaemonConfig {
   std::string control_group = "mocap";  // members (and root) may change state; others only read
   int max_clients = 64;
   std::size_t max_line_bytes = 1 << 20;  // one request line, and one line a client must accept
-  int subscriber_queue_frames = 400;     // 2 s at 200 Hz; a slower subscriber loses frames
+  int subscriber_queue_frames = 400;     // stream frames waiting per subscriber (within 3 MiB):
+                                        // 2 s at 200 Hz; beyond, a slower subscriber loses frames
   int max_pending_requests = 64;         // per client
 
   // [protocol]

@@ -49,6 +49,7 @@ bool ControlServerOptions::IsValid(std::string* error) const {
   if (max_clients < 1) return fail("max_clients must be >= 1");
   if (max_line_bytes < 1024) return fail("max_line_bytes must be >= 1024");
   if (max_pending < 1) return fail("max_pending must be >= 1");
+  if (stream_queue_frames < 1) return fail("stream_queue_frames must be >= 1");
   if (stream_output_bytes < 4096 || max_output_bytes < stream_output_bytes)
     return fail("output limits: stream_output_bytes >= 4096 and <= max_output_bytes");
   return true;
@@ -154,10 +155,12 @@ void ControlServer::Close() {
   }
 }
 
-void ControlServer::SetLimits(int max_clients, std::size_t max_line_bytes, int max_pending) {
+void ControlServer::SetLimits(int max_clients, std::size_t max_line_bytes, int max_pending,
+                              int stream_queue_frames) {
   options_.max_clients = max_clients;
   options_.max_line_bytes = max_line_bytes;
   options_.max_pending = max_pending;
+  options_.stream_queue_frames = stream_queue_frames;
 }
 
 int ControlServer::OnAccept(sd_event_source*, int, uint32_t, void* self) {
@@ -405,7 +408,10 @@ bool ControlServer::SendStream(std::uint64_t client, const std::string& line) {
   auto it = clients_.find(client);
   if (it == clients_.end()) return false;
   Client* c = it->second.get();
-  if (c->closing || c->out.size() - c->out_offset >= options_.stream_output_bytes) {
+  while (!c->stream_ends.empty() && c->stream_ends.front() <= c->sent_bytes)
+    c->stream_ends.pop_front();
+  if (c->closing || c->out.size() - c->out_offset >= options_.stream_output_bytes ||
+      c->stream_ends.size() >= static_cast<std::size_t>(options_.stream_queue_frames)) {
     ++c->stream_dropped;
     return false;
   }
@@ -416,6 +422,8 @@ bool ControlServer::SendStream(std::uint64_t client, const std::string& line) {
     if (!HasClient(client)) return false;
   }
   Queue(c, line);
+  if (!HasClient(client)) return false;
+  if (c->queued_bytes > c->sent_bytes) c->stream_ends.push_back(c->queued_bytes);
   return true;
 }
 
@@ -429,6 +437,7 @@ void ControlServer::Queue(Client* c, const std::string& line) {
     return;
   }
   c->out += line;
+  c->queued_bytes += line.size();
   Flush(c);
 }
 
@@ -444,6 +453,7 @@ void ControlServer::Flush(Client* c) {
       return;
     }
     c->out_offset += static_cast<std::size_t>(n);
+    c->sent_bytes += static_cast<std::uint64_t>(n);
   }
   if (!HasClient(id)) return;
   if (c->out_offset == c->out.size()) {

@@ -10,9 +10,13 @@
 //   - writes are non-blocking into a per-client output buffer drained when the socket is
 //     writable. Replies and progress events always go in (a client that lets more than
 //     `max_output_bytes` of them pile up is disconnected, with a logged reason); stream frames go
-//     in only while the buffer holds less than `stream_output_bytes`, otherwise they are dropped
-//     and counted, and the client is told how many it lost once it catches up. So a subscriber
-//     that never reads holds at most a few hundred kilobytes and costs the pipeline nothing.
+//     in only while fewer than `stream_queue_frames` of them wait (the config's
+//     `subscriber_queue_frames`: 400, 2 s at 200 Hz) and the buffer holds less than
+//     `stream_output_bytes`, otherwise they are dropped and counted, and the client is told how
+//     many it lost once it catches up. So a subscriber may pause for up to that long (a viewer's
+//     window dragged, a logger's disk stalling) without losing a frame, one that never reads
+//     holds at most `stream_output_bytes`, and neither costs the pipeline anything
+//     (bench/daemon_latency --slow-subscriber measures where the loss begins).
 //   - a client with more than `max_pending` requests whose replies have not gone out is answered
 //     `busy` (a request flood cannot queue work without bound).
 #pragma once
@@ -20,6 +24,7 @@
 #include <systemd/sd-event.h>
 
 #include <cstdint>
+#include <deque>
 #include <functional>
 #include <map>
 #include <memory>
@@ -37,10 +42,15 @@ struct ControlServerOptions {
   std::string control_group = "mocap";  // may change state (and root); others read only
   int max_clients = 64;
   std::size_t max_line_bytes = 1 << 20;
-  // Replies + events waiting: beyond, disconnect. 8 MiB holds the largest reply (an inline export
-  // of 4 MiB, base64) and bounds what 64 clients that never read can cost (512 MiB).
-  std::size_t max_output_bytes = 8u << 20;
-  std::size_t stream_output_bytes = 256u << 10;  // stream frames only below this
+  // Replies + events + stream frames waiting: beyond, disconnect. 9 MiB holds the largest reply
+  // (an inline export of 4 MiB, base64: 5.4 MiB) beside a full stream backlog, and bounds what
+  // 64 clients that never read can cost (576 MiB).
+  std::size_t max_output_bytes = 9u << 20;
+  // Stream frames waiting per client, and their bytes: beyond either, frames are dropped. 3 MiB
+  // holds 400 frames of the `markers` stream (6.3 kB each with the default model's 43 markers,
+  // bench/daemon_latency --slow-subscriber); a subscriber to every stream holds fewer.
+  int stream_queue_frames = 400;
+  std::size_t stream_output_bytes = 3u << 20;
   int max_pending = 64;
   bool IsValid(std::string* error) const;
 };
@@ -94,7 +104,8 @@ class ControlServer {
   // Stops accepting and closes every client (after trying to flush what they were sent).
   void Close();
   // New limits (config.reload); they apply to new lines and new clients.
-  void SetLimits(int max_clients, std::size_t max_line_bytes, int max_pending);
+  void SetLimits(int max_clients, std::size_t max_line_bytes, int max_pending,
+                 int stream_queue_frames);
   // Who may change state, from the next client on (clients keep what their hello said).
   void SetControlGroup(const std::string& group) { options_.control_group = group; }
 
@@ -123,6 +134,10 @@ class ControlServer {
     std::size_t out_offset = 0;
     int pending = 0;  // requests handed to the handler and not yet answered
     std::uint64_t stream_dropped = 0;  // not yet told
+    // Bytes ever queued and ever sent, and the end (in bytes ever queued) of each stream frame
+    // not yet sent: the frames waiting are the ends beyond sent_bytes.
+    std::uint64_t queued_bytes = 0, sent_bytes = 0;
+    std::deque<std::uint64_t> stream_ends;
     bool closing = false;  // flush, then close
   };
   static int OnAccept(sd_event_source* s, int fd, uint32_t revents, void* self);

@@ -403,6 +403,7 @@ Status Daemon::Start() {
   so.max_clients = config_.max_clients;
   so.max_line_bytes = config_.max_line_bytes;
   so.max_pending = config_.max_pending_requests;
+  so.stream_queue_frames = config_.subscriber_queue_frames;
   server_ = std::make_unique<ControlServer>(
       loop_, so,
       [this](const ClientInfo& c, const Json& id, const std::string& m, const Json& p) {
@@ -720,6 +721,14 @@ Json Daemon::Status_() const {
                     {"frames_tracking", st.frames_tracking},
                     {"loop_dropped", st.loop_dropped},
                     {"recorder_dropped", st.recorder_dropped}};
+    auto depth = [](const QueueDepth& q) {
+      return Json{{"depth", q.depth}, {"max", q.max_depth}, {"capacity", q.capacity}};
+    };
+    j["queues"] = {{"frames", depth(st.capture.frame_queue)},
+                   {"detections", depth(st.capture.detection_queue)},
+                   {"points", depth(st.capture.point_queue)},
+                   {"loop", depth(st.loop_queue)},
+                   {"recorder", depth(st.recorder_queue)}};
     j["latency_ms"] = {{"p50", st.capture.latency_ms_p50},
                        {"p99", st.capture.latency_ms_p99},
                        {"track_p50", st.track_ms_p50},
@@ -759,6 +768,17 @@ Json Daemon::Status_() const {
     j["storage"]["wal_sync_failures"] = recorder_->sync_failures();
   }
   j["clients"] = server_ ? server_->client_count() : 0;
+  // Where a slow subscriber's frames went: the loop never waits for one, its frames are dropped
+  // at its connection (daemon/control_server.h) and counted here.
+  Json subscribers = Json::array();
+  for (const auto& [client, sub] : subscribers_) {
+    subscribers.push_back({{"client", client},
+                           {"streams", sub.streams},
+                           {"decimation", sub.decimation},
+                           {"sent", sub.sent},
+                           {"dropped", sub.dropped}});
+  }
+  j["subscribers"] = subscribers;
   return j;
 }
 
@@ -806,7 +826,9 @@ void Daemon::ConfigReload(const Request& r) {
   config_.fit_groups = fresh.fit_groups;
   config_.fit_coarse_frames = fresh.fit_coarse_frames;
   config_.export_dirs = fresh.export_dirs;
-  server_->SetLimits(fresh.max_clients, fresh.max_line_bytes, fresh.max_pending_requests);
+  config_.subscriber_queue_frames = fresh.subscriber_queue_frames;
+  server_->SetLimits(fresh.max_clients, fresh.max_line_bytes, fresh.max_pending_requests,
+                     fresh.subscriber_queue_frames);
   server_->SetControlGroup(fresh.control_group);
   spdlog::info("config reloaded from {}: {} applied, {} need a restart", options_.config_path,
                applied.size(), restart.size());

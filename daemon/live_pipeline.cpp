@@ -314,6 +314,8 @@ LivePipelineStats LivePipeline::Stats(bool timings) const {
     }
   }
   s.capture = capture_->Stats(timings);
+  s.loop_queue = loop_queue_.Depth();
+  s.recorder_queue = recorder_queue_.Depth();
   return s;
 }
 

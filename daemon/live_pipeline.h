@@ -81,6 +81,7 @@ struct LivePipelineStats {
   std::uint64_t frames_tracking = 0;     // ... in state kTracking
   std::uint64_t loop_dropped = 0;        // the loop's queue was full
   std::uint64_t recorder_dropped = 0;    // the recorder's queue was full (a recording lost frames)
+  QueueDepth loop_queue, recorder_queue;
   double track_ms_p50 = 0, track_ms_p99 = 0;
   int tracker_state = -1;
   int labelled = 0;

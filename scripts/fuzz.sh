@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Builds the libFuzzer targets of fuzz/ with clang, AddressSanitizer and UBSan in build-fuzz/, and
+# Builds the libFuzzer targets of fuzz/ with clang, AddressSanitizer and UBSan in build-fuzz/
+# (scripts/sanitizer_build.sh), and
 # runs each for a bounded time, seeded with fuzz/seeds/NAME/ (small files covering the formats'
 # variants), the files *.NAME of ../shared/data, and the corpus it grew before (fuzz_NAME reads
 # *.NAME). Exits non-zero on a crash (the input is kept in
@@ -8,17 +9,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 secs=${1:-60}
-CXX_BIN=$(command -v clang++ || command -v clang++-14 || true)
-if [ -z "$CXX_BIN" ]; then
-  echo "fuzz: clang++ not found (scripts/deps.sh installs clang-14 and libclang-rt-14-dev)" >&2
-  exit 1
-fi
-san="-fsanitize=fuzzer-no-link,address,undefined -fno-sanitize-recover=all -fno-omit-frame-pointer"
-cmake -S . -B build-fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_CXX_COMPILER="$CXX_BIN" \
-      -DMOCAP_FUZZ=ON -DMOCAP_NATIVE=OFF -DCMAKE_CXX_FLAGS="$san" >/dev/null
 targets=()
 for src in fuzz/fuzz_*.cpp; do targets+=("$(basename "$src" .cpp)"); done
-cmake --build build-fuzz -j2 --target "${targets[@]}"
+bash scripts/sanitizer_build.sh "${targets[@]}"
 
 shared=../shared/data
 failed=()

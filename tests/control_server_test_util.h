@@ -4,13 +4,18 @@
 //
 // The request handler stands in for the daemon: it answers each request at once with its method
 // and params (so every line the server hands over comes back, params serialised again), or, with
-// `answer = false`, holds every request unanswered (a daemon busy with long jobs).
+// `answer = false`, holds every request unanswered (a daemon busy with long jobs). With
+// `stream_method`, a request {"method":"stream","params":{"frames":N,"bytes":B}} is a pipeline
+// publishing N stream frames of B bytes (JSON strings "fff...") to that client at once
+// (ControlServer::SendStream), and
+// its reply says how many were accepted: {"accepted":K}.
 #pragma once
 #include <sys/socket.h>
 #include <sys/un.h>
 #include <systemd/sd-event.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstdlib>
 #include <filesystem>
@@ -27,7 +32,9 @@ namespace mocap::testing {
 class ControlServerHarness {
  public:
   // Listens on a socket in a fresh temporary directory; ok() says whether that worked.
-  ControlServerHarness(daemon::ControlServerOptions options, bool answer = true) : answer_(answer) {
+  ControlServerHarness(daemon::ControlServerOptions options, bool answer = true,
+                       bool stream_method = false)
+      : answer_(answer), stream_method_(stream_method) {
     std::string pattern = (std::filesystem::temp_directory_path() / "mocap-control-XXXXXX").string();
     if (!mkdtemp(pattern.data())) return;
     dir_ = pattern;
@@ -40,6 +47,16 @@ class ControlServerHarness {
         [this](const daemon::ClientInfo& client, const nlohmann::json& id, const std::string& method,
                const nlohmann::json& params) {
           ++requests_;
+          if (stream_method_ && method == "stream") {
+            const int frames = params.value("frames", 0);
+            // A JSON string of B bytes with its newline.
+            const std::string line =
+                "\"" + std::string(std::max(3, params.value("bytes", 3)) - 3, 'f') + "\"";
+            int accepted = 0;
+            for (int i = 0; i < frames; ++i) accepted += server_->SendStream(client.id, line + "\n");
+            server_->Reply(client.id, id, {{"accepted", accepted}});
+            return;
+          }
           if (answer_) server_->Reply(client.id, id, {{"method", method}, {"params", params}});
         },
         nullptr, nullptr);
@@ -108,6 +125,7 @@ class ControlServerHarness {
 
  private:
   bool answer_;
+  bool stream_method_;
   bool ok_ = false;
   int requests_ = 0;
   std::string dir_, path_;

@@ -12,6 +12,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -198,6 +199,18 @@ inline Status CalibrateRigAndSelectSubject(daemon::ControlClient* c, double wand
   MOCAP_RETURN_IF_ERROR(call("subject.select", {{"name", subject}}, nullptr));
   std::this_thread::sleep_for(std::chrono::duration<double>(settle_seconds));
   return Status::Ok();
+}
+
+// The benches' start (bench/daemon_latency.cpp, bench/soak.cpp): starts `d`, connects `c` (reply
+// timeout `timeout_ms`) and calibrates the rig and selects subject `subject` on it, saying so on
+// stderr as `who`. Errors name the step.
+inline Status StartCalibratedSession(DaemonProcess* d, std::unique_ptr<daemon::ControlClient>* c,
+                                     const std::string& who, const std::string& subject,
+                                     int timeout_ms = 300000) {
+  MOCAP_RETURN_IF_ERROR(d->Start());
+  MOCAP_RETURN_IF_ERROR(d->Connect(c, timeout_ms));
+  std::fprintf(stderr, "%s: calibrating the rig, creating the subject...\n", who.c_str());
+  return CalibrateRigAndSelectSubject(c->get(), 12, subject, 3);
 }
 
 }  // namespace mocap::testing

@@ -39,6 +39,23 @@ TEST(BoundedQueue, KeepsOrderRefusesWhenFullAndDrainsAfterClose) {
   EXPECT_FALSE(q.Pop(&out, std::chrono::milliseconds(10)));  // closed and drained
 }
 
+// The high-water mark keeps the deepest fill after the queue drained (a soak samples it once a
+// minute; the instantaneous depth would read 0).
+TEST(BoundedQueue, DepthKeepsTheMostItHeld) {
+  daemon::BoundedQueue<int> q(4);
+  EXPECT_EQ(q.Depth().max_depth, 0u);
+  for (int i = 0; i < 3; ++i) EXPECT_TRUE(q.TryPush(int(i)));
+  int out = 0;
+  for (int i = 0; i < 3; ++i) ASSERT_TRUE(q.Pop(&out, std::chrono::milliseconds(0)));
+  EXPECT_TRUE(q.TryPush(int(7)));
+  const daemon::QueueDepth d = q.Depth();
+  EXPECT_EQ(d.depth, 1u);
+  EXPECT_EQ(d.max_depth, 3u);
+  EXPECT_EQ(d.capacity, 4u);
+  for (int i = 0; i < 5; ++i) q.TryPush(int(i));  // fills it; the fifth is refused
+  EXPECT_EQ(q.Depth().max_depth, 4u);
+}
+
 TEST(RecentSamples, KeepsTheLatestAndTakesPercentilesOfThem) {
   daemon::RecentSamples r(4);
   EXPECT_EQ(r.Percentile(50), 0.0);  // empty

@@ -1,6 +1,7 @@
 // The control socket's server alone (daemon/control_server.h), with a stand-in handler: every
 // request line answered once and in order, blank lines ignored, the pending-request bound kept
-// under a flood, an over-long line refused and the connection closed.
+// under a flood, an over-long line refused and the connection closed, a stream that is not read
+// held to its bound.
 #include <sstream>
 #include <string>
 #include <vector>
@@ -92,6 +93,40 @@ TEST(ControlServer, OverLongLineIsRefusedAndTheConnectionClosed) {
   EXPECT_EQ(got[1]["id"], 1);
   EXPECT_EQ(got[2]["error"]["code"], "line_too_long");
   EXPECT_EQ(h.requests(), 1);  // nothing after it
+}
+
+// A subscriber that does not read: the kernel's socket buffer takes what it can, then the server
+// keeps at most stream_queue_frames frames (or stream_output_bytes) for it and drops the rest
+// (counted and told with the next frame it takes: tests/test_daemon_faults.cpp, the subscriber
+// that never reads). The kernel's share is the same for the same lines, so two bounds accept
+// exactly their difference.
+TEST(ControlServer, AStreamThatIsNotReadIsHeldToItsBoundOfFrames) {
+  auto run = [](int queue_frames, std::size_t queue_bytes) {
+    daemon::ControlServerOptions o;
+    o.stream_queue_frames = queue_frames;
+    o.stream_output_bytes = queue_bytes;
+    testing::ControlServerHarness h(o, true, /*stream_method=*/true);
+    EXPECT_TRUE(h.ok());
+    const std::vector<json> got = Lines(h.Exchange(
+        "{\"id\":1,\"method\":\"stream\",\"params\":{\"frames\":3000,\"bytes\":1000}}\n",
+        /*keep_open=*/true));
+    int accepted = -1, frames = 0;
+    for (const json& j : got) {
+      if (j.is_string()) ++frames;  // a stream frame
+      else if (j.contains("id") && j["id"] == 1) accepted = j["result"]["accepted"];
+    }
+    EXPECT_EQ(frames, accepted) << "every frame accepted arrives once read";
+    return accepted;
+  };
+  const int a10 = run(10, 2u << 20), a50 = run(50, 2u << 20);
+  const int a_bytes = run(100000, 20000);  // the bytes' bound: 20 frames of 1000 bytes
+  EXPECT_GT(a10, 10);
+  EXPECT_LT(a10, 3000);
+  EXPECT_EQ(a50 - a10, 40);
+  // 20 whole frames of 1000 bytes beside the one the kernel may have taken in part (counted by the
+  // frames' bound, and by the bytes' only for its rest).
+  EXPECT_GE(a_bytes - a10, 10);
+  EXPECT_LE(a_bytes - a10, 11);
 }
 
 }  // namespace

@@ -502,6 +502,13 @@ TEST(DaemonFaults, MisbehavingClientsCannotStopTheRig) {
   // The loop took every frame the pipeline handed it: no client held it off.
   EXPECT_EQ(after["tracker"]["loop_dropped"], before["tracker"]["loop_dropped"]);
   EXPECT_EQ(after["tracker"]["recorder_dropped"], 0);
+  // The queues' high-water marks: frames went through each, and the loop's never filled.
+  for (const char* q : {"frames", "detections", "points", "loop"}) {
+    const json& depth = after["queues"][q];
+    EXPECT_GE(depth["max"].get<int>(), 1) << q;
+    EXPECT_LE(depth["max"].get<int>(), depth["capacity"].get<int>()) << q;
+  }
+  EXPECT_LT(after["queues"]["loop"]["max"].get<int>(), after["queues"]["loop"]["capacity"].get<int>());
   const std::string log = d.Log();
   EXPECT_NE(log.find("line longer than"), std::string::npos) << "the refused client is not in the log";
   EXPECT_EQ(d.Stop(), 0) << log;

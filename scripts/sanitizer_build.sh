@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Configures build-fuzz/ (clang, AddressSanitizer + UBSan, libFuzzer's coverage instrumentation,
+# RelWithDebInfo) and builds the targets named on the command line there. One build directory
+# for everything that runs under the sanitizers: the fuzz targets (scripts/fuzz.sh) and the
+# daemon tier (scripts/sanitize_daemon.sh) share the libraries compiled once.
+# Usage: scripts/sanitizer_build.sh TARGET...
+set -euo pipefail
+cd "$(dirname "$0")/.."
+CXX_BIN=$(command -v clang++ || command -v clang++-14 || true)
+if [ -z "$CXX_BIN" ]; then
+  echo "sanitizer build: clang++ not found (scripts/deps.sh installs clang-14 and libclang-rt-14-dev)" >&2
+  exit 1
+fi
+san="-fsanitize=fuzzer-no-link,address,undefined -fno-sanitize-recover=all -fno-omit-frame-pointer"
+cmake -S . -B build-fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_CXX_COMPILER="$CXX_BIN" \
+      -DMOCAP_FUZZ=ON -DMOCAP_NATIVE=OFF -DCMAKE_CXX_FLAGS="$san" >/dev/null
+cmake --build build-fuzz -j"$(nproc)" --target "$@"
