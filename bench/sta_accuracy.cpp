@@ -9,6 +9,7 @@
 //
 //   sta_accuracy [--sta 0,5,10,20] [--seed N] [--noise-mm S] [--threads T] [--joints]
 //                [--sigma-rounds N] [--truth-start] [--single-stage] [--diagnose JOINT]
+//                [--robust huber|cauchy[:SCALE]] [--drop M1,M2] [--hold P1,P2]
 //
 // Prints BENCHMARKS.md's accuracy table (markdown); --joints adds every joint's lab RMS and every
 // marker's residual RMS and fitted sigma. --sigma-rounds sets FitOptions::marker_sigma_rounds
@@ -18,7 +19,10 @@
 // schedule off (FitOptions::staged). --diagnose JOINT splits that joint's lab error d(t) (fitted
 // centre minus true centre) into its mean and the rest, each expressed in the true parent and
 // child segment frames and along the joint's true axes: a constant offset is a geometry that
-// trades against the markers; a time-varying one is artefact leaking into the poses.
+// trades against the markers; a time-varying one is artefact leaking into the poses. --robust sets
+// FitOptions::robust_loss (and robust_scale); --drop leaves markers out of the trials; --hold
+// holds parameters at the model's (FitOptions::fixed_parameters): experiments on what the
+// artefact does, not fits a lab would run.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -44,6 +48,8 @@ struct Args {
   int sigma_rounds = -1;  // < 0: FitOptions' default
   bool truth_start = false;
   bool single_stage = false;
+  solver::RobustLoss robust = solver::RobustLoss::kNone;
+  double robust_scale = solver::FitOptions().robust_scale;
   std::string diagnose;  // joint name, or empty
   std::vector<std::string> drop;  // markers left out of the trials
   std::vector<std::string> hold;  // parameters held (FitOptions::fixed_parameters)
@@ -53,7 +59,7 @@ struct Args {
   std::fprintf(stderr,
                "sta_accuracy: %s\nusage: sta_accuracy [--sta 0,5,10,20] [--seed N] [--noise-mm S] "
                "[--threads T] [--joints] [--sigma-rounds N] [--truth-start] "
-               "[--single-stage] [--diagnose JOINT]\n",
+               "[--single-stage] [--diagnose JOINT] [--robust huber|cauchy[:SCALE]] [--drop M,..] [--hold P,..]\n",
                why.c_str());
   std::exit(2);
 }
@@ -87,6 +93,11 @@ Args ParseArgs(int argc, char** argv) {
       a.sigma_rounds = static_cast<int>(Number(flag, value()));
     } else if (flag == "--truth-start") {
       a.truth_start = true;
+    } else if (flag == "--robust") {
+      const std::string v = value();
+      const size_t colon = v.find(':');
+      if (Status st = solver::ParseRobustLoss(v.substr(0, colon), &a.robust); !st) Usage(flag + ": " + st.message());
+      if (colon != std::string::npos) a.robust_scale = Number(flag, v.substr(colon + 1));
     } else if (flag == "--single-stage") {
       a.single_stage = true;
     } else if (flag == "--drop" || flag == "--hold") {
@@ -206,6 +217,8 @@ int main(int argc, char** argv) {
     fit_options.num_threads = args.threads;
     if (args.sigma_rounds >= 0) fit_options.marker_sigma_rounds = args.sigma_rounds;
     if (args.single_stage) fit_options.staged = false;
+    fit_options.robust_loss = args.robust;
+    fit_options.robust_scale = args.robust_scale;
     fit_options.fixed_parameters = args.hold;
     solver::FitResult fit;
     if (Status s = solver::FitModel(session.nominal, trials, fit_options, &fit); !s) {
