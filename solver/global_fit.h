@@ -94,7 +94,11 @@ struct FitOptions {
   // 2-16 % (seeds 1-4) but leave the worst joint where it was; on real recordings, whose models
   // misfit some markers by 10-30 mm, every round is a new solve (single-stage fits, before the
   // schedule: gait2354 202 -> 318 iterations; welk007's scaling 78 iterations, converged -> 178,
-  // not converged within its 100 a round). In the schedule, the rounds run in its final stage.
+  // not converged within its 100 a round). In the schedule, the rounds run in its final stage,
+  // whose floor is that stage's effective sigma (the median marker's residual RMS per coordinate
+  // times sqrt(tau): 7.5 mm on the simulated subject at 10 mm of skin artefact), above every
+  // marker's residual RMS per coordinate there (at most 1.7 mm): no round runs, and the figures
+  // are those of the fit without (bench/sta_accuracy --sigma-rounds 3, BENCHMARKS.md).
   int marker_sigma_rounds = 0;
   double marker_sigma_tolerance = 0.05;
   // Robust loss (solver/robust_loss.h: why iteratively reweighted least squares, and the
@@ -110,10 +114,14 @@ struct FitOptions {
   // rounds, fewer once no weight moves by more than `robust_tolerance`; each round's solve may
   // take lm.max_iterations. In FitModel's schedule it acts from the markers stage on: before the
   // markers are placed their residuals are the generic model's misplacement, not the data's
-  // errors. Off by default: on clean data it changes nothing but the time (a round to find the
-  // weights); on the simulated skin artefact it leaves the joint centres within 0.x mm
-  // (BENCHMARKS.md). With marker_sigma_rounds as well, each sigma round also refreshes the
-  // weights; a wobbling wand is then weighted down by both.
+  // errors. Cauchy fades a gross error out (weight ~ 1/u^2), Huber only caps its pull (~ 1/u):
+  // with a marker 50 mm off for 300 frames Huber left the knee 1.4 mm off, Cauchy 0.6 mm
+  // (tests/test_sim_fit.cpp). Off by default: every round is a solve (the simulated session at
+  // 10 mm of skin artefact: 20 s -> 61 s with Cauchy, machine loaded), and on that artefact it
+  // helps on average but not everywhere (seeds 1-4, Cauchy: RMS over the 14 joint centres
+  // 6.8/5.7/6.6/7.8 -> 5.5/5.7/5.0/5.9 mm, but seed 2's left knee 9.2 -> 12.2 mm; BENCHMARKS.md).
+  // The sigma rounds (marker_sigma_rounds), if any, run after the robust rounds and keep the
+  // last round's weights.
   RobustLoss robust_loss = RobustLoss::kNone;
   double robust_scale = 3.0;
   int robust_rounds = 5;
