@@ -5,6 +5,7 @@
 #include "model/compare.h"
 #include "model/kinematics.h"
 #include "sim/simulate.h"
+#include "solver/fit_report_json.h"
 #include "solver/global_fit.h"
 
 using namespace mocap;
@@ -215,6 +216,11 @@ TEST(SimFit, RobustLossKeepsAMislabelledMarkerFromDraggingItsSegment) {
     if (m.name != "RKNE") EXPECT_LT(m.downweighted, 0.1 * m.samples) << m.name;
   }
   EXPECT_NE(r.BriefReport().find("cauchy loss"), std::string::npos);
+  const nlohmann::json j = solver::FitReportJson(r, trials, {});
+  EXPECT_EQ(j["robust_loss"]["loss"], "cauchy");
+  EXPECT_EQ(j["robust_loss"]["downweighted_samples"], r.robust_downweighted);
+  EXPECT_GE(j["robust_loss"]["per_marker"]["RKNE"]["downweighted"].get<int>(), 270);
+  EXPECT_EQ(solver::FitReportJson(plain.report, trials, {})["robust_loss"], nlohmann::json({{"loss", "none"}}));
   EXPECT_EQ(plain.report.robust_loss, solver::RobustLoss::kNone);
   EXPECT_TRUE(plain.report.robust_markers.empty());
 }
