@@ -8,13 +8,21 @@
 //     fit reports as determined only (the wrist axes behind one hand marker are not).
 //
 //   sta_accuracy [--sta 0,5,10,20] [--seed N] [--noise-mm S] [--threads T] [--joints]
-//                [--sigma-rounds N] [--truth-start]
+//                [--sigma-rounds N] [--truth-start] [--single-stage] [--diagnose JOINT]
+//                [--robust huber|cauchy[:SCALE]] [--drop M1,M2] [--hold P1,P2]
 //
 // Prints BENCHMARKS.md's accuracy table (markdown); --joints adds every joint's lab RMS and every
 // marker's residual RMS and fitted sigma. --sigma-rounds sets FitOptions::marker_sigma_rounds
 // (default: FitOptions' own; 0 is the fit with one sigma for all markers). --truth-start starts
 // the fit from the true poses instead of IK: the same result means the errors are those of the
-// least-squares minimum, not of a solve that stopped short.
+// least-squares minimum, not of a solve that stopped short. --single-stage turns FitModel's
+// schedule off (FitOptions::staged). --diagnose JOINT splits that joint's lab error d(t) (fitted
+// centre minus true centre) into its mean and the rest, each expressed in the true parent and
+// child segment frames and along the joint's true axes: a constant offset is a geometry that
+// trades against the markers; a time-varying one is artefact leaking into the poses. --robust sets
+// FitOptions::robust_loss (and robust_scale); --drop leaves markers out of the trials; --hold
+// holds parameters at the model's (FitOptions::fixed_parameters): experiments on what the
+// artefact does, not fits a lab would run.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -39,12 +47,19 @@ struct Args {
   bool joints = false;
   int sigma_rounds = -1;  // < 0: FitOptions' default
   bool truth_start = false;
+  bool single_stage = false;
+  solver::RobustLoss robust = solver::RobustLoss::kNone;
+  double robust_scale = solver::FitOptions().robust_scale;
+  std::string diagnose;  // joint name, or empty
+  std::vector<std::string> drop;  // markers left out of the trials
+  std::vector<std::string> hold;  // parameters held (FitOptions::fixed_parameters)
 };
 
 [[noreturn]] void Usage(const std::string& why) {
   std::fprintf(stderr,
                "sta_accuracy: %s\nusage: sta_accuracy [--sta 0,5,10,20] [--seed N] [--noise-mm S] "
-               "[--threads T] [--joints] [--sigma-rounds N] [--truth-start]\n",
+               "[--threads T] [--joints] [--sigma-rounds N] [--truth-start] "
+               "[--single-stage] [--diagnose JOINT] [--robust huber|cauchy[:SCALE]] [--drop M,..] [--hold P,..]\n",
                why.c_str());
   std::exit(2);
 }
@@ -78,6 +93,18 @@ Args ParseArgs(int argc, char** argv) {
       a.sigma_rounds = static_cast<int>(Number(flag, value()));
     } else if (flag == "--truth-start") {
       a.truth_start = true;
+    } else if (flag == "--robust") {
+      const std::string v = value();
+      const size_t colon = v.find(':');
+      if (Status st = solver::ParseRobustLoss(v.substr(0, colon), &a.robust); !st) Usage(flag + ": " + st.message());
+      if (colon != std::string::npos) a.robust_scale = Number(flag, v.substr(colon + 1));
+    } else if (flag == "--single-stage") {
+      a.single_stage = true;
+    } else if (flag == "--drop" || flag == "--hold") {
+      std::stringstream list(value());
+      for (std::string item; std::getline(list, item, ',');) (flag == "--drop" ? a.drop : a.hold).push_back(item);
+    } else if (flag == "--diagnose") {
+      a.diagnose = value();
     } else if (flag == "--joints") {
       a.joints = true;
     } else {
@@ -92,6 +119,64 @@ bool AxisDetermined(const solver::FitReport& r, const std::string& joint, size_t
   for (const std::string& u : r.undetermined)
     if (u.rfind(base, 0) == 0) return false;
   return true;
+}
+
+// --diagnose: joint j's lab error d(t) = fitted centre - true centre over every frame, as its
+// mean and the RMS of d - mean, in the true parent's frame, the true child's frame and along the
+// joint's true axes (in the lab at each frame).
+std::string DiagnoseJoint(const sim::SimulatedSession& session, const Model& fitted,
+                          const std::vector<Eigen::MatrixXd>& coordinates, int j) {
+  const Model& truth = session.truth;
+  const Joint& joint = truth.joints()[j];
+  const Geometry gt(truth), gf(fitted);
+  ModelData dt(truth), df(fitted);
+  const size_t na = joint.elements.size();
+  std::vector<Eigen::Vector3d> parent, child;
+  std::vector<Eigen::VectorXd> along;
+  for (size_t t = 0; t < session.trials.size() && t < coordinates.size(); ++t)
+    for (int f = 0; f < session.trials[t].markers.num_frames(); ++f) {
+      ForwardKinematics(truth, gt, sim::TrueCoordinates(truth, session.trials[t].coordinates, f), &dt);
+      ForwardKinematics(fitted, gf, coordinates[t].row(f).transpose(), &df);
+      const Eigen::Vector3d d = 1000.0 * (JointCentre(fitted, df, j) - JointCentre(truth, dt, j));
+      parent.push_back(dt.segment_rotation[joint.parent].transpose() * d);
+      child.push_back(dt.segment_rotation[joint.child].transpose() * d);
+      Eigen::VectorXd a(na);
+      for (size_t e = 0; e < na; ++e) a[e] = d.dot((dt.element_rotation[j][e] * gt.axis[j][e]).normalized());
+      along.push_back(a);
+    }
+  auto split = [](const auto& v, auto* mean, double* rest) {
+    *mean = v[0] * 0.0;
+    for (const auto& x : v) *mean += x;
+    *mean /= static_cast<double>(v.size());
+    double sq = 0;
+    for (const auto& x : v) sq += (x - *mean).squaredNorm();
+    *rest = std::sqrt(sq / static_cast<double>(v.size()));
+  };
+  Eigen::Vector3d mp, mc;
+  Eigen::VectorXd ma;
+  double rp = 0, rc = 0, ra = 0;
+  split(parent, &mp, &rp);
+  split(child, &mc, &rc);
+  split(along, &ma, &ra);
+  char buf[512];
+  std::snprintf(buf, sizeof(buf),
+                "%s: lab error mean in %s frame (%.1f, %.1f, %.1f) |%.1f| mm, varying RMS %.1f mm; "
+                "in %s frame (%.1f, %.1f, %.1f) |%.1f| mm, varying RMS %.1f mm; along the axes:",
+                joint.name.c_str(), truth.segments()[joint.parent].name.c_str(), mp.x(), mp.y(), mp.z(),
+                mp.norm(), rp, truth.segments()[joint.child].name.c_str(), mc.x(), mc.y(), mc.z(),
+                mc.norm(), rc);
+  std::string out = buf;
+  for (size_t e = 0; e < na; ++e) {
+    double sq = 0;
+    for (const auto& a : along) sq += (a[e] - ma[e]) * (a[e] - ma[e]);
+    std::snprintf(buf, sizeof(buf), " %s mean %.1f varying %.1f mm;",
+                  joint.elements[e].coordinate >= 0
+                      ? truth.coordinates()[joint.elements[e].coordinate].name.c_str()
+                      : "fixed",
+                  ma[e], std::sqrt(sq / static_cast<double>(along.size())));
+    out += buf;
+  }
+  return out;
 }
 
 }  // namespace
@@ -115,6 +200,12 @@ int main(int argc, char** argv) {
     std::vector<solver::FitTrial> trials;
     for (const sim::SimulatedTrial& t : session.trials) {
       solver::FitTrial ft{t.markers, {}};
+      for (const std::string& name : args.drop) {
+        auto& names = ft.markers.marker_names;
+        const auto it = std::find(names.begin(), names.end(), name);
+        if (it == names.end()) continue;
+        ft.markers.positions.middleCols(3 * (it - names.begin()), 3).setConstant(std::nan(""));
+      }
       if (args.truth_start) {
         ft.initial_coordinates.resize(t.markers.num_frames(), session.nominal.num_coordinates());
         for (int f = 0; f < t.markers.num_frames(); ++f)
@@ -125,6 +216,10 @@ int main(int argc, char** argv) {
     solver::FitOptions fit_options;
     fit_options.num_threads = args.threads;
     if (args.sigma_rounds >= 0) fit_options.marker_sigma_rounds = args.sigma_rounds;
+    if (args.single_stage) fit_options.staged = false;
+    fit_options.robust_loss = args.robust;
+    fit_options.robust_scale = args.robust_scale;
+    fit_options.fixed_parameters = args.hold;
     solver::FitResult fit;
     if (Status s = solver::FitModel(session.nominal, trials, fit_options, &fit); !s) {
       std::fprintf(stderr, "sta_accuracy: --sta %g: %s\n", sta, s.message().c_str());
@@ -154,6 +249,19 @@ int main(int argc, char** argv) {
                 centre_joint.c_str(), axis, axis_joint.c_str(), length, length_segment.c_str(),
                 fit.report.marker_rms_mm, fit.report.wall_seconds);
     std::fflush(stdout);
+    if (!args.diagnose.empty()) {
+      const int j = session.truth.FindJoint(args.diagnose);
+      if (j <= 0) {
+        std::fprintf(stderr, "sta_accuracy: --diagnose: no non-root joint '%s'\n", args.diagnose.c_str());
+        return 2;
+      }
+      std::string stds = "; fitted centre std (mm):";
+      for (const solver::ParameterEstimate& e : fit.report.parameters)
+        if (e.name.rfind(args.diagnose + ".centre.", 0) == 0)
+          stds += " " + e.name.substr(e.name.size() - 1) + " " + std::to_string(1000.0 * e.std);
+      details.push_back("--sta-mm " + std::to_string(sta) + ", " +
+                        DiagnoseJoint(session, fit.model, fit.coordinates, j) + stds);
+    }
     if (args.joints) {
       std::string line = "--sta-mm " + std::to_string(sta) + ", lab RMS (mm):";
       char one[64];

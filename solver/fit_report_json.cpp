@@ -81,6 +81,20 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["marker_sigma_rounds"] = r.marker_sigma_rounds;
   j["marker_sigma_mm"] = nlohmann::json::object();
   for (const auto& [name, v] : r.marker_sigma_mm) j["marker_sigma_mm"][name] = v;
+  // FitOptions::robust_loss: which loss, and how many samples of which markers it down-weighted.
+  nlohmann::json robust = {{"loss", ToString(r.robust_loss)}};
+  if (r.robust_loss != RobustLoss::kNone) {
+    robust["scale_sigmas"] = r.robust_scale;
+    robust["sigma_mm"] = r.robust_sigma_mm;
+    robust["rounds"] = r.robust_rounds;
+    robust["downweighted_samples"] = r.robust_downweighted;
+    robust["per_marker"] = nlohmann::json::object();
+    for (const FitReport::RobustMarker& m : r.robust_markers)
+      robust["per_marker"][m.name] = {{"samples", m.samples},
+                                      {"downweighted", m.downweighted},
+                                      {"mean_weight", m.mean_weight}};
+  }
+  j["robust_loss"] = std::move(robust);
   j["wall_seconds"] = r.wall_seconds;
   j["ik_seconds"] = r.ik_seconds;
   j["solve_seconds"] = r.solve_seconds;

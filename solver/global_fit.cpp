@@ -169,6 +169,10 @@ bool FitOptions::IsValid(std::string* error) const {
   if (rescue_rounds < 0) return fail("rescue_rounds must be >= 0");
   if (marker_sigma_rounds < 0) return fail("marker_sigma_rounds must be >= 0");
   if (!(marker_sigma_tolerance > 0)) return fail("marker_sigma_tolerance must be > 0");
+  if (!(robust_scale > 0) || !std::isfinite(robust_scale))
+    return fail("robust_scale must be a finite number > 0 (got " + std::to_string(robust_scale) + ")");
+  if (robust_rounds < 0) return fail("robust_rounds must be >= 0");
+  if (!(robust_tolerance > 0)) return fail("robust_tolerance must be > 0");
   if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
   if (staged_iterations < 1) return fail("staged_iterations must be >= 1");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
@@ -205,6 +209,41 @@ Status FitOptions::SetGroups(const std::string& list) {
   return Status::Ok();
 }
 
+namespace {
+// FitOptions::robust_loss: each sample's weight rho'(s) at x (frames x markers, 1 where missing),
+// the unit being the median marker's residual RMS per coordinate at x (*sigma_m, never below a
+// micrometre: noise-free data would make it zero). *largest_change against the problem's current
+// weights. False when x is no body.
+bool RobustSampleWeights(MarkerFitProblem* problem, const Eigen::VectorXd& x, const FitOptions& options,
+                         int threads, Eigen::MatrixXd* weights, double* sigma_m, double* largest_change) {
+  Eigen::MatrixXd squared;
+  if (!problem->SampleErrors(x, threads, &squared)) return false;
+  const int nf = static_cast<int>(squared.rows()), nm = static_cast<int>(squared.cols());
+  std::vector<double> rms;
+  for (int m = 0; m < nm; ++m) {
+    double sum = 0;
+    int n = 0;
+    for (int f = 0; f < nf; ++f)
+      if (std::isfinite(squared(f, m))) sum += squared(f, m), ++n;
+    if (n > 0) rms.push_back(std::sqrt(sum / (3.0 * n)));
+  }
+  if (rms.empty()) return false;
+  std::nth_element(rms.begin(), rms.begin() + rms.size() / 2, rms.end());
+  *sigma_m = std::max(1e-6, rms[rms.size() / 2]);
+  const double inv_var = 1.0 / (*sigma_m * *sigma_m);
+  weights->setOnes(nf, nm);
+  *largest_change = 0;
+  for (int f = 0; f < nf; ++f)
+    for (int m = 0; m < nm; ++m) {
+      if (!std::isfinite(squared(f, m))) continue;
+      const double w = RobustWeight(options.robust_loss, squared(f, m) * inv_var, options.robust_scale);
+      (*weights)(f, m) = w;
+      *largest_change = std::max(*largest_change, std::abs(w - problem->sample_weight(f, m)));
+    }
+  return true;
+}
+}  // namespace
+
 std::string FitReport::BriefReport() const {
   const std::string coarse_note =
       coarse.used       ? " (after " + std::to_string(coarse.coarse.num_iterations()) + " on " +
@@ -220,6 +259,17 @@ std::string FitReport::BriefReport() const {
     outliers += one;
   }
   if (outlier_markers.size() > 5) outliers += ", ...";
+  std::string robust;
+  if (robust_loss != RobustLoss::kNone) {
+    const RobustMarker* most = nullptr;
+    for (const RobustMarker& m : robust_markers)
+      if (m.downweighted > 0 && (!most || m.downweighted > most->downweighted)) most = &m;
+    char one[160];
+    std::snprintf(one, sizeof(one), "; %s loss: %d samples down-weighted in %d rounds%s%s%s", ToString(robust_loss),
+                  robust_downweighted, robust_rounds, most ? " (most: " : "", most ? most->name.c_str() : "",
+                  most ? (" " + std::to_string(most->downweighted) + ")").c_str() : "");
+    robust = one;
+  }
   std::string staging;
   if (stages.size() > 1) {
     staging = " (";
@@ -230,13 +280,13 @@ std::string FitReport::BriefReport() const {
   char buf[1024];
   std::snprintf(buf, sizeof(buf),
                 "fit: %d trials, %d frames, %d markers, %d unknowns; marker RMS %.3f -> %.3f mm; "
-                "%d iterations%s%s, %s%s; %zu undetermined%s; %.2f s (IK %.2f s, solve %.2f s)",
+                "%d iterations%s%s, %s%s; %zu undetermined%s%s; %.2f s (IK %.2f s, solve %.2f s)",
                 trials, frames, markers, unknowns, initial_marker_rms_mm, marker_rms_mm,
                 solver.num_iterations(), staging.c_str(), coarse_note.c_str(), ToString(solver.termination),
                 rescued_frames > 0 ? (", " + std::to_string(rescued_frames) +
                                       " frame poses rescued").c_str()
                                    : "",
-                undetermined.size(), outliers.c_str(), wall_seconds, ik_seconds, solve_seconds);
+                undetermined.size(), outliers.c_str(), robust.c_str(), wall_seconds, ik_seconds, solve_seconds);
   return buf;
 }
 
@@ -439,6 +489,19 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
     MOCAP_RETURN_IF_ERROR(rescue(&replaced));
     if (replaced > 0) continue_solve(options.rescue_iterations);
   }
+  // FitOptions::robust_loss: iteratively reweighted least squares (solver/robust_loss.h), from
+  // the least-squares solution reached so far.
+  double robust_sigma_m = 0;
+  while (options.robust_loss != RobustLoss::kNone && report.robust_rounds < options.robust_rounds &&
+         report.solver.IsSolutionUsable()) {
+    Eigen::MatrixXd weights;
+    double change = 0;
+    if (!RobustSampleWeights(&problem, x, options, threads, &weights, &robust_sigma_m, &change)) break;
+    problem.SetSampleWeights(std::move(weights));
+    if (change <= options.robust_tolerance) break;
+    ++report.robust_rounds;
+    continue_solve(options.lm.max_iterations);
+  }
   // FitOptions::marker_sigma_rounds: each marker weighted by its own residual spread, measured
   // at a converged solve only (the residuals of a solve that stopped short are not the markers').
   while (report.marker_sigma_rounds < options.marker_sigma_rounds && report.converged() &&
@@ -459,6 +522,30 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
   for (int m = 0; m < nm; ++m)
     if (problem.observed(m))
       report.marker_sigma_mm.emplace_back(initial.markers()[m].name, 1000.0 * problem.marker_sigma(m));
+  if (options.robust_loss != RobustLoss::kNone) {
+    report.robust_loss = options.robust_loss;
+    report.robust_scale = options.robust_scale;
+    report.robust_sigma_mm = 1000.0 * robust_sigma_m;
+    // Down-weighted: a weight below the loss's own at the scale (Huber 1, Cauchy 1/2).
+    const double at_scale = RobustWeight(options.robust_loss, options.robust_scale * options.robust_scale,
+                                         options.robust_scale);
+    for (int m = 0; m < nm; ++m) {
+      if (!problem.observed(m)) continue;
+      FitReport::RobustMarker rm;
+      rm.name = initial.markers()[m].name;
+      double sum = 0;
+      for (int f = 0; f < total_frames; ++f) {
+        if (!std::isfinite(problem.measurements()(f, 3 * m))) continue;
+        const double w = problem.sample_weight(f, m);
+        ++rm.samples;
+        sum += w;
+        rm.downweighted += w < at_scale * (1.0 - 1e-9) ? 1 : 0;
+      }
+      rm.mean_weight = rm.samples > 0 ? sum / rm.samples : 1.0;
+      report.robust_downweighted += rm.downweighted;
+      report.robust_markers.push_back(rm);
+    }
+  }
   report.solve_seconds = Since(solve_start);
   if (!report.solver.IsSolutionUsable())
     return Status::Error("fit: the solver failed: " + report.solver.message);
@@ -719,6 +806,9 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     o.fit_markers = stage.markers;
     o.fit_centres = o.fit_axes = false;
     o.marker_sigma_rounds = 0;  // the markers' spread is the final stage's, not a start's
+    // The robust loss judges the data's errors: with the model's markers, the residuals are
+    // their misplacement.
+    if (!stage.markers) o.robust_loss = RobustLoss::kNone;
     // The final stage keeps at least one of the caller's iterations; a stage left none is skipped.
     o.lm.max_iterations = std::min(options.staged_iterations, iterations_left - 1);
     if (o.lm.max_iterations < 1) break;

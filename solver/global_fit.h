@@ -27,6 +27,7 @@
 #include "solver/coarse_to_fine.h"
 #include "solver/inverse_kinematics.h"
 #include "solver/levenberg_marquardt.h"
+#include "solver/robust_loss.h"
 
 namespace mocap::solver {
 
@@ -97,9 +98,38 @@ struct FitOptions {
   // 2-16 % (seeds 1-4) but leave the worst joint where it was; on real recordings, whose models
   // misfit some markers by 10-30 mm, every round is a new solve (single-stage fits, before the
   // schedule: gait2354 202 -> 318 iterations; welk007's scaling 78 iterations, converged -> 178,
-  // not converged within its 100 a round). In the schedule, the rounds run in its final stage.
+  // not converged within its 100 a round). In the schedule, the rounds run in its final stage,
+  // whose floor is that stage's effective sigma (the median marker's residual RMS per coordinate
+  // times sqrt(tau): 7.5 mm on the simulated subject at 10 mm of skin artefact), above every
+  // marker's residual RMS per coordinate there (at most 1.7 mm): no round runs, and the figures
+  // are those of the fit without (bench/sta_accuracy --sigma-rounds 3, BENCHMARKS.md).
   int marker_sigma_rounds = 0;
   double marker_sigma_tolerance = 0.05;
+  // Robust loss (solver/robust_loss.h: why iteratively reweighted least squares, and the
+  // sources): a marker sample whose residual is more than `robust_scale` marker sigmas is
+  // down-weighted (Huber: its pull capped; Cauchy: faded out), so that a marker mislabelled or
+  // slipping for a few hundred frames cannot drag its segment. The unit, the marker sigma, is one
+  // sample's error per coordinate as the residuals show it: the median marker's residual RMS per
+  // coordinate at the current solve (the one FitReport::residual_sigma_mm reports; robust to a
+  // few bad markers, and without the effective sigma's sqrt(tau), which is about how much
+  // correlated samples tell, not how large one is), re-estimated each round. The 3-D residual of
+  // Gaussian noise of that sigma exceeds 3 sigmas in 2.9 % of samples (chi with 3 degrees of
+  // freedom), hence the default scale. After the least-squares solve, at most `robust_rounds`
+  // rounds, fewer once no weight moves by more than `robust_tolerance`; each round's solve may
+  // take lm.max_iterations. In FitModel's schedule it acts from the markers stage on: before the
+  // markers are placed their residuals are the generic model's misplacement, not the data's
+  // errors. Cauchy fades a gross error out (weight ~ 1/u^2), Huber only caps its pull (~ 1/u):
+  // with a marker 50 mm off for 300 frames Huber left the knee 1.4 mm off, Cauchy 0.6 mm
+  // (tests/test_sim_fit.cpp). Off by default: every round is a solve (the simulated session at
+  // 10 mm of skin artefact: 20 s -> 61 s with Cauchy, machine loaded), and on that artefact it
+  // helps on average but not everywhere (seeds 1-4, Cauchy: RMS over the 14 joint centres
+  // 6.8/5.7/6.6/7.8 -> 5.5/5.7/5.0/5.9 mm, but seed 2's left knee 9.2 -> 12.2 mm; BENCHMARKS.md).
+  // The sigma rounds (marker_sigma_rounds), if any, run after the robust rounds and keep the
+  // last round's weights.
+  RobustLoss robust_loss = RobustLoss::kNone;
+  double robust_scale = 3.0;
+  int robust_rounds = 5;
+  double robust_tolerance = 0.1;
   // The automatic schedule (FitModel): from a generic model, joint centres and axes are freed
   // only once scales and marker positions fit the subject. On for every fit that frees centres
   // or axes together with scales or markers; `staged_iterations` caps the first stage (it is a
@@ -233,6 +263,22 @@ struct FitReport {
   // final solve (mm; marker_sigma_m for a marker within the floor), model order.
   int marker_sigma_rounds = 0;
   std::vector<std::pair<std::string, double>> marker_sigma_mm;
+  // FitOptions::robust_loss of the final solve: the loss, its scale (marker sigmas) and unit (mm),
+  // the reweighting rounds run, and the marker samples beyond the scale at the end (down-weighted:
+  // Huber weight < 1, Cauchy < 1/2), in all and per marker with its mean weight, model order
+  // (markers with none beyond the scale included, so a lab sees every marker's share).
+  struct RobustMarker {
+    std::string name;
+    int samples = 0;
+    int downweighted = 0;
+    double mean_weight = 1;
+  };
+  RobustLoss robust_loss = RobustLoss::kNone;
+  double robust_scale = 0;
+  double robust_sigma_mm = 0;
+  int robust_rounds = 0;
+  int robust_downweighted = 0;
+  std::vector<RobustMarker> robust_markers;
   CoarseToFineSummary coarse;  // the coarse-to-fine start of the (first) solve
   bool converged() const { return solver.termination == TerminationType::kConvergence; }
   std::string BriefReport() const;

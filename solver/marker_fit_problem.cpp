@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "solver/global_fit.h"
 #include "solver/parallel.h"
@@ -54,7 +55,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     num_blocks_ = 0;
     for (int m = 0; m < model.num_markers(); ++m) {
       if (!std::isfinite(meas[3 * m])) continue;
-      const double scale = problem_.residual_scale(m);
+      const double scale = problem_.residual_scale(m) * std::sqrt(problem_.sample_weight(frame, m));
       const Eigen::Vector3d x = MarkerPosition(model, g, data_, m);
       double* r = residual_.data() + 3 * num_blocks_;
       for (int k = 0; k < 3; ++k) r[k] = scale * (x[k] - meas[3 * m + k]);
@@ -428,12 +429,25 @@ void MarkerFitProblem::BlockStructure(std::vector<std::vector<int>>* y_columns,
 
 bool MarkerFitProblem::MarkerErrors(const Eigen::VectorXd& x, int num_threads,
                                     Eigen::VectorXd* sum_squared, Eigen::VectorXi* count) {
+  Eigen::MatrixXd squared;
+  if (!SampleErrors(x, num_threads, &squared)) return false;
+  const int nm = model_.num_markers();
+  sum_squared->setZero(nm);
+  count->setZero(nm);
+  for (int m = 0; m < nm; ++m)
+    for (int f = 0; f < num_frames(); ++f)
+      if (std::isfinite(squared(f, m))) {
+        (*sum_squared)[m] += squared(f, m);
+        (*count)[m] += 1;
+      }
+  return true;
+}
+
+bool MarkerFitProblem::SampleErrors(const Eigen::VectorXd& x, int num_threads, Eigen::MatrixXd* squared) {
   const int nm = model_.num_markers(), nz = model_.num_coordinates(), nf = num_frames();
   if (!SetShared(x.tail(shared_dim()))) return false;
-  num_threads = ResolveThreads(num_threads);
-  std::vector<Eigen::VectorXd> sums(num_threads, Eigen::VectorXd::Zero(nm));
-  std::vector<Eigen::VectorXi> counts(num_threads, Eigen::VectorXi::Zero(nm));
-  ParallelChunks(nf, num_threads, [&](int t, int b, int e) {
+  squared->setConstant(nf, nm, std::numeric_limits<double>::quiet_NaN());
+  ParallelChunks(nf, ResolveThreads(num_threads), [&](int, int b, int e) {
     ModelData data(model_);
     Eigen::VectorXd z(nz);
     for (int f = b; f < e; ++f) {
@@ -442,18 +456,11 @@ bool MarkerFitProblem::MarkerErrors(const Eigen::VectorXd& x, int num_threads,
       for (int m = 0; m < nm; ++m) {
         const double* meas = measurements_.row(f).data() + 3 * m;
         if (!std::isfinite(meas[0])) continue;
-        sums[t][m] += (MarkerPosition(model_, geometry_, data, m) -
-                       Eigen::Map<const Eigen::Vector3d>(meas)).squaredNorm();
-        counts[t][m] += 1;
+        (*squared)(f, m) = (MarkerPosition(model_, geometry_, data, m) -
+                            Eigen::Map<const Eigen::Vector3d>(meas)).squaredNorm();
       }
     }
   });
-  sum_squared->setZero(nm);
-  count->setZero(nm);
-  for (int t = 0; t < num_threads; ++t) {
-    *sum_squared += sums[t];
-    *count += counts[t];
-  }
   return true;
 }
 

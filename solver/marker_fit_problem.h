@@ -70,6 +70,13 @@ class MarkerFitProblem : public ArrowProblem {
   // (FitOptions::marker_sigma_rounds re-estimates it; the constructor sets marker_sigma_m).
   void SetMarkerSigma(int m, double sigma_m);
   double marker_sigma(int m) const { return marker_sigma_[m]; }
+  // Per-sample weights (FitOptions::robust_loss, solver/robust_loss.h): frames x markers, each in
+  // (0, 1], multiplying sample (f, m)'s squared residual; its residual block and Jacobians are
+  // scaled by the square root. Empty (the constructor's): every weight 1.
+  void SetSampleWeights(Eigen::MatrixXd weights) { sample_weight_ = std::move(weights); }
+  double sample_weight(int frame, int m) const {
+    return sample_weight_.size() == 0 ? 1.0 : sample_weight_(frame, m);
+  }
   bool observed(int m) const { return observed_[m]; }
   // Index of marker m's residual block in BlockStructure (-1 if never observed).
   int block_kind(int m) const { return block_kind_[m]; }
@@ -82,6 +89,9 @@ class MarkerFitProblem : public ArrowProblem {
   // False (and nothing written) when the shared parameters are no body (SetShared refuses them).
   bool MarkerErrors(const Eigen::VectorXd& x, int num_threads, Eigen::VectorXd* sum_squared,
                     Eigen::VectorXi* count);
+  // Each sample's squared marker distance (m^2) at x, frames x markers, NaN where missing.
+  // False (and nothing written) like MarkerErrors.
+  bool SampleErrors(const Eigen::VectorXd& x, int num_threads, Eigen::MatrixXd* squared);
 
  private:
   friend class MarkerFrameEvaluator;
@@ -92,6 +102,7 @@ class MarkerFitProblem : public ArrowProblem {
   std::vector<int> free_parameters_, free_index_;
   std::vector<std::vector<int>> marker_free_columns_;
   std::vector<double> residual_scale_, marker_sigma_;
+  Eigen::MatrixXd sample_weight_;
   std::vector<char> observed_;
   std::vector<int> block_kind_;
   Eigen::VectorXd prior_weight_, prior_target_;

@@ -363,3 +363,112 @@ TEST(GlobalFit, EvaluatorJacobiansAreMarkerJacobians) {
   }
   EXPECT_GT(compared, 10 * 30);
 }
+
+// solver/robust_loss.h: the IRLS weight of each loss is rho'(s), the derivative of its cost
+// (central differences, both sides of the scale), within (0, 1], 1 within the scale for Huber;
+// and the costs are Ceres's forms (rho(s) = s near 0, Huber's continuous at c^2).
+TEST(RobustLoss, WeightIsTheCostsDerivative) {
+  for (solver::RobustLoss loss : {solver::RobustLoss::kNone, solver::RobustLoss::kHuber, solver::RobustLoss::kCauchy}) {
+    for (double c : {1.0, 3.0}) {
+      for (double s : {0.01, 0.5, 4.0, 8.9, 9.1, 25.0, 400.0}) {
+        const double h = 1e-6 * std::max(1.0, s);
+        const double fd = (solver::RobustCost(loss, s + h, c) - solver::RobustCost(loss, s - h, c)) / (2 * h);
+        const double w = solver::RobustWeight(loss, s, c);
+        EXPECT_NEAR(w, fd, 1e-7) << solver::ToString(loss) << " c " << c << " s " << s;
+        EXPECT_GT(w, 0.0);
+        EXPECT_LE(w, 1.0);
+      }
+      EXPECT_NEAR(solver::RobustCost(loss, 1e-8, c), 1e-8, 1e-15) << solver::ToString(loss);
+    }
+  }
+  EXPECT_DOUBLE_EQ(solver::RobustWeight(solver::RobustLoss::kHuber, 8.99, 3.0), 1.0);
+  EXPECT_NEAR(solver::RobustCost(solver::RobustLoss::kHuber, 9.0 + 1e-12, 3.0), 9.0, 1e-9);
+  EXPECT_NEAR(solver::RobustWeight(solver::RobustLoss::kCauchy, 9.0, 3.0), 0.5, 1e-15);
+  solver::RobustLoss parsed = solver::RobustLoss::kNone;
+  EXPECT_TRUE(solver::ParseRobustLoss("cauchy", &parsed).ok());
+  EXPECT_EQ(parsed, solver::RobustLoss::kCauchy);
+  const Status bad = solver::ParseRobustLoss("tukey", &parsed);
+  EXPECT_FALSE(bad.ok());
+  EXPECT_NE(bad.message().find("'tukey'"), std::string::npos) << bad.message();
+  solver::FitOptions options;
+  options.robust_scale = 0;
+  std::string why;
+  EXPECT_FALSE(options.IsValid(&why));
+  EXPECT_NE(why.find("robust_scale"), std::string::npos) << why;
+}
+
+// With per-sample weights (the robust loss's IRLS weights), each residual block is sqrt(w) times
+// the unweighted one and its Jacobians are those of the weighted residual: checked against
+// central differences of the evaluator's own residuals in the pose and in the shared parameters.
+TEST(GlobalFit, SampleWeightsScaleResidualsAndJacobians) {
+  std::mt19937_64 rng(7);
+  const Model nominal = NominalWithoutOptional();
+  const formats::MarkerTrial trial = testutil::SimulateRandomMotion(nominal, 3, 0.0005, rng);
+  solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
+  const Model& model = problem.model();
+  const int nz = model.num_coordinates(), nm = model.num_markers();
+  ASSERT_TRUE(problem.SetShared(problem.InitialShared()));
+  std::normal_distribution<double> angle(0.0, 0.3);
+  std::vector<Eigen::VectorXd> poses(problem.num_frames());
+  for (Eigen::VectorXd& z : poses) {
+    z.resize(nz);
+    for (int c = 0; c < nz; ++c) z[c] = model.coordinates()[c].default_value + angle(rng);
+  }
+  auto residuals = [&](int f, const Eigen::VectorXd& z) {
+    auto ev = problem.NewEvaluator();
+    EXPECT_TRUE(ev->Evaluate(f, z.data(), false));
+    Eigen::VectorXd r(3 * ev->num_blocks());
+    for (int b = 0; b < ev->num_blocks(); ++b)
+      for (int k = 0; k < 3; ++k) r[3 * b + k] = ev->block(b).residual[k];
+    return r;
+  };
+  std::vector<Eigen::VectorXd> unweighted;
+  for (int f = 0; f < problem.num_frames(); ++f) unweighted.push_back(residuals(f, poses[f]));
+  std::uniform_real_distribution<double> weight(0.05, 1.0);
+  Eigen::MatrixXd w(problem.num_frames(), nm);
+  for (int f = 0; f < w.rows(); ++f)
+    for (int m = 0; m < nm; ++m) w(f, m) = weight(rng);
+  problem.SetSampleWeights(w);
+  const Eigen::VectorXd p0 = problem.InitialShared();
+  const double h = 1e-6;
+  int checked = 0;
+  for (int f = 0; f < problem.num_frames(); ++f) {
+    auto ev = problem.NewEvaluator();
+    ASSERT_TRUE(ev->Evaluate(f, poses[f].data(), true));
+    int b = 0;
+    for (int m = 0; m < nm; ++m) {
+      if (!std::isfinite(problem.measurements()(f, 3 * m))) continue;
+      const solver::ResidualBlock& blk = ev->block(b);
+      for (int k = 0; k < 3; ++k)
+        EXPECT_NEAR(blk.residual[k], std::sqrt(w(f, m)) * unweighted[f][3 * b + k], 1e-9) << m;
+      for (int c = 0; c < blk.num_y; ++c) {
+        Eigen::VectorXd zp = poses[f], zm = poses[f];
+        zp[blk.y_index[c]] += h;
+        zm[blk.y_index[c]] -= h;
+        const Eigen::VectorXd fd = (residuals(f, zp) - residuals(f, zm)) / (2 * h);
+        for (int k = 0; k < 3; ++k)
+          EXPECT_NEAR(blk.jy[c * solver::kMaxBlockRows + k], fd[3 * b + k], 1e-4 * (1 + std::abs(fd[3 * b + k])))
+              << "marker " << m << " coordinate " << blk.y_index[c];
+      }
+      for (int c = 0; c < blk.num_p; ++c) {
+        if (blk.p_index[c] < 0) continue;
+        Eigen::VectorXd pp = p0, pm = p0;
+        pp[blk.p_index[c]] += h;
+        pm[blk.p_index[c]] -= h;
+        ASSERT_TRUE(problem.SetShared(pp));
+        const Eigen::VectorXd rp = residuals(f, poses[f]);
+        ASSERT_TRUE(problem.SetShared(pm));
+        const Eigen::VectorXd rm = residuals(f, poses[f]);
+        ASSERT_TRUE(problem.SetShared(p0));
+        for (int k = 0; k < 3; ++k) {
+          const double fd = (rp[3 * b + k] - rm[3 * b + k]) / (2 * h);
+          EXPECT_NEAR(blk.jp[c * solver::kMaxBlockRows + k], fd, 1e-4 * (1 + std::abs(fd)))
+              << "marker " << m << " shared " << blk.p_index[c];
+        }
+        ++checked;
+      }
+      ++b;
+    }
+  }
+  EXPECT_GT(checked, 100);
+}

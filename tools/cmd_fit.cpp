@@ -47,6 +47,8 @@ struct FitArgs {
   std::string functional;  // joints (comma-separated) whose SCoRE centres join the fit as data
   double functional_sigma_mm = 5.0;
   bool single_stage = false;  // no automatic schedule (solver::FitOptions::staged)
+  std::string robust_loss = solver::ToString(solver::FitOptions().robust_loss);
+  double robust_scale = solver::FitOptions().robust_scale;
 };
 
 formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerTrial& trial,
@@ -144,6 +146,11 @@ int RunFit(const FitArgs& args) {
   options.staged = !args.single_stage;
   options.lm.max_iterations = args.max_iterations;
   options.marker_sigma_rounds = args.marker_sigma_rounds;
+  if (Status s = solver::ParseRobustLoss(args.robust_loss, &options.robust_loss); !s) {
+    spdlog::error("--robust-loss: {}", s.message());
+    return 2;
+  }
+  options.robust_scale = args.robust_scale;
   options.coarse.enabled = args.coarse_frames > 0;
   if (args.coarse_frames > 0) {
     options.coarse.coarse_frames = args.coarse_frames;
@@ -295,6 +302,8 @@ int RunFit(const FitArgs& args) {
                     {"max_iterations", args.max_iterations},
                     {"coarse_frames", args.coarse_frames},
                     {"marker_sigma_rounds", args.marker_sigma_rounds},
+                    {"robust_loss", args.robust_loss},
+                    {"robust_scale", args.robust_scale},
                     {"schedule", args.single_stage ? "single stage" : "automatic"},
                     {"threads", args.threads},
                     {"initial poses", args.initial.empty() ? "inverse kinematics" : "given (.mot)"}};
@@ -377,6 +386,16 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
                   "rounds of re-weighting each marker by its own residual spread after a converged "
                   "solve (never above the stage's marker sigma; 0: one sigma for every marker; see README)")
       ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  cmd->add_option("--robust-loss", args->robust_loss,
+                  "none, huber or cauchy: marker samples beyond --robust-scale marker sigmas are "
+                  "down-weighted (iteratively reweighted), so a mislabelled or slipping marker cannot "
+                  "drag its segment; the report counts them per marker (see README)")
+      ->check(CLI::IsMember({"none", "huber", "cauchy"}))
+      ->capture_default_str();
+  cmd->add_option("--robust-scale", args->robust_scale,
+                  "the robust loss's scale, in marker sigmas (the median marker's residual RMS per coordinate)")
+      ->check(CLI::PositiveNumber)
       ->capture_default_str();
   cmd->add_option("--functional", args->functional,
                   "joints (e.g. hip_r,hip_l) whose functional centres (SCoRE, per trial that "
