@@ -27,6 +27,8 @@ inline constexpr double kProbationDistance = 0.01;
 inline constexpr double kTrackStep = 0.025;
 inline constexpr int kMinTrackFrames = 5;
 inline constexpr double kRigidTolerance = 0.01;
+// RigidWithSegment: how far the followed point must have moved for its rigidity to count.
+inline constexpr double kRegistrationTravel = 0.02;
 // How long the record of a point seen beside a marker holds (SeenBeside): about the longest life
 // of a stray reflection.
 inline constexpr double kBesideSeconds = 2.0;

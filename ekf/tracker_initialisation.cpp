@@ -16,6 +16,34 @@ namespace mocap::ekf {
 
 using namespace internal;
 
+namespace {
+// One damped Gauss-Newton (Levenberg-Marquardt) step on the normal equations N step = -g of a
+// search (the subject's, ICP-like, or one limb's): the damping grows tenfold until the step,
+// made into a trial pose and costed by trial_cost() (which reads *step), lowers the cost, and
+// shrinks after a success. Returns whether a step was accepted (the trial pose is then the
+// caller's new pose). Allocation-free for fixed-capacity N (the limb search's).
+template <class Matrix, class Vector, class Solver, class TrialCost>
+bool DampedGaussNewtonStep(const Matrix& N, const Vector& g, double current_cost, double* lambda,
+                           Matrix* damped, Solver* solver, Vector* step, TrialCost&& trial_cost) {
+  for (int tries = 0; tries < 6; ++tries) {
+    *damped = N;
+    damped->diagonal() += *lambda * N.diagonal();
+    solver->compute(*damped);
+    if (solver->info() != Eigen::Success) {
+      *lambda *= 10;
+      continue;
+    }
+    *step = -solver->solve(g);
+    if (trial_cost() < current_cost) {
+      *lambda = std::max(1e-7, *lambda * 0.3);
+      return true;
+    }
+    *lambda *= 10;
+  }
+  return false;
+}
+}  // namespace
+
 // ---------------------------------------------------------------------------------------------
 // Initialisation
 
@@ -148,30 +176,17 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
         g[i] = 0;
       }
     }
-    const double c0 = Cost(z);
-    bool accepted = false;
-    for (int tries = 0; tries < 6 && !accepted; ++tries) {
-      Nd = N;
-      Nd.diagonal() += lambda * N.diagonal();
-      llt.compute(Nd);
-      if (llt.info() != Eigen::Success) {
-        lambda *= 10;
-        continue;
-      }
-      step = -llt.solve(g);
-      trial = z + step;
-      // Within the model's joint ranges: a foot turned 120 degrees can match heel and toe
-      // markers to each other's points, a pose no subject takes.
-      for (int i = 0; i < nz; ++i)
-        if (!wraps[i]) trial[i] = std::clamp(trial[i], lower[i], upper[i]);
-      if (Cost(trial) < c0) {
-        z = trial;
-        lambda = std::max(1e-7, lambda * 0.3);
-        accepted = true;
-      } else {
-        lambda *= 10;
-      }
-    }
+    const bool accepted = DampedGaussNewtonStep(
+        N, g, Cost(z), &lambda, &Nd, &llt, &step,
+        [&] {
+          trial = z + step;
+          // Within the model's joint ranges: a foot turned 120 degrees can match heel and toe
+          // markers to each other's points, a pose no subject takes.
+          for (int i = 0; i < nz; ++i)
+            if (!wraps[i]) trial[i] = std::clamp(trial[i], lower[i], upper[i]);
+          return Cost(trial);
+        });
+    if (accepted) z = trial;
     if (final_stage && same && (!accepted || step.norm() < 1e-6) && radius <= options.init_radius_m)
       break;
   }
@@ -507,28 +522,13 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
         lN(l, l) += w;
         lg[l] += w * (lz[i] - lstart[i]);
       }
-      const double c0 = Cost(lz);
-      bool accepted = false;
-      for (int tries = 0; tries < 6 && !accepted; ++tries) {
-        lNd = lN;
-        lNd.diagonal() += lambda * lN.diagonal();
-        lllt.compute(lNd);
-        if (lllt.info() != Eigen::Success) {
-          lambda *= 10;
-          continue;
-        }
-        lstep = lllt.solve(lg);
+      const bool accepted = DampedGaussNewtonStep(lN, lg, Cost(lz), &lambda, &lNd, &lllt, &lstep, [&] {
         ltrial = lz;
-        for (int l = 0; l < nl; ++l) ltrial[lcoords[l]] -= lstep[l];
+        for (int l = 0; l < nl; ++l) ltrial[lcoords[l]] += lstep[l];
         Wrap(&ltrial);
-        if (Cost(ltrial) < c0) {
-          lz = ltrial;
-          lambda = std::max(1e-7, lambda * 0.3);
-          accepted = true;
-        } else {
-          lambda *= 10;
-        }
-      }
+        return Cost(ltrial);
+      });
+      if (accepted) lz = ltrial;
     }
     const double score = LimbAssign(joint, lz, nc, kLimbFinalRadius);
     int labelled = 0;

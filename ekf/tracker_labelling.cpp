@@ -275,6 +275,7 @@ bool Tracker::Impl::RigidWithSegment(int m, int k) const {
   }
   Eigen::Vector3d q = p;
   int length = 1;
+  double travel2 = 0;
   for (int h = 1; h <= hist_size; ++h) {
     const int slot = (hist_head - h + kHistory) % kHistory;
     const Eigen::Matrix3Xd& pts = hist_points[slot];
@@ -293,6 +294,7 @@ bool Tracker::Impl::RigidWithSegment(int m, int k) const {
     if (nearest < 0) break;
     q = pts.col(nearest);
     ++length;
+    travel2 = std::max(travel2, (q - p).squaredNorm());
     for (int i = 0; i < na; ++i) {
       if (i > 0 && row_to_col[ms[i - 1]] < 0) continue;
       double r;
@@ -307,7 +309,9 @@ bool Tracker::Impl::RigidWithSegment(int m, int k) const {
       hi[i] = std::max(hi[i], r);
     }
   }
-  if (length < kMinTrackFrames) return false;
+  // Rigid while it stood still says nothing: a reflection fixed in the lab is rigid with a
+  // segment at rest (the static pose).
+  if (length < kMinTrackFrames || travel2 < kRegistrationTravel * kRegistrationTravel) return false;
   for (int i = has_centre ? 0 : 1; i < na; ++i) {
     if (i > 0 && row_to_col[ms[i - 1]] < 0) continue;
     if (hi[i] - lo[i] > kRigidTolerance) return false;
