@@ -174,6 +174,7 @@ struct Tracker::Impl {
   std::vector<int> segment_order;
   static constexpr int kSegmentCandidates = 4;   // points tried per unlabelled marker
   static constexpr int kSegmentMaxOpen = 6;      // unlabelled markers enumerated per segment
+  static constexpr int kStuckFrames = 20;        // a marker unlabelled this long is stuck
   struct SegmentSearch {
     int open[kSegmentMaxOpen];                         // the segment's unlabelled markers
     int cand[kSegmentMaxOpen][kSegmentCandidates];     // their candidate points

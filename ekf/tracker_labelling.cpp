@@ -176,17 +176,26 @@ void Tracker::Impl::RegisterSegments(int np) {
       claims_known = true;
     }
     // Candidates: the unclaimed points on each open marker's sphere, nearest its prediction first.
+    // With three or more of the segment's markers labelled the fit pins the marker's place in
+    // this frame (not only its distances), and a point there is judged as the gating judges one;
+    // with fewer, the point must also have moved rigidly with the segment (RigidWithSegment).
+    const bool pinned = anchors - (marker_depth[ms[0]] > 0 ? 1 : 0) >= 3;
     int with_candidates = 0;
     for (int o = 0; o < seg.nopen; ++o) {
       const int m = seg.open[o];
       double dist[kSegmentCandidates];
       int& n = seg.ncand[o];
       n = 0;
+      // Unpinned, only a marker missing from its point for kStuckFrames: one just back from an
+      // occlusion is the gate's (a reflection riding with the segment can sit at its place).
+      if (!pinned && unlabelled_run[m] < kStuckFrames) continue;
       for (int k = 0; k < np; ++k) {
         if (ltaken[k] || !OnSegmentSphere(m, points.col(k))) continue;
         const double d = (points.col(k) - predicted.col(m)).squaredNorm();
         if (n == kSegmentCandidates && d >= dist[n - 1]) continue;
-        if (!RigidWithSegment(m, k) || SeenBeside(m, k, np)) continue;
+        if ((pinned ? NonRigidTrack(m, points.col(k)) : !RigidWithSegment(m, k)) ||
+            SeenBeside(m, k, np))
+          continue;
         int i = n < kSegmentCandidates ? n++ : n - 1;
         for (; i > 0 && dist[i - 1] > d; --i) {
           dist[i] = dist[i - 1];
