@@ -127,6 +127,9 @@ struct Tracker::Impl {
   // Follows p back (see NonRigidTrack): the frames it was seen, and the spread of its distance
   // to marker m's joint centre over them.
   int TrackBack(int m, const Eigen::Vector3d& p, double* spread) const;
+  // The point of history slot `slot` a point at q continues: the nearest within a frame's motion
+  // (kTrackStep) that no marker claimed then, or that was `own` (a marker's own label); -1 none.
+  int PastPoint(int slot, const Eigen::Vector3d& q, int own) const;
   // Which markers each unclaimed point has been seen beside (see SeenBeside): per point of the
   // last good frame, per marker, the last tracking frame in which that marker was measured on
   // another point while this point's track was alive (kNever: not within its track).

@@ -288,18 +288,8 @@ bool Tracker::Impl::RigidWithSegment(int m, int k) const {
   for (int h = 1; h <= hist_size; ++h) {
     const int slot = (hist_head - h + kHistory) % kHistory;
     const Eigen::Matrix3Xd& pts = hist_points[slot];
-    const std::vector<char>& claimed = hist_claimed[slot];
-    int nearest = -1;
-    double best = kTrackStep * kTrackStep;
-    const int own = hist_marker_point[slot][m];  // m's own past labels continue its track
-    for (int j = 0; j < hist_count[slot]; ++j) {
-      if (claimed[j] && j != own) continue;
-      const double d2 = (pts.col(j) - q).squaredNorm();
-      if (d2 < best) {
-        best = d2;
-        nearest = j;
-      }
-    }
+    // m's own past labels continue its track.
+    const int nearest = PastPoint(slot, q, hist_marker_point[slot][m]);
     if (nearest < 0) break;
     q = pts.col(nearest);
     ++length;
@@ -504,6 +494,22 @@ bool Tracker::Impl::NonRigidTrack(int m, const Eigen::Vector3d& p) const {
   return TrackBack(m, p, &spread) >= kMinTrackFrames && spread > kRigidTolerance;
 }
 
+int Tracker::Impl::PastPoint(int slot, const Eigen::Vector3d& q, int own) const {
+  const Eigen::Matrix3Xd& pts = hist_points[slot];
+  const std::vector<char>& claimed = hist_claimed[slot];
+  int nearest = -1;
+  double best = kTrackStep * kTrackStep;
+  for (int k = 0; k < hist_count[slot]; ++k) {
+    if (claimed[k] && k != own) continue;
+    const double d2 = (pts.col(k) - q).squaredNorm();
+    if (d2 < best) {
+      best = d2;
+      nearest = k;
+    }
+  }
+  return nearest;
+}
+
 int Tracker::Impl::TrackBack(int m, const Eigen::Vector3d& p, double* spread) const {
   const int segment = model->markers()[m].segment;
   Eigen::Vector3d q = p;
@@ -513,17 +519,7 @@ int Tracker::Impl::TrackBack(int m, const Eigen::Vector3d& p, double* spread) co
   for (int h = 1; h <= hist_size; ++h) {
     const int slot = (hist_head - h + kHistory) % kHistory;
     const Eigen::Matrix3Xd& pts = hist_points[slot];
-    int nearest = -1;
-    double best = kTrackStep * kTrackStep;
-    const std::vector<char>& claimed = hist_claimed[slot];
-    for (int k = 0; k < hist_count[slot]; ++k) {
-      if (claimed[k]) continue;
-      const double d2 = (pts.col(k) - q).squaredNorm();
-      if (d2 < best) {
-        best = d2;
-        nearest = k;
-      }
-    }
+    const int nearest = PastPoint(slot, q, -1);
     if (nearest < 0) break;
     q = pts.col(nearest);
     const double r = (q - hist_centre[slot][segment]).norm();
