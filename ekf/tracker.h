@@ -83,20 +83,24 @@
 // markers the gates leave unlabelled are looked for as a group under their segment's rigid
 // geometry, which no error of the pose estimate changes. A segment's markers and its joint centre
 // (where its parent's pose puts it) are a rigid body; each choice of unclaimed points for its
-// unlabelled markers (points at the marker's distance from the joint centre, followed back for 5
-// frames or more at constant distances from the centre and from the segment's labelled markers,
-// never seen beside the marker) is fitted with the labelled markers' points as a rigid body
-// (Kabsch), every anchor within its gate on its own variance; the choice labelling the most
-// markers at the least cost is taken only when no different choice comes within the
-// initialisation's log-likelihood margin, and only for points no other segment's unlabelled marker
-// could also be. It finds a marker whose segment's pose is wrong (a foot turned over while its
-// markers were hidden, an upper arm turned about its long axis: markers 5-25 cm from their
-// predictions for seconds) and one the pose carries a nominal model's pose-dependent error for (a
-// pelvis marker back 2-5 cm from its prediction among its four labelled mates, a knee marker 25-40
-// mm off in a deep squat). Such a label goes through probation, and a measurement outside its
-// gate pulls at the gate's weight (its weight scaled by gate / Mahalanobis distance): the segment
-// is brought to its points over a few frames instead of thrown by one linearised step of
-// decimetres, which turned whole legs away from the body.
+// unlabelled markers, with its labelled markers' points, is fitted as a rigid body (Kabsch), every
+// anchor within its gate on its own variance; the choice labelling the most markers at the least
+// cost is taken only when no different choice comes within the initialisation's log-likelihood
+// margin, and only for points no other segment's unlabelled marker could also be (in its gate and
+// at its distance from its joint centre). With three or more of the segment's markers labelled
+// the fit pins a marker's place and a point there is judged as the gating judges one (a pelvis
+// marker back 2-5 cm from a nominal model's prediction among its labelled mates). With fewer, the
+// fit checks only distances, so it looks only for a marker missing for 20 frames (stuck: its
+// segment's pose is wrong -- a foot turned over while its markers were hidden, an upper arm turned
+// about its long axis, a nominal model's knee marker 25-40 mm off in a deep squat -- with its
+// point 5-25 cm from the prediction for seconds), and only at points followed back 5 frames or
+// more at constant distances (1 cm) from the joint centre and the segment's labelled markers while
+// moving 2 cm or more (a reflection fixed in the lab is rigid with a segment at rest); a marker
+// just back from an occlusion is the gate's (a reflection riding with the segment can sit at its
+// place). Such a label goes through probation, and a measurement outside its gate pulls at the
+// gate's weight (its weight scaled by gate / Mahalanobis distance): the segment is brought to its
+// points over a few frames instead of thrown by one linearised step of decimetres, which turned
+// whole legs away from the body.
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (the points turned so that the lab's

@@ -130,27 +130,24 @@ void Tracker::Impl::FollowLabelledTracks(int np) {
   }
 }
 
-// Segment registration: the markers the gates left unlabelled are looked for as a group, under
-// their segment's rigid geometry, where the pose cannot mislead. A segment's markers and its joint
-// centre (the origin of its frame, where its parent's pose puts it; the root has none) form a
-// rigid body whatever the joint angles. For each segment with unlabelled markers, each of them is
-// given, in turn, each unclaimed point at its distance from the joint centre (OnSegmentSphere)
-// whose past does not rule it out (NonRigidTrack, SeenBeside), or none; each such choice, with
-// the segment's labelled markers on their points, is fitted as a rigid body (Kabsch: the
-// segment's marker positions, learnt offsets included, onto the points), and is possible when
-// every anchor lies within its tolerance of the fit (its gate on its own variance plus the joint
-// centre's error). The choice that labels the most markers, at the least fit cost, is taken, and
-// only when it is the one: when a different choice labels as many at a cost within
-// init_ambiguity_margin (a log-likelihood ratio, as the initialisation's), the segment's unlabelled
-// markers stay unlabelled. At least three anchors: with two only a distance is checked.
-// Why: a marker leaves its gate when its segment's pose estimate is wrong (a foot turned over
-// while its two markers were hidden, an upper arm turned about its long axis), or when the pose
-// carries a nominal model's pose-dependent error (a pelvis marker 2-5 cm from the prediction
-// among four labelled mates); its point then sits where its segment's rigid geometry puts it, and
-// there only. The labels go through probation like any other (ChooseMeasurements); a measurement
-// far outside its gate widens the segment's joint coordinates' covariance (MeasureFarLabels) so
-// the filter moves the segment rather than the whole body. Not in a fresh track (FreshTrack),
-// whose joint centres may be wrong with a limb; the limb search relabels there.
+// Segment registration (ekf/tracker.h, "Labelling"): the markers the gates left unlabelled are
+// looked for as a group, under their segment's rigid geometry, where the pose cannot mislead. A
+// segment's markers and its joint centre (the origin of its frame, where its parent's pose puts
+// it; the root has none) form a rigid body whatever the joint angles. Each unlabelled marker is
+// given, in turn, each of the few unclaimed points at its distance from the joint centre
+// (OnSegmentSphere) that its past does not rule out, or none; each such choice, with the
+// segment's labelled markers on their points, is fitted as a rigid body (SegmentFitCost) and is
+// possible when every anchor lies within its tolerance. The choice that labels the most markers at
+// the least cost is taken when no different choice labelling as many comes within
+// init_ambiguity_margin, and when no other segment's unlabelled marker could be one of its points.
+// Pinned (three or more labelled mates: the fit places the marker, not only its distances) a
+// point is judged as the gating judges one (NonRigidTrack, SeenBeside); unpinned, only a marker
+// stuck for kStuckFrames is looked for, at points that moved rigidly with the segment
+// (RigidWithSegment). Why: a marker leaves its gate when its segment's pose estimate is wrong or
+// carries a nominal model's pose-dependent error, and its point then sits where its segment's
+// rigid geometry puts it, and there only. The labels go through probation (ChooseMeasurements);
+// FilterUpdate weighs a measurement outside its gate down to the gate's weight. Not in a fresh
+// track (FreshTrack), whose joint centres may be wrong with a limb; the limb search relabels there.
 void Tracker::Impl::RegisterSegments(int np) {
   for (int m = 0; m < nm; ++m)
     if (row_to_col[m] >= np) row_to_col[m] = -1;
