@@ -235,7 +235,6 @@ void Tracker::Impl::Allocate() {
   out.point_of_marker.reserve(nm);
   unlabelled_run.assign(nm, 0);
   measured.assign(nm, 0);
-  registered.assign(nm, 0);
   labelled_run.assign(nm, 0);
   hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
   hist_count.assign(kHistory, 0);

@@ -186,7 +186,6 @@ struct Tracker::Impl {
     int nopen = 0;
   } seg;
   void RegisterSegments(int np);
-  std::vector<char> registered;  // per marker: labelled by RegisterSegments this frame
   // Whether point k, followed back through the unclaimed points of the last frames, has been for
   // kMinTrackFrames or more at constant distances (within kRigidTolerance) from marker m's joint
   // centre and from each labelled marker of its segment: rigid with the segment over time.

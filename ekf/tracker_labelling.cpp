@@ -151,7 +151,6 @@ void Tracker::Impl::FollowLabelledTracks(int np) {
 void Tracker::Impl::RegisterSegments(int np) {
   for (int m = 0; m < nm; ++m)
     if (row_to_col[m] >= np) row_to_col[m] = -1;
-  std::fill(registered.begin(), registered.end(), 0);
   if (FreshTrack()) return;
   bool claims_known = false;
   for (int segment : segment_order) {
@@ -256,7 +255,6 @@ void Tracker::Impl::RegisterSegments(int np) {
       if (seg.best[o] < 0) continue;
       const int k = seg.cand[o][seg.best[o]];
       row_to_col[seg.open[o]] = k;
-      registered[seg.open[o]] = 1;
       ltaken[k] = 1;
     }
   }
