@@ -15,6 +15,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <cstdio>
 #include <memory>
 #include <mutex>
@@ -69,9 +70,78 @@ struct SeedResult {
   // The largest CPU time of a frame that continued a track (not one that searched for the subject).
   double cpu_max_tracking_us = 0;
   std::vector<double> update_us, update_cpu_us;  // kept for the pooled summary
+  // Of the marker samples not labelled right: those given another point's label (wrong) and
+  // those left unlabelled while their point was there (missed).
+  long missed = 0;
+  std::string runs;  // --runs: the seed's error runs, one a line
 };
 
-SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& base, bool truth) {
+// The error runs of a tracked scene (--runs): per model marker, each stretch of at least
+// `min_frames` consecutive frames in which it was labelled on a point that is not it (on which
+// marker's point, or a ghost's) or left unlabelled while its point was present, with the
+// movement it fell in. What the sweep's summary figures are made of.
+// miss_mm: per frame and model marker, the distance of its predicted position from its own point
+// (NaN when absent).
+std::string ErrorRuns(const mocap::sim::TrackingScene& scene, const mocap::Model& model,
+                      const TrackRun& run, const Eigen::MatrixXf& miss_mm, int min_frames,
+                      long* missed) {
+  const std::vector<int> scene_of = mocap::sim::SceneMarkerOf(model, scene);
+  const int nm = model.num_markers();
+  auto movement = [&](int f) {
+    for (const auto& s : scene.segments)
+      if (f >= s.begin && f < s.end) return s.name;
+    return std::string("?");
+  };
+  // state per frame: -1 fine, otherwise a code: 1000 missed, 2000 + k on scene marker k,
+  // 3000 on a ghost.
+  std::ostringstream out;
+  *missed = 0;
+  for (int m = 0; m < nm; ++m) {
+    const int sm = scene_of[m];
+    if (sm < 0) continue;
+    int code = -1, begin = 0;
+    auto close = [&](int end) {
+      if (code < 0 || end - begin < min_frames) return;
+      out << "  " << model.markers()[m].name << " frames " << begin << "-" << end - 1 << " ("
+          << end - begin << ", " << movement(begin) << "): ";
+      if (code == 1000) {
+        std::vector<float> d;
+        for (int f = begin; f < end; ++f)
+          if (std::isfinite(miss_mm(f, m))) d.push_back(miss_mm(f, m));
+        std::sort(d.begin(), d.end());
+        out << "unlabelled, its point present";
+        if (!d.empty())
+          out << " " << static_cast<int>(miss_mm(begin, m)) << " mm from its prediction at first, "
+              << static_cast<int>(d[d.size() / 2]) << " median";
+      }
+      else if (code == 3000) out << "on a ghost";
+      else out << "on " << scene.marker_names[code - 2000] << "'s point";
+      out << "\n";
+    };
+    for (int f = 0; f <= run.frames; ++f) {
+      int now = -1;
+      if (f < run.frames) {
+        const std::vector<int>& labels = scene.labels[f];
+        const int given = run.point_of_marker(f, m);
+        const bool present = std::find(labels.begin(), labels.end(), sm) != labels.end();
+        if (given >= 0 && labels[given] != sm)
+          now = labels[given] >= 0 ? 2000 + labels[given] : 3000;
+        else if (given < 0 && present && run.states[f] == mocap::ekf::TrackState::kTracking)
+          now = 1000;
+        *missed += now == 1000;
+      }
+      if (now != code) {
+        close(f);
+        code = now;
+        begin = f;
+      }
+    }
+  }
+  return out.str();
+}
+
+SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& base, bool truth,
+                   int runs_min_frames) {
   SeedResult r;
   r.seed = seed;
   mocap::sim::TrackingSceneOptions o = base;
@@ -85,7 +155,20 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
   topt.rate_hz = o.rate_hz;
   mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(truth ? scene.truth : scene.nominal),
                               topt);
-  TrackRun run = mocap::sim::TrackScene(scene, &tracker);
+  const std::vector<int> scene_of = mocap::sim::SceneMarkerOf(tracker.model(), scene);
+  Eigen::MatrixXf miss_mm;
+  if (runs_min_frames > 0)
+    miss_mm.setConstant(scene.num_frames(), tracker.model().num_markers(), NAN);
+  TrackRun run = mocap::sim::TrackScene(
+      scene, &tracker, [&](int f, const mocap::ekf::TrackOutput& out) {
+        if (runs_min_frames <= 0 || out.state != mocap::ekf::TrackState::kTracking) return;
+        const Eigen::Matrix3Xd& pred = tracker.predicted_markers();
+        const std::vector<int>& labels = scene.labels[f];
+        for (size_t i = 0; i < labels.size(); ++i)
+          for (int m = 0; m < pred.cols(); ++m)
+            if (scene_of[m] >= 0 && labels[i] == scene_of[m])
+              miss_mm(f, m) = static_cast<float>(1000 * (scene.points[f].col(i) - pred.col(m)).norm());
+      });
   r.frames = run.frames;
   r.samples = run.score.samples;
   r.wrong = run.score.wrong;
@@ -95,6 +178,8 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
   r.reinitialisations = run.reinitialisations();
   r.frames_tracking = run.frames_tracking();
   r.update_us = run.update_us;
+  if (runs_min_frames > 0)
+    r.runs = ErrorRuns(scene, tracker.model(), run, miss_mm, runs_min_frames, &r.missed);
   r.update_cpu_us = run.update_cpu_us;
   for (int f = 1; f < run.frames; ++f)
     if (run.states[f] == mocap::ekf::TrackState::kTracking &&
@@ -123,6 +208,10 @@ nlohmann::ordered_json ToJson(const SeedResult& r) {
   j["swaps_longer_than_5_frames"] = r.swaps_longer_than_5_frames;
   j["longest_wrong_run_frames"] = r.longest_wrong_run;
   j["reinitialisations"] = r.reinitialisations;
+  if (!r.runs.empty()) {
+    j["missed_labels"] = r.missed;
+    j["error_runs"] = r.runs;
+  }
   j["update_us_p99"] = r.p99_us;
   j["update_us_max"] = r.max_us;
   j["update_cpu_us_p99"] = r.cpu_p99_us;
@@ -147,6 +236,11 @@ int main(int argc, char** argv) {
   app.add_flag("--swap-traps", scene.swap_traps, "append the swap-trap movement");
   app.add_option("--model", model, "nominal or truth")->check(CLI::IsMember({"nominal", "truth"}));
   app.add_flag("--json", json, "print JSON (per seed and summary) instead of a table");
+  int runs_min_frames = 0;
+  app.add_option("--runs", runs_min_frames,
+                 "also list each seed's error runs of at least this many frames (which marker, on "
+                 "which point, in which movement)")
+      ->check(CLI::NonNegativeNumber);
   app.add_option("--threads", threads, "seeds tracked at once")->check(CLI::PositiveNumber);
   CLI11_PARSE(app, argc, argv);
   std::vector<std::uint64_t> seeds;
@@ -166,7 +260,7 @@ int main(int argc, char** argv) {
   std::mutex print_mutex;
   auto worker = [&] {
     for (size_t k = next++; k < seeds.size(); k = next++) {
-      results[k] = RunSeed(seeds[k], scene, model == "truth");
+      results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames);
       if (json) continue;
       const SeedResult& r = results[k];
       std::lock_guard<std::mutex> lock(print_mutex);
@@ -178,6 +272,8 @@ int main(int argc, char** argv) {
                     static_cast<unsigned long long>(r.seed), r.accuracy, r.wrong,
                     r.swaps_longer_than_5_frames, r.longest_wrong_run, r.reinitialisations, r.p99_us,
                     r.cpu_p99_us, r.max_us, r.cpu_max_us, r.cpu_max_tracking_us);
+      if (runs_min_frames > 0)
+        std::printf("  missed (unlabelled, point present) %ld\n%s", r.missed, r.runs.c_str());
       std::fflush(stdout);
     }
   };

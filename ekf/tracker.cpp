@@ -128,6 +128,15 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   marker_depth.resize(nm);
   for (int k = 0; k < nm; ++k) marker_depth[k] = segment_depth[md.markers()[k].segment];
 
+  // Segments' seen markers, segments with any in depth order (parents first).
+  segment_markers.assign(md.num_segments(), {});
+  for (int k = 0; k < nm; ++k)
+    if (seen[k]) segment_markers[md.markers()[k].segment].push_back(k);
+  segment_order.clear();
+  for (int d = 0; d <= max_depth; ++d)
+    for (int sgm = 0; sgm < md.num_segments(); ++sgm)
+      if (!segment_markers[sgm].empty() && segment_depth[sgm] == d) segment_order.push_back(sgm);
+
   // Limbs: each joint's subtree (joints are parents first, so a joint's descendants follow it).
   const int nj = static_cast<int>(md.joints().size());
   limb_coord.assign(nj, std::vector<char>(nz, 0));
@@ -230,6 +239,7 @@ void Tracker::Impl::Allocate() {
   hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
   hist_count.assign(kHistory, 0);
   hist_claimed.assign(kHistory, std::vector<char>(mp, 0));
+  hist_marker_point.assign(kHistory, std::vector<int>(nm, -1));
   hist_centre.assign(kHistory,
                      std::vector<Eigen::Vector3d>(model->num_segments(), Eigen::Vector3d::Zero()));
   centre_now.assign(model->num_segments(), Eigen::Vector3d::Zero());
@@ -312,8 +322,14 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
   double nu_r_nu = 0;
   for (int m = 0; m < nm; ++m) {
     if (row_to_col[m] < 0 || !measured[m]) continue;
-    const double w = 1.0 / (MeasurementVariance(m) + model_error[m]);
     const Eigen::Vector3d nu = points.col(row_to_col[m]) - predicted.col(m);
+    // A label outside the marker's gate (a segment registration's: its point is where the
+    // segment's rigid geometry puts it, not where the pose predicts it) pulls with its weight
+    // scaled down to the gate's: the linearised step stays within the gate's reach and the
+    // segment is brought over a few frames instead of thrown by one step of decimetres.
+    const double d2 = nu.dot(s_inv[m] * nu);
+    const double w = (d2 > options.gate_chi2 ? options.gate_chi2 / d2 : 1.0) /
+                     (MeasurementVariance(m) + model_error[m]);
     nu_r_nu += w * nu.squaredNorm();
     const std::vector<int>& cols = model->marker_coordinates(m);
     const auto& J = jac[m];
@@ -400,7 +416,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     s.Linearise(s.zbuf);
     for (size_t i = 0; i < s.centre_now.size(); ++i) s.centre_now[i] = s.data.segment_position[i];
     s.LabelByGating(np);
-    s.PickUpOnSegment(np);
+    s.RegisterSegments(np);
     const int labelled = s.ApplyLabels(np);
     s.ChooseMeasurements();
     double nis = 0;
@@ -484,6 +500,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   auto hist_points = std::move(s.hist_points);
   auto hist_count = std::move(s.hist_count);
   auto hist_claimed = std::move(s.hist_claimed);
+  auto hist_marker_point = std::move(s.hist_marker_point);
   auto hist_centre = std::move(s.hist_centre);
   const int hist_head = s.hist_head, hist_size = s.hist_size;
   auto beside_prev = std::move(s.beside_prev);
@@ -502,6 +519,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   s.hist_points = std::move(hist_points);
   s.hist_count = std::move(hist_count);
   s.hist_claimed = std::move(hist_claimed);
+  s.hist_marker_point = std::move(hist_marker_point);
   if (same_segments) {
     // The predicted joint centres of the past frames move by the fit's correction (millimetres
     // to centimetres); the rigidity test they feed allows 1 cm of spread, and the ring renews in

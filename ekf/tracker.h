@@ -79,12 +79,28 @@
 // the update (an average over the offsets' time constant), which with a nominal model grows with
 // the pose (joint centres 15 mm off) and would otherwise push a tracked marker out of its gate in a
 // deep squat or trunk bend; the same variance weighs its measurement. A marker coming back is gated
-// without it (a wide gate at a hidden marker takes ghosts). Segment pick-up: a marker that stays
-// unlabelled while three or more markers of its segment are labelled is looked for where those put
-// it (their rigid motion from prediction to points, Kabsch), within its gate: the pelvis, the root,
-// is posed by its four markers and by all the others through the joints, and with a nominal model a
-// pelvis marker back from an occlusion is 2-5 cm from the pose's prediction but where it belongs
-// among its segment's labelled markers.
+// without it (a wide gate at a hidden marker takes ghosts). Segment registration: the
+// markers the gates leave unlabelled are looked for as a group under their segment's rigid
+// geometry, which no error of the pose estimate changes. A segment's markers and its joint centre
+// (where its parent's pose puts it) are a rigid body; each choice of unclaimed points for its
+// unlabelled markers, with its labelled markers' points, is fitted as a rigid body (Kabsch), every
+// anchor within its gate on its own variance; the choice labelling the most markers at the least
+// cost is taken only when no different choice comes within the initialisation's log-likelihood
+// margin, and only for points no other segment's unlabelled marker could also be (in its gate and
+// at its distance from its joint centre). With three or more of the segment's markers labelled
+// the fit pins a marker's place and a point there is judged as the gating judges one (a pelvis
+// marker back 2-5 cm from a nominal model's prediction among its labelled mates). With fewer, the
+// fit checks only distances, so it looks only for a marker missing for 20 frames (stuck: its
+// segment's pose is wrong -- a foot turned over while its markers were hidden, an upper arm turned
+// about its long axis, a nominal model's knee marker 25-40 mm off in a deep squat -- with its
+// point 5-25 cm from the prediction for seconds), and only at points followed back 5 frames or
+// more at constant distances (1 cm) from the joint centre and the segment's labelled markers while
+// moving 2 cm or more (a reflection fixed in the lab is rigid with a segment at rest); a marker
+// just back from an occlusion is the gate's (a reflection riding with the segment can sit at its
+// place). Such a label goes through probation, and a measurement outside its gate pulls at the
+// gate's weight (its weight scaled by gate / Mahalanobis distance): the segment is brought to its
+// points over a few frames instead of thrown by one linearised step of decimetres, which turned
+// whole legs away from the body.
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (the points turned so that the lab's
@@ -133,11 +149,11 @@
 // carries a slowly learnt offset in its segment's frame, and its measurement variance is inflated
 // by what is not yet known of it (TrackerOptions::marker_offset_*). SwapModel clears them. The
 // error of a nominal model depends on the pose, so a marker back from an occlusion can find its
-// learnt offset stale by 25-40 mm (a knee marker in a deep squat), steadily so, while its limb
-// tracks (no search finds a better pose). When it is due a limb search, the one unclaimed point
-// within 5 cm of its prediction that has been followed for 5 frames rigid with its segment and
-// was never seen beside it moves the marker's offset onto itself (RejoinAtOffset in
-// tracker_initialisation.cpp); the next frame's gate takes it, through probation.
+// learnt offset stale by 25-40 mm (a knee marker in a deep squat); the segment registration
+// (above) finds its point where its segment's rigid geometry puts it, and its offset learns the
+// new error from its measurements. (Moving the offset onto such a point at once, as an earlier
+// rule did, could move it onto a reflection riding with the segment and leave it 5-9 cm wrong for
+// good.)
 //
 // Unobserved coordinates. Velocities and accelerations decay between frames (time constants in
 // the options), and coordinates are kept in the model's ranges, so a segment that loses markers

@@ -27,6 +27,8 @@ inline constexpr double kProbationDistance = 0.01;
 inline constexpr double kTrackStep = 0.025;
 inline constexpr int kMinTrackFrames = 5;
 inline constexpr double kRigidTolerance = 0.01;
+// RigidWithSegment: how far the followed point must have moved for its rigidity to count.
+inline constexpr double kRegistrationTravel = 0.02;
 // How long the record of a point seen beside a marker holds (SeenBeside): about the longest life
 // of a stray reflection.
 inline constexpr double kBesideSeconds = 2.0;
@@ -116,6 +118,7 @@ struct Tracker::Impl {
   std::vector<Eigen::Matrix3Xd> hist_points;
   std::vector<int> hist_count;
   std::vector<std::vector<char>> hist_claimed;  // per frame, per point: a marker's
+  std::vector<std::vector<int>> hist_marker_point;  // per frame, per marker: its point or -1
   std::vector<std::vector<Eigen::Vector3d>> hist_centre;
   std::vector<Eigen::Vector3d> centre_now;  // this frame's predicted joint centres
   int hist_head = 0, hist_size = 0;
@@ -124,17 +127,9 @@ struct Tracker::Impl {
   // Follows p back (see NonRigidTrack): the frames it was seen, and the spread of its distance
   // to marker m's joint centre over them.
   int TrackBack(int m, const Eigen::Vector3d& p, double* spread) const;
-  bool RejoinAtOffset(int m, int np);
-  // The one point not in ltaken within sqrt(radius2) of `where`; -1 when none or several.
-  int OnlyFreePointNear(const Eigen::Vector3d& where, double radius2, int np) const {
-    int found = -1;
-    for (int k = 0; k < np; ++k)
-      if (!ltaken[k] && (points.col(k) - where).squaredNorm() < radius2) {
-        if (found >= 0) return -1;
-        found = k;
-      }
-    return found;
-  }
+  // The point of history slot `slot` a point at q continues: the nearest within a frame's motion
+  // (kTrackStep) that no marker claimed then, or that was `own` (a marker's own label); -1 none.
+  int PastPoint(int slot, const Eigen::Vector3d& q, int own) const;
   // Which markers each unclaimed point has been seen beside (see SeenBeside): per point of the
   // last good frame, per marker, the last tracking frame in which that marker was measured on
   // another point while this point's track was alive (kNever: not within its track).
@@ -176,7 +171,35 @@ struct Tracker::Impl {
   void Predict(double dt);
   void Linearise(const Eigen::VectorXd& z);
   void LabelByGating(int np);
-  void PickUpOnSegment(int np);
+  // Segment registration (see tracker.h, "Labelling"): per segment, its seen markers (depth
+  // order: parents first), and the workspace of the enumeration.
+  std::vector<std::vector<int>> segment_markers;
+  std::vector<int> segment_order;
+  static constexpr int kSegmentCandidates = 4;   // points tried per unlabelled marker
+  static constexpr int kSegmentMaxOpen = 6;      // unlabelled markers enumerated per segment
+  static constexpr int kStuckFrames = 20;        // a marker unlabelled this long is stuck
+  struct SegmentSearch {
+    int open[kSegmentMaxOpen];                         // the segment's unlabelled markers
+    int cand[kSegmentMaxOpen][kSegmentCandidates];     // their candidate points
+    int ncand[kSegmentMaxOpen];
+    int choice[kSegmentMaxOpen], best[kSegmentMaxOpen];
+    int nopen = 0;
+  } seg;
+  void RegisterSegments(int np);
+  // Whether point k, followed back through the unclaimed points of the last frames, has been for
+  // kMinTrackFrames or more at constant distances (within kRigidTolerance) from marker m's joint
+  // centre and from each labelled marker of its segment: rigid with the segment over time.
+  bool RigidWithSegment(int m, int k) const;
+  // The rigid fit of segment `segment` with the current choice of points for its unlabelled
+  // markers (seg.choice, -1: none): false when fewer than 3 anchors or an anchor lies outside
+  // its tolerance; else *cost = sum of squared residuals over the anchors' variances.
+  bool SegmentFitCost(int segment, double* cost) const;
+  // How far a marker may lie from where its segment's rigid fit puts it: its gate on its own
+  // variance, plus the predicted joint centre's error.
+  double SegmentTolerance(int m) const {
+    return std::sqrt(options.gate_chi2 * (MeasurementVariance(m) + model_error[m])) +
+           kJointCentreTolerance;
+  }
   int ApplyLabels(int np);
   bool FilterUpdate(double* nis);
   void Wrap(Eigen::VectorXd* z) const;

@@ -1,7 +1,7 @@
 // The tracker's (re)initialisation: finding the subject in a cloud of unlabelled points with no
 // labels to go on (TryInitialise: headings about the vertical, ICP-like placement from the root
 // outwards, restarts, an ambiguity test), and finding one limb again while the rest of the body
-// tracks (Reacquire, ReacquireLimb, RejoinAtOffset). ekf/tracker.h ("Initialisation and recovery",
+// tracks (Reacquire, ReacquireLimb). ekf/tracker.h ("Initialisation and recovery",
 // "Limb re-acquisition") has the design. What it decides: whether a placement is good and
 // unambiguous enough to start (or restart a limb of) the track, and with which labels; a search
 // that cannot tell two labellings apart refuses rather than guesses.
@@ -15,6 +15,34 @@
 namespace mocap::ekf {
 
 using namespace internal;
+
+namespace {
+// One damped Gauss-Newton (Levenberg-Marquardt) step on the normal equations N step = -g of a
+// search (the subject's, ICP-like, or one limb's): the damping grows tenfold until the step,
+// made into a trial pose and costed by trial_cost() (which reads *step), lowers the cost, and
+// shrinks after a success. Returns whether a step was accepted (the trial pose is then the
+// caller's new pose). Allocation-free for fixed-capacity N (the limb search's).
+template <class Matrix, class Vector, class Solver, class TrialCost>
+bool DampedGaussNewtonStep(const Matrix& N, const Vector& g, double current_cost, double* lambda,
+                           Matrix* damped, Solver* solver, Vector* step, TrialCost&& trial_cost) {
+  for (int tries = 0; tries < 6; ++tries) {
+    *damped = N;
+    damped->diagonal() += *lambda * N.diagonal();
+    solver->compute(*damped);
+    if (solver->info() != Eigen::Success) {
+      *lambda *= 10;
+      continue;
+    }
+    *step = -solver->solve(g);
+    if (trial_cost() < current_cost) {
+      *lambda = std::max(1e-7, *lambda * 0.3);
+      return true;
+    }
+    *lambda *= 10;
+  }
+  return false;
+}
+}  // namespace
 
 // ---------------------------------------------------------------------------------------------
 // Initialisation
@@ -148,30 +176,17 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
         g[i] = 0;
       }
     }
-    const double c0 = Cost(z);
-    bool accepted = false;
-    for (int tries = 0; tries < 6 && !accepted; ++tries) {
-      Nd = N;
-      Nd.diagonal() += lambda * N.diagonal();
-      llt.compute(Nd);
-      if (llt.info() != Eigen::Success) {
-        lambda *= 10;
-        continue;
-      }
-      step = -llt.solve(g);
-      trial = z + step;
-      // Within the model's joint ranges: a foot turned 120 degrees can match heel and toe
-      // markers to each other's points, a pose no subject takes.
-      for (int i = 0; i < nz; ++i)
-        if (!wraps[i]) trial[i] = std::clamp(trial[i], lower[i], upper[i]);
-      if (Cost(trial) < c0) {
-        z = trial;
-        lambda = std::max(1e-7, lambda * 0.3);
-        accepted = true;
-      } else {
-        lambda *= 10;
-      }
-    }
+    const bool accepted = DampedGaussNewtonStep(
+        N, g, Cost(z), &lambda, &Nd, &llt, &step,
+        [&] {
+          trial = z + step;
+          // Within the model's joint ranges: a foot turned 120 degrees can match heel and toe
+          // markers to each other's points, a pose no subject takes.
+          for (int i = 0; i < nz; ++i)
+            if (!wraps[i]) trial[i] = std::clamp(trial[i], lower[i], upper[i]);
+          return Cost(trial);
+        });
+    if (accepted) z = trial;
     if (final_stage && same && (!accepted || step.norm() < 1e-6) && radius <= options.init_radius_m)
       break;
   }
@@ -331,6 +346,8 @@ bool Tracker::Impl::TryInitialise(int np) {
       last_predicted.col(m) = predicted.col(m);
     }
   }
+  // No gate yet: every label of the search is measured at its full weight.
+  std::fill(s_inv.begin(), s_inv.end(), Eigen::Matrix3d::Zero());
   double nis = 0;
   if (!FilterUpdate(&nis)) {
     init.reason = "the first update failed";
@@ -366,7 +383,6 @@ constexpr int kLimbFrames = 20;        // 0.1 s at 200 Hz
 constexpr int kLimbIterations = 10;
 constexpr double kLimbFinalRadius = 0.05;
 constexpr double kLimbMaxRms = 0.03;
-constexpr double kRejoinRadius = 0.05;    // RejoinAtOffset: twice a nominal model's marker error
 constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
 constexpr double kLimbCentreTolerance = 0.02;
 }  // namespace
@@ -506,28 +522,13 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
         lN(l, l) += w;
         lg[l] += w * (lz[i] - lstart[i]);
       }
-      const double c0 = Cost(lz);
-      bool accepted = false;
-      for (int tries = 0; tries < 6 && !accepted; ++tries) {
-        lNd = lN;
-        lNd.diagonal() += lambda * lN.diagonal();
-        lllt.compute(lNd);
-        if (lllt.info() != Eigen::Success) {
-          lambda *= 10;
-          continue;
-        }
-        lstep = lllt.solve(lg);
+      const bool accepted = DampedGaussNewtonStep(lN, lg, Cost(lz), &lambda, &lNd, &lllt, &lstep, [&] {
         ltrial = lz;
-        for (int l = 0; l < nl; ++l) ltrial[lcoords[l]] -= lstep[l];
+        for (int l = 0; l < nl; ++l) ltrial[lcoords[l]] += lstep[l];
         Wrap(&ltrial);
-        if (Cost(ltrial) < c0) {
-          lz = ltrial;
-          lambda = std::max(1e-7, lambda * 0.3);
-          accepted = true;
-        } else {
-          lambda *= 10;
-        }
-      }
+        return Cost(ltrial);
+      });
+      if (accepted) lz = ltrial;
     }
     const double score = LimbAssign(joint, lz, nc, kLimbFinalRadius);
     int labelled = 0;
@@ -641,33 +642,10 @@ void Tracker::Impl::Reacquire(int np) {
       near = !ltaken[k] && (FreshTrack() ? (points.col(k) - predicted.col(m)).squaredNorm() <
                                                kLimbNearRadius * kLimbNearRadius
                                          : RigidlyPlausible(m, k));
-    if (!near || RejoinAtOffset(m, np)) continue;
+    if (!near) continue;
     if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
   }
   if (joint >= 0) ReacquireLimb(joint, np);
-}
-
-// A marker back from an occlusion outside its gate, where the pose it is predicted from carries
-// a nominal model's error that its learnt offset no longer matches (a knee marker in a deep
-// squat, an elbow marker in a shoulder circle: 25-40 mm off, and steadily so), while the rest of
-// the limb is tracked, so the limb search finds no better pose. Its point is recognised by its
-// past instead of its place: the one unclaimed point within kRejoinRadius of the prediction that
-// has been followed for kMinTrackFrames at a constant distance from the marker's joint centre
-// (rigid with the segment) and was never seen beside the marker (SeenBeside: not a reflection
-// that came with it). The marker's offset is moved onto that point; the next frame's gate takes
-// it, through probation like any returning marker. Not in a fresh track, whose pasts are not
-// judged.
-bool Tracker::Impl::RejoinAtOffset(int m, int np) {
-  if (FreshTrack()) return false;
-  const int found = OnlyFreePointNear(predicted.col(m), kRejoinRadius * kRejoinRadius, np);
-  if (found < 0) return false;
-  double spread = 0;
-  if (TrackBack(m, points.col(found), &spread) < kMinTrackFrames || spread > kRigidTolerance ||
-      SeenBeside(m, found, np))
-    return false;
-  const int segment = model->markers()[m].segment;
-  offset[m] += data.segment_rotation[segment].transpose() * (points.col(found) - predicted.col(m));
-  return true;
 }
 
 }  // namespace mocap::ekf

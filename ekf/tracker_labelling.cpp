@@ -5,8 +5,9 @@
 //   2. Gating (LabelByGating): a marker can take a point inside its Mahalanobis gate, at its
 //      rigid-body distance from its segment's joint centre (OnSegmentSphere), whose past does not
 //      rule it out (NonRigidTrack, SeenBeside); the optimal assignment decides contested points.
-//   3. Segment pick-up (PickUpOnSegment): a marker whose segment's other markers are labelled is
-//      looked for where they put it.
+//   3. Segment registration (RegisterSegments): the markers the gates left unlabelled are looked
+//      for as a group, where their segment's rigid geometry (its labelled markers, its joint
+//      centre) puts them, and labelled when one choice of points fits clearly best.
 //   4. Probation (ChooseMeasurements): a returning marker's label enters the update from its
 //      second consecutive frame.
 //   5. The records the next frames judge points by (PushHistory): the last frames' points, and
@@ -18,6 +19,7 @@
 #include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "ekf/tracker_impl.h"
 #include "model/rigid_align.h"
@@ -128,56 +130,235 @@ void Tracker::Impl::FollowLabelledTracks(int np) {
   }
 }
 
-// A marker the gates left unlabelled while three or more other markers of its segment are
-// labelled this frame is looked for where those markers put it: the rigid motion that carries
-// their predictions onto their points (Kabsch), applied to its own prediction. The gate measures
-// a marker against the pose, and the pose of a segment held by few of its own markers and many of
-// the rest of the body (the pelvis, the root, under the legs' and the trunk's) carries the whole
-// chain's model error with a nominal model: a marker back from an occlusion is found 2-5 cm from
-// its prediction, beyond its gate for as long as that error lasts, while where it sits among its
-// segment's labelled markers does not depend on the pose. It takes the one unclaimed point within
-// its gate around that position (its variance and its neighbours'), when that point's past does
-// not rule it out; the label goes through probation like any other (ChooseMeasurements). Not in
-// a fresh track, whose points' past is not judged (FreshTrack): there the gates are still wide.
-void Tracker::Impl::PickUpOnSegment(int np) {
+// Segment registration (ekf/tracker.h, "Labelling"): the markers the gates left unlabelled are
+// looked for as a group, under their segment's rigid geometry, where the pose cannot mislead. A
+// segment's markers and its joint centre (the origin of its frame, where its parent's pose puts
+// it; the root has none) form a rigid body whatever the joint angles. Each unlabelled marker is
+// given, in turn, each of the few unclaimed points at its distance from the joint centre
+// (OnSegmentSphere) that its past does not rule out, or none; each such choice, with the
+// segment's labelled markers on their points, is fitted as a rigid body (SegmentFitCost) and is
+// possible when every anchor lies within its tolerance. The choice that labels the most markers at
+// the least cost is taken when no different choice labelling as many comes within
+// init_ambiguity_margin, and when no other segment's unlabelled marker could be one of its points.
+// Pinned (three or more labelled mates: the fit places the marker, not only its distances) a
+// point is judged as the gating judges one (NonRigidTrack, SeenBeside); unpinned, only a marker
+// stuck for kStuckFrames is looked for, at points that moved rigidly with the segment
+// (RigidWithSegment). Why: a marker leaves its gate when its segment's pose estimate is wrong or
+// carries a nominal model's pose-dependent error, and its point then sits where its segment's
+// rigid geometry puts it, and there only. The labels go through probation (ChooseMeasurements);
+// FilterUpdate weighs a measurement outside its gate down to the gate's weight. Not in a fresh
+// track (FreshTrack), whose joint centres may be wrong with a limb; the limb search relabels there.
+void Tracker::Impl::RegisterSegments(int np) {
   for (int m = 0; m < nm; ++m)
     if (row_to_col[m] >= np) row_to_col[m] = -1;
   if (FreshTrack()) return;
   bool claims_known = false;
-  for (int m = 0; m < nm; ++m) {
-    if (row_to_col[m] >= 0 || !seen[m]) continue;
-    const int segment = model->markers()[m].segment;
-    int mates = 0;
-    Eigen::Vector3d cp = Eigen::Vector3d::Zero(), cq = Eigen::Vector3d::Zero();
-    double var = 0;
-    for (int a = 0; a < nm; ++a)
-      if (a != m && row_to_col[a] >= 0 && model->markers()[a].segment == segment) {
-        ++mates;
-        cp += predicted.col(a);
-        cq += points.col(row_to_col[a]);
-        var += MeasurementVariance(a);
+  for (int segment : segment_order) {
+    const std::vector<int>& ms = segment_markers[segment];
+    seg.nopen = 0;
+    int anchors = marker_depth[ms[0]] > 0 ? 1 : 0;
+    for (int m : ms) {
+      if (row_to_col[m] >= 0) {
+        ++anchors;
+      } else if (seg.nopen < kSegmentMaxOpen) {
+        seg.open[seg.nopen++] = m;
       }
-    if (mates < 3) continue;
-    cp /= mates;
-    cq /= mates;
-    Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
-    for (int a = 0; a < nm; ++a)
-      if (a != m && row_to_col[a] >= 0 && model->markers()[a].segment == segment)
-        H += (predicted.col(a) - cp) * (points.col(row_to_col[a]) - cq).transpose();
-    const Eigen::Matrix3d R = KabschRotation(H);
-    const Eigen::Vector3d where = R * (predicted.col(m) - cp) + cq;
-    const double gate2 = options.gate_chi2 * (MeasurementVariance(m) + var / mates);
+    }
+    if (seg.nopen == 0 || anchors + seg.nopen < 3) continue;
     if (!claims_known) {
       std::fill(ltaken.begin(), ltaken.begin() + np, 0);
       for (int a = 0; a < nm; ++a)
         if (row_to_col[a] >= 0) ltaken[row_to_col[a]] = 1;
       claims_known = true;
     }
-    const int found = OnlyFreePointNear(where, gate2, np);
-    if (found < 0 || NonRigidTrack(m, points.col(found)) || SeenBeside(m, found, np)) continue;
-    row_to_col[m] = found;
-    ltaken[found] = 1;
+    // Candidates: the unclaimed points on each open marker's sphere, nearest its prediction first.
+    // With three or more of the segment's markers labelled the fit pins the marker's place in
+    // this frame (not only its distances), and a point there is judged as the gating judges one;
+    // with fewer, the point must also have moved rigidly with the segment (RigidWithSegment).
+    const bool pinned = anchors - (marker_depth[ms[0]] > 0 ? 1 : 0) >= 3;
+    int with_candidates = 0;
+    for (int o = 0; o < seg.nopen; ++o) {
+      const int m = seg.open[o];
+      double dist[kSegmentCandidates];
+      int& n = seg.ncand[o];
+      n = 0;
+      // Unpinned, only a marker missing from its point for kStuckFrames: one just back from an
+      // occlusion is the gate's (a reflection riding with the segment can sit at its place).
+      if (!pinned && unlabelled_run[m] < kStuckFrames) continue;
+      for (int k = 0; k < np; ++k) {
+        if (ltaken[k] || !OnSegmentSphere(m, points.col(k))) continue;
+        const double d = (points.col(k) - predicted.col(m)).squaredNorm();
+        if (n == kSegmentCandidates && d >= dist[n - 1]) continue;
+        if ((pinned ? NonRigidTrack(m, points.col(k)) : !RigidWithSegment(m, k)) ||
+            SeenBeside(m, k, np))
+          continue;
+        int i = n < kSegmentCandidates ? n++ : n - 1;
+        for (; i > 0 && dist[i - 1] > d; --i) {
+          dist[i] = dist[i - 1];
+          seg.cand[o][i] = seg.cand[o][i - 1];
+        }
+        dist[i] = d;
+        seg.cand[o][i] = k;
+      }
+      with_candidates += n > 0;
+    }
+    if (with_candidates == 0 || anchors + with_candidates < 3) continue;
+    // Every choice (odometer over candidates and none, distinct points).
+    int best_labels = 0;
+    double best_cost = std::numeric_limits<double>::infinity(), runner_up = best_cost;
+    for (int o = 0; o < seg.nopen; ++o) seg.choice[o] = -1;
+    for (;;) {
+      int o = 0;
+      for (; o < seg.nopen; ++o) {  // next choice
+        int& c = seg.choice[o];
+        c = c + 1 < seg.ncand[o] ? c + 1 : -1;
+        if (c >= 0) break;
+      }
+      if (o == seg.nopen) break;  // wrapped: all seen
+      int labels = 0;
+      bool distinct = true;
+      for (int i = 0; i < seg.nopen && distinct; ++i) {
+        if (seg.choice[i] < 0) continue;
+        ++labels;
+        for (int j = 0; j < i; ++j)
+          distinct &= seg.choice[j] < 0 || seg.cand[j][seg.choice[j]] != seg.cand[i][seg.choice[i]];
+      }
+      if (!distinct || labels < best_labels) continue;
+      double cost = 0;
+      if (!SegmentFitCost(segment, &cost)) continue;
+      if (labels > best_labels || cost < best_cost) {
+        // The previous best is the runner-up when it labels as many.
+        runner_up = labels == best_labels ? best_cost : std::numeric_limits<double>::infinity();
+        best_labels = labels;
+        best_cost = cost;
+        std::copy(seg.choice, seg.choice + seg.nopen, seg.best);
+      } else {
+        runner_up = std::min(runner_up, cost);
+      }
+    }
+    if (best_labels == 0 || runner_up - best_cost < options.init_ambiguity_margin) continue;
+    // A point another segment's unlabelled marker could also be (in its gate and on its own
+    // segment's sphere) is not decided here: the heel marker's point fits the ankle
+    // marker's place on the shank within a nominal model's error.
+    bool contested = false;
+    for (int o = 0; o < seg.nopen && !contested; ++o) {
+      if (seg.best[o] < 0) continue;
+      const int k = seg.cand[o][seg.best[o]];
+      for (int a = 0; a < nm && !contested; ++a) {
+        if (row_to_col[a] >= 0 || !seen[a] || model->markers()[a].segment == segment) continue;
+        const Eigen::Vector3d e = points.col(k) - predicted.col(a);
+        contested = e.dot(s_inv[a] * e) < options.gate_chi2 && OnSegmentSphere(a, points.col(k));
+      }
+    }
+    if (contested) continue;
+    for (int o = 0; o < seg.nopen; ++o) {
+      if (seg.best[o] < 0) continue;
+      const int k = seg.cand[o][seg.best[o]];
+      row_to_col[seg.open[o]] = k;
+      ltaken[k] = 1;
+    }
   }
+}
+
+bool Tracker::Impl::RigidWithSegment(int m, int k) const {
+  const int segment = model->markers()[m].segment;
+  const std::vector<int>& ms = segment_markers[segment];
+  const bool has_centre = marker_depth[m] > 0;
+  // Per anchor (the centre, then the segment's markers labelled now): the least and largest
+  // distance of the followed point.
+  constexpr int kMaxAnchors = 16;
+  double lo[kMaxAnchors], hi[kMaxAnchors];
+  const Eigen::Vector3d p = points.col(k);
+  auto anchor_now = [&](int i) -> Eigen::Vector3d {
+    return i == 0 ? centre_now[segment] : Eigen::Vector3d(points.col(row_to_col[ms[i - 1]]));
+  };
+  const int na = std::min<int>(kMaxAnchors, static_cast<int>(ms.size()) + 1);
+  for (int i = 0; i < na; ++i) {
+    if (i > 0 && row_to_col[ms[i - 1]] < 0) continue;
+    lo[i] = hi[i] = (p - anchor_now(i)).norm();
+  }
+  Eigen::Vector3d q = p;
+  int length = 1;
+  double travel2 = 0;
+  for (int h = 1; h <= hist_size; ++h) {
+    const int slot = (hist_head - h + kHistory) % kHistory;
+    const Eigen::Matrix3Xd& pts = hist_points[slot];
+    // m's own past labels continue its track.
+    const int nearest = PastPoint(slot, q, hist_marker_point[slot][m]);
+    if (nearest < 0) break;
+    q = pts.col(nearest);
+    ++length;
+    travel2 = std::max(travel2, (q - p).squaredNorm());
+    for (int i = 0; i < na; ++i) {
+      if (i > 0 && row_to_col[ms[i - 1]] < 0) continue;
+      double r;
+      if (i == 0) {
+        r = (q - hist_centre[slot][segment]).norm();
+      } else {
+        const int then = hist_marker_point[slot][ms[i - 1]];
+        if (then < 0) continue;
+        r = (q - pts.col(then)).norm();
+      }
+      lo[i] = std::min(lo[i], r);
+      hi[i] = std::max(hi[i], r);
+    }
+  }
+  // Rigid while it stood still says nothing: a reflection fixed in the lab is rigid with a
+  // segment at rest (the static pose).
+  if (length < kMinTrackFrames || travel2 < kRegistrationTravel * kRegistrationTravel) return false;
+  for (int i = has_centre ? 0 : 1; i < na; ++i) {
+    if (i > 0 && row_to_col[ms[i - 1]] < 0) continue;
+    if (hi[i] - lo[i] > kRigidTolerance) return false;
+  }
+  return true;
+}
+
+bool Tracker::Impl::SegmentFitCost(int segment, double* cost) const {
+  const std::vector<int>& ms = segment_markers[segment];
+  // Anchors: local (segment frame, origin at the joint centre: where the predicted pose puts each
+  // marker, its learnt offset included) and world positions, each with its variance and tolerance.
+  constexpr int kMaxAnchors = 16;
+  Eigen::Matrix<double, 3, kMaxAnchors> local, world;
+  double var[kMaxAnchors], tol[kMaxAnchors];
+  int n = 0;
+  const Eigen::Matrix3d& R0 = data.segment_rotation[segment];
+  if (marker_depth[ms[0]] > 0) {
+    local.col(n).setZero();
+    world.col(n) = centre_now[segment];
+    var[n] = 0.25 * kJointCentreTolerance * kJointCentreTolerance;
+    tol[n++] = std::sqrt(options.gate_chi2) * options.sigma_m + kJointCentreTolerance;
+  }
+  auto add = [&](int m, int k) {
+    if (n == kMaxAnchors) return;
+    local.col(n) = R0.transpose() * (predicted.col(m) - centre_now[segment]);
+    world.col(n) = points.col(k);
+    var[n] = MeasurementVariance(m) + model_error[m];
+    tol[n] = std::sqrt(options.gate_chi2 * var[n]);
+    ++n;
+  };
+  int open = 0;
+  for (int m : ms) {
+    if (open < seg.nopen && seg.open[open] == m) {
+      if (seg.choice[open] >= 0) add(m, seg.cand[open][seg.choice[open]]);
+      ++open;
+    } else if (row_to_col[m] >= 0) {
+      add(m, row_to_col[m]);
+    }
+  }
+  if (n < 3) return false;
+  const Eigen::Vector3d cl = local.leftCols(n).rowwise().mean();
+  const Eigen::Vector3d cw = world.leftCols(n).rowwise().mean();
+  Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
+  for (int i = 0; i < n; ++i) H += (local.col(i) - cl) * (world.col(i) - cw).transpose();
+  const Eigen::Matrix3d R = KabschRotation(H);
+  double c = 0;
+  for (int i = 0; i < n; ++i) {
+    const double e2 = (R * (local.col(i) - cl) + cw - world.col(i)).squaredNorm();
+    if (e2 > tol[i] * tol[i]) return false;
+    c += e2 / var[i];
+  }
+  *cost = c;
+  return true;
 }
 
 // Turns row_to_col (columns < np are points) into the output labels; returns the count.
@@ -203,8 +384,10 @@ void Tracker::Impl::PushHistory(int np) {
   hist_count[hist_head] = np;
   std::vector<char>& claimed = hist_claimed[hist_head];
   std::fill(claimed.begin(), claimed.begin() + np, 0);
-  for (int m = 0; m < nm; ++m)
+  for (int m = 0; m < nm; ++m) {
     if (row_to_col[m] >= 0) claimed[row_to_col[m]] = 1;
+    hist_marker_point[hist_head][m] = row_to_col[m];
+  }
   for (size_t i = 0; i < centre_now.size(); ++i) hist_centre[hist_head][i] = centre_now[i];
   hist_head = (hist_head + 1) % kHistory;
   hist_size = std::min(hist_size + 1, kHistory);
@@ -306,6 +489,22 @@ bool Tracker::Impl::NonRigidTrack(int m, const Eigen::Vector3d& p) const {
   return TrackBack(m, p, &spread) >= kMinTrackFrames && spread > kRigidTolerance;
 }
 
+int Tracker::Impl::PastPoint(int slot, const Eigen::Vector3d& q, int own) const {
+  const Eigen::Matrix3Xd& pts = hist_points[slot];
+  const std::vector<char>& claimed = hist_claimed[slot];
+  int nearest = -1;
+  double best = kTrackStep * kTrackStep;
+  for (int k = 0; k < hist_count[slot]; ++k) {
+    if (claimed[k] && k != own) continue;
+    const double d2 = (pts.col(k) - q).squaredNorm();
+    if (d2 < best) {
+      best = d2;
+      nearest = k;
+    }
+  }
+  return nearest;
+}
+
 int Tracker::Impl::TrackBack(int m, const Eigen::Vector3d& p, double* spread) const {
   const int segment = model->markers()[m].segment;
   Eigen::Vector3d q = p;
@@ -315,17 +514,7 @@ int Tracker::Impl::TrackBack(int m, const Eigen::Vector3d& p, double* spread) co
   for (int h = 1; h <= hist_size; ++h) {
     const int slot = (hist_head - h + kHistory) % kHistory;
     const Eigen::Matrix3Xd& pts = hist_points[slot];
-    int nearest = -1;
-    double best = kTrackStep * kTrackStep;
-    const std::vector<char>& claimed = hist_claimed[slot];
-    for (int k = 0; k < hist_count[slot]; ++k) {
-      if (claimed[k]) continue;
-      const double d2 = (pts.col(k) - q).squaredNorm();
-      if (d2 < best) {
-        best = d2;
-        nearest = k;
-      }
-    }
+    const int nearest = PastPoint(slot, q, -1);
     if (nearest < 0) break;
     q = pts.col(nearest);
     const double r = (q - hist_centre[slot][segment]).norm();
@@ -382,9 +571,7 @@ bool Tracker::Impl::OnSegmentSphere(int m, const Eigen::Vector3d& p) const {
   if (marker_depth[m] == 0) return true;
   const Eigen::Vector3d centre = centre_now[segment];
   const double radius = (predicted.col(m) - centre).norm();
-  const double tol = std::sqrt(options.gate_chi2 * (MeasurementVariance(m) + model_error[m])) +
-                     kJointCentreTolerance;
-  return std::abs((p - centre).norm() - radius) <= tol;
+  return std::abs((p - centre).norm() - radius) <= SegmentTolerance(m);
 }
 
 }  // namespace mocap::ekf

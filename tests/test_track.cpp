@@ -430,7 +430,8 @@ TEST_F(TrackCli, IssueConditionsTrueModelAnglesWithinADegree) {
 
 // Another subject and session. With the nominal model, pelvis markers back from an occlusion sit
 // 2-5 cm from where the pose (pulled by the legs' and trunk's model error) predicts them, beyond
-// their gates for seconds (0.99822 of the labels before the segment pick-up, ekf/tracker.cpp).
+// their gates for seconds (0.99822 of the labels before a marker was looked for where its
+// segment's labelled markers put it; now the segment registration, ekf/tracker_labelling.cpp).
 TEST_F(TrackCli, IssueConditionsNominalModelSeed2) { RunIssueConditions("nominal", 2); }
 
 // A reflection riding 15 mm beside the right finger marker took its label the frame the marker
@@ -445,7 +446,8 @@ TEST_F(TrackCli, IssueConditionsTrueModelSeed5) {
 // Markers on two-marker segments (RKNE on the thigh in squats, LELB on the upper arm in shoulder
 // circles and elbow flexion) come back from occlusions 25-40 mm from a prediction that carries
 // the nominal model's error, steadily so, beyond their gates for up to 111 frames (0.99934 of
-// the labels before RejoinAtOffset, ekf/tracker.cpp).
+// the labels before such a marker was found where its segment's rigid geometry puts it: the
+// segment registration, ekf/tracker_labelling.cpp).
 TEST_F(TrackCli, IssueConditionsNominalModelSeed3) { RunIssueConditions("nominal", 3); }
 
 // In the first second, in the static pose, RANK is hidden at frame 78 and a lab-fixed ghost 78 mm
