@@ -23,6 +23,9 @@ struct IkOptions {
   int max_iterations = 50;
   double step_tolerance = 1e-8;       // stop when |dz| < this
   double restart_rms_m = 0.03;        // a warm start worse than this re-initialises
+  // SolveTrial: a frame with hidden markers is re-solved from its pose interpolated between the
+  // nearest frames that see those markers (InverseKinematics::BridgeGaps).
+  bool bridge_gaps = true;
   bool IsValid(std::string* error) const;
 };
 
@@ -53,6 +56,21 @@ class InverseKinematics {
                     Eigen::MatrixXd* coordinates, std::vector<double>* rms_m = nullptr);
 
  private:
+  // A segment that keeps fewer markers than its joint has degrees of freedom plus one (a
+  // two-marker Plug-in Gait foot with its toe marker hidden) has two poses that fit what is seen
+  // equally well: the sweep's warm start keeps the right one only until a re-initialisation
+  // jumps to the mirror one, and then keeps that for the rest of the gap. The global fit cannot
+  // tell the two apart either (both fit the data; it only moves the pose locally) and crawls
+  // with the geometry pulled between the branches. So a frame with hidden markers is re-solved
+  // from the pose interpolated in time between the nearest frames that see every one of them
+  // (the motion is smooth across a gap of a few tens of frames), and the result kept unless its
+  // RMS is clearly worse than the sweep's. A DOF that nothing in the frame observes (a hidden
+  // single hand marker) keeps the interpolated value instead of the pose before the gap.
+  void BridgeGaps(const Eigen::Ref<const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic,
+                                                       Eigen::RowMajor>>& measured,
+                  const std::vector<double>& frame_rms, Eigen::MatrixXd* coordinates,
+                  std::vector<double>* rms_m);
+
   const Model& model_;
   const Geometry& geometry_;
   IkOptions options_;
