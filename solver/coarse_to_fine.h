@@ -159,14 +159,18 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
 //     own rows, 1 / (U_f^-1)_cc, is below `weak_ratio` times the median of the same over all
 //     frames (what a frame typically knows about c);
 //   * it then gets a prior of information `hold_ratio` times that median (a standard deviation
-//     1/sqrt(hold_ratio) = 10 times a typical frame's) towards its starting value, which
+//     1/sqrt(hold_ratio) = 32 times a typical frame's) towards its starting value, which
 //     InverseKinematics::SolveTrial interpolates across the gap (IkOptions::bridge_gaps).
 // The prior is weak against data (a frame that sees c outweighs it by 1/hold_ratio) and sits
-// only where the data are silent, so what the data determine is not biased by it.
+// only where the data are silent. Its strength is a trade, measured at 5 % missing (6,000
+// frames, seed 2, BENCHMARKS.md): hold_ratio 1e-2 converged in 12 iterations but biased the
+// fit (joint centres 1.25 mm max from the truth, cost 1.473e5); 1e-3, 25 iterations, 0.49 mm
+// (0.48 mm on the same data without gaps), 1.422e5; 1e-4 and none crawled (100 iterations,
+// not converged, 0.59-0.61 mm).
 struct UnobservedHoldOptions {
   bool enabled = true;
   double weak_ratio = 1e-2;
-  double hold_ratio = 1e-2;
+  double hold_ratio = 1e-3;
   bool IsValid(std::string* error) const;
 };
 

@@ -56,16 +56,16 @@ class InverseKinematics {
                     Eigen::MatrixXd* coordinates, std::vector<double>* rms_m = nullptr);
 
  private:
-  // A segment that keeps fewer markers than its joint has degrees of freedom plus one (a
-  // two-marker Plug-in Gait foot with its toe marker hidden) has two poses that fit what is seen
-  // equally well: the sweep's warm start keeps the right one only until a re-initialisation
-  // jumps to the mirror one, and then keeps that for the rest of the gap. The global fit cannot
-  // tell the two apart either (both fit the data; it only moves the pose locally) and crawls
-  // with the geometry pulled between the branches. So a frame with hidden markers is re-solved
-  // from the pose interpolated in time between the nearest frames that see every one of them
-  // (the motion is smooth across a gap of a few tens of frames), and the result kept unless its
-  // RMS is clearly worse than the sweep's. A DOF that nothing in the frame observes (a hidden
-  // single hand marker) keeps the interpolated value instead of the pose before the gap.
+  // In a gap, what the hidden markers observed is lost: a hand whose only marker is hidden
+  // leaves both wrist angles free, a two-marker foot with its toe marker hidden leaves the
+  // rotation about the line from the ankle to the heel marker nearly free and may fit the heel
+  // marker equally well in a second, turned branch. The sweep's warm start holds such
+  // coordinates at the frame before the gap (or wherever a re-initialisation put them); the
+  // global fit then has to move them over the whole gap while they are held by almost nothing
+  // (solver/coarse_to_fine.h, UnobservedCoordinateWeights). So a frame with hidden markers is
+  // re-solved from the pose interpolated in time between the nearest frames that see every one
+  // of them (the motion is smooth over a gap of a few tens of frames), and the result kept
+  // unless its RMS is clearly worse than the sweep's.
   void BridgeGaps(const Eigen::Ref<const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic,
                                                        Eigen::RowMajor>>& measured,
                   const std::vector<double>& frame_rms, Eigen::MatrixXd* coordinates,
