@@ -14,6 +14,12 @@
 //                [--max-iterations K] [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]
 //                [--fit-model] [--rescue-rounds N]
 //
+// The accuracy against the simulation's truth is printed ("truth:", JSON ours_accuracy): joint
+// centres and frames whose markers (hidden ones too) sit > 20 mm off. With FVC_DEBUG=1 in the
+// environment it also prints each such frame's worst marker and the per-trial frame costs (how
+// the gap diagnosis in BENCHMARKS.md was made). --no-hold / --hold-* / --rescue-ratio set
+// FitOptions::unobserved_hold and CoarseToFineOptions::rescue_ratio (solver/coarse_to_fine.h).
+//
 // --fit-model also runs solver::FitModel, what `mocap fit` runs, on the same trials with the same
 // options: its IK start, the coarse-to-fine solve, the re-posing and the rescue of frames left in
 // a wrong branch (FitOptions::rescue_ratio), timed whole (wall) and solve alone.
@@ -483,6 +489,7 @@ Accuracy MeasureAccuracy(const BenchData& d, const solver::MarkerFitProblem& pro
   a.centre_max_mm = cmp.joint_centre_error_mm.max;
   a.centre_rms_mm = cmp.joint_centre_error_mm.rms;
   if (std::getenv("FVC_DEBUG")) {
+    // SetShared only moves the problem's current geometry, which every solve sets anew.
     solver::MarkerFitProblem& pr = const_cast<solver::MarkerFitProblem&>(problem);
     pr.SetShared(x.tail(problem.shared_dim()));
     auto ev = pr.NewEvaluator();
