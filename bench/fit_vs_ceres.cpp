@@ -11,7 +11,14 @@
 //                [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]
 //                [--pose-tolerance T] [--fine-lambda L] [--no-inner]
 //                [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA] [--min-diagonal D]
+//                [--max-iterations K] [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]
 //                [--fit-model] [--rescue-rounds N]
+//
+// The accuracy against the simulation's truth is printed ("truth:", JSON ours_accuracy): joint
+// centres and frames whose markers (hidden ones too) sit > 20 mm off. With FVC_DEBUG=1 in the
+// environment it also prints each such frame's worst marker and the per-trial frame costs (how
+// the gap diagnosis in BENCHMARKS.md was made). --no-hold / --hold-* / --rescue-ratio set
+// FitOptions::unobserved_hold and CoarseToFineOptions::rescue_ratio (solver/coarse_to_fine.h).
 //
 // --fit-model also runs solver::FitModel, what `mocap fit` runs, on the same trials with the same
 // options: its IK start, the coarse-to-fine solve, the re-posing and the rescue of frames left in
@@ -96,6 +103,7 @@
 #include <nlohmann/json.hpp>
 
 #include "formats/marker_data.h"
+#include "model/compare.h"
 #include "model/kinematics.h"
 #include "model/model.h"
 #include "sim/simulate.h"
@@ -215,6 +223,9 @@ struct Args {
   bool fit_model = false;        // also time solver::FitModel on the same trials
   int rescue_rounds = -1;        // >= 0: FitOptions::rescue_rounds (0: no rescue); -1: default
   double frame_prior_sigma = 0;  // > 0: FitOptions' frame prior sigma (rad and m); 0: its default
+  int max_iterations = -1;       // >= 0: LmOptions::max_iterations (ours); -1: FitOptions' default
+  bool hold = true;              // FitOptions::unobserved_hold.enabled
+  double hold_weak = 0, hold_ratio = 0;  // > 0: UnobservedHoldOptions' weak_ratio, hold_ratio
 };
 
 [[noreturn]] void Usage(const std::string& error) {
@@ -228,7 +239,8 @@ struct Args {
                "         [--plain] [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]\n"
                "         [--pose-tolerance T] [--fine-lambda L] [--no-inner]\n"
                "         [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA]\n"
-               "         [--min-diagonal D] [--fit-model] [--rescue-rounds N]\n",
+               "         [--min-diagonal D] [--fit-model] [--rescue-rounds N] [--max-iterations K]\n"
+               "         [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]\n",
                error.c_str());
   std::exit(2);
 }
@@ -278,6 +290,11 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--fit-model") args.fit_model = true;
     else if (a == "--rescue-rounds") args.rescue_rounds = static_cast<int>(number(0));
     else if (a == "--min-diagonal") args.min_diagonal = number(1e-300);
+    else if (a == "--no-hold") args.hold = false;
+    else if (a == "--hold-weak") args.hold_weak = number(1e-300);
+    else if (a == "--hold-ratio") args.hold_ratio = number(1e-300);
+    else if (a == "--rescue-ratio") args.coarse.rescue_ratio = number(0);
+    else if (a == "--max-iterations") args.max_iterations = static_cast<int>(number(0));
     else if (a == "--frame-prior") args.frame_prior_sigma = number(1e-6);
     else if (a == "--seed") args.seed = static_cast<std::uint64_t>(number(0));
     else if (a == "--threads") args.threads = static_cast<int>(number(1));
@@ -361,6 +378,10 @@ struct BenchData {
   std::vector<std::pair<int, int>> trial_ranges;  // first frame, frame count
   std::vector<formats::MarkerTrial> trials;       // the same frames as trials (--fit-model)
   std::string source;
+  // The simulation's truth, for the accuracy figures: the true model (same joints as `model`)
+  // and every frame's true z (rows: frames).
+  Model truth;
+  Eigen::MatrixXd true_coordinates;
 };
 
 // Copies `trials` (in order, the last truncated so the total is `frames`) into one measurement
@@ -430,6 +451,14 @@ BenchData MakeData(int frames, const Args& args) {
   std::vector<const formats::MarkerTrial*> trials;
   for (const auto& t : session.trials) trials.push_back(&t.markers);
   BenchData d = Assemble(session.nominal, trials, frames);
+  d.truth = session.truth;
+  d.true_coordinates.resize(d.measurements.rows(), d.model.num_coordinates());
+  for (size_t t = 0, first = 0; t < d.trial_ranges.size(); ++t) {
+    for (int f = 0; f < d.trial_ranges[t].second; ++f)
+      d.true_coordinates.row(first + f) =
+          sim::TrueCoordinates(d.truth, session.trials[t].coordinates, f).transpose();
+    first += d.trial_ranges[t].second;
+  }
   char buf[160];
   std::snprintf(buf, sizeof(buf),
                 "default protocol, seed %llu, noise %g mm, missing %g, duration_scale %g, %zu trials",
@@ -437,6 +466,90 @@ BenchData MakeData(int frames, const Args& args) {
                 options.duration_scale, d.trial_ranges.size());
   d.source = buf;
   return d;
+}
+
+// How far a solution x = [z_1 .. z_F, p] is from the simulation's truth: the fitted joint
+// centres (model/compare.h, in the frames of the segments they join) and, per trial, the frames
+// where some marker, seen or hidden, lies more than 20 mm from its true place (a wrong branch:
+// a two-marker foot turned round while one marker was hidden).
+struct Accuracy {
+  double centre_max_mm = NAN, centre_rms_mm = NAN;
+  int frames_off = 0;
+  std::vector<int> frames_off_per_trial;
+};
+
+Accuracy MeasureAccuracy(const BenchData& d, const solver::MarkerFitProblem& problem, const Eigen::VectorXd& x) {
+  Accuracy a;
+  const int nz = problem.frame_dim();
+  Model fitted;
+  ModelComparison cmp;
+  if (!d.model.WithParameters(problem.FullParameters(x.tail(problem.shared_dim())), &fitted).ok() ||
+      !CompareModels(d.truth, fitted, &cmp).ok())
+    return a;
+  a.centre_max_mm = cmp.joint_centre_error_mm.max;
+  a.centre_rms_mm = cmp.joint_centre_error_mm.rms;
+  if (std::getenv("FVC_DEBUG")) {
+    // SetShared only moves the problem's current geometry, which every solve sets anew.
+    solver::MarkerFitProblem& pr = const_cast<solver::MarkerFitProblem&>(problem);
+    pr.SetShared(x.tail(problem.shared_dim()));
+    auto ev = pr.NewEvaluator();
+    std::vector<double> per(problem.num_frames());
+    for (int f = 0; f < problem.num_frames(); ++f) {
+      double c = 0;
+      solver::FrameSquaredNorm(pr, ev.get(), f, x.data() + static_cast<size_t>(f) * problem.frame_dim(), &c);
+      per[f] = c;
+    }
+    std::vector<double> sorted = per;
+    std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
+    const double med = sorted[sorted.size() / 2];
+    double excess = 0;
+    int high = 0;
+    for (double c : per) {
+      if (c > 4 * med) ++high;
+      excess += std::max(0.0, c - med);
+    }
+    std::fprintf(stderr, "cost: median frame %.2f, frames > 4x median %d, sum above median %.1f\n", med, high, excess);
+    for (size_t t = 0; t < d.trial_ranges.size(); ++t) {
+      double sum = 0;
+      int h = 0;
+      for (int f = d.trial_ranges[t].first; f < d.trial_ranges[t].first + d.trial_ranges[t].second; ++f) {
+        sum += per[f];
+        h += per[f] > 4 * med;
+      }
+      std::fprintf(stderr, "cost: trial %zu (%s) sum %.1f, per frame %.2f, frames > 4x median %d\n", t,
+                   d.trials[t].name.c_str(), sum, sum / d.trial_ranges[t].second, h);
+    }
+  }
+  // Every marker where the fitted model and pose put it, seen or hidden, against where the truth
+  // put it: convention-free (joint axes and segment frames differ between the two models), and
+  // a segment turned round in a gap moves its hidden markers far off.
+  const double limit = 0.02;
+  const Geometry fitted_geometry(fitted), truth_geometry(d.truth);
+  ModelData fitted_data(fitted), truth_data(d.truth);
+  std::vector<int> truth_marker(fitted.num_markers());
+  for (int m = 0; m < fitted.num_markers(); ++m) truth_marker[m] = d.truth.FindMarker(fitted.markers()[m].name);
+  for (const auto& [first, count] : d.trial_ranges) {
+    int off = 0;
+    for (int f = first; f < first + count; ++f) {
+      ForwardKinematics(fitted, fitted_geometry, x.segment(static_cast<Eigen::Index>(f) * nz, nz), &fitted_data);
+      ForwardKinematics(d.truth, truth_geometry, d.true_coordinates.row(f).transpose(), &truth_data);
+      for (int m = 0; m < fitted.num_markers(); ++m) {
+        if (truth_marker[m] < 0) continue;
+        const double e = (MarkerPosition(fitted, fitted_geometry, fitted_data, m) -
+                          MarkerPosition(d.truth, truth_geometry, truth_data, truth_marker[m])).norm();
+        if (e > limit) {
+          ++off;
+          if (std::getenv("FVC_DEBUG"))
+            std::fprintf(stderr, "off: frame %d marker %s %.1f mm %s\n", f, fitted.markers()[m].name.c_str(),
+                         1000 * e, std::isfinite(d.measurements(f, 3 * m)) ? "seen" : "hidden");
+          break;
+        }
+      }
+    }
+    a.frames_off_per_trial.push_back(off);
+    a.frames_off += off;
+  }
+  return a;
 }
 
 // Per-frame IK with the nominal geometry, trials in parallel: FitModel's starting point.
@@ -1109,6 +1222,10 @@ int main(int argc, char** argv) {
   // change the problem between stages; Ceres gets the single problem, so ours does too.
   fit_options.staged = false;
   if (args.min_diagonal > 0) fit_options.lm.min_diagonal = args.min_diagonal;
+  if (args.max_iterations >= 0) fit_options.lm.max_iterations = args.max_iterations;
+  fit_options.unobserved_hold.enabled = args.hold;
+  if (args.hold_weak > 0) fit_options.unobserved_hold.weak_ratio = args.hold_weak;
+  if (args.hold_ratio > 0) fit_options.unobserved_hold.hold_ratio = args.hold_ratio;
   if (args.frame_prior_sigma > 0) {
     fit_options.frame_prior_sigma_rad = args.frame_prior_sigma;
     fit_options.frame_prior_sigma_m = args.frame_prior_sigma;
@@ -1124,6 +1241,14 @@ int main(int argc, char** argv) {
   const Eigen::VectorXd x0 = InitialGuess(data, problem, fit_options, args.threads);
   problem.SetFramePriorTargets(x0);  // as FitModel does: each frame weakly held at its start
   const double ik_seconds = Since(ik_start);
+  // As FitModel does: the coordinates a frame in a gap leaves unobserved held at their start
+  // (solver::UnobservedCoordinateWeights); part of the problem both solvers get, so untimed.
+  const auto hold_start = Clock::now();
+  formats::RowMatrix hold_weights;
+  const int held = solver::UnobservedCoordinateWeights(&problem, x0, problem.uniform_frame_prior_weight(),
+                                                       fit_options.unobserved_hold, args.threads, &hold_weights);
+  problem.SetFramePriorWeights(std::move(hold_weights));
+  const double hold_seconds = Since(hold_start);
 
   json out;
   out["frames"] = nf;
@@ -1136,6 +1261,8 @@ int main(int argc, char** argv) {
   out["data"] = data.source;
   out["setup_s"] = setup_seconds;
   out["ik_s"] = ik_seconds;
+  out["held_coordinates"] = held;
+  out["hold_s"] = hold_seconds;
 
   // Ours first, and Ceres's problem built only afterwards, so that ours_peak_rss_mb is ours alone
   // (with the data, the problem and the IK, which Ceres's runs hold too).
@@ -1145,6 +1272,7 @@ int main(int argc, char** argv) {
   std::vector<double> ours_times;
   double ours_cpu = 0, ours_others_cpu = 0;
   solver::CoarseToFineSummary ours_coarse;
+  Eigen::VectorXd ours_x;
   for (int rep = 0; rep < args.repeat; ++rep) {
     Eigen::VectorXd x = x0;
     const SolveTimer timer;
@@ -1156,6 +1284,7 @@ int main(int argc, char** argv) {
     ours_times.push_back(timer.wall());
     if (ours_times.back() <= *std::min_element(ours_times.begin(), ours_times.end())) {
       ours = summary;
+      ours_x = x;
       ours_coarse = coarse;
       ours_cpu = timer.cpu();
       ours_others_cpu = timer.others();
@@ -1199,6 +1328,7 @@ int main(int argc, char** argv) {
                         {"iterations", ours_coarse.coarse.num_iterations()},
                         {"seconds", ours_coarse.coarse.total_seconds},
                         {"pose_seconds", ours_coarse.pose_seconds},
+                        {"poses_rescued", ours_coarse.poses_rescued},
                         {"start_cost", ours_coarse.start_cost},
                         {"fine_start_cost", ours_coarse.fine_start_cost},
                         {"total_seconds", ours_coarse.total_seconds}};
@@ -1232,6 +1362,13 @@ int main(int argc, char** argv) {
     out["fitmodel_marker_rms_mm"] = r.marker_rms_mm;
     out["fitmodel_per_trial_rms_mm"] = r.per_trial_rms_mm;
   }
+  const Accuracy start_accuracy = MeasureAccuracy(data, problem, x0);
+  const Accuracy ours_accuracy = MeasureAccuracy(data, problem, ours_x);
+  for (const auto& [key, a] : {std::pair{"start_accuracy", &start_accuracy}, std::pair{"ours_accuracy", &ours_accuracy}})
+    out[key] = {{"centre_max_mm", a->centre_max_mm},
+                {"centre_rms_mm", a->centre_rms_mm},
+                {"frames_marker_off_20mm", a->frames_off},
+                {"frames_marker_off_20mm_per_trial", a->frames_off_per_trial}};
   out["ours_caches_frames"] = ours_cached;  // U_f, W_f kept between passes (memory budget)
   out["ours_peak_rss_mb"] = ours_rss;
 
@@ -1408,6 +1545,7 @@ int main(int argc, char** argv) {
   std::printf("fit_vs_ceres: %d frames (%s), %lld unknowns (%d shared), %d residuals, %d threads\n",
               nf, data.source.c_str(), static_cast<long long>(nf) * nz + np, np,
               problem.num_residuals(), args.threads);
+  std::printf("  held coordinates (frames in gaps) %d, %.3f s\n", held, hold_seconds);
   std::printf("  setup %.2f s, IK %.2f s; initial cost %.6e\n", setup_seconds, ik_seconds,
               ours.initial_cost);
   // cpu: this process's CPU time over the solve; others: the share of the machine's CPU other
@@ -1466,6 +1604,10 @@ int main(int argc, char** argv) {
     for (const auto& [layout, c] : out["check"].items())
       std::printf("  check at x0 (%s blocks): cost rel diff %.1e, gradient rel diff %.1e\n",
                   layout.c_str(), c["initial_cost_rel"].get<double>(), c["gradient_rel"].get<double>());
+  std::printf("  truth: joint centres max / RMS %.3f / %.3f mm at the start, %.3f / %.3f mm after ours; "
+              "frames with a marker > 20 mm off %d at the start, %d after ours\n",
+              start_accuracy.centre_max_mm, start_accuracy.centre_rms_mm, ours_accuracy.centre_max_mm,
+              ours_accuracy.centre_rms_mm, start_accuracy.frames_off, ours_accuracy.frames_off);
   std::printf("  peak RSS: ours %.0f MB, total %.0f MB\n", ours_rss, out["peak_rss_mb"].get<double>());
   std::printf("  BLAS: %s\n  machine: %d x %s\n", out["blas"].get<std::string>().c_str(),
               NumProcessors(), CpuModel().c_str());

@@ -8,6 +8,8 @@
 #include <cstring>
 #include <limits>
 
+#include <Eigen/Cholesky>
+
 #include "solver/parallel.h"
 
 namespace mocap::solver {
@@ -42,8 +44,9 @@ class SubsetEvaluator : public FrameEvaluator {
 class WithInnerIterations : public LmProblem {
  public:
   WithInnerIterations(ArrowSchurProblem* whole, ArrowProblem* problem, const CoarseToFineOptions& options,
-                      int num_threads)
-      : whole_(whole), problem_(problem), options_(options), num_threads_(num_threads) {
+                      int num_threads, bool refine_poses)
+      : whole_(whole), problem_(problem), options_(options), num_threads_(num_threads),
+        refine_poses_(refine_poses) {
     options_.pose_iterations = 1;
     options_.pose_from_predecessor = false;
   }
@@ -70,11 +73,20 @@ class WithInnerIterations : public LmProblem {
     candidate_ = *x;
     bool ok = false;
     // LM has just evaluated the cost at this very x (the accepted step).
-    const bool known = costs_at_ == Fingerprint(*x);
+    costs_.clear();
+    if (costs_at_ == Fingerprint(*x)) costs_ = whole_->frame_costs();
+    // Frames that the step left in a wrong branch first (their cost far above the others'),
+    // then one Gauss–Newton step for every pose; each frame's cost only falls, p is unchanged.
+    rescued_ += RescueFramesFromNeighbours(problem_, options_, num_threads_, &candidate_, &costs_);
+    if (!refine_poses_) {
+      x->swap(candidate_);
+      return;
+    }
     RefineFramePoses(problem_, options_, num_threads_, &candidate_, &ok, nullptr,
-                     known ? whole_->frame_costs().data() : nullptr);
-    if (ok) x->swap(candidate_);  // every frame's cost only fell; p is unchanged
+                     static_cast<int>(costs_.size()) == problem_->num_frames() ? costs_.data() : nullptr);
+    if (ok) x->swap(candidate_);
   }
+  int rescued() const { return rescued_; }
 
  private:
   ArrowSchurProblem* whole_;
@@ -92,6 +104,9 @@ class WithInnerIterations : public LmProblem {
     return h;
   }
   int num_threads_;
+  bool refine_poses_;
+  int rescued_ = 0;
+  std::vector<double> costs_;
   Eigen::VectorXd candidate_;
   std::uint64_t costs_at_ = 0;
 };
@@ -168,6 +183,43 @@ void AddBlockNormalEquations(const ResidualBlock& blk, int ny, double* u, double
     }
   }
 }
+// Up to `iterations` damped Gauss–Newton steps on frame f's own rows and prior (p fixed) from
+// y, each kept only if it lowers *cost (y's sum of squares on entry); stops once a step gains
+// at most `tolerance` of the cost. Returns whether y moved.
+bool FramePoseSteps(const ArrowProblem& problem, FrameEvaluator* evaluator, int f, int iterations,
+                    double tolerance, double damping, Eigen::MatrixXd* u, Eigen::VectorXd* g,
+                    Eigen::VectorXd* trial, double* yf, double* cost) {
+  const int ny = problem.frame_dim();
+  bool moved = false;
+  for (int it = 0; it < iterations; ++it) {
+    // Normal equations of the frame's own rows: U = J_y^T J_y + B^T B, g = J_y^T r + B^T B (y - y0).
+    if (!evaluator->EvaluatePoseJacobians(f, yf)) break;
+    u->setZero();
+    g->setZero();
+    for (int k = 0; k < evaluator->num_blocks(); ++k)
+      AddBlockNormalEquations(evaluator->block(k), ny, u->data(), g->data());
+    const double *w, *target;
+    if (problem.FramePrior(f, &w, &target))
+      for (int i = 0; i < ny; ++i) {
+        (*u)(i, i) += w[i] * w[i];
+        (*g)[i] += w[i] * w[i] * (yf[i] - target[i]);
+      }
+    for (int i = 0; i < ny; ++i) (*u)(i, i) += damping * std::max((*u)(i, i), 1e-12);
+    if (!CholeskyInPlace(u->data(), ny)) break;
+    CholeskySolveInPlace(u->data(), ny, g->data());
+    *trial = Eigen::Map<const Eigen::VectorXd>(yf, ny) - *g;
+    double trial_cost = 0;
+    if (!trial->allFinite() || !FrameSquaredNorm(problem, evaluator, f, trial->data(), &trial_cost) ||
+        !(trial_cost < *cost))
+      break;
+    Eigen::Map<Eigen::VectorXd>(yf, ny) = *trial;
+    const double decrease = *cost - trial_cost;
+    *cost = trial_cost;
+    moved = true;
+    if (decrease <= tolerance * *cost) break;
+  }
+  return moved;
+}
 }  // namespace
 
 bool CoarseToFineOptions::IsValid(std::string* error) const {
@@ -183,6 +235,8 @@ bool CoarseToFineOptions::IsValid(std::string* error) const {
   if (!(pose_damping >= 0)) return fail("pose_damping must be >= 0");
   if (!(pose_tolerance > 0 && pose_tolerance < 1)) return fail("pose_tolerance must be in (0, 1)");
   if (!(fine_initial_lambda > 0)) return fail("fine_initial_lambda must be > 0");
+  if (!(rescue_ratio >= 0)) return fail("rescue_ratio must be >= 0 (below 1: off)");
+  if (rescue_iterations < 1 || rescue_reach < 1) return fail("rescue_iterations and rescue_reach must be >= 1");
   return true;
 }
 
@@ -212,6 +266,67 @@ std::unique_ptr<FrameEvaluator> FrameSubsetProblem::NewEvaluator() const {
   return std::make_unique<SubsetEvaluator>(full_->NewEvaluator(), &frames_);
 }
 
+bool UnobservedHoldOptions::IsValid(std::string* error) const {
+  if (!(weak_ratio > 0) || !(hold_ratio > 0)) {
+    if (error) *error = "weak_ratio and hold_ratio must be > 0";
+    return false;
+  }
+  return true;
+}
+
+int UnobservedCoordinateWeights(ArrowProblem* problem, const Eigen::VectorXd& x, const Eigen::VectorXd& base,
+                                const UnobservedHoldOptions& options, int num_threads,
+                                Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>* weights) {
+  weights->resize(0, 0);
+  const int nf = problem->num_frames(), ny = problem->frame_dim(), np = problem->shared_dim();
+  if (!options.enabled || nf == 0 || base.size() != ny || !problem->SetShared(x.tail(np))) return 0;
+  const int threads = std::max(1, std::min(num_threads, nf));
+  // Per frame: its residual block count and each coordinate's marginal information.
+  std::vector<int> blocks(nf, 0);
+  Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> info(nf, ny);
+  ParallelChunks(nf, threads, [&](int, int b, int e) {
+    std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
+    for (int f = b; f < e; ++f)
+      if (evaluator->Evaluate(f, x.data() + static_cast<size_t>(f) * ny, false)) blocks[f] = evaluator->num_blocks();
+  });
+  const int fullest = *std::max_element(blocks.begin(), blocks.end());
+  if (std::count(blocks.begin(), blocks.end(), fullest) == nf) return 0;
+  ParallelChunks(nf, threads, [&](int, int b, int e) {
+    std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
+    Eigen::MatrixXd u(ny, ny);
+    Eigen::VectorXd g(ny);
+    for (int f = b; f < e; ++f) {
+      info.row(f).setZero();
+      if (!evaluator->EvaluatePoseJacobians(f, x.data() + static_cast<size_t>(f) * ny)) continue;
+      u.setZero();
+      g.setZero();
+      for (int k = 0; k < evaluator->num_blocks(); ++k) AddBlockNormalEquations(evaluator->block(k), ny, u.data(), g.data());
+      // The uniform prior keeps U_f invertible where no marker reaches a coordinate.
+      for (int i = 0; i < ny; ++i) u(i, i) += base[i] * base[i] + 1e-12;
+      Eigen::LLT<Eigen::MatrixXd, Eigen::Lower> llt(u);
+      if (llt.info() != Eigen::Success) continue;
+      const Eigen::MatrixXd inverse = llt.solve(Eigen::MatrixXd::Identity(ny, ny));
+      for (int i = 0; i < ny; ++i) info(f, i) = 1.0 / inverse(i, i);
+    }
+  });
+  std::vector<double> median(ny), column(nf);
+  for (int i = 0; i < ny; ++i) {
+    for (int f = 0; f < nf; ++f) column[f] = info(f, i);
+    std::nth_element(column.begin(), column.begin() + nf / 2, column.end());
+    median[i] = column[nf / 2];
+  }
+  weights->resize(nf, ny);
+  int raised = 0;
+  for (int f = 0; f < nf; ++f)
+    for (int i = 0; i < ny; ++i) {
+      (*weights)(f, i) = base[i];
+      if (blocks[f] == fullest || !(info(f, i) < options.weak_ratio * median[i])) continue;
+      (*weights)(f, i) = std::sqrt(base[i] * base[i] + options.hold_ratio * median[i]);
+      ++raised;
+    }
+  return raised;
+}
+
 int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
                      Eigen::VectorXd* x, bool* ok, double* cost, const double* frame_costs) {
   const int nf = problem->num_frames(), ny = problem->frame_dim(), np = problem->shared_dim();
@@ -225,7 +340,7 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
     // Per thread, allocated once: the hot loop allocates nothing.
     std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
     Eigen::MatrixXd u(ny, ny);
-    Eigen::VectorXd g(ny), step(ny), trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
+    Eigen::VectorXd g(ny), trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
     bool have_correction = false;
     double previous_cost = 0;
     for (int f = b; f < e; ++f) {
@@ -263,34 +378,8 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
           moved = true;
         }
       }
-      for (int it = 0; it < max_iterations; ++it) {
-        // Normal equations of the frame's own rows: U = J_y^T J_y + B^T B, g = J_y^T r + B^T B (y - y0).
-        if (!evaluator->EvaluatePoseJacobians(f, yf)) break;
-        u.setZero();
-        g.setZero();
-        for (int k = 0; k < evaluator->num_blocks(); ++k)
-          AddBlockNormalEquations(evaluator->block(k), ny, u.data(), g.data());
-        const double *w, *target;
-        if (problem->FramePrior(f, &w, &target))
-          for (int i = 0; i < ny; ++i) {
-            u(i, i) += w[i] * w[i];
-            g[i] += w[i] * w[i] * (yf[i] - target[i]);
-          }
-        for (int i = 0; i < ny; ++i) u(i, i) += options.pose_damping * std::max(u(i, i), 1e-12);
-        if (!CholeskyInPlace(u.data(), ny)) break;
-        step = g;
-        CholeskySolveInPlace(u.data(), ny, step.data());
-        trial = Eigen::Map<const Eigen::VectorXd>(yf, ny) - step;
-        double trial_cost = 0;
-        if (!trial.allFinite() || !FrameSquaredNorm(*problem, evaluator.get(), f, trial.data(), &trial_cost) ||
-            !(trial_cost < cost))
-          break;
-        Eigen::Map<Eigen::VectorXd>(yf, ny) = trial;
-        const double decrease = cost - trial_cost;
-        cost = trial_cost;
-        moved = true;
-        if (decrease <= options.pose_tolerance * cost) break;
-      }
+      moved |= FramePoseSteps(*problem, evaluator.get(), f, max_iterations, options.pose_tolerance,
+                              options.pose_damping, &u, &g, &trial, yf, &cost);
       correction = Eigen::Map<const Eigen::VectorXd>(yf, ny) - given;
       have_correction = true;
       previous_cost = cost;
@@ -306,6 +395,62 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
     sum += frames_cost[t];
   }
   if (cost) *cost = 0.5 * (sum + SharedRowsSquaredNorm(*problem, x->tail(np)));
+  return total;
+}
+
+int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
+                               Eigen::VectorXd* x, std::vector<double>* frame_costs) {
+  const int nf = problem->num_frames(), ny = problem->frame_dim(), np = problem->shared_dim();
+  if (!(options.rescue_ratio > 1) || nf < 3 || !problem->SetShared(x->tail(np))) return 0;
+  const int threads = std::max(1, std::min(num_threads, nf));
+  std::vector<double> own;
+  std::vector<double>& cost = frame_costs ? *frame_costs : own;
+  if (static_cast<int>(cost.size()) != nf) {
+    cost.assign(nf, std::numeric_limits<double>::infinity());
+    ParallelChunks(nf, threads, [&](int, int b, int e) {
+      std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
+      for (int f = b; f < e; ++f)
+        if (!FrameSquaredNorm(*problem, evaluator.get(), f, x->data() + static_cast<size_t>(f) * ny, &cost[f]))
+          cost[f] = std::numeric_limits<double>::infinity();
+    });
+  }
+  std::vector<double> sorted = cost;
+  std::nth_element(sorted.begin(), sorted.begin() + nf / 2, sorted.end());
+  const double limit = options.rescue_ratio * sorted[nf / 2];
+  if (!std::isfinite(limit)) return 0;
+  std::vector<char> suspect(nf);
+  for (int f = 0; f < nf; ++f) suspect[f] = !(cost[f] <= limit);
+  // Starts are read from the poses as they were (a rescued frame is no start for another).
+  const Eigen::VectorXd given = x->head(static_cast<Eigen::Index>(nf) * ny);
+  std::vector<int> rescued(threads, 0);
+  ParallelChunks(nf, threads, [&](int t, int b, int e) {
+    std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
+    Eigen::MatrixXd u(ny, ny);
+    Eigen::VectorXd g(ny), trial(ny), start(ny);
+    for (int f = b; f < e; ++f) {
+      if (!suspect[f]) continue;
+      int before = f - 1, after = f + 1;
+      while (before >= 0 && suspect[before]) --before;
+      while (after < nf && suspect[after]) ++after;
+      double best = cost[f];
+      for (int from : {before, after}) {
+        if (from < 0 || from >= nf || std::abs(from - f) > options.rescue_reach) continue;
+        start = given.segment(static_cast<Eigen::Index>(from) * ny, ny);
+        double c = 0;
+        if (!FrameSquaredNorm(*problem, evaluator.get(), f, start.data(), &c)) continue;
+        FramePoseSteps(*problem, evaluator.get(), f, options.rescue_iterations, 1e-3, options.pose_damping, &u,
+                       &g, &trial, start.data(), &c);
+        if (c < best) {
+          best = c;
+          x->segment(static_cast<Eigen::Index>(f) * ny, ny) = start;
+        }
+      }
+      rescued[t] += best < cost[f] ? 1 : 0;
+      cost[f] = best;
+    }
+  });
+  int total = 0;
+  for (int r : rescued) total += r;
   return total;
 }
 
@@ -361,7 +506,9 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
     });
   {
     ArrowSchurProblem schur(&subset, num_threads);
-    s.coarse = Solve(coarse_lm, &schur, &xs);
+    WithInnerIterations with_rescue(&schur, &subset, coarse, num_threads, /*refine_poses=*/false);
+    s.coarse = Solve(coarse_lm, &with_rescue, &xs);
+    s.poses_rescued += with_rescue.rescued();
   }
   if (s.coarse.termination == TerminationType::kUserCancelled) {
     // Cancelled on the subset: keep its geometry and its frames' poses when that lowers the whole
@@ -405,6 +552,10 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   bool ok = false;
   double candidate_cost = 0;
   s.poses_improved = RefineFramePoses(problem, coarse, num_threads, &candidate, &ok, &candidate_cost);
+  if (ok) {
+    s.poses_rescued = RescueFramesFromNeighbours(problem, coarse, num_threads, &candidate, nullptr);
+    if (s.poses_rescued > 0 && !fine.Cost(candidate, &candidate_cost)) ok = false;
+  }
   s.pose_seconds = Since(pose_start);
   if (ok && std::isfinite(candidate_cost) && candidate_cost < s.start_cost) {
     *x = candidate;
@@ -419,8 +570,9 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   fine_lm.initial_lambda = std::clamp(coarse.fine_initial_lambda, options.min_lambda, options.max_lambda);
   LmSummary result;
   if (coarse.inner_iterations) {
-    WithInnerIterations with_inner(&fine, problem, coarse, num_threads);
+    WithInnerIterations with_inner(&fine, problem, coarse, num_threads, /*refine_poses=*/true);
     result = Solve(fine_lm, &with_inner, x);
+    s.poses_rescued += with_inner.rescued();
   } else {
     result = Solve(fine_lm, &fine, x);
   }

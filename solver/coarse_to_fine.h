@@ -27,8 +27,9 @@
 //
 // Problems with fewer than `min_frames` frames are solved directly (their plain solve is cheap
 // and a sample of them would not determine p), and so is a problem whose subset LM does not
-// converge within its budget: that happens when frames in long marker gaps, held only by their
-// weak priors, make LM crawl (10 % missing samples in gaps of 5-30 frames). The subset's
+// converge within its budget: that happened when frames in long marker gaps, held only by their
+// weak priors, made LM crawl (10 % missing samples in gaps of 5-30 frames, before
+// UnobservedCoordinateWeights and the rescue below: now 24 subset iterations). The subset's
 // geometry is then no good start; measured, starting from it cost 30 % more time and ended
 // higher than the plain solve, so the plain solve runs from the caller's x (the subset's
 // iterations, about 5 % of the plain solve, are lost).
@@ -74,6 +75,14 @@ struct CoarseToFineOptions {
   // a curvature far below 1e-4 of its data diagonal): each LM step would close only part of their
   // gap. Gauss–Newton-like steps from the start; Nielsen's rule raises it if a step fails.
   double fine_initial_lambda = 1e-8;
+  // After stage 2, a frame whose cost is above `rescue_ratio` times the median frame's (a pose
+  // in a wrong branch: a two-marker foot turned round during a gap) is re-solved, up to
+  // `rescue_iterations` Gauss–Newton steps, from the pose of the nearest frame below that limit
+  // on either side (at most `rescue_reach` frames away); the lower cost wins
+  // (RescueFramesFromNeighbours). 0 or below 1: off.
+  double rescue_ratio = 4.0;
+  int rescue_iterations = 10;
+  int rescue_reach = 60;
 
   bool IsValid(std::string* error) const;
 };
@@ -85,6 +94,7 @@ struct CoarseToFineSummary {
   LmSummary coarse;               // stage 1, on the subset
   double pose_seconds = 0;        // stage 2
   int poses_improved = 0;         // frames whose pose stage 2 moved
+  int poses_rescued = 0;          // frames re-solved from a neighbour's pose (all stages)
   double start_cost = 0;          // the whole problem's cost at the caller's x
   double fine_start_cost = 0;     // ... after stages 1 and 2
   double total_seconds = 0;
@@ -132,6 +142,54 @@ class FrameSubsetProblem : public ArrowProblem {
 int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
                      Eigen::VectorXd* x, bool* ok, double* cost = nullptr,
                      const double* frame_costs = nullptr);
+
+// Frames in marker gaps (issue 14): a frame whose markers leave some coordinates nearly
+// unobserved (a two-marker foot with its toe marker hidden: the rotation about the line from
+// the ankle to the heel marker; a hand whose only marker is hidden: both wrist angles) has a
+// per-frame block U_f that is near-singular in them, held only by the frame prior, which is
+// deliberately negligible (FitOptions::frame_prior_sigma_rad = 10 rad). LM's Marquardt damping
+// is proportional to that tiny curvature, so raising lambda does not restrain those
+// coordinates: measured at 5 % missing on the default protocol, each step moved them by up to
+// 0.2-0.6 rad in some frames, the gain ratio stayed at 0.4-0.6 and lambda at 5e-3 for 100
+// iterations, the shared parameters crawling. A stronger prior on every coordinate converges
+// but biases the well-seen frames (BENCHMARKS.md: --frame-prior 0.1); so only the coordinates
+// a frame leaves unobserved are held:
+//   * a frame is examined only if it has fewer residual blocks than the fullest frame (a hidden
+//     marker), so a problem without gaps is left exactly as it was;
+//   * coordinate c of such a frame is unobserved when its marginal information from the frame's
+//     own rows, 1 / (U_f^-1)_cc, is below `weak_ratio` times the median of the same over all
+//     frames (what a frame typically knows about c);
+//   * it then gets a prior of information `hold_ratio` times that median (a standard deviation
+//     1/sqrt(hold_ratio) = 32 times a typical frame's) towards its starting value, which
+//     InverseKinematics::SolveTrial interpolates across the gap (IkOptions::bridge_gaps).
+// The prior is weak against data (a frame that sees c outweighs it by 1/hold_ratio) and sits
+// only where the data are silent. Its strength is a trade, measured at 5 % missing (6,000
+// frames, seed 2, BENCHMARKS.md): hold_ratio 1e-2 converged in 12 iterations but biased the
+// fit (joint centres 1.25 mm max from the truth, cost 1.473e5); 1e-3, 25 iterations, 0.49 mm
+// (0.48 mm on the same data without gaps), 1.422e5; 1e-4 and none crawled (100 iterations,
+// not converged, 0.59-0.61 mm).
+struct UnobservedHoldOptions {
+  bool enabled = true;
+  double weak_ratio = 1e-2;
+  double hold_ratio = 1e-3;
+  bool IsValid(std::string* error) const;
+};
+
+// The frame prior weights (frames x frame_dim, row-major) for `problem` at x: `base` (the
+// uniform weights) everywhere, raised as above where a frame leaves a coordinate unobserved.
+// Returns how many (frame, coordinate) pairs were raised; 0 and `weights` left empty when no
+// frame has a hidden residual block, or options.enabled is false. x's p is set on the problem.
+int UnobservedCoordinateWeights(ArrowProblem* problem, const Eigen::VectorXd& x, const Eigen::VectorXd& base,
+                                const UnobservedHoldOptions& options, int num_threads,
+                                Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>* weights);
+
+// Re-solves the frames of x whose cost is far above the median frame's from their nearest
+// well-fitted neighbours' poses (p fixed), as CoarseToFineOptions::rescue_ratio describes.
+// Returns how many poses were replaced (each only if that lowered its frame's cost).
+// `frame_costs`, if given: each frame's sum of squares at x (computed if its size is not the
+// frame count), updated to the result's.
+int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
+                               Eigen::VectorXd* x, std::vector<double>* frame_costs);
 
 // Minimises `problem` from *x: stages 1-3 when it has enough frames, else LM directly. `whole`
 // is the caller's Schur solver of `problem` (it holds the per-frame cache, so the caller keeps

@@ -176,6 +176,7 @@ bool FitOptions::IsValid(std::string* error) const {
   if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
   if (staged_iterations < 1) return fail("staged_iterations must be >= 1");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
+  if (!unobserved_hold.IsValid(&why)) return fail("unobserved_hold: " + why);
   if (!attach.IsValid(&why)) return fail("attach: " + why);
   if (!diagnosis.IsValid(&why)) return fail("diagnosis: " + why);
   if (!(frame_prior_sigma_rad > 0) || !(frame_prior_sigma_m > 0))
@@ -416,6 +417,14 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
   if (Status s = solve_poses(initial.InitialParameters(), true); !s) return s;
   x.tail(np) = problem.InitialShared();
   problem.SetFramePriorTargets(x);
+  // What a frame in a gap leaves unobserved is held at its start (coarse_to_fine.h).
+  auto hold_unobserved = [&] {
+    formats::RowMatrix weights;
+    UnobservedCoordinateWeights(&problem, x, problem.uniform_frame_prior_weight(), options.unobserved_hold,
+                                threads, &weights);
+    problem.SetFramePriorWeights(std::move(weights));
+  };
+  hold_unobserved();
   report.ik_seconds = Since(ik_start);
 
   Eigen::VectorXd sum_sq;
@@ -481,6 +490,7 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
     const auto repose_start = Clock::now();
     if (Status s = solve_poses(problem.FullParameters(x.tail(np)), false); !s) return s;
     problem.SetFramePriorTargets(x);
+    hold_unobserved();
     report.ik_seconds += Since(repose_start);
     report.reposed = true;
     continue_solve(iterations_left);

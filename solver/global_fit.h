@@ -46,6 +46,9 @@ struct FitOptions {
   // 1 m of deviation costs what 0.1 mm of one marker's error costs.
   double frame_prior_sigma_rad = 10.0;
   double frame_prior_sigma_m = 10.0;
+  // Coordinates that a frame in a marker gap leaves unobserved are held at their start instead
+  // (solver/coarse_to_fine.h, UnobservedCoordinateWeights): without it such frames make LM crawl.
+  UnobservedHoldOptions unobserved_hold;
   double gauge_sigma_m = 1e-5;          // stiffness of the gauge rows (marker_fit_problem.h)
   // A hinge's centre along its axis is held at the model's by a stiff row (marker_fit_problem.cpp).
   bool hold_hinge_centres_along_axis = true;

@@ -260,7 +260,9 @@ Status InverseKinematics::SolveTrial(
     return Status::Error("inverse kinematics: no frame has 3 or more of the model's markers");
   load(start);
   Eigen::VectorXd z_start;
+  std::vector<double> frame_rms(nf, 0.0);
   IkFrameResult r0 = Initialise(frame, &z_start);
+  frame_rms[start] = r0.rms_m;
   coordinates->row(start) = z_start.transpose();
   if (rms_m) (*rms_m)[start] = r0.rms_m;
   for (int direction : {+1, -1}) {
@@ -287,9 +289,65 @@ Status InverseKinematics::SolveTrial(
       }
       coordinates->row(f) = z.transpose();  // a frame with < 3 markers keeps its neighbour's pose
       if (rms_m) (*rms_m)[f] = r.rms_m;
+      frame_rms[f] = r.rms_m;
     }
   }
+  if (options_.bridge_gaps) BridgeGaps(measured, frame_rms, coordinates, rms_m);
   return Status::Ok();
+}
+
+void InverseKinematics::BridgeGaps(
+    const Eigen::Ref<const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>& measured,
+    const std::vector<double>& frame_rms, Eigen::MatrixXd* coordinates, std::vector<double>* rms_m) {
+  const int nf = static_cast<int>(measured.rows()), nm = model_.num_markers(), nz = model_.num_coordinates();
+  auto seen = [&](int f, int m) { return std::isfinite(measured(f, 3 * m)); };
+  // Markers the trial records at all: one it never sees is no gap.
+  std::vector<char> recorded(nm, 0);
+  for (int f = 0; f < nf; ++f)
+    for (int m = 0; m < nm; ++m) recorded[m] |= seen(f, m) ? 1 : 0;
+  // Anchors are read from the sweep's poses, before any frame is bridged.
+  const Eigen::MatrixXd swept = *coordinates;
+  Eigen::Matrix3Xd frame(3, nm);
+  Eigen::VectorXd z(nz);
+  std::vector<int> hidden;
+  for (int f = 0; f < nf; ++f) {
+    hidden.clear();
+    int present = 0;
+    for (int m = 0; m < nm; ++m) {
+      if (seen(f, m)) ++present;
+      else if (recorded[m]) hidden.push_back(m);
+    }
+    if (hidden.empty() || present < 3) continue;
+    auto sees_all_hidden = [&](int g) {
+      for (int m : hidden)
+        if (!seen(g, m)) return false;
+      return true;
+    };
+    int before = f - 1, after = f + 1;
+    while (before >= 0 && !sees_all_hidden(before)) --before;
+    while (after < nf && !sees_all_hidden(after)) ++after;
+    if (before < 0 && after >= nf) continue;
+    // Linear in time between the anchors, rotations along the shorter way round (an anchor
+    // re-initialised from scratch may sit a turn away from the other).
+    if (before < 0) {
+      z = swept.row(after).transpose();
+    } else if (after >= nf) {
+      z = swept.row(before).transpose();
+    } else {
+      const double t = double(f - before) / double(after - before);
+      for (int c = 0; c < nz; ++c) {
+        double d = swept(after, c) - swept(before, c);
+        if (model_.coordinates()[c].rotational) d = std::remainder(d, 2.0 * M_PI);
+        z[c] = swept(before, c) + t * d;
+      }
+    }
+    frame = Eigen::Map<const Eigen::Matrix3Xd>(measured.row(f).data(), 3, nm);
+    const IkFrameResult r = Solve(frame, &z);
+    // Both branches fit the seen markers alike; the bridged one is kept unless clearly worse.
+    if (!(r.rms_m <= 1.1 * frame_rms[f] + 0.0005)) continue;
+    coordinates->row(f) = z.transpose();
+    if (rms_m) (*rms_m)[f] = r.rms_m;
+  }
 }
 
 }  // namespace mocap::solver

@@ -23,6 +23,9 @@ struct IkOptions {
   int max_iterations = 50;
   double step_tolerance = 1e-8;       // stop when |dz| < this
   double restart_rms_m = 0.03;        // a warm start worse than this re-initialises
+  // SolveTrial: a frame with hidden markers is re-solved from its pose interpolated between the
+  // nearest frames that see those markers (InverseKinematics::BridgeGaps).
+  bool bridge_gaps = true;
   bool IsValid(std::string* error) const;
 };
 
@@ -53,6 +56,21 @@ class InverseKinematics {
                     Eigen::MatrixXd* coordinates, std::vector<double>* rms_m = nullptr);
 
  private:
+  // In a gap, what the hidden markers observed is lost: a hand whose only marker is hidden
+  // leaves both wrist angles free, a two-marker foot with its toe marker hidden leaves the
+  // rotation about the line from the ankle to the heel marker nearly free and may fit the heel
+  // marker equally well in a second, turned branch. The sweep's warm start holds such
+  // coordinates at the frame before the gap (or wherever a re-initialisation put them); the
+  // global fit then has to move them over the whole gap while they are held by almost nothing
+  // (solver/coarse_to_fine.h, UnobservedCoordinateWeights). So a frame with hidden markers is
+  // re-solved from the pose interpolated in time between the nearest frames that see every one
+  // of them (the motion is smooth over a gap of a few tens of frames), and the result kept
+  // unless its RMS is clearly worse than the sweep's.
+  void BridgeGaps(const Eigen::Ref<const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic,
+                                                       Eigen::RowMajor>>& measured,
+                  const std::vector<double>& frame_rms, Eigen::MatrixXd* coordinates,
+                  std::vector<double>* rms_m);
+
   const Model& model_;
   const Geometry& geometry_;
   IkOptions options_;

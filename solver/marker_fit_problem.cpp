@@ -276,7 +276,8 @@ void MarkerFitProblem::SetFramePriorTargets(const Eigen::VectorXd& x) {
 
 bool MarkerFitProblem::FramePrior(int frame, const double** weight, const double** target) const {
   if (frame_prior_target_.rows() != num_frames()) return false;
-  *weight = frame_prior_weight_.data();
+  *weight = frame_prior_weights_.rows() == num_frames() ? frame_prior_weights_.row(frame).data()
+                                                         : frame_prior_weight_.data();
   *target = frame_prior_target_.row(frame).data();
   return true;
 }

@@ -53,6 +53,10 @@ class MarkerFitProblem : public ArrowProblem {
   bool FramePrior(int frame, const double** weight, const double** target) const override;
   // The frame prior's targets: the starting poses, x = [z_1 ... z_F, shared].
   void SetFramePriorTargets(const Eigen::VectorXd& x);
+  // Per-frame weights (frames x coordinates) instead of the options' uniform ones, e.g. from
+  // solver::UnobservedCoordinateWeights; an empty matrix restores the uniform ones.
+  void SetFramePriorWeights(formats::RowMatrix weights) { frame_prior_weights_ = std::move(weights); }
+  const Eigen::VectorXd& uniform_frame_prior_weight() const { return frame_prior_weight_; }
   const std::vector<std::string>& gauge_names() const { return gauge_names_; }
   void BlockStructure(std::vector<std::vector<int>>* y_columns,
                       std::vector<std::vector<int>>* p_columns) const override;
@@ -109,6 +113,7 @@ class MarkerFitProblem : public ArrowProblem {
   Eigen::MatrixXd gauge_rows_;
   Eigen::VectorXd frame_prior_weight_;
   formats::RowMatrix frame_prior_target_;
+  formats::RowMatrix frame_prior_weights_;  // empty: frame_prior_weight_ for every frame
   std::vector<std::string> gauge_names_;
   void BuildGaugeRows(double gauge_sigma_m);
   bool hold_hinge_centres_ = true;

@@ -299,3 +299,87 @@ TEST(CoarseToFine, BadOptionsAreRefusedByName) {
   refused(o, "fine_initial_lambda");
   EXPECT_TRUE(solver::CoarseToFineOptions().IsValid(nullptr));
 }
+
+// Frames in gaps (issue 14): only what a frame with a hidden marker leaves unobserved is held.
+// The right hand has one marker (RFIN) on a two-angle wrist: hidden in frames 40-59, both wrist
+// angles of exactly those frames are raised; a problem without gaps is left untouched.
+TEST(CoarseToFine, OnlyCoordinatesThatAGapLeavesUnobservedAreHeld) {
+  Model nominal = NominalWithoutOptional();
+  std::mt19937_64 rng(5);
+  Eigen::MatrixXd z_true;
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(nominal, 200, 0.0005, rng, &z_true);
+  const int ny = nominal.num_coordinates();
+  auto start = [&](const solver::MarkerFitProblem& problem) {
+    Eigen::VectorXd x(static_cast<Eigen::Index>(200) * ny + problem.shared_dim());
+    for (int f = 0; f < 200; ++f) x.segment(static_cast<Eigen::Index>(f) * ny, ny) = z_true.row(f).transpose();
+    x.tail(problem.shared_dim()) = problem.InitialShared();
+    return x;
+  };
+  const solver::UnobservedHoldOptions hold;
+  {
+    solver::MarkerFitProblem full(nominal, trial.positions, solver::FitOptions());
+    formats::RowMatrix weights;
+    EXPECT_EQ(solver::UnobservedCoordinateWeights(&full, start(full), full.uniform_frame_prior_weight(), hold, 2,
+                                                  &weights), 0);
+    EXPECT_EQ(weights.rows(), 0);
+  }
+  const int fin = nominal.FindMarker("RFIN");
+  ASSERT_GE(fin, 0);
+  trial.positions.block(40, 3 * fin, 20, 3).setConstant(std::numeric_limits<double>::quiet_NaN());
+  solver::MarkerFitProblem gapped(nominal, trial.positions, solver::FitOptions());
+  const Eigen::VectorXd base = gapped.uniform_frame_prior_weight();
+  formats::RowMatrix weights;
+  const int raised = solver::UnobservedCoordinateWeights(&gapped, start(gapped), base, hold, 2, &weights);
+  ASSERT_EQ(weights.rows(), 200);
+  ASSERT_EQ(weights.cols(), ny);
+  const int flex = nominal.FindCoordinate("wrist_flex_r"), dev = nominal.FindCoordinate("wrist_dev_r");
+  ASSERT_GE(flex, 0);
+  ASSERT_GE(dev, 0);
+  for (int f = 0; f < 200; ++f)
+    for (int c = 0; c < ny; ++c) {
+      const bool expected = f >= 40 && f < 60 && (c == flex || c == dev);
+      if (expected)
+        EXPECT_GT(weights(f, c), 10 * base[c]) << "frame " << f << " " << nominal.coordinates()[c].name;
+      else
+        EXPECT_EQ(weights(f, c), base[c]) << "frame " << f << " " << nominal.coordinates()[c].name;
+    }
+  EXPECT_EQ(raised, 40);
+  solver::UnobservedHoldOptions bad;
+  bad.hold_ratio = 0;
+  std::string why;
+  EXPECT_FALSE(bad.IsValid(&why));
+  EXPECT_NE(why.find("hold_ratio"), std::string::npos) << why;
+}
+
+// A frame left in a wrong branch (here: its hip and knee turned 1.5 rad away, far above every
+// other frame's cost) is re-solved from its neighbour's pose back to the truth; no other frame
+// and not the geometry moves.
+TEST(CoarseToFine, FrameInAWrongBranchIsRescuedFromItsNeighbour) {
+  Session s(60, 0.0);
+  Eigen::VectorXd x = s.x0;
+  x.tail(s.problem->shared_dim()) = s.p_true;
+  const int ny = s.problem->frame_dim();
+  const int knee = s.nominal.FindCoordinate("knee_angle_r"), hip = s.nominal.FindCoordinate("hip_rotation_r");
+  ASSERT_GE(knee, 0);
+  ASSERT_GE(hip, 0);
+  x[30 * ny + knee] += 1.5;
+  x[30 * ny + hip] -= 1.5;
+  const Eigen::VectorXd before = x;
+  solver::CoarseToFineOptions options;
+  std::vector<double> costs;
+  EXPECT_EQ(solver::RescueFramesFromNeighbours(s.problem.get(), options, 2, &x, &costs), 1);
+  ASSERT_EQ(costs.size(), 60u);
+  const std::vector<double> after = FrameCosts(s.problem.get(), x);
+  for (int f = 0; f < 60; ++f) EXPECT_NEAR(costs[f], after[f], 1e-9 * (1 + after[f])) << "frame " << f;
+  // Back in the right branch: as well fitted as the true pose (noise makes that no minimum), and
+  // the two turned coordinates back at the truth.
+  Eigen::VectorXd at_truth = x;
+  at_truth.segment(30 * ny, ny) = s.z_true.row(30).transpose();
+  EXPECT_LE(after[30], 1.001 * FrameCosts(s.problem.get(), at_truth)[30]);
+  EXPECT_NEAR(x[30 * ny + knee], s.z_true(30, knee), 0.01);
+  EXPECT_NEAR(x[30 * ny + hip], s.z_true(30, hip), 0.01);
+  EXPECT_EQ((x.head(30 * ny) - before.head(30 * ny)).lpNorm<Eigen::Infinity>(), 0.0);
+  EXPECT_EQ((x.tail(x.size() - 31 * ny) - before.tail(x.size() - 31 * ny)).lpNorm<Eigen::Infinity>(), 0.0);
+  options.rescue_ratio = 0;  // off
+  EXPECT_EQ(solver::RescueFramesFromNeighbours(s.problem.get(), options, 2, &x, &costs), 0);
+}

@@ -65,3 +65,47 @@ TEST(InverseKinematics, InitialiseFindsTheSubjectWhateverTheLabsVertical) {
   }
   EXPECT_EQ(found, tries);
 }
+
+// A gap (IkOptions::bridge_gaps): the right hand's only marker hidden for frames 40-59, every
+// coordinate moving linearly in time. The wrist angles, which nothing else in those frames
+// observes, follow the interpolation between the frames that see the marker (the truth here);
+// without bridging they stay where the frame before the gap left them.
+TEST(InverseKinematics, GapFramesAreBridgedFromTheFramesThatSeeTheHiddenMarkers) {
+  const Model m = DefaultFullBodyModel();
+  const Geometry g(m);
+  const int nz = m.num_coordinates(), nm = m.num_markers(), nf = 100;
+  const int flex = m.FindCoordinate("wrist_flex_r"), dev = m.FindCoordinate("wrist_dev_r");
+  const int fin = m.FindMarker("RFIN");
+  ASSERT_GE(flex, 0);
+  ASSERT_GE(dev, 0);
+  ASSERT_GE(fin, 0);
+  std::mt19937 rng(9);
+  std::uniform_real_distribution<double> u(-0.3, 0.3);
+  Eigen::VectorXd z0 = m.DefaultCoordinates(), dz(nz);
+  for (int c = 0; c < nz; ++c) dz[c] = u(rng);
+  dz[flex] = 0.8;
+  dz[dev] = -0.6;
+  Eigen::MatrixXd truth(nf, nz);
+  Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> measured(nf, 3 * nm);
+  for (int f = 0; f < nf; ++f) {
+    truth.row(f) = (z0 + dz * (double(f) / (nf - 1))).transpose();
+    const Eigen::Matrix3Xd x = Markers(m, truth.row(f).transpose());
+    for (int k = 0; k < nm; ++k) measured.block(f, 3 * k, 1, 3) = x.col(k).transpose();
+  }
+  measured.block(40, 3 * fin, 20, 3).setConstant(std::numeric_limits<double>::quiet_NaN());
+  double bridged_error = 0, unbridged_error = 0;
+  for (bool bridge : {true, false}) {
+    solver::IkOptions options;
+    options.bridge_gaps = bridge;
+    solver::InverseKinematics ik(m, g, options);
+    Eigen::MatrixXd z;
+    ASSERT_TRUE(ik.SolveTrial(measured, &z).ok());
+    double& error = bridge ? bridged_error : unbridged_error;
+    for (int f = 40; f < 60; ++f)
+      for (int c : {flex, dev}) error = std::max(error, std::abs(z(f, c) - truth(f, c)));
+    // The frames that see every marker are unaffected.
+    EXPECT_LT((z.row(10) - truth.row(10)).lpNorm<Eigen::Infinity>(), 1e-5);
+  }
+  EXPECT_LT(bridged_error, 1e-3);
+  EXPECT_GT(unbridged_error, 0.1);
+}
