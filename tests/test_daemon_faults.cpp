@@ -27,6 +27,7 @@
 #include "formats/c3d.h"
 #include "reconstruction/calibration_file.h"
 #include "sim/live_rig.h"
+#include "tests/daemon_gtest_util.h"
 #include "tests/daemon_test_util.h"
 #include "tests/store_test_util.h"
 
@@ -38,19 +39,7 @@ using daemon::ControlReply;
 using nlohmann::json;
 using testing::DaemonProcess;
 
-#define ASSERT_OK(expr)                      \
-  do {                                       \
-    const Status status_ = (expr);           \
-    ASSERT_TRUE(status_.ok()) << status_.message(); \
-  } while (0)
-
-json Call(ControlClient* c, const std::string& method, const json& params = json::object()) {
-  ControlReply r;
-  const Status s = c->Call(method, params, &r);
-  EXPECT_TRUE(s.ok()) << method << ": " << s.message();
-  EXPECT_TRUE(r.ok()) << method << ": " << r.error_code << " " << r.error_message;
-  return r.result;
-}
+using testing::Call;
 
 double WallSeconds() {
   return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();

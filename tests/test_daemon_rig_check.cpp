@@ -20,6 +20,7 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include "tests/daemon_gtest_util.h"
 #include "tests/daemon_test_util.h"
 
 namespace mocap {
@@ -31,19 +32,7 @@ using nlohmann::json;
 using ::testing::HasSubstr;
 using testing::DaemonProcess;
 
-#define ASSERT_OK(expr)                              \
-  do {                                               \
-    const Status status_ = (expr);                   \
-    ASSERT_TRUE(status_.ok()) << status_.message();  \
-  } while (0)
-
-json Call(ControlClient* c, const std::string& method, const json& params = json::object()) {
-  ControlReply r;
-  const Status s = c->Call(method, params, &r);
-  EXPECT_TRUE(s.ok()) << method << ": " << s.message();
-  EXPECT_TRUE(r.ok()) << method << ": " << r.error_code << " " << r.error_message;
-  return r.result;
-}
+using testing::Call;
 
 // `mocapctl --json cameras --check` on the daemon's socket: its exit status and the report.
 int RigCheck(const DaemonProcess& d, json* report) {
