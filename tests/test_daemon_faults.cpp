@@ -316,6 +316,7 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   // the reopen at 200 Hz. On a loaded machine any camera may miss a stray set or two: the others'
   // gaps are noted too, and must stay that small.
   const json gaps = rec.result["camera_gaps"];
+  std::printf("camera gaps: %s\n", gaps.dump().c_str());
   int unplugged = -1;
   for (std::size_t k = 0; k < gaps.size(); ++k) {
     if (gaps[k]["camera"] == "MOCAPSIM3") unplugged = static_cast<int>(k);
