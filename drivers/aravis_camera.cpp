@@ -125,15 +125,19 @@ Status AravisCamera::Open(const CameraSettings& settings) {
     state_ = CameraState::kClosed;
     return s;
   }
-  opened_ = true;
-  awaiting_device_ = false;
+  StartFreshStream(/*awaiting_device=*/false);
+  return Status::Ok();
+}
+
+void AravisCamera::StartFreshStream(bool awaiting_device) {
+  opened_ = true;  // configured: Reopen() has the settings
+  awaiting_device_ = awaiting_device;
   acquiring_ = false;
-  state_ = CameraState::kClosed;
+  state_ = awaiting_device ? CameraState::kLost : CameraState::kClosed;
   unwrapper_ = FrameIdUnwrapper();
   delivered_any_ = false;
   resume_sequence_ = false;
   sequence_offset_ = 0;
-  return Status::Ok();
 }
 
 Status AravisCamera::Connect() {
@@ -685,14 +689,7 @@ void AravisCamera::AwaitDevice(const CameraSettings& settings, std::string why) 
   settings_ = settings;
   lost_flag_ = false;
   arrived_flag_ = false;
-  opened_ = true;  // configured: Reopen() has its settings
-  acquiring_ = false;
-  awaiting_device_ = true;
-  state_ = CameraState::kLost;
-  unwrapper_ = FrameIdUnwrapper();
-  delivered_any_ = false;
-  resume_sequence_ = false;
-  sequence_offset_ = 0;
+  StartFreshStream(/*awaiting_device=*/true);
   last_reopen_attempt_ = std::chrono::steady_clock::now();
   std::lock_guard<std::mutex> lock(error_mutex_);
   last_error_ = std::move(why);

@@ -194,6 +194,9 @@ class AravisCamera final : public CameraSource {
   Status CreateStreamAndPool();  // stream_, slots wrapped and pushed
   void TearDown(bool device_gone);
   void MarkLost();
+  // After Open() or AwaitDevice(): configured, not acquiring, a new frame-id sequence; kLost
+  // (opened when the device appears) when awaiting it, else kClosed.
+  void StartFreshStream(bool awaiting_device);
   GrabResult Classify(ArvBuffer* buffer, Frame* frame, Slot** slot);
   std::uint64_t StreamUnderruns() const;
 
