@@ -24,6 +24,7 @@ bool MarkerDiagnosisOptions::IsValid(std::string* error) const {
     return fail("swap_ratio must be in (0, 1), swap_max_mm > 0");
   if (!(wrong_body_max_spread_mm > 0) || !(wrong_body_ratio > 1))
     return fail("wrong_body_max_spread_mm must be > 0, wrong_body_ratio > 1");
+  if (!(jump_ratio > 1) || !(jump_min_mm > 0)) return fail("jump_ratio must be > 1, jump_min_mm > 0");
   return true;
 }
 
@@ -44,6 +45,7 @@ namespace {
 struct Sample {
   int trial = 0, frame = 0;
   double own = 0;
+  Eigen::Vector3d x = Eigen::Vector3d::Zero();  // the measurement
 };
 
 double Median(std::vector<double> v) {
@@ -123,6 +125,54 @@ Status TrimmedPoses(const Model& model, const std::vector<formats::MarkerTrial>&
   return Status::Ok();
 }
 
+// The samples [*begin, *end] of a stretch the marker's data jump into and out of (a step between
+// consecutive frames above options.jump_ratio x the median step and options.jump_min_mm):
+// between two jumps, the piece with the highest residual RMS; failing that, between a jump and
+// its trial's start or end, the shorter side (the mislabelled part is the exception). Not the
+// residual alone: a least-squares fit bent towards the wrong data can leave the right frames the
+// worse-fitting ones. Pieces outside [min_stretch_frames, max_stretch_fraction x samples] are
+// not stretches.
+bool JumpStretch(const std::vector<Sample>& S, const std::vector<double>& own,
+                 const MarkerDiagnosisOptions& options, int* begin, int* end) {
+  const int n = static_cast<int>(S.size());
+  std::vector<double> steps;
+  for (int i = 1; i < n; ++i)
+    if (S[i].trial == S[i - 1].trial && S[i].frame == S[i - 1].frame + 1)
+      steps.push_back((S[i].x - S[i - 1].x).norm());
+  if (steps.size() < 10) return false;
+  const double limit = std::max(options.jump_ratio * Median(steps), 1e-3 * options.jump_min_mm);
+  // Pieces: [start, next start); each start is the first sample, a new trial, or a jump.
+  std::vector<int> starts{0};
+  std::vector<char> after_jump{0};
+  for (int i = 1; i < n; ++i) {
+    const bool new_trial = S[i].trial != S[i - 1].trial;
+    const bool jump = !new_trial && S[i].frame == S[i - 1].frame + 1 &&
+                      (S[i].x - S[i - 1].x).norm() > limit;
+    if (new_trial || jump) starts.push_back(i), after_jump.push_back(jump);
+  }
+  starts.push_back(n);
+  after_jump.push_back(0);
+  double best_rms = -1;
+  int best_end_len = n + 1;
+  bool interior = false;
+  for (std::size_t p = 0; p + 1 < starts.size(); ++p) {
+    const bool in_jump = after_jump[p], out_jump = after_jump[p + 1];
+    if (!in_jump && !out_jump) continue;
+    const int b = starts[p], e = starts[p + 1] - 1, len = e - b + 1;
+    if (len < options.min_stretch_frames || len > options.max_stretch_fraction * n) continue;
+    if (in_jump && out_jump) {
+      double sq = 0;
+      for (int i = b; i <= e; ++i) sq += own[i] * own[i];
+      const double rms = std::sqrt(sq / len);
+      if (!interior || rms > best_rms) best_rms = rms, *begin = b, *end = e;
+      interior = true;
+    } else if (!interior && len < best_end_len) {
+      best_end_len = len, *begin = b, *end = e;
+    }
+  }
+  return interior || best_end_len <= n;
+}
+
 }  // namespace
 
 Status DiagnoseMarkers(const Model& model, const std::vector<formats::MarkerTrial>& trials,
@@ -183,6 +233,7 @@ Status DiagnoseMarkers(const Model& model, const std::vector<formats::MarkerTria
         s.trial = static_cast<int>(t);
         s.frame = f;
         s.own = (x - places.col(markers[o])).norm();
+        s.x = x;
         samples[o].push_back(s);
         for (int k = 0; k < nm; ++k) distances[o].push_back((x - places.col(k)).norm());
       }
@@ -268,6 +319,14 @@ Status DiagnoseMarkers(const Model& model, const std::vector<formats::MarkerTria
       ++run_bad;
     }
     close_run();
+    // A label that moved to another marker and back jumps in the data itself, whatever the fit
+    // made of it: a least-squares fit bent towards the wrong data has its worst frames elsewhere
+    // (where the bend shows), so when the marker's trajectory has jumps, the stretch is the
+    // stretch between two of them (or a trial's end) whose residual is the highest.
+    if (int jb = -1, je = -1; JumpStretch(S, own, options, &jb, &je)) {
+      best_begin = jb, best_end = je;
+      best_bad = total_bad = je - jb + 1;
+    }
     if (best_bad > 0 && total_bad <= options.max_stretch_fraction * n) {
       d.kind = MarkerDiagnosis::Kind::kStretch;
       d.trial = trials[S[best_begin].trial].name;

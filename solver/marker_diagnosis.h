@@ -14,10 +14,12 @@
 //      the model attaches it to the wrong segment (or the lab put it somewhere else). First,
 //      because its error grows with the joint angle between the two segments, so on a trial with
 //      a few large flexions it would also pass for a stretch.
-//   2. A stretch of frames. Its per-frame residual (distance from where the fitted model puts
-//      it) is split into frames far above the marker's own median and the rest; a run of bad
-//      frames covering less than `max_stretch_fraction` of the frames where it is seen is a
-//      labelling error over that stretch (a label that jumped to a neighbour when two markers
+//   2. A stretch of frames. A label that moves to another marker and back makes the data jump:
+//      the stretch between two jumps (the worst-fitting such piece), else between a jump and a
+//      trial's end (the shorter side). Without jumps, its per-frame residual (distance from where
+//      the fitted model puts it) is split into frames far above the marker's own median and the
+//      rest; a run of bad frames covering less than `max_stretch_fraction` of the frames where
+//      it is seen is a labelling error over that stretch (a label that jumped to a neighbour when two markers
 //      crossed, a gap filled with the wrong marker). If over the stretch the data lie at another
 //      marker's fitted place, that marker is named.
 //   3. A swap. Its data, over every frame, lie close to where the fitted model puts another
@@ -47,6 +49,11 @@ struct MarkerDiagnosisOptions {
   int min_stretch_frames = 10;         // shorter runs of bad frames are noise, not a label
   int stretch_gap_frames = 5;          // good frames inside a stretch that do not end it
   double max_stretch_fraction = 0.6;   // a longer "stretch" is the whole trial: see 2-4
+  // A jump in the data (a label moving to another marker): a step between consecutive frames
+  // above jump_ratio x the marker's median step and above jump_min_mm. Stretches are looked
+  // for between jumps first, then as runs of bad frames.
+  double jump_ratio = 8.0;
+  double jump_min_mm = 30.0;
   // A swap (or the marker a stretch takes the place of): the data's RMS distance from the other
   // marker's fitted place is below `swap_ratio` x its distance from its own and below swap_max_mm.
   double swap_ratio = 0.5;

@@ -225,10 +225,9 @@ TEST(GlobalFit, AMarkerOnTheWrongBodyIsNamedWithTheBodyItRidesOn) {
 // RTHI and RKNE exchange labels for frames 200-319 of 600 (two markers crossing): the stretch
 // is named. Least squares bends the thigh to half-fit both (measured: 44.9 mm elsewhere); with
 // the robust loss the rest of the trial fits (0.8 mm) and the marker whose place the data take
-// is named too. One scene: on others (seeds 61-91, same spoiling) least squares names the
-// marker and calls it a stretch but finds the frames on 1 of 3 (the bent fit's worst frames
-// instead); Cauchy finds them on 3 of 4 and names RKNE on 2 (seed 61 ends in a wrong minimum,
-// 53 mm elsewhere). The diagnosis is only as good as the fit it reads.
+// is named too. The frames come from the jumps in RTHI's own data, not from the fit: on seeds
+// 61-91 (same spoiling) they are 200-319 with either loss, though least squares bends the fit
+// (seed 61: 10 mm there, 41 elsewhere); RKNE is named with Cauchy on 3 of those 4.
 TEST(GlobalFit, AMislabelledStretchIsNamedWithItsFrames) {
   std::mt19937_64 rng(51);
   const Model nominal = NominalWithoutOptional();
