@@ -114,6 +114,9 @@ Status CapturePipeline::Start() {
     stats_.camera_clock_residual_us.assign(cameras_.size(), 0.0);
     stats_.camera_clock_fitted.assign(cameras_.size(), false);
     stats_.camera_count_mismatches.assign(cameras_.size(), 0);
+    stats_.camera_tick_phase.assign(cameras_.size(), -1.0);
+    tick_phase_cos_.assign(cameras_.size(), 0.0);
+    tick_phase_sin_.assign(cameras_.size(), 0.0);
   }
   frames_.clear();
   const int per_worker =
@@ -245,6 +248,7 @@ void CapturePipeline::GrabLoop(int c) {
       }
       ++stats_.frames_grabbed;
       if (count_mismatch) ++stats_.camera_count_mismatches[c];
+      if (options_.rig_sync == CapturePipelineOptions::RigSync::kSharedClock) AddTickPhase(c, frame);
       BoundedQueue<drivers::Frame>& queue = *frames_[c % frames_.size()];
       if (!queue.TryPush(std::move(frame))) {  // full: the frame is left to us
         ++stats_.frames_dropped;
@@ -265,6 +269,21 @@ void CapturePipeline::GrabLoop(int c) {
       break;
     }
   }
+}
+
+void CapturePipeline::AddTickPhase(std::size_t camera, const drivers::Frame& frame) {
+  constexpr double kWeight = 1.0 / 50;
+  const long double period_ns = 1e9L / options_.rate_hz;
+  const double phase = static_cast<double>(
+      std::fmod(static_cast<long double>(frame.device_timestamp_ns), period_ns) / period_ns);
+  const double angle = 2 * M_PI * phase;
+  double& x = tick_phase_cos_[camera];
+  double& y = tick_phase_sin_[camera];
+  const bool first = stats_.camera_tick_phase[camera] < 0;
+  x = first ? std::cos(angle) : x + kWeight * (std::cos(angle) - x);
+  y = first ? std::sin(angle) : y + kWeight * (std::sin(angle) - y);
+  const double mean = std::atan2(y, x) / (2 * M_PI);
+  stats_.camera_tick_phase[camera] = mean < 0 ? mean + 1 : mean;
 }
 
 void CapturePipeline::DetectLoop(int worker) {

@@ -211,6 +211,13 @@ struct CapturePipelineStats {
   // exposed and did not count: its frames are then on the wrong sets (the rig check fails it).
   // Frames lost in transport advance both alike and are not counted here.
   std::vector<std::uint64_t> camera_count_mismatches;
+  // kSharedClock, per camera: where within the common clock's tick its recent frames are
+  // stamped, in periods [0, 1) (the circular mean of frac(timestamp x rate_hz), each frame
+  // weighing 1/50, so about the last 50 frames count); -1 before its first frame. The cameras of
+  // a rig exposing on the ticks agree (PTP-scheduled: 0.5, drivers/aravis_camera.h); one that
+  // does not free-runs at its own phase, and its images join sets of another instant's
+  // (daemon/rig_check.h judges it).
+  std::vector<double> camera_tick_phase;
   std::uint64_t mismatched_sets = 0;
   // The queues between the stages (daemon/bounded_queue.h): frames waiting for detection (the
   // fullest worker's queue; capacity per worker), detections waiting for the sync, point frames
@@ -249,6 +256,8 @@ class CapturePipeline {
  private:
   void GrabLoop(int camera);
   void DetectLoop(int worker);
+  // camera_tick_phase's update by one frame of `camera` (under stats_mutex_).
+  void AddTickPhase(std::size_t camera, const drivers::Frame& frame);
   void SyncLoop();
   void EmitSet(reconstruction::DetectionSet& set);
   // kFreeRun: the set's sequence from its time (see RigSync).
@@ -288,6 +297,7 @@ class CapturePipeline {
   std::uint64_t last_emitted_sequence_ = 0;
   // The sync thread's: the stream epoch each camera's detections last had; kFreeRun numbering.
   std::vector<std::uint32_t> sync_epoch_;
+  std::vector<double> tick_phase_cos_, tick_phase_sin_;  // camera_tick_phase's running means
   bool numbered_any_ = false;
   std::uint64_t numbered_sequence_ = 0, numbered_time_ns_ = 0;
   std::uint64_t first_set_host_ns_ = 0;  // the sync thread's: when the first set came out

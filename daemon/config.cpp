@@ -143,6 +143,7 @@ const std::vector<DaemonField>& DaemonFields() {
       Text("rig", "trigger_master", false, &DaemonConfig::trigger_master, false),
       Number<&DaemonConfig::trigger_line>("rig", "trigger_line", false, {0, 15}),
       Number<&DaemonConfig::ptp_lock_timeout_s>("rig", "ptp_lock_timeout_s", false, {0.1, 600}),
+      Text("rig", "ptp_schedule", false, &DaemonConfig::ptp_schedule, true, {"sync-free-run", "none"}),
       Text("rig", "pixel_format", false, &DaemonConfig::pixel_format, true,
            {"Mono8", "Mono12", "Mono12Packed", "Mono16"}),
       Number<&DaemonConfig::packet_size>("rig", "packet_size", false,
@@ -366,8 +367,12 @@ bool Validate(const DaemonConfig& c, const ErrorFormatter& fail, std::string* er
                              std::to_string(c.width) + "x" + std::to_string(c.height) + " " +
                              c.pixel_format + " at " + FormatNumber(c.rate_hz) + " Hz)");
     }
+    // sync = "ptp" takes an offset too: the fake's own clock, which PTP replaces by the master's
+    // and whose phase an unscheduled fake free-runs at (drivers/aravis_fake.h ptp_features).
     if ((cam.sim_clock_offset_ms != 0 || cam.sim_clock_drift_ppm != 0 || cam.sim_arrival_wait_us != 0) &&
-        (c.simulated_cameras == 0 || c.sync != "free-run"))
+        (c.simulated_cameras == 0 ||
+         (c.sync != "free-run" &&
+          (c.sync != "ptp" || cam.sim_clock_drift_ppm != 0 || cam.sim_arrival_wait_us != 0))))
       return set_error(prefix + (cam.sim_clock_offset_ms != 0   ? ".sim_clock_offset_ms"
                                  : cam.sim_clock_drift_ppm != 0 ? ".sim_clock_drift_ppm"
                                                                 : ".sim_arrival_wait_us"),

@@ -21,12 +21,16 @@
 //   calibration = "calib.json"  # camera calibration; absent: uncalibrated until rig.calibrate
 //   sync = "trigger"            # "trigger" | "ptp" | "free-run" (daemon/capture_pipeline.h RigSync;
 //                               # a simulated rig's fakes share the host's clock: "trigger" runs
-//                               # as "ptp"; "ptp" reads a simulated PTP state (sim.camera sets
-//                               # it); "free-run" fits each fake's clock, sim_clock_* skew them)
+//                               # as "ptp"; "ptp" gives the fakes PTP features: sim.camera sets
+//                               # their state, sim_clock_offset_ms their own clocks; "free-run"
+//                               # fits each fake's clock, sim_clock_* skew them)
 //   trigger_master = ""         # trigger: the camera whose strobe triggers the others ("": an
 //                               # external trigger generator drives every camera)
 //   trigger_line = 1            # trigger: the cameras' trigger input, Line<n>
 //   ptp_lock_timeout_s = 10     # ptp: how long start-up waits for every camera to lock
+//   ptp_schedule = "sync-free-run"  # ptp: how exposures are put on the clock's ticks:
+//                               # "sync-free-run" (Basler's SyncFreeRunTimer*, mid-tick) | "none"
+//                               # (left to the cameras; the rig check shows their phase)
 //   pixel_format = "Mono8"      # "Mono8" | "Mono12" | "Mono12Packed" | "Mono16"
 //   packet_size = 0             # GigE: bytes per stream packet (0: negotiated; > 1500: jumbo frames)
 //   packet_delay_ns = 0         # GigE: inter-packet delay (several cameras on one switch port)
@@ -142,6 +146,7 @@ struct DaemonConfig {
   std::string trigger_master;         // "": an external trigger generator
   int trigger_line = 1;
   double ptp_lock_timeout_s = 10;
+  std::string ptp_schedule = "sync-free-run";  // drivers::PtpSchedule
   std::string pixel_format = "Mono8";
   int packet_size = 0;                // 0: negotiated
   int packet_delay_ns = 0;

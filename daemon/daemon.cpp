@@ -222,6 +222,12 @@ Status Daemon::Start() {
     ro.seed = config_.subject_seed;
     ro.centroid_noise_px = config_.centroid_noise_px;
     ro.protocol = &protocol_;
+    // sync = "ptp": the fakes are PTP cameras (their PtpStatus set by sim.camera), each with its
+    // own clock ([[rig.camera]] sim_clock_offset_ms), scheduled like real ones (rig_setup.h).
+    ro.ptp_features = config_.sync == "ptp";
+    if (ro.ptp_features)
+      for (const CameraConfig& c : config_.cameras)
+        ro.clock_offsets_ns.push_back(static_cast<std::int64_t>(std::llround(c.sim_clock_offset_ms * 1e6)));
     MOCAP_RETURN_IF_ERROR(sim::LiveRig::Create(ro, &sim_rig_));
     for (int c : options_.test_absent_cameras)
       if (c >= 0 && c < config_.simulated_cameras) sim_rig_->fakes().SetPresent(c, false);
@@ -269,14 +275,9 @@ Status Daemon::Start() {
   for (auto& cam : cameras) sources.push_back(std::move(cam));
   if (config_.simulated_cameras > 0) {
     for (std::size_t i = 0; i < sources.size(); ++i) {
-      if (config_.sync == "ptp") {
-        auto ptp = std::make_unique<SimulatedPtpSource>(sources[i]->id());
-        sim_ptp_.push_back(ptp.get());
-        ptp_sources_.push_back(std::move(ptp));
-      }
       // Free run: each fake's clock as configured (its own offset and rate).
       const CameraConfig* c = i < config_.cameras.size() ? &config_.cameras[i] : nullptr;
-      if (c && (c->sim_clock_offset_ms != 0 || c->sim_clock_drift_ppm != 0 ||
+      if (c && config_.sync != "ptp" && (c->sim_clock_offset_ms != 0 || c->sim_clock_drift_ppm != 0 ||
                 c->sim_arrival_wait_us != 0)) {
         drivers::ClockSkew skew;
         skew.offset_ns = static_cast<std::int64_t>(std::llround(c->sim_clock_offset_ms * 1e6));
@@ -293,11 +294,6 @@ Status Daemon::Start() {
       spdlog::warn("[rig] sync = \"free-run\" on a simulated rig: frame sets are grouped by each "
                    "fake's clock fitted against the host's");
   } else {
-    // PTP is checked on the cameras that opened; one that joins later is not monitored until a
-    // restart (noted in README "Cameras").
-    if (config_.sync == "ptp")
-      for (std::size_t i = 0; i < aravis.size(); ++i)
-        if (opened[i]) ptp_sources_.push_back(std::make_unique<AravisPtpSource>(aravis[i]));
     if (config_.sync == "free-run") {
       spdlog::warn("[rig] sync = \"free-run\": frame sets are grouped by each camera's clock "
                    "fitted against the host's; they are only as good as that estimate, and "
@@ -308,7 +304,20 @@ Status Daemon::Start() {
         spdlog::error("[rig] trigger_master '{}' is missing: the other cameras get no trigger "
                       "until it appears", m.id);
   }
-  // PTP: every camera locked to one clock before the rig streams (daemon/ptp_monitor.h).
+  // PTP: every camera locked to one clock before the rig streams (daemon/ptp_monitor.h). Every
+  // camera has its source, in the rig's order: one the rig started without is not judged while
+  // it is awaited, and joins the monitor when it opens (PTP enabled and its exposures scheduled
+  // by the same Open path: drivers/aravis_camera.h "Exposure schedule").
+  if (config_.sync == "ptp")
+    for (drivers::AravisCamera* cam : aravis) ptp_sources_.push_back(std::make_unique<AravisPtpSource>(cam));
+  for (std::size_t i = 0; i < aravis.size(); ++i)
+    if (opened[i] && config_.sync == "ptp")
+      spdlog::info("camera '{}': exposures {}", aravis[i]->id(),
+                   aravis[i]->Applied().ptp_schedule.empty()
+                       ? std::string("not scheduled on the PTP clock (free-running at its own phase)")
+                       : "scheduled by Synchronous Free Run at " +
+                             std::to_string(aravis[i]->Applied().schedule_rate_hz) + " Hz, mid-tick (start " +
+                             std::to_string(aravis[i]->Applied().schedule_start_ticks) + " ticks)");
   if (!ptp_sources_.empty()) {
     std::vector<PtpStatusSource*> ptp;
     for (auto& p : ptp_sources_) ptp.push_back(p.get());
@@ -1789,18 +1798,17 @@ void Daemon::SimCamera(const Request& r) {
       !p.String("ptp", &ptp_status, false) || !p.Number("ptp_offset_ns", &ptp_offset_ns, -1e12, 1e12, false))
     return Fail(r, error_code::kInvalidParams, p.error);
   if (p.Has("ptp")) {
-    // The camera's PTP state as its PtpStatus would read (the fakes have no PTP features).
-    if (sim_ptp_.empty())
+    // The state the camera's PtpStatus reads from now on (its fake's PTP features).
+    if (config_.sync != "ptp")
       return Fail(r, error_code::kUnavailable, "params.ptp: the simulated rig runs sync = \"" +
                                                    config_.sync + "\", not \"ptp\"");
-    drivers::PtpState st;
-    st.status = ptp_status;
-    st.has_offset = true;
-    st.offset_from_master_ns = static_cast<std::int64_t>(ptp_offset_ns);
-    sim_ptp_[static_cast<std::size_t>(camera)]->Set(st);
-    spdlog::warn("simulated rig: camera {} PTP status {}", sim_ptp_[camera]->camera_id(), ptp_status);
-    if (!p.Has("present"))
-      return server_->Reply(r.client.id, r.id, {{"camera", sim_ptp_[camera]->camera_id()}, {"ptp", ptp_status}});
+    if (Status st = sim_rig_->fakes().SetPtpState(static_cast<int>(camera), ptp_status,
+                                                  static_cast<std::int64_t>(ptp_offset_ns));
+        !st)
+      return Fail(r, error_code::kInvalidParams, "params.ptp: " + st.message());
+    const std::string id = aravis_cameras_[static_cast<std::size_t>(camera)]->id();
+    spdlog::warn("simulated rig: camera {} PTP status {}", id, ptp_status);
+    if (!p.Has("present")) return server_->Reply(r.client.id, r.id, {{"camera", id}, {"ptp", ptp_status}});
   }
   if (!p.Has("present")) return Fail(r, error_code::kInvalidParams, "params.present: missing");
   auto* cam = aravis_cameras_[static_cast<std::size_t>(camera)];

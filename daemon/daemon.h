@@ -180,10 +180,10 @@ class Daemon {
   // The pipeline's cameras that are Aravis cameras (packet statistics, hot-plug), by index;
   // nullptr where not.
   std::vector<drivers::AravisCamera*> aravis_cameras_;
-  // sync = "ptp": each camera's state (real: AravisPtpSource; simulated: SimulatedPtpSource,
-  // set by sim.camera) and the monitor reading them while the rig streams.
+  // sync = "ptp": each camera's state (AravisPtpSource, every camera in the rig's order; the
+  // simulated rig's fakes have PTP features, set by sim.camera) and the monitor reading them
+  // while the rig streams.
   std::vector<std::unique_ptr<PtpStatusSource>> ptp_sources_;
-  std::vector<SimulatedPtpSource*> sim_ptp_;
   std::unique_ptr<PtpMonitor> ptp_monitor_;
   PtpRigState ptp_;  // the loop's copy of the newest reading
   std::unique_ptr<Recorder> recorder_;

@@ -47,8 +47,13 @@ PtpRigState PtpMonitor::Round() {
   next.states.resize(sources_.size());
   next.errors.resize(sources_.size());
   std::vector<std::string> ids;
+  std::vector<drivers::PtpState> judged;
   std::string unread;
   for (std::size_t i = 0; i < sources_.size(); ++i) {
+    if (sources_[i]->Awaited()) {
+      next.awaited_cameras.push_back(sources_[i]->camera_id());
+      continue;
+    }
     ids.push_back(sources_[i]->camera_id());
     if (Status s = sources_[i]->Read(&next.states[i]); !s) {
       next.errors[i] = s.message();
@@ -57,9 +62,10 @@ PtpRigState PtpMonitor::Round() {
     }
     const std::string& st = next.states[i].status;
     if (st != "Slave" && st != "Master") next.unlocked_cameras.push_back(ids.back());
+    judged.push_back(next.states[i]);
   }
   std::string why;
-  next.locked = drivers::PtpLocked(ids, next.states, &why) && unread.empty();
+  next.locked = drivers::PtpLocked(ids, judged, &why) && unread.empty();
   if (!unread.empty()) why += (why.empty() ? "" : "; ") + std::string("not read: ") + unread;
   next.why = next.locked ? "" : why;
   next.checked = true;

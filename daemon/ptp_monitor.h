@@ -11,8 +11,14 @@
 // the lock goes is marked (daemon.cpp).
 //
 // Where a camera's state comes from is an interface, PtpStatusSource: AravisPtpSource reads the
-// camera (drivers::AravisCamera::Ptp); SimulatedPtpSource holds a state a test (or the
-// simulated rig's sim.camera method) sets, since Aravis's fake cameras have no PTP features.
+// camera (drivers::AravisCamera::Ptp), real or simulated (the simulated rig's Aravis fakes have
+// the PTP features, drivers/aravis_fake.h FakeRigOptions::ptp_features); tests script others.
+//
+// Every configured camera has a source, also one the rig started without (rig_setup.h
+// OpenRigCameras): while it is awaited (never opened) it is not judged — the rig is degraded,
+// not unlocked, and start-up does not wait for it — and once it opens, with PTP enabled and its
+// exposures scheduled by the same Open path as the others, the next round reads it: it holds
+// the rig unlocked (record.start refused, a recording marked) until it locks like the others.
 #pragma once
 #include <atomic>
 #include <condition_variable>
@@ -36,41 +42,20 @@ class PtpStatusSource {
   virtual const std::string& camera_id() const = 0;
   // Error when the state cannot be read (camera lost, PTP not enabled); the message names it.
   virtual Status Read(drivers::PtpState* state) = 0;
+  // A camera the rig started without and still awaits: not read, not judged.
+  virtual bool Awaited() const { return false; }
 };
 
-// A real camera's state (AravisCamera::Ptp, which serialises with the acquisition thread).
+// An Aravis camera's state (AravisCamera::Ptp, which serialises with the acquisition thread).
 class AravisPtpSource final : public PtpStatusSource {
  public:
   explicit AravisPtpSource(drivers::AravisCamera* camera) : camera_(camera) {}
   const std::string& camera_id() const override { return camera_->id(); }
   Status Read(drivers::PtpState* state) override { return camera_->Ptp(state); }
+  bool Awaited() const override { return camera_->AwaitingDevice(); }
 
  private:
   drivers::AravisCamera* camera_;
-};
-
-// A simulated camera's state: "Slave", 0 ns from the master, until Set() says otherwise.
-class SimulatedPtpSource final : public PtpStatusSource {
- public:
-  explicit SimulatedPtpSource(std::string id) : id_(std::move(id)) {
-    state_.status = "Slave";
-    state_.has_offset = true;
-  }
-  const std::string& camera_id() const override { return id_; }
-  Status Read(drivers::PtpState* state) override {
-    std::lock_guard<std::mutex> lock(mutex_);
-    *state = state_;
-    return Status::Ok();
-  }
-  void Set(const drivers::PtpState& state) {
-    std::lock_guard<std::mutex> lock(mutex_);
-    state_ = state;
-  }
-
- private:
-  std::string id_;
-  std::mutex mutex_;
-  drivers::PtpState state_;
 };
 
 struct PtpMonitorOptions {
@@ -87,6 +72,7 @@ struct PtpRigState {
   std::vector<std::string> unlocked_cameras;  // ids of the cameras that are not "Slave"/"Master"
   std::vector<drivers::PtpState> states;      // per camera, as read (empty status: not read)
   std::vector<std::string> errors;            // per camera, "" or why it could not be read
+  std::vector<std::string> awaited_cameras;   // ids of the cameras not judged: awaited
   std::uint64_t rounds = 0;
   std::uint64_t lock_losses = 0;  // rounds that found the rig unlocked after a locked one
 };

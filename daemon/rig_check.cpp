@@ -30,6 +30,8 @@ bool RigCheckOptions::IsValid(std::string* error) const {
   if (!(max_mismatched_set_fraction >= 0 && max_mismatched_set_fraction <= 1))
     return fail("max_mismatched_set_fraction must be in [0, 1]");
   if (!(max_ptp_offset_us > 0)) return fail("max_ptp_offset_us must be > 0");
+  if (!(max_tick_phase_periods > 0 && max_tick_phase_periods <= 0.5))
+    return fail("max_tick_phase_periods must be in (0, 0.5]");
   if (!(min_seconds_of_frames >= 0 && min_seconds_of_frames <= 3600))
     return fail("min_seconds_of_frames must be in [0, 3600]");
   return true;
@@ -52,6 +54,15 @@ Json RigCheckReport(const RigCheckInput& in, const RigCheckOptions& options) {
   for (const CameraCheckInput& c : in.cameras)
     if (c.clock_fitted) fitted_offsets.push_back(c.clock_offset_ms);
   const double median_offset_ms = Percentile(&fitted_offsets, 50);
+  // PTP: the tick phase of the rig's median camera, which the others must share (a schedule's
+  // phase is the same on every camera; where the timestamp is taken within the exposure is the
+  // vendor's, and alike on like cameras).
+  std::vector<double> phases;
+  for (const CameraCheckInput& c : in.cameras)
+    if (c.tick_phase >= 0) phases.push_back(c.tick_phase);
+  const bool have_phase = !phases.empty();
+  const double rig_phase = Percentile(&phases, 50);
+  const double min_frames = options.min_seconds_of_frames * in.rate_hz;
 
   Json cameras = Json::array();
   for (const CameraCheckInput& c : in.cameras) {
@@ -69,13 +80,27 @@ Json RigCheckReport(const RigCheckInput& in, const RigCheckOptions& options) {
       sync["offset_from_master_ns"] = c.ptp.has_offset ? Json(c.ptp.offset_from_master_ns) : Json();
       const bool locked = c.ptp.status == "Slave" || c.ptp.status == "Master";
       sync["locked"] = locked;
-      if (!c.ptp_error.empty()) fail("PTP state not read: " + c.ptp_error);
+      // A camera the rig awaits (never opened) is not read: "not streaming" says it.
+      if (!c.streaming && c.ptp.status.empty() && c.ptp_error.empty()) {
+      } else if (!c.ptp_error.empty()) fail("PTP state not read: " + c.ptp_error);
       else if (!locked)
         fail("PTP not locked (status " + (c.ptp.status.empty() ? std::string("none") : c.ptp.status) + ")");
       else if (c.ptp.status == "Slave" && c.ptp.has_offset &&
                std::abs(static_cast<double>(c.ptp.offset_from_master_ns)) > options.max_ptp_offset_us * 1e3)
         fail("PTP offset from the master " + std::to_string(c.ptp.offset_from_master_ns) +
              " ns exceeds " + Fixed(options.max_ptp_offset_us, 0) + " us (not converged)");
+      // Off the rig's phase by d periods (wrapped to [-0.5, 0.5)).
+      const double d = c.tick_phase >= 0 && have_phase
+                           ? c.tick_phase - rig_phase - std::floor(c.tick_phase - rig_phase + 0.5)
+                           : 0;
+      sync["tick_phase"] = c.tick_phase >= 0 ? Json(c.tick_phase) : Json();
+      sync["phase_from_rig_us"] = c.tick_phase >= 0 && have_phase ? Json(d * period_us) : Json();
+      if (c.streaming && c.tick_phase >= 0 && static_cast<double>(c.complete) >= min_frames &&
+          std::abs(d) > options.max_tick_phase_periods)
+        fail("exposes " + Fixed(d * period_us, 0) + " us off the rig's other cameras within the tick (" +
+             Fixed(d, 2) + " of a period; tick phase " + Fixed(c.tick_phase, 2) + ", the rig's " +
+             Fixed(rig_phase, 2) + "): not exposing on the PTP clock's ticks (its exposure schedule, "
+             "SyncFreeRunTimer*, is off or was refused), so its images join sets of another instant");
     } else if (in.sync == "free-run" || in.sync == "trigger") {
       sync["clock_fitted"] = c.clock_fitted;
       sync["clock_offset_ms"] = c.clock_offset_ms;
@@ -110,7 +135,6 @@ Json RigCheckReport(const RigCheckInput& in, const RigCheckOptions& options) {
                    {"losses", c.losses},           {"reopens", c.reopens}};
     const double lost_fraction = c.complete > 0 ? static_cast<double>(lost) / c.complete : (lost > 0 ? 1.0 : 0.0);
     frames["lost_fraction"] = lost_fraction;
-    const double min_frames = options.min_seconds_of_frames * in.rate_hz;
     if (static_cast<double>(c.complete) < min_frames)
       fail("too few frames so far to judge (" + std::to_string(c.complete) + " of the " +
            Fixed(min_frames, 0) + " of " + Fixed(options.min_seconds_of_frames, 1) +
@@ -157,6 +181,7 @@ Json RigCheckReport(const RigCheckInput& in, const RigCheckOptions& options) {
     for (const CameraCheckInput& c : in.cameras)
       if (c.ptp.status == "Master") masters += (masters.empty() ? "" : ", ") + c.id;
     rig_sync["master"] = masters.empty() ? Json("outside the rig") : Json(masters);
+    rig_sync["tick_phase"] = have_phase ? Json(rig_phase) : Json();
     if (!in.ptp_checked) problems.push_back("PTP: not checked yet");
     else if (!in.ptp_locked && !in.ptp_why.empty()) problems.push_back("PTP: " + in.ptp_why);
   } else if (in.sync == "trigger") {

@@ -2,7 +2,12 @@
 // (`mocapctl cameras --check`, the control method `cameras.check`, daemon/PROTOCOL.md):
 //   - synchronisation, per camera, by the rig's mode:
 //       ptp        its PTP status (Slave / Master / Listening ...), its offset from the master,
-//                  and whether the rig is locked to one clock (daemon/ptp_monitor.h);
+//                  and whether the rig is locked to one clock (daemon/ptp_monitor.h); and where
+//                  within the clock's tick it exposes (its tick phase, CapturePipelineStats::
+//                  camera_tick_phase) against the rig's median camera: a locked camera whose
+//                  exposures are not scheduled on the ticks (drivers/aravis_camera.h "Exposure
+//                  schedule") free-runs at a phase of its own, and its images join sets of
+//                  another instant while the lock looks perfect;
 //       free-run   its clock fitted against the host (reconstruction/clock_fit.h): offset (also
 //                  against the rig's median camera, which is what grouping depends on), drift,
 //                  and the fit's residual, set against a frame period;
@@ -46,6 +51,10 @@ struct RigCheckOptions {
   // ptp: a slave further than this from its master fails: it has not converged (locked slaves
   // with hardware timestamps sit within a microsecond or so); at 200 Hz it is 2 % of a period.
   double max_ptp_offset_us = 100;
+  // ptp: a camera whose tick phase is further than this fraction of a period from the rig's
+  // median camera's fails (at 200 Hz, 0.5 ms: an exposure of the usual 0.3-1 ms overlaps the
+  // others' by half or less; scheduled cameras agree within microseconds).
+  double max_tick_phase_periods = 0.1;
   // A camera with fewer complete frames than this many seconds at the rate is not judged on its
   // fractions (its first buffers, a start-up underrun, would be percent of nothing): it fails
   // with "too few frames so far" instead.
@@ -73,6 +82,7 @@ struct CameraCheckInput {
   // ptp: the monitor's last reading ("" status: not read; ptp_error says why).
   drivers::PtpState ptp;
   std::string ptp_error;
+  double tick_phase = -1;  // ptp: CapturePipelineStats::camera_tick_phase (-1: no frames)
 };
 
 struct RigCheckInput {

@@ -24,7 +24,8 @@ drivers::CameraSettings CameraSettingsOf(const DaemonConfig& config, int camera)
   s.packet_delay_ns = config.packet_delay_ns;
   s.packet_resend = config.packet_resend == "always";
   s.socket_buffer_bytes = config.socket_buffer_bytes;
-  s.ptp = config.sync == "ptp" && config.simulated_cameras == 0;
+  s.ptp = config.sync == "ptp";  // the simulated rig's fakes have the PTP features then
+  drivers::ParsePtpSchedule(config.ptp_schedule, &s.ptp_schedule);  // validated by the config
   if (camera < 0 || camera >= static_cast<int>(config.cameras.size())) return s;
   const CameraConfig& c = config.cameras[camera];
   if (c.exposure_us > 0) s.exposure_us = c.exposure_us;

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdio>
 #include <thread>
+#include <utility>
 
 namespace mocap::drivers {
 namespace {
@@ -460,6 +461,12 @@ Status AravisCamera::ApplyCameraFeatures() {
       if (!applied_.ptp_enabled) MOCAP_RETURN_IF_ERROR(Refused(feature, "reads back false"));
     }
   }
+  applied_.ptp_schedule.clear();
+  applied_.schedule_rate_hz = 0;
+  applied_.schedule_start_ticks = 0;
+  if (applied_.ptp_enabled && s.ptp_schedule == PtpSchedule::kSyncFreeRun &&
+      s.trigger == TriggerMode::kFreeRun)
+    MOCAP_RETURN_IF_ERROR(ApplySyncFreeRun());
 
   // USB3 Vision transfer: the I/O mode (before the stream is created) and the link limit.
   applied_.usb = AppliedUsbTransfer{};
@@ -504,6 +511,62 @@ Status AravisCamera::ApplyCameraFeatures() {
                                                      " ns"));
     }
   }
+  return Status::Ok();
+}
+
+Status AravisCamera::ApplySyncFreeRun() {
+  GError* e = nullptr;
+  auto available = [&](const char* feature) {
+    const bool yes = arv_camera_is_feature_available(camera_, feature, &e);
+    g_clear_error(&e);
+    return yes;
+  };
+  for (const char* feature : {"SyncFreeRunTimerTriggerRateAbs", "SyncFreeRunTimerStartTimeLow",
+                              "SyncFreeRunTimerStartTimeHigh", "SyncFreeRunTimerUpdate",
+                              "SyncFreeRunTimerEnable"}) {
+    if (!available(feature))
+      return Refused("SyncFreeRunTimerEnable",
+                     std::string("the camera has no ") + feature +
+                         " (no Synchronous Free Run): it would free-run at its own phase, off "
+                         "the rig's PTP ticks");
+  }
+  const double rate = settings_.frame_rate_hz;
+  arv_camera_set_float(camera_, "SyncFreeRunTimerTriggerRateAbs", rate, &e);
+  if (e) return Refused("SyncFreeRunTimerTriggerRateAbs", "refused " + Num(rate) + " Hz (" + Take(&e) + ")");
+  const double rate_back = arv_camera_get_float(camera_, "SyncFreeRunTimerTriggerRateAbs", &e);
+  if (e) return Refused("SyncFreeRunTimerTriggerRateAbs", "cannot be read back (" + Take(&e) + ")");
+  // A float register holds the rate to its last bits; a camera that rounds it to its own timer's
+  // resolution drifts off the others' ticks by the difference every period.
+  if (std::abs(rate_back - rate) > 1e-9 * rate)
+    return Refused("SyncFreeRunTimerTriggerRateAbs",
+                   "set to " + Num(rate) + " Hz, reads back " + Num(rate_back) + " Hz");
+  double tick_hz = 1e9;
+  if (available("GevTimestampTickFrequency")) {
+    const gint64 f = arv_camera_get_integer(camera_, "GevTimestampTickFrequency", &e);
+    if (!e && f > 0) tick_hz = static_cast<double>(f);
+    g_clear_error(&e);
+  }
+  const auto start = static_cast<std::int64_t>(std::llround(0.5 * tick_hz / rate));
+  const std::pair<const char*, std::int64_t> words[] = {
+      {"SyncFreeRunTimerStartTimeHigh", start >> 32}, {"SyncFreeRunTimerStartTimeLow", start & 0xFFFFFFFF}};
+  for (const auto& [feature, value] : words) {
+    arv_camera_set_integer(camera_, feature, value, &e);
+    if (e) return Refused(feature, "refused " + std::to_string(value) + " (" + Take(&e) + ")");
+    const gint64 back = arv_camera_get_integer(camera_, feature, &e);
+    if (e) return Refused(feature, "cannot be read back (" + Take(&e) + ")");
+    if (back != value)
+      return Refused(feature, "set to " + std::to_string(value) + ", reads back " + std::to_string(back));
+  }
+  arv_camera_execute_command(camera_, "SyncFreeRunTimerUpdate", &e);
+  if (e) return Refused("SyncFreeRunTimerUpdate", "refused (" + Take(&e) + ")");
+  arv_camera_set_boolean(camera_, "SyncFreeRunTimerEnable", TRUE, &e);
+  if (e) return Refused("SyncFreeRunTimerEnable", "refused true (" + Take(&e) + ")");
+  const bool enabled = arv_camera_get_boolean(camera_, "SyncFreeRunTimerEnable", &e);
+  if (e) return Refused("SyncFreeRunTimerEnable", "cannot be read back (" + Take(&e) + ")");
+  if (!enabled) return Refused("SyncFreeRunTimerEnable", "set to true, reads back false");
+  applied_.ptp_schedule = ToString(PtpSchedule::kSyncFreeRun);
+  applied_.schedule_rate_hz = rate_back;
+  applied_.schedule_start_ticks = start;
   return Status::Ok();
 }
 

@@ -27,6 +27,25 @@
 //     (GigE has no arrival event) or at once after NotifyArrived() (USB hot-plug,
 //     drivers/usb_hotplug.h). NotifyRemoved() is the same loss, reported by hot-plug. A loss
 //     touches only this camera: the other cameras' threads go on.
+//   - Exposure schedule (sync = "ptp"). PTP makes the cameras' clocks one clock; it does not
+//     make them expose together: a free-running camera exposes at the phase its acquisition
+//     started at, anywhere within a period of the others. The pipeline groups frames by the
+//     common clock's tick, floor(timestamp x rate) (daemon/capture_pipeline.h kSharedClock), so
+//     the exposures must be put on the ticks. Two GenICam ways exist: Basler's Synchronous Free
+//     Run (a timer on the PTP clock that fires at SyncFreeRunTimerStartTime + n /
+//     SyncFreeRunTimerTriggerRateAbs) and SFNC's scheduled action commands (a host sends
+//     "expose at time t" to every camera). Aravis 0.8 has no action-command API (its pull request
+//     #468 was never merged), so the backend uses Synchronous Free Run: rate = the frame rate,
+//     start time = HALF a period (in ticks of the camera's timestamp clock,
+//     GevTimestampTickFrequency, 1 GHz where the camera has no such feature), then
+//     SyncFreeRunTimerUpdate, then SyncFreeRunTimerEnable, each read back. Why half a period:
+//     cameras exposing exactly on the tick would stamp times a few nanoseconds either side of
+//     it, and floor() would split one instant over two sets; mid-tick, the grouping has half a
+//     period of margin on both sides. A camera without these features (or refusing one) is an
+//     error naming camera and feature unless SyncFreeRunTimerEnable (or the refused feature) is
+//     optional; such a camera free-runs at its own phase and the rig check names it
+//     (daemon/rig_check.h, "tick phase"). A camera that joins late or comes back after a loss
+//     is scheduled by the same Open/Reopen path, on the same ticks.
 //   - Devices are made by a factory, so a reopen makes a fresh one: by default
 //     arv_camera_new(id); the fake rig (drivers/aravis_fake.h) passes one that builds an
 //     ArvFakeDevice with our image generator.
@@ -92,6 +111,12 @@ struct AppliedSettings {
   std::string exposure_auto, gain_auto;
   std::string strobe_source;   // LineSource read back for Line<strobe_line>, "" without strobe
   bool ptp_enabled = false;
+  // The exposure schedule on the PTP clock (CameraSettings::ptp_schedule), read back:
+  // "sync-free-run" once SyncFreeRunTimerEnable reads true, "" where none was applied; its rate
+  // and its start time in ticks of the camera's timestamp clock.
+  std::string ptp_schedule;
+  double schedule_rate_hz = 0;
+  std::int64_t schedule_start_ticks = 0;
   // GigE Vision, read back (0 / false elsewhere).
   int packet_size = 0;
   std::int64_t packet_delay_ns = 0;
@@ -169,6 +194,8 @@ class AravisCamera final : public CameraSource {
   // After a failed Open(): whether the device answered (and refused a setting or the stream)
   // rather than being absent.
   bool DeviceFoundAtOpen() const { return device_found_at_open_; }
+  // Still awaiting its device after AwaitDevice() (never opened since). Any thread.
+  bool AwaitingDevice() const { return awaiting_device_.load(); }
   // Why the camera is not streaming: the last failed open or reopen ("" if none failed).
   std::string LastError() const override;
   // The sequence the next delivered frame gets after a reopen (last delivered + 1), or 0 if
@@ -189,6 +216,7 @@ class AravisCamera final : public CameraSource {
   Status Connect();              // factory -> camera_, apply settings
   Status ApplySettings();
   Status ApplyCameraFeatures();  // auto off, strobe, PTP, GigE packet size and delay
+  Status ApplySyncFreeRun();     // the exposure schedule on the PTP clock (see the header)
   // A feature the camera refused: an error naming camera and feature, unless it is optional.
   Status Refused(const std::string& feature, const std::string& why);
   Status CreateStreamAndPool();  // stream_, slots wrapped and pushed
@@ -213,7 +241,7 @@ class AravisCamera final : public CameraSource {
   unsigned long control_lost_handler_ = 0;
   bool acquiring_ = false;
   bool opened_ = false;
-  bool awaiting_device_ = false;  // AwaitDevice(): never opened yet
+  std::atomic<bool> awaiting_device_{false};  // AwaitDevice(): never opened yet
   bool device_found_at_open_ = false;
 
   // camera_ (and talking to it) between the acquisition thread (Open, Reopen, Start, Stop) and

@@ -60,6 +60,23 @@ struct FakeRigOptions {
   // find an image's tick from Frame::device_timestamp_ns (SequenceOfTimestamp). Set it to the
   // cameras' frame rate.
   double clock_sequence_rate_hz = 0;
+  // PTP cameras: the fakes' GenICam gains SFNC's PtpEnable, PtpStatus, PtpOffsetFromMaster,
+  // PtpDataSetLatch and Basler's Synchronous Free Run (SyncFreeRunTimerTriggerRateAbs,
+  // SyncFreeRunTimerStartTimeLow/High, SyncFreeRunTimerUpdate, SyncFreeRunTimerEnable), backed
+  // by registers of the fake (Aravis's own XML, extended; without this they are absent). With
+  // clock_sequence_rate_hz > 0, a fake then exposes as a PTP camera does, by what was written to
+  // those registers, on tick k (the period its image is drawn for):
+  //   - scheduled (PtpEnable and SyncFreeRunTimerEnable on, SyncFreeRunTimerUpdate executed with
+  //     the frame rate): at k x period + the start time (ns) modulo the period: on the master's
+  //     ticks, whatever its own clock;
+  //   - not: at k x period + its own clock's offset (clock_offsets_ns) modulo the period, the
+  //     phase its own timer runs at;
+  // stamped with that instant on the master's clock (the host's) while PtpEnable is on, else on
+  // its own clock (+ its offset). PtpStatus reads "Disabled" while PtpEnable is off, else the
+  // state SetPtpState gave (initially "Slave").
+  bool ptp_features = false;
+  std::vector<std::int64_t> clock_offsets_ns;  // per camera; missing: 0
+  std::vector<int> without_sync_free_run;      // cameras whose fakes lack SyncFreeRunTimer*
 
   bool IsValid(std::string* error) const;
 };
@@ -77,6 +94,18 @@ struct FakeFillContext {
   bool any = false;
   std::atomic<std::uint64_t> drawn{0};
   double clock_sequence_rate_hz = 0;  // FakeRigOptions
+  // FakeRigOptions::ptp_features: the camera's current device, its own clock, the PTP state its
+  // PtpStatus reads, and (under `mutex`) the Synchronous Free Run timer as last latched by
+  // SyncFreeRunTimerUpdate.
+  bool ptp_features = false;
+  bool sync_free_run_available = true;
+  std::atomic<ArvFakeCamera*> fake{nullptr};
+  std::int64_t own_offset_ns = 0;
+  std::atomic<std::uint32_t> ptp_state{8};  // PtpStatus's value: 8 = "Slave"
+  std::atomic<std::int32_t> ptp_offset_ns{0};
+  bool sync_free_run_latched = false;
+  double sync_free_run_rate_hz = 0;
+  std::uint64_t sync_free_run_start_ns = 0;
 };
 
 class AravisFakeRig {
@@ -98,6 +127,10 @@ class AravisFakeRig {
   // registers behind the backend's back), or nullptr.
   ArvFakeCamera* FakeCamera(int camera);
   std::uint64_t FramesDrawn(int camera) const;
+  // ptp_features: the state camera `camera`'s PtpStatus reads while PtpEnable is on (SFNC's:
+  // "Slave", "Master", "Listening", "Uncalibrated", "Faulty", ...) and its PtpOffsetFromMaster,
+  // for its current device and the ones made after. Error naming an unknown state or camera.
+  Status SetPtpState(int camera, const std::string& status, std::int64_t offset_from_master_ns = 0);
 
  private:
   ArvCamera* NewDevice(int camera, std::uint64_t resume_sequence, std::string* error);

@@ -25,6 +25,10 @@ namespace mocap::drivers {
 enum class TriggerMode : std::uint8_t { kFreeRun, kHardwareLine, kSoftware };
 const char* ToString(TriggerMode m);
 
+enum class PtpSchedule : std::uint8_t { kNone, kSyncFreeRun };
+const char* ToString(PtpSchedule s);                       // "none" | "sync-free-run"
+bool ParsePtpSchedule(const std::string& text, PtpSchedule* schedule);
+
 struct CameraSettings {
   double exposure_us = 500.0;
   double gain_db = 0.0;
@@ -45,6 +49,12 @@ struct CameraSettings {
   // IEEE 1588: PtpEnable (SFNC) or GevIEEE1588 (GigE Vision 1.x naming) switched on; the lock
   // is read with AravisCamera::Ptp().
   bool ptp = false;
+  // With ptp: how the camera's exposures are put on the common clock's ticks (a PTP lock alone
+  // makes the clocks agree, not the instants the cameras expose at: each free-runs at the phase
+  // its acquisition happened to start at). kSyncFreeRun: Basler's Synchronous Free Run
+  // (SyncFreeRunTimer*, drivers/aravis_camera.h "Exposure schedule"); kNone: left to the camera
+  // (the rig check then shows whether it exposes on the ticks).
+  PtpSchedule ptp_schedule = PtpSchedule::kSyncFreeRun;
   // GigE Vision transport (other transports ignore these). packet_size 0: negotiated, the
   // largest the path carries (jumbo frames where every NIC and switch allow them).
   int packet_size = 0;

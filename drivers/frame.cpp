@@ -53,6 +53,17 @@ const char* ToString(TriggerMode m) {
   return "unknown";
 }
 
+const char* ToString(PtpSchedule s) {
+  return s == PtpSchedule::kSyncFreeRun ? "sync-free-run" : "none";
+}
+
+bool ParsePtpSchedule(const std::string& text, PtpSchedule* schedule) {
+  if (text == "sync-free-run") *schedule = PtpSchedule::kSyncFreeRun;
+  else if (text == "none") *schedule = PtpSchedule::kNone;
+  else return false;
+  return true;
+}
+
 const char* ToString(CameraState s) {
   switch (s) {
     case CameraState::kClosed: return "closed";

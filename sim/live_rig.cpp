@@ -53,6 +53,8 @@ Status LiveRig::Create(const LiveRigOptions& options, std::unique_ptr<LiveRig>* 
   fake_options.height = options.height;
   fake_options.clock_sequence_rate_hz = options.rate_hz;
   fake_options.serial_prefix = options.serial_prefix;
+  fake_options.ptp_features = options.ptp_features;
+  fake_options.clock_offsets_ns = options.clock_offsets_ns;
   if (!fake_options.IsValid(&error)) return Status::Error("simulated rig: " + error);
 
   // Scene time 0 is the tick at which the rig is created.

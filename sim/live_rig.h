@@ -43,6 +43,10 @@ struct LiveRigOptions {
   double centroid_noise_px = 0.1;    // the renderer's centroid jitter
   const Protocol* protocol = nullptr;  // nullptr: DefaultProtocol(); copied
   std::string serial_prefix = "MOCAPSIM";
+  // The fakes as PTP cameras (drivers::FakeRigOptions::ptp_features) with their own clocks
+  // offset by clock_offsets_ns (per camera; missing: 0).
+  bool ptp_features = false;
+  std::vector<std::int64_t> clock_offsets_ns;
 
   bool IsValid(std::string* error) const;
 };

@@ -305,6 +305,25 @@ TEST(RigCheck, VerdictsFollowTheFiguresAndNameWhatFails) {
   ASSERT_EQ(r["problems"].size(), 1u) << r.dump(1);
   EXPECT_EQ(r["problems"][0], "camera 'c1': PTP offset from the master -100001 ns exceeds 100 us (not converged)");
   in.cameras[1].ptp.offset_from_master_ns = 40;
+  // Tick phases: cameras scheduled mid-tick agree; one 0.21 of a period (1.05 ms at 200 Hz) off
+  // the rig's median is named, one 0.1 off (the limit) is not; a wrap (0.98 against 0.02) is 0.04.
+  for (auto& c : in.cameras) c.tick_phase = 0.5;
+  in.cameras[2].tick_phase = 0.6;
+  r = daemon::RigCheckReport(in);
+  EXPECT_EQ(r["ok"], true) << r.dump(1);
+  EXPECT_DOUBLE_EQ(r["sync"]["tick_phase"].get<double>(), 0.5);
+  EXPECT_NEAR(r["cameras"][2]["sync"]["phase_from_rig_us"].get<double>(), 500, 1e-6);
+  in.cameras[2].tick_phase = 0.29;
+  r = daemon::RigCheckReport(in);
+  ASSERT_EQ(r["problems"].size(), 1u) << r.dump(1);
+  EXPECT_EQ(r["problems"][0], "camera 'c2': exposes -1050 us off the rig's other cameras within the tick "
+                              "(-0.21 of a period; tick phase 0.29, the rig's 0.50): not exposing on the "
+                              "PTP clock's ticks (its exposure schedule, SyncFreeRunTimer*, is off or was "
+                              "refused), so its images join sets of another instant");
+  for (auto& c : in.cameras) c.tick_phase = 0.02;
+  in.cameras[2].tick_phase = 0.98;
+  EXPECT_EQ(daemon::RigCheckReport(in)["ok"], true);
+  for (auto& c : in.cameras) c.tick_phase = -1;
   in.cameras[2].ptp_error = "c2: cannot read PtpStatus (timeout)";
   in.cameras[2].ptp.status.clear();
   in.ptp_locked = false;
