@@ -1888,6 +1888,7 @@ Json Daemon::RigCheckJson() const {
     ci.clock_drift_ppm = at(st.camera_clock_drift_ppm, c, 0.0);
     ci.clock_residual_us = at(st.camera_clock_residual_us, c, 0.0);
     ci.count_mismatches = at(st.camera_count_mismatches, c, std::uint64_t{0});
+    ci.tick_phase = at(st.camera_tick_phase, c, -1.0);
     ci.trigger_master = !config_.trigger_master.empty() && ci.id == config_.trigger_master;
     if (c < static_cast<int>(ptp_.states.size())) {
       ci.ptp = ptp_.states[c];

@@ -113,6 +113,7 @@ const std::vector<BadValue> kBadValues = {
     {"rig", "trigger_line", "16", "expected an integer in [0, 15], got 16"},
     {"rig", "ptp_lock_timeout_s", "\"10s\"", "expected a number in [0.1, 600], got \"10s\""},
     {"rig", "ptp_lock_timeout_s", "0", "expected a number in [0.1, 600], got 0"},
+    {"rig", "ptp_schedule", "\"action\"", "expected one of \"sync-free-run\", \"none\", got \"action\""},
     {"rig", "pixel_format", "8", "expected a string, got 8"},
     {"rig", "pixel_format", "\"Mono10\"",
      "expected one of \"Mono8\", \"Mono12\", \"Mono12Packed\", \"Mono16\", got \"Mono10\""},
@@ -198,7 +199,7 @@ TEST(Config, EveryDocumentedKeyIsTestedWithABadValue) {
     EXPECT_TRUE(tested) << table << "." << key << " has no bad-value test";
     ++keys;
   }
-  EXPECT_EQ(keys, 36);
+  EXPECT_EQ(keys, 37);
 }
 
 TEST(Config, CameraKeysAndMasksNameTheCameraAndLine) {
@@ -290,7 +291,7 @@ TEST(Config, UnknownKeysAndTablesAreErrorsNamingThem) {
             kSource + ":3: rig.rat: unknown key (the keys of [rig] are simulated, subject_seed, rate, "
                       "width, height, exposure_us, gain_db, detection_threshold, centroid_noise_px, "
                       "detection_threads, min_cameras, calibration, sync, trigger_master, trigger_line, "
-                      "ptp_lock_timeout_s, pixel_format, packet_size, packet_delay_ns, "
+                      "ptp_lock_timeout_s, ptp_schedule, pixel_format, packet_size, packet_delay_ns, "
                       "packet_resend, socket_buffer_bytes, camera ([[rig.camera]]))");
   EXPECT_EQ(ParseError(kSimulatedRig + "[control]\nmax_client = 8\n"),
             kSource + ":4: control.max_client: unknown key (the keys of [control] are socket, group, "
@@ -560,6 +561,9 @@ TEST(RigSetup, TriggerMasterFreeRunsAndStrobesTheOthersWaitOnTheirLine) {
               HasSubstr("rig.camera[0].strobe_line: -1 (none) on the trigger master \"m\""));
   c.sync = "ptp";
   EXPECT_TRUE(CameraSettingsOf(c, 1).ptp);
+  EXPECT_EQ(CameraSettingsOf(c, 1).ptp_schedule, drivers::PtpSchedule::kSyncFreeRun);  // the default
+  c.ptp_schedule = "none";
+  EXPECT_EQ(CameraSettingsOf(c, 1).ptp_schedule, drivers::PtpSchedule::kNone);
   EXPECT_EQ(RigSyncOf(c), CapturePipelineOptions::RigSync::kSharedClock);
   c.sync = "free-run";
   EXPECT_EQ(RigSyncOf(c), CapturePipelineOptions::RigSync::kFreeRun);
