@@ -635,12 +635,15 @@ TEST(MocapdUnderSystemd, BadInputAtStartUpNamesTheCauseAndExitsWithItsCode) {
 // A camera missing at start (unplugged): the rig starts without it, READY says "degraded" and
 // names it, `status` says why; plugged in, it joins the rig without a restart and STATUS says
 // so. With [rig] min_cameras above what opened, start-up fails naming the camera instead.
+// A PTP rig (its fakes with the PTP features, drivers/aravis_fake.h): the missing camera is not
+// judged while awaited (the rig starts locked, degraded), and once it appears it is PTP-enabled,
+// scheduled and monitored like the others (daemon/ptp_monitor.h).
 TEST(MocapdUnderSystemd, ACameraMissingAtStartIsADegradedStartAndJoinsWhenItAppears) {
   const std::string dir = testing::MakeTempDir("mocapd-degraded");
   ASSERT_FALSE(dir.empty());
   NotifyListener notify(dir + "/notify");
   ASSERT_TRUE(notify.bound());
-  const std::string rig = testing::SimulatedRigToml(3, 5, "width = 640\nheight = 512\n");
+  const std::string rig = testing::SimulatedRigToml(3, 5, "width = 640\nheight = 512\nsync = \"ptp\"\n");
   {
     testing::DaemonProcess d(dir, rig);
     d.SetEnvironment({{"NOTIFY_SOCKET", dir + "/notify"}, {"MOCAP_TEST_ABSENT_CAMERAS", "1"}});
@@ -675,6 +678,9 @@ TEST(MocapdUnderSystemd, ACameraMissingAtStartIsADegradedStartAndJoinsWhenItAppe
         EXPECT_NE(l.find("degraded"), std::string::npos) << l;
       }
     EXPECT_EQ(lines, 1) << log;
+    EXPECT_EQ(st.result["sync"]["locked"], true) << st.result["sync"].dump();
+    ASSERT_TRUE(c->Call("cameras.check", json::object(), &st).ok());
+    EXPECT_TRUE(st.result["cameras"][1]["sync"]["status"].is_null()) << st.result["cameras"][1].dump();
 
     // Plugged in: streaming within 2 s, and STATUS no longer degraded.
     const double plugged = notify.Now();
@@ -695,6 +701,21 @@ TEST(MocapdUnderSystemd, ACameraMissingAtStartIsADegradedStartAndJoinsWhenItAppe
     EXPECT_LE(joined_s, 2.0);
     EXPECT_TRUE(st.result["cameras"][1]["problem"].is_null()) << st.result["cameras"].dump();
     EXPECT_GE(notify.WaitFor("STATUS=3/3 simulated cameras 200 Hz, idle", 3, plugged), 0);
+    // It joined the PTP monitor: its own PtpStatus is read, scheduled on the rig's ticks, and
+    // its lock lost is the rig's (each within a monitor round, 0.5 s).
+    for (const double read = notify.Now(); notify.Now() - read < 1.5;) {
+      ASSERT_TRUE(c->Call("cameras.check", json::object(), &st).ok());
+      if (st.result["cameras"][1]["sync"]["status"] == "Slave") break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+    EXPECT_EQ(st.result["cameras"][1]["sync"]["status"], "Slave") << st.result["cameras"][1].dump();
+    ASSERT_TRUE(st.result["cameras"][1]["sync"]["tick_phase"].is_number()) << st.result["cameras"][1].dump();
+    EXPECT_NEAR(st.result["cameras"][1]["sync"]["tick_phase"].get<double>(), 0.5, 1e-6);  // mid-tick
+    ASSERT_TRUE(c->Call("sim.camera", {{"camera", 1}, {"ptp", "Listening"}}, &st).ok());
+    std::this_thread::sleep_for(std::chrono::milliseconds(1200));
+    ASSERT_TRUE(c->Call("status", json::object(), &st).ok());
+    EXPECT_EQ(st.result["sync"]["locked"], false) << st.result["sync"].dump();
+    EXPECT_EQ(st.result["sync"]["unlocked_cameras"], json({missing}));
     EXPECT_EQ(d.Stop(), 0) << d.Log();
   }
 
