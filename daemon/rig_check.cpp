@@ -83,8 +83,10 @@ Json RigCheckReport(const RigCheckInput& in, const RigCheckOptions& options) {
       // A camera the rig awaits (never opened) is not read: "not streaming" says it.
       if (!c.streaming && c.ptp.status.empty() && c.ptp_error.empty()) {
       } else if (!c.ptp_error.empty()) fail("PTP state not read: " + c.ptp_error);
+      else if (c.ptp.status.empty())
+        fail("PTP state not read yet (the monitor reads every camera twice a second)");
       else if (!locked)
-        fail("PTP not locked (status " + (c.ptp.status.empty() ? std::string("none") : c.ptp.status) + ")");
+        fail("PTP not locked (status " + c.ptp.status + ")");
       else if (c.ptp.status == "Slave" && c.ptp.has_offset &&
                std::abs(static_cast<double>(c.ptp.offset_from_master_ns)) > options.max_ptp_offset_us * 1e3)
         fail("PTP offset from the master " + std::to_string(c.ptp.offset_from_master_ns) +
