@@ -7,6 +7,7 @@
 #include <cmath>
 #include <ctime>
 #include <limits>
+#include <numbers>
 
 namespace mocap::daemon {
 
@@ -276,13 +277,13 @@ void CapturePipeline::AddTickPhase(std::size_t camera, const drivers::Frame& fra
   const long double period_ns = 1e9L / options_.rate_hz;
   const double phase = static_cast<double>(
       std::fmod(static_cast<long double>(frame.device_timestamp_ns), period_ns) / period_ns);
-  const double angle = 2 * M_PI * phase;
+  const double angle = 2 * std::numbers::pi * phase;
   double& x = tick_phase_cos_[camera];
   double& y = tick_phase_sin_[camera];
   const bool first = stats_.camera_tick_phase[camera] < 0;
   x = first ? std::cos(angle) : x + kWeight * (std::cos(angle) - x);
   y = first ? std::sin(angle) : y + kWeight * (std::sin(angle) - y);
-  const double mean = std::atan2(y, x) / (2 * M_PI);
+  const double mean = std::atan2(y, x) / (2 * std::numbers::pi);
   stats_.camera_tick_phase[camera] = mean < 0 ? mean + 1 : mean;
 }
 

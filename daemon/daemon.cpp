@@ -310,14 +310,16 @@ Status Daemon::Start() {
   // by the same Open path: drivers/aravis_camera.h "Exposure schedule").
   if (config_.sync == "ptp")
     for (drivers::AravisCamera* cam : aravis) ptp_sources_.push_back(std::make_unique<AravisPtpSource>(cam));
-  for (std::size_t i = 0; i < aravis.size(); ++i)
-    if (opened[i] && config_.sync == "ptp")
-      spdlog::info("camera '{}': exposures {}", aravis[i]->id(),
-                   aravis[i]->Applied().ptp_schedule.empty()
-                       ? std::string("not scheduled on the PTP clock (free-running at its own phase)")
-                       : "scheduled by Synchronous Free Run at " +
-                             std::to_string(aravis[i]->Applied().schedule_rate_hz) + " Hz, mid-tick (start " +
-                             std::to_string(aravis[i]->Applied().schedule_start_ticks) + " ticks)");
+  for (std::size_t i = 0; i < aravis.size(); ++i) {
+    if (!opened[i] || config_.sync != "ptp") continue;
+    const drivers::AppliedSettings& a = aravis[i]->Applied();
+    if (a.ptp_schedule.empty())
+      spdlog::warn("camera '{}': exposures not scheduled on the PTP clock (free-running at its own "
+                   "phase; the rig check shows how far from the others)", aravis[i]->id());
+    else
+      spdlog::info("camera '{}': exposures scheduled by Synchronous Free Run at {} Hz, mid-tick "
+                   "(start {} ticks)", aravis[i]->id(), a.schedule_rate_hz, a.schedule_start_ticks);
+  }
   if (!ptp_sources_.empty()) {
     std::vector<PtpStatusSource*> ptp;
     for (auto& p : ptp_sources_) ptp.push_back(p.get());

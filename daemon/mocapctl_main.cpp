@@ -341,7 +341,9 @@ void PrintRigCheck(const json& r) {
     std::string line = Text(c.value("id", json())) + (c.value("ok", false) ? "  ok  " : "  FAIL");
     if (mode == "ptp")
       line += "  ptp " + Text(cs.value("status", json())) + " offset " +
-              Text(cs.value("offset_from_master_ns", json())) + " ns";
+              Text(cs.value("offset_from_master_ns", json())) + " ns, tick phase " +
+              Fixed(cs.value("tick_phase", json()), 2) + " (" +
+              Fixed(cs.value("phase_from_rig_us", json()), 0) + " us from the rig)";
     else if (mode == "free-run")
       line += "  offset " + Fixed(cs.value("offset_from_rig_ms", json()), 3) + " ms from the rig, drift " +
               Fixed(cs.value("clock_drift_ppm", json()), 1) + " ppm, residual " +

@@ -6,7 +6,9 @@
 //             ([rig] trigger_master), which free-runs at the rate and drives the others through
 //             its strobe line; without a master an external generator drives them all. The
 //             pipeline groups sets by trigger count, checked by timestamps (RigSync::kTrigger).
-//   ptp       every camera free-runs with IEEE 1588 enabled; start-up waits until the rig is
+//   ptp       every camera free-runs with IEEE 1588 enabled and its exposures scheduled on the
+//             common clock's ticks ([rig] ptp_schedule, by default Synchronous Free Run:
+//             drivers/aravis_camera.h "Exposure schedule"); start-up waits until the rig is
 //             locked to one clock (PtpLocked) for ptp_lock_timeout_s and refuses to start (so to
 //             record) otherwise; sets by the tick of the common clock (kSharedClock).
 //   free-run  every camera free-runs on its own clock; sets by each camera's clock fitted against
@@ -14,6 +16,8 @@
 // A simulated rig's fakes share the host's clock: kSharedClock, except with sync = "free-run",
 // whose clocks are fitted as a real free-running rig's (the fakes' clocks skewed by
 // [[rig.camera]] sim_clock_offset_ms / sim_clock_drift_ppm, drivers/skewed_clock_camera.h).
+// With sync = "ptp" the fakes are PTP cameras, configured as real ones are
+// (drivers/aravis_fake.h FakeRigOptions::ptp_features; sim_clock_offset_ms: their own clocks).
 // The PTP wait and the lock's monitoring while streaming: daemon/ptp_monitor.h.
 #pragma once
 #include <string>
