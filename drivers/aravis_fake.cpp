@@ -8,6 +8,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <climits>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -244,6 +245,9 @@ Status AravisFakeRig::SetPtpState(int camera, const std::string& status,
     for (const char* k : kPtpStates) known += std::string(known.empty() ? "" : ", ") + k;
     return Status::Error("fake rig: PTP state '" + status + "' is none of " + known);
   }
+  if (offset_from_master_ns < INT32_MIN || offset_from_master_ns > INT32_MAX)
+    return Status::Error("fake rig: PTP offset " + std::to_string(offset_from_master_ns) +
+                         " ns is outside the fake's 32-bit PtpOffsetFromMaster");
   FakeFillContext& ctx = *contexts_[camera];
   ctx.ptp_state = static_cast<std::uint32_t>(at - std::begin(kPtpStates));
   ctx.ptp_offset_ns = static_cast<std::int32_t>(offset_from_master_ns);
