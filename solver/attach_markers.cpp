@@ -15,6 +15,7 @@ bool AttachOptions::IsValid(std::string* error) const {
   };
   if (!(max_spread_mm > 0)) return fail("max_spread_mm must be > 0");
   if (!(min_ratio >= 1)) return fail("min_ratio must be >= 1");
+  if (!(spread_floor_mm >= 0)) return fail("spread_floor_mm must be >= 0");
   if (min_samples < 2) return fail("min_samples must be >= 2");
   return true;
 }
@@ -125,7 +126,8 @@ Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerT
       std::snprintf(text, sizeof text, "moves %.1f mm RMS even on %s, the segment it follows best (limit %.0f mm)",
                     a.spread_mm, seg.c_str(), options.max_spread_mm);
       a.why_not = text;
-    } else if (second >= 0 && a.runner_up_mm < options.min_ratio * a.spread_mm) {
+    } else if (second >= 0 &&
+               a.runner_up_mm < options.min_ratio * std::max(a.spread_mm, options.spread_floor_mm)) {
       std::snprintf(text, sizeof text,
                     "rides on %s (%.1f mm) and %s (%.1f mm) alike: the trials do not move the joint between them enough to tell",
                     seg.c_str(), a.spread_mm, model.segments()[second].name.c_str(), a.runner_up_mm);

@@ -26,6 +26,9 @@ namespace mocap::solver {
 struct AttachOptions {
   double max_spread_mm = 15.0;  // a cluster's skin motion is 10-30 mm peak (Leardini et al. 2005)
   double min_ratio = 2.0;       // runner-up's spread / winner's
+  // The winner's spread counts as at least this (mm, about a marker's noise): trials that move
+  // no joint (a static posture: every spread 0) tell no segment from another.
+  double spread_floor_mm = 1.0;
   int min_samples = 20;         // frames in which the marker and a pose are both there
   bool IsValid(std::string* error) const;
 };

@@ -56,6 +56,7 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["residual_correlation_frames"] = r.residual_correlation_frames;
   j["reposed"] = r.reposed;
   j["rescued_frames"] = r.rescued_frames;
+  j["static_trials"] = r.static_trials;
   j["initial_cost"] = r.solver.initial_cost;
   j["final_cost"] = r.solver.final_cost;
   j["initial_marker_rms_mm"] = r.initial_marker_rms_mm;

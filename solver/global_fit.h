@@ -139,6 +139,11 @@ struct FitOptions {
   // start, not the answer: the final stage is the whole problem).
   bool staged = true;
   int staged_iterations = 40;
+  // The stages before the last are starts, not answers: each stops once an iteration lowers the
+  // cost by less than this fraction (lm.function_tolerance, if larger, still applies) instead of
+  // crawling on at the same RMS (gait2354's markers stage: 7.55 mm from its 8th iteration to its
+  // 19th). The final stage keeps lm's tolerances.
+  double stage_function_tolerance = 1e-5;
   // In the schedule's final stage, a joint whose rotation the trials hardly move keeps its centre
   // and axes where stage 1 left them (the model's, scaled): a ball joint needs its second-largest
   // coordinate spread (RMS about the mean over every frame) at least this, a hinge its one.
@@ -156,6 +161,24 @@ struct FitOptions {
   // 400 mm for a 0.01 mm better RMS. Clean simulated data (white noise, tau ~ 1) keep
   // marker_sigma_m.
   bool effective_marker_sigma = true;
+  // A static trial is one posture, fitted as such: every frame of a trial whose markers hardly
+  // move -- the median marker's RMS distance from its mean position below this (mm) -- is
+  // replaced by the trial's mean marker positions, so all its frames share one pose (as
+  // OpenSim's marker placer averages a static trial into one frame). What differs between a
+  // standing subject's frames (sway, breathing) is not the rotation about joints that the model
+  // can explain, yet counted as hundreds of frames it outvotes the priors that keep the
+  // skeleton inside its markers: on gait2354's static trial alone, fitted with the markers
+  // free, the whole skeleton slid 15 cm up out of its markers (knee centres 17 cm from the
+  // epicondyle markers) for a 0.01 mm better RMS; as one posture they are 6-11 mm from them.
+  // Standing trials measure 1-5 mm, functional ones and walks 80-110 mm (../shared/data).
+  // A static trial's residuals are then those of its mean posture. 0: every frame as measured.
+  double static_trial_motion_mm = 10.0;
+  // The markers stage first runs until an iteration changes the cost by less than this fraction,
+  // to measure the data's error; it is solved again from its start at the measured sigma when
+  // that is more than reweigh_markers_stage_ratio times the sigma it assumed, and otherwise goes
+  // on (global_fit.cpp, FitModel: why).
+  double markers_measure_tolerance = 1e-2;
+  double reweigh_markers_stage_ratio = 2.0;
   // After the schedule's first stage, trial markers the model lacks are attached to the segment
   // they ride on (solver/attach_markers.h) and fitted with the others.
   bool attach_trial_markers = true;
@@ -262,6 +285,7 @@ struct FitReport {
   double residual_correlation_frames = 1;
   bool reposed = false;  // the poses were re-solved part-way (FitOptions::repose_after_iterations)
   int rescued_frames = 0;  // poses replaced by FitOptions' rescue pass (all rounds)
+  std::vector<std::string> static_trials;  // weighed as one posture (FitOptions::static_trial_motion_mm)
   // FitOptions::marker_sigma_rounds: the rounds run, and each observed marker's sigma of the
   // final solve (mm; marker_sigma_m for a marker within the floor), model order.
   int marker_sigma_rounds = 0;
@@ -293,6 +317,10 @@ struct FitResult {
   FitReport report;
 };
 
+// The median over a trial's markers of each one's RMS distance from its mean position (mm;
+// NaN when no marker is seen twice): how much the trial moves (FitOptions::static_trial_motion_mm).
+double MedianMarkerMotionMm(const formats::MarkerTrial& trial);
+
 // Fits `initial` to the trials. Errors name the trial: no frames, none of the model's markers,
 // non-finite coordinates, a starting pose of the wrong size.
 //
@@ -307,12 +335,17 @@ struct FitResult {
 // right hip centre 40 mm from its functional (SCoRE) estimate on welk007 at a worse marker RMS
 // than the staged fit's (5.4 against 4.5 mm). So the fit runs in two stages:
 //   1. scales and marker positions (the requested ones), centres and axes held at the model's:
-//      the markers move to where they are on the subject;
+//      the markers move to where they are on the subject (scales first with the model's
+//      markers, then the markers: solved until the residual level settles, and solved again
+//      from that start weighted by the error the residuals show when it is far above the
+//      assumed one — markers_measure_tolerance, reweigh_markers_stage_ratio);
 //   2. the whole problem (every requested group, every frame: the paper's single global LM) from
 //      stage 1's geometry and poses, the priors of scales and markers centred on stage 1's
 //      values. What the data determine is unaffected (the priors are weak); what they do not
 //      determine stays where stage 1 put it instead of sliding towards the generic guess.
-// The report's parameters keep the caller's model as their `initial` values.
+// Static trials are fitted as their mean posture, then their frames posed by the fitted model
+// (static_trial_motion_mm). The report's parameters keep the caller's model as their `initial`
+// values.
 Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
                 FitResult* result);
 

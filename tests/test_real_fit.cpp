@@ -128,12 +128,14 @@ TEST(RealFit, Welk007OneCommandFromTheGenericModel) {
   EXPECT_LE(r["marker_rms_mm"].get<double>(), run.hand_scaled["marker_rms_mm"].get<double>());
   ASSERT_TRUE(std::isfinite(score_mm)) << "no SCoRE check of hip_r on the functional trial";
   EXPECT_LE(score_mm, 10.0);
-  // The schedule ran: scales, markers, then everything.
-  ASSERT_EQ(r["stages"].size(), 3u);
-  EXPECT_EQ(r["stages"][2]["name"], "all parameters");
+  // The schedule ran: scales, markers (measured, then reweighted or continued), then everything.
+  ASSERT_GE(r["stages"].size(), 3u);
+  EXPECT_EQ(r["stages"].front()["name"], "scales");
+  EXPECT_EQ(r["stages"][1]["name"], "markers");
+  EXPECT_EQ(r["stages"].back()["name"], "all parameters");
 }
 
-// NOT MET (last run: 26.9 mm RMS over the trial). The hand-scaled model's own hip is ~28 mm from SCoRE on this
+// NOT MET (last run: 26.6 mm RMS over the trial). The hand-scaled model's own hip is ~28 mm from SCoRE on this
 // trial (its marker RMS with our IK is 20.0 mm), so both bounds together leave a few mm.
 TEST(RealFit, DISABLED_Welk007RightHipWithin20mmOfTheHandScaledModel) {
   SKIP_WITHOUT_SHARED_DATA();
@@ -171,7 +173,8 @@ double CentreDifferenceMm(const GaitRun& run, const std::string& joint) {
 
 // gait2354 from gait2354_simbody.osim, one command: converged in at most 30 iterations (202
 // before the schedule); hip and knee centres within 20 mm of OpenSim's own scaled model, each in
-// its parent segment's frame (pelvis, femur).
+// its parent segment's frame (pelvis, femur). Knees 9.7 / 10.3 mm before the markers stage was
+// weighed by its measured error, 5.3 / 3.8 after.
 TEST(RealFit, Gait2354OneCommandConvergesAndPlacesHipsAndKnees) {
   SKIP_WITHOUT_SHARED_DATA();
   const GaitRun& run = Gait();
@@ -196,6 +199,61 @@ TEST(RealFit, Gait2354OneCommandConvergesAndPlacesHipsAndKnees) {
 TEST(RealFit, DISABLED_Gait2354AnklesWithin20mmOfOpenSims) {
   SKIP_WITHOUT_SHARED_DATA();
   for (const char* joint : {"ankle_r", "ankle_l"}) EXPECT_LE(CentreDifferenceMm(Gait(), joint), 20.0) << joint;
+}
+
+namespace {
+// Mean distance (mm) over a trial's frames between a fitted joint centre (joint_centres.trc) and
+// the midpoint of two anatomical markers of the trial (the femoral epicondyles, the malleoli).
+double CentreFromMarkerMidpointMm(const std::string& centres_trc, const std::string& markers_trc,
+                                  const std::string& joint, const std::string& a, const std::string& b) {
+  formats::MarkerTrial centres, markers;
+  EXPECT_TRUE(formats::ReadTrc(centres_trc, &centres).ok()) << centres_trc;
+  EXPECT_TRUE(formats::ReadTrc(markers_trc, &markers).ok()) << markers_trc;
+  const int c = centres.FindMarker(joint), ma = markers.FindMarker(a), mb = markers.FindMarker(b);
+  if (c < 0 || ma < 0 || mb < 0 || centres.num_frames() != markers.num_frames()) return std::nan("");
+  double sum = 0;
+  int n = 0;
+  for (int f = 0; f < markers.num_frames(); ++f) {
+    const Eigen::Vector3d d = centres.At(f, c) - 0.5 * (markers.At(f, ma) + markers.At(f, mb));
+    if (!d.allFinite()) continue;
+    sum += d.norm();
+    ++n;
+  }
+  return n > 0 ? 1000.0 * sum / n : std::nan("");
+}
+}  // namespace
+
+// gait2354's static trial alone, as a lab scales a model: the skeleton stays inside its markers.
+// Each knee centre within 15 mm of the midpoint of its epicondyle markers, each ankle centre
+// within 40 mm of the malleoli's (the generic model puts its ankle 2-4 cm below its malleolus
+// markers). OpenSim's own scaled model, posed by our IK: knees 20 / 11 mm, ankles 10 / 13 mm.
+// Before the static trial was fitted as one posture, its 300 frames of sway, each weighed as an
+// independent measurement, slid the whole skeleton 15 cm out of its markers: knees 167 / 171 mm.
+TEST(RealFit, Gait2354StaticTrialAloneKeepsTheSkeletonInsideItsMarkers) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const std::string g = SharedData() + "/opensim_gait2354_subject01/";
+  const fs::path dir = Dir("gait2354_static");
+  const auto r = Mocap("fit --model " + g + "gait2354_simbody.osim --marker-set " + g +
+                       "gait2354_Scale_MarkerSet.xml " + g + "subject01_static.trc --out " +
+                       (dir / "fitted.osim").string() + " --report " + (dir / "report.json").string() +
+                       " --threads 2");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json report = ReadJson(dir / "report.json");
+  ASSERT_EQ(report["static_trials"].size(), 1u);
+  EXPECT_EQ(report["static_trials"][0], "subject01_static");
+  const std::string centres = (dir / "subject01_static.joint_centres.trc").string();
+  const std::string markers = g + "subject01_static.trc";
+  for (const char* side : {"R", "L"}) {
+    const std::string s(side), j = side[0] == 'R' ? "_r" : "_l";
+    const double knee = CentreFromMarkerMidpointMm(centres, markers, "knee" + j, s + ".Knee.Lat", s + ".Knee.Med");
+    const double ankle = CentreFromMarkerMidpointMm(centres, markers, "ankle" + j, s + ".Ankle.Lat", s + ".Ankle.Med");
+    std::printf("gait2354 static alone, %s: knee centre %.1f mm from the epicondyles' midpoint, ankle %.1f mm "
+                "from the malleoli's\n", side, knee, ankle);
+    EXPECT_LE(knee, 15.0) << side;
+    EXPECT_LE(ankle, 40.0) << side;
+  }
+  // Its own frames are posed by the fitted model: the residuals follow the sway.
+  EXPECT_GT(report["per_trial"][0]["marker_rms_mm"].get<double>(), 0.0);
 }
 
 namespace {
@@ -242,13 +300,12 @@ TEST(RealFit, BiobuddyDefaultModelAgreesWithFunctionalJoints) {
   for (const auto& a : r["attached_markers"]) attached += a["segment"].get<std::string>().empty() ? 0 : 1;
   EXPECT_GE(attached, 8);  // L/R THIB, THID, TIBF, TIBD at least
   EXPECT_LE(hip_r, 10.0);
+  EXPECT_LE(hip_l, 10.0);  // 10.3 mm before the markers stage was weighed by its measured error
   EXPECT_LE(knee_l, 5.0);
 }
 
-// NOT MET (last run: hip_l 10.3 mm, knee_r 7.1 deg).
-TEST(RealFit, DISABLED_BiobuddyLeftHipAndRightKnee) {
+// NOT MET (last run: knee_r 6.6 deg; 7.1 before the markers stage was weighed by its measured error).
+TEST(RealFit, DISABLED_BiobuddyRightKnee) {
   SKIP_WITHOUT_SHARED_DATA();
-  const nlohmann::json& r = Biobuddy();
-  EXPECT_LE(JointCheck(r, "hip_l", "Test_func_lhip", "centre_distance_mm"), 10.0);
-  EXPECT_LE(JointCheck(r, "knee_r", "Test_func_rknee", "axis_angle_deg"), 5.0);
+  EXPECT_LE(JointCheck(Biobuddy(), "knee_r", "Test_func_rknee", "axis_angle_deg"), 5.0);
 }

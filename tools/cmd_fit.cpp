@@ -213,6 +213,8 @@ int RunFit(const FitArgs& args) {
     else
       spdlog::warn("trial marker {} (not in the model) left out: {}", a.name, a.why_not);
   }
+  for (const std::string& name : result.report.static_trials)
+    spdlog::info("trial '{}' is static (its markers hardly move): its frames count as one posture", name);
   for (const auto& [joint, why] : result.report.held_joints)
     spdlog::info("{}: centre and axes held at the model's (the trials do not move it: {})", joint, why);
   const solver::FitReport& r = result.report;
