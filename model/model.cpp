@@ -356,4 +356,18 @@ Status Model::WithMarkers(const std::vector<int>& keep, Model* out) const {
   return Status::Ok();
 }
 
+Status Model::WithMarkerWeights(const std::vector<double>& weights, Model* out) const {
+  if (out == nullptr) return Status::Error("model '" + name_ + "': WithMarkerWeights given no output");
+  if (weights.size() != markers_.size())
+    return Status::Error("model '" + name_ + "': " + std::to_string(weights.size()) + " marker weights for " +
+                         std::to_string(markers_.size()) + " markers");
+  std::vector<Marker> markers = markers_;
+  for (size_t m = 0; m < markers.size(); ++m) markers[m].weight = weights[m];
+  Model built;
+  if (Status s = Build(name_, segments_, joints_, coordinates_, markers, derived_, &built); !s)
+    return Status::Error("model '" + name_ + "' with new marker weights: " + s.message());
+  *out = std::move(built);
+  return Status::Ok();
+}
+
 }  // namespace mocap

@@ -165,6 +165,9 @@ class Model {
   // The same model with only the markers `keep` (indices, in the order given), for data that
   // lacks the others. An error for an index out of range or given twice.
   Status WithMarkers(const std::vector<int>& keep, Model* out) const;
+  // The same model with marker m weighted weights[m] (Marker::weight). An error for a count that
+  // is not num_markers() or a weight that is not a finite number > 0.
+  Status WithMarkerWeights(const std::vector<double>& weights, Model* out) const;
 
   // --- precomputed structure used by the kinematics (read-only) ---
   // Joints on the path from the root to segment s, root first.

@@ -57,6 +57,8 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["reposed"] = r.reposed;
   j["rescued_frames"] = r.rescued_frames;
   j["static_trials"] = r.static_trials;
+  j["scaling_marker_weights"] = nlohmann::json::object();
+  for (const auto& [name, w] : r.scaling_marker_weights) j["scaling_marker_weights"][name] = w;
   j["initial_cost"] = r.solver.initial_cost;
   j["final_cost"] = r.solver.final_cost;
   j["initial_marker_rms_mm"] = r.initial_marker_rms_mm;

@@ -820,6 +820,63 @@ Status DiagnoseOutliers(const std::vector<FitTrial>& trials, const FitOptions& o
 }  // namespace
 
 namespace {
+// FitOptions::scaling_marker_rounds: the scales stage solved again with each marker weighted by
+// how far the model's place for it is from where the data put it, until the weights settle; the
+// result keeps the model's own marker weights.
+// *name: the stage name of *out's solve.
+Status ReweighScalingMarkers(const Model& model, const std::vector<FitTrial>& trials, const FitOptions& o,
+                             const FitOptions& options, FitResult* out, int* iterations_left,
+                             std::vector<FitStageSummary>* summaries, LmSummary* before, FitReport* totals,
+                             std::string* name) {
+  if (options.scaling_marker_rounds == 0) return Status::Ok();
+  const int nm = model.num_markers();
+  std::vector<double> base(nm), weight(nm);
+  for (int m = 0; m < nm; ++m) base[m] = weight[m] = model.markers()[m].weight;
+  for (int round = 0; round < options.scaling_marker_rounds && *iterations_left > 1; ++round) {
+    std::vector<double> rms(nm, -1.0), observed;
+    for (const auto& [name, v] : out->report.per_marker_rms_mm) {
+      const int m = model.FindMarker(name);
+      if (m >= 0 && std::isfinite(v)) rms[m] = v, observed.push_back(v);
+    }
+    if (observed.size() < 3) break;
+    std::nth_element(observed.begin(), observed.begin() + observed.size() / 2, observed.end());
+    const double scale_mm = std::max(1e-3, options.scaling_marker_robust_scale * observed[observed.size() / 2]);
+    double largest_change = 0;
+    std::vector<double> next(weight);
+    for (int m = 0; m < nm; ++m) {
+      if (rms[m] < 0) continue;
+      const double u = rms[m] / scale_mm;
+      next[m] = base[m] / (1.0 + u * u);  // Cauchy (solver/robust_loss.h), per marker
+      largest_change = std::max(largest_change, std::abs(next[m] - weight[m]) / base[m]);
+    }
+    if (largest_change <= options.scaling_marker_tolerance) break;
+    weight = next;
+    Model weighted;
+    MOCAP_RETURN_IF_ERROR(out->model.WithMarkerWeights(weight, &weighted));
+    std::vector<FitTrial> from = trials;
+    for (size_t t = 0; t < from.size(); ++t) from[t].initial_coordinates = out->coordinates[t];
+    summaries->push_back(StageSummary(*name, o, out->report));
+    *name = "scales, reweighted";
+    AppendIterations(out->report, before, totals);
+    FitOptions r = o;
+    r.lm.max_iterations = std::min(options.staged_iterations, *iterations_left - 1);
+    FitResult again;
+    MOCAP_RETURN_IF_ERROR(FitStage(weighted, from, r, /*measure_correlation=*/false, &again));
+    if (!again.report.solver.IsSolutionUsable())
+      return Status::Error("fit, stage 'scales, reweighted': " + again.report.solver.message);
+    *iterations_left -= again.report.solver.num_iterations();
+    *out = std::move(again);
+  }
+  out->report.scaling_marker_weights.clear();
+  for (int m = 0; m < nm; ++m)
+    if (weight[m] < 0.5 * base[m]) out->report.scaling_marker_weights.emplace_back(model.markers()[m].name, weight[m] / base[m]);
+  if (weight == base) return Status::Ok();
+  Model restored;
+  MOCAP_RETURN_IF_ERROR(out->model.WithMarkerWeights(base, &restored));
+  out->model = std::move(restored);
+  return Status::Ok();
+}
+
 // FitModel for trials already reduced to their postures where static.
 Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
                    FitResult* result) {
@@ -853,6 +910,7 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
   int iterations_left = options.lm.max_iterations;
   double effective_sigma_m = options.marker_sigma_m;
   std::vector<AttachedMarker> attached;
+  std::vector<std::pair<std::string, double>> scaling_weights;
   for (const Stage& stage : stages) {
     FitOptions o = options;
     o.marker_sigma_m = effective_sigma_m;
@@ -877,6 +935,7 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
     // each segment inside its markers: on gait2354 the left leg's bones slid 5-8 cm medially out
     // of its markers (ankle centre 96 mm from the malleoli, knee 52 mm from the epicondyles; at
     // the measured 20 mm: 46 and 26 mm) for a 0.003 mm better RMS.
+    std::string stage_name = stage.name;
     const RobustLoss robust_loss = o.robust_loss;
     if (stage.markers) {
       o.lm.function_tolerance = std::max(o.lm.function_tolerance, options.markers_measure_tolerance);
@@ -887,6 +946,11 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
     if (!out.report.solver.IsSolutionUsable())
       return Status::Error(std::string("fit, stage '") + stage.name + "': " + out.report.solver.message);
     iterations_left -= out.report.solver.num_iterations();
+    if (stage.scales) {
+      MOCAP_RETURN_IF_ERROR(ReweighScalingMarkers(*model, stage_trials, o, options, &out, &iterations_left,
+                                                  &summaries, &before, &totals, &stage_name));
+      scaling_weights = out.report.scaling_marker_weights;
+    }
     const double measured_sigma_m = stage.markers ? EffectiveMarkerSigma(options, out.report) : 0.0;
     const bool reweigh = stage.markers && measured_sigma_m > options.reweigh_markers_stage_ratio * o.marker_sigma_m;
     if (stage.markers && (reweigh || !out.report.converged() || robust_loss != RobustLoss::kNone) &&
@@ -912,7 +976,7 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
       out = std::move(next);
       summaries.push_back(StageSummary(name, o, out.report));
     } else {
-      summaries.push_back(StageSummary(stage.name, o, out.report));
+      summaries.push_back(StageSummary(stage_name, o, out.report));
     }
     AppendIterations(out.report, &before, &totals);
     // Only residuals left with the markers placed measure the data's error; with the model's
@@ -968,6 +1032,7 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
       report.undetermined.push_back(name);
   report.held_joints = std::move(held);
   report.attached_markers = std::move(attached);
+  report.scaling_marker_weights = std::move(scaling_weights);
   // The caller's model is the parameters' starting point, not a stage's.
   const Eigen::VectorXd p0 = initial.InitialParameters();
   for (ParameterEstimate& e : report.parameters) {

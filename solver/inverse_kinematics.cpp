@@ -33,16 +33,22 @@ InverseKinematics::InverseKinematics(const Model& model, const Geometry& geometr
 }
 
 namespace {
+// Sum over the present markers of weight * squared distance (Marker::weight, as in the global
+// fit: a marker the fit weighs less bends the pose less), the count of markers and the sum of
+// their weights.
 double SquaredError(const Model& model, const Geometry& g, const ModelData& d,
-                    const Eigen::Matrix3Xd& measured, int* count) {
-  double sum = 0;
+                    const Eigen::Matrix3Xd& measured, int* count, double* weight_sum = nullptr) {
+  double sum = 0, weights = 0;
   int n = 0;
   for (int m = 0; m < model.num_markers(); ++m) {
     if (!std::isfinite(measured(0, m))) continue;
-    sum += (MarkerPosition(model, g, d, m) - measured.col(m)).squaredNorm();
+    const double w = model.markers()[m].weight;
+    sum += w * (MarkerPosition(model, g, d, m) - measured.col(m)).squaredNorm();
+    weights += w;
     ++n;
   }
   if (count) *count = n;
+  if (weight_sum) *weight_sum = weights;
   return sum;
 }
 }  // namespace
@@ -52,7 +58,8 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
   const int nz = model_.num_coordinates();
   IkFrameResult result;
   ForwardKinematics(model_, geometry_, *z, &data_);
-  double cost = SquaredError(model_, geometry_, data_, measured, &result.markers);
+  double weight_sum = 0;
+  double cost = SquaredError(model_, geometry_, data_, measured, &result.markers, &weight_sum);
   double lambda = 1e-3;
   Eigen::VectorXd dz(nz), z_new(nz);
   for (int it = 0; it < options_.max_iterations; ++it) {
@@ -64,10 +71,11 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
       const auto& cols = model_.marker_coordinates(m);
       auto jz = jz_.leftCols(cols.size());
       MarkerJacobian(model_, geometry_, data_, m, &jz, static_cast<Eigen::Matrix3Xd*>(nullptr));
+      const double w = model_.markers()[m].weight;
       const Eigen::Vector3d r = MarkerPosition(model_, geometry_, data_, m) - measured.col(m);
       for (size_t a = 0; a < cols.size(); ++a) {
-        jtr_[cols[a]] += jz.col(a).dot(r);
-        for (size_t b = 0; b <= a; ++b) jtj_(cols[a], cols[b]) += jz.col(a).dot(jz.col(b));
+        jtr_[cols[a]] += w * jz.col(a).dot(r);
+        for (size_t b = 0; b <= a; ++b) jtj_(cols[a], cols[b]) += w * jz.col(a).dot(jz.col(b));
       }
     }
     for (int c = 0; c < nz; ++c)
@@ -111,7 +119,8 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
     if (!accepted || dz.norm() < options_.step_tolerance) break;
   }
   ForwardKinematics(model_, geometry_, *z, &data_);
-  result.rms_m = result.markers > 0 ? std::sqrt(cost / result.markers) : 0.0;
+  // Weighted RMS: with every weight 1 (the usual case) the plain RMS.
+  result.rms_m = weight_sum > 0 ? std::sqrt(cost / weight_sum) : 0.0;
   return result;
 }
 

@@ -1,6 +1,6 @@
 // Per-frame inverse kinematics: the pose z that best fits one frame's measured markers for a
 // fixed model geometry, by a small dense Levenberg–Marquardt (what OpenSim's IK tool does, with
-// all marker weights equal). It builds the global fit's initial guess when data come from a file
+// the model's marker weights: Marker::weight, 1 unless the fit sets it). It builds the global fit's initial guess when data come from a file
 // instead of the live filter: the trial's most complete frame starts from the best of several
 // placements of the default pose -- turned to four headings, and rigidly aligned (Kabsch) onto all
 // measured markers and onto the root segment's markers -- so a subject facing any direction in a

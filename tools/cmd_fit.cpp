@@ -43,6 +43,7 @@ struct FitArgs {
   int max_iterations = 150;  // over every stage of the schedule
   int coarse_frames = solver::CoarseToFineOptions().coarse_frames;  // 0: no coarse-to-fine start
   int marker_sigma_rounds = solver::FitOptions().marker_sigma_rounds;  // 0: one sigma for all
+  int scaling_marker_rounds = solver::FitOptions().scaling_marker_rounds;
   std::vector<std::string> initial;  // one .mot per trial: starting poses instead of IK
   std::string functional;  // joints (comma-separated) whose SCoRE centres join the fit as data
   double functional_sigma_mm = 5.0;
@@ -146,6 +147,7 @@ int RunFit(const FitArgs& args) {
   options.staged = !args.single_stage;
   options.lm.max_iterations = args.max_iterations;
   options.marker_sigma_rounds = args.marker_sigma_rounds;
+  options.scaling_marker_rounds = args.scaling_marker_rounds;
   if (Status s = solver::ParseRobustLoss(args.robust_loss, &options.robust_loss); !s) {
     spdlog::error("--robust-loss: {}", s.message());
     return 2;
@@ -212,6 +214,13 @@ int RunFit(const FitArgs& args) {
                    a.name, a.segment, a.spread_mm, a.runner_up_mm);
     else
       spdlog::warn("trial marker {} (not in the model) left out: {}", a.name, a.why_not);
+  }
+  if (!result.report.scaling_marker_weights.empty()) {
+    std::string list;
+    for (const auto& [name, w] : result.report.scaling_marker_weights)
+      list += (list.empty() ? "" : ", ") + name + fmt::format(" ({:.2f})", w);
+    spdlog::info("scaled with these markers down-weighted, the model's place for them being far from the data's: {}",
+                 list);
   }
   for (const std::string& name : result.report.static_trials)
     spdlog::info("trial '{}' is static (its markers hardly move): its frames count as one posture", name);
@@ -304,6 +313,7 @@ int RunFit(const FitArgs& args) {
                     {"max_iterations", args.max_iterations},
                     {"coarse_frames", args.coarse_frames},
                     {"marker_sigma_rounds", args.marker_sigma_rounds},
+                    {"scaling_marker_rounds", args.scaling_marker_rounds},
                     {"robust_loss", args.robust_loss},
                     {"robust_scale", args.robust_scale},
                     {"schedule", args.single_stage ? "single stage" : "automatic"},
@@ -387,6 +397,11 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
   cmd->add_option("--marker-sigma-rounds", args->marker_sigma_rounds,
                   "rounds of re-weighting each marker by its own residual spread after a converged "
                   "solve (never above the stage's marker sigma; 0: one sigma for every marker; see README)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  cmd->add_option("--scaling-marker-rounds", args->scaling_marker_rounds,
+                  "rounds of re-weighting each marker in the scales stage by how far the model's place for it "
+                  "is from the data's (Cauchy; for generic models whose cluster markers are guesses; 0: off)")
       ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
   cmd->add_option("--robust-loss", args->robust_loss,
