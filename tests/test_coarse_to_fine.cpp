@@ -68,6 +68,24 @@ std::vector<double> FrameCosts(solver::ArrowProblem* problem, const Eigen::Vecto
   }
   return costs;
 }
+
+// Frames in a wrong branch for the rescue tests: the true poses and geometry, except that in
+// frames [first, end) the right hip rotation and knee are turned 1.5 rad away.
+int TurnedKnee(const Session& s) { return s.nominal.FindCoordinate("knee_angle_r"); }
+int TurnedHip(const Session& s) { return s.nominal.FindCoordinate("hip_rotation_r"); }
+Eigen::VectorXd WithRightLegTurned(const Session& s, int first, int end) {
+  Eigen::VectorXd x = s.x0;
+  x.tail(s.problem->shared_dim()) = s.p_true;
+  const int ny = s.problem->frame_dim(), knee = TurnedKnee(s), hip = TurnedHip(s);
+  EXPECT_GE(knee, 0);
+  EXPECT_GE(hip, 0);
+  if (knee < 0 || hip < 0) return x;
+  for (int f = first; f < end; ++f) {
+    x[f * ny + knee] += 1.5;
+    x[f * ny + hip] -= 1.5;
+  }
+  return x;
+}
 }  // namespace
 
 TEST(CoarseToFine, ReachesThePlainMinimumWithFewerWholeProblemIterations) {
@@ -356,14 +374,8 @@ TEST(CoarseToFine, OnlyCoordinatesThatAGapLeavesUnobservedAreHeld) {
 // and not the geometry moves.
 TEST(CoarseToFine, FrameInAWrongBranchIsRescuedFromItsNeighbour) {
   Session s(60, 0.0);
-  Eigen::VectorXd x = s.x0;
-  x.tail(s.problem->shared_dim()) = s.p_true;
-  const int ny = s.problem->frame_dim();
-  const int knee = s.nominal.FindCoordinate("knee_angle_r"), hip = s.nominal.FindCoordinate("hip_rotation_r");
-  ASSERT_GE(knee, 0);
-  ASSERT_GE(hip, 0);
-  x[30 * ny + knee] += 1.5;
-  x[30 * ny + hip] -= 1.5;
+  const int ny = s.problem->frame_dim(), knee = TurnedKnee(s), hip = TurnedHip(s);
+  Eigen::VectorXd x = WithRightLegTurned(s, 30, 31);
   const Eigen::VectorXd before = x;
   solver::CoarseToFineOptions options;
   std::vector<double> costs;
@@ -391,16 +403,8 @@ TEST(CoarseToFine, FrameInAWrongBranchIsRescuedFromItsNeighbour) {
 // the earlier rule, left the middle 60 frames of this stretch turned.)
 TEST(CoarseToFine, LongStretchInAWrongBranchIsRescuedInOnePass) {
   Session s(400, 0.0);
-  Eigen::VectorXd x = s.x0;
-  x.tail(s.problem->shared_dim()) = s.p_true;
-  const int ny = s.problem->frame_dim();
-  const int knee = s.nominal.FindCoordinate("knee_angle_r"), hip = s.nominal.FindCoordinate("hip_rotation_r");
-  ASSERT_GE(knee, 0);
-  ASSERT_GE(hip, 0);
-  for (int f = 100; f < 280; ++f) {
-    x[f * ny + knee] += 1.5;
-    x[f * ny + hip] -= 1.5;
-  }
+  const int ny = s.problem->frame_dim(), knee = TurnedKnee(s), hip = TurnedHip(s);
+  Eigen::VectorXd x = WithRightLegTurned(s, 100, 280);
   solver::CoarseToFineOptions options;
   std::vector<double> costs;
   EXPECT_EQ(solver::RescueFramesFromNeighbours(s.problem.get(), options, 2, &x, &costs), 180);
