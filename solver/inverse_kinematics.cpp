@@ -46,8 +46,11 @@ void WrapPeriodicCoordinates(const Model& model, const std::vector<char>& period
     if (!periodic[c]) continue;
     const Coordinate& coordinate = model.coordinates()[c];
     // A joint that cannot turn round (range narrower than a turn) is referred to its range's
-    // centre; one that can (a free root's heading) to `reference`, so that it stays continuous.
-    const double centre = coordinate.max_value - coordinate.min_value < 2.0 * M_PI
+    // centre; one that can, and the joint to the lab (whose angles depend on the lab's axes: an
+    // upside-down lab puts a pelvis tilt near pi, outside any range), to `reference`, so that they
+    // stay continuous.
+    const bool to_lab = coordinate.joint >= 0 && model.joints()[coordinate.joint].parent < 0;
+    const double centre = !to_lab && coordinate.max_value - coordinate.min_value < 2.0 * M_PI
                               ? 0.5 * (coordinate.max_value + coordinate.min_value)
                               : reference[c];
     (*z)[c] = centre + std::remainder((*z)[c] - centre, 2.0 * M_PI);

@@ -41,7 +41,7 @@ struct IkFrameResult {
 std::vector<char> PeriodicCoordinates(const Model& model);
 // Moves each periodic coordinate of z by whole turns to its representative nearest the centre
 // of its range (a joint whose range is narrower than a turn) or nearest reference[c] (one that
-// may turn round, as a free root's heading). Markers stay where they are.
+// may turn round, and every coordinate of the joint to the lab). Markers stay where they are.
 void WrapPeriodicCoordinates(const Model& model, const std::vector<char>& periodic, const Eigen::VectorXd& reference,
                              Eigen::VectorXd* z);
 
