@@ -452,13 +452,10 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
       // not), so a long stretch in a wrong branch (a foot turned round for hundreds of frames)
       // is carried back in one pass, as the IK's own sweep carries a trial.
       for (int direction : {+1, -1}) {
-        // The start: the well-fitted frame at the run's end, then the frame rescued last. A frame
-        // the sweep did not improve is no start (it may be right, its cost high for another
-        // reason: an outlying marker).
-        int anchor = direction > 0 ? first - 1 : end;
-        if (anchor < 0 || anchor >= nf) continue;
+        const int from = direction > 0 ? first - 1 : end;
+        if (from < 0 || from >= nf) continue;
         for (int f = direction > 0 ? first : end - 1; f >= first && f < end; f += direction) {
-          start = x->segment(static_cast<Eigen::Index>(anchor) * ny, ny);
+          start = x->segment(static_cast<Eigen::Index>(f - direction) * ny, ny);
           double c = 0;
           if (!FrameSquaredNorm(*problem, evaluator.get(), f, start.data(), &c)) continue;
           FramePoseSteps(*problem, evaluator.get(), f, options.rescue_iterations, 1e-3, 0.0, options.pose_damping,
@@ -466,7 +463,6 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
           if (c < cost[f]) {
             cost[f] = c;
             x->segment(static_cast<Eigen::Index>(f) * ny, ny) = start;
-            anchor = f;
           }
         }
       }
