@@ -169,11 +169,11 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
 //     1/sqrt(hold_ratio) = 32 times a typical frame's) towards its starting value, which
 //     InverseKinematics::SolveTrial interpolates across the gap (IkOptions::bridge_gaps).
 // The prior is weak against data (a frame that sees c outweighs it by 1/hold_ratio) and sits
-// only where the data are silent. Its strength is a trade, measured at 5 % missing (6,000
-// frames, seed 2, BENCHMARKS.md): hold_ratio 1e-2 converged in 12 iterations but biased the
-// fit (joint centres 1.25 mm max from the truth, cost 1.473e5); 1e-3, 25 iterations, 0.49 mm
-// (0.48 mm on the same data without gaps), 1.422e5; 1e-4 and none crawled (100 iterations,
-// not converged, 0.59-0.61 mm).
+// only where the data are silent. Its strength is a trade (its targets come from IK with the
+// nominal geometry), measured at 6,000 frames, seed 2 (BENCHMARKS.md, tenth session): hold_ratio
+// 1e-2 biases the fit (joint centres 1.15 mm max from the truth at 5 % missing, 5.94 mm at 10 %);
+// 1e-3, 2 and 10 iterations, 0.49 mm (0.48 mm on the same data without gaps); 1e-4 crawls at
+// 10 % (100 iterations, not converged); none ends in a wrong minimum at 10 %.
 struct UnobservedHoldOptions {
   bool enabled = true;
   double weak_ratio = 1e-2;
