@@ -38,16 +38,20 @@ class SubsetEvaluator : public FrameEvaluator {
 // Stage 3's problem: the whole problem's Schur solver, with every frame's pose re-solved for the
 // new geometry after each accepted step (LmProblem::InnerIteration). Near the minimum, LM's
 // step leaves most of its shortfall in the weakly seen coordinates (a wrist's deviation, a
-// subtalar angle) that follow the weakly determined axes nonlinearly; one Gauss–Newton step per
-// frame takes it, for about a third of a linearisation's cost, so the next step already meets the
-// function tolerance.
+// subtalar angle) that follow the weakly determined axes nonlinearly. Each frame takes
+// Gauss–Newton steps (each kept only if it lowers the frame's cost) until a step gains no more
+// than the whole problem's function tolerance would let LM stop on (function_tolerance times
+// the cost), at most inner_pose_iterations: a well-seen frame stops after one step, for about a
+// third of a linearisation's cost in all, while a frame far from its own minimum (a weakly seen
+// subtalar angle in a marker gap, its cost far from quadratic) is taken there now instead of by
+// one whole-problem linearisation after another (measured: BENCHMARKS.md, "With gaps").
 class WithInnerIterations : public LmProblem {
  public:
   WithInnerIterations(ArrowSchurProblem* whole, ArrowProblem* problem, const CoarseToFineOptions& options,
-                      int num_threads, bool refine_poses)
+                      int num_threads, bool refine_poses, double function_tolerance)
       : whole_(whole), problem_(problem), options_(options), num_threads_(num_threads),
-        refine_poses_(refine_poses) {
-    options_.pose_iterations = 1;
+        refine_poses_(refine_poses), function_tolerance_(function_tolerance) {
+    options_.pose_iterations = options.inner_pose_iterations;
     options_.pose_from_predecessor = false;
   }
   int num_parameters() const override { return whole_->num_parameters(); }
@@ -57,6 +61,7 @@ class WithInnerIterations : public LmProblem {
   bool Cost(const Eigen::VectorXd& x, double* cost) override {
     if (!whole_->Cost(x, cost)) return false;
     costs_at_ = Fingerprint(x);
+    last_cost_ = *cost;
     return true;
   }
   bool Linearize(const Eigen::VectorXd& x, double* cost, Eigen::VectorXd* gradient,
@@ -76,14 +81,16 @@ class WithInnerIterations : public LmProblem {
     costs_.clear();
     if (costs_at_ == Fingerprint(*x)) costs_ = whole_->frame_costs();
     // Frames that the step left in a wrong branch first (their cost far above the others'),
-    // then one Gauss–Newton step for every pose; each frame's cost only falls, p is unchanged.
+    // then Gauss–Newton steps for every pose; each frame's cost only falls, p is unchanged.
     rescued_ += RescueFramesFromNeighbours(problem_, options_, num_threads_, &candidate_, &costs_);
     if (!refine_poses_) {
       x->swap(candidate_);
       return;
     }
+    // Frame costs are sums of squares: twice the cost's share.
+    const double min_gain = 2.0 * function_tolerance_ * last_cost_;
     RefineFramePoses(problem_, options_, num_threads_, &candidate_, &ok, nullptr,
-                     static_cast<int>(costs_.size()) == problem_->num_frames() ? costs_.data() : nullptr);
+                     static_cast<int>(costs_.size()) == problem_->num_frames() ? costs_.data() : nullptr, min_gain);
     if (ok) x->swap(candidate_);
   }
   int rescued() const { return rescued_; }
@@ -105,6 +112,8 @@ class WithInnerIterations : public LmProblem {
   }
   int num_threads_;
   bool refine_poses_;
+  double function_tolerance_;
+  double last_cost_ = 0;
   int rescued_ = 0;
   std::vector<double> costs_;
   Eigen::VectorXd candidate_;
@@ -185,9 +194,9 @@ void AddBlockNormalEquations(const ResidualBlock& blk, int ny, double* u, double
 }
 // Up to `iterations` damped Gauss–Newton steps on frame f's own rows and prior (p fixed) from
 // y, each kept only if it lowers *cost (y's sum of squares on entry); stops once a step gains
-// at most `tolerance` of the cost. Returns whether y moved.
+// at most `tolerance` of the cost, or at most `min_gain`. Returns whether y moved.
 bool FramePoseSteps(const ArrowProblem& problem, FrameEvaluator* evaluator, int f, int iterations,
-                    double tolerance, double damping, Eigen::MatrixXd* u, Eigen::VectorXd* g,
+                    double tolerance, double min_gain, double damping, Eigen::MatrixXd* u, Eigen::VectorXd* g,
                     Eigen::VectorXd* trial, double* yf, double* cost) {
   const int ny = problem.frame_dim();
   bool moved = false;
@@ -216,7 +225,7 @@ bool FramePoseSteps(const ArrowProblem& problem, FrameEvaluator* evaluator, int 
     const double decrease = *cost - trial_cost;
     *cost = trial_cost;
     moved = true;
-    if (decrease <= tolerance * *cost) break;
+    if (decrease <= tolerance * *cost || decrease <= min_gain) break;
   }
   return moved;
 }
@@ -236,7 +245,8 @@ bool CoarseToFineOptions::IsValid(std::string* error) const {
   if (!(pose_tolerance > 0 && pose_tolerance < 1)) return fail("pose_tolerance must be in (0, 1)");
   if (!(fine_initial_lambda > 0)) return fail("fine_initial_lambda must be > 0");
   if (!(rescue_ratio >= 0)) return fail("rescue_ratio must be >= 0 (below 1: off)");
-  if (rescue_iterations < 1 || rescue_reach < 1) return fail("rescue_iterations and rescue_reach must be >= 1");
+  if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
+  if (inner_pose_iterations < 1) return fail("inner_pose_iterations must be >= 1");
   return true;
 }
 
@@ -328,7 +338,7 @@ int UnobservedCoordinateWeights(ArrowProblem* problem, const Eigen::VectorXd& x,
 }
 
 int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
-                     Eigen::VectorXd* x, bool* ok, double* cost, const double* frame_costs) {
+                     Eigen::VectorXd* x, bool* ok, double* cost, const double* frame_costs, double min_gain) {
   const int nf = problem->num_frames(), ny = problem->frame_dim(), np = problem->shared_dim();
   *ok = problem->SetShared(x->tail(np));
   if (!*ok) return 0;
@@ -378,8 +388,9 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
           moved = true;
         }
       }
-      moved |= FramePoseSteps(*problem, evaluator.get(), f, max_iterations, options.pose_tolerance,
-                              options.pose_damping, &u, &g, &trial, yf, &cost);
+      moved |= FramePoseSteps(*problem, evaluator.get(), f, max_iterations,
+                              min_gain > 0 ? 0.0 : options.pose_tolerance, min_gain, options.pose_damping, &u,
+                              &g, &trial, yf, &cost);
       correction = Eigen::Map<const Eigen::VectorXd>(yf, ny) - given;
       have_correction = true;
       previous_cost = cost;
@@ -420,33 +431,42 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
   if (!std::isfinite(limit)) return 0;
   std::vector<char> suspect(nf);
   for (int f = 0; f < nf; ++f) suspect[f] = !(cost[f] <= limit);
-  // Starts are read from the poses as they were (a rescued frame is no start for another).
-  const Eigen::VectorXd given = x->head(static_cast<Eigen::Index>(nf) * ny);
+  // Runs of consecutive suspect frames, each swept from both ends.
+  std::vector<std::pair<int, int>> runs;
+  for (int f = 0; f < nf; ++f) {
+    if (!suspect[f]) continue;
+    if (runs.empty() || runs.back().second != f) runs.emplace_back(f, f + 1);
+    else runs.back().second = f + 1;
+  }
+  if (runs.empty()) return 0;
   std::vector<int> rescued(threads, 0);
-  ParallelChunks(nf, threads, [&](int t, int b, int e) {
+  const std::vector<double> given_cost = cost;
+  ParallelChunks(static_cast<int>(runs.size()), threads, [&](int t, int rb, int re) {
     std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
     Eigen::MatrixXd u(ny, ny);
     Eigen::VectorXd g(ny), trial(ny), start(ny);
-    for (int f = b; f < e; ++f) {
-      if (!suspect[f]) continue;
-      int before = f - 1, after = f + 1;
-      while (before >= 0 && suspect[before]) --before;
-      while (after < nf && suspect[after]) ++after;
-      double best = cost[f];
-      for (int from : {before, after}) {
-        if (from < 0 || from >= nf || std::abs(from - f) > options.rescue_reach) continue;
-        start = given.segment(static_cast<Eigen::Index>(from) * ny, ny);
-        double c = 0;
-        if (!FrameSquaredNorm(*problem, evaluator.get(), f, start.data(), &c)) continue;
-        FramePoseSteps(*problem, evaluator.get(), f, options.rescue_iterations, 1e-3, options.pose_damping, &u,
-                       &g, &trial, start.data(), &c);
-        if (c < best) {
-          best = c;
-          x->segment(static_cast<Eigen::Index>(f) * ny, ny) = start;
+    for (int r = rb; r < re; ++r) {
+      const auto [first, end] = runs[r];
+      // Forwards from the well-fitted frame before the run, then backwards from the one after
+      // it: each frame starts from its neighbour's pose as it stands after the sweep (rescued or
+      // not), so a long stretch in a wrong branch (a foot turned round for hundreds of frames)
+      // is carried back in one pass, as the IK's own sweep carries a trial.
+      for (int direction : {+1, -1}) {
+        const int from = direction > 0 ? first - 1 : end;
+        if (from < 0 || from >= nf) continue;
+        for (int f = direction > 0 ? first : end - 1; f >= first && f < end; f += direction) {
+          start = x->segment(static_cast<Eigen::Index>(f - direction) * ny, ny);
+          double c = 0;
+          if (!FrameSquaredNorm(*problem, evaluator.get(), f, start.data(), &c)) continue;
+          FramePoseSteps(*problem, evaluator.get(), f, options.rescue_iterations, 1e-3, 0.0, options.pose_damping,
+                         &u, &g, &trial, start.data(), &c);
+          if (c < cost[f]) {
+            cost[f] = c;
+            x->segment(static_cast<Eigen::Index>(f) * ny, ny) = start;
+          }
         }
       }
-      rescued[t] += best < cost[f] ? 1 : 0;
-      cost[f] = best;
+      for (int f = first; f < end; ++f) rescued[t] += cost[f] < given_cost[f] ? 1 : 0;
     }
   });
   int total = 0;
@@ -506,7 +526,8 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
     });
   {
     ArrowSchurProblem schur(&subset, num_threads);
-    WithInnerIterations with_rescue(&schur, &subset, coarse, num_threads, /*refine_poses=*/false);
+    WithInnerIterations with_rescue(&schur, &subset, coarse, num_threads, /*refine_poses=*/false,
+                                   coarse_lm.function_tolerance);
     s.coarse = Solve(coarse_lm, &with_rescue, &xs);
     s.poses_rescued += with_rescue.rescued();
   }
@@ -570,7 +591,8 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   fine_lm.initial_lambda = std::clamp(coarse.fine_initial_lambda, options.min_lambda, options.max_lambda);
   LmSummary result;
   if (coarse.inner_iterations) {
-    WithInnerIterations with_inner(&fine, problem, coarse, num_threads, /*refine_poses=*/true);
+    WithInnerIterations with_inner(&fine, problem, coarse, num_threads, /*refine_poses=*/true,
+                                   fine_lm.function_tolerance);
     result = Solve(fine_lm, &with_inner, x);
     s.poses_rescued += with_inner.rescued();
   } else {

@@ -66,9 +66,14 @@ struct CoarseToFineOptions {
   int pose_iterations = 8;
   double pose_tolerance = 0.5;
   bool pose_from_predecessor = true;
-  // Stage 3: after each accepted step every pose is re-solved for the new geometry (one
-  // Gauss–Newton step a frame, LmProblem::InnerIteration).
+  // Stage 3: after each accepted step every pose is re-solved for the new geometry
+  // (LmProblem::InnerIteration): Gauss–Newton steps until one gains no more than the fine LM's
+  // function tolerance times the cost, at most inner_pose_iterations. One step a frame (the
+  // earlier rule) left frames whose cost is far from quadratic in a weakly seen coordinate
+  // (marker gaps) far from their own minimum, and the whole problem crawled after them
+  // (BENCHMARKS.md, "With gaps").
   bool inner_iterations = true;
+  int inner_pose_iterations = 10;
   double pose_damping = 1e-6;     // relative to diag(J_y^T J_y), for steps in badly seen frames
   // Stage 3 starts near the minimum, where Ceres's initial damping (LmOptions::initial_lambda,
   // 1e-4) only slows the weakly determined directions (a parameter held mostly by its prior has
@@ -77,12 +82,11 @@ struct CoarseToFineOptions {
   double fine_initial_lambda = 1e-8;
   // After stage 2, a frame whose cost is above `rescue_ratio` times the median frame's (a pose
   // in a wrong branch: a two-marker foot turned round during a gap) is re-solved, up to
-  // `rescue_iterations` Gauss–Newton steps, from the pose of the nearest frame below that limit
-  // on either side (at most `rescue_reach` frames away); the lower cost wins
+  // `rescue_iterations` Gauss–Newton steps, from its neighbour's pose, sweeping each run of such
+  // frames from the well-fitted frame on either side; the lower cost wins
   // (RescueFramesFromNeighbours). 0 or below 1: off.
   double rescue_ratio = 4.0;
   int rescue_iterations = 10;
-  int rescue_reach = 60;
 
   bool IsValid(std::string* error) const;
 };
@@ -139,9 +143,11 @@ class FrameSubsetProblem : public ArrowProblem {
 // whose pose changed and, in *cost if given, the whole problem's cost at the result; false in
 // *ok if p is refused or a frame's residuals are not finite at its given pose. `frame_costs`,
 // if given, holds each frame's sum of squares (residuals and frame prior) at x's poses.
+// `min_gain` > 0: a frame stops once a step lowers its sum of squares by at most min_gain
+// (instead of options.pose_tolerance of it), after at most options.pose_iterations steps.
 int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
                      Eigen::VectorXd* x, bool* ok, double* cost = nullptr,
-                     const double* frame_costs = nullptr);
+                     const double* frame_costs = nullptr, double min_gain = 0);
 
 // Frames in marker gaps (issue 14): a frame whose markers leave some coordinates nearly
 // unobserved (a two-marker foot with its toe marker hidden: the rotation about the line from
@@ -163,11 +169,11 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
 //     1/sqrt(hold_ratio) = 32 times a typical frame's) towards its starting value, which
 //     InverseKinematics::SolveTrial interpolates across the gap (IkOptions::bridge_gaps).
 // The prior is weak against data (a frame that sees c outweighs it by 1/hold_ratio) and sits
-// only where the data are silent. Its strength is a trade, measured at 5 % missing (6,000
-// frames, seed 2, BENCHMARKS.md): hold_ratio 1e-2 converged in 12 iterations but biased the
-// fit (joint centres 1.25 mm max from the truth, cost 1.473e5); 1e-3, 25 iterations, 0.49 mm
-// (0.48 mm on the same data without gaps), 1.422e5; 1e-4 and none crawled (100 iterations,
-// not converged, 0.59-0.61 mm).
+// only where the data are silent. Its strength is a trade (its targets come from IK with the
+// nominal geometry), measured at 6,000 frames, seed 2 (BENCHMARKS.md, tenth session): hold_ratio
+// 1e-2 biases the fit (joint centres 1.15 mm max from the truth at 5 % missing, 5.94 mm at 10 %);
+// 1e-3, 2 and 10 iterations, 0.49 mm (0.48 mm on the same data without gaps); 1e-4 crawls at
+// 10 % (100 iterations, not converged); none ends in a wrong minimum at 10 %.
 struct UnobservedHoldOptions {
   bool enabled = true;
   double weak_ratio = 1e-2;
@@ -183,8 +189,13 @@ int UnobservedCoordinateWeights(ArrowProblem* problem, const Eigen::VectorXd& x,
                                 const UnobservedHoldOptions& options, int num_threads,
                                 Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>* weights);
 
-// Re-solves the frames of x whose cost is far above the median frame's from their nearest
-// well-fitted neighbours' poses (p fixed), as CoarseToFineOptions::rescue_ratio describes.
+// Re-solves the frames of x whose cost is far above the median frame's from their neighbours'
+// poses (p fixed), as CoarseToFineOptions::rescue_ratio describes. Each run of consecutive such
+// frames is swept forwards from the well-fitted frame before it and backwards from the one after
+// it, each frame starting from its neighbour's pose as the sweep left it: a stretch of hundreds of
+// frames in a wrong branch (a foot turned round through a long gap, 10 % missing) is carried back
+// in one pass. Starting only from the nearest well-fitted frame within 60 frames (the earlier
+// rule) reached ~50 frames of such a stretch per call, one more band per LM iteration.
 // Returns how many poses were replaced (each only if that lowered its frame's cost).
 // `frame_costs`, if given: each frame's sum of squares at x (computed if its size is not the
 // frame count), updated to the result's.

@@ -22,8 +22,43 @@ bool IkOptions::IsValid(std::string* error) const {
   return true;
 }
 
+std::vector<char> PeriodicCoordinates(const Model& model) {
+  const int nz = model.num_coordinates();
+  std::vector<char> periodic(nz, 0), drives(nz, 0);
+  std::vector<char> other(nz, 0);
+  for (const Joint& joint : model.joints())
+    for (const JointElement& el : joint.elements) {
+      if (el.coordinate < 0) continue;
+      drives[el.coordinate] = 1;
+      const bool whole_turn = el.kind == ElementKind::kRotation &&
+                              (el.function.kind == CoordinateFunction::Kind::kIdentity ||
+                               (el.function.kind == CoordinateFunction::Kind::kLinear &&
+                                std::abs(el.function.slope) == 1.0));
+      if (!whole_turn) other[el.coordinate] = 1;
+    }
+  for (int c = 0; c < nz; ++c) periodic[c] = drives[c] && !other[c];
+  return periodic;
+}
+
+void WrapPeriodicCoordinates(const Model& model, const std::vector<char>& periodic, const Eigen::VectorXd& reference,
+                             Eigen::VectorXd* z) {
+  for (int c = 0; c < model.num_coordinates(); ++c) {
+    if (!periodic[c]) continue;
+    const Coordinate& coordinate = model.coordinates()[c];
+    // A joint that cannot turn round (range narrower than a turn) is referred to its range's
+    // centre; one that can, and the joint to the lab (whose angles depend on the lab's axes: an
+    // upside-down lab puts a pelvis tilt near pi, outside any range), to `reference`, so that they
+    // stay continuous.
+    const bool to_lab = coordinate.joint >= 0 && model.joints()[coordinate.joint].parent < 0;
+    const double centre = !to_lab && coordinate.max_value - coordinate.min_value < 2.0 * M_PI
+                              ? 0.5 * (coordinate.max_value + coordinate.min_value)
+                              : reference[c];
+    (*z)[c] = centre + std::remainder((*z)[c] - centre, 2.0 * M_PI);
+  }
+}
+
 InverseKinematics::InverseKinematics(const Model& model, const Geometry& geometry, IkOptions options)
-    : model_(model), geometry_(geometry), options_(options), data_(model) {
+    : model_(model), geometry_(geometry), options_(options), data_(model), periodic_(PeriodicCoordinates(model)) {
   const int nz = model.num_coordinates();
   jtj_.resize(nz, nz);
   damped_.resize(nz, nz);
@@ -57,6 +92,7 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
                                        const std::vector<char>& free) {
   const int nz = model_.num_coordinates();
   IkFrameResult result;
+  const Eigen::VectorXd start = *z;
   ForwardKinematics(model_, geometry_, *z, &data_);
   double weight_sum = 0;
   double cost = SquaredError(model_, geometry_, data_, measured, &result.markers, &weight_sum);
@@ -118,6 +154,7 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
     if (accepted && decrease < 1e-12 * std::max(1.0, double(result.markers))) break;
     if (!accepted || dz.norm() < options_.step_tolerance) break;
   }
+  WrapPeriodicCoordinates(model_, periodic_, start, z);
   ForwardKinematics(model_, geometry_, *z, &data_);
   // Weighted RMS: with every weight 1 (the usual case) the plain RMS.
   result.rms_m = weight_sum > 0 ? std::sqrt(cost / weight_sum) : 0.0;

@@ -35,6 +35,16 @@ struct IkFrameResult {
   int markers = 0;         // markers present in the frame
 };
 
+// Which coordinates only turn rotations by their own value (identity or +-1-slope functions): a
+// whole turn more or less leaves every marker where it was, so the data cannot tell z from
+// z + 2 pi. Priors can: see WrapPeriodicCoordinates.
+std::vector<char> PeriodicCoordinates(const Model& model);
+// Moves each periodic coordinate of z by whole turns to its representative nearest the centre
+// of its range (a joint whose range is narrower than a turn) or nearest reference[c] (one that
+// may turn round, and every coordinate of the joint to the lab). Markers stay where they are.
+void WrapPeriodicCoordinates(const Model& model, const std::vector<char>& periodic, const Eigen::VectorXd& reference,
+                             Eigen::VectorXd* z);
+
 class InverseKinematics {
  public:
   InverseKinematics(const Model& model, const Geometry& geometry, IkOptions options = IkOptions());
@@ -75,6 +85,7 @@ class InverseKinematics {
   const Geometry& geometry_;
   IkOptions options_;
   ModelData data_;
+  std::vector<char> periodic_;
   Eigen::MatrixXd jtj_, damped_;
   Eigen::LLT<Eigen::MatrixXd> llt_;
   Eigen::VectorXd jtr_;

@@ -109,3 +109,39 @@ TEST(InverseKinematics, GapFramesAreBridgedFromTheFramesThatSeeTheHiddenMarkers)
   EXPECT_LT(bridged_error, 1e-3);
   EXPECT_GT(unbridged_error, 0.1);
 }
+
+// A rotation driven by its own coordinate looks the same a whole turn on, so a frame solve may end
+// any number of turns away (measured: subtalar angles 4 turns off in gaps, which the global fit's
+// frame priors then fought). Solve returns each such coordinate at its representative nearest its
+// range's centre (a joint narrower than a turn) or nearest its start (the free root's heading,
+// range +-2 pi, so that a turning subject stays continuous), the markers unchanged.
+TEST(InverseKinematics, PeriodicCoordinatesComeBackFromWholeTurns) {
+  const Model m = DefaultFullBodyModel();
+  const Geometry g(m);
+  const std::vector<char> periodic = solver::PeriodicCoordinates(m);
+  const int subtalar = m.FindCoordinate("subtalar_angle_r"), wrist = m.FindCoordinate("wrist_flex_l");
+  const int heading = m.FindCoordinate("pelvis_rotation"), tx = m.FindCoordinate("pelvis_tx");
+  ASSERT_GE(subtalar, 0);
+  ASSERT_GE(wrist, 0);
+  ASSERT_GE(heading, 0);
+  ASSERT_GE(tx, 0);
+  EXPECT_TRUE(periodic[subtalar]);
+  EXPECT_TRUE(periodic[heading]);
+  EXPECT_FALSE(periodic[tx]);  // a translation
+  std::mt19937 rng(4);
+  std::uniform_real_distribution<double> u(-0.2, 0.2);
+  Eigen::VectorXd truth = m.DefaultCoordinates();
+  for (int c = 0; c < m.num_coordinates(); ++c) truth[c] += u(rng);
+  const Eigen::Matrix3Xd measured = Markers(m, truth);
+  Eigen::VectorXd z = truth;
+  z[subtalar] += 4 * M_PI;
+  z[wrist] -= 2 * M_PI;
+  z[heading] += 2 * M_PI;
+  solver::InverseKinematics ik(m, g);
+  const solver::IkFrameResult r = ik.Solve(measured, &z);
+  EXPECT_LT(r.rms_m, 1e-6);
+  EXPECT_NEAR(z[subtalar], truth[subtalar], 1e-6);
+  EXPECT_NEAR(z[wrist], truth[wrist], 1e-6);
+  EXPECT_NEAR(z[heading], truth[heading] + 2 * M_PI, 1e-6);
+  EXPECT_LT((Markers(m, z) - measured).cwiseAbs().maxCoeff(), 1e-6);
+}
