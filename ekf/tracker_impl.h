@@ -84,6 +84,7 @@ struct Tracker::Impl {
   double last_time = kNaN;
   bool had_track = false;
   Eigen::VectorXd z_good;  // last pose that passed the divergence test
+  Eigen::VectorXd z_static;  // the search's starting pose (options.static_pose or the default)
   int bad_frames = 0;
   TrackOutput out;
   InitialisationSummary init;
@@ -275,7 +276,15 @@ struct Tracker::Impl {
   static constexpr double kFreshTrackSeconds = 1.0;
   bool RigidlyPlausible(int m, int k) const;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
-  bool ReacquireLimb(int joint, int np);
+  bool ReacquireLimb(int joint, int np, bool place);
+  // Per marker: labelled this frame outside its gate (not measured: its limb is placed anew).
+  std::vector<char> beyond_gate;
+  // Per coordinate: whether a measurement observed it in the last update, and for how many
+  // consecutive frames none has (see Predict).
+  std::vector<char> observed;
+  std::vector<int> unobserved_frames;
+  static constexpr double kUnobservedSeconds = 0.05;
+  static constexpr int kUnobservedFrames = 10;
   double LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius);
 };
 
