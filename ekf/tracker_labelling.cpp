@@ -7,7 +7,9 @@
 //      rule it out (NonRigidTrack, SeenBeside); the optimal assignment decides contested points.
 //   3. Segment registration (RegisterSegments): the markers the gates left unlabelled are looked
 //      for as a group, where their segment's rigid geometry (its labelled markers, its joint
-//      centre) puts them, and labelled when one choice of points fits clearly best.
+//      centre) puts them, and labelled when one choice of points fits clearly best; beside a
+//      marker stuck for 20 frames, the labels of its segment are re-checked with it (a swap or
+//      shift within the segment is one more hypothesis of the same fit).
 //   4. Probation (ChooseMeasurements): a returning marker's label enters the update from its
 //      second consecutive frame.
 //   5. The records the next frames judge points by (PushHistory): the last frames' points, and
@@ -145,9 +147,15 @@ void Tracker::Impl::FollowLabelledTracks(int np) {
 // stuck for kStuckFrames is looked for, at points that moved rigidly with the segment
 // (RigidWithSegment). Why: a marker leaves its gate when its segment's pose estimate is wrong or
 // carries a nominal model's pose-dependent error, and its point then sits where its segment's
-// rigid geometry puts it, and there only. The labels go through probation (ChooseMeasurements);
-// FilterUpdate weighs a measurement outside its gate down to the gate's weight. Not in a fresh
-// track (FreshTrack), whose joint centres may be wrong with a limb; the limb search relabels there.
+// rigid geometry puts it, and there only. For a segment with a stuck marker that has candidates,
+// its labelled markers whose points the stuck marker could be are re-opened too, one or two at a
+// time (EnumerateSegment): a labelled marker on a mate's point (a wrist marker on the other's,
+// after a forearm turned about its axis while hidden) keeps every distance right and fits as
+// well as the truth until the stuck marker's own point is tried with it. The same labelling
+// reached with different markers re-opened is not its own rival. The labels go through probation
+// (ChooseMeasurements); FilterUpdate does not measure a label outside its gate, whose limb the
+// limb search places anew. Not in a fresh track (FreshTrack), whose joint centres may be wrong
+// with a limb; the limb search relabels there.
 void Tracker::Impl::RegisterSegments(int np) {
   for (int m = 0; m < nm; ++m)
     if (row_to_col[m] >= np) row_to_col[m] = -1;
