@@ -192,6 +192,9 @@ struct Tracker::Impl {
   // Rigid fits (SegmentFitCost) per frame, over all segments: the bound on the registration's
   // time (a search cut short by it decides nothing).
   static constexpr int kSegmentFitBudget = 600;
+  // ... of which one segment's re-check may take (the forearm's takes about 30; a trunk segment's
+  // many markers at one distance from its joint would take the whole budget, often).
+  static constexpr int kReCheckFitBudget = 100;
   struct SegmentSearch {
     int open[kSegmentMaxOpen];                         // the markers enumerated (ms order)
     int cand[kSegmentMaxOpen][kSegmentMaxChoices];     // their candidate points
@@ -207,11 +210,19 @@ struct Tracker::Impl {
     int best_labels = 0;
     double best_cost = 0, runner_up = 0;
     int fits = 0;  // this frame's
+    int fit_limit = 0;  // where the enumeration stops
   } seg;
   // Enumerates segment `segment` with its unlabelled markers and the labelled ones in `freed`
   // (indices into its marker list) open; updates seg.best_* and seg.runner_up. False when the
   // frame's fit budget ran out.
   bool EnumerateSegment(int segment, const int* freed, int nfreed);
+  // Whether a stuck marker's segment has its labels re-checked this frame: every frame of the
+  // marker's first kStuckFrames stuck (before another marker takes the point a swap left over),
+  // then every kStuckFrames-th (a check every frame of a long run cost the p99 about 15 %).
+  bool ReCheckDue(int m) const {
+    const int run = unlabelled_run[m];
+    return run >= kStuckFrames && (run < 2 * kStuckFrames || run % kStuckFrames == 0);
+  }
   void RegisterSegments(int np);
   // Whether point k, followed back through the unclaimed points of the last frames, has been for
   // kMinTrackFrames or more at constant distances (within kRigidTolerance) from marker m's joint

@@ -212,7 +212,7 @@ void Tracker::Impl::RegisterSegments(int np) {
         seg.unl_cand[o][i] = k;
       }
       with_candidates += n > 0;
-      stuck_with_candidates += n > 0 && unlabelled_run[m] >= kStuckFrames;
+      stuck_with_candidates += n > 0 && ReCheckDue(m);
     }
     if (with_candidates == 0 || (has_centre ? 1 : 0) + labelled + with_candidates < 3) continue;
     // Hypotheses: the segment's labels as they are, with points for its unlabelled markers; and,
@@ -222,14 +222,21 @@ void Tracker::Impl::RegisterSegments(int np) {
     // cost wins when no different one with as many comes within the margin.
     seg.best_labels = 0;
     seg.best_cost = seg.runner_up = std::numeric_limits<double>::infinity();
+    seg.fit_limit = kSegmentFitBudget;
     bool complete = EnumerateSegment(segment, nullptr, 0);
-    if (stuck_with_candidates > 0 && has_centre) {
+    if (stuck_with_candidates > 0 && has_centre && complete) {
+      // A re-check cut short by its budget leaves the registration's own decision standing.
+      const int labels_alone = seg.best_labels;
+      const double cost_alone = seg.best_cost, runner_up_alone = seg.runner_up;
+      int point_alone[kMaxSegmentMarkers];
+      std::copy(seg.best_point, seg.best_point + nms, point_alone);
+      seg.fit_limit = std::min(kSegmentFitBudget, seg.fits + kReCheckFitBudget);
       // Re-opened: a labelled marker whose point a stuck marker could be (at that marker's
       // distance from the joint centre). The root has no centre to tell them by.
       auto could_be_stuck = [&](int i) {
         if (row_to_col[ms[i]] < 0) return false;
         for (int o = 0; o < seg.nunl; ++o)
-          if (seg.unl_n[o] > 0 && unlabelled_run[seg.unl[o]] >= kStuckFrames &&
+          if (seg.unl_n[o] > 0 && ReCheckDue(seg.unl[o]) &&
               OnSegmentSphere(seg.unl[o], points.col(row_to_col[ms[i]])))
             return true;
         return false;
@@ -245,6 +252,13 @@ void Tracker::Impl::RegisterSegments(int np) {
           freed[1] = std::max(i, j);
           complete = EnumerateSegment(segment, freed, 2);
         }
+      }
+      if (!complete) {
+        seg.best_labels = labels_alone;
+        seg.best_cost = cost_alone;
+        seg.runner_up = runner_up_alone;
+        std::copy(point_alone, point_alone + nms, seg.best_point);
+        complete = true;
       }
     }
     if (!complete || seg.best_labels == 0 ||
@@ -361,7 +375,7 @@ bool Tracker::Impl::EnumerateSegment(int segment, const int* freed, int nfreed) 
     const bool same = labels == seg.best_labels &&
                       std::equal(labelling, labelling + nms, seg.best_point);
     if (same) continue;
-    if (++seg.fits > kSegmentFitBudget) return false;
+    if (++seg.fits > seg.fit_limit) return false;
     double cost = 0;
     if (!SegmentFitCost(segment, &cost)) continue;
     if (labels > seg.best_labels || cost < seg.best_cost) {
