@@ -109,8 +109,10 @@
 // a swap or a shift is one more hypothesis of the same rigid fit, taken only when no other
 // labelling comes within the margin (two wrist markers and the elbow centre alone are mirror
 // images and cannot tell; with the forearm marker the fit can). A marker so relabelled held a
-// wrong point: its seen-beside records go and its new label starts on probation. The rigid fits
-// are bounded per frame (kSegmentFitBudget; a search cut short decides nothing).
+// wrong point: its seen-beside records go and its new label starts on probation. The re-check
+// runs on every frame of a marker's first 20 stuck frames (before another marker takes the point
+// a swap left over), then on every 20th. The rigid fits are bounded: 100 a re-check (one cut
+// short leaves the registration's own decision), 600 a frame (a search cut short decides nothing).
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (the points turned so that the lab's
