@@ -235,6 +235,9 @@ void Tracker::Impl::Allocate() {
   out.point_of_marker.reserve(nm);
   unlabelled_run.assign(nm, 0);
   measured.assign(nm, 0);
+  beyond_gate.assign(nm, 0);
+  observed.assign(nz, 1);
+  unobserved_frames.assign(nz, 0);
   labelled_run.assign(nm, 0);
   hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
   hist_count.assign(kHistory, 0);
@@ -280,6 +283,7 @@ void Tracker::Impl::ResetState() {
       options.static_pose.size() == nz ? options.static_pose : model->DefaultCoordinates();
   x.head(nz) = start;
   z_good = start;
+  z_static = start;
   had_track = false;
   bad_frames = 0;
   last_time = kNaN;
@@ -302,6 +306,21 @@ double Tracker::Impl::Dt(double time_s) const {
 void Tracker::Impl::Predict(double dt) {
   PredictConstantAcceleration(dt, jerk_psd, std::exp(-dt / options.velocity_time_constant_s),
                               std::exp(-dt / options.acceleration_time_constant_s), &x, &P);
+  // A coordinate no measurement has observed for kUnobservedFrames frames stops within
+  // kUnobservedSeconds: what it did before is no evidence of where it went (the knee of a leg
+  // whose shank and foot markers are all hidden ran on its last velocity to the end of its range,
+  // 40 cm from the markers when they came back). A shorter gap keeps the extrapolation that picks
+  // a marker up again. Applied as F = diag(1, d, d) on that coordinate, so P stays F P F^T.
+  const double d = std::exp(-dt / kUnobservedSeconds);
+  for (int i = 0; i < nz; ++i) {
+    unobserved_frames[i] = observed[i] ? 0 : unobserved_frames[i] + 1;
+    if (unobserved_frames[i] < kUnobservedFrames) continue;
+    for (int idx : {nz + i, 2 * nz + i}) {
+      x[idx] *= d;
+      P.row(idx) *= d;
+      P.col(idx) *= d;
+    }
+  }
 }
 
 // Marker predictions and Jacobians at z.
@@ -319,21 +338,25 @@ void Tracker::Impl::Linearise(const Eigen::VectorXd& z) {
 bool Tracker::Impl::FilterUpdate(double* nis) {
   A.setZero();
   b.setZero();
+  std::fill(beyond_gate.begin(), beyond_gate.end(), 0);
+  std::fill(observed.begin(), observed.end(), 0);
   double nu_r_nu = 0;
   for (int m = 0; m < nm; ++m) {
-    if (row_to_col[m] < 0 || !measured[m]) continue;
+    if (row_to_col[m] < 0) continue;
     const Eigen::Vector3d nu = points.col(row_to_col[m]) - predicted.col(m);
     // A label outside the marker's gate (a segment registration's: its point is where the
-    // segment's rigid geometry puts it, not where the pose predicts it) pulls with its weight
-    // scaled down to the gate's: the linearised step stays within the gate's reach and the
-    // segment is brought over a few frames instead of thrown by one step of decimetres.
-    const double d2 = nu.dot(s_inv[m] * nu);
-    const double w = (d2 > options.gate_chi2 ? options.gate_chi2 / d2 : 1.0) /
-                     (MeasurementVariance(m) + model_error[m]);
+    // segment's rigid geometry puts it, not where the pose predicts it) is not measured: one
+    // linearised step of decimetres threw whole legs off the body, and a step scaled down to the
+    // gate still left the limb a velocity that ran on after the label was lost. Its limb is
+    // placed anew by the limb search instead (Reacquire), at rest.
+    beyond_gate[m] = nu.dot(s_inv[m] * nu) > options.gate_chi2;
+    if (!measured[m] || beyond_gate[m]) continue;
+    const double w = 1.0 / (MeasurementVariance(m) + model_error[m]);
     nu_r_nu += w * nu.squaredNorm();
     const std::vector<int>& cols = model->marker_coordinates(m);
     const auto& J = jac[m];
     for (size_t a = 0; a < cols.size(); ++a) {
+      observed[cols[a]] = 1;
       b[cols[a]] += w * J.col(a).dot(nu);
       for (size_t k = 0; k <= a; ++k) A(cols[a], cols[k]) += w * J.col(a).dot(J.col(k));
     }
@@ -420,6 +443,10 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     const int labelled = s.ApplyLabels(np);
     s.ChooseMeasurements();
     double nis = 0;
+    if (s.measured_count == 0) {
+      std::fill(s.observed.begin(), s.observed.end(), 0);
+      std::fill(s.beyond_gate.begin(), s.beyond_gate.end(), 0);
+    }
     bool ok = s.measured_count == 0 || s.FilterUpdate(&nis);
     if (ok) {
       s.zbuf = s.x.head(s.nz);

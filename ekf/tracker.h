@@ -97,10 +97,22 @@
 // more at constant distances (1 cm) from the joint centre and the segment's labelled markers while
 // moving 2 cm or more (a reflection fixed in the lab is rigid with a segment at rest); a marker
 // just back from an occlusion is the gate's (a reflection riding with the segment can sit at its
-// place). Such a label goes through probation, and a measurement outside its gate pulls at the
-// gate's weight (its weight scaled by gate / Mahalanobis distance): the segment is brought to its
-// points over a few frames instead of thrown by one linearised step of decimetres, which turned
-// whole legs away from the body.
+// place). Such a label goes through probation; a label outside its gate is not measured (one
+// linearised step of decimetres threw whole legs off the body, and one scaled down to the gate
+// left the limb a velocity that ran on): its limb is placed anew by the limb search (below).
+// Labels already given are re-checked the same way. A swap within a segment (a forearm turned
+// about its axis while hidden, one wrist marker back on the other's point, that one's own point
+// left over) keeps every label on a point and every distance right, so no gate sees it; but the
+// segment then has a marker stuck beside a point that its labelled mates could be. So for a
+// segment with a marker stuck for 20 frames, the labelled markers whose points it could be (at
+// its distance from the joint centre) are re-opened, one or two at a time, and enumerated with it:
+// a swap or a shift is one more hypothesis of the same rigid fit, taken only when no other
+// labelling comes within the margin (two wrist markers and the elbow centre alone are mirror
+// images and cannot tell; with the forearm marker the fit can). A marker so relabelled held a
+// wrong point: its seen-beside records go and its new label starts on probation. The re-check
+// runs on every frame of a marker's first 20 stuck frames (before another marker takes the point
+// a swap left over), then on every 20th. The rigid fits are bounded: 100 a re-check (one cut
+// short leaves the registration's own decision), 600 a frame (a search cut short decides nothing).
 //
 // Initialisation and recovery. Without any labels, the subject is searched for around the
 // cloud's centroid at several headings about the vertical (the points turned so that the lab's
@@ -125,14 +137,16 @@
 // subtree of the joint that moves it (the nearest one whose subtree carries another marker, so a
 // hand with one finger marker goes with its forearm; up to 12 coordinates; the root and the
 // trunk are the global search's) searched again ICP-like among the points no other marker took,
-// from its current pose and four restarts (joint angles blended towards the middle of their
-// ranges, fixed pseudo-random perturbations). The search runs only when an unclaimed point could
+// from its current pose and four restarts (the limb at the static pose -- the prior's mode, for a
+// limb lost far from its pose --, its joint angles halfway to the middle of their ranges, fixed
+// pseudo-random perturbations). The search runs only when an unclaimed point could
 // be the marker: within 25 cm of its prediction and at the marker's rigid-body distances from
 // its segment's other labelled points and from the segment's joint centre -- ghosts near the
 // body are nearly always within 25 cm, rarely on those spheres. The limb's labelled markers keep
 // their points; only its unlabelled ones are placed. The best placement replaces the limb's
 // coordinates (velocities and accelerations zeroed, their covariance reset to the
-// initialisation's) only when it labels more of the limb's markers than the track does, their RMS
+// initialisation's) only when it labels more of the limb's markers than the track does (or as
+// many, when it is placing a limb for a label outside its gate: see "Labelling"), their RMS
 // distance is within 3 cm, EVERY marker of the placement lies within its gate on its measurement
 // noise alone (gate_chi2 x the marker's variance: an RMS bound alone passes a marker put on a
 // ghost 3 cm away), no differently labelling restart comes within the init_ambiguity_margin
@@ -143,7 +157,9 @@
 // consistently), so there the search may also relabel the limb's markers and runs whenever any
 // unclaimed point lies within 25 cm, and no point's past is judged, here or in the gating (the
 // joint centres may be wrong with the limb). Allocation-free; a hidden marker with no plausible
-// point near costs nothing.
+// point near costs nothing. At most one limb search a frame (the one nearest the root): with the
+// segment registration's fit budget, that bounds a tracking frame's work (the search's five
+// starts of ten damped Gauss-Newton steps are the largest item, about 1 ms on the 2-core VM).
 //
 // Model error. A nominal model (before the global fit) misplaces markers by 1-4 cm; each marker
 // carries a slowly learnt offset in its segment's frame, and its measurement variance is inflated
@@ -156,8 +172,11 @@
 // good.)
 //
 // Unobserved coordinates. Velocities and accelerations decay between frames (time constants in
-// the options), and coordinates are kept in the model's ranges, so a segment that loses markers
-// coasts instead of running away on its last acceleration.
+// the options), and coordinates are kept in the model's ranges. A coordinate that no measurement
+// has observed for 10 frames stops within 50 ms: its last velocity is no evidence of where it went
+// (a knee whose shank and foot markers were all hidden ran on a velocity that one surprising
+// measurement had given it, to 40 cm from the markers when they came back); a shorter gap keeps
+// the extrapolation that picks a marker up again.
 //
 // Angles. A coordinate that only drives identity rotations and whose range covers a full turn
 // (the pelvis heading of the default model) is kept in (-pi, pi]: h is 2 pi-periodic in it, the

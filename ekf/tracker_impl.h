@@ -84,6 +84,7 @@ struct Tracker::Impl {
   double last_time = kNaN;
   bool had_track = false;
   Eigen::VectorXd z_good;  // last pose that passed the divergence test
+  Eigen::VectorXd z_static;  // the search's starting pose (options.static_pose or the default)
   int bad_frames = 0;
   TrackOutput out;
   InitialisationSummary init;
@@ -149,6 +150,12 @@ struct Tracker::Impl {
   std::vector<int> track_owner;
   void FollowLabelledTracks(int np);
   bool SeenBeside(int m, int k, int np) const;
+  // Marker m held a wrong point: its seen-beside records (made under that label) go, and the
+  // label no longer counts as held.
+  void ForgetRecords(int m) {
+    for (size_t j = static_cast<size_t>(m); j < beside_prev.size(); j += nm) beside_prev[j] = kNever;
+    held_run[m] = 0;
+  }
 
   // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
   double MeasurementVariance(int m) const {
@@ -175,16 +182,47 @@ struct Tracker::Impl {
   // order: parents first), and the workspace of the enumeration.
   std::vector<std::vector<int>> segment_markers;
   std::vector<int> segment_order;
-  static constexpr int kSegmentCandidates = 4;   // points tried per unlabelled marker
-  static constexpr int kSegmentMaxOpen = 6;      // unlabelled markers enumerated per segment
+  static constexpr int kSegmentCandidates = 4;   // unclaimed points tried per unlabelled marker
+  static constexpr int kSegmentMaxOpen = 6;      // markers enumerated per segment
+  static constexpr int kSegmentMaxFreed = 2;     // labelled markers re-opened in one hypothesis
+  static constexpr int kMaxSegmentMarkers = 16;  // larger segments are not registered
+  // Per open marker: its unclaimed candidates, plus the points of the re-opened labelled mates.
+  static constexpr int kSegmentMaxChoices = kSegmentCandidates + kSegmentMaxFreed + 1;
   static constexpr int kStuckFrames = 20;        // a marker unlabelled this long is stuck
+  // Rigid fits (SegmentFitCost) per frame, over all segments: the bound on the registration's
+  // time (a search cut short by it decides nothing).
+  static constexpr int kSegmentFitBudget = 600;
+  // ... of which one segment's re-check may take (the forearm's takes about 30; a trunk segment's
+  // many markers at one distance from its joint would take the whole budget, often).
+  static constexpr int kReCheckFitBudget = 100;
   struct SegmentSearch {
-    int open[kSegmentMaxOpen];                         // the segment's unlabelled markers
-    int cand[kSegmentMaxOpen][kSegmentCandidates];     // their candidate points
+    int open[kSegmentMaxOpen];                         // the markers enumerated (ms order)
+    int cand[kSegmentMaxOpen][kSegmentMaxChoices];     // their candidate points
     int ncand[kSegmentMaxOpen];
-    int choice[kSegmentMaxOpen], best[kSegmentMaxOpen];
+    int choice[kSegmentMaxOpen];
     int nopen = 0;
+    // The segment's unlabelled markers and their unclaimed candidates (nearest first).
+    int unl[kSegmentMaxOpen], unl_cand[kSegmentMaxOpen][kSegmentCandidates], unl_n[kSegmentMaxOpen];
+    int nunl = 0;
+    // The best labelling of the segment's markers (ms order; point or -1), its label count and
+    // cost, and the least cost of a different labelling with as many labels.
+    int best_point[kMaxSegmentMarkers];
+    int best_labels = 0;
+    double best_cost = 0, runner_up = 0;
+    int fits = 0;  // this frame's
+    int fit_limit = 0;  // where the enumeration stops
   } seg;
+  // Enumerates segment `segment` with its unlabelled markers and the labelled ones in `freed`
+  // (indices into its marker list) open; updates seg.best_* and seg.runner_up. False when the
+  // frame's fit budget ran out.
+  bool EnumerateSegment(int segment, const int* freed, int nfreed);
+  // Whether a stuck marker's segment has its labels re-checked this frame: every frame of the
+  // marker's first kStuckFrames stuck (before another marker takes the point a swap left over),
+  // then every kStuckFrames-th (a check every frame of a long run cost the p99 about 15 %).
+  bool ReCheckDue(int m) const {
+    const int run = unlabelled_run[m];
+    return run >= kStuckFrames && (run < 2 * kStuckFrames || run % kStuckFrames == 0);
+  }
   void RegisterSegments(int np);
   // Whether point k, followed back through the unclaimed points of the last frames, has been for
   // kMinTrackFrames or more at constant distances (within kRigidTolerance) from marker m's joint
@@ -249,7 +287,15 @@ struct Tracker::Impl {
   static constexpr double kFreshTrackSeconds = 1.0;
   bool RigidlyPlausible(int m, int k) const;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
-  bool ReacquireLimb(int joint, int np);
+  bool ReacquireLimb(int joint, int np, bool place);
+  // Per marker: labelled this frame outside its gate (not measured: its limb is placed anew).
+  std::vector<char> beyond_gate;
+  // Per coordinate: whether a measurement observed it in the last update, and for how many
+  // consecutive frames none has (see Predict).
+  std::vector<char> observed;
+  std::vector<int> unobserved_frames;
+  static constexpr double kUnobservedSeconds = 0.05;
+  static constexpr int kUnobservedFrames = 10;
   double LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius);
 };
 

@@ -430,7 +430,7 @@ double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, do
   return total;
 }
 
-bool Tracker::Impl::ReacquireLimb(int joint, int np) {
+bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place) {
   const std::vector<int>& rows = limb_markers[joint];
   const std::vector<char>& freec = limb_coord[joint];
   const int ns = static_cast<int>(rows.size());
@@ -459,7 +459,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
   int nc = 0;
   for (int k = 0; k < np; ++k)
     if (!ltaken[k]) lcand[nc++] = k;
-  if (nc == 0 || current == ns) return false;
+  if ((nc == 0 || current == ns) && !place) return false;
 
   const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   auto Cost = [&](const Eigen::VectorXd& zz) {
@@ -488,9 +488,11 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
     for (int i = 0; i < nz; ++i) {
       if (!freec[i] || !rotational[i]) continue;
       const Coordinate& co = model->coordinates()[i];
-      if (v == 1 || v == 2) {
+      if (v == 1) {
+        lstart[i] = z_static[i];  // the prior's mode: a limb lost far from its pose
+      } else if (v == 2) {
         if (co.max_value - co.min_value < 2 * M_PI)
-          lstart[i] += (v == 1 ? 0.25 : 0.5) * (0.5 * (co.min_value + co.max_value) - lstart[i]);
+          lstart[i] += 0.5 * (0.5 * (co.min_value + co.max_value) - lstart[i]);
       } else if (v > 2) {
         lstart[i] += options.init_variant_rad * u(rng);
       }
@@ -552,7 +554,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np) {
       runner_up = std::min(runner_up, score);
     }
   }
-  if (best_labelled <= current) return false;
+  if (best_labelled < current || (best_labelled == current && !place)) return false;
   const double rms = std::sqrt(best_sum / best_labelled);
   if (!(rms <= kLimbMaxRms)) return false;
   // Every marker of the placement, kept or new, within its own gate on the measurement noise
@@ -645,7 +647,16 @@ void Tracker::Impl::Reacquire(int np) {
     if (!near) continue;
     if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
   }
-  if (joint >= 0) ReacquireLimb(joint, np);
+  // A label outside its gate (the segment registration's) is not measured: its limb is placed
+  // anew once the label is out of probation (its second frame: a point that moved as the segment
+  // did, not a one-frame reflection) and every kLimbFrames after, until it is inside.
+  bool place = false;
+  for (int m = 0; m < nm; ++m) {
+    if (!beyond_gate[m] || marker_limb[m] < 0 || labelled_run[m] % kLimbFrames != 2) continue;
+    place = true;
+    if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
+  }
+  if (joint >= 0) ReacquireLimb(joint, np, place);
 }
 
 }  // namespace mocap::ekf

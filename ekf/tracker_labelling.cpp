@@ -7,7 +7,9 @@
 //      rule it out (NonRigidTrack, SeenBeside); the optimal assignment decides contested points.
 //   3. Segment registration (RegisterSegments): the markers the gates left unlabelled are looked
 //      for as a group, where their segment's rigid geometry (its labelled markers, its joint
-//      centre) puts them, and labelled when one choice of points fits clearly best.
+//      centre) puts them, and labelled when one choice of points fits clearly best; beside a
+//      marker stuck for 20 frames, the labels of its segment are re-checked with it (a swap or
+//      shift within the segment is one more hypothesis of the same fit).
 //   4. Probation (ChooseMeasurements): a returning marker's label enters the update from its
 //      second consecutive frame.
 //   5. The records the next frames judge points by (PushHistory): the last frames' points, and
@@ -145,42 +147,51 @@ void Tracker::Impl::FollowLabelledTracks(int np) {
 // stuck for kStuckFrames is looked for, at points that moved rigidly with the segment
 // (RigidWithSegment). Why: a marker leaves its gate when its segment's pose estimate is wrong or
 // carries a nominal model's pose-dependent error, and its point then sits where its segment's
-// rigid geometry puts it, and there only. The labels go through probation (ChooseMeasurements);
-// FilterUpdate weighs a measurement outside its gate down to the gate's weight. Not in a fresh
-// track (FreshTrack), whose joint centres may be wrong with a limb; the limb search relabels there.
+// rigid geometry puts it, and there only. For a segment with a stuck marker that has candidates,
+// its labelled markers whose points the stuck marker could be are re-opened too, one or two at a
+// time (EnumerateSegment): a labelled marker on a mate's point (a wrist marker on the other's,
+// after a forearm turned about its axis while hidden) keeps every distance right and fits as
+// well as the truth until the stuck marker's own point is tried with it. The same labelling
+// reached with different markers re-opened is not its own rival. The labels go through probation
+// (ChooseMeasurements); FilterUpdate does not measure a label outside its gate, whose limb the
+// limb search places anew. Not in a fresh track (FreshTrack), whose joint centres may be wrong
+// with a limb; the limb search relabels there.
 void Tracker::Impl::RegisterSegments(int np) {
   for (int m = 0; m < nm; ++m)
     if (row_to_col[m] >= np) row_to_col[m] = -1;
   if (FreshTrack()) return;
+  seg.fits = 0;
   bool claims_known = false;
   for (int segment : segment_order) {
     const std::vector<int>& ms = segment_markers[segment];
-    seg.nopen = 0;
-    int anchors = marker_depth[ms[0]] > 0 ? 1 : 0;
+    const int nms = static_cast<int>(ms.size());
+    if (nms > kMaxSegmentMarkers) continue;
+    const bool has_centre = marker_depth[ms[0]] > 0;
+    seg.nunl = 0;
+    int labelled = 0;
     for (int m : ms) {
-      if (row_to_col[m] >= 0) {
-        ++anchors;
-      } else if (seg.nopen < kSegmentMaxOpen) {
-        seg.open[seg.nopen++] = m;
-      }
+      if (row_to_col[m] >= 0)
+        ++labelled;
+      else if (seg.nunl < kSegmentMaxOpen)
+        seg.unl[seg.nunl++] = m;
     }
-    if (seg.nopen == 0 || anchors + seg.nopen < 3) continue;
+    if (seg.nunl == 0 || (has_centre ? 1 : 0) + labelled + seg.nunl < 3) continue;
     if (!claims_known) {
       std::fill(ltaken.begin(), ltaken.begin() + np, 0);
       for (int a = 0; a < nm; ++a)
         if (row_to_col[a] >= 0) ltaken[row_to_col[a]] = 1;
       claims_known = true;
     }
-    // Candidates: the unclaimed points on each open marker's sphere, nearest its prediction first.
-    // With three or more of the segment's markers labelled the fit pins the marker's place in
-    // this frame (not only its distances), and a point there is judged as the gating judges one;
-    // with fewer, the point must also have moved rigidly with the segment (RigidWithSegment).
-    const bool pinned = anchors - (marker_depth[ms[0]] > 0 ? 1 : 0) >= 3;
-    int with_candidates = 0;
-    for (int o = 0; o < seg.nopen; ++o) {
-      const int m = seg.open[o];
+    // Candidates: the unclaimed points on each unlabelled marker's sphere, nearest its prediction
+    // first. With three or more of the segment's markers labelled the fit pins the marker's place
+    // in this frame (not only its distances), and a point there is judged as the gating judges
+    // one; with fewer, the point must also have moved rigidly with the segment (RigidWithSegment).
+    const bool pinned = labelled >= 3;
+    int with_candidates = 0, stuck_with_candidates = 0;
+    for (int o = 0; o < seg.nunl; ++o) {
+      const int m = seg.unl[o];
       double dist[kSegmentCandidates];
-      int& n = seg.ncand[o];
+      int& n = seg.unl_n[o];
       n = 0;
       // Unpinned, only a marker missing from its point for kStuckFrames: one just back from an
       // occlusion is the gate's (a reflection riding with the segment can sit at its place).
@@ -195,55 +206,74 @@ void Tracker::Impl::RegisterSegments(int np) {
         int i = n < kSegmentCandidates ? n++ : n - 1;
         for (; i > 0 && dist[i - 1] > d; --i) {
           dist[i] = dist[i - 1];
-          seg.cand[o][i] = seg.cand[o][i - 1];
+          seg.unl_cand[o][i] = seg.unl_cand[o][i - 1];
         }
         dist[i] = d;
-        seg.cand[o][i] = k;
+        seg.unl_cand[o][i] = k;
       }
       with_candidates += n > 0;
+      stuck_with_candidates += n > 0 && ReCheckDue(m);
     }
-    if (with_candidates == 0 || anchors + with_candidates < 3) continue;
-    // Every choice (odometer over candidates and none, distinct points).
-    int best_labels = 0;
-    double best_cost = std::numeric_limits<double>::infinity(), runner_up = best_cost;
-    for (int o = 0; o < seg.nopen; ++o) seg.choice[o] = -1;
-    for (;;) {
-      int o = 0;
-      for (; o < seg.nopen; ++o) {  // next choice
-        int& c = seg.choice[o];
-        c = c + 1 < seg.ncand[o] ? c + 1 : -1;
-        if (c >= 0) break;
+    if (with_candidates == 0 || (has_centre ? 1 : 0) + labelled + with_candidates < 3) continue;
+    // Hypotheses: the segment's labels as they are, with points for its unlabelled markers; and,
+    // for a marker stuck beside its candidate point, also with one or two labelled markers
+    // re-opened (a swap or shift within the segment: a wrist marker on the other wrist marker's
+    // point and that one's own point left over). The labelling with the most labels at the least
+    // cost wins when no different one with as many comes within the margin.
+    seg.best_labels = 0;
+    seg.best_cost = seg.runner_up = std::numeric_limits<double>::infinity();
+    seg.fit_limit = kSegmentFitBudget;
+    bool complete = EnumerateSegment(segment, nullptr, 0);
+    if (stuck_with_candidates > 0 && has_centre && complete) {
+      // A re-check cut short by its budget leaves the registration's own decision standing.
+      const int labels_alone = seg.best_labels;
+      const double cost_alone = seg.best_cost, runner_up_alone = seg.runner_up;
+      int point_alone[kMaxSegmentMarkers];
+      std::copy(seg.best_point, seg.best_point + nms, point_alone);
+      seg.fit_limit = std::min(kSegmentFitBudget, seg.fits + kReCheckFitBudget);
+      // Re-opened: a labelled marker whose point a stuck marker could be (at that marker's
+      // distance from the joint centre). The root has no centre to tell them by.
+      auto could_be_stuck = [&](int i) {
+        if (row_to_col[ms[i]] < 0) return false;
+        for (int o = 0; o < seg.nunl; ++o)
+          if (seg.unl_n[o] > 0 && ReCheckDue(seg.unl[o]) &&
+              OnSegmentSphere(seg.unl[o], points.col(row_to_col[ms[i]])))
+            return true;
+        return false;
+      };
+      int freed[kSegmentMaxFreed];
+      for (int i = 0; i < nms && complete; ++i) {
+        if (!could_be_stuck(i)) continue;
+        freed[0] = i;
+        complete = EnumerateSegment(segment, freed, 1);
+        for (int j = 0; j < nms && complete; ++j) {
+          if (j == i || row_to_col[ms[j]] < 0 || (j < i && could_be_stuck(j))) continue;
+          freed[0] = std::min(i, j);
+          freed[1] = std::max(i, j);
+          complete = EnumerateSegment(segment, freed, 2);
+        }
       }
-      if (o == seg.nopen) break;  // wrapped: all seen
-      int labels = 0;
-      bool distinct = true;
-      for (int i = 0; i < seg.nopen && distinct; ++i) {
-        if (seg.choice[i] < 0) continue;
-        ++labels;
-        for (int j = 0; j < i; ++j)
-          distinct &= seg.choice[j] < 0 || seg.cand[j][seg.choice[j]] != seg.cand[i][seg.choice[i]];
-      }
-      if (!distinct || labels < best_labels) continue;
-      double cost = 0;
-      if (!SegmentFitCost(segment, &cost)) continue;
-      if (labels > best_labels || cost < best_cost) {
-        // The previous best is the runner-up when it labels as many.
-        runner_up = labels == best_labels ? best_cost : std::numeric_limits<double>::infinity();
-        best_labels = labels;
-        best_cost = cost;
-        std::copy(seg.choice, seg.choice + seg.nopen, seg.best);
-      } else {
-        runner_up = std::min(runner_up, cost);
+      if (!complete) {
+        seg.best_labels = labels_alone;
+        seg.best_cost = cost_alone;
+        seg.runner_up = runner_up_alone;
+        std::copy(point_alone, point_alone + nms, seg.best_point);
+        complete = true;
       }
     }
-    if (best_labels == 0 || runner_up - best_cost < options.init_ambiguity_margin) continue;
+    if (!complete || seg.best_labels == 0 ||
+        seg.runner_up - seg.best_cost < options.init_ambiguity_margin)
+      continue;
+    bool changes = false;
+    for (int i = 0; i < nms; ++i) changes |= seg.best_point[i] != row_to_col[ms[i]];
+    if (!changes) continue;
     // A point another segment's unlabelled marker could also be (in its gate and on its own
     // segment's sphere) is not decided here: the heel marker's point fits the ankle
     // marker's place on the shank within a nominal model's error.
     bool contested = false;
-    for (int o = 0; o < seg.nopen && !contested; ++o) {
-      if (seg.best[o] < 0) continue;
-      const int k = seg.cand[o][seg.best[o]];
+    for (int i = 0; i < nms && !contested; ++i) {
+      const int k = seg.best_point[i];
+      if (k < 0 || k == row_to_col[ms[i]]) continue;
       for (int a = 0; a < nm && !contested; ++a) {
         if (row_to_col[a] >= 0 || !seen[a] || model->markers()[a].segment == segment) continue;
         const Eigen::Vector3d e = points.col(k) - predicted.col(a);
@@ -251,11 +281,112 @@ void Tracker::Impl::RegisterSegments(int np) {
       }
     }
     if (contested) continue;
-    for (int o = 0; o < seg.nopen; ++o) {
-      if (seg.best[o] < 0) continue;
-      const int k = seg.cand[o][seg.best[o]];
-      row_to_col[seg.open[o]] = k;
-      ltaken[k] = 1;
+    for (int i = 0; i < nms; ++i) {
+      const int m = ms[i], k = seg.best_point[i];
+      if (k == row_to_col[m]) continue;
+      // A labelled marker moved to another point held the wrong one: what it was seen beside
+      // was recorded under the wrong label, and its new label starts on probation.
+      if (row_to_col[m] >= 0) {
+        ForgetRecords(m);
+        labelled_run[m] = 0;
+      }
+      row_to_col[m] = k;
+      if (k >= 0) ltaken[k] = 1;
+    }
+  }
+}
+
+bool Tracker::Impl::EnumerateSegment(int segment, const int* freed, int nfreed) {
+  const std::vector<int>& ms = segment_markers[segment];
+  const int nms = static_cast<int>(ms.size());
+  // The open markers in the segment's order (SegmentFitCost reads them so): its unlabelled
+  // markers with their candidates, and the freed labelled ones with their own points.
+  seg.nopen = 0;
+  int kept = 0, u = 0, f = 0;
+  for (int i = 0; i < nms; ++i) {
+    const int m = ms[i];
+    if (u < seg.nunl && seg.unl[u] == m) {
+      if (seg.nopen == kSegmentMaxOpen) return true;
+      const int o = seg.nopen++;
+      seg.open[o] = m;
+      seg.ncand[o] = 0;
+      for (int c = 0; c < seg.unl_n[u]; ++c) seg.cand[o][seg.ncand[o]++] = seg.unl_cand[u][c];
+      ++u;
+    } else if (f < nfreed && freed[f] == i) {
+      if (seg.nopen == kSegmentMaxOpen) return true;
+      const int o = seg.nopen++;
+      seg.open[o] = m;
+      seg.ncand[o] = 0;
+      ++f;
+    } else if (row_to_col[m] >= 0) {
+      ++kept;
+    }
+  }
+  // The freed markers' points are candidates of every open marker at their sphere (a freed
+  // marker's own point always).
+  for (int g = 0; g < nfreed; ++g) {
+    const int k = row_to_col[ms[freed[g]]];
+    for (int o = 0; o < seg.nopen; ++o)
+      if (seg.ncand[o] < kSegmentMaxChoices &&
+          (seg.open[o] == ms[freed[g]] || OnSegmentSphere(seg.open[o], points.col(k))))
+        seg.cand[o][seg.ncand[o]++] = k;
+  }
+  // A freed marker may also take an unlabelled marker's candidate at its own sphere.
+  for (int o = 0; o < seg.nopen; ++o) {
+    if (row_to_col[seg.open[o]] < 0) continue;
+    for (int v = 0; v < seg.nunl; ++v)
+      for (int c = 0; c < seg.unl_n[v] && seg.ncand[o] < kSegmentMaxChoices; ++c) {
+        const int k = seg.unl_cand[v][c];
+        bool have = false;
+        for (int i = 0; i < seg.ncand[o]; ++i) have |= seg.cand[o][i] == k;
+        if (!have && OnSegmentSphere(seg.open[o], points.col(k))) seg.cand[o][seg.ncand[o]++] = k;
+      }
+  }
+  // Every choice (odometer over candidates and none, distinct points).
+  for (int o = 0; o < seg.nopen; ++o) seg.choice[o] = -1;
+  int labelling[kMaxSegmentMarkers];
+  for (;;) {
+    int o = 0;
+    for (; o < seg.nopen; ++o) {  // next choice
+      int& c = seg.choice[o];
+      c = c + 1 < seg.ncand[o] ? c + 1 : -1;
+      if (c >= 0) break;
+    }
+    if (o == seg.nopen) return true;  // wrapped: all seen
+    int labels = kept;
+    bool distinct = true;
+    for (int i = 0; i < seg.nopen && distinct; ++i) {
+      if (seg.choice[i] < 0) continue;
+      ++labels;
+      for (int j = 0; j < i; ++j)
+        distinct &= seg.choice[j] < 0 || seg.cand[j][seg.choice[j]] != seg.cand[i][seg.choice[i]];
+    }
+    if (!distinct || labels < seg.best_labels) continue;
+    // The labelling of the whole segment; the same labelling reached with other markers freed
+    // is not a rival of itself.
+    for (int i = 0, op = 0; i < nms; ++i) {
+      if (op < seg.nopen && seg.open[op] == ms[i]) {
+        labelling[i] = seg.choice[op] >= 0 ? seg.cand[op][seg.choice[op]] : -1;
+        ++op;
+      } else {
+        labelling[i] = row_to_col[ms[i]];
+      }
+    }
+    const bool same = labels == seg.best_labels &&
+                      std::equal(labelling, labelling + nms, seg.best_point);
+    if (same) continue;
+    if (++seg.fits > seg.fit_limit) return false;
+    double cost = 0;
+    if (!SegmentFitCost(segment, &cost)) continue;
+    if (labels > seg.best_labels || cost < seg.best_cost) {
+      // The previous best is the runner-up when it labels as many.
+      seg.runner_up = labels == seg.best_labels ? std::min(seg.runner_up, seg.best_cost)
+                                                : std::numeric_limits<double>::infinity();
+      seg.best_labels = labels;
+      seg.best_cost = cost;
+      std::copy(labelling, labelling + nms, seg.best_point);
+    } else {
+      seg.runner_up = std::min(seg.runner_up, cost);
     }
   }
 }
@@ -401,8 +532,7 @@ void Tracker::Impl::PushHistory(int np) {
     for (int a = 0; a < nm; ++a)
       if (a != m && row_to_col[a] >= 0 &&
           (points.col(row_to_col[a]) - last_point.col(m)).squaredNorm() < kTrackStep * kTrackStep) {
-        for (size_t j = static_cast<size_t>(m); j < beside_prev.size(); j += nm) beside_prev[j] = kNever;
-        held_run[m] = 0;
+        ForgetRecords(m);
         break;
       }
   }
