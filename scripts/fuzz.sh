@@ -3,7 +3,7 @@
 # (scripts/sanitizer_build.sh), and
 # runs each for a bounded time, seeded with fuzz/seeds/NAME/ (small files covering the formats'
 # variants), the files *.NAME of ../shared/data, and the corpus it grew before (fuzz_NAME reads
-# *.NAME). Exits non-zero on a crash (the input is kept in
+# *.NAME), with the dictionary fuzz/NAME.dict where there is one. Exits non-zero on a crash (the input is kept in
 # build-fuzz/artifacts/) or when the build fails.
 # Usage: scripts/fuzz.sh [seconds per target, default 60]
 set -euo pipefail
@@ -25,11 +25,13 @@ for t in "${targets[@]}"; do
   else
     echo "fuzz: $shared is absent: $t starts from its own corpus only"
   fi
+  dict=()
+  [ -f "fuzz/$ext.dict" ] && dict=(-dict="fuzz/$ext.dict")
   echo "fuzz: $t for ${secs} s ($(ls "$seeds" | wc -l) seed files)"
   # Seeds past max_len are cut to it (the header and parameters are at the front): small inputs
   # keep the runs fast; the mutations of the frame counts make the cut files whole again.
   if ! "build-fuzz/fuzz/$t" -max_total_time="$secs" -timeout=10 -rss_limit_mb=2048 \
-       -max_len=65536 -print_final_stats=1 -artifact_prefix="build-fuzz/artifacts/$t-" \
+       -max_len=65536 -print_final_stats=1 "${dict[@]}" -artifact_prefix="build-fuzz/artifacts/$t-" \
        "$corpus" "$seeds" 2>"build-fuzz/$t.log"; then
     tail -n 60 "build-fuzz/$t.log" >&2
     failed+=("$t")
