@@ -2,7 +2,7 @@
 // client sends on the control socket, handled by a real Daemon in this process -- its control
 // server, its dispatch into every method, its store (SQLite in a temporary state directory) and
 // its jobs -- on a simulated rig cut down to what the dispatch needs at the pipeline boundary:
-// two cameras of 64 x 48 pixels at 10 Hz (daemon/config.h; sim/live_rig.h), calibrated from the
+// two cameras of 64 x 48 pixels at 50 Hz (daemon/config.h; sim/live_rig.h), calibrated from the
 // start (their true poses, stored as calibration 1), so that the pipeline costs next to nothing
 // and yet every method's path is reachable (record.start needs a calibrated rig; sim.camera and
 // the virtual subject need a simulated one). The fuzzer's thread is both the client and the
@@ -52,12 +52,12 @@ using mocap::fuzz::Check;
 using Clock = std::chrono::steady_clock;
 
 constexpr std::size_t kMaxLineBytes = 4096;  // small, so that the fuzzer reaches the limit
-constexpr int kCameras = 2, kWidth = 64, kHeight = 48, kRateHz = 10;
+constexpr int kCameras = 2, kWidth = 64, kHeight = 48, kRateHz = 50;
 // An operator's stop, cancel or the end of a job answers within this, or the input is a hang.
 constexpr std::chrono::milliseconds kAnswerDeadline{8000};  // below fuzz.sh's -timeout=10
 // The input's requests that are still unanswered this long after the last reply are long ones
 // left running: the operator stops them.
-constexpr std::chrono::milliseconds kQuietBeforeStop{100};
+constexpr std::chrono::milliseconds kQuietBeforeStop{30};
 
 // Every documented error code but `internal` (daemon/PROTOCOL.md).
 const std::set<std::string>& AllowedCodes() {
@@ -206,12 +206,21 @@ class DaemonHarness {
 }  // namespace
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
-  static DaemonHarness* harness = new DaemonHarness();
+  static DaemonHarness* harness = [] {
+    // Stopped at exit, before the statics its threads use are destroyed (libFuzzer ends with
+    // exit(); the handler registered last runs first).
+    static DaemonHarness* h = new DaemonHarness();
+    std::atexit([] { delete h; });
+    return h;
+  }();
   const std::string_view input(reinterpret_cast<const char*>(data), size);
   const int restarts = harness->restarts();
+  const Clock::time_point t0 = Clock::now();
   const std::string output = harness->Exchange(input);
   static const bool print = std::getenv("MOCAP_FUZZ_PRINT") != nullptr;  // to read an input's run
-  if (print) std::fprintf(stderr, "%s", output.c_str());
+  if (print)
+    std::fprintf(stderr, "%s(%.0f ms)\n", output.c_str(),
+                 std::chrono::duration<double, std::milli>(Clock::now() - t0).count());
   const mocap::fuzz::Replies got =
       mocap::fuzz::ParseReplies(output, AllowedCodes(), /*events=*/true);
   const mocap::fuzz::ExpectedReplies expected = mocap::fuzz::Expected(input, kMaxLineBytes);
