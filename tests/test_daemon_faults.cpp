@@ -62,6 +62,16 @@ constexpr int kRateDivisor = 1;
 #endif
 constexpr int kRigRateHz = 200 / kRateDivisor;  // the 8-camera rigs (1280 x 1024)
 constexpr int kSmallRigRateHz = 100 / kRateDivisor;  // 4 cameras, 640 x 512, calibrated 5 cm off
+// A subscriber's queue: the default's 2 s of frames (400 at 200 Hz) at either rate.
+constexpr int kSubscriberQueueFrames = 400 / kRateDivisor;
+// Bounds on the time mocapd takes to do work (not on the rig's time): the ASan build's CPU work
+// takes about three times as long (the flood's 10,000 status requests: 1.4 s, 8-10 s under
+// ASan beside other load).
+#ifdef MOCAP_TEST_UNDER_ASAN
+constexpr double kSlowdown = 3;
+#else
+constexpr double kSlowdown = 1;
+#endif
 
 std::string RigToml(int cameras, int seed) {
   return "[rig]\nsimulated = " + std::to_string(cameras) + "\nsubject_seed = " + std::to_string(seed) +
@@ -401,7 +411,8 @@ TEST(DaemonFaults, MisbehavingClientsCannotStopTheRig) {
   const std::string dir = testing::MakeTempDir("mocapd-clients");
   DaemonProcess d(dir, "[rig]\nsimulated = 4\nwidth = 640\nheight = 512\nrate = " +
                            std::to_string(kRigRateHz) + "\n"
-                       "[control]\nmax_clients = 256\n");
+                       "[control]\nmax_clients = 256\nsubscriber_queue_frames = " +
+                           std::to_string(kSubscriberQueueFrames) + "\n");
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> good;
   ASSERT_OK(d.Connect(&good, 10000));
@@ -488,7 +499,7 @@ TEST(DaemonFaults, MisbehavingClientsCannotStopTheRig) {
   std::printf("flood: %zu replies (hello included) to 10,000 requests in %.2f s; a good client's "
               "worst status %.3f s\n", flood_replies.load(), flood_s, worst_s);
   EXPECT_EQ(flood_replies.load(), 10001u);
-  EXPECT_LT(worst_s, 1.0);
+  EXPECT_LT(worst_s, 1.0 * kSlowdown);
   close(flood);
 
   // The sleeper, when it finally reads, is told how many frames it lost.
