@@ -1,6 +1,8 @@
 // The control socket's server (daemon/control_server.h) on its own sd-event loop, driven in one
 // thread by a client that writes bytes and reads what comes back: for fuzz/fuzz_control.cpp and
-// tests/test_control_server.cpp. No GoogleTest here (the fuzzer uses it).
+// tests/test_control_server.cpp. That client (LoopClient) serves any loop run on the client's
+// thread: fuzz/fuzz_daemon.cpp drives the whole daemon's loop with it. No GoogleTest here (the
+// fuzzers use it).
 //
 // The request handler stands in for the daemon: it answers each request at once with its method
 // and params (so every line the server hands over comes back, params serialised again), or, with
