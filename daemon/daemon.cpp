@@ -451,6 +451,13 @@ int Daemon::Run() {
   return exit_code_;
 }
 
+bool Daemon::RunOnce(std::uint64_t timeout_us) {
+  if (!loop_ || sd_event_get_state(loop_) == SD_EVENT_FINISHED) return false;
+  const int r = sd_event_run(loop_, timeout_us);
+  if (r < 0) spdlog::error("event loop: {}", std::strerror(-r));
+  return r >= 0 && sd_event_get_state(loop_) != SD_EVENT_FINISHED;
+}
+
 void Daemon::Stop() {
   if (stopped_) return;
   stopped_ = true;
@@ -1219,7 +1226,8 @@ void Daemon::RecordStart(const Request& r) {
       !s)
     return Fail(r, error_code::kFailed, s.message());
   recording_ = Recording{id, r, movement, duration, drivers::MonotonicNs(), -1, false, {}};
-  recorder_->Begin(id, [this](std::int64_t rec, Status s, std::int64_t frames) {
+  recorder_->Begin(id, static_cast<int>(marker_names.size()), static_cast<int>(coordinate_names.size()),
+                   [this](std::int64_t rec, Status s, std::int64_t frames) {
     PostToLoop([this, rec, s, frames] {
       if (!recording_ || recording_->id != rec) return;
       if (!s) {

@@ -82,6 +82,11 @@ class Daemon {
   int StartExitCode() const { return start_exit_code_; }
   // Runs the loop until SIGTERM/SIGINT or `shutdown`; returns the exit code.
   int Run();
+  // One turn of the loop instead, waiting up to `timeout_us` for an event: for a caller that
+  // is also a client on the same thread (fuzz/fuzz_daemon.cpp drives the dispatch so, without a
+  // process or a thread between its bytes and the daemon). False once the loop has exited
+  // (`shutdown`, SIGTERM) or failed; then Stop(), as after Run().
+  bool RunOnce(std::uint64_t timeout_us);
   // Stops everything in reverse order (idempotent).
   void Stop();
 

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <chrono>
 #include <iterator>
+#include <limits>
 
 #include "drivers/frame.h"
 
@@ -17,11 +18,19 @@ constexpr double kMinWaitMs = 20;  // the smallest chunk, in time (4 frames at 2
 
 }  // namespace
 
-RecordedFrame ToRecordedFrame(const LiveFrame& f) {
+RecordedFrame ToRecordedFrame(const LiveFrame& f, int num_markers, int num_coordinates) {
   RecordedFrame r;
   r.frame = f.frame;
   r.time_s = f.t_mid_s;
   r.points = f.points;
+  if (f.markers.cols() != num_markers || f.coordinates.size() != num_coordinates) {
+    constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+    r.markers.setConstant(3, num_markers, kNaN);
+    r.marker_flags.assign(static_cast<std::size_t>(num_markers), 1);  // occluded
+    r.coordinates.setConstant(num_coordinates, kNaN);
+    r.tracker_state = static_cast<std::int8_t>(ekf::TrackState::kInitialising);
+    return r;
+  }
   r.markers = f.markers;
   r.marker_flags.assign(static_cast<std::size_t>(f.markers.cols()), 0);
   for (Eigen::Index m = 0; m < f.markers.cols(); ++m)
@@ -75,9 +84,11 @@ void Recorder::Stop() {
   if (checkpointer_) checkpointer_->Checkpoint();
 }
 
-void Recorder::Begin(std::int64_t id, DoneFn done) {
+void Recorder::Begin(std::int64_t id, int num_markers, int num_coordinates, DoneFn done) {
   std::lock_guard<std::mutex> lock(mutex_);
   recording_ = id;
+  num_markers_ = num_markers;
+  num_coordinates_ = num_coordinates;
   done_ = std::move(done);
   ending_ = false;
   error_ = Status::Ok();
@@ -164,7 +175,7 @@ void Recorder::Loop() {
       idle_polls = 0;
       if (recording_ != 0 && error_) {
         if (chunk_.empty()) oldest_host_ns_ = f.last_host_ns ? f.last_host_ns : drivers::MonotonicNs();
-        chunk_.push_back(ToRecordedFrame(f));
+        chunk_.push_back(ToRecordedFrame(f, num_markers_, num_coordinates_));
         if (static_cast<int>(gaps_.size()) < f.num_cameras) {
           gaps_.resize(f.num_cameras);
           in_gap_.resize(f.num_cameras, 0);

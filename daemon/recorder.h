@@ -42,8 +42,13 @@
 
 namespace mocap::daemon {
 
-// A LiveFrame as stored.
-RecordedFrame ToRecordedFrame(const LiveFrame& frame);
+// A LiveFrame as stored in a recording of `num_markers` markers and `num_coordinates`
+// coordinates (its model's). A frame the tracker labelled with another model -- none yet, or the
+// previous subject's, in the frames between subject.select and the tracking thread taking the
+// new model -- is stored untracked (every marker NaN and occluded, coordinates NaN, state
+// initialising) with its points: the store refuses a frame of another shape, and the recording
+// would fail on the first frame when it starts right after a subject.select.
+RecordedFrame ToRecordedFrame(const LiveFrame& frame, int num_markers, int num_coordinates);
 
 // One camera's absence from a recording's frame sets (unplugged, lost, its images dropped).
 struct CameraGap {
@@ -72,7 +77,8 @@ class Recorder {
 
   // Frames go to recording `id` from now on (the caller then turns the pipeline's recording on).
   // `done` is called once: after End(), or at the first failure to commit.
-  void Begin(std::int64_t id, DoneFn done);
+  // Its model has `num_markers` markers and `num_coordinates` coordinates (ToRecordedFrame).
+  void Begin(std::int64_t id, int num_markers, int num_coordinates, DoneFn done);
   // The caller has turned the pipeline's recording off: commit what is queued, then `done`.
   void End();
   std::int64_t frames() const { return frames_.load(); }
@@ -116,6 +122,7 @@ class Recorder {
 
   mutable std::mutex mutex_;
   std::int64_t recording_ = 0;  // 0: none
+  int num_markers_ = 0, num_coordinates_ = 0;  // of the recording's model (ToRecordedFrame)
   bool ending_ = false;
   DoneFn done_;
   Status error_;

@@ -239,7 +239,9 @@ class AravisCamera final : public CameraSource {
   ArvCamera* camera_ = nullptr;
   ArvStream* stream_ = nullptr;
   unsigned long control_lost_handler_ = 0;
-  bool acquiring_ = false;
+  // Written by Start/Stop (the pipeline's thread) and read by Grab on the grab thread, which
+  // holds no lock there: atomic (TSan, scripts/tsan_daemon.sh, saw Stop race with Grab).
+  std::atomic<bool> acquiring_{false};
   bool opened_ = false;
   std::atomic<bool> awaiting_device_{false};  // AwaitDevice(): never opened yet
   bool device_found_at_open_ = false;

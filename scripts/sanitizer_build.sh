@@ -11,7 +11,10 @@ if [ -z "$CXX_BIN" ]; then
   echo "sanitizer build: clang++ not found (scripts/deps.sh installs clang-14 and libclang-rt-14-dev)" >&2
   exit 1
 fi
+# ccache where installed (its base_dir makes the objects of other checkouts' builds reusable).
+launcher=$(command -v ccache || true)
 san="-fsanitize=fuzzer-no-link,address,undefined -fno-sanitize-recover=all -fno-omit-frame-pointer"
 cmake -S . -B build-fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_CXX_COMPILER="$CXX_BIN" \
-      -DMOCAP_FUZZ=ON -DMOCAP_NATIVE=OFF -DCMAKE_CXX_FLAGS="$san" >/dev/null
+      -DMOCAP_FUZZ=ON -DMOCAP_NATIVE=OFF -DCMAKE_CXX_FLAGS="$san" \
+      -DCMAKE_CXX_COMPILER_LAUNCHER="$launcher" >/dev/null
 cmake --build build-fuzz -j"$(nproc)" --target "$@"

@@ -1,6 +1,8 @@
 // The control socket's server (daemon/control_server.h) on its own sd-event loop, driven in one
 // thread by a client that writes bytes and reads what comes back: for fuzz/fuzz_control.cpp and
-// tests/test_control_server.cpp. No GoogleTest here (the fuzzer uses it).
+// tests/test_control_server.cpp. That client (LoopClient) serves any loop run on the client's
+// thread: fuzz/fuzz_daemon.cpp drives the whole daemon's loop with it. No GoogleTest here (the
+// fuzzers use it).
 //
 // The request handler stands in for the daemon: it answers each request at once with its method
 // and params (so every line the server hands over comes back, params serialised again), or, with
@@ -19,6 +21,7 @@
 #include <cerrno>
 #include <cstdlib>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <string>
 #include <string_view>
@@ -28,6 +31,68 @@
 #include "daemon/control_server.h"
 
 namespace mocap::testing {
+
+// A client of a server whose event loop runs on the client's own thread (so it cannot block on
+// the socket): a non-blocking connection that each Step() feeds what is left to send, then lets
+// the loop take a turn (`turn`, true when the loop did something), then reads what came back.
+class LoopClient {
+ public:
+  explicit LoopClient(const std::string& socket_path) {
+    fd_ = socket(AF_UNIX, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
+    if (fd_ < 0) return;
+    sockaddr_un addr{};
+    addr.sun_family = AF_UNIX;
+    socket_path.copy(addr.sun_path, sizeof addr.sun_path - 1);
+    if (connect(fd_, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) Close();
+  }
+  ~LoopClient() { Close(); }
+  LoopClient(const LoopClient&) = delete;
+  LoopClient& operator=(const LoopClient&) = delete;
+
+  bool connected() const { return fd_ >= 0; }
+  void Send(std::string_view bytes) { to_send_.append(bytes); }
+  bool all_sent() const { return sent_ == to_send_.size(); }
+  void ShutdownWrite() {
+    if (fd_ >= 0) shutdown(fd_, SHUT_WR);
+    write_shut_ = true;
+  }
+  bool write_shut() const { return write_shut_; }
+  // The server closed the connection: all it will say has been read.
+  bool closed() const { return closed_ || fd_ < 0; }
+  const std::string& received() const { return received_; }
+  void Close() {
+    if (fd_ >= 0) close(fd_);
+    fd_ = -1;
+  }
+
+  // Sends, turns the loop, reads; true when anything moved.
+  bool Step(const std::function<bool()>& turn) {
+    bool moved = false;
+    if (fd_ >= 0 && sent_ < to_send_.size()) {
+      const ssize_t n = send(fd_, to_send_.data() + sent_, to_send_.size() - sent_, MSG_NOSIGNAL);
+      if (n > 0) sent_ += static_cast<std::size_t>(n), moved = true;
+      else if (n < 0 && errno != EAGAIN) sent_ = to_send_.size();  // the server closed on us
+    }
+    if (turn()) moved = true;
+    char buf[65536];
+    while (fd_ >= 0 && !closed_) {
+      const ssize_t n = recv(fd_, buf, sizeof buf, 0);
+      if (n <= 0) {
+        closed_ = n == 0;
+        break;
+      }
+      received_.append(buf, static_cast<std::size_t>(n));
+      moved = true;
+    }
+    return moved;
+  }
+
+ private:
+  int fd_ = -1;
+  std::string to_send_, received_;
+  std::size_t sent_ = 0;
+  bool write_shut_ = false, closed_ = false;
+};
 
 class ControlServerHarness {
  public:
@@ -79,47 +144,22 @@ class ControlServerHarness {
   // returns all the client read until the server closed the connection or stayed quiet for a
   // few turns of the loop with nothing left to send.
   std::string Exchange(std::string_view bytes, bool keep_open = false) {
-    std::string got;
-    const int fd = socket(AF_UNIX, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0);
-    if (fd < 0) return got;
-    sockaddr_un addr{};
-    addr.sun_family = AF_UNIX;
-    path_.copy(addr.sun_path, sizeof addr.sun_path - 1);
-    if (connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
-      close(fd);
-      return got;
-    }
-    std::size_t sent = 0;
-    bool shut = false;
-    int quiet = 0;
-    bool closed = false;
-    char buf[65536];
-    while (!closed && quiet < 4) {
+    LoopClient client(path_);
+    if (!client.connected()) return {};
+    client.Send(bytes);
+    const auto turn = [this] {
       bool moved = false;
-      if (sent < bytes.size()) {
-        const ssize_t n = send(fd, bytes.data() + sent, bytes.size() - sent, MSG_NOSIGNAL);
-        if (n > 0) sent += static_cast<std::size_t>(n), moved = true;
-        else if (n < 0 && errno != EAGAIN) sent = bytes.size();  // the server closed on us
-      } else if (!shut && !keep_open) {
-        shutdown(fd, SHUT_WR);
-        shut = moved = true;
-      }
       while (sd_event_run(loop_, 0) > 0) moved = true;
-      for (;;) {
-        const ssize_t n = recv(fd, buf, sizeof buf, 0);
-        if (n > 0) {
-          got.append(buf, static_cast<std::size_t>(n));
-          moved = true;
-          continue;
-        }
-        closed = n == 0;  // closed by the server: all it will say has been read
-        break;
-      }
+      return moved;
+    };
+    for (int quiet = 0; !client.closed() && quiet < 4;) {
+      bool moved = client.Step(turn);
+      if (client.all_sent() && !keep_open && !client.write_shut()) client.ShutdownWrite(), moved = true;
       quiet = moved ? 0 : quiet + 1;
     }
-    close(fd);
-    while (sd_event_run(loop_, 0) > 0) {
-    }  // let the server see the close
+    std::string got = client.received();
+    client.Close();
+    turn();  // let the server see the close
     return got;
   }
 

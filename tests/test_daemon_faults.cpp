@@ -41,6 +41,43 @@ using testing::DaemonProcess;
 
 using testing::Call;
 
+// The rigs' rates. These tests assert that nothing but the fault costs a frame set, which
+// presumes a mocapd that keeps up with its rig: the release build does with 8 cameras at 200 Hz.
+// The ASan + UBSan build (build-fuzz/, `scripts/sanitize_daemon.sh faults`) renders and detects
+// several times slower and lost half the sets there (tracking lost, the loop queue full, no
+// sanitizer report; at a quarter of the rate still a third); it runs the same tests on the same
+// rigs at an eighth of the rate, so that the premise holds again. Counts of frames are written
+// as seconds x rate: each assertion means the same at either rate.
+#if defined(__SANITIZE_ADDRESS__)
+#define MOCAP_TEST_UNDER_ASAN 1
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer)
+#define MOCAP_TEST_UNDER_ASAN 1
+#endif
+#endif
+#ifdef MOCAP_TEST_UNDER_ASAN
+constexpr int kRateDivisor = 8;
+#else
+constexpr int kRateDivisor = 1;
+#endif
+constexpr int kRigRateHz = 200 / kRateDivisor;  // the 8-camera rigs (1280 x 1024)
+constexpr int kSmallRigRateHz = 100 / kRateDivisor;  // 4 cameras, 640 x 512, calibrated 5 cm off
+// A subscriber's queue: the default's 2 s of frames (400 at 200 Hz) at either rate.
+constexpr int kSubscriberQueueFrames = 400 / kRateDivisor;
+// Bounds on the time mocapd takes to do work (not on the rig's time): the ASan build's CPU work
+// takes about three times as long (the flood's 10,000 status requests: 1.4 s, 8-10 s under
+// ASan beside other load).
+#ifdef MOCAP_TEST_UNDER_ASAN
+constexpr double kSlowdown = 3;
+#else
+constexpr double kSlowdown = 1;
+#endif
+
+std::string RigToml(int cameras, int seed) {
+  return "[rig]\nsimulated = " + std::to_string(cameras) + "\nsubject_seed = " + std::to_string(seed) +
+         "\nrate = " + std::to_string(kRigRateHz) + "\n";
+}
+
 double WallSeconds() {
   return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
 }
@@ -56,7 +93,7 @@ long RssKb(pid_t pid) {
 // SIGKILL at 20 random moments: during recordings, during a fit, during model.apply.
 TEST(DaemonFaults, KilledAtRandomMomentsLosesAtMostTheLast100ms) {
   const std::string dir = testing::MakeTempDir("mocapd-kill");
-  DaemonProcess d(dir, testing::SimulatedRigToml(8, 2));
+  DaemonProcess d(dir, RigToml(8, 2));
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> c;
   ASSERT_OK(d.Connect(&c));
@@ -171,7 +208,7 @@ TEST(DaemonFaults, DiskFullStopsTheRecordingNotTheRig) {
   if (geteuid() != 0 || system("command -v unshare >/dev/null 2>&1") != 0)
     GTEST_SKIP() << "needs root and unshare(1) for a tmpfs in a private mount namespace";
   const std::string dir = testing::MakeTempDir("mocapd-full");
-  DaemonProcess d(dir, testing::SimulatedRigToml(8, 4));
+  DaemonProcess d(dir, RigToml(8, 4));
   std::filesystem::create_directories(d.state_dir());
   d.SetWrapper({"unshare", "-m", "--propagation", "private", "sh", "-c",
                 "mount -t tmpfs -o size=24m tmpfs \"$0\" && exec \"$@\"", d.state_dir()});
@@ -180,7 +217,8 @@ TEST(DaemonFaults, DiskFullStopsTheRecordingNotTheRig) {
   ASSERT_OK(d.Connect(&c));
   ASSERT_OK(testing::CalibrateRigAndSelectSubject(c.get(), 10, "S01"));
   // Fill the tmpfs (seen from outside through the daemon's /proc/PID/root) but for ~1.5 MB:
-  // about three seconds of recording.
+  // about three seconds of recording at 200 Hz (24 at the sanitized build's 25 Hz; the
+  // recording asks for 30).
   const std::string inside = "/proc/" + std::to_string(d.pid()) + "/root" + d.state_dir();
   const json before = Call(c.get(), "status");
   const std::uint64_t free_bytes = before["storage"]["free_bytes"];
@@ -217,7 +255,7 @@ TEST(DaemonFaults, DiskFullStopsTheRecordingNotTheRig) {
   const json recs = Call(c.get(), "recording.list")["recordings"];
   ASSERT_EQ(recs.size(), 1u);
   EXPECT_EQ(recs[0]["state"], "failed");
-  EXPECT_GT(recs[0]["frames"].get<int>(), 100);
+  EXPECT_GT(recs[0]["frames"].get<int>(), 0.5 * kRigRateHz);  // half a second
   json again = Call(c.get(), "record.start", {{"movement", "static"}, {"sim_duration_scale", 0.5}});
   EXPECT_EQ(again["coverage"]["ok"], true) << again.dump();
   EXPECT_EQ(d.Stop(), 0) << d.Log();
@@ -234,7 +272,7 @@ TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
   ro.cameras = 4;
   ro.width = 640;
   ro.height = 512;
-  ro.rate_hz = 100;
+  ro.rate_hz = kSmallRigRateHz;
   ro.seed = 6;
   std::vector<reconstruction::CameraModel> truth;
   {
@@ -247,8 +285,9 @@ TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
   const Eigen::Vector3d moved(0.03, -0.03, 0.028);  // 5.0 cm
   cal.cameras[2].camera.t -= cal.cameras[2].camera.R * moved;
   ASSERT_OK(reconstruction::WriteCalibrationJson(dir + "/calib.json", cal));
-  DaemonProcess d(dir, "[rig]\nsimulated = 4\nwidth = 640\nheight = 512\nrate = 100\nsubject_seed = 6\n"
-                       "calibration = \"calib.json\"\n");
+  DaemonProcess d(dir, "[rig]\nsimulated = 4\nwidth = 640\nheight = 512\nrate = " +
+                           std::to_string(kSmallRigRateHz) +
+                           "\nsubject_seed = 6\ncalibration = \"calib.json\"\n");
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> c;
   ASSERT_OK(d.Connect(&c));
@@ -277,7 +316,7 @@ TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
 
 TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   const std::string dir = testing::MakeTempDir("mocapd-unplug");
-  DaemonProcess d(dir, testing::SimulatedRigToml(8, 5));
+  DaemonProcess d(dir, RigToml(8, 5));
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> c, other;
   ASSERT_OK(d.Connect(&c));
@@ -299,7 +338,7 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   double back_s = -1;
   while (std::chrono::steady_clock::now() - back_at < std::chrono::seconds(3)) {
     const json st = Call(other.get(), "status");
-    if (st["cameras"][3]["connected"] == true && st["cameras"][3]["frames"].get<std::uint64_t>() > frames_then + 20) {
+    if (st["cameras"][3]["connected"] == true && st["cameras"][3]["frames"].get<std::uint64_t>() > frames_then + 0.1 * kRigRateHz) {
       back_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - back_at).count();
       break;
     }
@@ -313,18 +352,18 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   ASSERT_TRUE(rec.ok()) << rec.error_message;
   EXPECT_GT(rec.result["tracking_fraction"].get<double>(), 0.95) << rec.result.dump().substr(0, 500);
   // The unplugged camera's gap: from the unplug to the first sets after its return, 1.5 s plus
-  // the reopen at 200 Hz. On a loaded machine any camera may miss a stray set or two: the others'
-  // gaps are noted too, and must stay that small.
+  // the reopen (more than 1.25 s, less than 4 s of sets). On a loaded machine any camera may miss
+  // a stray set or two: the others' gaps are noted too, and must stay under 0.1 s of sets.
   const json gaps = rec.result["camera_gaps"];
   std::printf("camera gaps: %s\n", gaps.dump().c_str());
   int unplugged = -1;
   for (std::size_t k = 0; k < gaps.size(); ++k) {
     if (gaps[k]["camera"] == "MOCAPSIM3") unplugged = static_cast<int>(k);
-    else EXPECT_LT(gaps[k]["missing_frames"].get<int>(), 20) << gaps.dump();
+    else EXPECT_LT(gaps[k]["missing_frames"].get<int>(), 0.1 * kRigRateHz) << gaps.dump();
   }
   ASSERT_GE(unplugged, 0) << gaps.dump();
-  EXPECT_GT(gaps[unplugged]["missing_frames"].get<int>(), 250) << gaps.dump();
-  EXPECT_LT(gaps[unplugged]["missing_frames"].get<int>(), 200 * 4) << gaps.dump();
+  EXPECT_GT(gaps[unplugged]["missing_frames"].get<int>(), 1.25 * kRigRateHz) << gaps.dump();
+  EXPECT_LT(gaps[unplugged]["missing_frames"].get<int>(), kRigRateHz * 4) << gaps.dump();
   EXPECT_NE(d.Log().find("MOCAPSIM3 missing from"), std::string::npos);
   // The recorder's commits were each followed by a WAL sync of its own (power-cut durability,
   // daemon/recorder.h), none failed.
@@ -370,8 +409,10 @@ std::vector<std::string> ReadLines(int fd, std::size_t n) {
 
 TEST(DaemonFaults, MisbehavingClientsCannotStopTheRig) {
   const std::string dir = testing::MakeTempDir("mocapd-clients");
-  DaemonProcess d(dir, "[rig]\nsimulated = 4\nwidth = 640\nheight = 512\nrate = 200\n"
-                       "[control]\nmax_clients = 256\n");
+  DaemonProcess d(dir, "[rig]\nsimulated = 4\nwidth = 640\nheight = 512\nrate = " +
+                           std::to_string(kRigRateHz) + "\n"
+                       "[control]\nmax_clients = 256\nsubscriber_queue_frames = " +
+                           std::to_string(kSubscriberQueueFrames) + "\n");
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> good;
   ASSERT_OK(d.Connect(&good, 10000));
@@ -458,7 +499,7 @@ TEST(DaemonFaults, MisbehavingClientsCannotStopTheRig) {
   std::printf("flood: %zu replies (hello included) to 10,000 requests in %.2f s; a good client's "
               "worst status %.3f s\n", flood_replies.load(), flood_s, worst_s);
   EXPECT_EQ(flood_replies.load(), 10001u);
-  EXPECT_LT(worst_s, 1.0);
+  EXPECT_LT(worst_s, 1.0 * kSlowdown);
   close(flood);
 
   // The sleeper, when it finally reads, is told how many frames it lost.

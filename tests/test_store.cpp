@@ -17,6 +17,7 @@
 #include <thread>
 #include <vector>
 
+#include "daemon/recorder.h"
 #include "daemon/recording_export.h"
 #include "daemon/store.h"
 #include "formats/c3d.h"
@@ -435,6 +436,52 @@ TEST_F(StoreTest, ARecordingWithoutMarkersOrCoordinatesKeepsItsPoints) {
   std::vector<RecordedFrame> read;
   ASSERT_OK(store_->ReadFrames(id, &read));
   ExpectSameFrames(frames, read);
+}
+
+// The recorder's frames (daemon/recorder.h ToRecordedFrame): a frame the tracker labelled with
+// no model yet, or with the previous subject's, is stored untracked with its points; before,
+// the store refused it and a record.start right after subject.select failed on its first frame
+// (found by fuzz/fuzz_daemon.cpp's seed session).
+TEST_F(StoreTest, AFrameLabelledWithAnotherModelIsRecordedUntracked) {
+  const SubjectRecord a = MakeSubject("alice");
+  const std::int64_t id = BeginRecording(a.id);
+  const int markers = static_cast<int>(marker_names_.size());
+  const int coordinates = static_cast<int>(coordinate_names_.size());
+  mocap::daemon::LiveFrame none, other, own;
+  none.frame = 10;
+  none.points = {Eigen::Vector3d(0.1, 0.2, 1.0)};
+  none.tracker_state = -1;  // no tracker: no markers, no coordinates
+  other.frame = 11;
+  other.tracker_state = static_cast<int>(mocap::ekf::TrackState::kTracking);
+  other.markers.setConstant(3, markers + 4, 0.5);  // the previous subject's model
+  other.coordinates.setConstant(coordinates + 1, 0.1);
+  own = other;
+  own.frame = 12;
+  own.markers.setConstant(3, markers, 0.25);
+  own.markers.col(2).setConstant(kNaN);
+  own.coordinates.setConstant(coordinates, 0.2);
+  std::vector<RecordedFrame> frames;
+  for (const auto* f : {&none, &other, &own})
+    frames.push_back(mocap::daemon::ToRecordedFrame(*f, markers, coordinates));
+  ASSERT_OK(store_->AppendFrames(id, frames));
+  std::vector<RecordedFrame> read;
+  ASSERT_OK(store_->ReadFrames(id, &read));
+  ASSERT_EQ(read.size(), 3u);
+  for (int i : {0, 1}) {
+    SCOPED_TRACE(i);
+    EXPECT_TRUE(read[i].markers.array().isNaN().all());
+    EXPECT_EQ(read[i].marker_flags, std::vector<std::uint8_t>(markers, 1));
+    EXPECT_TRUE(read[i].coordinates.array().isNaN().all());
+    EXPECT_EQ(read[i].tracker_state, static_cast<int>(mocap::ekf::TrackState::kInitialising));
+  }
+  ASSERT_EQ(read[0].points.size(), 1u);
+  EXPECT_EQ(read[0].points[0], none.points[0]);
+  // A frame of the recording's own model is kept as labelled.
+  EXPECT_EQ(read[2].tracker_state, static_cast<int>(mocap::ekf::TrackState::kTracking));
+  EXPECT_EQ(read[2].markers(0, 0), 0.25);
+  EXPECT_EQ(read[2].marker_flags[2], 1);
+  EXPECT_EQ(read[2].marker_flags[0], 0);
+  EXPECT_EQ(read[2].coordinates[0], 0.2);
 }
 
 TEST_F(StoreTest, FramesThatDoNotFitTheRecordingAreRefusedNamingTheFrame) {
