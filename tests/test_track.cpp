@@ -577,8 +577,10 @@ TEST_F(FitInitial, TrueCoordinatesStartGivesTheSameModelAsIk) {
   EXPECT_NE(r.output.find("starting poses from"), std::string::npos) << r.output;
   std::ifstream a(P("fit_ik/r.json")), b(P("fit_init/r.json"));
   const nlohmann::json ra = nlohmann::json::parse(a), rb = nlohmann::json::parse(b);
-  // Started from the true poses, the fit starts closer than IK with the nominal model does.
-  EXPECT_LT(rb["iterations"].get<int>(), ra["iterations"].get<int>());
+  // The given poses were the start, not IK's: the nominal model misfits the true poses (the
+  // subject's geometry differs) where IK bends every pose to it. (The iterations no longer tell
+  // them apart: the stages before the last stop at the same 4 + 4 either way.)
+  EXPECT_GT(rb["initial_marker_rms_mm"].get<double>(), ra["initial_marker_rms_mm"].get<double>() + 5.0);
   ExpectSameFit(ra, rb);
 
   // Frames without a pose (NaN rows, as where the tracker was not tracking): solved by IK.
