@@ -57,6 +57,9 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["reposed"] = r.reposed;
   j["rescued_frames"] = r.rescued_frames;
   j["static_trials"] = r.static_trials;
+  j["far_moved_markers"] = nlohmann::json::array();
+  for (const auto& f : r.far_moved_markers)
+    j["far_moved_markers"].push_back({{"marker", f.name}, {"segment", f.segment}, {"distance_mm", f.distance_mm}});
   j["scaling_marker_weights"] = nlohmann::json::object();
   for (const auto& [name, w] : r.scaling_marker_weights) j["scaling_marker_weights"][name] = w;
   j["initial_cost"] = r.solver.initial_cost;

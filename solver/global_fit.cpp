@@ -179,6 +179,7 @@ bool FitOptions::IsValid(std::string* error) const {
   if (!(markers_measure_tolerance > 0 && markers_measure_tolerance < 1))
     return fail("markers_measure_tolerance must be in (0, 1)");
   if (!(static_trial_motion_mm >= 0)) return fail("static_trial_motion_mm must be >= 0");
+  if (!(far_moved_marker_sigmas > 0)) return fail("far_moved_marker_sigmas must be > 0");
   if (!(stage_function_tolerance > 0 && stage_function_tolerance < 1))
     return fail("stage_function_tolerance must be in (0, 1)");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
@@ -877,6 +878,31 @@ Status ReweighScalingMarkers(const Model& model, const std::vector<FitTrial>& tr
   return Status::Ok();
 }
 
+// FitOptions::far_moved_marker_sigmas: the model's markers that the fit moved that far on their
+// segment, farthest first.
+void FlagFarMovedMarkers(const Model& initial, const FitOptions& options, FitResult* result) {
+  std::map<std::string, Eigen::Vector3d> moved;
+  for (const ParameterEstimate& e : result->report.parameters) {
+    if (e.group != ParameterGroup::kMarker || e.name.size() < 3) continue;
+    const std::string marker = e.name.substr(0, e.name.size() - 2);
+    const char axis = e.name.back();
+    if (initial.FindMarker(marker) < 0 || axis < 'x' || axis > 'z') continue;
+    auto [it, fresh] = moved.try_emplace(marker, Eigen::Vector3d::Zero());
+    it->second[axis - 'x'] = e.value - e.initial;
+  }
+  const double limit_m = options.far_moved_marker_sigmas * options.prior_sigma_position_m;
+  auto& far = result->report.far_moved_markers;
+  far.clear();
+  for (const auto& [name, d] : moved) {
+    const int m = result->model.FindMarker(name);
+    if (m < 0) continue;
+    const Segment& segment = result->model.segments()[result->model.markers()[m].segment];
+    const double distance_m = segment.scale * d.norm();
+    if (distance_m > limit_m) far.push_back({name, segment.name, 1000.0 * distance_m});
+  }
+  std::sort(far.begin(), far.end(), [](const auto& a, const auto& b) { return a.distance_mm > b.distance_mm; });
+}
+
 // FitModel for trials already reduced to their postures where static.
 Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
                    FitResult* result) {
@@ -1068,6 +1094,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     static_trials.push_back(m.name);
   }
   MOCAP_RETURN_IF_ERROR(FitSchedule(initial, postures, options, result));
+  FlagFarMovedMarkers(initial, options, result);
   if (static_trials.empty()) return Status::Ok();
   // The static trials' own frames, posed by the fitted model (its geometry fixed) from their
   // posture: their coordinates and residuals follow the sway the posture averaged out.

@@ -173,6 +173,12 @@ struct FitOptions {
   // Standing trials measure 1-5 mm, functional ones and walks 80-110 mm (../shared/data).
   // A static trial's residuals are then those of its mean posture. 0: every frame as measured.
   double static_trial_motion_mm = 10.0;
+  // A model marker the fit moved more than this many prior sigmas (prior_sigma_position_m) on
+  // its segment is named in the report (far_moved_markers) and the log: a generic model's marker
+  // is a few centimetres from where a lab puts it, and a move of 15 cm or more says rather that
+  // the poses of its segment are wrong while the marker RMS looks fine (welk007's one-command fit:
+  // L_calc and L_ankle moved 28-30 cm, the left ankle centre 23 cm from its malleoli, at 5.3 mm RMS).
+  double far_moved_marker_sigmas = 3.0;
   // The scales stage fits the model's own marker places, and a generic model's places for
   // cluster markers (thigh and shank wands, plates) are guesses that may be 10-15 cm from where
   // a lab put them: weighed like the anatomical landmarks they bend the whole skeleton (welk007's
@@ -306,6 +312,11 @@ struct FitReport {
   bool reposed = false;  // the poses were re-solved part-way (FitOptions::repose_after_iterations)
   int rescued_frames = 0;  // poses replaced by FitOptions' rescue pass (all rounds)
   std::vector<std::string> static_trials;  // weighed as one posture (FitOptions::static_trial_motion_mm)
+  struct FarMovedMarker {
+    std::string name, segment;
+    double distance_mm = 0;  // from the caller's model's place, scaled
+  };
+  std::vector<FarMovedMarker> far_moved_markers;  // FitOptions::far_moved_marker_sigmas, farthest first
   // Markers the scales stage weighed at less than half (FitOptions::scaling_marker_rounds): their
   // place in the model is far from where the data put them. Name, relative weight.
   std::vector<std::pair<std::string, double>> scaling_marker_weights;

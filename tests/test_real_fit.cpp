@@ -130,6 +130,11 @@ TEST(RealFit, Welk007OneCommandFromTheGenericModel) {
   EXPECT_LE(r["marker_rms_mm"].get<double>(), run.hand_scaled["marker_rms_mm"].get<double>());
   ASSERT_TRUE(std::isfinite(score_mm)) << "no SCoRE check of hip_r on the functional trial";
   EXPECT_LE(score_mm, 10.0);
+  // Not silent: the left leg's poses are wrong (DISABLED_Welk007SkeletonInsideItsMarkers), and
+  // the report names the markers the fit had to move 15 cm or more to follow them.
+  bool ankle_named = false;
+  for (const auto& f : r["far_moved_markers"]) ankle_named = ankle_named || f["marker"] == "L_ankle";
+  EXPECT_TRUE(ankle_named) << r["far_moved_markers"];
   // The schedule ran: scales, markers (measured, then reweighted or continued), then everything.
   ASSERT_GE(r["stages"].size(), 3u);
   EXPECT_EQ(r["stages"].front()["name"], "scales");
@@ -192,6 +197,7 @@ TEST(RealFit, Gait2354OneCommandConvergesAndPlacesHipsAndKnees) {
               CentreDifferenceMm(run, "ankle_r"), CentreDifferenceMm(run, "ankle_l"));
   EXPECT_TRUE(r["converged"].get<bool>()) << r["termination_message"];
   EXPECT_LE(r["iterations"].get<int>(), 30);
+  EXPECT_TRUE(r["far_moved_markers"].empty()) << r["far_moved_markers"];
   for (const char* joint : {"hip_r", "hip_l", "knee_r", "knee_l"})
     EXPECT_LE(CentreDifferenceMm(run, joint), 20.0) << joint;
 }

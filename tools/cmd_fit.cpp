@@ -222,6 +222,18 @@ int RunFit(const FitArgs& args) {
     spdlog::info("scaled with these markers down-weighted, the model's place for them being far from the data's: {}",
                  list);
   }
+  {  // one warning per segment, its farthest-moved markers first
+    std::vector<std::pair<std::string, std::string>> by_segment;
+    for (const auto& f : result.report.far_moved_markers) {
+      auto it = std::find_if(by_segment.begin(), by_segment.end(), [&](const auto& s) { return s.first == f.segment; });
+      if (it == by_segment.end()) it = by_segment.insert(by_segment.end(), {f.segment, ""});
+      it->second += (it->second.empty() ? "" : ", ") + f.name + fmt::format(" {:.0f} mm", f.distance_mm);
+    }
+    for (const auto& [segment, list] : by_segment)
+      spdlog::warn("{}: markers moved far from the model's places ({}): more than markers misplaced, its poses are "
+                   "likely wrong; check the skeleton against its markers",
+                   segment, list);
+  }
   for (const std::string& name : result.report.static_trials)
     spdlog::info("trial '{}' is static (its markers hardly move): its frames count as one posture", name);
   for (const auto& [joint, why] : result.report.held_joints)
