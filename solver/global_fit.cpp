@@ -903,12 +903,10 @@ void FlagFarMovedMarkers(const Model& initial, const FitOptions& options, FitRes
   std::sort(far.begin(), far.end(), [](const auto& a, const auto& b) { return a.distance_mm > b.distance_mm; });
 }
 
-// FitModel for trials already reduced to their postures where static.
+// FitModel for trials already reduced to their postures where static (options checked there).
 Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
                    FitResult* result) {
   const auto start = Clock::now();
-  std::string why;
-  if (!options.IsValid(&why)) return Status::Error("fit options: " + why);
   if (trials.empty()) return Status::Error("fit: no trials given");
   const bool staged = options.staged && (options.fit_centres || options.fit_axes) &&
                       (options.fit_scales || options.fit_markers);
@@ -954,9 +952,10 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
     // The markers stage weighs its data before their error is known (nominal sigma), so it first
     // solves only until the residual level settles (the cost changes by less than
     // markers_measure_tolerance: the sigma, its square root, to half that), enough to place the
-    // markers and measure what the residuals left say a sample is worth (EffectiveMarkerSigma). Where that is far less than assumed
-    // (skin motion over a walk, repeated over hundreds of frames), the stage is solved from the
-    // same start again with the measured weight; otherwise it goes on from where it stopped.
+    // markers and measure what the residuals left say a sample is worth (EffectiveMarkerSigma).
+    // Where that is far less than assumed (skin motion over a walk, repeated over hundreds of
+    // frames), the stage is solved from the same start again with the measured weight; otherwise
+    // it goes on from where it stopped.
     // Weighted as independent 1 mm samples, the frames of a walk outvote the priors that hold
     // each segment inside its markers: on gait2354 the left leg's bones slid 5-8 cm medially out
     // of its markers (ankle centre 96 mm from the malleoli, knee 52 mm from the epicondyles; at
@@ -1078,9 +1077,9 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   if (!options.IsValid(&why)) return Status::Error("fit options: " + why);
   // FitOptions::static_trial_motion_mm: every frame of a static trial becomes its mean posture.
   std::vector<FitTrial> postures = trials;
-  std::vector<std::string> static_trials;
-  for (FitTrial& t : postures) {
-    formats::MarkerTrial& m = t.markers;
+  std::vector<size_t> static_index;
+  for (size_t t = 0; t < postures.size(); ++t) {
+    formats::MarkerTrial& m = postures[t].markers;
     if (options.static_trial_motion_mm <= 0 || m.num_frames() < 2 ||
         !(MedianMarkerMotionMm(m) < options.static_trial_motion_mm))
       continue;
@@ -1091,11 +1090,11 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
         if (std::isfinite(m.positions(f, c))) sum += m.positions(f, c), ++n;
       if (n > 0) m.positions.col(c).setConstant(sum / n);
     }
-    static_trials.push_back(m.name);
+    static_index.push_back(t);
   }
   MOCAP_RETURN_IF_ERROR(FitSchedule(initial, postures, options, result));
   FlagFarMovedMarkers(initial, options, result);
-  if (static_trials.empty()) return Status::Ok();
+  if (static_index.empty()) return Status::Ok();
   // The static trials' own frames, posed by the fitted model (its geometry fixed) from their
   // posture: their coordinates and residuals follow the sway the posture averaged out.
   FitOptions poses_only = options;
@@ -1103,21 +1102,17 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
   poses_only.robust_loss = RobustLoss::kNone;
   poses_only.marker_sigma_rounds = 0;
   std::vector<FitTrial> measured;
-  std::vector<size_t> index;
-  for (size_t t = 0; t < trials.size(); ++t)
-    if (std::find(static_trials.begin(), static_trials.end(), trials[t].markers.name) != static_trials.end()) {
-      measured.push_back({trials[t].markers, result->coordinates[t]});
-      index.push_back(t);
-    }
+  for (size_t t : static_index) measured.push_back({trials[t].markers, result->coordinates[t]});
   FitResult posed;
   MOCAP_RETURN_IF_ERROR(FitStage(result->model, measured, poses_only, /*measure_correlation=*/false, &posed));
   FitReport& report = result->report;
-  for (size_t k = 0; k < index.size(); ++k) {
-    result->coordinates[index[k]] = posed.coordinates[k];
-    if (index[k] < report.per_trial_rms_mm.size()) report.per_trial_rms_mm[index[k]] = posed.report.per_trial_rms_mm[k];
-    if (index[k] < report.per_frame_rms_mm.size()) report.per_frame_rms_mm[index[k]] = posed.report.per_frame_rms_mm[k];
+  for (size_t k = 0; k < static_index.size(); ++k) {
+    const size_t t = static_index[k];
+    result->coordinates[t] = posed.coordinates[k];
+    if (t < report.per_trial_rms_mm.size()) report.per_trial_rms_mm[t] = posed.report.per_trial_rms_mm[k];
+    if (t < report.per_frame_rms_mm.size()) report.per_frame_rms_mm[t] = posed.report.per_frame_rms_mm[k];
+    report.static_trials.push_back(trials[t].markers.name);
   }
-  report.static_trials = std::move(static_trials);
   return Status::Ok();
 }
 
