@@ -205,6 +205,7 @@ struct RawCoordinate {
   std::string name;
   double default_value = 0.0, lo = -1e9, hi = 1e9;
   bool locked = false;
+  bool clamped = false;  // <clamped>: the range is a limit (OpenSim IK bounds it)
   XMLElement* xml = nullptr;
 };
 
@@ -303,6 +304,7 @@ struct Importer {
         rc.hi = v[1];
       }
       rc.locked = Text(Child(c, "locked")) == "true";
+      rc.clamped = Text(Child(c, "clamped")) == "true";
       for (const auto& other : *coords)
         if (other.name == rc.name) return rd.Fail(c, "duplicate coordinate name");
       j->coordinates.push_back(rc.name);
@@ -580,6 +582,7 @@ struct Importer {
       c.default_value = coords[i].default_value;
       c.min_value = coords[i].lo;
       c.max_value = coords[i].hi;
+      c.clamped = coords[i].clamped && coords[i].lo > -1e9 && coords[i].hi < 1e9;
       model_index[i] = static_cast<int>(coordinates.size());
       coordinates.push_back(c);
     }
@@ -672,6 +675,7 @@ struct Importer {
     MOCAP_RETURN_IF_ERROR(rd.Vec3(m, "location", &p, false));
     mk->segment = b;
     mk->position = body_to_m[b].inverse() * p;
+    mk->fixed = Text(Child(m, "fixed")) == "true";
     return Status::Ok();
   }
 

@@ -67,6 +67,10 @@ struct Coordinate {
   double default_value = 0.0;  // radians or metres
   double min_value = -1e9;
   double max_value = 1e9;
+  // The range is a limit the pose must keep (OpenSim's Coordinate `clamped`), not only the span a
+  // motion is expected in: the fit and IK then penalise a pose beyond it (FitOptions::
+  // coordinate_limit_sigma), as OpenSim's IK bounds a clamped coordinate.
+  bool clamped = false;
   int joint = -1;  // filled by Model::Build: the first joint (parents first) it drives
 };
 
@@ -106,6 +110,10 @@ struct Marker {
   Eigen::Vector3d position = Eigen::Vector3d::Zero();  // on the segment, unscaled
   bool optional = false;  // not in every lab's marker set (medial knee/ankle, ...)
   double weight = 1.0;    // relative weight in the fit
+  // Placed by the model's author on a bony landmark (OpenSim's Marker <fixed>true</fixed>, which
+  // OpenSim's marker placer does not move): the fit moves it only against a tight prior
+  // (FitOptions::prior_sigma_fixed_marker_m), so the bones stay where the landmarks say.
+  bool fixed = false;
 };
 
 // One entry of p: which group, which object (segment, joint, axis element or marker), which

@@ -177,6 +177,10 @@ Status ParseModelJson(const std::string& text, const std::string& source, Model*
       c.max_value = rg[1].get<double>();
       if (!(c.min_value <= c.max_value)) return r.Fail(path + ".range", "min > max");
     }
+    if (jc.contains("clamped")) {
+      if (!jc.contains("range")) return r.Fail(path + ".clamped", "a clamped coordinate needs a range");
+      MOCAP_TRY(r.Bool(jc, path, "clamped", &c.clamped));
+    }
     if (!coordinate_index.emplace(c.name, static_cast<int>(i)).second)
       return r.Fail(path + ".name", "duplicate coordinate '" + c.name + "'");
     coordinates.push_back(c);
@@ -261,6 +265,7 @@ Status ParseModelJson(const std::string& text, const std::string& source, Model*
     m.segment = it->second;
     MOCAP_TRY(r.Vec3(jm, path, "position", &m.position));
     MOCAP_TRY(r.Bool(jm, path, "optional", &m.optional));
+    MOCAP_TRY(r.Bool(jm, path, "fixed", &m.fixed));
     MOCAP_TRY(r.Number(jm, path, "weight", &m.weight, false));
     if (!(m.weight > 0)) return r.Fail(path + ".weight", "must be > 0");
     markers.push_back(m);
@@ -310,9 +315,12 @@ std::string ModelToJsonString(const Model& model) {
   for (const auto& s : model.segments()) doc["segments"].push_back({{"name", s.name}, {"scale", s.scale}});
   doc["coordinates"] = json::array();
   for (const auto& c : model.coordinates())
-    doc["coordinates"].push_back({{"name", c.name}, {"rotational", c.rotational},
-                                  {"default", c.default_value},
-                                  {"range", json::array({c.min_value, c.max_value})}});
+  {
+    json jc = {{"name", c.name}, {"rotational", c.rotational}, {"default", c.default_value},
+               {"range", json::array({c.min_value, c.max_value})}};
+    if (c.clamped) jc["clamped"] = true;
+    doc["coordinates"].push_back(std::move(jc));
+  }
   doc["joints"] = json::array();
   for (const auto& j : model.joints()) {
     json jj = {{"name", j.name}, {"type", ToString(j.type)},
@@ -340,6 +348,7 @@ std::string ModelToJsonString(const Model& model) {
   for (const auto& m : model.markers()) {
     json jm = {{"name", m.name}, {"segment", model.segments()[m.segment].name}, {"position", V(m.position)}};
     if (m.optional) jm["optional"] = true;
+    if (m.fixed) jm["fixed"] = true;
     if (m.weight != 1.0) jm["weight"] = m.weight;
     doc["markers"].push_back(jm);
   }

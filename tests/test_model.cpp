@@ -2,6 +2,8 @@
 // differences, JSON round trip and validation errors, allocation-free evaluation.
 #include <gtest/gtest.h>
 
+#include <nlohmann/json.hpp>
+
 #include <filesystem>
 #include <fstream>
 #include <random>
@@ -136,6 +138,33 @@ TEST(ModelJson, RoundTripIsExact) {
   ASSERT_TRUE(s.ok()) << s.message();
   EXPECT_EQ(ModelToJsonString(back), ModelToJsonString(model));
   EXPECT_EQ((back.InitialParameters() - model.InitialParameters()).norm(), 0.0);
+}
+
+// OpenSim's <clamped> and <fixed> survive the model file (formats/osim.cpp reads them).
+TEST(ModelJson, ClampedCoordinatesAndFixedMarkersRoundTrip) {
+  const Model base = DefaultFullBodyModel();
+  std::vector<Coordinate> coordinates = base.coordinates();
+  std::vector<Marker> markers = base.markers();
+  const int knee = base.FindCoordinate("knee_angle_r");
+  ASSERT_GE(knee, 0);
+  coordinates[knee].clamped = true;
+  markers[3].fixed = true;
+  Model model;
+  ASSERT_TRUE(Model::Build(base.name(), base.segments(), base.joints(), coordinates, markers,
+                           base.derived_coordinates(), &model).ok());
+  Model back;
+  Status s = ParseModelJson(ModelToJsonString(model), "mem", &back);
+  ASSERT_TRUE(s.ok()) << s.message();
+  for (int c = 0; c < back.num_coordinates(); ++c) EXPECT_EQ(back.coordinates()[c].clamped, c == knee);
+  for (int m = 0; m < back.num_markers(); ++m) EXPECT_EQ(back.markers()[m].fixed, m == 3);
+  // A clamped coordinate without a range is refused, by name.
+  nlohmann::json doc = nlohmann::json::parse(ModelToJsonString(model));
+  doc["coordinates"][knee].erase("range");
+  Model bad;
+  s = ParseModelJson(doc.dump(), "bad.json", &bad);
+  EXPECT_FALSE(s.ok());
+  EXPECT_NE(s.message().find("coordinates[" + std::to_string(knee) + "].clamped"), std::string::npos)
+      << s.message();
 }
 
 TEST(ModelJson, ErrorsNameTheField) {

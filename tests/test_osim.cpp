@@ -121,7 +121,7 @@ const char* kSmallModel = R"(<?xml version="1.0" encoding="UTF-8" ?>
         <PinJoint name="hip">
           <socket_parent_frame>pelvis_offset</socket_parent_frame>
           <socket_child_frame>femur_offset</socket_child_frame>
-          <coordinates><Coordinate name="hip_flexion"><range>-1 1</range></Coordinate></coordinates>
+          <coordinates><Coordinate name="hip_flexion"><range>-1 1</range><clamped>true</clamped></Coordinate></coordinates>
           <frames>
             <PhysicalOffsetFrame name="pelvis_offset">
               <socket_parent>/bodyset/pelvis</socket_parent>
@@ -202,6 +202,15 @@ TEST(Osim, SmallModelImportsWithCouplerAndIgnoredConstraint) {
   EXPECT_EQ(m.joints()[m.FindJoint("ground_pelvis")].type, JointType::kFree);
   EXPECT_EQ(m.num_markers(), 5);
   for (const Marker& mk : m.markers()) EXPECT_FALSE(mk.optional);
+  // OpenSim's <fixed> (a landmark the marker placer does not move) and <clamped> (a range IK keeps).
+  EXPECT_FALSE(m.markers()[m.FindMarker("ASIS")].fixed);
+  EXPECT_TRUE(m.markers()[m.FindMarker("THIGH")].fixed);
+  EXPECT_FALSE(m.markers()[m.FindMarker("KNEE")].fixed);
+  const Coordinate& hip = m.coordinates()[m.FindCoordinate("hip_flexion")];
+  EXPECT_TRUE(hip.clamped);
+  EXPECT_DOUBLE_EQ(hip.min_value, -1.0);
+  EXPECT_DOUBLE_EQ(hip.max_value, 1.0);
+  EXPECT_FALSE(m.coordinates()[m.FindCoordinate("knee_angle")].clamped);
   EXPECT_EQ(im.motion.at("knee_beta"), OsimMotion::kCoupled);
   EXPECT_EQ(im.motion.at("tx"), OsimMotion::kTranslational);
   EXPECT_EQ(im.motion.at("knee_angle"), OsimMotion::kRotational);
