@@ -151,4 +151,66 @@ Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerT
                       model.derived_coordinates(), out);
 }
 
+std::vector<int> StackedMarkers(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                                double tolerance_m) {
+  const int nm = model.num_markers();
+  std::vector<char> seen(nm, 0), stacked(nm, 0);
+  for (const formats::MarkerTrial& t : trials)
+    for (const std::string& name : t.marker_names)
+      if (const int m = model.FindMarker(name); m >= 0) seen[m] = 1;
+  for (int a = 0; a < nm; ++a)
+    for (int b = a + 1; b < nm; ++b) {
+      const Marker& ma = model.markers()[a];
+      const Marker& mb = model.markers()[b];
+      if (seen[a] && seen[b] && ma.segment == mb.segment && (ma.position - mb.position).norm() <= tolerance_m)
+        stacked[a] = stacked[b] = 1;
+    }
+  std::vector<int> out;
+  for (int m = 0; m < nm; ++m)
+    if (stacked[m]) out.push_back(m);
+  return out;
+}
+
+Status PlaceMarkersOnTheirSegments(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                                   const std::vector<Eigen::MatrixXd>& poses, const std::vector<Marker>& markers,
+                                   const AttachOptions& options, Model* out, std::vector<PlacedMarker>* report) {
+  std::string why;
+  if (!options.IsValid(&why)) return Status::Error("place markers: " + why);
+  std::vector<std::string> names;
+  for (const Marker& m : markers) {
+    if (m.segment < 0 || m.segment >= model.num_segments())
+      return Status::Error("place markers: marker '" + m.name + "' has no segment of model " + model.name());
+    if (model.FindMarker(m.name) >= 0)
+      return Status::Error("place markers: model " + model.name() + " already has a marker '" + m.name + "'");
+    names.push_back(m.name);
+  }
+  std::vector<MarkerOnSegments> spreads;
+  if (Status s = MarkerSpreadOnSegments(model, trials, poses, names, &spreads); !s)
+    return Status::Error("place markers: " + s.message());
+  std::vector<Marker> all = model.markers();
+  report->clear();
+  for (size_t i = 0; i < markers.size(); ++i) {
+    Marker m = markers[i];
+    const int seg = m.segment;
+    const double scale = model.segments()[seg].scale;
+    PlacedMarker p;
+    p.name = m.name;
+    p.segment = model.segments()[seg].name;
+    p.samples = spreads[i].samples;
+    if (p.samples < options.min_samples) {
+      p.why_not = "seen with a pose in " + std::to_string(p.samples) + " frames, fewer than " +
+                  std::to_string(options.min_samples) + ": kept at the model's place";
+    } else {
+      const Eigen::Vector3d local = spreads[i].mean_local[seg] / scale;  // unscaled, like the model's
+      p.from_model_mm = 1000.0 * scale * (local - m.position).norm();
+      p.spread_mm = spreads[i].spread_mm[seg];
+      m.position = local;
+    }
+    all.push_back(m);
+    report->push_back(p);
+  }
+  return Model::Build(model.name(), model.segments(), model.joints(), model.coordinates(), all,
+                      model.derived_coordinates(), out);
+}
+
 }  // namespace mocap::solver

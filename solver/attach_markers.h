@@ -65,4 +65,38 @@ Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerT
                           const std::vector<Eigen::MatrixXd>& poses, const AttachOptions& options,
                           Model* out, std::vector<AttachedMarker>* report);
 
+// A generic model may name a lab's cluster markers without knowing where the lab puts them, and
+// stack them on one point of their segment (welk007's generic model has r_thigh1..5 at one point
+// of femur_r, 7-29 cm from where its lab's are; the shank's and the other thigh's alike). A fit
+// that starts from those places poses the first solve to fit five markers to one point: welk007's
+// standing trial came out with 70 deg ankles and a 23 deg hyperextended knee, and every scale and
+// marker after it followed. Such markers carry no information about where they are, only about
+// which segment they ride on, so they are treated like the trial markers the model lacks, except
+// that their segment is known: left out of the first solve, then placed where the trials put them
+// on that segment (PlaceMarkersOnTheirSegments).
+//
+// The model markers that the trials see and that share their place on a segment with another
+// such marker (within tolerance_m, unscaled): indices into model.markers(), in model order.
+std::vector<int> StackedMarkers(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                                double tolerance_m);
+
+struct PlacedMarker {
+  std::string name;
+  std::string segment;
+  double from_model_mm = 0;  // distance from the model's (placeholder) place, scaled
+  double spread_mm = 0;      // RMS motion about its place in the segment's frame
+  int samples = 0;
+  std::string why_not;       // empty when placed: else kept at the model's place
+};
+
+// `markers` (copies of model markers, e.g. StackedMarkers' from the model they came from) added
+// to `model` on their own segments (by name, so `model` may be a stage's copy), each at its mean
+// position in that segment's frame over the frames of `poses` (as MarkerSpreadOnSegments) when
+// seen in at least options.min_samples of them, else at the place the marker gives. Unlike
+// AttachTrialMarkers no spread limit applies: the segment is the model's word, and the spread is
+// reported for the reader to judge.
+Status PlaceMarkersOnTheirSegments(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                                   const std::vector<Eigen::MatrixXd>& poses, const std::vector<Marker>& markers,
+                                   const AttachOptions& options, Model* out, std::vector<PlacedMarker>* report);
+
 }  // namespace mocap::solver

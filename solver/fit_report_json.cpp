@@ -52,6 +52,14 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
                                      {"runner_up_mm", a.runner_up_mm},
                                      {"samples", a.samples},
                                      {"why_not", a.why_not}});
+  j["placed_markers"] = nlohmann::json::array();
+  for (const PlacedMarker& p : r.placed_markers)
+    j["placed_markers"].push_back({{"name", p.name},
+                                   {"segment", p.segment},
+                                   {"from_model_mm", p.from_model_mm},
+                                   {"spread_mm", p.spread_mm},
+                                   {"samples", p.samples},
+                                   {"why_not", p.why_not}});
   j["residual_sigma_mm"] = r.residual_sigma_mm;
   j["residual_correlation_frames"] = r.residual_correlation_frames;
   j["reposed"] = r.reposed;

@@ -180,6 +180,7 @@ bool FitOptions::IsValid(std::string* error) const {
     return fail("markers_measure_tolerance must be in (0, 1)");
   if (!(static_trial_motion_mm >= 0)) return fail("static_trial_motion_mm must be >= 0");
   if (!(far_moved_marker_sigmas > 0)) return fail("far_moved_marker_sigmas must be > 0");
+  if (!(stacked_marker_tolerance_m >= 0)) return fail("stacked_marker_tolerance_m must be >= 0");
   if (!(stage_function_tolerance > 0 && stage_function_tolerance < 1))
     return fail("stage_function_tolerance must be in (0, 1)");
   if (!coarse.IsValid(&why)) return fail("coarse: " + why);
@@ -188,6 +189,9 @@ bool FitOptions::IsValid(std::string* error) const {
   if (!diagnosis.IsValid(&why)) return fail("diagnosis: " + why);
   if (!(frame_prior_sigma_rad > 0) || !(frame_prior_sigma_m > 0))
     return fail("frame prior sigmas must be > 0");
+  if (!(prior_sigma_fixed_marker_m > 0)) return fail("prior_sigma_fixed_marker_m must be > 0");
+  if (!(coordinate_limit_sigma_rad >= 0) || !(coordinate_limit_sigma_m >= 0))
+    return fail("coordinate_limit_sigma_rad and coordinate_limit_sigma_m must be >= 0 (0: ranges not enforced)");
   if (num_threads < 0) return fail("num_threads must be >= 0");
   if (!lm.IsValid(&why)) return fail("lm: " + why);
   if (!ik.IsValid(&why)) return fail("ik: " + why);
@@ -887,6 +891,12 @@ void FlagFarMovedMarkers(const Model& initial, const FitOptions& options, FitRes
     const std::string marker = e.name.substr(0, e.name.size() - 2);
     const char axis = e.name.back();
     if (initial.FindMarker(marker) < 0 || axis < 'x' || axis > 'z') continue;
+    // A placeholder placed from the trials (FitOptions::place_stacked_markers) was never where
+    // the model said: its move says nothing about the poses.
+    const auto& placed = result->report.placed_markers;
+    if (std::any_of(placed.begin(), placed.end(),
+                    [&](const PlacedMarker& p) { return p.name == marker && p.why_not.empty(); }))
+      continue;
     auto [it, fresh] = moved.try_emplace(marker, Eigen::Vector3d::Zero());
     it->second[axis - 'x'] = e.value - e.initial;
   }
@@ -928,6 +938,23 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
   FitResult placed;
   const Model* model = &initial;
   std::vector<FitTrial> stage_trials = trials;
+  // FitOptions::place_stacked_markers: the first stage without them, placed after it.
+  std::vector<Marker> stacked;
+  Model unstacked;
+  if (options.place_stacked_markers) {
+    std::vector<formats::MarkerTrial> markers;
+    for (const FitTrial& t : trials) markers.push_back(t.markers);
+    const std::vector<int> stacked_index = StackedMarkers(initial, markers, options.stacked_marker_tolerance_m);
+    if (!stacked_index.empty()) {
+      std::vector<int> keep;
+      for (int m = 0; m < initial.num_markers(); ++m)
+        if (std::find(stacked_index.begin(), stacked_index.end(), m) == stacked_index.end()) keep.push_back(m);
+        else stacked.push_back(initial.markers()[m]);
+      MOCAP_RETURN_IF_ERROR(initial.WithMarkers(keep, &unstacked));
+      model = &unstacked;
+    }
+  }
+  std::vector<PlacedMarker> placed_markers;
   std::vector<FitStageSummary> summaries;
   LmSummary before;
   FitReport totals;
@@ -1008,6 +1035,15 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
     // markers they are its misplacement.
     if (stage.markers) effective_sigma_m = EffectiveMarkerSigma(options, out.report);
     placed = std::move(out);
+    if (!stacked.empty()) {
+      std::vector<formats::MarkerTrial> markers;
+      for (const FitTrial& t : trials) markers.push_back(t.markers);
+      Model with_placed;
+      MOCAP_RETURN_IF_ERROR(PlaceMarkersOnTheirSegments(placed.model, markers, placed.coordinates, stacked,
+                                                        options.attach, &with_placed, &placed_markers));
+      placed.model = std::move(with_placed);
+      stacked.clear();
+    }
     if (stage.scales && options.attach_trial_markers) {
       std::vector<formats::MarkerTrial> markers;
       for (const FitTrial& t : trials) markers.push_back(t.markers);
@@ -1057,6 +1093,7 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
       report.undetermined.push_back(name);
   report.held_joints = std::move(held);
   report.attached_markers = std::move(attached);
+  report.placed_markers = std::move(placed_markers);
   report.scaling_marker_weights = std::move(scaling_weights);
   // The caller's model is the parameters' starting point, not a stage's.
   const Eigen::VectorXd p0 = initial.InitialParameters();

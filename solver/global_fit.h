@@ -41,11 +41,28 @@ struct FitOptions {
   double prior_sigma_scale = 0.1;       // 10 % of segment size
   double prior_sigma_position_m = 0.05; // joint centres and marker positions
   double prior_sigma_axis_rad = 0.17;   // about 10 degrees
+  // A marker the model's author fixed on a landmark (Marker::fixed, OpenSim's <fixed>): its prior
+  // is the precision of palpating a landmark, 1-2 cm (Della Croce, Cappozzo & Kerrigan 1999, Med
+  // Biol Eng Comput 37:155), not the 5 cm of a marker whose place is unknown. The tighter prior
+  // holds segments in their landmarks where every marker is free and only priors say where the
+  // bones are. welk007 (generic model, static + hip trial), 20 / 10 / 50 mm: knees 13-14 / 9-15 /
+  // 15-29 mm from their epicondyles' midpoint, right hip 9.3 / 12.7 / 4.9 mm from SCoRE and 25.9 /
+  // 23.3 / 27.4 mm from the hand-scaled model's (which is itself ~28 mm from SCoRE).
+  double prior_sigma_fixed_marker_m = 0.02;
   // Each frame's coordinates are pulled, very weakly, to their starting pose: a coordinate whose
   // markers are all missing in a frame (a gap) stays put instead of taking a wild step. 1 rad or
   // 1 m of deviation costs what 0.1 mm of one marker's error costs.
   double frame_prior_sigma_rad = 10.0;
   double frame_prior_sigma_m = 10.0;
+  // A clamped coordinate (Coordinate::clamped, OpenSim's <clamped>true</clamped>) beyond its range
+  // adds a residual (excess) / sigma in every frame: a stiff one-sided wall, zero inside the range.
+  // OpenSim's IK bounds such coordinates hard; a wall keeps the solve smooth. At 1e-3, 1 degree
+  // beyond costs what a 17 mm marker error costs at marker_sigma_m = 1 mm. Without it, a generic
+  // model whose wand markers are far from the lab's (welk007) is posed standing with its ankles
+  // 70 deg dorsiflexed and a knee 23 deg hyperextended, and its markers slide 20 cm to match.
+  // 0: ranges are not enforced.
+  double coordinate_limit_sigma_rad = 1e-3;
+  double coordinate_limit_sigma_m = 1e-3;
   // Coordinates that a frame in a marker gap leaves unobserved are held at their start instead
   // (solver/coarse_to_fine.h, UnobservedCoordinateWeights): without it such frames make LM crawl.
   UnobservedHoldOptions unobserved_hold;
@@ -209,6 +226,12 @@ struct FitOptions {
   // they ride on (solver/attach_markers.h) and fitted with the others.
   bool attach_trial_markers = true;
   AttachOptions attach;
+  // Model markers the trials see that the model stacks on one point of a segment with another
+  // (within stacked_marker_tolerance_m): placeholders of a generic model (solver/attach_markers.h,
+  // StackedMarkers). They are left out of the schedule's first stage and then placed where the
+  // trials put them on their segments, with the trial markers the model lacks.
+  bool place_stacked_markers = true;
+  double stacked_marker_tolerance_m = 1e-3;
   int num_threads = 0;                  // 0: all cores
   LmOptions lm;
   IkOptions ik;
@@ -277,6 +300,8 @@ struct FitReport {
   std::vector<std::pair<std::string, std::string>> held_joints;
   // Trial markers the model lacked: attached to a segment, or left out and why.
   std::vector<AttachedMarker> attached_markers;
+  // Model markers stacked on one point (FitOptions::place_stacked_markers), placed from the trials.
+  std::vector<PlacedMarker> placed_markers;
   int trials = 0;
   int frames = 0;
   int markers = 0;                 // model markers with data

@@ -19,6 +19,10 @@ bool IkOptions::IsValid(std::string* error) const {
     if (error) *error = "step_tolerance and restart_rms_m must be > 0";
     return false;
   }
+  if (!(coordinate_limit_stiffness >= 0)) {
+    if (error) *error = "coordinate_limit_stiffness must be >= 0 (0: ranges not enforced)";
+    return false;
+  }
   return true;
 }
 
@@ -65,6 +69,28 @@ InverseKinematics::InverseKinematics(const Model& model, const Geometry& geometr
   llt_ = Eigen::LLT<Eigen::MatrixXd>(nz);
   jtr_.resize(nz);
   jz_.resize(3, model.max_chain_coordinates());
+  if (options_.coordinate_limit_stiffness > 0)
+    for (int c = 0; c < nz; ++c) {
+      const Coordinate& co = model.coordinates()[c];
+      // Not the root joint's: it places the model in the lab (see MarkerFitProblem).
+      const bool root = co.joint >= 0 && model.joints()[co.joint].parent < 0;
+      if (co.clamped && !root && co.max_value - co.min_value < 1e8) limited_.push_back(c);
+    }
+}
+
+namespace {
+double LimitExcess(const Coordinate& co, double q) {
+  return q > co.max_value ? q - co.max_value : (q < co.min_value ? q - co.min_value : 0.0);
+}
+}  // namespace
+
+double InverseKinematics::LimitCost(const Eigen::VectorXd& z) const {
+  double sum = 0;
+  for (int c : limited_) {
+    const double e = options_.coordinate_limit_stiffness * LimitExcess(model_.coordinates()[c], z[c]);
+    sum += e * e;
+  }
+  return sum;
 }
 
 namespace {
@@ -95,7 +121,8 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
   const Eigen::VectorXd start = *z;
   ForwardKinematics(model_, geometry_, *z, &data_);
   double weight_sum = 0;
-  double cost = SquaredError(model_, geometry_, data_, measured, &result.markers, &weight_sum);
+  double marker_cost = SquaredError(model_, geometry_, data_, measured, &result.markers, &weight_sum);
+  double cost = marker_cost + LimitCost(*z);
   double lambda = 1e-3;
   Eigen::VectorXd dz(nz), z_new(nz);
   for (int it = 0; it < options_.max_iterations; ++it) {
@@ -113,6 +140,13 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
         jtr_[cols[a]] += w * jz.col(a).dot(r);
         for (size_t b = 0; b <= a; ++b) jtj_(cols[a], cols[b]) += w * jz.col(a).dot(jz.col(b));
       }
+    }
+    for (int c : limited_) {
+      const double k = options_.coordinate_limit_stiffness;
+      const double e = LimitExcess(model_.coordinates()[c], (*z)[c]);
+      if (e == 0.0) continue;
+      jtr_[c] += k * k * e;
+      jtj_(c, c) += k * k;
     }
     for (int c = 0; c < nz; ++c)
       if (!free.empty() && !free[c]) {
@@ -138,10 +172,12 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
       }
       z_new = *z + dz;
       ForwardKinematics(model_, geometry_, z_new, &data_);
-      const double new_cost = SquaredError(model_, geometry_, data_, measured, nullptr);
+      const double new_marker_cost = SquaredError(model_, geometry_, data_, measured, nullptr);
+      const double new_cost = new_marker_cost + LimitCost(z_new);
       if (new_cost < cost) {
         decrease = cost - new_cost;
         cost = new_cost;
+        marker_cost = new_marker_cost;
         z->swap(z_new);
         lambda = std::max(1e-9, lambda * 0.3);
         accepted = true;
@@ -157,7 +193,7 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
   WrapPeriodicCoordinates(model_, periodic_, start, z);
   ForwardKinematics(model_, geometry_, *z, &data_);
   // Weighted RMS: with every weight 1 (the usual case) the plain RMS.
-  result.rms_m = weight_sum > 0 ? std::sqrt(cost / weight_sum) : 0.0;
+  result.rms_m = weight_sum > 0 ? std::sqrt(marker_cost / weight_sum) : 0.0;
   return result;
 }
 

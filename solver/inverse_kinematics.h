@@ -26,6 +26,10 @@ struct IkOptions {
   // SolveTrial: a frame with hidden markers is re-solved from its pose interpolated between the
   // nearest frames that see those markers (InverseKinematics::BridgeGaps).
   bool bridge_gaps = true;
+  // A clamped coordinate (Coordinate::clamped) beyond its range by d (rad or m) costs what a
+  // marker d * stiffness metres off costs (the global fit's FitOptions::coordinate_limit_sigma_*
+  // wall at its defaults: 1 m per radian). 0: ranges not enforced.
+  double coordinate_limit_stiffness = 1.0;
   bool IsValid(std::string* error) const;
 };
 
@@ -86,6 +90,9 @@ class InverseKinematics {
   IkOptions options_;
   ModelData data_;
   std::vector<char> periodic_;
+  std::vector<int> limited_;  // clamped coordinates (enforced when coordinate_limit_stiffness > 0)
+  // Sum of (stiffness * excess)^2 over the limited coordinates of z: the limits' share of the cost.
+  double LimitCost(const Eigen::VectorXd& z) const;
   Eigen::MatrixXd jtj_, damped_;
   Eigen::LLT<Eigen::MatrixXd> llt_;
   Eigen::VectorXd jtr_;

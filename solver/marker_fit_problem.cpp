@@ -15,9 +15,10 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       : problem_(problem), data_(problem.model()) {
     const Model& model = problem.model();
     const int nm = model.num_markers();
-    blocks_.resize(nm);
-    residual_.resize(3 * nm);
-    jy_.resize(nm, Eigen::Matrix<double, 3, Eigen::Dynamic>(3, model.max_chain_coordinates()));
+    const int nl = static_cast<int>(problem.coordinate_limits().size());
+    blocks_.resize(nm + nl);
+    residual_.resize(3 * (nm + nl));
+    jy_.resize(nm + nl, Eigen::Matrix<double, 3, Eigen::Dynamic>(3, model.max_chain_coordinates()));
     jp_.resize(nm, Eigen::Matrix<double, 3, Eigen::Dynamic>(3, model.max_chain_parameters()));
     z_.resize(model.num_coordinates());
     // Flattened (joint, element) indices, and each marker's dh/dz terms in MarkerJacobian's order.
@@ -81,6 +82,30 @@ class MarkerFrameEvaluator : public FrameEvaluator {
           jp *= scale;
         }
         blk.jp = jp_[num_blocks_].data();
+      }
+      ++num_blocks_;
+    }
+    // Coordinate limits: a block only where the frame is beyond a range (zero residual inside).
+    const auto& limits = problem_.coordinate_limits();
+    for (size_t i = 0; i < limits.size(); ++i) {
+      const auto& lim = limits[i];
+      const double q = y[lim.coordinate];
+      const double excess = q > lim.max_value ? q - lim.max_value : (q < lim.min_value ? q - lim.min_value : 0.0);
+      if (excess == 0.0) continue;
+      double* r = residual_.data() + 3 * num_blocks_;
+      r[0] = lim.weight * excess;
+      ResidualBlock& blk = blocks_[num_blocks_];
+      blk.kind = problem_.limit_kind(static_cast<int>(i));
+      blk.rows = 1;
+      blk.residual = r;
+      blk.num_y = 1;
+      blk.y_index = problem_.limit_columns_[i].data();
+      blk.num_p = 0;
+      blk.p_index = nullptr;
+      if (with_jacobians) {
+        jy_[num_blocks_](0, 0) = lim.weight;
+        blk.jy = jy_[num_blocks_].data();
+        blk.jp = nullptr;
       }
       ++num_blocks_;
     }
@@ -216,8 +241,18 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
         ++samples_;
       }
   block_kind_.assign(nm, -1);
-  for (int m = 0, kinds = 0; m < nm; ++m)
-    if (observed_[m]) block_kind_[m] = kinds++;
+  for (int m = 0; m < nm; ++m)
+    if (observed_[m]) block_kind_[m] = first_limit_kind_++;
+  for (int c = 0; c < model.num_coordinates(); ++c) {
+    const Coordinate& co = model.coordinates()[c];
+    const double sigma = co.rotational ? options.coordinate_limit_sigma_rad : options.coordinate_limit_sigma_m;
+    if (!co.clamped || !(sigma > 0) || !(co.max_value - co.min_value < 1e8)) continue;
+    // The root joint places the model in the lab, whose axes are the lab's, not the model's
+    // ground's (a Z-up lab puts pelvis_list near 90 deg): its range says nothing of the body.
+    if (co.joint >= 0 && model.joints()[co.joint].parent < 0) continue;
+    limits_.push_back({c, co.min_value, co.max_value, 1.0 / sigma});
+    limit_columns_.push_back({c});
+  }
   free_index_.assign(model.num_parameters(), -1);
   std::vector<double> weights;
   for (int i = 0; i < model.num_parameters(); ++i) {
@@ -236,6 +271,8 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
     double sigma = prior_sigma_position_m;
     if (info.group == ParameterGroup::kScale) sigma = prior_sigma_scale;
     if (info.group == ParameterGroup::kAxis) sigma = prior_sigma_axis_rad;
+    if (info.group == ParameterGroup::kMarker && model.markers()[info.object].fixed)
+      sigma = options.prior_sigma_fixed_marker_m;
     weights.push_back(1.0 / sigma);
   }
   prior_weight_ = Eigen::Map<Eigen::VectorXd>(weights.data(), weights.size());
@@ -425,6 +462,10 @@ void MarkerFitProblem::BlockStructure(std::vector<std::vector<int>>* y_columns,
     if (!observed_[m]) continue;  // block_kind(m) counts the same way
     y_columns->push_back(model_.marker_coordinates(m));
     p_columns->push_back(marker_free_columns_[m]);
+  }
+  for (const auto& columns : limit_columns_) {
+    y_columns->push_back(columns);
+    p_columns->push_back({});
   }
 }
 

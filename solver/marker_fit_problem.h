@@ -84,6 +84,15 @@ class MarkerFitProblem : public ArrowProblem {
   bool observed(int m) const { return observed_[m]; }
   // Index of marker m's residual block in BlockStructure (-1 if never observed).
   int block_kind(int m) const { return block_kind_[m]; }
+  // The coordinates held to their range (Coordinate::clamped, FitOptions::coordinate_limit_sigma_*):
+  // a frame whose coordinate c lies beyond [min, max] gets a one-row block (excess / sigma) on
+  // y = {c}, of kind limit_kind(i), after the markers' kinds.
+  struct CoordinateLimit {
+    int coordinate;
+    double min_value, max_value, weight;  // weight = 1 / sigma
+  };
+  const std::vector<CoordinateLimit>& coordinate_limits() const { return limits_; }
+  int limit_kind(int i) const { return first_limit_kind_ + i; }
   int num_samples() const { return samples_; }
   Eigen::VectorXd InitialShared() const;
   Eigen::VectorXd FullParameters(const Eigen::VectorXd& shared) const;
@@ -109,6 +118,9 @@ class MarkerFitProblem : public ArrowProblem {
   Eigen::MatrixXd sample_weight_;
   std::vector<char> observed_;
   std::vector<int> block_kind_;
+  std::vector<CoordinateLimit> limits_;
+  std::vector<std::vector<int>> limit_columns_;  // limits_[i]'s y columns: {coordinate}
+  int first_limit_kind_ = 0;
   Eigen::VectorXd prior_weight_, prior_target_;
   Eigen::MatrixXd gauge_rows_;
   Eigen::VectorXd frame_prior_weight_;

@@ -494,3 +494,164 @@ TEST(GlobalFit, SampleWeightsScaleResidualsAndJacobians) {
   }
   EXPECT_GT(checked, 100);
 }
+
+namespace {
+// `base` with coordinate `name` clamped to [lo, hi] (OpenSim's <clamped>true</clamped>).
+Model WithClampedCoordinate(const Model& base, const std::string& name, double lo, double hi) {
+  std::vector<Coordinate> coordinates = base.coordinates();
+  const int c = base.FindCoordinate(name);
+  EXPECT_GE(c, 0) << name;
+  coordinates[c].clamped = true;
+  coordinates[c].min_value = lo;
+  coordinates[c].max_value = hi;
+  Model out;
+  EXPECT_TRUE(Model::Build(base.name(), base.segments(), base.joints(), coordinates, base.markers(),
+                           base.derived_coordinates(), &out).ok());
+  return out;
+}
+}  // namespace
+
+// FitOptions::coordinate_limit_sigma_rad: a frame beyond a clamped coordinate's range carries a
+// one-row block (excess / sigma, Jacobian 1 / sigma on that coordinate alone); inside, none.
+TEST(GlobalFit, AClampedCoordinateBeyondItsRangeGetsAWall) {
+  std::mt19937_64 rng(5);
+  const Model model = WithClampedCoordinate(NominalWithoutOptional(), "knee_angle_r", 0.0, 2.0);
+  const formats::MarkerTrial trial = testutil::SimulateRandomMotion(model, 2, 0.0005, rng);
+  solver::FitOptions options;
+  solver::MarkerFitProblem problem(model, trial.positions, options);
+  ASSERT_EQ(problem.coordinate_limits().size(), 1u);
+  const int knee = model.FindCoordinate("knee_angle_r");
+  auto evaluator = problem.NewEvaluator();
+  Eigen::VectorXd z = model.DefaultCoordinates();
+  auto wall = [&](double knee_angle, double* residual, double* jacobian) {
+    z[knee] = knee_angle;
+    EXPECT_TRUE(evaluator->Evaluate(0, z.data(), true));
+    int found = 0;
+    for (int b = 0; b < evaluator->num_blocks(); ++b) {
+      const solver::ResidualBlock& blk = evaluator->block(b);
+      if (blk.kind != problem.limit_kind(0)) continue;
+      EXPECT_EQ(blk.rows, 1);
+      EXPECT_EQ(blk.num_y, 1);
+      EXPECT_EQ(blk.y_index[0], knee);
+      EXPECT_EQ(blk.num_p, 0);
+      *residual = blk.residual[0];
+      *jacobian = blk.jy[0];
+      ++found;
+    }
+    return found;
+  };
+  double r = 0, j = 0;
+  EXPECT_EQ(wall(1.0, &r, &j), 0);
+  ASSERT_EQ(wall(-0.1, &r, &j), 1);  // hyperextended by 0.1 rad
+  EXPECT_NEAR(r, -0.1 / options.coordinate_limit_sigma_rad, 1e-9);
+  EXPECT_NEAR(j, 1.0 / options.coordinate_limit_sigma_rad, 1e-9);
+  ASSERT_EQ(wall(2.3, &r, &j), 1);
+  EXPECT_NEAR(r, 0.3 / options.coordinate_limit_sigma_rad, 1e-9);
+  // Unclamped coordinates and the root joint (which places the model in the lab) get none.
+  solver::MarkerFitProblem plain(NominalWithoutOptional(), trial.positions, options);
+  EXPECT_TRUE(plain.coordinate_limits().empty());
+  options.coordinate_limit_sigma_rad = 0;  // off
+  solver::MarkerFitProblem off(model, trial.positions, options);
+  EXPECT_TRUE(off.coordinate_limits().empty());
+}
+
+// IkOptions::coordinate_limit_stiffness: markers that put a clamped knee 0.3 rad beyond its range
+// are fitted with the knee held near the range; with the wall off, the IK follows the markers.
+TEST(InverseKinematics, AClampedCoordinateIsHeldNearItsRange) {
+  const Model free_model = NominalWithoutOptional();
+  const int knee = free_model.FindCoordinate("knee_angle_r");
+  const Model model = WithClampedCoordinate(free_model, "knee_angle_r", 0.0, 0.5);
+  Eigen::VectorXd truth = model.DefaultCoordinates();
+  truth[knee] = 0.8;
+  const Geometry geometry(model);
+  ModelData data(model);
+  ForwardKinematics(model, geometry, truth, &data);
+  Eigen::Matrix3Xd measured(3, model.num_markers());
+  for (int m = 0; m < model.num_markers(); ++m) measured.col(m) = MarkerPosition(model, geometry, data, m);
+  solver::InverseKinematics limited(model, geometry);
+  Eigen::VectorXd z = model.DefaultCoordinates();
+  limited.Solve(measured, &z);
+  EXPECT_LT(z[knee], 0.5 + 0.15);  // the wall's give: markers on a 0.4 m shank pull against 1 m/rad
+  EXPECT_GT(z[knee], 0.5 - 0.05);
+  solver::IkOptions off;
+  off.coordinate_limit_stiffness = 0;
+  solver::InverseKinematics unlimited(model, geometry, off);
+  z = model.DefaultCoordinates();
+  unlimited.Solve(measured, &z);
+  EXPECT_NEAR(z[knee], 0.8, 1e-4);
+}
+
+// FitOptions::place_stacked_markers: a generic model that stacks the right thigh's two markers
+// on one point of the femur (a placeholder for a lab's cluster) is fitted as if it knew where
+// they are: both are placed from the data on the femur, within a few mm of the truth, and the
+// right hip comes out as with the true places.
+TEST(GlobalFit, StackedPlaceholderMarkersArePlacedOnTheirSegment) {
+  std::mt19937_64 rng(21);
+  const Model nominal = NominalWithoutOptional();
+  const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
+  const Model truth = mocap::testutil::Baked(nominal, p_true);
+  std::vector<solver::FitTrial> trials(1);
+  trials[0].markers = testutil::SimulateRandomMotion(truth, 300, 0.0005, rng);
+  const int thigh = nominal.FindMarker("RTHI"), knee = nominal.FindMarker("RKNE");
+  ASSERT_GE(thigh, 0);
+  ASSERT_GE(knee, 0);
+  ASSERT_EQ(nominal.markers()[thigh].segment, nominal.markers()[knee].segment);
+  std::vector<Marker> markers = nominal.markers();
+  markers[thigh].position = markers[knee].position = Eigen::Vector3d(0.0, -0.2, 0.0);
+  Model generic;
+  ASSERT_TRUE(Model::Build(nominal.name(), nominal.segments(), nominal.joints(), nominal.coordinates(), markers,
+                           nominal.derived_coordinates(), &generic).ok());
+  std::vector<formats::MarkerTrial> data = {trials[0].markers};
+  const std::vector<int> stacked = solver::StackedMarkers(generic, data, 1e-3);
+  EXPECT_EQ(stacked, (std::vector<int>{std::min(thigh, knee), std::max(thigh, knee)}));
+  EXPECT_TRUE(solver::StackedMarkers(nominal, data, 1e-3).empty());
+
+  solver::FitResult result;
+  ASSERT_TRUE(solver::FitModel(generic, trials, solver::FitOptions(), &result).ok());
+  const auto& placed = result.report.placed_markers;
+  ASSERT_EQ(placed.size(), 2u);
+  for (const solver::PlacedMarker& p : placed) {
+    EXPECT_TRUE(p.why_not.empty()) << p.name << ": " << p.why_not;
+    EXPECT_EQ(p.segment, nominal.segments()[nominal.markers()[thigh].segment].name);
+  }
+  ModelComparison cmp;
+  ASSERT_TRUE(CompareModels(truth, result.model, &cmp).ok());
+  for (const auto& md : cmp.markers)
+    if (md.marker == "RTHI" || md.marker == "RKNE") {
+      EXPECT_LT(md.error_mm, 3.0) << md.marker;
+    }
+  for (const auto& jd : cmp.joints)
+    if (jd.joint == "hip_r" || jd.joint == "knee_r") {
+      EXPECT_LT(jd.centre_error_mm, 2.0) << jd.joint;
+    }
+  // Not named as markers the fit moved far: their model place was never a place.
+  for (const auto& f : result.report.far_moved_markers) EXPECT_NE(f.name, "RTHI");
+}
+
+// FitOptions::scaling_marker_rounds: a model marker placed 10 cm from where the subject wears it
+// (a generic model's guess) is weighed down while the scales are fitted, and named with its weight.
+TEST(GlobalFit, ScalingWeighsDownAMarkerTheModelMisplaces) {
+  std::mt19937_64 rng(23);
+  const Model nominal = NominalWithoutOptional();
+  const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
+  const Model truth = mocap::testutil::Baked(nominal, p_true);
+  std::vector<solver::FitTrial> trials(1);
+  trials[0].markers = testutil::SimulateRandomMotion(truth, 200, 0.0005, rng);
+  std::vector<Marker> markers = nominal.markers();
+  const int tib = nominal.FindMarker("RTIB");
+  ASSERT_GE(tib, 0);
+  markers[tib].position += Eigen::Vector3d(0.0, 0.1, 0.0);
+  Model generic;
+  ASSERT_TRUE(Model::Build(nominal.name(), nominal.segments(), nominal.joints(), nominal.coordinates(), markers,
+                           nominal.derived_coordinates(), &generic).ok());
+  solver::FitOptions options;
+  options.scaling_marker_rounds = 5;
+  solver::FitResult result;
+  ASSERT_TRUE(solver::FitModel(generic, trials, options, &result).ok());
+  double weight = 1.0;
+  for (const auto& [name, w] : result.report.scaling_marker_weights)
+    if (name == "RTIB") weight = w;
+  EXPECT_LT(weight, 0.5);
+  for (const auto& [name, w] : result.report.scaling_marker_weights)
+    if (name != "RTIB") EXPECT_GT(w, weight) << name;
+}

@@ -8,6 +8,7 @@
 #include <ctime>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <sstream>
 #include <nlohmann/json.hpp>
 
@@ -44,6 +45,9 @@ struct FitArgs {
   int coarse_frames = solver::CoarseToFineOptions().coarse_frames;  // 0: no coarse-to-fine start
   int marker_sigma_rounds = solver::FitOptions().marker_sigma_rounds;  // 0: one sigma for all
   int scaling_marker_rounds = solver::FitOptions().scaling_marker_rounds;
+  bool coordinate_limits = true;
+  double fixed_marker_sigma_mm = 1000.0 * solver::FitOptions().prior_sigma_fixed_marker_m;
+  bool place_stacked_markers = solver::FitOptions().place_stacked_markers;
   std::vector<std::string> initial;  // one .mot per trial: starting poses instead of IK
   std::string functional;  // joints (comma-separated) whose SCoRE centres join the fit as data
   double functional_sigma_mm = 5.0;
@@ -148,6 +152,12 @@ int RunFit(const FitArgs& args) {
   options.lm.max_iterations = args.max_iterations;
   options.marker_sigma_rounds = args.marker_sigma_rounds;
   options.scaling_marker_rounds = args.scaling_marker_rounds;
+  if (!args.coordinate_limits) {
+    options.coordinate_limit_sigma_rad = options.coordinate_limit_sigma_m = 0;
+    options.ik.coordinate_limit_stiffness = 0;
+  }
+  options.place_stacked_markers = args.place_stacked_markers;
+  options.prior_sigma_fixed_marker_m = args.fixed_marker_sigma_mm / 1000.0;
   if (Status s = solver::ParseRobustLoss(args.robust_loss, &options.robust_loss); !s) {
     spdlog::error("--robust-loss: {}", s.message());
     return 2;
@@ -214,6 +224,21 @@ int RunFit(const FitArgs& args) {
                    a.name, a.segment, a.spread_mm, a.runner_up_mm);
     else
       spdlog::warn("trial marker {} (not in the model) left out: {}", a.name, a.why_not);
+  }
+  {
+    // Placeholders of a generic model, one line per segment.
+    std::map<std::string, std::string> per_segment;
+    for (const solver::PlacedMarker& p : result.report.placed_markers) {
+      std::string& line = per_segment[p.segment];
+      line += (line.empty() ? "" : ", ") +
+              (p.why_not.empty() ? fmt::format("{} {:.0f} mm away (moves {:.1f} mm RMS there)", p.name,
+                                               p.from_model_mm, p.spread_mm)
+                                 : p.name + ": " + p.why_not);
+    }
+    for (const auto& [segment, line] : per_segment)
+      spdlog::info("{}: the model stacks these markers on one point (placeholders), so they were placed where "
+                   "the trials put them: {}",
+                   segment, line);
   }
   if (!result.report.scaling_marker_weights.empty()) {
     std::string list;
@@ -326,6 +351,9 @@ int RunFit(const FitArgs& args) {
                     {"coarse_frames", args.coarse_frames},
                     {"marker_sigma_rounds", args.marker_sigma_rounds},
                     {"scaling_marker_rounds", args.scaling_marker_rounds},
+                    {"coordinate_limits", args.coordinate_limits},
+                    {"place_stacked_markers", args.place_stacked_markers},
+                    {"fixed_marker_sigma_mm", args.fixed_marker_sigma_mm},
                     {"robust_loss", args.robust_loss},
                     {"robust_scale", args.robust_scale},
                     {"schedule", args.single_stage ? "single stage" : "automatic"},
@@ -415,6 +443,19 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
                   "rounds of re-weighting each marker in the scales stage by how far the model's place for it "
                   "is from the data's (Cauchy; for generic models whose cluster markers are guesses; 0: off)")
       ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  cmd->add_option("--coordinate-limits", args->coordinate_limits,
+                  "hold each clamped coordinate of the model (OpenSim <clamped>true</clamped>) inside its range, "
+                  "as OpenSim's IK does (true/false)")
+      ->capture_default_str();
+  cmd->add_option("--fixed-marker-sigma-mm", args->fixed_marker_sigma_mm,
+                  "prior sigma of the markers the model fixes on landmarks (OpenSim <fixed>true</fixed>); "
+                  "the others have --prior-sigma-position")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_option("--place-stacked-markers", args->place_stacked_markers,
+                  "model markers stacked on one point of a segment (a generic model's placeholders for a "
+                  "lab's cluster) are left out of the first stage and placed where the trials put them (true/false)")
       ->capture_default_str();
   cmd->add_option("--robust-loss", args->robust_loss,
                   "none, huber or cauchy: marker samples beyond --robust-scale marker sigmas are "
