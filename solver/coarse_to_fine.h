@@ -87,6 +87,11 @@ struct CoarseToFineOptions {
   // (RescueFramesFromNeighbours). 0 or below 1: off.
   double rescue_ratio = 4.0;
   int rescue_iterations = 10;
+  // Before stage 2, in every inner iteration and for every rescue start, each frame's angles that
+  // the markers cannot tell from a whole turn on are moved to their frame prior's turn
+  // (ArrowProblem::WrapFramePose): a frame wound round in a marker gap is otherwise held there by
+  // nothing but the prior, which pulls it back over the data's barriers a step at a time.
+  bool wrap_frame_turns = true;
 
   bool IsValid(std::string* error) const;
 };
@@ -123,6 +128,7 @@ class FrameSubsetProblem : public ArrowProblem {
   bool FramePrior(int frame, const double** weight, const double** target) const override {
     return full_->FramePrior(frames_[frame], weight, target);
   }
+  bool WrapFramePose(int frame, double* y) const override { return full_->WrapFramePose(frames_[frame], y); }
   const Eigen::MatrixXd& shared_rows() const override { return full_->shared_rows(); }
   void BlockStructure(std::vector<std::vector<int>>* y_columns,
                       std::vector<std::vector<int>>* p_columns) const override {
