@@ -9,7 +9,7 @@
 //                [--ceres-radius R1,R2,...] [--ceres-pose-tolerance T] [--ceres-pose-iterations K]
 //                [--ceres-max-seconds S] [--repeat R] [--verbose] [--plain]
 //                [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]
-//                [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--no-wrap]
+//                [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap]
 //                [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA] [--min-diagonal D]
 //                [--max-iterations K] [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]
 //                [--fit-model] [--rescue-rounds N]
@@ -239,7 +239,7 @@ struct Args {
                "         [--ceres-radius R1,R2] [--ceres-pose-tolerance T] [--ceres-pose-iterations K]\n"
                "         [--ceres-max-seconds S] [--repeat R] [--verbose]\n"
                "         [--plain] [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]\n"
-               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--no-wrap]\n"
+               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap]\n"
                "         [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA]\n"
                "         [--min-diagonal D] [--fit-model] [--rescue-rounds N] [--max-iterations K]\n"
                "         [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]\n",
@@ -283,7 +283,7 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--coarse-tolerance") args.coarse.coarse_function_tolerance = number(0);
     else if (a == "--pose-iterations") args.coarse.pose_iterations = static_cast<int>(number(0));
     else if (a == "--no-inner") args.coarse.inner_iterations = false;
-    else if (a == "--no-wrap") args.coarse.wrap_frame_turns = false;
+    else if (a == "--wrap") args.coarse.wrap_frame_turns = true;
     else if (a == "--pose-tolerance") args.coarse.pose_tolerance = number(0);
     else if (a == "--fine-lambda") args.coarse.fine_initial_lambda = number(1e-300);
     else if (a == "--missing") {

@@ -89,9 +89,12 @@ struct CoarseToFineOptions {
   int rescue_iterations = 10;
   // Before stage 2, in every inner iteration and for every rescue start, each frame's angles that
   // the markers cannot tell from a whole turn on are moved to their frame prior's turn
-  // (ArrowProblem::WrapFramePose): a frame wound round in a marker gap is otherwise held there by
-  // nothing but the prior, which pulls it back over the data's barriers a step at a time.
-  bool wrap_frame_turns = true;
+  // (ArrowProblem::WrapFramePose). Off by default, measured (BENCHMARKS.md, "With gaps",
+  // eleventh session): at 10 % missing, seed 2, 346 frames ended a whole turn from their targets
+  // (pro_sup_r at -348 deg, truth +4 deg), paying the frame prior; wrapped, the fit ends 68 lower
+  // (1.35925e5) in the same 10 iterations, but at 5 % it takes 3 instead of 2 and ends 45 higher;
+  // seeds 1 and 3 unchanged. It moves the end point, not the crawl.
+  bool wrap_frame_turns = false;
 
   bool IsValid(std::string* error) const;
 };

@@ -460,14 +460,17 @@ TEST(CoarseToFine, AngleAWholeTurnFromItsTargetIsWrappedBackToItsTurn) {
   EXPECT_LT(wrapped, wound);
 }
 
-// The rescue starts a frame from its neighbour's pose on the frame's own turn: a neighbour wound
-// a whole turn (its knee, which no marker tells from a turn on) gives the rescued frame no turn.
+// With CoarseToFineOptions::wrap_frame_turns, the rescue starts a frame from its neighbour's pose
+// on the frame's own turn: a neighbour wound a whole turn (its knee, which no marker tells from a
+// turn on) gives the rescued frame no turn.
 TEST(CoarseToFine, RescuedFrameKeepsItsOwnTurnWhenItsNeighbourIsWound) {
   Session s(60, 0.0);
   const int ny = s.problem->frame_dim(), knee = TurnedKnee(s);
   Eigen::VectorXd x = WithRightLegTurned(s, 30, 31);
-  for (int f = 0; f < 30; ++f) x[f * ny + knee] += 2.0 * M_PI;  // the frames before: wound
+  for (int f = 0; f < 60; ++f)
+    if (f != 30) x[f * ny + knee] += 2.0 * M_PI;  // both neighbours (every other frame): wound
   solver::CoarseToFineOptions options;
+  options.wrap_frame_turns = true;
   std::vector<double> costs;
   EXPECT_GE(solver::RescueFramesFromNeighbours(s.problem.get(), options, 2, &x, &costs), 1);
   EXPECT_NEAR(x[30 * ny + knee], s.z_true(30, knee), 0.01);
