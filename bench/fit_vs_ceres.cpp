@@ -9,13 +9,15 @@
 //                [--ceres-radius R1,R2,...] [--ceres-pose-tolerance T] [--ceres-pose-iterations K]
 //                [--ceres-max-seconds S] [--repeat R] [--verbose] [--plain]
 //                [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]
-//                [--pose-tolerance T] [--fine-lambda L] [--no-inner]
+//                [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap]
 //                [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA] [--min-diagonal D]
 //                [--max-iterations K] [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]
 //                [--fit-model] [--rescue-rounds N]
 //
 // The accuracy against the simulation's truth is printed ("truth:", JSON ours_accuracy): joint
-// centres and frames whose markers (hidden ones too) sit > 20 mm off. With FVC_DEBUG=1 in the
+// centres, frames whose markers (hidden ones too) sit > 20 mm off, and joint rotations outside
+// their ranges (frames x coordinates; the joint to the lab and joints that may turn round not
+// counted). With FVC_DEBUG=1 in the
 // environment it also prints each such frame's worst marker and the per-trial frame costs (how
 // the gap diagnosis in BENCHMARKS.md was made). --no-hold / --hold-* / --rescue-ratio set
 // FitOptions::unobserved_hold and CoarseToFineOptions::rescue_ratio (solver/coarse_to_fine.h).
@@ -237,7 +239,7 @@ struct Args {
                "         [--ceres-radius R1,R2] [--ceres-pose-tolerance T] [--ceres-pose-iterations K]\n"
                "         [--ceres-max-seconds S] [--repeat R] [--verbose]\n"
                "         [--plain] [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]\n"
-               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner]\n"
+               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap]\n"
                "         [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA]\n"
                "         [--min-diagonal D] [--fit-model] [--rescue-rounds N] [--max-iterations K]\n"
                "         [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]\n",
@@ -281,6 +283,7 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--coarse-tolerance") args.coarse.coarse_function_tolerance = number(0);
     else if (a == "--pose-iterations") args.coarse.pose_iterations = static_cast<int>(number(0));
     else if (a == "--no-inner") args.coarse.inner_iterations = false;
+    else if (a == "--wrap") args.coarse.wrap_frame_turns = true;
     else if (a == "--pose-tolerance") args.coarse.pose_tolerance = number(0);
     else if (a == "--fine-lambda") args.coarse.fine_initial_lambda = number(1e-300);
     else if (a == "--missing") {
@@ -476,6 +479,7 @@ struct Accuracy {
   double centre_max_mm = NAN, centre_rms_mm = NAN;
   int frames_off = 0;
   std::vector<int> frames_off_per_trial;
+  int outside_range = 0;  // (frame, joint rotation) pairs outside the rotation's range
 };
 
 Accuracy MeasureAccuracy(const BenchData& d, const solver::MarkerFitProblem& problem, const Eigen::VectorXd& x) {
@@ -518,6 +522,22 @@ Accuracy MeasureAccuracy(const BenchData& d, const solver::MarkerFitProblem& pro
       }
       std::fprintf(stderr, "cost: trial %zu (%s) sum %.1f, per frame %.2f, frames > 4x median %d\n", t,
                    d.trials[t].name.c_str(), sum, sum / d.trial_ranges[t].second, h);
+    }
+  }
+  // Joint rotations outside their ranges (those a range prior would hold: not the joint to the
+  // lab, whose angles depend on the lab's axes, nor one that may turn round).
+  for (int c = 0; c < nz; ++c) {
+    const Coordinate& k = d.model.coordinates()[c];
+    if (!k.rotational || k.joint < 0 || d.model.joints()[k.joint].parent < 0 ||
+        !(k.max_value - k.min_value < 2.0 * M_PI))
+      continue;
+    for (int f = 0; f < problem.num_frames(); ++f) {
+      const double v = x[static_cast<Eigen::Index>(f) * nz + c];
+      if (v >= k.min_value && v <= k.max_value) continue;
+      ++a.outside_range;
+      if (std::getenv("FVC_DEBUG"))
+        std::fprintf(stderr, "range: frame %d %s %.1f deg (truth %.1f)\n", f, k.name.c_str(), v * 180 / M_PI,
+                     d.true_coordinates(f, c) * 180 / M_PI);
     }
   }
   // Every marker where the fitted model and pose put it, seen or hidden, against where the truth
@@ -1368,7 +1388,8 @@ int main(int argc, char** argv) {
     out[key] = {{"centre_max_mm", a->centre_max_mm},
                 {"centre_rms_mm", a->centre_rms_mm},
                 {"frames_marker_off_20mm", a->frames_off},
-                {"frames_marker_off_20mm_per_trial", a->frames_off_per_trial}};
+                {"frames_marker_off_20mm_per_trial", a->frames_off_per_trial},
+                {"coordinates_outside_range", a->outside_range}};
   out["ours_caches_frames"] = ours_cached;  // U_f, W_f kept between passes (memory budget)
   out["ours_peak_rss_mb"] = ours_rss;
 
@@ -1605,9 +1626,11 @@ int main(int argc, char** argv) {
       std::printf("  check at x0 (%s blocks): cost rel diff %.1e, gradient rel diff %.1e\n",
                   layout.c_str(), c["initial_cost_rel"].get<double>(), c["gradient_rel"].get<double>());
   std::printf("  truth: joint centres max / RMS %.3f / %.3f mm at the start, %.3f / %.3f mm after ours; "
-              "frames with a marker > 20 mm off %d at the start, %d after ours\n",
+              "frames with a marker > 20 mm off %d at the start, %d after ours; coordinates outside "
+              "their range %d at the start, %d after ours\n",
               start_accuracy.centre_max_mm, start_accuracy.centre_rms_mm, ours_accuracy.centre_max_mm,
-              ours_accuracy.centre_rms_mm, start_accuracy.frames_off, ours_accuracy.frames_off);
+              ours_accuracy.centre_rms_mm, start_accuracy.frames_off, ours_accuracy.frames_off,
+              start_accuracy.outside_range, ours_accuracy.outside_range);
   std::printf("  peak RSS: ours %.0f MB, total %.0f MB\n", ours_rss, out["peak_rss_mb"].get<double>());
   std::printf("  BLAS: %s\n  machine: %d x %s\n", out["blas"].get<std::string>().c_str(),
               NumProcessors(), CpuModel().c_str());

@@ -72,6 +72,10 @@ class ArrowProblem {
   virtual bool FramePrior(int frame, const double** weight, const double** target) const {
     return false;
   }
+  // Moves frame f's block y to an equivalent one (every residual the same) nearest its frame
+  // prior's target, if the problem has such symmetries (a joint angle and the same angle a whole
+  // turn on). Returns whether y changed; y's cost can only fall. None by default.
+  virtual bool WrapFramePose(int frame, double* y) const { return false; }
   // Further rows on the shared parameters alone, r = G (p - target), G dense (few rows): the
   // body fit's gauge constraints. Empty by default.
   virtual const Eigen::MatrixXd& shared_rows() const {

@@ -35,6 +35,19 @@ class SubsetEvaluator : public FrameEvaluator {
   const std::vector<int>* frames_;
 };
 
+// ArrowProblem::WrapFramePose on every frame of x; how many moved.
+int WrapFramePoses(const ArrowProblem& problem, int num_threads, Eigen::VectorXd* x) {
+  const int nf = problem.num_frames(), ny = problem.frame_dim();
+  const int threads = std::max(1, std::min(num_threads, nf));
+  std::vector<int> moved(threads, 0);
+  ParallelChunks(nf, threads, [&](int t, int b, int e) {
+    for (int f = b; f < e; ++f) moved[t] += problem.WrapFramePose(f, x->data() + static_cast<size_t>(f) * ny) ? 1 : 0;
+  });
+  int total = 0;
+  for (int m : moved) total += m;
+  return total;
+}
+
 // Stage 3's problem: the whole problem's Schur solver, with every frame's pose re-solved for the
 // new geometry after each accepted step (LmProblem::InnerIteration). Near the minimum, LM's
 // step leaves most of its shortfall in the weakly seen coordinates (a wrist's deviation, a
@@ -80,6 +93,9 @@ class WithInnerIterations : public LmProblem {
     // LM has just evaluated the cost at this very x (the accepted step).
     costs_.clear();
     if (costs_at_ == Fingerprint(*x)) costs_ = whole_->frame_costs();
+    // Angles a whole turn from their targets back to the target's turn (ArrowProblem::
+    // WrapFramePose): the data do not change, the frame prior falls.
+    if (options_.wrap_frame_turns && WrapFramePoses(*problem_, num_threads_, &candidate_) > 0) costs_.clear();
     // Frames that the step left in a wrong branch first (their cost far above the others'),
     // then Gauss–Newton steps for every pose; each frame's cost only falls, p is unchanged.
     rescued_ += RescueFramesFromNeighbours(problem_, options_, num_threads_, &candidate_, &costs_);
@@ -456,6 +472,7 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
         if (from < 0 || from >= nf) continue;
         for (int f = direction > 0 ? first : end - 1; f >= first && f < end; f += direction) {
           start = x->segment(static_cast<Eigen::Index>(f - direction) * ny, ny);
+          if (options.wrap_frame_turns) problem->WrapFramePose(f, start.data());
           double c = 0;
           if (!FrameSquaredNorm(*problem, evaluator.get(), f, start.data(), &c)) continue;
           FramePoseSteps(*problem, evaluator.get(), f, options.rescue_iterations, 1e-3, 0.0, options.pose_damping,
@@ -570,6 +587,7 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   const auto pose_start = Clock::now();
   Eigen::VectorXd candidate = *x;
   candidate.tail(np) = xs.tail(np);
+  if (coarse.wrap_frame_turns) WrapFramePoses(*problem, num_threads, &candidate);
   bool ok = false;
   double candidate_cost = 0;
   s.poses_improved = RefineFramePoses(problem, coarse, num_threads, &candidate, &ok, &candidate_cost);

@@ -5,6 +5,7 @@
 #include <limits>
 
 #include "solver/global_fit.h"
+#include "solver/inverse_kinematics.h"
 #include "solver/parallel.h"
 
 namespace mocap::solver {
@@ -295,6 +296,7 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
         held_centre_[j] = 1;
   }
   BuildGaugeRows(options.gauge_sigma_m);
+  periodic_ = PeriodicCoordinates(model);
   frame_prior_weight_.resize(model.num_coordinates());
   for (int c = 0; c < model.num_coordinates(); ++c)
     frame_prior_weight_[c] = 1.0 / (model.coordinates()[c].rotational ? options.frame_prior_sigma_rad
@@ -309,6 +311,20 @@ void MarkerFitProblem::SetMarkerSigma(int m, double sigma_m) {
 void MarkerFitProblem::SetFramePriorTargets(const Eigen::VectorXd& x) {
   const int nz = model_.num_coordinates();
   frame_prior_target_ = Eigen::Map<const formats::RowMatrix>(x.data(), num_frames(), nz);
+}
+
+bool MarkerFitProblem::WrapFramePose(int frame, double* y) const {
+  if (frame_prior_target_.rows() != num_frames()) return false;
+  const double* target = frame_prior_target_.row(frame).data();
+  bool moved = false;
+  for (int c = 0; c < model_.num_coordinates(); ++c) {
+    if (!periodic_[c]) continue;
+    const double wrapped = target[c] + std::remainder(y[c] - target[c], 2.0 * M_PI);
+    if (std::abs(wrapped - y[c]) < M_PI) continue;  // already the nearest turn (rounding aside)
+    y[c] = wrapped;
+    moved = true;
+  }
+  return moved;
 }
 
 bool MarkerFitProblem::FramePrior(int frame, const double** weight, const double** target) const {

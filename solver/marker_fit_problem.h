@@ -51,6 +51,10 @@ class MarkerFitProblem : public ArrowProblem {
   const Eigen::VectorXd& prior_target() const override { return prior_target_; }
   const Eigen::MatrixXd& shared_rows() const override { return gauge_rows_; }
   bool FramePrior(int frame, const double** weight, const double** target) const override;
+  // Each periodic coordinate (solver/inverse_kinematics.h, PeriodicCoordinates: a rotation driven
+  // by its own value, which the markers cannot tell from the same angle a whole turn on) moved by
+  // whole turns to within half a turn of its frame prior's target.
+  bool WrapFramePose(int frame, double* y) const override;
   // The frame prior's targets: the starting poses, x = [z_1 ... z_F, shared].
   void SetFramePriorTargets(const Eigen::VectorXd& x);
   // Per-frame weights (frames x coordinates) instead of the options' uniform ones, e.g. from
@@ -127,6 +131,7 @@ class MarkerFitProblem : public ArrowProblem {
   formats::RowMatrix frame_prior_target_;
   formats::RowMatrix frame_prior_weights_;  // empty: frame_prior_weight_ for every frame
   std::vector<std::string> gauge_names_;
+  std::vector<char> periodic_;
   void BuildGaugeRows(double gauge_sigma_m);
   bool hold_hinge_centres_ = true;
   std::vector<char> held_centre_;  // per joint: centre in FitOptions::fixed_parameters

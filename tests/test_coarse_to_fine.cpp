@@ -420,3 +420,58 @@ TEST(CoarseToFine, LongStretchInAWrongBranchIsRescuedInOnePass) {
     EXPECT_NEAR(x[f * ny + hip], s.z_true(f, hip), 0.05) << "frame " << f;
   }
 }
+
+// A joint angle a whole turn from its frame prior's target (a frame wound round in a marker gap,
+// where the markers cannot tell the turns apart) is moved back to the target's turn: every marker
+// residual stays, the frame prior's cost falls. A translation is no such symmetry and stays, as
+// does an angle already on its target's turn.
+TEST(CoarseToFine, AngleAWholeTurnFromItsTargetIsWrappedBackToItsTurn) {
+  Session s(20, 0.0);
+  const int ny = s.problem->frame_dim(), knee = TurnedKnee(s);
+  const int tx = s.nominal.FindCoordinate("pelvis_tx");
+  ASSERT_GE(knee, 0);
+  ASSERT_GE(tx, 0);
+  ASSERT_TRUE(s.problem->SetShared(s.p_true));
+  const Eigen::VectorXd target = s.x0.segment(5 * ny, ny);
+  Eigen::VectorXd y = target;
+  EXPECT_FALSE(s.problem->WrapFramePose(5, y.data()));
+  EXPECT_EQ((y - target).lpNorm<Eigen::Infinity>(), 0.0);
+  y[knee] += 2.0 * 2.0 * M_PI + 0.1;  // two turns and a bit
+  y[tx] += 0.5;
+  auto evaluator = s.problem->NewEvaluator();
+  ASSERT_TRUE(evaluator->Evaluate(5, y.data(), false));
+  std::vector<double> residuals;
+  for (int k = 0; k < evaluator->num_blocks(); ++k)
+    for (int r = 0; r < evaluator->block(k).rows; ++r) residuals.push_back(evaluator->block(k).residual[r]);
+  double wound = 0, wrapped = 0;
+  ASSERT_TRUE(solver::FrameSquaredNorm(*s.problem, evaluator.get(), 5, y.data(), &wound));
+  EXPECT_TRUE(s.problem->WrapFramePose(5, y.data()));
+  EXPECT_NEAR(y[knee], target[knee] + 0.1, 1e-12);
+  EXPECT_EQ(y[tx], target[tx] + 0.5);
+  ASSERT_TRUE(evaluator->Evaluate(5, y.data(), false));
+  size_t i = 0;
+  for (int k = 0; k < evaluator->num_blocks(); ++k)
+    for (int r = 0; r < evaluator->block(k).rows; ++r, ++i) {
+      ASSERT_LT(i, residuals.size());
+      EXPECT_NEAR(evaluator->block(k).residual[r], residuals[i], 1e-9) << "block " << k;
+    }
+  EXPECT_EQ(i, residuals.size());
+  ASSERT_TRUE(solver::FrameSquaredNorm(*s.problem, evaluator.get(), 5, y.data(), &wrapped));
+  EXPECT_LT(wrapped, wound);
+}
+
+// With CoarseToFineOptions::wrap_frame_turns, the rescue starts a frame from its neighbour's pose
+// on the frame's own turn: a neighbour wound a whole turn (its knee, which no marker tells from a
+// turn on) gives the rescued frame no turn.
+TEST(CoarseToFine, RescuedFrameKeepsItsOwnTurnWhenItsNeighbourIsWound) {
+  Session s(60, 0.0);
+  const int ny = s.problem->frame_dim(), knee = TurnedKnee(s);
+  Eigen::VectorXd x = WithRightLegTurned(s, 30, 31);
+  for (int f = 0; f < 60; ++f)
+    if (f != 30) x[f * ny + knee] += 2.0 * M_PI;  // both neighbours (every other frame): wound
+  solver::CoarseToFineOptions options;
+  options.wrap_frame_turns = true;
+  std::vector<double> costs;
+  EXPECT_GE(solver::RescueFramesFromNeighbours(s.problem.get(), options, 2, &x, &costs), 1);
+  EXPECT_NEAR(x[30 * ny + knee], s.z_true(30, knee), 0.01);
+}
