@@ -166,6 +166,14 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
       }
       checks.push_back(std::move(cj));
     }
+    nlohmann::json landmarks = nlohmann::json::array();
+    for (const LandmarkCheck& l : jt.landmarks)
+      landmarks.push_back({{"markers", {l.first, l.second}},
+                           {"trial", l.trial},
+                           {"frames", l.frames},
+                           {"centre_from_midpoint_mm", l.centre_from_midpoint_mm},
+                           {"generic_from_midpoint_mm", l.generic_from_midpoint_mm},
+                           {"far", l.far}});
     joints.push_back({{"joint", jt.joint},
                       {"type", ToString(jt.type)},
                       {"axis_joint", jt.axis_joint},
@@ -175,7 +183,8 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
                       {"undetermined", jt.undetermined},
                       {"best_trial", jt.best_check >= 0 ? nlohmann::json(jt.checks[jt.best_check].trial)
                                                         : nlohmann::json()},
-                      {"trials", std::move(checks)}});
+                      {"trials", std::move(checks)},
+                      {"landmarks", std::move(landmarks)}});
   }
   return joints;
 }

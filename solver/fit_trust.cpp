@@ -92,6 +92,85 @@ void CompareWithFunctional(const Model& fitted, const Geometry& g, int j, const 
   check->axis_line_distance_mm = 1000.0 * (off - off.dot(fun_axis) * fun_axis).norm();
 }
 
+// The landmark pair about joint j in `model`'s default pose (see the header): marker indices, or
+// {-1, -1}. `d` holds the default pose.
+std::pair<int, int> LandmarkPair(const Model& model, const Geometry& g, const ModelData& d, int j) {
+  const Joint& jt = model.joints()[j];
+  Eigen::Vector3d axis = Eigen::Vector3d::Zero();
+  for (size_t e = 0; e < jt.elements.size() && axis.isZero(); ++e)
+    if (jt.elements[e].kind == ElementKind::kRotation && !jt.elements[e].function.IsConstant())
+      axis = d.element_rotation[j][e] * g.axis[j][e];
+  if (axis.isZero()) return {-1, -1};
+  const Eigen::Vector3d centre = JointCentre(model, d, j);
+  std::vector<std::pair<int, Eigen::Vector3d>> near;
+  for (int m = 0; m < model.num_markers(); ++m) {
+    const int s = model.markers()[m].segment;
+    if (s != jt.parent && s != jt.child) continue;
+    const Eigen::Vector3d x = MarkerPosition(model, g, d, m);
+    if ((x - centre).norm() < 0.12) near.emplace_back(m, x);
+  }
+  std::pair<int, int> best{-1, -1};
+  double best_offset = 0.035;
+  for (size_t a = 0; a < near.size(); ++a)
+    for (size_t b = a + 1; b < near.size(); ++b) {
+      const Eigen::Vector3d v = near[b].second - near[a].second;
+      const double separation = v.norm();
+      if (separation < 0.05 || separation > 0.2 ||
+          std::abs(v.normalized().dot(axis.normalized())) < std::cos(M_PI / 6))
+        continue;
+      const double offset = (0.5 * (near[a].second + near[b].second) - centre).norm();
+      if (offset <= best_offset) best_offset = offset, best = {near[a].first, near[b].first};
+    }
+  return best;
+}
+
+// The fitted centre of joint j against the measured midpoint of the pair (indices into
+// `initial`'s markers, looked up by name in the trials). False when no trial sees both.
+bool MeasureLandmarks(const Model& initial, const Model& fitted, const FitResult& fit,
+                      const std::vector<FitTrial>& trials, int j, std::pair<int, int> pair,
+                      LandmarkCheck* check) {
+  check->first = initial.markers()[pair.first].name;
+  check->second = initial.markers()[pair.second].name;
+  const std::vector<std::string>& statics = fit.report.static_trials;
+  int chosen = -1, chosen_frames = 0;
+  bool chosen_static = false;
+  std::vector<std::pair<int, int>> columns(trials.size(), {-1, -1});
+  for (size_t t = 0; t < trials.size(); ++t) {
+    const formats::MarkerTrial& m = trials[t].markers;
+    const int ca = m.FindMarker(check->first), cb = m.FindMarker(check->second);
+    if (ca < 0 || cb < 0) continue;
+    columns[t] = {ca, cb};
+    int frames = 0;
+    for (int f = 0; f < m.num_frames(); ++f)
+      frames += m.positions.row(f).segment<3>(3 * ca).allFinite() && m.positions.row(f).segment<3>(3 * cb).allFinite();
+    const bool is_static = std::find(statics.begin(), statics.end(), m.name) != statics.end();
+    if (frames == 0) continue;
+    if (chosen < 0 || (is_static && !chosen_static) || (is_static == chosen_static && frames > chosen_frames))
+      chosen = static_cast<int>(t), chosen_frames = frames, chosen_static = is_static;
+  }
+  if (chosen < 0) return false;
+  const formats::MarkerTrial& m = trials[chosen].markers;
+  const auto [ca, cb] = columns[chosen];
+  const Geometry g(fitted);
+  ModelData d(fitted);
+  double sum = 0;
+  int n = 0;
+  for (int f = 0; f < m.num_frames(); ++f) {
+    const Eigen::Vector3d xa = m.positions.row(f).segment<3>(3 * ca).transpose();
+    const Eigen::Vector3d xb = m.positions.row(f).segment<3>(3 * cb).transpose();
+    const Eigen::VectorXd z = fit.coordinates[chosen].row(f).transpose();
+    if (!xa.allFinite() || !xb.allFinite() || !z.allFinite()) continue;
+    ForwardKinematics(fitted, g, z, &d);
+    sum += (JointCentre(fitted, d, j) - 0.5 * (xa + xb)).norm();
+    ++n;
+  }
+  if (n == 0) return false;
+  check->trial = m.name;
+  check->frames = n;
+  check->centre_from_midpoint_mm = 1000.0 * sum / n;
+  return true;
+}
+
 }  // namespace
 
 bool FitTrustOptions::IsValid(std::string* error) const {
@@ -100,8 +179,8 @@ bool FitTrustOptions::IsValid(std::string* error) const {
     if (error) *error = "functional: " + why;
     return false;
   }
-  if (!(far_mm > 0) || !(far_deg > 0)) {
-    if (error) *error = "far_mm and far_deg must be > 0";
+  if (!(far_mm > 0) || !(far_deg > 0) || !(far_landmark_mm > 0)) {
+    if (error) *error = "far_mm, far_deg and far_landmark_mm must be > 0";
     return false;
   }
   return true;
@@ -200,6 +279,16 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
           (jtr.best_check < 0 || check.frames > jtr.checks[jtr.best_check].frames))
         jtr.best_check = static_cast<int>(jtr.checks.size());
       jtr.checks.push_back(std::move(check));
+    }
+    if (const auto pair = LandmarkPair(initial, g_initial, d_initial, j); pair.first >= 0) {
+      LandmarkCheck lc;
+      if (MeasureLandmarks(initial, fitted, fit, trials, j, pair, &lc)) {
+        const Eigen::Vector3d mid = 0.5 * (MarkerPosition(initial, g_initial, d_initial, pair.first) +
+                                           MarkerPosition(initial, g_initial, d_initial, pair.second));
+        lc.generic_from_midpoint_mm = 1000.0 * (JointCentre(initial, d_initial, j) - mid).norm();
+        lc.far = lc.centre_from_midpoint_mm > lc.generic_from_midpoint_mm + options.far_landmark_mm;
+        jtr.landmarks.push_back(std::move(lc));
+      }
     }
     out.joints.push_back(std::move(jtr));
   }

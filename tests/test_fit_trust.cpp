@@ -3,6 +3,8 @@
 // known, on welk007's real hip trial through `mocap fit --report`, and the inputs it refuses.
 #include <gtest/gtest.h>
 
+#include <set>
+
 #include <filesystem>
 #include <nlohmann/json.hpp>
 
@@ -143,6 +145,53 @@ TEST(FitTrust, AMovedCentreShowsItsDistance) {
   std::printf("hip_r moved 10 mm: %.2f mm from SCoRE (was %.2f)\n", d1, d0);
   EXPECT_NEAR(d1, 10.0, d0 + 0.01);
   EXPECT_EQ(after.joints[0].checks[0].functional_std_mm, before.joints[0].checks[0].functional_std_mm);
+}
+
+// The landmark check (fit_trust.h): the knee's epicondyle markers are found by their geometry,
+// the fitted centre lies where the model puts it against their measured midpoint, and a centre
+// moved 40 mm is flagged far.
+TEST(FitTrust, KneeCentreAgainstItsEpicondyleMarkers) {
+  const SimulatedFit& fit = Fit();
+  solver::FitTrustOptions options;
+  options.joints = {"knee_r", "hip_r"};
+  solver::FitTrust trust;
+  ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &trust).ok());
+  EXPECT_TRUE(Joint(trust, "hip_r").landmarks.empty());  // no marker pair straddles a hip
+  const auto& knee = Joint(trust, "knee_r").landmarks;
+  ASSERT_EQ(knee.size(), 1u);
+  const std::set<std::string> pair = {knee[0].first, knee[0].second};
+  EXPECT_EQ(pair, (std::set<std::string>{"RKNE", "RKNM"}));
+  EXPECT_GT(knee[0].frames, 100);
+  // The simulated subject wears its markers off the nominal places (up to 10 mm): the fitted
+  // centre is where the truth has it against them, but for the centre's component along the
+  // knee's axis, which the fit holds at the model's (a hinge's convention the data cannot see;
+  // up to 15 mm in the truth, 3.6 mm here).
+  const Model& truth = fit.session.truth;
+  const Geometry g(truth);
+  ModelData d(truth);
+  ForwardKinematics(truth, g, truth.DefaultCoordinates(), &d);
+  const double true_offset_mm =
+      1000.0 * (JointCentre(truth, d, truth.FindJoint("knee_r")) -
+                0.5 * (MarkerPosition(truth, g, d, truth.FindMarker("RKNE")) +
+                       MarkerPosition(truth, g, d, truth.FindMarker("RKNM"))))
+                   .norm();
+  std::printf("knee_r: %.2f mm from its epicondyles' midpoint (the truth's offset %.2f mm, the nominal's %.2f mm)\n",
+              knee[0].centre_from_midpoint_mm, true_offset_mm, knee[0].generic_from_midpoint_mm);
+  EXPECT_NEAR(knee[0].centre_from_midpoint_mm, true_offset_mm, 5.0);
+  EXPECT_FALSE(knee[0].far);
+
+  solver::FitResult moved = fit.result;
+  const Model& m = fit.result.model;
+  const int j = m.FindJoint("knee_r");
+  Eigen::VectorXd p = m.InitialParameters();
+  p[m.centre_index(j) + 1] += 0.040 / p[m.scale_index(m.joints()[j].parent)];
+  ASSERT_TRUE(m.WithParameters(p, &moved.model).ok());
+  solver::FitTrust after;
+  ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, moved, fit.trials, options, &after).ok());
+  const auto& off = Joint(after, "knee_r").landmarks;
+  ASSERT_EQ(off.size(), 1u);
+  EXPECT_GT(off[0].centre_from_midpoint_mm, 40.0 - knee[0].centre_from_midpoint_mm - 0.5);
+  EXPECT_TRUE(off[0].far);
 }
 
 // Every joint by default; a segment with too few markers is a note, not an error.

@@ -77,6 +77,12 @@ formats::MarkerTrial JointCentreTrial(const Model& model, const formats::MarkerT
 
 void LogJointChecks(const solver::FitTrust& trust) {
   std::string never_excited, no_clusters;
+  for (const solver::JointTrust& j : trust.joints)
+    for (const solver::LandmarkCheck& l : j.landmarks)
+      spdlog::log(l.far ? spdlog::level::warn : spdlog::level::info,
+                  "{}: fitted centre {:.1f} mm from the midpoint of {} and {} on {} (the generic model's: {:.1f} mm){}",
+                  j.joint, l.centre_from_midpoint_mm, l.first, l.second, l.trial, l.generic_from_midpoint_mm,
+                  l.far ? ": the skeleton is off its landmarks there, more than the generic model puts it" : "");
   for (const solver::JointTrust& j : trust.joints) {
     const std::string generic = fmt::format("{:.1f} mm from the generic model's{}", j.from_generic_mm,
                                             j.centre_fitted ? fmt::format(" (fit sd {:.1f} mm)", j.fitted_std_mm)
