@@ -147,9 +147,11 @@
 // coordinates (velocities and accelerations zeroed, their covariance reset to the
 // initialisation's) only when it labels more of the limb's markers than the track does (or as
 // many, when it is placing a limb for a label outside its gate: see "Labelling"), their RMS
-// distance is within 3 cm, EVERY marker of the placement lies within its gate on its measurement
+// distance is within 3 cm, EVERY label the placement gives lies within its gate on its measurement
 // noise alone (gate_chi2 x the marker's variance: an RMS bound alone passes a marker put on a
-// ghost 3 cm away), no differently labelling restart comes within the init_ambiguity_margin
+// ghost 3 cm away; a label it keeps is not so held -- while the limb sat in the wrong pose, the
+// marker that held it there learnt the pose's error as its offset, and gated it refused the
+// placement that mends the limb), no differently labelling restart comes within the init_ambiguity_margin
 // log-likelihood margin, and no new label is on a point whose past is not rigid with the
 // marker's segment (as in the gating above: a lone finger marker's two wrist angles fit any point
 // at the right distance from the wrist). In the first second after a (re)initialisation the

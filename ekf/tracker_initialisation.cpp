@@ -557,12 +557,18 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place) {
   if (best_labelled < current || (best_labelled == current && !place)) return false;
   const double rms = std::sqrt(best_sum / best_labelled);
   if (!(rms <= kLimbMaxRms)) return false;
-  // Every marker of the placement, kept or new, within its own gate on the measurement noise
-  // alone (what it would be gated with once the limb's covariance has shrunk again): an RMS
-  // within kLimbMaxRms also passes a placement that puts one marker on a ghost 3 cm away.
+  // Every label the placement gives (a marker on a point it did not hold) within its own gate on
+  // the measurement noise alone (what it would be gated with once the limb's covariance has
+  // shrunk again): an RMS within kLimbMaxRms also passes a placement that puts one marker on a
+  // ghost 3 cm away. A label the placement keeps is not its decision, and is not held to that
+  // gate: while a limb sat in a wrong pose, the marker that kept it there learnt the pose's error
+  // as its offset (a heel marker holding a turned foot alone, 49.5 mm of offset), so its predicted
+  // place in the right pose is that far from its own point; gated, it refused the very placement
+  // that mends the limb (seed 24: 50 of its 63 refused searches, the toe left unlabelled for
+  // seconds). Kept labels count in the RMS above.
   LineariseLimb(joint, lbest);
   for (int m : rows)
-    if (lbest_assign[m] >= 0 &&
+    if (lbest_assign[m] >= 0 && lbest_assign[m] != row_to_col[m] &&
         (points.col(lbest_assign[m]) - predicted.col(m)).squaredNorm() >
             options.gate_chi2 * MeasurementVariance(m))
       return false;
