@@ -496,6 +496,13 @@ TEST(GlobalFit, SampleWeightsScaleResidualsAndJacobians) {
 }
 
 namespace {
+// `base` with its markers replaced by `markers`.
+Model WithMarkerList(const Model& base, const std::vector<Marker>& markers) {
+  Model out;
+  EXPECT_TRUE(Model::Build(base.name(), base.segments(), base.joints(), base.coordinates(), markers,
+                           base.derived_coordinates(), &out).ok());
+  return out;
+}
 // `base` with coordinate `name` clamped to [lo, hi] (OpenSim's <clamped>true</clamped>).
 Model WithClampedCoordinate(const Model& base, const std::string& name, double lo, double hi) {
   std::vector<Coordinate> coordinates = base.coordinates();
@@ -598,9 +605,7 @@ TEST(GlobalFit, StackedPlaceholderMarkersArePlacedOnTheirSegment) {
   ASSERT_EQ(nominal.markers()[thigh].segment, nominal.markers()[knee].segment);
   std::vector<Marker> markers = nominal.markers();
   markers[thigh].position = markers[knee].position = Eigen::Vector3d(0.0, -0.2, 0.0);
-  Model generic;
-  ASSERT_TRUE(Model::Build(nominal.name(), nominal.segments(), nominal.joints(), nominal.coordinates(), markers,
-                           nominal.derived_coordinates(), &generic).ok());
+  const Model generic = WithMarkerList(nominal, markers);
   std::vector<formats::MarkerTrial> data = {trials[0].markers};
   const std::vector<int> stacked = solver::StackedMarkers(generic, data, 1e-3);
   EXPECT_EQ(stacked, (std::vector<int>{std::min(thigh, knee), std::max(thigh, knee)}));
@@ -641,9 +646,7 @@ TEST(GlobalFit, ScalingWeighsDownAMarkerTheModelMisplaces) {
   const int tib = nominal.FindMarker("RTIB");
   ASSERT_GE(tib, 0);
   markers[tib].position += Eigen::Vector3d(0.0, 0.1, 0.0);
-  Model generic;
-  ASSERT_TRUE(Model::Build(nominal.name(), nominal.segments(), nominal.joints(), nominal.coordinates(), markers,
-                           nominal.derived_coordinates(), &generic).ok());
+  const Model generic = WithMarkerList(nominal, markers);
   solver::FitOptions options;
   options.scaling_marker_rounds = 5;
   solver::FitResult result;

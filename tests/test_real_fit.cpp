@@ -295,14 +295,22 @@ TEST(RealFit, Gait2354KneesInsideTheirMarkers) {
 // centre within 20 mm of its epicondyle markers' midpoint (the hand-scaled model with our IK: 12 /
 // 12 mm). Before the model's placeholders were placed, its clamped ranges kept and its landmark
 // markers weighed as such: 38 / 118 mm at a marker RMS of 5.3 mm; now 13 / 14 mm.
+namespace {
+// welk007's one-command fit, posed in its static trial: each joint's centre against the midpoint
+// of its two landmark markers, at most `bound_mm`.
+void ExpectWelkStaticInsideLandmarks(const std::vector<std::tuple<const char*, const char*, const char*>>& joints,
+                                     double bound_mm) {
+  ASSERT_FALSE(Welk().report.is_null());
+  const std::string centres = (Welk().dir / "c3d_Trimmed_static1.joint_centres.trc").string();
+  const std::string markers = SharedData() + "/welk007_hipfunc/derived_trc/c3d_Trimmed_static1.trc";
+  for (const auto& [joint, a, b] : joints)
+    EXPECT_LE(CentreFromMarkerMidpointMm(centres, markers, joint, a, b), bound_mm) << joint;
+}
+}  // namespace
+
 TEST(RealFit, Welk007KneesInsideTheirMarkers) {
   SKIP_WITHOUT_SHARED_DATA();
-  ASSERT_FALSE(Welk().report.is_null());
-  const std::string w = SharedData() + "/welk007_hipfunc/";
-  const std::string centres = (Welk().dir / "c3d_Trimmed_static1.joint_centres.trc").string();
-  const std::string markers = w + "derived_trc/c3d_Trimmed_static1.trc";
-  for (const auto& [joint, a, b] : {std::tuple{"walker_knee_r", "r_knee", "r_mknee"}, {"walker_knee_l", "L_knee", "L_mknee"}})
-    EXPECT_LE(CentreFromMarkerMidpointMm(centres, markers, joint, a, b), 20.0) << joint;
+  ExpectWelkStaticInsideLandmarks({{"walker_knee_r", "r_knee", "r_mknee"}, {"walker_knee_l", "L_knee", "L_mknee"}}, 20.0);
 }
 
 // NOT MET (last run: ankles 38 / 112 mm; before: 100 / 234 mm; the hand-scaled model with our IK:
@@ -311,12 +319,7 @@ TEST(RealFit, Welk007KneesInsideTheirMarkers) {
 // the left shank's markers (all free but the malleoli's 2 cm) turn with it.
 TEST(RealFit, DISABLED_Welk007AnklesInsideTheirMarkers) {
   SKIP_WITHOUT_SHARED_DATA();
-  ASSERT_FALSE(Welk().report.is_null());
-  const std::string w = SharedData() + "/welk007_hipfunc/";
-  const std::string centres = (Welk().dir / "c3d_Trimmed_static1.joint_centres.trc").string();
-  const std::string markers = w + "derived_trc/c3d_Trimmed_static1.trc";
-  for (const auto& [joint, a, b] : {std::tuple{"ankle_r", "r_ankle", "r_mankle"}, {"ankle_l", "L_ankle", "L_mankle"}})
-    EXPECT_LE(CentreFromMarkerMidpointMm(centres, markers, joint, a, b), 20.0) << joint;
+  ExpectWelkStaticInsideLandmarks({{"ankle_r", "r_ankle", "r_mankle"}, {"ankle_l", "L_ankle", "L_mankle"}}, 20.0);
 }
 
 // welk007's static trial alone from its generic model, one command (OpenSim's usual scaling
