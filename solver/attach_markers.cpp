@@ -213,4 +213,37 @@ Status PlaceMarkersOnTheirSegments(const Model& model, const std::vector<formats
                       model.derived_coordinates(), out);
 }
 
+std::pair<int, int> LandmarkPairAbout(const Model& model, int j) {
+  const Geometry g(model);
+  ModelData d(model);
+  ForwardKinematics(model, g, model.DefaultCoordinates(), &d);
+  const Joint& jt = model.joints()[j];
+  Eigen::Vector3d axis = Eigen::Vector3d::Zero();
+  for (size_t e = 0; e < jt.elements.size() && axis.isZero(); ++e)
+    if (jt.elements[e].kind == ElementKind::kRotation && !jt.elements[e].function.IsConstant())
+      axis = d.element_rotation[j][e] * g.axis[j][e];
+  if (axis.isZero()) return {-1, -1};
+  const Eigen::Vector3d centre = JointCentre(model, d, j);
+  std::vector<std::pair<int, Eigen::Vector3d>> near;
+  for (int m = 0; m < model.num_markers(); ++m) {
+    const int s = model.markers()[m].segment;
+    if (s != jt.parent && s != jt.child) continue;
+    const Eigen::Vector3d x = MarkerPosition(model, g, d, m);
+    if ((x - centre).norm() < 0.12) near.emplace_back(m, x);
+  }
+  std::pair<int, int> best{-1, -1};
+  double best_offset = 0.035;
+  for (size_t a = 0; a < near.size(); ++a)
+    for (size_t b = a + 1; b < near.size(); ++b) {
+      const Eigen::Vector3d v = near[b].second - near[a].second;
+      const double separation = v.norm();
+      if (separation < 0.05 || separation > 0.2 ||
+          std::abs(v.normalized().dot(axis.normalized())) < std::cos(M_PI / 6))
+        continue;
+      const double offset = (0.5 * (near[a].second + near[b].second) - centre).norm();
+      if (offset <= best_offset) best_offset = offset, best = {near[a].first, near[b].first};
+    }
+  return best;
+}
+
 }  // namespace mocap::solver

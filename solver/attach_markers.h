@@ -15,6 +15,7 @@
 
 #include <Eigen/Core>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "formats/marker_data.h"
@@ -98,5 +99,13 @@ struct PlacedMarker {
 Status PlaceMarkersOnTheirSegments(const Model& model, const std::vector<formats::MarkerTrial>& trials,
                                    const std::vector<Eigen::MatrixXd>& poses, const std::vector<Marker>& markers,
                                    const AttachOptions& options, Model* out, std::vector<PlacedMarker>* report);
+
+// The two landmark markers about joint j (the femoral epicondyles about a knee, the malleoli
+// about an ankle), found in the model's default pose by geometry, not by name (labs name them
+// every way): two markers of the joint's parent or child segment 5-20 cm apart, their line within
+// 30 deg of the joint's first rotation axis, their midpoint within 3.5 cm of its centre (gait2354's
+// ankle is 3.2 cm below its malleoli; its patellofemoral joint, 4.5 cm from the epicondyles, is
+// not theirs). Marker indices, or {-1, -1}.
+std::pair<int, int> LandmarkPairAbout(const Model& model, int j);
 
 }  // namespace mocap::solver

@@ -92,38 +92,6 @@ void CompareWithFunctional(const Model& fitted, const Geometry& g, int j, const 
   check->axis_line_distance_mm = 1000.0 * (off - off.dot(fun_axis) * fun_axis).norm();
 }
 
-// The landmark pair about joint j in `model`'s default pose (see the header): marker indices, or
-// {-1, -1}. `d` holds the default pose.
-std::pair<int, int> LandmarkPair(const Model& model, const Geometry& g, const ModelData& d, int j) {
-  const Joint& jt = model.joints()[j];
-  Eigen::Vector3d axis = Eigen::Vector3d::Zero();
-  for (size_t e = 0; e < jt.elements.size() && axis.isZero(); ++e)
-    if (jt.elements[e].kind == ElementKind::kRotation && !jt.elements[e].function.IsConstant())
-      axis = d.element_rotation[j][e] * g.axis[j][e];
-  if (axis.isZero()) return {-1, -1};
-  const Eigen::Vector3d centre = JointCentre(model, d, j);
-  std::vector<std::pair<int, Eigen::Vector3d>> near;
-  for (int m = 0; m < model.num_markers(); ++m) {
-    const int s = model.markers()[m].segment;
-    if (s != jt.parent && s != jt.child) continue;
-    const Eigen::Vector3d x = MarkerPosition(model, g, d, m);
-    if ((x - centre).norm() < 0.12) near.emplace_back(m, x);
-  }
-  std::pair<int, int> best{-1, -1};
-  double best_offset = 0.035;
-  for (size_t a = 0; a < near.size(); ++a)
-    for (size_t b = a + 1; b < near.size(); ++b) {
-      const Eigen::Vector3d v = near[b].second - near[a].second;
-      const double separation = v.norm();
-      if (separation < 0.05 || separation > 0.2 ||
-          std::abs(v.normalized().dot(axis.normalized())) < std::cos(M_PI / 6))
-        continue;
-      const double offset = (0.5 * (near[a].second + near[b].second) - centre).norm();
-      if (offset <= best_offset) best_offset = offset, best = {near[a].first, near[b].first};
-    }
-  return best;
-}
-
 // The fitted centre of joint j against the measured midpoint of the pair (indices into
 // `initial`'s markers, looked up by name in the trials). False when no trial sees both.
 bool MeasureLandmarks(const Model& initial, const Model& fitted, const FitResult& fit,
@@ -280,7 +248,7 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
         jtr.best_check = static_cast<int>(jtr.checks.size());
       jtr.checks.push_back(std::move(check));
     }
-    if (const auto pair = LandmarkPair(initial, g_initial, d_initial, j); pair.first >= 0) {
+    if (const auto pair = LandmarkPairAbout(initial, j); pair.first >= 0) {
       LandmarkCheck lc;
       if (MeasureLandmarks(initial, fitted, fit, trials, j, pair, &lc)) {
         const Eigen::Vector3d mid = 0.5 * (MarkerPosition(initial, g_initial, d_initial, pair.first) +

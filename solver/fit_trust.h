@@ -29,11 +29,7 @@
 // measured midpoint. Neither the marker RMS nor the functional checks (which compare in segment
 // frames) see a skeleton that slid out of its markers, and this is the first thing a lab sees in
 // a viewer: welk007's generic model once fitted at 5.3 mm RMS with a knee 12 cm from its
-// epicondyles. The pair is found in the generic model's default pose, not by name (labs name
-// them every way): two markers of the joint's parent or child segment 5-20 cm apart, their line
-// within 30 deg of the joint's first rotation axis, their midpoint within 3.5 cm of its centre
-// (gait2354's ankle is 3.2 cm below its malleoli; its patellofemoral joint, 4.5 cm from the
-// epicondyles, is not theirs).
+// epicondyles. The pair is the generic model's (solver/attach_markers.h, LandmarkPairAbout).
 // Measured on a static trial (report.static_trials) that has both, else on the trial with the
 // most frames that has both; the generic model's own offset (its centre from its two markers'
 // midpoint) is given beside it, since a model may put the joint off the landmarks' midpoint.
