@@ -209,13 +209,40 @@ TEST(RealFit, Gait2354OneCommandConvergesAndPlacesHipsAndKnees) {
     EXPECT_LE(CentreDifferenceMm(run, joint), 20.0) << joint;
 }
 
-// NOT MET (last run: 44.3 / 39.5 mm). The ankle is held where the scaled generic model puts it
-// (the walk moves it less than 10 deg RMS), so the difference is the tibia's scale: ours 1.08-1.09
-// from every tibia marker at its generic place, OpenSim's 0.989 from the knee-ankle marker
-// distance of its scale setup.
+// NOT MET, and a target this reference cannot set (last run: 44.3 / 39.5 mm). The ankle is held
+// where the scaled generic model puts it (the walk moves it less than 10 deg RMS), so the
+// difference is the tibia's scale: ours 1.09 / 1.08. OpenSim's 0.9885 is not measured:
+// subject01_Setup_Scale.xml runs `measurements manualScale` and its manual scale sets both tibiae
+// to 0.988523 after the knee-ankle marker pairs. The subject's own landmarks measure 443 / 426 mm
+// between the epicondyles' and the malleoli's midpoints in subject01_static.trc against 391 mm in
+// the generic model: 1.13 / 1.09, as our fit has it. The target we can defend is against those
+// landmarks: Gait2354AnklesAtTheirMalleoli.
 TEST(RealFit, DISABLED_Gait2354AnklesWithin20mmOfOpenSims) {
   SKIP_WITHOUT_SHARED_DATA();
   for (const char* joint : {"ankle_r", "ankle_l"}) EXPECT_LE(CentreDifferenceMm(Gait(), joint), 20.0) << joint;
+}
+
+// The ankles against the subject's malleoli instead of OpenSim's manually scaled tibiae (see
+// above): the report's landmark check (solver/fit_trust.h) on the static trial, each fitted ankle
+// no further from the malleoli's midpoint than 20 mm beyond the generic model's own offset (31.5
+// mm: gait2354 puts its ankle below its malleolus markers), and not flagged. Last run: 35.7 / 45.9
+// mm. Knees likewise (9.3 mm offset): 15.3 / 26.5 mm.
+TEST(RealFit, Gait2354AnklesAtTheirMalleoli) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const GaitRun& run = Gait();
+  ASSERT_FALSE(run.report.is_null());
+  int checked = 0;
+  for (const auto& j : run.report["joint_checks"]) {
+    const std::string joint = j["joint"];
+    if (joint != "ankle_r" && joint != "ankle_l" && joint != "knee_r" && joint != "knee_l") continue;
+    ASSERT_EQ(j["landmarks"].size(), 1u) << joint;
+    const auto& l = j["landmarks"][0];
+    EXPECT_EQ(l["trial"], "subject01_static") << joint;
+    EXPECT_LE(l["centre_from_midpoint_mm"].get<double>(), l["generic_from_midpoint_mm"].get<double>() + 20.0) << joint;
+    EXPECT_FALSE(l["far"].get<bool>()) << joint;
+    ++checked;
+  }
+  EXPECT_EQ(checked, 4);
 }
 
 namespace {
