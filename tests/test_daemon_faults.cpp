@@ -16,6 +16,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <random>
 #include <string>
 #include <thread>
@@ -61,7 +62,15 @@ constexpr int kRateDivisor = 8;
 constexpr int kRateDivisor = 1;
 #endif
 constexpr int kRigRateHz = 200 / kRateDivisor;  // the 8-camera rigs (1280 x 1024)
-constexpr int kSmallRigRateHz = 100 / kRateDivisor;  // 4 cameras, 640 x 512, calibrated 5 cm off
+// The light rigs (LightRig: 4 cameras, 640 x 512): a camera lost, a camera calibrated 5 cm off.
+// 100 Hz, not 200, because a simulated camera is only as punctual as its thread: Aravis's fake
+// sleeps to the first tick after it wakes, so a fake woken more than a period late skips a tick
+// (a set without that camera) that no real camera would skip. On the shared 2-core machine
+// other sessions' time slices (kernel.sched_autogroup_enabled: nice ranks tasks only within one
+// session, so neither a RESOURCE_LOCK nor nice keeps them off) delay a thread by 5-10 ms: at
+// 200 Hz cameras never unplugged missed 6-38 sets in 6 s, a third of the runs over 0.1 s of
+// sets; at 100 Hz none in 8 runs at load 9.
+constexpr int kLightRigRateHz = 100 / kRateDivisor;
 // A subscriber's queue: the default's 2 s of frames (400 at 200 Hz) at either rate.
 constexpr int kSubscriberQueueFrames = 400 / kRateDivisor;
 // Bounds on the time mocapd takes to do work (not on the rig's time): the ASan build's CPU work
@@ -76,6 +85,35 @@ constexpr double kSlowdown = 1;
 std::string RigToml(int cameras, int seed) {
   return "[rig]\nsimulated = " + std::to_string(cameras) + "\nsubject_seed = " + std::to_string(seed) +
          "\nrate = " + std::to_string(kRigRateHz) + "\n";
+}
+
+// The config ([rig] table) of simulated rig `ro` calibrated with its true cameras, written to
+// DIR/calib.json; `edit` may change the calibration first (a knocked camera). "" on failure. No
+// wand calibration: 10 s of CI time each, and a rig of 4 cameras cannot calibrate with the wand
+// (its L-frame's markers are not all seen by 3 cameras).
+std::string CalibratedLightRigToml(const std::string& dir, const sim::LiveRigOptions& ro,
+                                   const std::function<void(reconstruction::CalibrationFile*)>& edit = {}) {
+  std::unique_ptr<sim::LiveRig> rig;
+  if (!sim::LiveRig::Create(ro, &rig).ok()) return "";
+  reconstruction::CalibrationFile cal;
+  for (const auto& cam : rig->true_cameras()) cal.cameras.push_back({cam});
+  if (edit) edit(&cal);
+  if (!reconstruction::WriteCalibrationJson(dir + "/calib.json", cal).ok()) return "";
+  return "[rig]\nsimulated = " + std::to_string(ro.cameras) + "\nwidth = " + std::to_string(ro.width) +
+         "\nheight = " + std::to_string(ro.height) + "\nrate = " + std::to_string(static_cast<int>(ro.rate_hz)) +
+         "\nsubject_seed = " + std::to_string(ro.seed) + "\ncalibration = \"calib.json\"\n";
+}
+
+// A test of what a fault costs must not also measure how much spare CPU the machine has: the
+// 8-camera rig at 1280 x 1024 takes 0.7 of a core to render and detect, this one an eighth.
+sim::LiveRigOptions LightRig(double rate_hz, std::uint64_t seed) {
+  sim::LiveRigOptions ro;
+  ro.cameras = 4;
+  ro.width = 640;
+  ro.height = 512;
+  ro.rate_hz = rate_hz;
+  ro.seed = seed;
+  return ro;
 }
 
 double WallSeconds() {
@@ -261,33 +299,19 @@ TEST(DaemonFaults, DiskFullStopsTheRecordingNotTheRig) {
   EXPECT_EQ(d.Stop(), 0) << d.Log();
 }
 
-// A camera unplugged mid-recording and plugged back: the others go on recording, sets are
-// triangulated from the cameras left, status says so, the recording notes the gap, and the camera
-// is taken back within 2 s of its return without a restart.
 TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
   // The simulated rig's true calibration, written as the config's calibration file with camera 2
   // moved by 5 cm: what a knocked camera looks like to the daemon.
   const std::string dir = testing::MakeTempDir("mocapd-miscalibrated");
-  sim::LiveRigOptions ro;
-  ro.cameras = 4;
-  ro.width = 640;
-  ro.height = 512;
-  ro.rate_hz = kSmallRigRateHz;
-  ro.seed = 6;
-  std::vector<reconstruction::CameraModel> truth;
-  {
-    std::unique_ptr<sim::LiveRig> rig;
-    ASSERT_OK(sim::LiveRig::Create(ro, &rig));
-    truth = rig->true_cameras();
-  }
-  reconstruction::CalibrationFile cal;
-  for (const auto& cam : truth) cal.cameras.push_back({cam});
-  const Eigen::Vector3d moved(0.03, -0.03, 0.028);  // 5.0 cm
-  cal.cameras[2].camera.t -= cal.cameras[2].camera.R * moved;
-  ASSERT_OK(reconstruction::WriteCalibrationJson(dir + "/calib.json", cal));
-  DaemonProcess d(dir, "[rig]\nsimulated = 4\nwidth = 640\nheight = 512\nrate = " +
-                           std::to_string(kSmallRigRateHz) +
-                           "\nsubject_seed = 6\ncalibration = \"calib.json\"\n");
+  std::string knocked_id;
+  const std::string toml = CalibratedLightRigToml(dir, LightRig(kLightRigRateHz, 6),
+                                                  [&](reconstruction::CalibrationFile* cal) {
+    const Eigen::Vector3d moved(0.03, -0.03, 0.028);  // 5.0 cm
+    cal->cameras[2].camera.t -= cal->cameras[2].camera.R * moved;
+    knocked_id = cal->cameras[2].camera.id;
+  });
+  ASSERT_FALSE(toml.empty());
+  DaemonProcess d(dir, toml);
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> c;
   ASSERT_OK(d.Connect(&c));
@@ -301,7 +325,7 @@ TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
   std::printf("health %s\n", st["health"].dump().c_str());
   for (const json& cam : st["cameras"])
     std::printf("%s: reprojection %s px\n", cam["id"].get<std::string>().c_str(), cam["reprojection_px"].dump().c_str());
-  ASSERT_EQ(st["health"]["calibration_suspect"], json::array({truth[2].id})) << st.dump();
+  ASSERT_EQ(st["health"]["calibration_suspect"], json::array({knocked_id})) << st.dump();
   for (int cam = 0; cam < 4; ++cam) {
     const json& k = st["cameras"][cam];
     EXPECT_EQ(k["calibration_suspect"], cam == 2) << cam;
@@ -314,14 +338,23 @@ TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
   EXPECT_EQ(st["sets"]["dropped"], 0);
 }
 
+// A camera unplugged mid-recording and plugged back: the others go on recording, sets are
+// triangulated from the cameras left, status says so, the recording notes the gap, and the camera
+// is taken back within 2 s of its return without a restart.
+// On the light rig (CalibratedLightRigToml: 3 cameras left still see the subject).
 TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   const std::string dir = testing::MakeTempDir("mocapd-unplug");
-  DaemonProcess d(dir, RigToml(8, 5));
+  const std::string toml = CalibratedLightRigToml(dir, LightRig(kLightRigRateHz, 5));
+  ASSERT_FALSE(toml.empty());
+  DaemonProcess d(dir, toml);
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> c, other;
   ASSERT_OK(d.Connect(&c));
   ASSERT_OK(d.Connect(&other));
-  ASSERT_OK(testing::CalibrateRigAndSelectSubject(c.get(), 10, "S01"));
+  const json rig = Call(c.get(), "status")["rig"];
+  Call(c.get(), "subject.create", {{"name", "S01"}, {"height_m", rig["virtual_subject"]["height_m"]}});
+  Call(c.get(), "subject.select", {{"name", "S01"}});
+  std::this_thread::sleep_for(std::chrono::seconds(2));
   std::int64_t id = 0;
   ASSERT_OK(c->Send("record.start", {{"movement", "squats"}, {"duration_s", 6}}, &id));
   std::this_thread::sleep_for(std::chrono::seconds(1));
@@ -338,7 +371,7 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   double back_s = -1;
   while (std::chrono::steady_clock::now() - back_at < std::chrono::seconds(3)) {
     const json st = Call(other.get(), "status");
-    if (st["cameras"][3]["connected"] == true && st["cameras"][3]["frames"].get<std::uint64_t>() > frames_then + 0.1 * kRigRateHz) {
+    if (st["cameras"][3]["connected"] == true && st["cameras"][3]["frames"].get<std::uint64_t>() > frames_then + 0.1 * kLightRigRateHz) {
       back_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - back_at).count();
       break;
     }
@@ -359,11 +392,11 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   int unplugged = -1;
   for (std::size_t k = 0; k < gaps.size(); ++k) {
     if (gaps[k]["camera"] == "MOCAPSIM3") unplugged = static_cast<int>(k);
-    else EXPECT_LT(gaps[k]["missing_frames"].get<int>(), 0.1 * kRigRateHz) << gaps.dump();
+    else EXPECT_LT(gaps[k]["missing_frames"].get<int>(), 0.1 * kLightRigRateHz) << gaps.dump();
   }
   ASSERT_GE(unplugged, 0) << gaps.dump();
-  EXPECT_GT(gaps[unplugged]["missing_frames"].get<int>(), 1.25 * kRigRateHz) << gaps.dump();
-  EXPECT_LT(gaps[unplugged]["missing_frames"].get<int>(), kRigRateHz * 4) << gaps.dump();
+  EXPECT_GT(gaps[unplugged]["missing_frames"].get<int>(), 1.25 * kLightRigRateHz) << gaps.dump();
+  EXPECT_LT(gaps[unplugged]["missing_frames"].get<int>(), kLightRigRateHz * 4) << gaps.dump();
   EXPECT_NE(d.Log().find("MOCAPSIM3 missing from"), std::string::npos);
   // The recorder's commits were each followed by a WAL sync of its own (power-cut durability,
   // daemon/recorder.h), none failed.
