@@ -1462,8 +1462,8 @@ void Daemon::FitStart(const Request& r) {
   job_->thread = std::thread([this, r, cancel, fo, chosen, model, version, state_dir, subject, truth]() mutable {
     // The fit is batch work beside a live rig: it yields the CPU to the pipeline. Linux keeps
     // the nice value per thread and a thread's new threads inherit it, so the solver's workers
-    // run at nice kFitNice too (raising one's own nice needs no privilege; setpriority is in
-    // the unit's @system-service filter). At the default priority a fit on a 2-core capture PC
+    // run at nice kFitNice too (raising one's own nice needs no privilege; the unit lets
+    // setpriority through its filter, and starts mocapd at nice -10). At the default priority a fit on a 2-core capture PC
     // took the pipeline's CPU: bench/soak counted 1.2 % of frame sets dropped during fits.
     if (setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), kFitNice) != 0)
       spdlog::warn("fit: cannot lower its priority (nice {}): {}", kFitNice, std::strerror(errno));
