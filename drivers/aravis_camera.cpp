@@ -641,10 +641,25 @@ std::uint64_t AravisCamera::ResentPackets() const {
   return resent;
 }
 
+namespace {
+
+// A GigE Vision device reached over the loopback interface: Aravis's GigE fake on 127.0.0.1, which
+// a test runs beside mocapd. Aravis's packet socket (AF_PACKET) does not receive its stream there
+// (the tests saw no frame), ordinary sockets do; a real camera is never on loopback.
+bool OnLoopback(ArvDevice* device) {
+  if (!ARV_IS_GV_DEVICE(device)) return false;
+  GSocketAddress* address = arv_gv_device_get_device_address(ARV_GV_DEVICE(device));
+  return address != nullptr && G_IS_INET_SOCKET_ADDRESS(address) &&
+         g_inet_address_get_is_loopback(
+             g_inet_socket_address_get_address(G_INET_SOCKET_ADDRESS(address)));
+}
+
+}  // namespace
+
 Status AravisCamera::CreateStreamAndPool() {
   GError* e = nullptr;
   ArvDevice* device = arv_camera_get_device(camera_);
-  if (ARV_IS_GV_DEVICE(device) && options_.disable_packet_socket) {
+  if (ARV_IS_GV_DEVICE(device) && (options_.disable_packet_socket || OnLoopback(device))) {
     arv_gv_device_set_stream_options(ARV_GV_DEVICE(device),
                                      ARV_GV_STREAM_OPTION_PACKET_SOCKET_DISABLED);
   }

@@ -85,7 +85,7 @@ namespace mocap::drivers {
 struct AravisCameraOptions {
   int camera_index = -1;            // Frame::camera
   // GigE Vision: receive with ordinary sockets instead of Aravis's packet socket (needed without
-  // CAP_NET_RAW, and for the loopback fake camera).
+  // CAP_NET_RAW; a device on the loopback interface, the GigE fake, always gets them).
   bool disable_packet_socket = false;
   // GigE Vision: size the socket receive buffer to one payload (Aravis's "auto"), which avoids
   // most missing-packet frames on a busy host.

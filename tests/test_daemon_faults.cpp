@@ -25,6 +25,7 @@
 #include <gtest/gtest.h>
 
 #include "daemon/store.h"
+#include "drivers/aravis_fake.h"
 #include "formats/c3d.h"
 #include "reconstruction/calibration_file.h"
 #include "sim/live_rig.h"
@@ -405,6 +406,105 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
               storage["commit_ms_max"].get<double>(), storage["wal_sync_ms_max"].get<double>());
   EXPECT_GT(storage["wal_sync_ms_max"].get<double>(), 0.0) << storage.dump();
   EXPECT_EQ(storage["wal_sync_failures"], 0) << storage.dump();
+  EXPECT_EQ(d.Stop(), 0) << d.Log();
+}
+
+// A GigE Vision camera lost under the real mocapd (issue 17, item 2): Aravis's GigE fake on
+// loopback, run by this test, joins the light rig as its fifth camera (config.h: real cameras
+// listed after the fakes), over real GVCP/GVSP sockets. Stopped mid-recording (its GVCP answers
+// and stream packets stop, as when a cable is pulled: Aravis's heartbeat fails), then started
+// again. It draws no marker: what counts is that it streams, leaves and is taken back while
+// the other cameras go on.
+TEST(DaemonFaults, GigECameraStoppedMidRecordingIsNotedAndTakenBack) {
+  const std::string dir = testing::MakeTempDir("mocapd-gige-lost");
+  drivers::GvFakeCamera gige("MOCAPGV17", 4,
+                             [](int, std::uint64_t, std::uint8_t* data, int w, int h,
+                                std::ptrdiff_t stride, drivers::PixelFormat) {
+                               for (int y = 0; y < h; ++y) std::fill(data + y * stride, data + y * stride + w, 0);
+                             },
+                             640, 512);
+  ASSERT_OK(gige.Create(60));  // test_aravis_gige's fakes may hold 127.0.0.1 for a while
+  const sim::LiveRigOptions ro = LightRig(kLightRigRateHz, 7);
+  std::string toml = CalibratedLightRigToml(dir, ro, [&](reconstruction::CalibrationFile* cal) {
+    auto gige_camera = cal->cameras[0];  // any pose: it sees nothing
+    gige_camera.camera.id = gige.device_id();
+    cal->cameras.push_back(gige_camera);
+  });
+  ASSERT_FALSE(toml.empty());
+  // Jumbo packets on loopback (MTU 64 KiB): 40 packets a frame, not 220. A receive buffer of
+  // 4 MiB: with Aravis's "auto" (one payload) a descheduled stream thread lost every other
+  // frame whole at the socket, counted nowhere (status showed 51 of 100 fps, 0 incomplete).
+  toml += "packet_size = 8192\nsocket_buffer_bytes = 4194304\n";
+  for (int k = 0; k < ro.cameras; ++k) toml += "[[rig.camera]]\nid = \"MOCAPSIM" + std::to_string(k) + "\"\n";
+  toml += "[[rig.camera]]\nid = \"" + gige.device_id() + "\"\n";
+  DaemonProcess d(dir, toml);
+  ASSERT_OK(d.Start());
+  std::unique_ptr<ControlClient> c, other;
+  ASSERT_OK(d.Connect(&c));
+  ASSERT_OK(d.Connect(&other));
+  const int kGige = ro.cameras;
+  json st = Call(c.get(), "status");
+  ASSERT_EQ(st["cameras"].size(), static_cast<std::size_t>(ro.cameras + 1)) << st["cameras"].dump();
+  ASSERT_EQ(st["cameras"][kGige]["id"], gige.device_id());
+  Call(c.get(), "subject.create", {{"name", "S01"}, {"height_m", st["rig"]["virtual_subject"]["height_m"]}});
+  Call(c.get(), "subject.select", {{"name", "S01"}});
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  st = Call(c.get(), "status");
+  EXPECT_EQ(st["cameras"][kGige]["connected"], true) << st["cameras"][kGige].dump();
+  EXPECT_GT(st["cameras"][kGige]["frames"].get<double>(), kLightRigRateHz) << st["cameras"].dump();
+  std::int64_t id = 0;
+  ASSERT_OK(c->Send("record.start", {{"movement", "squats"}, {"duration_s", 10}}, &id));
+  std::this_thread::sleep_for(std::chrono::seconds(1));
+  gige.Destroy();
+  const auto gone_at = std::chrono::steady_clock::now();
+  double lost_s = -1;
+  while (std::chrono::steady_clock::now() - gone_at < std::chrono::seconds(8)) {
+    st = Call(other.get(), "status");
+    if (st["cameras"][kGige]["connected"] == false) {
+      lost_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - gone_at).count();
+      break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  std::printf("GigE camera noticed lost %.2f s after it stopped\n", lost_s);
+  ASSERT_GE(lost_s, 0) << "the stopped GigE camera still reads connected: " << st["cameras"].dump();
+  for (int k = 0; k < ro.cameras; ++k) EXPECT_EQ(st["cameras"][k]["connected"], true) << k;
+  EXPECT_EQ(st["tracker"]["state"], "tracking");
+  ASSERT_OK(gige.Create(10));
+  const auto back_at = std::chrono::steady_clock::now();
+  const std::uint64_t frames_then = st["cameras"][kGige]["frames"];
+  double back_s = -1;
+  while (std::chrono::steady_clock::now() - back_at < std::chrono::seconds(5)) {
+    st = Call(other.get(), "status");
+    if (st["cameras"][kGige]["connected"] == true &&
+        st["cameras"][kGige]["frames"].get<std::uint64_t>() > frames_then + 0.1 * kLightRigRateHz) {
+      back_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - back_at).count();
+      break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  std::printf("GigE camera streaming again %.2f s after its return\n", back_s);
+  EXPECT_GE(back_s, 0) << "the GigE camera was not taken back: " << st["cameras"].dump();
+  EXPECT_LE(back_s, 2.0);
+  ControlReply rec;
+  ASSERT_OK(c->Wait(id, &rec));
+  ASSERT_TRUE(rec.ok()) << rec.error_message;
+  EXPECT_GT(rec.result["tracking_fraction"].get<double>(), 0.95) << rec.result.dump().substr(0, 500);
+  // Its gap: from the stop to its first sets after the return, what the test measured (the loss
+  // takes Aravis's GigE heartbeat about 6 s to notice; the gap starts at the stop all the same)
+  // within 0.5 s; the others' gaps under 0.1 s of sets.
+  const json gaps = rec.result["camera_gaps"];
+  std::printf("camera gaps: %s\n", gaps.dump().c_str());
+  int lost = -1;
+  for (std::size_t k = 0; k < gaps.size(); ++k) {
+    if (gaps[k]["camera"] == gige.device_id()) lost = static_cast<int>(k);
+    else EXPECT_LT(gaps[k]["missing_frames"].get<int>(), 0.1 * kLightRigRateHz) << gaps.dump();
+  }
+  ASSERT_GE(lost, 0) << gaps.dump();
+  const double away_s = lost_s + back_s;
+  EXPECT_GT(gaps[lost]["missing_frames"].get<double>(), (away_s - 0.5) * kLightRigRateHz) << gaps.dump();
+  EXPECT_LT(gaps[lost]["missing_frames"].get<double>(), (away_s + 0.5) * kLightRigRateHz) << gaps.dump();
+  EXPECT_NE(d.Log().find(gige.device_id() + " missing from"), std::string::npos) << d.Log();
   EXPECT_EQ(d.Stop(), 0) << d.Log();
 }
 
