@@ -339,6 +339,42 @@ TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
   EXPECT_EQ(st["sets"]["dropped"], 0);
 }
 
+// Seconds from `since` until camera `k` streams again (connected, and 0.1 s of frames past
+// `frames_then`), polling `status` on `c` for up to `limit_s`; -1 if it did not. `last`: the
+// last status.
+double SecondsUntilStreaming(ControlClient* c, int k, std::uint64_t frames_then,
+                             std::chrono::steady_clock::time_point since, double limit_s, json* last) {
+  while (std::chrono::steady_clock::now() - since < std::chrono::duration<double>(limit_s)) {
+    *last = Call(c, "status");
+    if ((*last)["cameras"][k]["connected"] == true &&
+        (*last)["cameras"][k]["frames"].get<std::uint64_t>() > frames_then + 0.1 * kLightRigRateHz)
+      return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  return -1;
+}
+
+// The camera-loss tests' recording `id` on the light rig, once finished: tracked throughout,
+// the cameras not lost under 0.1 s of sets missed each (on a loaded machine any camera may
+// miss a stray set). Returns the lost camera's gap (null when it has none).
+json LostCameraGap(ControlClient* c, std::int64_t id, const std::string& lost_id) {
+  ControlReply rec;
+  if (Status s = c->Wait(id, &rec); !s.ok() || !rec.ok()) {
+    ADD_FAILURE() << "the recording: " << s.message() << rec.error_message;
+    return nullptr;
+  }
+  EXPECT_GT(rec.result["tracking_fraction"].get<double>(), 0.95) << rec.result.dump().substr(0, 500);
+  const json gaps = rec.result["camera_gaps"];
+  std::printf("camera gaps: %s\n", gaps.dump().c_str());
+  json lost;
+  for (const json& g : gaps) {
+    if (g["camera"] == lost_id) lost = g;
+    else EXPECT_LT(g["missing_frames"].get<int>(), 0.1 * kLightRigRateHz) << gaps.dump();
+  }
+  EXPECT_FALSE(lost.is_null()) << lost_id << " has no gap: " << gaps.dump();
+  return lost;
+}
+
 // A camera unplugged mid-recording and plugged back: the others go on recording, sets are
 // triangulated from the cameras left, status says so, the recording notes the gap, and the camera
 // is taken back within 2 s of its return without a restart.
@@ -369,35 +405,17 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   Call(other.get(), "sim.camera", {{"camera", 3}, {"present", true}});
   const auto back_at = std::chrono::steady_clock::now();
   const std::uint64_t frames_then = Call(other.get(), "status")["cameras"][3]["frames"];
-  double back_s = -1;
-  while (std::chrono::steady_clock::now() - back_at < std::chrono::seconds(3)) {
-    const json st = Call(other.get(), "status");
-    if (st["cameras"][3]["connected"] == true && st["cameras"][3]["frames"].get<std::uint64_t>() > frames_then + 0.1 * kLightRigRateHz) {
-      back_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - back_at).count();
-      break;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
+  json st;
+  const double back_s = SecondsUntilStreaming(other.get(), 3, frames_then, back_at, 3, &st);
   std::printf("camera 3 streaming again %.2f s after its return\n", back_s);
   EXPECT_GE(back_s, 0) << "the camera was not taken back";
   EXPECT_LE(back_s, 2.0);
-  ControlReply rec;
-  ASSERT_OK(c->Wait(id, &rec));
-  ASSERT_TRUE(rec.ok()) << rec.error_message;
-  EXPECT_GT(rec.result["tracking_fraction"].get<double>(), 0.95) << rec.result.dump().substr(0, 500);
   // The unplugged camera's gap: from the unplug to the first sets after its return, 1.5 s plus
-  // the reopen (more than 1.25 s, less than 4 s of sets). On a loaded machine any camera may miss
-  // a stray set or two: the others' gaps are noted too, and must stay under 0.1 s of sets.
-  const json gaps = rec.result["camera_gaps"];
-  std::printf("camera gaps: %s\n", gaps.dump().c_str());
-  int unplugged = -1;
-  for (std::size_t k = 0; k < gaps.size(); ++k) {
-    if (gaps[k]["camera"] == "MOCAPSIM3") unplugged = static_cast<int>(k);
-    else EXPECT_LT(gaps[k]["missing_frames"].get<int>(), 0.1 * kLightRigRateHz) << gaps.dump();
-  }
-  ASSERT_GE(unplugged, 0) << gaps.dump();
-  EXPECT_GT(gaps[unplugged]["missing_frames"].get<int>(), 1.25 * kLightRigRateHz) << gaps.dump();
-  EXPECT_LT(gaps[unplugged]["missing_frames"].get<int>(), kLightRigRateHz * 4) << gaps.dump();
+  // the reopen (more than 1.25 s, less than 4 s of sets).
+  const json gap = LostCameraGap(c.get(), id, "MOCAPSIM3");
+  ASSERT_FALSE(gap.is_null());
+  EXPECT_GT(gap["missing_frames"].get<int>(), 1.25 * kLightRigRateHz) << gap.dump();
+  EXPECT_LT(gap["missing_frames"].get<int>(), kLightRigRateHz * 4) << gap.dump();
   EXPECT_NE(d.Log().find("MOCAPSIM3 missing from"), std::string::npos);
   // The recorder's commits were each followed by a WAL sync of its own (power-cut durability,
   // daemon/recorder.h), none failed.
@@ -473,37 +491,18 @@ TEST(DaemonFaults, GigECameraStoppedMidRecordingIsNotedAndTakenBack) {
   ASSERT_OK(gige.Create(10));
   const auto back_at = std::chrono::steady_clock::now();
   const std::uint64_t frames_then = st["cameras"][kGige]["frames"];
-  double back_s = -1;
-  while (std::chrono::steady_clock::now() - back_at < std::chrono::seconds(5)) {
-    st = Call(other.get(), "status");
-    if (st["cameras"][kGige]["connected"] == true &&
-        st["cameras"][kGige]["frames"].get<std::uint64_t>() > frames_then + 0.1 * kLightRigRateHz) {
-      back_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - back_at).count();
-      break;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
+  const double back_s = SecondsUntilStreaming(other.get(), kGige, frames_then, back_at, 5, &st);
   std::printf("GigE camera streaming again %.2f s after its return\n", back_s);
   EXPECT_GE(back_s, 0) << "the GigE camera was not taken back: " << st["cameras"].dump();
   EXPECT_LE(back_s, 2.0);
-  ControlReply rec;
-  ASSERT_OK(c->Wait(id, &rec));
-  ASSERT_TRUE(rec.ok()) << rec.error_message;
-  EXPECT_GT(rec.result["tracking_fraction"].get<double>(), 0.95) << rec.result.dump().substr(0, 500);
   // Its gap: from the stop to its first sets after the return, what the test measured (the loss
   // takes Aravis's GigE heartbeat about 6 s to notice; the gap starts at the stop all the same)
-  // within 0.5 s; the others' gaps under 0.1 s of sets.
-  const json gaps = rec.result["camera_gaps"];
-  std::printf("camera gaps: %s\n", gaps.dump().c_str());
-  int lost = -1;
-  for (std::size_t k = 0; k < gaps.size(); ++k) {
-    if (gaps[k]["camera"] == gige.device_id()) lost = static_cast<int>(k);
-    else EXPECT_LT(gaps[k]["missing_frames"].get<int>(), 0.1 * kLightRigRateHz) << gaps.dump();
-  }
-  ASSERT_GE(lost, 0) << gaps.dump();
+  // within 0.5 s.
+  const json gap = LostCameraGap(c.get(), id, gige.device_id());
+  ASSERT_FALSE(gap.is_null());
   const double away_s = lost_s + back_s;
-  EXPECT_GT(gaps[lost]["missing_frames"].get<double>(), (away_s - 0.5) * kLightRigRateHz) << gaps.dump();
-  EXPECT_LT(gaps[lost]["missing_frames"].get<double>(), (away_s + 0.5) * kLightRigRateHz) << gaps.dump();
+  EXPECT_GT(gap["missing_frames"].get<double>(), (away_s - 0.5) * kLightRigRateHz) << gap.dump();
+  EXPECT_LT(gap["missing_frames"].get<double>(), (away_s + 0.5) * kLightRigRateHz) << gap.dump();
   EXPECT_NE(d.Log().find(gige.device_id() + " missing from"), std::string::npos) << d.Log();
   EXPECT_EQ(d.Stop(), 0) << d.Log();
 }
