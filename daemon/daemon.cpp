@@ -682,6 +682,7 @@ Json Daemon::CamerasJson() const {
                     {"fps", k.complete.load() / up},
                     {"incomplete", k.missing_packets.load() + k.size_mismatches.load()},
                     {"dropped", k.underruns.load()},
+                    {"not_received", k.not_received.load()},
                     {"losses", k.losses.load()},
                     {"nonfinite_centroids", h.nonfinite_centroids},
                     {"overfull_sets", h.overfull_sets},
@@ -1900,6 +1901,7 @@ Json Daemon::RigCheckJson() const {
     ci.size_mismatches = k.size_mismatches.load();
     ci.other_errors = k.other_errors.load() + k.wrong_format.load();
     ci.underruns = k.underruns.load();
+    ci.not_received = k.not_received.load();
     ci.timeouts = k.timeouts.load();
     ci.losses = k.losses.load();
     ci.reopens = k.reopens.load();

@@ -259,6 +259,14 @@ class AravisCamera final : public CameraSource {
   std::uint64_t last_sequence_ = 0;
   bool delivered_any_ = false;
   bool resume_sequence_ = false;
+  // CameraCounters::not_received: the frame ids skipped between two delivered frames of one
+  // stream, less those of the buffers in between that did arrive (incomplete, underruns).
+  // Aravis counts none of these (0.8.26: its n_missing_frames stayed 0 while a GigE fake's
+  // receive buffer lost half the frames whole).
+  bool id_gap_reference_ = false;  // a delivered frame of this stream to measure from
+  std::uint64_t id_gap_last_raw_ = 0;
+  std::uint64_t undelivered_since_ = 0;  // buffers popped and not delivered since it
+  std::uint64_t underruns_at_ = 0;       // counters_.underruns at it
 
   std::atomic<CameraState> state_{CameraState::kClosed};
   std::atomic<bool> lost_flag_{false};
