@@ -34,6 +34,7 @@
 #include <memory>
 #include <mutex>
 #include <set>
+#include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
@@ -67,6 +68,19 @@ long ProcStatusKb(pid_t pid, const std::string& key) {
   for (std::string line; std::getline(f, line);)
     if (line.rfind(key + ":", 0) == 0) return std::atol(line.c_str() + key.size() + 1);
   return -1;
+}
+
+// The nice value of `pid` (field 19 of /proc/PID/stat, after the parenthesised command name).
+int ProcNice(pid_t pid) {
+  std::ifstream f("/proc/" + std::to_string(pid) + "/stat");
+  std::string stat((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  const std::size_t close = stat.rfind(')');
+  if (close == std::string::npos) return 0;
+  std::istringstream fields(stat.substr(close + 2));
+  std::string field;
+  for (int k = 3; k <= 19 && fields >> field; ++k) {
+  }
+  return std::atoi(field.c_str());
 }
 
 int CountEntries(const std::string& dir) {
@@ -195,7 +209,11 @@ int main(int argc, char** argv) {
     }
   }
   const std::string dir = mocap::testing::MakeTempDir("mocapd-soak");
-  mocap::testing::DaemonProcess d(dir, mocap::testing::SimulatedRigToml(a.cameras, 1));
+  // The fit runs inside the daemon beside the live pipeline: on the 2-core capture PC its
+  // default (threads = 0, every core) would take both cores from the pipeline for the whole fit;
+  // one worker leaves a core to the cameras and the tracker (a lab's mocapd.toml does the same).
+  mocap::testing::DaemonProcess d(dir, mocap::testing::SimulatedRigToml(a.cameras, 1,
+                                                                        "[fit]\nthreads = 1\n"));
   std::unique_ptr<ControlClient> op, poller;
   if (mocap::Status s = mocap::testing::StartCalibratedSession(&d, &op, "soak", "soak", 3600 * 1000);
       !s || !(s = d.Connect(&poller)).ok()) {
@@ -291,9 +309,10 @@ int main(int argc, char** argv) {
   });
 
   std::printf("mocapd soak: %d simulated cameras x 200 Hz, %d subscribers, a recording every "
-              "%g min, a fit every %g min, %g min, a row every %g s\n",
+              "%g min, a fit every %g min ([fit] threads = 1), %g min, a row every %g s, "
+              "mocapd at nice %d, %ld cores\n",
               a.cameras, a.subscribers, a.record_every_min, a.fit_every_min, a.duration_min,
-              a.sample_s);
+              a.sample_s, ProcNice(d.pid()), sysconf(_SC_NPROCESSORS_ONLN));
   std::printf("| min | RSS MB | fds | threads | queue depth max in the interval (high-water since start): frames / detections / points / loop / recorder | latency p50 / p99 ms | daemon dropped: sets / loop / recorder | subscribers: frames missing / told dropped | load |\n");
   std::printf("|---|---|---|---|---|---|---|---|---|\n");
   std::fflush(stdout);

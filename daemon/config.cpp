@@ -329,11 +329,12 @@ bool Validate(const DaemonConfig& c, const ErrorFormatter& fail, std::string* er
     return set_error("rig", "a real rig needs at least one [[rig.camera]] (or simulated = N for "
                             "a simulated rig of N cameras)");
   if (c.simulated_cameras > 0 && !c.cameras.empty() &&
-      static_cast<int>(c.cameras.size()) != c.simulated_cameras)
+      static_cast<int>(c.cameras.size()) < c.simulated_cameras)
     return set_error("rig.camera", std::to_string(c.cameras.size()) +
                                        " cameras listed for a simulated rig of " +
                                        std::to_string(c.simulated_cameras) +
-                                       " (list none, or one per simulated camera)");
+                                       " (list none, or one per simulated camera, then the real "
+                                       "cameras that join it)");
   if (c.cameras.size() > 64)
     return set_error("rig.camera", std::to_string(c.cameras.size()) +
                                        " cameras; a rig has at most 64 (frame sets hold a "
@@ -348,6 +349,16 @@ bool Validate(const DaemonConfig& c, const ErrorFormatter& fail, std::string* er
     if (auto [it, added] = first_with_id.emplace(cam.id, i); !added)
       return set_error(prefix + ".id", "\"" + cam.id + "\" is also rig.camera[" +
                                            std::to_string(it->second) + "]'s id");
+    // After a simulated rig's fakes: a real camera joining it (config.h).
+    if (c.simulated_cameras > 0 && static_cast<int>(i) >= c.simulated_cameras) {
+      const std::string joins = "'" + cam.id + "', after the " + std::to_string(c.simulated_cameras) +
+                                " simulated cameras, joins the simulated rig as a real camera";
+      if (cam.backend != "aravis")
+        return set_error(prefix + ".backend", joins + ": backend \"aravis\", got \"" + cam.backend + "\"");
+      if (c.sync == "ptp")
+        return set_error(prefix + ".id", joins + ": rig.sync \"trigger\" or \"free-run\" (the fakes' PTP "
+                                                 "is simulated), got \"ptp\"");
+    }
     if (cam.exposure_us != 0 && !check_exposure(prefix + ".exposure_us", cam.exposure_us))
       return false;
     if (cam.interface != "usb3" && cam.usb_mode != "default")

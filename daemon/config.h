@@ -36,7 +36,10 @@
 //   packet_delay_ns = 0         # GigE: inter-packet delay (several cameras on one switch port)
 //   packet_resend = "always"    # GigE: "always" | "never" (Aravis's resend requests)
 //   socket_buffer_bytes = 0     # GigE: stream socket receive buffer (0: one payload, Aravis's auto)
-//   [[rig.camera]]              # one per camera (a simulated rig may omit them)
+//   [[rig.camera]]              # one per camera (a simulated rig may omit them; listed, the
+//                               # first `simulated` are its fakes, and any after them are real
+//                               # Aravis cameras that join it: a GigE Vision fake on loopback
+//                               # that a test stops. Such a rig needs [rig] calibration.)
 //   id = "Aravis-Fake-GV01"     # GenICam id or serial
 //   backend = "aravis"          # "aravis" | "simulated"
 //   exposure_us = 0             # 0: the rig's; gain_db = -1: the rig's; detection_threshold = 0: the rig's
@@ -86,6 +89,7 @@
 // defaults) and which need a
 // restart (the rig, the storage directory, the socket).
 #pragma once
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -131,6 +135,7 @@ struct DaemonConfig {
 
   // [rig]
   int simulated_cameras = 0;       // simulated = N: a simulated rig of N Aravis fake cameras
+                                   // (then cameras[N..] are real ones joining it)
   std::uint64_t subject_seed = 1;  // the simulated rig's virtual subject (as `mocap sim --seed`)
   double rate_hz = 200;
   int width = 1280, height = 1024;
@@ -186,7 +191,7 @@ struct DaemonConfig {
   int fit_coarse_frames = 800;
 
   int num_cameras() const {
-    return simulated_cameras > 0 ? simulated_cameras : static_cast<int>(cameras.size());
+    return std::max(simulated_cameras, static_cast<int>(cameras.size()));
   }
   // Every value in range and the values consistent with each other (exposure within the frame
   // period, masks within the image, camera ids unique, ...). The error names the key as the

@@ -233,7 +233,15 @@ Status Daemon::Start() {
       if (c >= 0 && c < config_.simulated_cameras) sim_rig_->fakes().SetPresent(c, false);
     cameras = sim_rig_->MakeCameras();
     camera_settings.assign(cameras.size(), settings);
-    start_cameras_ = sim_rig_->IntrinsicsOnly();
+    // Real cameras listed after the fakes join the rig (config.h): a GigE Vision fake on
+    // loopback that a test stops, to lose a camera over the network rather than by the hot-plug
+    // path. Their intrinsics come from the calibration file only (below).
+    for (std::size_t i = cameras.size(); i < config_.cameras.size(); ++i) {
+      cameras.push_back(std::make_unique<drivers::AravisCamera>(config_.cameras[i].id));
+      camera_settings.push_back(CameraSettingsOf(config_, static_cast<int>(i)));
+    }
+    if (static_cast<int>(cameras.size()) == config_.simulated_cameras)
+      start_cameras_ = sim_rig_->IntrinsicsOnly();
   } else {
     for (std::size_t i = 0; i < config_.cameras.size(); ++i) {
       cameras.push_back(std::make_unique<drivers::AravisCamera>(config_.cameras[i].id));
@@ -367,6 +375,9 @@ Status Daemon::Start() {
   if (start_cameras_.empty() && config_.simulated_cameras == 0)
     return Status::Error(config_.source +
                          ": a real rig needs [rig] calibration (at least the cameras' intrinsics)");
+  if (start_cameras_.empty() && config_.num_cameras() > config_.simulated_cameras)
+    return Status::Error(config_.source + ": a simulated rig that real cameras join needs [rig] "
+                                          "calibration (the real cameras' intrinsics)");
 
   // 5. The pipeline.
   LivePipelineOptions po;
@@ -671,6 +682,7 @@ Json Daemon::CamerasJson() const {
                     {"fps", k.complete.load() / up},
                     {"incomplete", k.missing_packets.load() + k.size_mismatches.load()},
                     {"dropped", k.underruns.load()},
+                    {"not_received", k.not_received.load()},
                     {"losses", k.losses.load()},
                     {"nonfinite_centroids", h.nonfinite_centroids},
                     {"overfull_sets", h.overfull_sets},
@@ -901,7 +913,9 @@ void Daemon::RigCalibrateFinish(const Request& r) {
   auto cancel = job_->cancel;
   std::vector<reconstruction::CameraModel> start = start_cameras_;
   std::vector<reconstruction::CameraModel> truth;
-  if (sim_rig_) truth = sim_rig_->true_cameras();
+  // The fakes' truth, when they are the whole rig (no real camera joined: config.h).
+  if (sim_rig_ && static_cast<int>(sim_rig_->true_cameras().size()) == pipeline_->num_cameras())
+    truth = sim_rig_->true_cameras();
   LivePipeline* pipeline = pipeline_.get();
   sim::LiveScene* scene = sim_rig_ ? &sim_rig_->scene() : nullptr;
   job_->thread = std::thread([this, r, cancel, start, truth, pipeline, scene,
@@ -1462,8 +1476,8 @@ void Daemon::FitStart(const Request& r) {
   job_->thread = std::thread([this, r, cancel, fo, chosen, model, version, state_dir, subject, truth]() mutable {
     // The fit is batch work beside a live rig: it yields the CPU to the pipeline. Linux keeps
     // the nice value per thread and a thread's new threads inherit it, so the solver's workers
-    // run at nice kFitNice too (raising one's own nice needs no privilege; setpriority is in
-    // the unit's @system-service filter). At the default priority a fit on a 2-core capture PC
+    // run at nice kFitNice too (raising one's own nice needs no privilege; the unit lets
+    // setpriority through its filter, and starts mocapd at nice -10). At the default priority a fit on a 2-core capture PC
     // took the pipeline's CPU: bench/soak counted 1.2 % of frame sets dropped during fits.
     if (setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), kFitNice) != 0)
       spdlog::warn("fit: cannot lower its priority (nice {}): {}", kFitNice, std::strerror(errno));
@@ -1804,7 +1818,7 @@ void Daemon::SimCamera(const Request& r) {
   bool present = true;
   std::string ptp_status;
   double ptp_offset_ns = 0;
-  if (!p.Int("camera", &camera, 0, pipeline_->num_cameras() - 1, true) || !p.Bool("present", &present) ||
+  if (!p.Int("camera", &camera, 0, config_.simulated_cameras - 1, true) || !p.Bool("present", &present) ||
       !p.String("ptp", &ptp_status, false) || !p.Number("ptp_offset_ns", &ptp_offset_ns, -1e12, 1e12, false))
     return Fail(r, error_code::kInvalidParams, p.error);
   if (p.Has("ptp")) {
@@ -1887,6 +1901,7 @@ Json Daemon::RigCheckJson() const {
     ci.size_mismatches = k.size_mismatches.load();
     ci.other_errors = k.other_errors.load() + k.wrong_format.load();
     ci.underruns = k.underruns.load();
+    ci.not_received = k.not_received.load();
     ci.timeouts = k.timeouts.load();
     ci.losses = k.losses.load();
     ci.reopens = k.reopens.load();

@@ -131,11 +131,19 @@ Status LivePipeline::SwapModel(std::shared_ptr<const Model> model, int version,
                                std::uint64_t* from_frame) {
   std::unique_lock<std::mutex> lock(request_mutex_);
   if (!running_) return Status::Error("the pipeline is not running");
-  request_ = {};
-  request_.pending = true;
-  request_.swap = true;
-  request_.model = std::move(model);
-  request_.version = version;
+  if (request_.pending && !request_.swap && request_.model) {
+    // subject.select's new tracker has not started yet (it starts at the next frame): the
+    // tracker starts on this model instead. Replacing the request would lose the select, and
+    // the swap would find no tracker ("no subject is being tracked") right after a select.
+    request_.model = std::move(model);
+    request_.version = version;
+  } else {
+    request_ = {};
+    request_.pending = true;
+    request_.swap = true;
+    request_.model = std::move(model);
+    request_.version = version;
+  }
   // A frame arrives every 5 ms; a second covers a descheduled tracking thread.
   if (!request_done_.wait_for(lock, std::chrono::seconds(2), [&] { return request_.done; })) {
     request_.pending = false;

@@ -119,7 +119,8 @@ class LivePipeline {
   void SetSubjectModel(std::shared_ptr<const Model> model, int version);
   // The tracker keeps its track and takes `model` between two frames (model.apply). Blocks until
   // the tracking thread has done it (at most a frame plus the swap) and says at which frame, or
-  // fails (another model's coordinates or markers, no tracker, timeout).
+  // fails (another model's coordinates or markers, no tracker, timeout). Right after
+  // SetSubjectModel (its tracker not started yet), the new tracker starts on `model` instead.
   Status SwapModel(std::shared_ptr<const Model> model, int version, std::uint64_t* from_frame);
 
   // Frames go to the recorder while on.

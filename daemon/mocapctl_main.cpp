@@ -352,7 +352,8 @@ void PrintRigCheck(const json& r) {
       line += "  " + Text(cs.value("role", json())) + ", count/timestamp mismatches " +
               Text(cs.value("count_mismatches", json()));
     line += "  frames " + Text(f.value("complete", json())) + ", incomplete " +
-            Text(f.value("incomplete", json())) + ", underruns " + Text(f.value("underruns", json()));
+            Text(f.value("incomplete", json())) + ", underruns " + Text(f.value("underruns", json())) +
+            ", not received " + Text(f.value("not_received", json()));
     if (c.value("packets", json()).is_object())
       line += ", packets resent " + Text(c["packets"].value("resent", json())) + " missing " +
               Text(c["packets"].value("missing", json()));

@@ -130,10 +130,11 @@ Json RigCheckReport(const RigCheckInput& in, const RigCheckOptions& options) {
     }
 
     const std::uint64_t incomplete = c.missing_packets + c.size_mismatches + c.other_errors;
-    const std::uint64_t lost = incomplete + c.underruns;
+    const std::uint64_t lost = incomplete + c.underruns + c.not_received;
     Json frames = {{"complete", c.complete},       {"incomplete", incomplete},
                    {"missing_packets", c.missing_packets}, {"size_mismatches", c.size_mismatches},
-                   {"underruns", c.underruns},     {"timeouts", c.timeouts},
+                   {"underruns", c.underruns},     {"not_received", c.not_received},
+                   {"timeouts", c.timeouts},
                    {"losses", c.losses},           {"reopens", c.reopens}};
     const double lost_fraction = c.complete > 0 ? static_cast<double>(lost) / c.complete : (lost > 0 ? 1.0 : 0.0);
     frames["lost_fraction"] = lost_fraction;
@@ -143,7 +144,8 @@ Json RigCheckReport(const RigCheckInput& in, const RigCheckOptions& options) {
            " s): check again once the rig has streamed");
     else if (lost_fraction > options.max_lost_frame_fraction)
       fail(std::to_string(lost) + " frames lost (" + std::to_string(incomplete) + " incomplete, " +
-           std::to_string(c.underruns) + " underruns) of " + std::to_string(c.complete) + ": " +
+           std::to_string(c.underruns) + " underruns, " + std::to_string(c.not_received) +
+           " not received) of " + std::to_string(c.complete) + ": " +
            Fixed(100 * lost_fraction, 2) + " %, above " +
            Fixed(100 * options.max_lost_frame_fraction, 2) + " %");
     Json packets = c.has_packet_statistics

@@ -42,7 +42,8 @@ struct RigCheckOptions {
   // (the sets gather frames within 0.45 of a period of each other: a fit uncertain by a quarter
   // of one leaves the grouping no margin).
   double max_clock_residual_periods = 0.25;
-  // Per camera: frames that did not arrive whole (incomplete buffers, underruns) beyond this
+  // Per camera: frames that did not arrive whole (incomplete buffers, underruns, frames not
+  // received at all) beyond this
   // fraction of its complete frames fail it.
   double max_lost_frame_fraction = 0.01;
   // trigger: sets whose members' timestamps disagreed, beyond this fraction of the sets, fail the
@@ -70,6 +71,7 @@ struct CameraCheckInput {
   bool streaming = false;
   std::uint64_t complete = 0, missing_packets = 0, size_mismatches = 0, other_errors = 0;
   std::uint64_t underruns = 0, timeouts = 0, losses = 0, reopens = 0;
+  std::uint64_t not_received = 0;  // whole frames (drivers::CameraCounters::not_received)
   // GigE Vision stream statistics (AravisCamera::PacketStatistics); absent elsewhere.
   bool has_packet_statistics = false;
   std::uint64_t resent_packets = 0, missing_stream_packets = 0;

@@ -33,7 +33,9 @@ drivers::CameraSettings CameraSettingsOf(const DaemonConfig& config, int camera)
   s.strobe_line = c.strobe_line;
   drivers::ParseUsbMode(c.usb_mode, &s.usb.mode);  // validated by the config
   s.usb.throughput_limit_mb_s = c.usb_throughput_limit_mb_s;
-  if (config.sync == "trigger" && c.id != config.trigger_master) {
+  // A simulated rig has no trigger line (its fakes expose on the host clock's ticks: "trigger"
+  // runs as shared-clock); a real camera joining it (config.h), Aravis's GigE fake, does the same.
+  if (config.sync == "trigger" && config.simulated_cameras == 0 && c.id != config.trigger_master) {
     s.trigger = drivers::TriggerMode::kHardwareLine;
     s.trigger_line = config.trigger_line;
   }

@@ -136,6 +136,7 @@ void AravisCamera::StartFreshStream(bool awaiting_device) {
   acquiring_ = false;
   state_ = awaiting_device ? CameraState::kLost : CameraState::kClosed;
   unwrapper_ = FrameIdUnwrapper();
+  id_gap_reference_ = false;
   delivered_any_ = false;
   resume_sequence_ = false;
   sequence_offset_ = 0;
@@ -641,10 +642,25 @@ std::uint64_t AravisCamera::ResentPackets() const {
   return resent;
 }
 
+namespace {
+
+// A GigE Vision device reached over the loopback interface: Aravis's GigE fake on 127.0.0.1, which
+// a test runs beside mocapd. Aravis's packet socket (AF_PACKET) does not receive its stream there
+// (the tests saw no frame), ordinary sockets do; a real camera is never on loopback.
+bool OnLoopback(ArvDevice* device) {
+  if (!ARV_IS_GV_DEVICE(device)) return false;
+  GSocketAddress* address = arv_gv_device_get_device_address(ARV_GV_DEVICE(device));
+  return address != nullptr && G_IS_INET_SOCKET_ADDRESS(address) &&
+         g_inet_address_get_is_loopback(
+             g_inet_socket_address_get_address(G_INET_SOCKET_ADDRESS(address)));
+}
+
+}  // namespace
+
 Status AravisCamera::CreateStreamAndPool() {
   GError* e = nullptr;
   ArvDevice* device = arv_camera_get_device(camera_);
-  if (ARV_IS_GV_DEVICE(device) && options_.disable_packet_socket) {
+  if (ARV_IS_GV_DEVICE(device) && (options_.disable_packet_socket || OnLoopback(device))) {
     arv_gv_device_set_stream_options(ARV_GV_DEVICE(device),
                                      ARV_GV_STREAM_OPTION_PACKET_SOCKET_DISABLED);
   }
@@ -717,6 +733,7 @@ std::uint64_t AravisCamera::StreamUnderruns() const {
   arv_stream_get_statistics(stream_, &completed, &failures, &underruns);
   return underruns;
 }
+
 
 void AravisCamera::TearDown(bool device_gone) {
   std::lock_guard<std::mutex> device_lock(device_mutex_);
@@ -836,6 +853,7 @@ Status AravisCamera::Reopen() {
     return s;
   }
   unwrapper_ = FrameIdUnwrapper();
+  id_gap_reference_ = false;  // a new stream counts its ids afresh
   resume_sequence_ = delivered_any_;
   awaiting_device_ = false;
   {
@@ -882,6 +900,7 @@ GrabResult AravisCamera::Grab(Frame* frame) {
   Slot* slot = nullptr;
   const GrabResult r = Classify(buffer, frame, &slot);
   if (r != GrabResult::kFrame) {
+    ++undelivered_since_;
     arv_stream_push_buffer(stream_, buffer);
     return r;
   }
@@ -933,6 +952,20 @@ GrabResult AravisCamera::Classify(ArvBuffer* buffer, Frame* frame, Slot** slot) 
 
   const std::uint16_t id = static_cast<std::uint16_t>(arv_buffer_get_frame_id(buffer) & 0xFFFFu);
   const std::uint64_t raw = unwrapper_.Next(id);
+  const std::uint64_t underruns = counters_.underruns.load();
+  if (id_gap_reference_ && raw > id_gap_last_raw_ + 1) {
+    // Each wrap of the 16-bit id passes an id 0 that GigE Vision 1.x cameras never send (the
+    // fakes go 65535 -> 1): not a frame lost. (A camera that does send 0 loses one per 65536
+    // from this count.)
+    const std::uint64_t wraps = (raw >> 16) - (id_gap_last_raw_ >> 16);
+    const std::uint64_t skipped = raw - id_gap_last_raw_ - 1 - std::min(wraps, raw - id_gap_last_raw_ - 1);
+    const std::uint64_t arrived = undelivered_since_ + (underruns - underruns_at_);
+    if (skipped > arrived) counters_.not_received += skipped - arrived;
+  }
+  id_gap_reference_ = true;
+  id_gap_last_raw_ = raw;
+  undelivered_since_ = 0;
+  underruns_at_ = underruns;
   if (resume_sequence_) {
     sequence_offset_ = last_sequence_ + 1 - raw;  // modular: continues after a reopen
     resume_sequence_ = false;

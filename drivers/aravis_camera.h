@@ -85,7 +85,7 @@ namespace mocap::drivers {
 struct AravisCameraOptions {
   int camera_index = -1;            // Frame::camera
   // GigE Vision: receive with ordinary sockets instead of Aravis's packet socket (needed without
-  // CAP_NET_RAW, and for the loopback fake camera).
+  // CAP_NET_RAW; a device on the loopback interface, the GigE fake, always gets them).
   bool disable_packet_socket = false;
   // GigE Vision: size the socket receive buffer to one payload (Aravis's "auto"), which avoids
   // most missing-packet frames on a busy host.
@@ -259,6 +259,14 @@ class AravisCamera final : public CameraSource {
   std::uint64_t last_sequence_ = 0;
   bool delivered_any_ = false;
   bool resume_sequence_ = false;
+  // CameraCounters::not_received: the frame ids skipped between two delivered frames of one
+  // stream, less those of the buffers in between that did arrive (incomplete, underruns).
+  // Aravis counts none of these (0.8.26: its n_missing_frames stayed 0 while a GigE fake's
+  // receive buffer lost half the frames whole).
+  bool id_gap_reference_ = false;  // a delivered frame of this stream to measure from
+  std::uint64_t id_gap_last_raw_ = 0;
+  std::uint64_t undelivered_since_ = 0;  // buffers popped and not delivered since it
+  std::uint64_t underruns_at_ = 0;       // counters_.underruns at it
 
   std::atomic<CameraState> state_{CameraState::kClosed};
   std::atomic<bool> lost_flag_{false};

@@ -80,6 +80,11 @@ struct CameraCounters {
   std::atomic<std::uint64_t> missing_packets{0};
   std::atomic<std::uint64_t> timeouts{0};
   std::atomic<std::uint64_t> underruns{0};
+  // Whole frames that never arrived: frame ids skipped within a stream (GigE Vision: every
+  // packet of the frame lost before the host took it, a receive buffer too small for a
+  // descheduled stream thread, a link dropping them). No buffer was handed out for them, so no
+  // other counter sees them. AravisCamera counts them; 0 for sources without frame ids.
+  std::atomic<std::uint64_t> not_received{0};
   std::atomic<std::uint64_t> size_mismatches{0};
   std::atomic<std::uint64_t> wrong_format{0};
   std::atomic<std::uint64_t> other_errors{0};

@@ -1,15 +1,20 @@
 // The capture pipeline (daemon/capture_pipeline.h) on in-process simulated cameras drawing the
 // simulated subject: points against the truth, a camera lost and back while the others go on,
-// a clean stop, bad options; and its bounded queue.
+// a clean stop, bad options; and its bounded queue. The live pipeline around it
+// (daemon/live_pipeline.h): subject.select's tracker and model.apply's swap, in order.
 #include <gtest/gtest.h>
 
 #include <chrono>
+#include <condition_variable>
 #include <memory>
+#include <mutex>
 #include <thread>
 
 #include "daemon/bounded_queue.h"
 #include "daemon/capture_pipeline.h"
+#include "daemon/live_pipeline.h"
 #include "drivers/simulated_camera.h"
+#include "model/default_model.h"
 #include "reconstruction/triangulation.h"
 #include "sim/camera_rig.h"
 #include "sim/reconstruction_score.h"
@@ -406,6 +411,71 @@ TEST(CapturePipeline, BadSetUpIsRefusedWithAReason) {
   const Status e = empty.Start();
   ASSERT_FALSE(e.ok());
   EXPECT_NE(e.message().find("no cameras"), std::string::npos) << e.message();
+}
+
+// subject.select then model.apply before the next frame (a lab selects a subject and applies
+// its model at once): the select's new tracker starts on the applied model. The frames are held
+// back (test_hold) until both requests are in, so the apply always finds the select pending;
+// before the fix it replaced the select and failed with "no subject is being tracked", and no
+// tracker ever started.
+TEST(LivePipeline, ModelAppliedRightAfterASelectStartsTheTrackerOnIt) {
+  std::mutex mutex;
+  std::condition_variable open_cv;
+  bool open = false;
+  daemon::LivePipelineOptions options;
+  options.capture.start_on_complete_set = false;
+  options.capture.test_hold = [&](const char* stage) {
+    if (std::string(stage) != "grab") return;
+    std::unique_lock<std::mutex> lock(mutex);
+    open_cv.wait(lock, [&] { return open; });
+  };
+  drivers::SimulatedCameraOptions co;
+  co.width = 64;
+  co.height = 48;
+  drivers::CameraSettings settings;
+  settings.frame_rate_hz = 100;
+  std::vector<std::unique_ptr<drivers::CameraSource>> cameras;
+  for (int c = 0; c < 2; ++c) {
+    auto cam = std::make_unique<drivers::SimulatedCamera>(
+        c, [](int, std::uint64_t, std::uint8_t* data, int w, int h, std::ptrdiff_t stride,
+              drivers::PixelFormat) {
+          for (int y = 0; y < h; ++y) std::fill(data + y * stride, data + y * stride + w, 0);
+        },
+        co);
+    ASSERT_TRUE(cam->Open(settings).ok());
+    cameras.push_back(std::move(cam));
+  }
+  daemon::LivePipeline live(std::move(cameras), options, [] {});
+  ASSERT_TRUE(live.Start().ok());
+  const Model full = DefaultFullBodyModel(1.7);
+  auto selected = std::make_shared<Model>(), applied = std::make_shared<Model>();
+  ASSERT_TRUE(full.WithMarkers(sim::SimulatedMarkers(full, false), selected.get()).ok());
+  *applied = *selected;
+  live.SetSubjectModel(selected, 1);
+  Status swapped = Status::Error("not returned");
+  std::uint64_t from_frame = 0;
+  std::thread apply([&] { swapped = live.SwapModel(applied, 2, &from_frame); });
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));  // the apply waits for a frame
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    open = true;
+  }
+  open_cv.notify_all();
+  apply.join();
+  EXPECT_TRUE(swapped.ok()) << swapped.message();
+  EXPECT_GT(from_frame, 0u);
+  daemon::LiveFrame frame;
+  const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  bool got = false;
+  while (!got && std::chrono::steady_clock::now() < until) {
+    got = live.PopFrame(&frame);
+    if (!got) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  ASSERT_TRUE(got) << "no frame from the live pipeline";
+  EXPECT_EQ(frame.model_version, 2);  // the applied model, not the selected one
+  EXPECT_GE(frame.tracker_state, 0) << "no tracker";
+  EXPECT_EQ(static_cast<int>(frame.markers.cols()), applied->num_markers());
+  live.Stop();
 }
 
 }  // namespace

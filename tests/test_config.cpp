@@ -279,7 +279,16 @@ TEST(Config, RigConsistency) {
                       "simulated rig of N cameras)");
   EXPECT_EQ(ParseError("[rig]\nsimulated = 2\n[[rig.camera]]\nid = \"a\"\n"),
             kSource + ":3: rig.camera: 1 cameras listed for a simulated rig of 2 (list none, or one "
-                      "per simulated camera)");
+                      "per simulated camera, then the real cameras that join it)");
+  // Cameras after the fakes join the rig as real ones: Aravis cameras, not under a simulated PTP.
+  EXPECT_EQ(ParseError("[rig]\nsimulated = 1\n[[rig.camera]]\nid = \"a\"\n[[rig.camera]]\nid = \"b\"\n"
+                       "backend = \"simulated\"\n"),
+            kSource + ":7: rig.camera[1].backend: 'b', after the 1 simulated cameras, joins the "
+                      "simulated rig as a real camera: backend \"aravis\", got \"simulated\"");
+  EXPECT_EQ(ParseError("[rig]\nsimulated = 1\nsync = \"ptp\"\n[[rig.camera]]\nid = \"a\"\n[[rig.camera]]\nid = \"b\"\n"),
+            kSource + ":7: rig.camera[1].id: 'b', after the 1 simulated cameras, joins the simulated "
+                      "rig as a real camera: rig.sync \"trigger\" or \"free-run\" (the fakes' PTP is "
+                      "simulated), got \"ptp\"");
   // Exposure against the rate whichever comes first in the file.
   EXPECT_EQ(ParseError("[rig]\nexposure_us = 900\nsimulated = 8\nrate = 1200\n"),
             kSource + ":2: rig.exposure_us: 900 us does not fit in the frame period of 833.333 us "

@@ -434,6 +434,11 @@ TEST(Daemon, ProtocolEveryRequestAndEveryError) {
   EXPECT_TRUE(call("subject.create", {{"name", "A"}, {"height_m", 1.7}}).ok());
   EXPECT_EQ(call("subject.select", {{"name", "B"}}).error_code, "not_found");
   EXPECT_TRUE(call("subject.select", {{"name", "A"}}).ok());
+  // Its model applied at once (the select's tracker starts at the next frame: the apply must not
+  // find "no subject is being tracked"; tests/test_capture_pipeline.cpp holds the frames back).
+  const ControlReply applied = call("model.apply", {});
+  EXPECT_TRUE(applied.ok()) << applied.error_message;
+  EXPECT_EQ(applied.result["version"], 1);
   EXPECT_EQ(call("subject.list", {}).result["subjects"].size(), 1u);
   EXPECT_EQ(call("record.start", {{"movement", "moonwalk"}}).error_code, "not_found");
   EXPECT_EQ(call("record.start", {{"movement", "squats"}}).error_code, "unavailable");  // uncalibrated

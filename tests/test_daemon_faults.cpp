@@ -16,6 +16,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <random>
 #include <string>
 #include <thread>
@@ -24,6 +25,7 @@
 #include <gtest/gtest.h>
 
 #include "daemon/store.h"
+#include "drivers/aravis_fake.h"
 #include "formats/c3d.h"
 #include "reconstruction/calibration_file.h"
 #include "sim/live_rig.h"
@@ -61,7 +63,15 @@ constexpr int kRateDivisor = 8;
 constexpr int kRateDivisor = 1;
 #endif
 constexpr int kRigRateHz = 200 / kRateDivisor;  // the 8-camera rigs (1280 x 1024)
-constexpr int kSmallRigRateHz = 100 / kRateDivisor;  // 4 cameras, 640 x 512, calibrated 5 cm off
+// The light rigs (LightRig: 4 cameras, 640 x 512): a camera lost, a camera calibrated 5 cm off.
+// 100 Hz, not 200, because a simulated camera is only as punctual as its thread: Aravis's fake
+// sleeps to the first tick after it wakes, so a fake woken more than a period late skips a tick
+// (a set without that camera) that no real camera would skip. On the shared 2-core machine
+// other sessions' time slices (kernel.sched_autogroup_enabled: nice ranks tasks only within one
+// session, so neither a RESOURCE_LOCK nor nice keeps them off) delay a thread by 5-10 ms: at
+// 200 Hz cameras never unplugged missed 6-38 sets in 6 s, a third of the runs over 0.1 s of
+// sets; at 100 Hz none in 8 runs at load 9.
+constexpr int kLightRigRateHz = 100 / kRateDivisor;
 // A subscriber's queue: the default's 2 s of frames (400 at 200 Hz) at either rate.
 constexpr int kSubscriberQueueFrames = 400 / kRateDivisor;
 // Bounds on the time mocapd takes to do work (not on the rig's time): the ASan build's CPU work
@@ -76,6 +86,35 @@ constexpr double kSlowdown = 1;
 std::string RigToml(int cameras, int seed) {
   return "[rig]\nsimulated = " + std::to_string(cameras) + "\nsubject_seed = " + std::to_string(seed) +
          "\nrate = " + std::to_string(kRigRateHz) + "\n";
+}
+
+// The config ([rig] table) of simulated rig `ro` calibrated with its true cameras, written to
+// DIR/calib.json; `edit` may change the calibration first (a knocked camera). "" on failure. No
+// wand calibration: 10 s of CI time each, and a rig of 4 cameras cannot calibrate with the wand
+// (its L-frame's markers are not all seen by 3 cameras).
+std::string CalibratedLightRigToml(const std::string& dir, const sim::LiveRigOptions& ro,
+                                   const std::function<void(reconstruction::CalibrationFile*)>& edit = {}) {
+  std::unique_ptr<sim::LiveRig> rig;
+  if (!sim::LiveRig::Create(ro, &rig).ok()) return "";
+  reconstruction::CalibrationFile cal;
+  for (const auto& cam : rig->true_cameras()) cal.cameras.push_back({cam});
+  if (edit) edit(&cal);
+  if (!reconstruction::WriteCalibrationJson(dir + "/calib.json", cal).ok()) return "";
+  return "[rig]\nsimulated = " + std::to_string(ro.cameras) + "\nwidth = " + std::to_string(ro.width) +
+         "\nheight = " + std::to_string(ro.height) + "\nrate = " + std::to_string(static_cast<int>(ro.rate_hz)) +
+         "\nsubject_seed = " + std::to_string(ro.seed) + "\ncalibration = \"calib.json\"\n";
+}
+
+// A test of what a fault costs must not also measure how much spare CPU the machine has: the
+// 8-camera rig at 1280 x 1024 takes 0.7 of a core to render and detect, this one an eighth.
+sim::LiveRigOptions LightRig(double rate_hz, std::uint64_t seed) {
+  sim::LiveRigOptions ro;
+  ro.cameras = 4;
+  ro.width = 640;
+  ro.height = 512;
+  ro.rate_hz = rate_hz;
+  ro.seed = seed;
+  return ro;
 }
 
 double WallSeconds() {
@@ -261,33 +300,19 @@ TEST(DaemonFaults, DiskFullStopsTheRecordingNotTheRig) {
   EXPECT_EQ(d.Stop(), 0) << d.Log();
 }
 
-// A camera unplugged mid-recording and plugged back: the others go on recording, sets are
-// triangulated from the cameras left, status says so, the recording notes the gap, and the camera
-// is taken back within 2 s of its return without a restart.
 TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
   // The simulated rig's true calibration, written as the config's calibration file with camera 2
   // moved by 5 cm: what a knocked camera looks like to the daemon.
   const std::string dir = testing::MakeTempDir("mocapd-miscalibrated");
-  sim::LiveRigOptions ro;
-  ro.cameras = 4;
-  ro.width = 640;
-  ro.height = 512;
-  ro.rate_hz = kSmallRigRateHz;
-  ro.seed = 6;
-  std::vector<reconstruction::CameraModel> truth;
-  {
-    std::unique_ptr<sim::LiveRig> rig;
-    ASSERT_OK(sim::LiveRig::Create(ro, &rig));
-    truth = rig->true_cameras();
-  }
-  reconstruction::CalibrationFile cal;
-  for (const auto& cam : truth) cal.cameras.push_back({cam});
-  const Eigen::Vector3d moved(0.03, -0.03, 0.028);  // 5.0 cm
-  cal.cameras[2].camera.t -= cal.cameras[2].camera.R * moved;
-  ASSERT_OK(reconstruction::WriteCalibrationJson(dir + "/calib.json", cal));
-  DaemonProcess d(dir, "[rig]\nsimulated = 4\nwidth = 640\nheight = 512\nrate = " +
-                           std::to_string(kSmallRigRateHz) +
-                           "\nsubject_seed = 6\ncalibration = \"calib.json\"\n");
+  std::string knocked_id;
+  const std::string toml = CalibratedLightRigToml(dir, LightRig(kLightRigRateHz, 6),
+                                                  [&](reconstruction::CalibrationFile* cal) {
+    const Eigen::Vector3d moved(0.03, -0.03, 0.028);  // 5.0 cm
+    cal->cameras[2].camera.t -= cal->cameras[2].camera.R * moved;
+    knocked_id = cal->cameras[2].camera.id;
+  });
+  ASSERT_FALSE(toml.empty());
+  DaemonProcess d(dir, toml);
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> c;
   ASSERT_OK(d.Connect(&c));
@@ -301,7 +326,7 @@ TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
   std::printf("health %s\n", st["health"].dump().c_str());
   for (const json& cam : st["cameras"])
     std::printf("%s: reprojection %s px\n", cam["id"].get<std::string>().c_str(), cam["reprojection_px"].dump().c_str());
-  ASSERT_EQ(st["health"]["calibration_suspect"], json::array({truth[2].id})) << st.dump();
+  ASSERT_EQ(st["health"]["calibration_suspect"], json::array({knocked_id})) << st.dump();
   for (int cam = 0; cam < 4; ++cam) {
     const json& k = st["cameras"][cam];
     EXPECT_EQ(k["calibration_suspect"], cam == 2) << cam;
@@ -314,14 +339,59 @@ TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
   EXPECT_EQ(st["sets"]["dropped"], 0);
 }
 
+// Seconds from `since` until camera `k` streams again (connected, and 0.1 s of frames past
+// `frames_then`), polling `status` on `c` for up to `limit_s`; -1 if it did not. `last`: the
+// last status.
+double SecondsUntilStreaming(ControlClient* c, int k, std::uint64_t frames_then,
+                             std::chrono::steady_clock::time_point since, double limit_s, json* last) {
+  while (std::chrono::steady_clock::now() - since < std::chrono::duration<double>(limit_s)) {
+    *last = Call(c, "status");
+    if ((*last)["cameras"][k]["connected"] == true &&
+        (*last)["cameras"][k]["frames"].get<std::uint64_t>() > frames_then + 0.1 * kLightRigRateHz)
+      return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  return -1;
+}
+
+// The camera-loss tests' recording `id` on the light rig, once finished: tracked throughout,
+// the cameras not lost under 0.1 s of sets missed each (on a loaded machine any camera may
+// miss a stray set). Returns the lost camera's gap (null when it has none).
+json LostCameraGap(ControlClient* c, std::int64_t id, const std::string& lost_id) {
+  ControlReply rec;
+  if (Status s = c->Wait(id, &rec); !s.ok() || !rec.ok()) {
+    ADD_FAILURE() << "the recording: " << s.message() << rec.error_message;
+    return nullptr;
+  }
+  EXPECT_GT(rec.result["tracking_fraction"].get<double>(), 0.95) << rec.result.dump().substr(0, 500);
+  const json gaps = rec.result["camera_gaps"];
+  std::printf("camera gaps: %s\n", gaps.dump().c_str());
+  json lost;
+  for (const json& g : gaps) {
+    if (g["camera"] == lost_id) lost = g;
+    else EXPECT_LT(g["missing_frames"].get<int>(), 0.1 * kLightRigRateHz) << gaps.dump();
+  }
+  EXPECT_FALSE(lost.is_null()) << lost_id << " has no gap: " << gaps.dump();
+  return lost;
+}
+
+// A camera unplugged mid-recording and plugged back: the others go on recording, sets are
+// triangulated from the cameras left, status says so, the recording notes the gap, and the camera
+// is taken back within 2 s of its return without a restart.
+// On the light rig (CalibratedLightRigToml: 3 cameras left still see the subject).
 TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   const std::string dir = testing::MakeTempDir("mocapd-unplug");
-  DaemonProcess d(dir, RigToml(8, 5));
+  const std::string toml = CalibratedLightRigToml(dir, LightRig(kLightRigRateHz, 5));
+  ASSERT_FALSE(toml.empty());
+  DaemonProcess d(dir, toml);
   ASSERT_OK(d.Start());
   std::unique_ptr<ControlClient> c, other;
   ASSERT_OK(d.Connect(&c));
   ASSERT_OK(d.Connect(&other));
-  ASSERT_OK(testing::CalibrateRigAndSelectSubject(c.get(), 10, "S01"));
+  const json rig = Call(c.get(), "status")["rig"];
+  Call(c.get(), "subject.create", {{"name", "S01"}, {"height_m", rig["virtual_subject"]["height_m"]}});
+  Call(c.get(), "subject.select", {{"name", "S01"}});
+  std::this_thread::sleep_for(std::chrono::seconds(2));
   std::int64_t id = 0;
   ASSERT_OK(c->Send("record.start", {{"movement", "squats"}, {"duration_s", 6}}, &id));
   std::this_thread::sleep_for(std::chrono::seconds(1));
@@ -335,35 +405,17 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
   Call(other.get(), "sim.camera", {{"camera", 3}, {"present", true}});
   const auto back_at = std::chrono::steady_clock::now();
   const std::uint64_t frames_then = Call(other.get(), "status")["cameras"][3]["frames"];
-  double back_s = -1;
-  while (std::chrono::steady_clock::now() - back_at < std::chrono::seconds(3)) {
-    const json st = Call(other.get(), "status");
-    if (st["cameras"][3]["connected"] == true && st["cameras"][3]["frames"].get<std::uint64_t>() > frames_then + 0.1 * kRigRateHz) {
-      back_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - back_at).count();
-      break;
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
+  json st;
+  const double back_s = SecondsUntilStreaming(other.get(), 3, frames_then, back_at, 3, &st);
   std::printf("camera 3 streaming again %.2f s after its return\n", back_s);
   EXPECT_GE(back_s, 0) << "the camera was not taken back";
   EXPECT_LE(back_s, 2.0);
-  ControlReply rec;
-  ASSERT_OK(c->Wait(id, &rec));
-  ASSERT_TRUE(rec.ok()) << rec.error_message;
-  EXPECT_GT(rec.result["tracking_fraction"].get<double>(), 0.95) << rec.result.dump().substr(0, 500);
   // The unplugged camera's gap: from the unplug to the first sets after its return, 1.5 s plus
-  // the reopen (more than 1.25 s, less than 4 s of sets). On a loaded machine any camera may miss
-  // a stray set or two: the others' gaps are noted too, and must stay under 0.1 s of sets.
-  const json gaps = rec.result["camera_gaps"];
-  std::printf("camera gaps: %s\n", gaps.dump().c_str());
-  int unplugged = -1;
-  for (std::size_t k = 0; k < gaps.size(); ++k) {
-    if (gaps[k]["camera"] == "MOCAPSIM3") unplugged = static_cast<int>(k);
-    else EXPECT_LT(gaps[k]["missing_frames"].get<int>(), 0.1 * kRigRateHz) << gaps.dump();
-  }
-  ASSERT_GE(unplugged, 0) << gaps.dump();
-  EXPECT_GT(gaps[unplugged]["missing_frames"].get<int>(), 1.25 * kRigRateHz) << gaps.dump();
-  EXPECT_LT(gaps[unplugged]["missing_frames"].get<int>(), kRigRateHz * 4) << gaps.dump();
+  // the reopen (more than 1.25 s, less than 4 s of sets).
+  const json gap = LostCameraGap(c.get(), id, "MOCAPSIM3");
+  ASSERT_FALSE(gap.is_null());
+  EXPECT_GT(gap["missing_frames"].get<int>(), 1.25 * kLightRigRateHz) << gap.dump();
+  EXPECT_LT(gap["missing_frames"].get<int>(), kLightRigRateHz * 4) << gap.dump();
   EXPECT_NE(d.Log().find("MOCAPSIM3 missing from"), std::string::npos);
   // The recorder's commits were each followed by a WAL sync of its own (power-cut durability,
   // daemon/recorder.h), none failed.
@@ -372,6 +424,103 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
               storage["commit_ms_max"].get<double>(), storage["wal_sync_ms_max"].get<double>());
   EXPECT_GT(storage["wal_sync_ms_max"].get<double>(), 0.0) << storage.dump();
   EXPECT_EQ(storage["wal_sync_failures"], 0) << storage.dump();
+  EXPECT_EQ(d.Stop(), 0) << d.Log();
+}
+
+// A GigE Vision camera lost under the real mocapd (issue 17, item 2): Aravis's GigE fake on
+// loopback, run by this test, joins the light rig as its fifth camera (config.h: real cameras
+// listed after the fakes), over real GVCP/GVSP sockets. Stopped mid-recording (its GVCP answers
+// and stream packets stop, as when a cable is pulled: Aravis's heartbeat fails), then started
+// again. It draws no marker: what counts is that it streams, leaves and is taken back while
+// the other cameras go on.
+TEST(DaemonFaults, GigECameraStoppedMidRecordingIsNotedAndTakenBack) {
+  const std::string dir = testing::MakeTempDir("mocapd-gige-lost");
+  drivers::GvFakeCamera gige("MOCAPGV17", 4,
+                             [](int, std::uint64_t, std::uint8_t* data, int w, int h,
+                                std::ptrdiff_t stride, drivers::PixelFormat) {
+                               for (int y = 0; y < h; ++y) std::fill(data + y * stride, data + y * stride + w, 0);
+                             },
+                             640, 512);
+  ASSERT_OK(gige.Create(60));  // test_aravis_gige's fakes may hold 127.0.0.1 for a while
+  const sim::LiveRigOptions ro = LightRig(kLightRigRateHz, 7);
+  std::string toml = CalibratedLightRigToml(dir, ro, [&](reconstruction::CalibrationFile* cal) {
+    auto gige_camera = cal->cameras[0];  // any pose: it sees nothing
+    gige_camera.camera.id = gige.device_id();
+    cal->cameras.push_back(gige_camera);
+  });
+  ASSERT_FALSE(toml.empty());
+  // Jumbo packets on loopback (MTU 64 KiB): 40 packets a frame, not 220. A receive buffer of
+  // 4 MiB: with Aravis's "auto" (one payload) a descheduled stream thread lost up to every other
+  // frame whole at the socket (51-85 of 100 fps delivered; counted `not_received` since), and
+  // the lost camera's gap would not be the time it was away.
+  toml += "packet_size = 8192\nsocket_buffer_bytes = 4194304\n";
+  for (int k = 0; k < ro.cameras; ++k) toml += "[[rig.camera]]\nid = \"MOCAPSIM" + std::to_string(k) + "\"\n";
+  toml += "[[rig.camera]]\nid = \"" + gige.device_id() + "\"\n";
+  DaemonProcess d(dir, toml);
+  ASSERT_OK(d.Start());
+  std::unique_ptr<ControlClient> c, other;
+  ASSERT_OK(d.Connect(&c));
+  ASSERT_OK(d.Connect(&other));
+  const int kGige = ro.cameras;
+  json st = Call(c.get(), "status");
+  ASSERT_EQ(st["cameras"].size(), static_cast<std::size_t>(ro.cameras + 1)) << st["cameras"].dump();
+  ASSERT_EQ(st["cameras"][kGige]["id"], gige.device_id());
+  Call(c.get(), "subject.create", {{"name", "S01"}, {"height_m", st["rig"]["virtual_subject"]["height_m"]}});
+  Call(c.get(), "subject.select", {{"name", "S01"}});
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  st = Call(c.get(), "status");
+  EXPECT_EQ(st["cameras"][kGige]["connected"], true) << st["cameras"][kGige].dump();
+  EXPECT_GT(st["cameras"][kGige]["frames"].get<double>(), kLightRigRateHz) << st["cameras"].dump();
+  {
+    // Every frame the fake sent in a second is in `status`: delivered, incomplete, dropped or
+    // not received (whole frames lost before mocapd took them: drivers/camera_source.h).
+    auto counted = [&](const json& cam) {
+      return cam["frames"].get<double>() + cam["incomplete"].get<double>() + cam["dropped"].get<double>() +
+             cam["not_received"].get<double>();
+    };
+    const double sent0 = static_cast<double>(gige.FramesDrawn());
+    const double counted0 = counted(Call(c.get(), "status")["cameras"][kGige]);
+    std::this_thread::sleep_for(std::chrono::seconds(1));
+    const double sent1 = static_cast<double>(gige.FramesDrawn());
+    st = Call(c.get(), "status");
+    std::printf("GigE camera: %.0f frames sent in 1 s, %.0f counted (%s)\n", sent1 - sent0,
+                counted(st["cameras"][kGige]) - counted0, st["cameras"][kGige].dump().c_str());
+    EXPECT_NEAR(counted(st["cameras"][kGige]) - counted0, sent1 - sent0, 3);
+  }
+  std::int64_t id = 0;
+  ASSERT_OK(c->Send("record.start", {{"movement", "squats"}, {"duration_s", 10}}, &id));
+  std::this_thread::sleep_for(std::chrono::seconds(1));
+  gige.Destroy();
+  const auto gone_at = std::chrono::steady_clock::now();
+  double lost_s = -1;
+  while (std::chrono::steady_clock::now() - gone_at < std::chrono::seconds(8)) {
+    st = Call(other.get(), "status");
+    if (st["cameras"][kGige]["connected"] == false) {
+      lost_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - gone_at).count();
+      break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  std::printf("GigE camera noticed lost %.2f s after it stopped\n", lost_s);
+  ASSERT_GE(lost_s, 0) << "the stopped GigE camera still reads connected: " << st["cameras"].dump();
+  for (int k = 0; k < ro.cameras; ++k) EXPECT_EQ(st["cameras"][k]["connected"], true) << k;
+  EXPECT_EQ(st["tracker"]["state"], "tracking");
+  ASSERT_OK(gige.Create(10));
+  const auto back_at = std::chrono::steady_clock::now();
+  const std::uint64_t frames_then = st["cameras"][kGige]["frames"];
+  const double back_s = SecondsUntilStreaming(other.get(), kGige, frames_then, back_at, 5, &st);
+  std::printf("GigE camera streaming again %.2f s after its return\n", back_s);
+  EXPECT_GE(back_s, 0) << "the GigE camera was not taken back: " << st["cameras"].dump();
+  EXPECT_LE(back_s, 2.0);
+  // Its gap: from the stop to its first sets after the return, what the test measured (the loss
+  // takes Aravis's GigE heartbeat about 6 s to notice; the gap starts at the stop all the same)
+  // within 0.5 s.
+  const json gap = LostCameraGap(c.get(), id, gige.device_id());
+  ASSERT_FALSE(gap.is_null());
+  const double away_s = lost_s + back_s;
+  EXPECT_GT(gap["missing_frames"].get<double>(), (away_s - 0.5) * kLightRigRateHz) << gap.dump();
+  EXPECT_LT(gap["missing_frames"].get<double>(), (away_s + 0.5) * kLightRigRateHz) << gap.dump();
+  EXPECT_NE(d.Log().find(gige.device_id() + " missing from"), std::string::npos) << d.Log();
   EXPECT_EQ(d.Stop(), 0) << d.Log();
 }
 

@@ -107,7 +107,7 @@ TEST(Mocapctl, CamerasCheckPrintsTheReportAndExits5WhenItFails) {
       {"cameras", {{{"id", "cam0"}, {"ok", true}, {"problems", json::array()}, {"link", "nic0"},
                     {"sync", {{"mode", "free-run"}, {"offset_from_rig_ms", 3.0004}, {"clock_drift_ppm", 99.87},
                               {"clock_residual_us", 17.2}}},
-                    {"frames", {{"complete", 2000}, {"incomplete", 1}, {"underruns", 0}}},
+                    {"frames", {{"complete", 2000}, {"incomplete", 1}, {"underruns", 0}, {"not_received", 3}}},
                     {"packets", {{"resent", 4}, {"missing", 5}}}}}},
       {"links", {{{"link", "nic0"}, {"interface", "gige"}, {"cameras", {"cam0"}}, {"capacity_mb_s", 125.0},
                   {"needed_mb_s", 110.25}, {"headroom_mb_s", 14.75}, {"ok", true}}}},
@@ -119,7 +119,7 @@ TEST(Mocapctl, CamerasCheckPrintsTheReportAndExits5WhenItFails) {
   EXPECT_EQ(ok.status, 0) << ok.err;
   EXPECT_THAT(ok.out, HasSubstr("sync: free-run\n"));
   EXPECT_THAT(ok.out, HasSubstr("cam0  ok    offset 3.000 ms from the rig, drift 99.9 ppm, residual 17 us  "
-                                "frames 2000, incomplete 1, underruns 0, packets resent 4 missing 5\n"));
+                                "frames 2000, incomplete 1, underruns 0, not received 3, packets resent 4 missing 5\n"));
   EXPECT_THAT(ok.out, HasSubstr("link nic0 (gige, 1 cameras): needs 110.2 of 125.0 MB/s, headroom 14.8 MB/s\n"));
   EXPECT_THAT(ok.out, HasSubstr("rig check: ok\n"));
   report["ok"] = false;

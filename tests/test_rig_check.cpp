@@ -274,7 +274,7 @@ TEST(RigCheck, VerdictsFollowTheFiguresAndNameWhatFails) {
   EXPECT_EQ(r["ok"], false);
   ASSERT_EQ(r["problems"].size(), 2u) << r["problems"].dump();
   EXPECT_THAT(r["problems"][0].get<std::string>(), HasSubstr("camera 'c1': clock fit residual 1300 us exceeds 1250 us"));
-  EXPECT_THAT(r["problems"][1].get<std::string>(), HasSubstr("camera 'c2': 21 frames lost (0 incomplete, 21 underruns) of 2000"));
+  EXPECT_THAT(r["problems"][1].get<std::string>(), HasSubstr("camera 'c2': 21 frames lost (0 incomplete, 21 underruns, 0 not received) of 2000"));
   EXPECT_EQ(r["cameras"][0]["ok"], true);
   in.cameras[2].underruns = 20;  // exactly 1 %: passes
   in.cameras[1].clock_residual_us = 1250;
