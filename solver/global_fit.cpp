@@ -941,10 +941,12 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
   // FitOptions::place_stacked_markers: the first stage without them, placed after it.
   std::vector<Marker> stacked;
   Model unstacked;
+  // Every trial's markers, for the steps that read them beside the poses (placement, attachment).
+  std::vector<formats::MarkerTrial> trial_markers;
+  for (const FitTrial& t : trials) trial_markers.push_back(t.markers);
   if (options.place_stacked_markers) {
-    std::vector<formats::MarkerTrial> markers;
-    for (const FitTrial& t : trials) markers.push_back(t.markers);
-    const std::vector<int> stacked_index = StackedMarkers(initial, markers, options.stacked_marker_tolerance_m);
+    const std::vector<int> stacked_index =
+        StackedMarkers(initial, trial_markers, options.stacked_marker_tolerance_m);
     if (!stacked_index.empty()) {
       std::vector<int> keep;
       for (int m = 0; m < initial.num_markers(); ++m)
@@ -1036,19 +1038,15 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
     if (stage.markers) effective_sigma_m = EffectiveMarkerSigma(options, out.report);
     placed = std::move(out);
     if (!stacked.empty()) {
-      std::vector<formats::MarkerTrial> markers;
-      for (const FitTrial& t : trials) markers.push_back(t.markers);
       Model with_placed;
-      MOCAP_RETURN_IF_ERROR(PlaceMarkersOnTheirSegments(placed.model, markers, placed.coordinates, stacked,
+      MOCAP_RETURN_IF_ERROR(PlaceMarkersOnTheirSegments(placed.model, trial_markers, placed.coordinates, stacked,
                                                         options.attach, &with_placed, &placed_markers));
       placed.model = std::move(with_placed);
       stacked.clear();
     }
     if (stage.scales && options.attach_trial_markers) {
-      std::vector<formats::MarkerTrial> markers;
-      for (const FitTrial& t : trials) markers.push_back(t.markers);
       Model with_extra;
-      MOCAP_RETURN_IF_ERROR(AttachTrialMarkers(placed.model, markers, placed.coordinates,
+      MOCAP_RETURN_IF_ERROR(AttachTrialMarkers(placed.model, trial_markers, placed.coordinates,
                                                options.attach, &with_extra, &attached));
       placed.model = std::move(with_extra);
     }

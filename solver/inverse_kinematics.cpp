@@ -69,25 +69,23 @@ InverseKinematics::InverseKinematics(const Model& model, const Geometry& geometr
   llt_ = Eigen::LLT<Eigen::MatrixXd>(nz);
   jtr_.resize(nz);
   jz_.resize(3, model.max_chain_coordinates());
-  if (options_.coordinate_limit_stiffness > 0)
-    for (int c = 0; c < nz; ++c) {
-      const Coordinate& co = model.coordinates()[c];
-      // Not the root joint's: it places the model in the lab (see MarkerFitProblem).
-      const bool root = co.joint >= 0 && model.joints()[co.joint].parent < 0;
-      if (co.clamped && !root && co.max_value - co.min_value < 1e8) limited_.push_back(c);
-    }
+  if (options_.coordinate_limit_stiffness > 0) limited_ = LimitedCoordinates(model);
 }
 
-namespace {
-double LimitExcess(const Coordinate& co, double q) {
-  return q > co.max_value ? q - co.max_value : (q < co.min_value ? q - co.min_value : 0.0);
+std::vector<int> LimitedCoordinates(const Model& model) {
+  std::vector<int> out;
+  for (int c = 0; c < model.num_coordinates(); ++c) {
+    const Coordinate& co = model.coordinates()[c];
+    const bool root = co.joint >= 0 && model.joints()[co.joint].parent < 0;
+    if (co.clamped && !root && co.max_value - co.min_value < 1e8) out.push_back(c);
+  }
+  return out;
 }
-}  // namespace
 
 double InverseKinematics::LimitCost(const Eigen::VectorXd& z) const {
   double sum = 0;
   for (int c : limited_) {
-    const double e = options_.coordinate_limit_stiffness * LimitExcess(model_.coordinates()[c], z[c]);
+    const double e = options_.coordinate_limit_stiffness * RangeExcess(model_.coordinates()[c], z[c]);
     sum += e * e;
   }
   return sum;
@@ -143,7 +141,7 @@ IkFrameResult InverseKinematics::Solve(const Eigen::Matrix3Xd& measured, Eigen::
     }
     for (int c : limited_) {
       const double k = options_.coordinate_limit_stiffness;
-      const double e = LimitExcess(model_.coordinates()[c], (*z)[c]);
+      const double e = RangeExcess(model_.coordinates()[c], (*z)[c]);
       if (e == 0.0) continue;
       jtr_[c] += k * k * e;
       jtj_(c, c) += k * k;

@@ -49,6 +49,16 @@ std::vector<char> PeriodicCoordinates(const Model& model);
 void WrapPeriodicCoordinates(const Model& model, const std::vector<char>& periodic, const Eigen::VectorXd& reference,
                              Eigen::VectorXd* z);
 
+// The coordinates whose range is a limit the pose must keep: clamped (Coordinate::clamped) with a
+// finite range, and not of the root joint, which places the model in the lab, whose axes are
+// the lab's, not the model's ground's (a Z-up lab puts pelvis_list near 90 deg). Shared by the
+// IK's wall and the global fit's (MarkerFitProblem::coordinate_limits).
+std::vector<int> LimitedCoordinates(const Model& model);
+// How far q lies beyond coordinate co's range (signed; 0 inside).
+inline double RangeExcess(const Coordinate& co, double q) {
+  return q > co.max_value ? q - co.max_value : (q < co.min_value ? q - co.min_value : 0.0);
+}
+
 class InverseKinematics {
  public:
   InverseKinematics(const Model& model, const Geometry& geometry, IkOptions options = IkOptions());

@@ -90,8 +90,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     const auto& limits = problem_.coordinate_limits();
     for (size_t i = 0; i < limits.size(); ++i) {
       const auto& lim = limits[i];
-      const double q = y[lim.coordinate];
-      const double excess = q > lim.max_value ? q - lim.max_value : (q < lim.min_value ? q - lim.min_value : 0.0);
+      const double excess = RangeExcess(problem_.model().coordinates()[lim.coordinate], y[lim.coordinate]);
       if (excess == 0.0) continue;
       double* r = residual_.data() + 3 * num_blocks_;
       r[0] = lim.weight * excess;
@@ -244,14 +243,11 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
   block_kind_.assign(nm, -1);
   for (int m = 0; m < nm; ++m)
     if (observed_[m]) block_kind_[m] = first_limit_kind_++;
-  for (int c = 0; c < model.num_coordinates(); ++c) {
+  for (int c : LimitedCoordinates(model)) {
     const Coordinate& co = model.coordinates()[c];
     const double sigma = co.rotational ? options.coordinate_limit_sigma_rad : options.coordinate_limit_sigma_m;
-    if (!co.clamped || !(sigma > 0) || !(co.max_value - co.min_value < 1e8)) continue;
-    // The root joint places the model in the lab, whose axes are the lab's, not the model's
-    // ground's (a Z-up lab puts pelvis_list near 90 deg): its range says nothing of the body.
-    if (co.joint >= 0 && model.joints()[co.joint].parent < 0) continue;
-    limits_.push_back({c, co.min_value, co.max_value, 1.0 / sigma});
+    if (!(sigma > 0)) continue;
+    limits_.push_back({c, 1.0 / sigma});
     limit_columns_.push_back({c});
   }
   free_index_.assign(model.num_parameters(), -1);

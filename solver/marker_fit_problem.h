@@ -92,8 +92,8 @@ class MarkerFitProblem : public ArrowProblem {
   // a frame whose coordinate c lies beyond [min, max] gets a one-row block (excess / sigma) on
   // y = {c}, of kind limit_kind(i), after the markers' kinds.
   struct CoordinateLimit {
-    int coordinate;
-    double min_value, max_value, weight;  // weight = 1 / sigma
+    int coordinate;  // one of solver::LimitedCoordinates (inverse_kinematics.h)
+    double weight;   // 1 / sigma
   };
   const std::vector<CoordinateLimit>& coordinate_limits() const { return limits_; }
   int limit_kind(int i) const { return first_limit_kind_ + i; }
