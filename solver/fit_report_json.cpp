@@ -81,6 +81,7 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
                          {"rate_hz", trials[t].markers.rate_hz}};
     if (t < trial_sources.size()) tj["file"] = trial_sources[t];
     if (t < r.per_trial_rms_mm.size()) tj["marker_rms_mm"] = r.per_trial_rms_mm[t];
+    if (t < r.per_trial_samples.size()) tj["marker_samples"] = r.per_trial_samples[t];
     if (t < r.per_frame_rms_mm.size()) {  // null for a frame without marker samples
       nlohmann::json frames = nlohmann::json::array();
       for (double v : r.per_frame_rms_mm[t])

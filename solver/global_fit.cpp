@@ -675,6 +675,7 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
       trial_n += frame_n;
     }
     report.per_trial_rms_mm.push_back(1000.0 * std::sqrt(trial_sq / std::max(1, trial_n)));
+    report.per_trial_samples.push_back(trial_n);
     if (!measure_correlation) continue;
     // rho(k) pooled over the trial's markers and axes, summed while it stays above 0.05 (the
     // noise floor of the estimate), for at most a quarter of the trial.
@@ -1145,8 +1146,22 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     const size_t t = static_index[k];
     result->coordinates[t] = posed.coordinates[k];
     if (t < report.per_trial_rms_mm.size()) report.per_trial_rms_mm[t] = posed.report.per_trial_rms_mm[k];
+    if (t < report.per_trial_samples.size()) report.per_trial_samples[t] = posed.report.per_trial_samples[k];
     if (t < report.per_frame_rms_mm.size()) report.per_frame_rms_mm[t] = posed.report.per_frame_rms_mm[k];
     report.static_trials.push_back(trials[t].markers.name);
+  }
+  // The headline RMS is that of the frames as measured, as each trial's is: a static trial fitted
+  // alone fits its one mean posture exactly (every marker free), and its 0 mm said nothing of the
+  // sway and skin the frames show.
+  if (report.per_trial_samples.size() == report.per_trial_rms_mm.size()) {
+    double sum_sq = 0;
+    int samples = 0;
+    for (size_t t = 0; t < report.per_trial_rms_mm.size(); ++t) {
+      sum_sq += report.per_trial_rms_mm[t] * report.per_trial_rms_mm[t] * report.per_trial_samples[t];
+      samples += report.per_trial_samples[t];
+    }
+    if (samples > 0) report.marker_rms_mm = std::sqrt(sum_sq / samples);
+    report.marker_samples = samples;
   }
   return Status::Ok();
 }

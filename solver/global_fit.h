@@ -317,6 +317,7 @@ struct FitReport {
   // Per outlying marker, the likeliest explanation, in the same order (FitModel only).
   std::vector<MarkerDiagnosis> marker_diagnoses;
   std::vector<double> per_trial_rms_mm;        // RMS over each trial's marker samples, trial order
+  std::vector<int> per_trial_samples;          // the marker samples behind each trial's RMS
   // Per trial, per frame: the RMS over that frame's marker samples (NaN for a frame without
   // any), so a report can show where in a trial the model stops fitting (a slipping marker, a
   // movement outside the model's range) rather than one number per trial.

@@ -122,6 +122,12 @@ TEST_F(Cli, StaticTrialAloneReportsUndeterminedParameters) {
   for (const auto& n : report["undetermined"]) undetermined.insert(n.get<std::string>());
   for (const char* name : {"hip_l.centre.x", "knee_r.axis0.alpha", "shoulder_l.centre.z"})
     EXPECT_TRUE(undetermined.count(name)) << name;
+  // The headline RMS is the frames' as measured, as the trial's is; its one mean posture, with
+  // every marker free, fits exactly (it printed 0.000 mm), while the simulated noise is there.
+  ASSERT_EQ(report["static_trials"].size(), 1u);
+  EXPECT_DOUBLE_EQ(report["marker_rms_mm"].get<double>(), report["per_trial"][0]["marker_rms_mm"].get<double>());
+  EXPECT_GT(report["marker_rms_mm"].get<double>(), 0.2);
+  EXPECT_EQ(report["marker_samples"].get<int>(), report["per_trial"][0]["marker_samples"].get<int>());
   for (const auto& p : report["parameters"]) {
     ASSERT_TRUE(p["value"].is_number()) << p;
     EXPECT_LT(std::abs(p["value"].get<double>() - p["initial"].get<double>()), 0.2) << p;

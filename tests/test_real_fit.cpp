@@ -341,9 +341,15 @@ TEST(RealFit, Welk007KneesInsideTheirMarkers) {
 }
 
 // NOT MET (last run: ankles 38 / 112 mm; before: 100 / 234 mm; the hand-scaled model with our IK:
-// 3 / 7 mm). Each ankle within 20 mm of its malleoli's midpoint. The left leg: this model locks
-// the left hip's adduction and rotation, so the leg's place follows the pelvis's orientation, and
-// the left shank's markers (all free but the malleoli's 2 cm) turn with it.
+// 3 / 7 mm). Each ankle within 20 mm of its malleoli's midpoint. The left leg: in both trials the
+// left shank stands tilted about the knee, its ankle centre 37 mm from the heel marker L_calc
+// (hand-scaled: 87) and 119 mm from L_ankle, the shank's and foot's markers moved 9-14 cm on their
+// segments to follow. The static trial alone gives 27 mm; the hip trial brings it, in the markers
+// stage (after the scales stage: 60 mm). Not the cause, measured: the left hip's centre (held:
+// 111 mm), the start (every trial's poses from a static-first fit: 112 mm; the schedule started
+// from that fit's model: 105 mm), L_band_shoe's generic place 18 cm off (left out: 112 mm). The
+// left hip's adduction and rotation are not locked: their functions have slope -1, so OpenSim calls
+// them coupled and its .mot, like ours, gives them in radians.
 TEST(RealFit, DISABLED_Welk007AnklesInsideTheirMarkers) {
   SKIP_WITHOUT_SHARED_DATA();
   ExpectWelkStaticInsideLandmarks({{"ankle_r", "r_ankle", "r_mankle"}, {"ankle_l", "L_ankle", "L_mankle"}}, 20.0);
