@@ -346,9 +346,9 @@ TEST(RealFit, Welk007KneesInsideTheirMarkers) {
 // static trial alone put it, the knee is at its 0 deg limit, so the whole leg stands tilted in one
 // line from the hip to the ankle (ankle centre 37 mm from the heel marker L_calc, hand-scaled 87;
 // the shank's and foot's markers moved 9-14 cm on their segments to follow). The pelvis markers
-// moved 17-30 mm on the pelvis: over the hip trial's 57 deg flexion and 55 deg abduction the skin
-// over the ASIS moves 15-25 mm against the static trial's pelvis, and the hip trial outweighs the
-// one static posture. Tried, not the cause: the left hip's centre held (111 mm), the tibiae scaled
+// moved 17-30 mm on the pelvis: the static trial's own fit leaves them 15-25 mm RMS on the hip
+// trial (57 deg flexion, 55 deg abduction: skin over the ASIS, or a pelvis the static posture does
+// not pin), and the hip trial outweighs the one static posture. Tried, not the cause: the left hip's centre held (111 mm), the tibiae scaled
 // to their landmarks' 0.92 (108), every start from a static-first fit (112; the schedule started
 // from its model: 105), L_band_shoe's generic place 18 cm off (left out: 112), per-marker sigmas
 // (112); a Cauchy loss gives 85 mm but 18 mm from SCoRE and 208 iterations; the static fit's
