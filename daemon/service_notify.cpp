@@ -30,7 +30,8 @@ std::uint64_t MonotonicUsec() {
 std::string StatusLine(const ServiceSnapshot& s, bool gave_up_waiting) {
   std::string line;
   if (!s.rig_live) line = gave_up_waiting ? "degraded: no frame set yet: " : "starting: ";
-  else if (!s.missing_cameras.empty() || !s.ptp_unlocked.empty()) line = "degraded: ";
+  else if (!s.missing_cameras.empty() || !s.silent_cameras.empty() || !s.ptp_unlocked.empty())
+    line = "degraded: ";
   const bool degraded = !s.missing_cameras.empty();
   line += std::to_string(s.progress.cameras_streaming) + "/" + std::to_string(s.cameras) +
           (s.simulated ? " simulated" : "") + " cameras " + Number(s.rate_hz) + " Hz";
@@ -38,6 +39,11 @@ std::string StatusLine(const ServiceSnapshot& s, bool gave_up_waiting) {
     line += " (missing ";
     for (std::size_t i = 0; i < s.missing_cameras.size(); ++i)
       line += (i ? ", " : "") + s.missing_cameras[i];
+    line += ")";
+  }
+  if (!s.silent_cameras.empty()) {
+    line += " (no frames from ";
+    for (std::size_t i = 0; i < s.silent_cameras.size(); ++i) line += (i ? ", " : "") + s.silent_cameras[i];
     line += ")";
   }
   if (!s.suspect_calibration.empty()) {
@@ -156,8 +162,10 @@ ServiceSnapshot PipelineSnapshot(LivePipeline& pipeline, const DaemonConfig& con
   s.cameras = pipeline.num_cameras();
   for (int c = 0; c < s.cameras; ++c) {
     drivers::CameraSource& cam = pipeline.camera(c);
-    if (cam.State() == drivers::CameraState::kStreaming) ++s.progress.cameras_streaming;
-    else s.missing_cameras.push_back(cam.id());
+    const bool silent = c < static_cast<int>(st.capture.camera_silent_s.size()) && st.capture.camera_silent_s[c] > 0;
+    if (cam.State() != drivers::CameraState::kStreaming) s.missing_cameras.push_back(cam.id());
+    else if (silent) s.silent_cameras.push_back(cam.id());
+    else ++s.progress.cameras_streaming;
   }
   const std::vector<CameraHealth> health = pipeline.DetectionHealthSnapshot();
   for (int c = 0; c < s.cameras && c < static_cast<int>(health.size()); ++c)
