@@ -138,7 +138,10 @@ Status CapturePipeline::Start() {
     stats_.camera_count_mismatches.assign(cameras_.size(), 0);
     stats_.camera_tick_phase.assign(cameras_.size(), -1.0);
     stats_.camera_silent_s.assign(cameras_.size(), 0.0);
-    last_frame_ns_.assign(cameras_.size(), MonotonicNs());
+    // A camera's first frame may come up to the start-up's timeout after the others' (see the
+    // header): its silence counts from there.
+    last_frame_ns_.assign(cameras_.size(),
+                          MonotonicNs() + static_cast<std::uint64_t>(options_.start_timeout_ms) * 1000000u);
     tick_phase_cos_.assign(cameras_.size(), 0.0);
     tick_phase_sin_.assign(cameras_.size(), 0.0);
   }
@@ -495,8 +498,16 @@ CapturePipelineStats CapturePipeline::Stats(bool timings) const {
   }
   s.detection_queue = detections_.Depth();
   s.point_queue = points_.Depth();
-  if (!last_frame_ns_.empty())  // since Start()
-    s.camera_silent_s = SilentCameraSeconds(last_frame_ns_, MonotonicNs(), options_.camera_silence_s);
+  if (!last_frame_ns_.empty()) {  // since Start()
+    // A camera its driver does not call streaming (lost, being reopened, awaited) is missing,
+    // not silent; once it streams again its silence counts from then (to within the callers'
+    // polling: the daemon's 100 ms tick), not from its last frame before the loss.
+    const std::uint64_t now = MonotonicNs();
+    for (std::size_t c = 0; c < cameras_.size(); ++c)
+      if (cameras_[c]->State() != drivers::CameraState::kStreaming)
+        last_frame_ns_[c] = std::max(last_frame_ns_[c], now);
+    s.camera_silent_s = SilentCameraSeconds(last_frame_ns_, now, options_.camera_silence_s);
+  }
   if (!timings) return s;
   s.detect_ms_p50 = detect_ms_.Percentile(50);
   s.detect_ms_p99 = detect_ms_.Percentile(99);

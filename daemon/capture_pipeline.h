@@ -88,8 +88,8 @@ class RecentSamples {
 
 
 // Per camera, seconds since `last_frame_ns[c]` (CLOCK_MONOTONIC) where camera c delivered nothing
-// for more than `silence_s` while another camera delivered within it, else 0. A camera that has
-// never delivered counts from its stream's start (the caller's value for it).
+// for more than `silence_s` while another camera delivered within it, else 0. A time after
+// `now_ns` counts as delivering (a camera still in its start-up's grace).
 std::vector<double> SilentCameraSeconds(const std::vector<std::uint64_t>& last_frame_ns,
                                         std::uint64_t now_ns, double silence_s);
 
@@ -319,8 +319,9 @@ class CapturePipeline {
   // The sync thread's: the stream epoch each camera's detections last had; kFreeRun numbering.
   std::vector<std::uint32_t> sync_epoch_;
   std::vector<double> tick_phase_cos_, tick_phase_sin_;  // camera_tick_phase's running means
-  // Under stats_mutex_: per camera, when its last frame was handed over (from Start()).
-  std::vector<std::uint64_t> last_frame_ns_;
+  // Under stats_mutex_: per camera, when its last frame was handed over, or when it was last
+  // seen lost (Stats() too: hence mutable), from Start() plus the start-up's timeout.
+  mutable std::vector<std::uint64_t> last_frame_ns_;
   bool numbered_any_ = false;
   std::uint64_t numbered_sequence_ = 0, numbered_time_ns_ = 0;
   std::uint64_t first_set_host_ns_ = 0;  // the sync thread's: when the first set came out

@@ -1582,13 +1582,15 @@ void Daemon::FitStart(const Request& r) {
         reply["report"] = report;
       }
     }  // the fit's trials, workspaces and result freed
-    // The fit's working set (a few hundred MB on this thread's malloc arena) is free now, but
-    // glibc gives the kernel back only what is at the top of a heap: whatever a long-lived
-    // allocation of another thread sharing the arena pins above it stays resident, and the
-    // soak's RSS stepped up by 50-65 MB after some fits and never came down (BENCHMARKS.md
-    // "Soak": the heap in use did not grow, so no leak). malloc_trim returns every free page of
-    // every arena. Here, on the fit's thread at its low priority, not on the loop: it takes tens
-    // of milliseconds.
+    // The fit's working set (~230 MB in use at its peak, on this thread's malloc arena) is free
+    // now, but glibc gives the kernel back only free memory at the top of a heap: the rest stays
+    // resident, 64 MB more after most fits. Measured (BENCHMARKS.md "Soak", a fit a minute):
+    // without this, RSS 365 -> 771 MB after 15 fits while the heap in use came back to 332-333
+    // MB after each (no leak: the allocator's, not ours); with it, 366-406 MB. malloc_trim(0)
+    // gives back the free pages of every arena (51-64 MB here, in 22-200 ms on the loaded
+    // machine): on the fit's thread at its low priority, not on the loop, and once per fit, so
+    // the arena locks it takes in turn cost the pipeline's threads nothing per frame.
+    // MALLOC_ARENA_MAX=2 instead did not stop the steps (364 -> 497 MB after 6 fits).
     const auto trim_t0 = std::chrono::steady_clock::now();
     const std::uint64_t released = ReleaseFreeHeapMemory();
     spdlog::info("fit: {:.0f} MB of freed memory given back to the system in {:.0f} ms", released / 1048576.0,
