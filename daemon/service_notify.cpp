@@ -32,31 +32,19 @@ std::string StatusLine(const ServiceSnapshot& s, bool gave_up_waiting) {
   if (!s.rig_live) line = gave_up_waiting ? "degraded: no frame set yet: " : "starting: ";
   else if (!s.missing_cameras.empty() || !s.silent_cameras.empty() || !s.ptp_unlocked.empty())
     line = "degraded: ";
-  const bool degraded = !s.missing_cameras.empty();
   line += std::to_string(s.progress.cameras_streaming) + "/" + std::to_string(s.cameras) +
           (s.simulated ? " simulated" : "") + " cameras " + Number(s.rate_hz) + " Hz";
-  if (degraded) {
-    line += " (missing ";
-    for (std::size_t i = 0; i < s.missing_cameras.size(); ++i)
-      line += (i ? ", " : "") + s.missing_cameras[i];
+  // " (what: id1, id2)" for each list of cameras that has any.
+  const auto cameras = [&line](const char* what, const std::vector<std::string>& ids) {
+    if (ids.empty()) return;
+    line += std::string(" (") + what;
+    for (std::size_t i = 0; i < ids.size(); ++i) line += (i ? ", " : "") + ids[i];
     line += ")";
-  }
-  if (!s.silent_cameras.empty()) {
-    line += " (no frames from ";
-    for (std::size_t i = 0; i < s.silent_cameras.size(); ++i) line += (i ? ", " : "") + s.silent_cameras[i];
-    line += ")";
-  }
-  if (!s.suspect_calibration.empty()) {
-    line += " (calibration off: ";
-    for (std::size_t i = 0; i < s.suspect_calibration.size(); ++i)
-      line += (i ? ", " : "") + s.suspect_calibration[i];
-    line += ")";
-  }
-  if (!s.ptp_unlocked.empty()) {
-    line += " (PTP unlocked: ";
-    for (std::size_t i = 0; i < s.ptp_unlocked.size(); ++i) line += (i ? ", " : "") + s.ptp_unlocked[i];
-    line += ")";
-  }
+  };
+  cameras("missing ", s.missing_cameras);
+  cameras("no frames from ", s.silent_cameras);
+  cameras("calibration off: ", s.suspect_calibration);
+  cameras("PTP unlocked: ", s.ptp_unlocked);
   std::string activity;
   if (!s.subject.empty()) {
     activity = "tracking subject " + s.subject +
