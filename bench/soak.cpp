@@ -11,17 +11,21 @@
 //   - the operator records a movement every --record-every minutes (the protocol's movements in
 //     turn) and fits the subject's model every --fit-every minutes, applying the result;
 //   - every --sample seconds a row: the daemon's RSS, open file descriptors and threads (from
-//     /proc), its queues (`status` queues: the largest depth seen by a poll each second in the
+//     /proc), its heap in use and free (`status` memory: a leak grows the first, the allocator
+//     keeping freed memory only RSS), its queues (`status` queues: the largest depth seen by a poll each second in the
 //     interval, and the high-water mark since start), the end-to-end latency p50/p99 seen by the
 //     first subscriber in the interval (last image of a set handed over -> frame read from the
 //     socket, CLOCK_MONOTONIC), and the frame sets the daemon dropped so far (sets.dropped,
 //     tracker.loop_dropped, tracker.recorder_dropped), the frames the subscribers missed.
 // At the end: the slope of RSS (least squares over the rows after the first, and over those after
 // the first fit, whose working set may stay with the process as a step), the range of the
-// descriptors, the latency p99 range, and the totals; --json writes every row.
+// descriptors, the latency p99 range, the daemon's memory before and after each fit, and the
+// totals; --json writes every row.
 //
 //   soak [--duration MIN] [--sample S] [--record-every MIN] [--fit-every MIN] [--cameras N]
-//        [--subscribers N] [--json PATH]
+//        [--subscribers N] [--json PATH] [--mocapd PATH]
+// (--mocapd: run that executable instead of this build's; the environment, e.g. MALLOC_ARENA_MAX,
+// is mocapd's too)
 #include <dirent.h>
 #include <unistd.h>
 
@@ -55,6 +59,7 @@ struct Args {
   double duration_min = 120, sample_s = 60, record_every_min = 5, fit_every_min = 20;
   int cameras = 8, subscribers = 4;
   std::string json_path;
+  std::string mocapd = MOCAPD_PATH;  // another build's, to compare (e.g. its memory after fits)
 };
 
 double Pct(std::vector<double> v, double p) {
@@ -188,6 +193,17 @@ std::uint64_t DaemonDropped(const json& status, std::uint64_t* sets, std::uint64
   return *sets + *loop + *recorder;
 }
 
+// The daemon's memory from `status` (daemon/process_memory.h), in MB: RSS, heap in use, heap
+// free (kept by malloc). RSS alone cannot tell a leak from the allocator keeping a fit's memory.
+struct MemoryMb {
+  double rss = 0, heap_in_use = 0, heap_free = 0;
+};
+MemoryMb DaemonMemory(const json& status) {
+  const json& m = status["memory"];
+  return {m["rss_bytes"].get<double>() / 1048576.0, m["heap_in_use_bytes"].get<double>() / 1048576.0,
+          m["heap_free_bytes"].get<double>() / 1048576.0};
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -202,9 +218,11 @@ int main(int argc, char** argv) {
     else if (k == "--cameras" && v) a.cameras = std::stoi(argv[++i]);
     else if (k == "--subscribers" && v) a.subscribers = std::stoi(argv[++i]);
     else if (k == "--json" && v) a.json_path = argv[++i];
+    else if (k == "--mocapd" && v) a.mocapd = argv[++i];
     else {
       std::fprintf(stderr, "usage: soak [--duration MIN] [--sample S] [--record-every MIN] "
-                           "[--fit-every MIN] [--cameras N] [--subscribers N] [--json PATH]\n");
+                           "[--fit-every MIN] [--cameras N] [--subscribers N] [--json PATH] "
+                           "[--mocapd PATH]\n");
       return 2;
     }
   }
@@ -213,7 +231,8 @@ int main(int argc, char** argv) {
   // default (threads = 0, every core) would take both cores from the pipeline for the whole fit;
   // one worker leaves a core to the cameras and the tracker (a lab's mocapd.toml does the same).
   mocap::testing::DaemonProcess d(dir, mocap::testing::SimulatedRigToml(a.cameras, 1,
-                                                                        "[fit]\nthreads = 1\n"));
+                                                                        "[fit]\nthreads = 1\n"),
+                                  a.mocapd);
   std::unique_ptr<ControlClient> op, poller;
   if (mocap::Status s = mocap::testing::StartCalibratedSession(&d, &op, "soak", "soak", 3600 * 1000);
       !s || !(s = d.Connect(&poller)).ok()) {
@@ -272,6 +291,7 @@ int main(int argc, char** argv) {
   const auto end = start + std::chrono::duration<double>(a.duration_min * 60);
   std::mutex events_mutex;
   json events = json::array();
+  json fits = json::array();  // the daemon's memory before and after each fit
   std::thread operator_thread([&] {
     auto next_record = start + std::chrono::duration<double>(a.record_every_min * 60);
     auto next_fit = start + std::chrono::duration<double>(a.fit_every_min * 60);
@@ -281,8 +301,10 @@ int main(int argc, char** argv) {
       std::string outcome;
       if (now >= next_fit) {
         next_fit += std::chrono::duration<double>(a.fit_every_min * 60);
-        json r;
+        json r, st;
         std::string error;
+        const MemoryMb before =
+            Call(op.get(), "status", json::object(), &st) ? DaemonMemory(st) : MemoryMb();
         const auto t0 = Clock::now();
         const bool ok = Call(op.get(), "fit.start", json::object(), &r, &error);
         const double fit_s = std::chrono::duration<double>(Clock::now() - t0).count();
@@ -295,6 +317,16 @@ int main(int argc, char** argv) {
                                   std::to_string(applied.value("from_frame", 0ull))).c_str()
                                : "");
         outcome = buf;
+        // The memory once the fit is over and applied (status reads it at most once a second).
+        std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+        const MemoryMb after =
+            Call(op.get(), "status", json::object(), &st) ? DaemonMemory(st) : MemoryMb();
+        std::lock_guard<std::mutex> lock(events_mutex);
+        fits.push_back({{"minute", Minutes(start)}, {"seconds", fit_s},
+                        {"rss_mb_before", before.rss}, {"rss_mb_after", after.rss},
+                        {"heap_in_use_mb_before", before.heap_in_use},
+                        {"heap_in_use_mb_after", after.heap_in_use},
+                        {"heap_free_mb_after", after.heap_free}});
       } else if (now >= next_record) {
         next_record += std::chrono::duration<double>(a.record_every_min * 60);
         record(k++, &outcome);
@@ -313,8 +345,8 @@ int main(int argc, char** argv) {
               "mocapd at nice %d, %ld cores\n",
               a.cameras, a.subscribers, a.record_every_min, a.fit_every_min, a.duration_min,
               a.sample_s, ProcNice(d.pid()), sysconf(_SC_NPROCESSORS_ONLN));
-  std::printf("| min | RSS MB | fds | threads | queue depth max in the interval (high-water since start): frames / detections / points / loop / recorder | latency p50 / p99 ms | daemon dropped: sets / loop / recorder | subscribers: frames missing / told dropped | load |\n");
-  std::printf("|---|---|---|---|---|---|---|---|---|\n");
+  std::printf("| min | RSS MB | heap in use / free MB | fds | threads | queue depth max in the interval (high-water since start): frames / detections / points / loop / recorder | latency p50 / p99 ms | daemon dropped: sets / loop / recorder | subscribers: frames missing / told dropped | load |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|\n");
   std::fflush(stdout);
   json rows = json::array();
   const std::vector<std::string> queues = {"frames", "detections", "points", "loop", "recorder"};
@@ -336,6 +368,9 @@ int main(int argc, char** argv) {
     json row;
     row["minute"] = Minutes(start);
     row["rss_mb"] = ProcStatusKb(d.pid(), "VmRSS") / 1024.0;
+    const MemoryMb memory = DaemonMemory(st);
+    row["heap_in_use_mb"] = memory.heap_in_use;
+    row["heap_free_mb"] = memory.heap_free;
     row["fds"] = CountEntries("/proc/" + std::to_string(d.pid()) + "/fd");
     row["threads"] = CountEntries("/proc/" + std::to_string(d.pid()) + "/task");
     std::string qtext, qhigh;
@@ -358,8 +393,9 @@ int main(int argc, char** argv) {
     double load = 0;
     std::ifstream("/proc/loadavg") >> load;
     row["load"] = load;
-    std::printf("| %.1f | %.1f | %d | %d | %s (%s) | %.2f / %.2f | %llu / %llu / %llu | %llu / %llu | %.1f |\n",
-                row["minute"].get<double>(), row["rss_mb"].get<double>(), row["fds"].get<int>(),
+    std::printf("| %.1f | %.1f | %.1f / %.1f | %d | %d | %s (%s) | %.2f / %.2f | %llu / %llu / %llu | %llu / %llu | %.1f |\n",
+                row["minute"].get<double>(), row["rss_mb"].get<double>(), memory.heap_in_use,
+                memory.heap_free, row["fds"].get<int>(),
                 row["threads"].get<int>(), qtext.c_str(), qhigh.c_str(), Pct(lat, 50),
                 Pct(lat, 99), static_cast<unsigned long long>(sets - sets0),
                 static_cast<unsigned long long>(loop - loop0),
@@ -437,9 +473,21 @@ int main(int argc, char** argv) {
                 static_cast<unsigned long long>(subs[i]->told_dropped.load()));
   for (const json& e : events)
     std::printf("%5.1f min: %s\n", e["minute"].get<double>(), e["what"].get<std::string>().c_str());
+  if (!fits.empty()) {
+    std::printf("\n| fit | at min | seconds | RSS MB before -> after | heap in use MB before -> after | heap free MB after |\n|---|---|---|---|---|---|\n");
+    for (std::size_t i = 0; i < fits.size(); ++i) {
+      const json& f = fits[i];
+      std::printf("| %zu | %.1f | %.1f | %.1f -> %.1f | %.1f -> %.1f | %.1f |\n", i + 1,
+                  f["minute"].get<double>(), f["seconds"].get<double>(),
+                  f["rss_mb_before"].get<double>(), f["rss_mb_after"].get<double>(),
+                  f["heap_in_use_mb_before"].get<double>(), f["heap_in_use_mb_after"].get<double>(),
+                  f["heap_free_mb_after"].get<double>());
+    }
+  }
   if (!a.json_path.empty()) {
     std::ofstream(a.json_path) << json{{"rows", rows},
                                        {"events", events},
+                                       {"fits", fits},
                                        {"rss_slope_mb_per_hour", slope_mb_per_h},
                                        {"rss_slope_after_first_fit_mb_per_hour", slope_after_fit},
                                        {"daemon_exit_status", exit_status}}

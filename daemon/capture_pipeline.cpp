@@ -26,6 +26,23 @@ double Percentile(std::vector<double>* values, double p) {
   return (*values)[k];
 }
 
+std::vector<double> SilentCameraSeconds(const std::vector<std::uint64_t>& last_frame_ns,
+                                        std::uint64_t now_ns, double silence_s) {
+  std::vector<double> since(last_frame_ns.size()), out(last_frame_ns.size(), 0.0);
+  for (std::size_t c = 0; c < since.size(); ++c)
+    since[c] = now_ns > last_frame_ns[c] ? static_cast<double>(now_ns - last_frame_ns[c]) * 1e-9 : 0.0;
+  for (std::size_t c = 0; c < since.size(); ++c) {
+    if (since[c] <= silence_s) continue;
+    for (std::size_t o = 0; o < since.size(); ++o) {
+      if (o != c && since[o] <= silence_s) {
+        out[c] = since[c];
+        break;
+      }
+    }
+  }
+  return out;
+}
+
 bool CapturePipelineOptions::IsValid(std::string* error) const {
   auto fail = [&](const std::string& what) {
     if (error) *error = "capture pipeline: " + what;
@@ -51,6 +68,8 @@ bool CapturePipelineOptions::IsValid(std::string* error) const {
   if (start_timeout_ms < 0 || start_timeout_ms > 600000) {
     return fail("start_timeout_ms must be in [0, 600000]");
   }
+  if (!(camera_silence_s >= 0 && camera_silence_s <= 3600))
+    return fail("camera_silence_s must be in [0, 3600] seconds");
   std::string sub;
   if (!detection.IsValid(&sub)) return fail(sub);
   return true;
@@ -94,6 +113,8 @@ Status CapturePipeline::Start() {
       options_.sync.tolerance_ns = static_cast<std::uint64_t>(options_.free_run_tolerance * 1e9 / rate);
       break;
   }
+  if (options_.camera_silence_s == 0)
+    options_.camera_silence_s = std::max(0.5, rate > 0 ? 20 / rate : 0.0);
   if (rate > 0) {
     // The sync waits up to its timeout for a camera that is behind; its window must hold that
     // many sets, or a camera 40 ms behind (8 sets at 200 Hz: a detection worker descheduled on a
@@ -116,6 +137,11 @@ Status CapturePipeline::Start() {
     stats_.camera_clock_fitted.assign(cameras_.size(), false);
     stats_.camera_count_mismatches.assign(cameras_.size(), 0);
     stats_.camera_tick_phase.assign(cameras_.size(), -1.0);
+    stats_.camera_silent_s.assign(cameras_.size(), 0.0);
+    // A camera's first frame may come up to the start-up's timeout after the others' (see the
+    // header): its silence counts from there.
+    last_frame_ns_.assign(cameras_.size(),
+                          MonotonicNs() + static_cast<std::uint64_t>(options_.start_timeout_ms) * 1000000u);
     tick_phase_cos_.assign(cameras_.size(), 0.0);
     tick_phase_sin_.assign(cameras_.size(), 0.0);
   }
@@ -248,6 +274,7 @@ void CapturePipeline::GrabLoop(int c) {
         rig_newest_sequence_ = std::max(rig_newest_sequence_, frame.sequence);
       }
       ++stats_.frames_grabbed;
+      last_frame_ns_[c] = MonotonicNs();
       if (count_mismatch) ++stats_.camera_count_mismatches[c];
       if (options_.rig_sync == CapturePipelineOptions::RigSync::kSharedClock) AddTickPhase(c, frame);
       BoundedQueue<drivers::Frame>& queue = *frames_[c % frames_.size()];
@@ -259,9 +286,11 @@ void CapturePipeline::GrabLoop(int c) {
       std::lock_guard<std::mutex> lock(stats_mutex_);
       ++stats_.frames_incomplete;
     } else if (r == drivers::GrabResult::kLost) {
-      if (!was_lost) {
+      {
         std::lock_guard<std::mutex> lock(stats_mutex_);
-        ++stats_.camera_losses[c];
+        if (!was_lost) ++stats_.camera_losses[c];
+        // Lost is the driver's word, not silence; once reopened its silence counts from here.
+        last_frame_ns_[c] = MonotonicNs();
       }
       was_lost = true;
       // The source reopens a lost camera by itself; poll it without spinning.
@@ -469,6 +498,16 @@ CapturePipelineStats CapturePipeline::Stats(bool timings) const {
   }
   s.detection_queue = detections_.Depth();
   s.point_queue = points_.Depth();
+  if (!last_frame_ns_.empty()) {  // since Start()
+    // A camera its driver does not call streaming (lost, being reopened, awaited) is missing,
+    // not silent; once it streams again its silence counts from then (to within the callers'
+    // polling: the daemon's 100 ms tick), not from its last frame before the loss.
+    const std::uint64_t now = MonotonicNs();
+    for (std::size_t c = 0; c < cameras_.size(); ++c)
+      if (cameras_[c]->State() != drivers::CameraState::kStreaming)
+        last_frame_ns_[c] = std::max(last_frame_ns_[c], now);
+    s.camera_silent_s = SilentCameraSeconds(last_frame_ns_, now, options_.camera_silence_s);
+  }
   if (!timings) return s;
   s.detect_ms_p50 = detect_ms_.Percentile(50);
   s.detect_ms_p99 = detect_ms_.Percentile(99);

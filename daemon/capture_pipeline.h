@@ -87,6 +87,12 @@ class RecentSamples {
 };
 
 
+// Per camera, seconds since `last_frame_ns[c]` (CLOCK_MONOTONIC) where camera c delivered nothing
+// for more than `silence_s` while another camera delivered within it, else 0. A time after
+// `now_ns` counts as delivering (a camera still in its start-up's grace).
+std::vector<double> SilentCameraSeconds(const std::vector<std::uint64_t>& last_frame_ns,
+                                        std::uint64_t now_ns, double silence_s);
+
 // The points of one frame set.
 struct PointFrame {
   std::uint64_t sequence = 0;
@@ -162,6 +168,17 @@ struct CapturePipelineOptions {
   bool start_on_complete_set = true;
   int start_complete_sets = 20;
   int start_timeout_ms = 2000;
+  // A camera that delivers no frame for this long while another camera delivers is silent
+  // (Stats().camera_silent_s; the daemon's status, STATUS= and journal say so). Seconds; 0:
+  // max(0.5 s, 20 frame periods at rate_hz). Why not wait for the driver: a GigE Vision camera
+  // whose cable is pulled is declared lost by Aravis's control-channel heartbeat only after
+  // ~6 s, and its sets are missing from the first period on. The rig knows the frame rate, so
+  // the others' frames say when one is overdue: 20 periods is more than the few ticks a camera
+  // (or a fake's thread on a loaded host) skips when descheduled, and 0.5 s more than a
+  // grab or stream thread waits for the CPU on a loaded 2-core capture PC. Requiring another
+  // camera to deliver keeps a rig that stops as a whole (trigger off, every cable) from
+  // reading as each camera being silent: that is the watchdog's and the cameras' state.
+  double camera_silence_s = 0;
   reconstruction::DetectionOptions detection;
   reconstruction::FrameSyncOptions sync;  // num_cameras is set from the sources
   // Test hook: called by each grab thread before each grab (stage "grab") and by each detection
@@ -218,6 +235,10 @@ struct CapturePipelineStats {
   // does not free-runs at its own phase, and its images join sets of another instant's
   // (daemon/rig_check.h judges it).
   std::vector<double> camera_tick_phase;
+  // Per camera, seconds since its last frame while it is silent (CapturePipelineOptions::
+  // camera_silence_s: no frame for that long while another camera delivered within it); 0 while
+  // it is not. Measured at the Stats() call.
+  std::vector<double> camera_silent_s;
   std::uint64_t mismatched_sets = 0;
   // The queues between the stages (daemon/bounded_queue.h): frames waiting for detection (the
   // fullest worker's queue; capacity per worker), detections waiting for the sync, point frames
@@ -298,6 +319,9 @@ class CapturePipeline {
   // The sync thread's: the stream epoch each camera's detections last had; kFreeRun numbering.
   std::vector<std::uint32_t> sync_epoch_;
   std::vector<double> tick_phase_cos_, tick_phase_sin_;  // camera_tick_phase's running means
+  // Under stats_mutex_: per camera, when its last frame was handed over, or when it was last
+  // seen lost (Stats() too: hence mutable), from Start() plus the start-up's timeout.
+  mutable std::vector<std::uint64_t> last_frame_ns_;
   bool numbered_any_ = false;
   std::uint64_t numbered_sequence_ = 0, numbered_time_ns_ = 0;
   std::uint64_t first_set_host_ns_ = 0;  // the sync thread's: when the first set came out

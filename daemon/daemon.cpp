@@ -674,10 +674,16 @@ Json Daemon::CamerasJson() const {
     drivers::CameraSource& cam = pipeline_->camera(c);
     const auto& k = cam.Counters();
     const CameraHealth& h = health[static_cast<std::size_t>(c)];
+    const bool streaming = cam.State() == drivers::CameraState::kStreaming;
+    const double silent_s = c < static_cast<int>(sync.camera_silent_s.size()) ? sync.camera_silent_s[c] : 0.0;
+    Json problem;
+    if (!streaming) problem = cam.LastError();
+    else if (silent_s > 0)
+      problem = fmt::format("no frame for {:.2f} s while the other cameras deliver", silent_s);
     cams.push_back({{"id", cam.id()},
-                    {"connected", cam.State() == drivers::CameraState::kStreaming},
-                    {"problem", cam.State() == drivers::CameraState::kStreaming
-                                    ? Json() : Json(cam.LastError())},
+                    {"connected", streaming},
+                    {"silent_s", streaming && silent_s > 0 ? Json(silent_s) : Json()},
+                    {"problem", problem},
                     {"frames", k.complete.load()},
                     {"fps", k.complete.load() / up},
                     {"incomplete", k.missing_packets.load() + k.size_mismatches.load()},
@@ -794,6 +800,14 @@ Json Daemon::Status_() const {
   if (statvfs(config_.state_dir.c_str(), &vfs) == 0)
     free_bytes = static_cast<std::uint64_t>(vfs.f_bavail) * vfs.f_frsize;
   j["storage"] = {{"dir", config_.state_dir}, {"db_bytes", db}, {"free_bytes", free_bytes}};
+  {
+    // RSS beside the heap in use tells a leak from memory the allocator keeps (process_memory.h).
+    const std::uint64_t now = drivers::MonotonicNs();
+    if (now - memory_cached_ns_ > 1000000000ull && ReadProcessMemory(&memory_cache_)) memory_cached_ns_ = now;
+    j["memory"] = {{"rss_bytes", memory_cache_.rss_bytes},
+                   {"heap_in_use_bytes", memory_cache_.heap_in_use_bytes},
+                   {"heap_free_bytes", memory_cache_.heap_free_bytes}};
+  }
   if (recorder_) {
     // What the recorder's commit deadline keeps in reserve (daemon/recorder.h): a disk whose
     // WAL sync outgrows the 100 ms budget shows here before a power cut would show it.
@@ -1482,88 +1496,105 @@ void Daemon::FitStart(const Request& r) {
     if (setpriority(PRIO_PROCESS, static_cast<id_t>(gettid()), kFitNice) != 0)
       spdlog::warn("fit: cannot lower its priority (nice {}): {}", kFitNice, std::strerror(errno));
     const auto t0 = std::chrono::steady_clock::now();
-    // Each worker thread has its own store connection (WAL: readers beside the writer).
-    std::unique_ptr<Store> store;
-    StoreOptions so;
-    so.mark_interrupted_recordings = false;  // the daemon's first store did it at start-up
-    Status s = Store::Open(state_dir, &store, so);
-    std::vector<solver::FitTrial> trials;
-    std::vector<std::string> names;
-    for (const auto& [movement, rec] : chosen) {
-      if (!s) break;
-      std::vector<RecordedFrame> frames;
-      RecordingInfo info;
-      s = store->GetRecording(rec.id, &info);
-      if (s) s = store->ReadFrames(rec.id, &frames);
-      if (!s) break;
-      solver::FitTrial t;
-      s = RecordingToMarkerTrial(info, frames, {}, &t.markers);
-      if (!s) break;
-      t.markers.name = movement;
-      t.initial_coordinates.setConstant(static_cast<Eigen::Index>(frames.size()),
-                                        model->num_coordinates(),
-                                        std::numeric_limits<double>::quiet_NaN());
-      bool any = false;
-      for (std::size_t f = 0; f < frames.size(); ++f) {
-        if (frames[f].tracker_state != static_cast<int>(ekf::TrackState::kTracking) ||
-            frames[f].coordinates.size() != model->num_coordinates())
-          continue;
-        t.initial_coordinates.row(static_cast<Eigen::Index>(f)) = frames[f].coordinates.transpose();
-        any = true;
-      }
-      if (!any) t.initial_coordinates.resize(0, 0);  // per-frame IK instead
-      names.push_back(movement + " (recording " + std::to_string(rec.id) + ")");
-      trials.push_back(std::move(t));
-    }
-    solver::FitResult result;
-    int iterations_seen = 0;
-    fo.lm.callbacks.push_back([this, r, cancel, &iterations_seen, &fo, t0](const solver::IterationSummary& it) {
-      ++iterations_seen;
-      const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-      const double fraction = std::min(0.99, static_cast<double>(iterations_seen) / std::max(1, fo.lm.max_iterations / 4));
-      char msg[200];
-      std::snprintf(msg, sizeof msg, "%siteration %d: cost %.6e", it.coarse ? "coarse " : "", it.iteration, it.cost);
-      Json ev = {{"phase", it.coarse ? "coarse" : "solve"}, {"iteration", it.iteration}, {"cost", it.cost},
-                 {"fraction", fraction}, {"eta_s", elapsed / fraction * (1 - fraction)}, {"message", msg}};
-      PostToLoop([this, r, ev, fraction] {
-        if (job_) job_->fraction = fraction;
-        Progress(r, "fit", ev);
-      });
-      return !cancel->load();
-    });
-    fo.lm.cancel = cancel.get();
-    if (s) s = solver::FitModel(*model, trials, fo, &result);
+    // What the fit hands to the loop; everything else it made is freed at the end of the block.
+    Status s;
     Json reply;
     std::string report_text, model_text;
-    if (s) {
-      Json report = solver::FitReportJson(result.report, trials, names);
-      // Each joint against its functional estimate per recording (solver/fit_trust.h): the
-      // stored report and its page say whether to trust the model, as `mocap fit`'s do.
-      solver::FitTrust trust;
-      if (Status t = solver::CheckFitTrust(*model, result, trials, solver::FitTrustOptions(), &trust); t)
-        report["joint_checks"] = solver::FitTrustJson(trust);
-      else
-        spdlog::warn("fit: joint checks: {}", t.message());
-      report_text = report.dump();
-      model_text = ModelToJsonString(result.model);
-      ModelComparison diff;
-      if (CompareModels(*model, result.model, &diff)) reply["diff"] = Json::parse(ComparisonToJsonString(diff));
-      if (truth) {
-        ModelComparison against;
-        if (CompareModels(*truth, result.model, &against)) {
-          reply["truth"] = {{"joint_centre_error_mm_max", against.joint_centre_error_mm.max},
-                            {"joint_centre_error_mm_rms", against.joint_centre_error_mm.rms},
-                            {"axis_error_deg_max", against.axis_error_deg.max},
-                            {"segment_length_error_pct_max", against.segment_length_error_pct.max},
-                            {"marker_error_mm_rms", against.marker_error_mm.rms}};
+    {
+      // Each worker thread has its own store connection (WAL: readers beside the writer).
+      std::unique_ptr<Store> store;
+      StoreOptions so;
+      so.mark_interrupted_recordings = false;  // the daemon's first store did it at start-up
+      s = Store::Open(state_dir, &store, so);
+      std::vector<solver::FitTrial> trials;
+      std::vector<std::string> names;
+      for (const auto& [movement, rec] : chosen) {
+        if (!s) break;
+        std::vector<RecordedFrame> frames;
+        RecordingInfo info;
+        s = store->GetRecording(rec.id, &info);
+        if (s) s = store->ReadFrames(rec.id, &frames);
+        if (!s) break;
+        solver::FitTrial t;
+        s = RecordingToMarkerTrial(info, frames, {}, &t.markers);
+        if (!s) break;
+        t.markers.name = movement;
+        t.initial_coordinates.setConstant(static_cast<Eigen::Index>(frames.size()),
+                                          model->num_coordinates(),
+                                          std::numeric_limits<double>::quiet_NaN());
+        bool any = false;
+        for (std::size_t f = 0; f < frames.size(); ++f) {
+          if (frames[f].tracker_state != static_cast<int>(ekf::TrackState::kTracking) ||
+              frames[f].coordinates.size() != model->num_coordinates())
+            continue;
+          t.initial_coordinates.row(static_cast<Eigen::Index>(f)) = frames[f].coordinates.transpose();
+          any = true;
         }
-        ModelComparison nominal;
-        if (CompareModels(*truth, *model, &nominal))
-          reply["truth_before"] = {{"joint_centre_error_mm_max", nominal.joint_centre_error_mm.max},
-                                   {"joint_centre_error_mm_rms", nominal.joint_centre_error_mm.rms}};
+        if (!any) t.initial_coordinates.resize(0, 0);  // per-frame IK instead
+        names.push_back(movement + " (recording " + std::to_string(rec.id) + ")");
+        trials.push_back(std::move(t));
       }
-      reply["report"] = report;
-    }
+      solver::FitResult result;
+      int iterations_seen = 0;
+      fo.lm.callbacks.push_back([this, r, cancel, &iterations_seen, &fo, t0](const solver::IterationSummary& it) {
+        ++iterations_seen;
+        const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        const double fraction = std::min(0.99, static_cast<double>(iterations_seen) / std::max(1, fo.lm.max_iterations / 4));
+        char msg[200];
+        std::snprintf(msg, sizeof msg, "%siteration %d: cost %.6e", it.coarse ? "coarse " : "", it.iteration, it.cost);
+        Json ev = {{"phase", it.coarse ? "coarse" : "solve"}, {"iteration", it.iteration}, {"cost", it.cost},
+                   {"fraction", fraction}, {"eta_s", elapsed / fraction * (1 - fraction)}, {"message", msg}};
+        PostToLoop([this, r, ev, fraction] {
+          if (job_) job_->fraction = fraction;
+          Progress(r, "fit", ev);
+        });
+        return !cancel->load();
+      });
+      fo.lm.cancel = cancel.get();
+      if (s) s = solver::FitModel(*model, trials, fo, &result);
+      if (s) {
+        Json report = solver::FitReportJson(result.report, trials, names);
+        // Each joint against its functional estimate per recording (solver/fit_trust.h): the
+        // stored report and its page say whether to trust the model, as `mocap fit`'s do.
+        solver::FitTrust trust;
+        if (Status t = solver::CheckFitTrust(*model, result, trials, solver::FitTrustOptions(), &trust); t)
+          report["joint_checks"] = solver::FitTrustJson(trust);
+        else
+          spdlog::warn("fit: joint checks: {}", t.message());
+        report_text = report.dump();
+        model_text = ModelToJsonString(result.model);
+        ModelComparison diff;
+        if (CompareModels(*model, result.model, &diff)) reply["diff"] = Json::parse(ComparisonToJsonString(diff));
+        if (truth) {
+          ModelComparison against;
+          if (CompareModels(*truth, result.model, &against)) {
+            reply["truth"] = {{"joint_centre_error_mm_max", against.joint_centre_error_mm.max},
+                              {"joint_centre_error_mm_rms", against.joint_centre_error_mm.rms},
+                              {"axis_error_deg_max", against.axis_error_deg.max},
+                              {"segment_length_error_pct_max", against.segment_length_error_pct.max},
+                              {"marker_error_mm_rms", against.marker_error_mm.rms}};
+          }
+          ModelComparison nominal;
+          if (CompareModels(*truth, *model, &nominal))
+            reply["truth_before"] = {{"joint_centre_error_mm_max", nominal.joint_centre_error_mm.max},
+                                     {"joint_centre_error_mm_rms", nominal.joint_centre_error_mm.rms}};
+        }
+        reply["report"] = report;
+      }
+    }  // the fit's trials, workspaces and result freed
+    // The fit's working set (~230 MB in use at its peak, on this thread's malloc arena) is free
+    // now, but glibc gives the kernel back only free memory at the top of a heap: the rest stays
+    // resident, 64 MB more after most fits. Measured (BENCHMARKS.md "Soak", a fit a minute):
+    // without this, RSS 365 -> 771 MB after 15 fits while the heap in use came back to 332-333
+    // MB after each (no leak: the allocator's, not ours); with it, 366-406 MB. malloc_trim(0)
+    // gives back the free pages of every arena (51-64 MB here, in 22-200 ms on the loaded
+    // machine): on the fit's thread at its low priority, not on the loop, and once per fit, so
+    // the arena locks it takes in turn cost the pipeline's threads nothing per frame.
+    // MALLOC_ARENA_MAX=2 instead did not stop the steps (364 -> 497 MB after 6 fits).
+    const auto trim_t0 = std::chrono::steady_clock::now();
+    const std::uint64_t released = ReleaseFreeHeapMemory();
+    spdlog::info("fit: {:.0f} MB of freed memory given back to the system in {:.0f} ms", released / 1048576.0,
+                 std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - trim_t0).count());
     PostToLoop([this, r, s, reply, report_text, model_text, subject, version]() mutable {
       if (job_ && job_->thread.joinable()) job_->thread.join();
       job_.reset();
@@ -2034,6 +2065,22 @@ void Daemon::Stream(const LiveFrame& f) {
 // ---------------------------------------------------------------------------------------------
 // Periodic work
 
+void Daemon::NoteSilentCameras() {
+  const std::vector<double> silent = pipeline_->Stats(/*timings=*/false).capture.camera_silent_s;
+  silent_noted_.resize(silent.size(), false);
+  for (std::size_t c = 0; c < silent.size(); ++c) {
+    drivers::CameraSource& cam = pipeline_->camera(static_cast<int>(c));
+    const bool now = silent[c] > 0 && cam.State() == drivers::CameraState::kStreaming;
+    if (now == silent_noted_[c]) continue;
+    silent_noted_[c] = now;
+    if (now)
+      spdlog::warn("camera {} delivered no frame for {:.2f} s while the others did: its frame sets "
+                   "go on without it{}", cam.id(), silent[c], recording_ ? " (a gap in the recording)" : "");
+    else if (cam.State() == drivers::CameraState::kStreaming)
+      spdlog::info("camera {} delivers frames again", cam.id());
+  }
+}
+
 void Daemon::Tick() {
   DrainFrames();
   if (!pending_finishes_.empty() && ++ticks_since_retry_ >= 10) {
@@ -2049,6 +2096,7 @@ void Daemon::Tick() {
     }
   }
   UpdatePtp();
+  if (pipeline_) NoteSilentCameras();
   if (options_.notifier && pipeline_) {
     ServiceSnapshot s = PipelineSnapshot(*pipeline_, config_);
     if (ptp_monitor_ && ptp_.checked && !ptp_.locked) s.ptp_unlocked = ptp_.unlocked_cameras;

@@ -39,6 +39,7 @@
 #include "daemon/config.h"
 #include "daemon/control_server.h"
 #include "daemon/live_pipeline.h"
+#include "daemon/process_memory.h"
 #include "daemon/rig_setup.h"
 #include "daemon/ptp_monitor.h"
 #include "daemon/service_notify.h"
@@ -111,6 +112,8 @@ class Daemon {
   void PostToLoop(std::function<void()> task);
   void DrainFrames();
   void Tick();  // every 100 ms: progress events, recording end, status
+  // Logs a camera falling silent (no frame while the others deliver) and its end, once each.
+  void NoteSilentCameras();
 
   // Requests.
   void OnRequest(const ClientInfo& client, const Json& id, const std::string& method,
@@ -208,6 +211,10 @@ class Daemon {
   LiveFrame last_live_;           // the newest frame (status)
   mutable LivePipelineStats stats_cache_;  // with timings, refreshed at most once a second
   mutable std::uint64_t stats_cached_ns_ = 0;
+  // Per camera: its silence (capture_pipeline.h camera_silence_s) was logged and not yet its end.
+  std::vector<bool> silent_noted_;
+  mutable ProcessMemory memory_cache_;  // refreshed at most once a second (mallinfo2 locks arenas)
+  mutable std::uint64_t memory_cached_ns_ = 0;
 
   // The running recording.
   struct Recording {

@@ -30,27 +30,21 @@ std::uint64_t MonotonicUsec() {
 std::string StatusLine(const ServiceSnapshot& s, bool gave_up_waiting) {
   std::string line;
   if (!s.rig_live) line = gave_up_waiting ? "degraded: no frame set yet: " : "starting: ";
-  else if (!s.missing_cameras.empty() || !s.ptp_unlocked.empty()) line = "degraded: ";
-  const bool degraded = !s.missing_cameras.empty();
+  else if (!s.missing_cameras.empty() || !s.silent_cameras.empty() || !s.ptp_unlocked.empty())
+    line = "degraded: ";
   line += std::to_string(s.progress.cameras_streaming) + "/" + std::to_string(s.cameras) +
           (s.simulated ? " simulated" : "") + " cameras " + Number(s.rate_hz) + " Hz";
-  if (degraded) {
-    line += " (missing ";
-    for (std::size_t i = 0; i < s.missing_cameras.size(); ++i)
-      line += (i ? ", " : "") + s.missing_cameras[i];
+  // " (what: id1, id2)" for each list of cameras that has any.
+  const auto cameras = [&line](const char* what, const std::vector<std::string>& ids) {
+    if (ids.empty()) return;
+    line += std::string(" (") + what;
+    for (std::size_t i = 0; i < ids.size(); ++i) line += (i ? ", " : "") + ids[i];
     line += ")";
-  }
-  if (!s.suspect_calibration.empty()) {
-    line += " (calibration off: ";
-    for (std::size_t i = 0; i < s.suspect_calibration.size(); ++i)
-      line += (i ? ", " : "") + s.suspect_calibration[i];
-    line += ")";
-  }
-  if (!s.ptp_unlocked.empty()) {
-    line += " (PTP unlocked: ";
-    for (std::size_t i = 0; i < s.ptp_unlocked.size(); ++i) line += (i ? ", " : "") + s.ptp_unlocked[i];
-    line += ")";
-  }
+  };
+  cameras("missing ", s.missing_cameras);
+  cameras("no frames from ", s.silent_cameras);
+  cameras("calibration off: ", s.suspect_calibration);
+  cameras("PTP unlocked: ", s.ptp_unlocked);
   std::string activity;
   if (!s.subject.empty()) {
     activity = "tracking subject " + s.subject +
@@ -156,8 +150,10 @@ ServiceSnapshot PipelineSnapshot(LivePipeline& pipeline, const DaemonConfig& con
   s.cameras = pipeline.num_cameras();
   for (int c = 0; c < s.cameras; ++c) {
     drivers::CameraSource& cam = pipeline.camera(c);
-    if (cam.State() == drivers::CameraState::kStreaming) ++s.progress.cameras_streaming;
-    else s.missing_cameras.push_back(cam.id());
+    const bool silent = c < static_cast<int>(st.capture.camera_silent_s.size()) && st.capture.camera_silent_s[c] > 0;
+    if (cam.State() != drivers::CameraState::kStreaming) s.missing_cameras.push_back(cam.id());
+    else if (silent) s.silent_cameras.push_back(cam.id());
+    else ++s.progress.cameras_streaming;
   }
   const std::vector<CameraHealth> health = pipeline.DetectionHealthSnapshot();
   for (int c = 0; c < s.cameras && c < static_cast<int>(health.size()); ++c)

@@ -49,7 +49,7 @@ struct PipelineProgress {
   std::uint64_t frames_detected = 0;  // images through marker detection
   std::uint64_t sets_synced = 0;      // frame sets out of the sync (warm-up included)
   std::uint64_t frames_tracked = 0;   // frame sets through the tracking stage
-  int cameras_streaming = 0;          // cameras whose state is kStreaming now
+  int cameras_streaming = 0;          // cameras whose state is kStreaming now, silent ones not
 };
 
 // What STATUS= and READY depend on, as the loop sees it at one tick.
@@ -57,6 +57,9 @@ struct ServiceSnapshot {
   PipelineProgress progress;
   int cameras = 0;                            // configured (and opened)
   std::vector<std::string> missing_cameras;   // ids of cameras not streaming
+  // ids of cameras that say they stream but delivered no frame for a while as the others did
+  // (capture_pipeline.h camera_silence_s: a pulled GigE cable, long before its driver gives up)
+  std::vector<std::string> silent_cameras;
   std::vector<std::string> suspect_calibration;  // ids whose reprojection error is off
   std::vector<std::string> ptp_unlocked;         // sync = "ptp": ids not locked to the clock
   double rate_hz = 0;
@@ -71,6 +74,7 @@ struct ServiceSnapshot {
 // The snapshot's one-line summary:
 //   "8/8 cameras 200 Hz, tracking subject S012 (model v3), recording squats"
 //   "degraded: 6/8 cameras 200 Hz (missing cam3, cam7), idle"
+//   "degraded: 7/8 cameras 200 Hz (no frames from cam4), idle"   (silent_cameras)
 //   "8/8 cameras 200 Hz (calibration off: cam3), idle"   (daemon/detection_health.h)
 //   "degraded: 8/8 cameras 200 Hz (PTP unlocked: cam2), idle"   (daemon/ptp_monitor.h)
 //   "starting: 3/8 cameras 200 Hz (missing ...), idle"   (no frame set out yet)

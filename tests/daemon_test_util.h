@@ -4,10 +4,13 @@
 // would. No GoogleTest here: the benchmark uses it too.
 #pragma once
 #include <fcntl.h>
+#include <poll.h>
 #include <grp.h>
 #include <pwd.h>
 #include <signal.h>
+#include <sys/socket.h>
 #include <sys/stat.h>
+#include <sys/un.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -212,5 +215,44 @@ inline Status StartCalibratedSession(DaemonProcess* d, std::unique_ptr<daemon::C
   std::fprintf(stderr, "%s: calibrating the rig, creating the subject...\n", who.c_str());
   return CalibrateRigAndSelectSubject(c->get(), 12, subject, 3);
 }
+
+// The service manager's end of NOTIFY_SOCKET, for the STATUS= lines mocapd sends.
+class NotifySocket {
+ public:
+  explicit NotifySocket(const std::string& path) : path_(path) {
+    fd_ = socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+    sockaddr_un a{};
+    a.sun_family = AF_UNIX;
+    std::snprintf(a.sun_path, sizeof a.sun_path, "%s", path.c_str());
+    bound_ = fd_ >= 0 && bind(fd_, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0;
+  }
+  ~NotifySocket() {
+    if (fd_ >= 0) close(fd_);
+    unlink(path_.c_str());
+  }
+  bool bound() const { return bound_; }
+  // The first STATUS= line containing `text` within `timeout_s`, or "".
+  std::string WaitForStatus(const std::string& text, double timeout_s) {
+    const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
+    char buf[4096];
+    while (std::chrono::steady_clock::now() < until) {
+      pollfd p{fd_, POLLIN, 0};
+      if (poll(&p, 1, 50) <= 0) continue;
+      const ssize_t n = recv(fd_, buf, sizeof buf, 0);
+      if (n <= 0) continue;
+      const std::string message(buf, static_cast<std::size_t>(n));
+      const std::size_t at = message.find("STATUS=");
+      if (at == std::string::npos) continue;
+      const std::string line = message.substr(at, message.find('\n', at) - at);
+      if (line.find(text) != std::string::npos) return line;
+    }
+    return "";
+  }
+
+ private:
+  std::string path_;
+  int fd_ = -1;
+  bool bound_ = false;
+};
 
 }  // namespace mocap::testing

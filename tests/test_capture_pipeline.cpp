@@ -70,6 +70,27 @@ TEST(RecentSamples, KeepsTheLatestAndTakesPercentilesOfThem) {
   EXPECT_EQ(r.Percentile(1), 1.0);
 }
 
+TEST(CapturePipeline, ACameraWithoutFramesWhileTheOthersDeliverIsSilent) {
+  constexpr std::uint64_t kS = 1'000'000'000;
+  const std::uint64_t now = 100 * kS;
+  // Camera 1 last delivered 0.7 s ago, the others within the 0.5 s.
+  std::vector<double> silent = daemon::SilentCameraSeconds({now - kS / 10, now - 7 * kS / 10, now - 3 * kS / 10}, now, 0.5);
+  ASSERT_EQ(silent.size(), 3u);
+  EXPECT_EQ(silent[0], 0.0);
+  EXPECT_NEAR(silent[1], 0.7, 1e-9);
+  EXPECT_EQ(silent[2], 0.0);
+  // Exactly at the bound: not yet.
+  EXPECT_EQ(daemon::SilentCameraSeconds({now, now - kS / 2}, now, 0.5)[1], 0.0);
+  // The whole rig stopped (trigger off, the host descheduled): no camera is singled out.
+  EXPECT_EQ(daemon::SilentCameraSeconds({now - kS, now - 2 * kS}, now, 0.5), (std::vector<double>{0.0, 0.0}));
+  EXPECT_EQ(daemon::SilentCameraSeconds({now - 3 * kS}, now, 0.5), std::vector<double>{0.0});
+  // A frame stamped after `now` (read on another thread meanwhile) is a camera that delivers.
+  silent = daemon::SilentCameraSeconds({now + 1000, now - kS}, now, 0.5);
+  EXPECT_EQ(silent[0], 0.0);
+  EXPECT_NEAR(silent[1], 1.0, 1e-9);
+  EXPECT_TRUE(daemon::SilentCameraSeconds({}, now, 0.5).empty());
+}
+
 // A rig of simulated cameras at 100 Hz watching the simulated subject, and its pipeline.
 struct Rig {
   static constexpr double kRate = 100.0;
@@ -404,6 +425,7 @@ TEST(CapturePipeline, BadSetUpIsRefusedWithAReason) {
   expect_refused([](daemon::CapturePipelineOptions* o) { o->start_timeout_ms = -1; }, "start_timeout_ms");
   expect_refused([](daemon::CapturePipelineOptions* o) { o->start_complete_sets = 0; },
                  "start_complete_sets");
+  expect_refused([](daemon::CapturePipelineOptions* o) { o->camera_silence_s = -1; }, "camera_silence_s");
 
   daemon::CapturePipeline empty({}, [](const reconstruction::DetectionSet&, daemon::PointFrame*) {
     return Status::Ok();

@@ -31,6 +31,7 @@ using daemon::ControlReply;
 using nlohmann::json;
 using ::testing::HasSubstr;
 using testing::DaemonProcess;
+using testing::NotifySocket;
 
 using testing::Call;
 
@@ -48,45 +49,6 @@ int RigCheck(const DaemonProcess& d, json* report) {
 }
 
 std::string Camera(int i) { return "MOCAPSIM" + std::to_string(i); }
-
-// The service manager's end of NOTIFY_SOCKET, for the STATUS= lines mocapd sends.
-class NotifySocket {
- public:
-  explicit NotifySocket(const std::string& path) : path_(path) {
-    fd_ = socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC, 0);
-    sockaddr_un a{};
-    a.sun_family = AF_UNIX;
-    std::snprintf(a.sun_path, sizeof a.sun_path, "%s", path.c_str());
-    bound_ = fd_ >= 0 && bind(fd_, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0;
-  }
-  ~NotifySocket() {
-    if (fd_ >= 0) close(fd_);
-    unlink(path_.c_str());
-  }
-  bool bound() const { return bound_; }
-  // The first STATUS= line containing `text` within `timeout_s`, or "".
-  std::string WaitForStatus(const std::string& text, double timeout_s) {
-    const auto until = std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
-    char buf[4096];
-    while (std::chrono::steady_clock::now() < until) {
-      pollfd p{fd_, POLLIN, 0};
-      if (poll(&p, 1, 50) <= 0) continue;
-      const ssize_t n = recv(fd_, buf, sizeof buf, 0);
-      if (n <= 0) continue;
-      const std::string message(buf, static_cast<std::size_t>(n));
-      const std::size_t at = message.find("STATUS=");
-      if (at == std::string::npos) continue;
-      const std::string line = message.substr(at, message.find('\n', at) - at);
-      if (line.find(text) != std::string::npos) return line;
-    }
-    return "";
-  }
-
- private:
-  std::string path_;
-  int fd_ = -1;
-  bool bound_ = false;
-};
 
 TEST(DaemonRigCheck, FreeRunReportsTheClockOffsetAndDriftEachCameraWasGiven) {
   const std::string dir = testing::MakeTempDir("mocapd-rigcheck-free");

@@ -250,6 +250,14 @@ TEST(ServiceStatus, OneLineSummary) {
   s.suspect_calibration = {"cam5"};  // daemon/detection_health.h
   EXPECT_EQ(daemon::StatusLine(s), "degraded: 6/8 cameras 200 Hz (missing cam3, cam7) (calibration off: cam5), "
                                    "tracking subject S012 (model v3), fitting");
+  // A camera that says it streams and delivers nothing while the others do (a pulled GigE
+  // cable before Aravis's heartbeat gives up): degraded at once, named.
+  s.missing_cameras.clear();
+  s.suspect_calibration.clear();
+  s.silent_cameras = {"GV01"};
+  s.progress.cameras_streaming = 7;
+  EXPECT_EQ(daemon::StatusLine(s), "degraded: 7/8 cameras 200 Hz (no frames from GV01), "
+                                   "tracking subject S012 (model v3), fitting");
   s = {};
   s.cameras = 2;
   s.rate_hz = 100;
