@@ -13,7 +13,7 @@
 //                [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA] [--min-diagonal D]
 //                [--max-iterations K] [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]
 //                [--fit-model] [--rescue-rounds N] [--clamp-ranges] [--ik-limit-stiffness S]
-//                [--limit-sigma SIGMA]
+//                [--limit-sigma SIGMA] [--pose-retries K] [--pose-cap R]
 //
 // The accuracy against the simulation's truth is printed ("truth:", JSON ours_accuracy): joint
 // centres, frames whose markers (hidden ones too) sit > 20 mm off, and joint rotations outside
@@ -26,7 +26,8 @@
 // the IK start and the fit hold them inside their ranges by their walls (--ik-limit-stiffness,
 // --limit-sigma: IkOptions::coordinate_limit_stiffness, FitOptions::coordinate_limit_sigma_rad);
 // it prints how many (frame, rotation) pairs of the truth lie outside the ranges (none for the
-// default protocol: clamping is consistent with the simulated motions).
+// default protocol: clamping is consistent with the simulated motions). --pose-retries / --pose-cap
+// set CoarseToFineOptions::pose_step_retries / pose_step_cap.
 //
 // --fit-model also runs solver::FitModel, what `mocap fit` runs, on the same trials with the same
 // options: its IK start, the coarse-to-fine solve, the re-posing and the rescue of frames left in
@@ -252,7 +253,8 @@ struct Args {
                "         [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA]\n"
                "         [--min-diagonal D] [--fit-model] [--rescue-rounds N] [--max-iterations K]\n"
                "         [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]\n"
-               "         [--clamp-ranges] [--ik-limit-stiffness S] [--limit-sigma SIGMA]\n",
+               "         [--clamp-ranges] [--ik-limit-stiffness S] [--limit-sigma SIGMA]\n"
+               "         [--pose-retries K] [--pose-cap R]\n",
                error.c_str());
   std::exit(2);
 }
@@ -308,6 +310,8 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--hold-ratio") args.hold_ratio = number(1e-300);
     else if (a == "--rescue-ratio") args.coarse.rescue_ratio = number(0);
     else if (a == "--clamp-ranges") args.clamp_ranges = true;
+    else if (a == "--pose-retries") args.coarse.pose_step_retries = static_cast<int>(number(0));
+    else if (a == "--pose-cap") args.coarse.pose_step_cap = number(1e-300);
     else if (a == "--ik-limit-stiffness") args.ik_limit_stiffness = number(0);
     else if (a == "--limit-sigma") args.limit_sigma = number(1e-300);
     else if (a == "--max-iterations") args.max_iterations = static_cast<int>(number(0));
