@@ -12,7 +12,8 @@
 //                [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap]
 //                [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA] [--min-diagonal D]
 //                [--max-iterations K] [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]
-//                [--fit-model] [--rescue-rounds N]
+//                [--fit-model] [--rescue-rounds N] [--clamp-ranges] [--ik-limit-stiffness S]
+//                [--limit-sigma SIGMA] [--pose-retries K] [--pose-cap R]
 //
 // The accuracy against the simulation's truth is printed ("truth:", JSON ours_accuracy): joint
 // centres, frames whose markers (hidden ones too) sit > 20 mm off, and joint rotations outside
@@ -21,6 +22,12 @@
 // environment it also prints each such frame's worst marker and the per-trial frame costs (how
 // the gap diagnosis in BENCHMARKS.md was made). --no-hold / --hold-* / --rescue-ratio set
 // FitOptions::unobserved_hold and CoarseToFineOptions::rescue_ratio (solver/coarse_to_fine.h).
+// --clamp-ranges marks those ranged joint rotations clamped (the default model declares none), so
+// the IK start and the fit hold them inside their ranges by their walls (--ik-limit-stiffness,
+// --limit-sigma: IkOptions::coordinate_limit_stiffness, FitOptions::coordinate_limit_sigma_rad);
+// it prints how many (frame, rotation) pairs of the truth lie outside the ranges (none for the
+// default protocol: clamping is consistent with the simulated motions). --pose-retries / --pose-cap
+// set CoarseToFineOptions::pose_step_retries / pose_step_cap.
 //
 // --fit-model also runs solver::FitModel, what `mocap fit` runs, on the same trials with the same
 // options: its IK start, the coarse-to-fine solve, the re-posing and the rescue of frames left in
@@ -228,6 +235,9 @@ struct Args {
   int max_iterations = -1;       // >= 0: LmOptions::max_iterations (ours); -1: FitOptions' default
   bool hold = true;              // FitOptions::unobserved_hold.enabled
   double hold_weak = 0, hold_ratio = 0;  // > 0: UnobservedHoldOptions' weak_ratio, hold_ratio
+  bool clamp_ranges = false;     // mark the model's ranged joint rotations clamped (ClampRangedRotations)
+  double ik_limit_stiffness = -1;  // >= 0: IkOptions::coordinate_limit_stiffness; -1: its default
+  double limit_sigma = 0;          // > 0: FitOptions::coordinate_limit_sigma_rad; 0: its default
 };
 
 [[noreturn]] void Usage(const std::string& error) {
@@ -242,7 +252,9 @@ struct Args {
                "         [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap]\n"
                "         [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA]\n"
                "         [--min-diagonal D] [--fit-model] [--rescue-rounds N] [--max-iterations K]\n"
-               "         [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]\n",
+               "         [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]\n"
+               "         [--clamp-ranges] [--ik-limit-stiffness S] [--limit-sigma SIGMA]\n"
+               "         [--pose-retries K] [--pose-cap R]\n",
                error.c_str());
   std::exit(2);
 }
@@ -297,6 +309,11 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--hold-weak") args.hold_weak = number(1e-300);
     else if (a == "--hold-ratio") args.hold_ratio = number(1e-300);
     else if (a == "--rescue-ratio") args.coarse.rescue_ratio = number(0);
+    else if (a == "--clamp-ranges") args.clamp_ranges = true;
+    else if (a == "--pose-retries") args.coarse.pose_step_retries = static_cast<int>(number(0));
+    else if (a == "--pose-cap") args.coarse.pose_step_cap = number(1e-300);
+    else if (a == "--ik-limit-stiffness") args.ik_limit_stiffness = number(0);
+    else if (a == "--limit-sigma") args.limit_sigma = number(1e-300);
     else if (a == "--max-iterations") args.max_iterations = static_cast<int>(number(0));
     else if (a == "--frame-prior") args.frame_prior_sigma = number(1e-6);
     else if (a == "--seed") args.seed = static_cast<std::uint64_t>(number(0));
@@ -482,6 +499,49 @@ struct Accuracy {
   int outside_range = 0;  // (frame, joint rotation) pairs outside the rotation's range
 };
 
+// A joint rotation whose range a pose should keep (the ones counted outside their ranges): not
+// the joint to the lab, whose angles depend on the lab's axes, nor one that may turn round.
+bool IsRangedRotation(const Model& model, int c) {
+  const Coordinate& k = model.coordinates()[c];
+  return k.rotational && k.joint >= 0 && model.joints()[k.joint].parent >= 0 &&
+         k.max_value - k.min_value < 2.0 * M_PI;
+}
+
+// (frame, ranged rotation) pairs of z (rows: frames) outside the rotation's range.
+int CountOutsideRange(const Model& model, const Eigen::MatrixXd& z) {
+  int outside = 0;
+  for (int c = 0; c < model.num_coordinates(); ++c) {
+    if (!IsRangedRotation(model, c)) continue;
+    const Coordinate& k = model.coordinates()[c];
+    outside += static_cast<int>(((z.col(c).array() < k.min_value) || (z.col(c).array() > k.max_value)).count());
+  }
+  return outside;
+}
+
+// --clamp-ranges: every ranged rotation of the model marked clamped (Coordinate::clamped), so the
+// IK start and the fit keep it inside its range by their one-sided walls
+// (IkOptions::coordinate_limit_stiffness, FitOptions::coordinate_limit_sigma_rad). The default
+// model declares none clamped; whether the simulated motions stay inside the ranges is printed
+// with it (CountOutsideRange of the truth). Returns how many were marked.
+int ClampRangedRotations(Model* model) {
+  std::vector<Coordinate> coordinates = model->coordinates();
+  int clamped = 0;
+  for (int c = 0; c < model->num_coordinates(); ++c)
+    if (IsRangedRotation(*model, c) && !coordinates[c].clamped) {
+      coordinates[c].clamped = true;
+      ++clamped;
+    }
+  Model out;
+  if (const Status s = Model::Build(model->name(), model->segments(), model->joints(), coordinates,
+                                    model->markers(), model->derived_coordinates(), &out);
+      !s.ok()) {
+    std::fprintf(stderr, "fit_vs_ceres: --clamp-ranges: %s\n", s.message().c_str());
+    std::exit(1);
+  }
+  *model = std::move(out);
+  return clamped;
+}
+
 Accuracy MeasureAccuracy(const BenchData& d, const solver::MarkerFitProblem& problem, const Eigen::VectorXd& x) {
   Accuracy a;
   const int nz = problem.frame_dim();
@@ -524,13 +584,9 @@ Accuracy MeasureAccuracy(const BenchData& d, const solver::MarkerFitProblem& pro
                    d.trials[t].name.c_str(), sum, sum / d.trial_ranges[t].second, h);
     }
   }
-  // Joint rotations outside their ranges (those a range prior would hold: not the joint to the
-  // lab, whose angles depend on the lab's axes, nor one that may turn round).
   for (int c = 0; c < nz; ++c) {
+    if (!IsRangedRotation(d.model, c)) continue;
     const Coordinate& k = d.model.coordinates()[c];
-    if (!k.rotational || k.joint < 0 || d.model.joints()[k.joint].parent < 0 ||
-        !(k.max_value - k.min_value < 2.0 * M_PI))
-      continue;
     for (int f = 0; f < problem.num_frames(); ++f) {
       const double v = x[static_cast<Eigen::Index>(f) * nz + c];
       if (v >= k.min_value && v <= k.max_value) continue;
@@ -1246,13 +1302,20 @@ int main(int argc, char** argv) {
   fit_options.unobserved_hold.enabled = args.hold;
   if (args.hold_weak > 0) fit_options.unobserved_hold.weak_ratio = args.hold_weak;
   if (args.hold_ratio > 0) fit_options.unobserved_hold.hold_ratio = args.hold_ratio;
+  if (args.ik_limit_stiffness >= 0) fit_options.ik.coordinate_limit_stiffness = args.ik_limit_stiffness;
+  if (args.limit_sigma > 0) fit_options.coordinate_limit_sigma_rad = args.limit_sigma;
   if (args.frame_prior_sigma > 0) {
     fit_options.frame_prior_sigma_rad = args.frame_prior_sigma;
     fit_options.frame_prior_sigma_m = args.frame_prior_sigma;
   }
 
   const auto setup_start = Clock::now();
-  const BenchData data = MakeData(args.frames, args);
+  BenchData data = MakeData(args.frames, args);
+  if (args.clamp_ranges) {
+    const int clamped = ClampRangedRotations(&data.model);
+    std::printf("--clamp-ranges: %d joint rotations clamped to their ranges; the truth has %d (frame, rotation) "
+                "pairs outside them\n", clamped, CountOutsideRange(data.model, data.true_coordinates));
+  }
   solver::MarkerFitProblem problem(data.model, data.measurements, fit_options);
   const int nf = problem.num_frames(), nz = problem.frame_dim(), np = problem.shared_dim();
   const double setup_seconds = Since(setup_start);
@@ -1328,7 +1391,8 @@ int main(int argc, char** argv) {
   }
   const double ours_seconds = *std::min_element(ours_times.begin(), ours_times.end());
   const double ours_rss = memory.ProcessPeakMb();
-  if (args.verbose) std::fprintf(stderr, "--- ours ---\n%s\n", ours.FullReport().c_str());
+  if (args.verbose)
+    std::fprintf(stderr, "--- ours ---\n%s%s\n", ours.FullReport().c_str(), ours_coarse.BriefReport().c_str());
   out["ours_s"] = ours_seconds;
   out["ours_s_all"] = ours_times;
   out["ours_cpu_s"] = ours_cpu;

@@ -210,11 +210,16 @@ void AddBlockNormalEquations(const ResidualBlock& blk, int ny, double* u, double
 }
 // Up to `iterations` damped Gauss–Newton steps on frame f's own rows and prior (p fixed) from
 // y, each kept only if it lowers *cost (y's sum of squares on entry); stops once a step gains
-// at most `tolerance` of the cost, or at most `min_gain`. Returns whether y moved.
-bool FramePoseSteps(const ArrowProblem& problem, FrameEvaluator* evaluator, int f, int iterations,
-                    double tolerance, double min_gain, double damping, Eigen::MatrixXd* u, Eigen::VectorXd* g,
+// at most `tolerance` of the cost, or at most `min_gain`. A step that does not lower the cost is
+// retried up to options.pose_step_retries times with a damping 100 times higher (at least 1e-3
+// of the diagonal), each step shortened to options.pose_step_cap in its largest component
+// (CoarseToFineOptions). Returns whether y moved.
+bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& options, FrameEvaluator* evaluator,
+                    int f, int iterations, double tolerance, double min_gain, Eigen::MatrixXd* u,
+                    Eigen::VectorXd* g, Eigen::MatrixXd* u_undamped, Eigen::VectorXd* g_undamped,
                     Eigen::VectorXd* trial, double* yf, double* cost) {
   const int ny = problem.frame_dim();
+  const bool retry = options.pose_step_retries > 0;
   bool moved = false;
   for (int it = 0; it < iterations; ++it) {
     // Normal equations of the frame's own rows: U = J_y^T J_y + B^T B, g = J_y^T r + B^T B (y - y0).
@@ -229,14 +234,30 @@ bool FramePoseSteps(const ArrowProblem& problem, FrameEvaluator* evaluator, int 
         (*u)(i, i) += w[i] * w[i];
         (*g)[i] += w[i] * w[i] * (yf[i] - target[i]);
       }
-    for (int i = 0; i < ny; ++i) (*u)(i, i) += damping * std::max((*u)(i, i), 1e-12);
-    if (!CholeskyInPlace(u->data(), ny)) break;
-    CholeskySolveInPlace(u->data(), ny, g->data());
-    *trial = Eigen::Map<const Eigen::VectorXd>(yf, ny) - *g;
+    if (retry) {
+      *u_undamped = *u;
+      *g_undamped = *g;
+    }
     double trial_cost = 0;
-    if (!trial->allFinite() || !FrameSquaredNorm(problem, evaluator, f, trial->data(), &trial_cost) ||
-        !(trial_cost < *cost))
-      break;
+    bool lower = false;
+    double damping = options.pose_damping;
+    for (int attempt = 0; attempt <= options.pose_step_retries; ++attempt) {
+      if (attempt > 0) {
+        *u = *u_undamped;
+        *g = *g_undamped;
+        damping = std::max(100.0 * damping, 1e-3);
+      }
+      for (int i = 0; i < ny; ++i) (*u)(i, i) += damping * std::max((*u)(i, i), 1e-12);
+      if (!CholeskyInPlace(u->data(), ny)) break;
+      CholeskySolveInPlace(u->data(), ny, g->data());
+      const double largest = g->lpNorm<Eigen::Infinity>();
+      if (largest > options.pose_step_cap) *g *= options.pose_step_cap / largest;
+      *trial = Eigen::Map<const Eigen::VectorXd>(yf, ny) - *g;
+      lower = trial->allFinite() && FrameSquaredNorm(problem, evaluator, f, trial->data(), &trial_cost) &&
+              trial_cost < *cost;
+      if (lower) break;
+    }
+    if (!lower) break;
     Eigen::Map<Eigen::VectorXd>(yf, ny) = *trial;
     const double decrease = *cost - trial_cost;
     *cost = trial_cost;
@@ -263,6 +284,8 @@ bool CoarseToFineOptions::IsValid(std::string* error) const {
   if (!(rescue_ratio >= 0)) return fail("rescue_ratio must be >= 0 (below 1: off)");
   if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
   if (inner_pose_iterations < 1) return fail("inner_pose_iterations must be >= 1");
+  if (pose_step_retries < 0) return fail("pose_step_retries must be >= 0");
+  if (!(pose_step_cap > 0)) return fail("pose_step_cap must be > 0 (infinity: none)");
   return true;
 }
 
@@ -365,8 +388,8 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
   ParallelChunks(nf, threads, [&](int t, int b, int e) {
     // Per thread, allocated once: the hot loop allocates nothing.
     std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
-    Eigen::MatrixXd u(ny, ny);
-    Eigen::VectorXd g(ny), trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
+    Eigen::MatrixXd u(ny, ny), u_undamped(ny, ny);
+    Eigen::VectorXd g(ny), g_undamped(ny), trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
     bool have_correction = false;
     double previous_cost = 0;
     for (int f = b; f < e; ++f) {
@@ -404,9 +427,9 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
           moved = true;
         }
       }
-      moved |= FramePoseSteps(*problem, evaluator.get(), f, max_iterations,
-                              min_gain > 0 ? 0.0 : options.pose_tolerance, min_gain, options.pose_damping, &u,
-                              &g, &trial, yf, &cost);
+      moved |= FramePoseSteps(*problem, options, evaluator.get(), f, max_iterations,
+                              min_gain > 0 ? 0.0 : options.pose_tolerance, min_gain, &u, &g, &u_undamped,
+                              &g_undamped, &trial, yf, &cost);
       correction = Eigen::Map<const Eigen::VectorXd>(yf, ny) - given;
       have_correction = true;
       previous_cost = cost;
@@ -459,8 +482,8 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
   const std::vector<double> given_cost = cost;
   ParallelChunks(static_cast<int>(runs.size()), threads, [&](int t, int rb, int re) {
     std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
-    Eigen::MatrixXd u(ny, ny);
-    Eigen::VectorXd g(ny), trial(ny), start(ny);
+    Eigen::MatrixXd u(ny, ny), u_undamped(ny, ny);
+    Eigen::VectorXd g(ny), g_undamped(ny), trial(ny), start(ny);
     for (int r = rb; r < re; ++r) {
       const auto [first, end] = runs[r];
       // Forwards from the well-fitted frame before the run, then backwards from the one after
@@ -475,8 +498,8 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
           if (options.wrap_frame_turns) problem->WrapFramePose(f, start.data());
           double c = 0;
           if (!FrameSquaredNorm(*problem, evaluator.get(), f, start.data(), &c)) continue;
-          FramePoseSteps(*problem, evaluator.get(), f, options.rescue_iterations, 1e-3, 0.0, options.pose_damping,
-                         &u, &g, &trial, start.data(), &c);
+          FramePoseSteps(*problem, options, evaluator.get(), f, options.rescue_iterations, 1e-3, 0.0, &u, &g,
+                         &u_undamped, &g_undamped, &trial, start.data(), &c);
           if (c < cost[f]) {
             cost[f] = c;
             x->segment(static_cast<Eigen::Index>(f) * ny, ny) = start;

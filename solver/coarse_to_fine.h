@@ -36,6 +36,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -75,6 +76,24 @@ struct CoarseToFineOptions {
   bool inner_iterations = true;
   int inner_pose_iterations = 10;
   double pose_damping = 1e-6;     // relative to diag(J_y^T J_y), for steps in badly seen frames
+  // Every per-frame pose step above (stages 2 and 3, the rescue) is Gauss–Newton and stops at the
+  // first step that does not lower the frame's cost. A frame whose cost is far from quadratic in
+  // a weakly seen angle (a forearm's pro-supination with its markers hidden) then stays away from
+  // its own minimum, and the next whole-problem step, which linearises it there, turns it by up
+  // to 1 rad and is rejected (BENCHMARKS.md, "With gaps", eleventh and twelfth sessions). With
+  // pose_step_retries > 0 a failed step is retried with a damping 100 times higher (at least
+  // 1e-3), and every step is shortened to pose_step_cap (rad or m) in its largest component, so
+  // such a frame creeps towards its own minimum instead of leaping into another branch. Off by
+  // default, measured at 6,000 frames, 0.8 mm noise (twelfth session; retries 2, cap 0.1): whole-
+  // problem iterations at 5 % / 10 % missing, seeds 1-3: 7, 2, 5 / 7, 10, 15 -> 5, 4, 5 / 7, 5, 4
+  // (CPU 31.7 -> 24.4 s in all), centres within +-0.02 mm of the default's, but the end costs
+  // differ by -143 to +30 (other branches in some frames) and 5 % seed 2 takes 4 iterations
+  // instead of 2; in FitModel's staged fit at 10 % (test_sim_fit) 25 iterations instead of 47,
+  // but the weakest axes further from the truth (wrist_r 11.9 -> 15.2 deg); test_real_fit's
+  // figures unchanged. Without the cap (retries alone) frames walk into other branches (10 %
+  // seed 2: 0.592 mm from the truth); the cap is a narrow optimum (0.05 and 0.2 are worse).
+  int pose_step_retries = 0;
+  double pose_step_cap = std::numeric_limits<double>::infinity();
   // Stage 3 starts near the minimum, where Ceres's initial damping (LmOptions::initial_lambda,
   // 1e-4) only slows the weakly determined directions (a parameter held mostly by its prior has
   // a curvature far below 1e-4 of its data diagonal): each LM step would close only part of their

@@ -70,10 +70,10 @@ std::vector<double> FrameCosts(solver::ArrowProblem* problem, const Eigen::Vecto
 }
 
 // Frames in a wrong branch for the rescue tests: the true poses and geometry, except that in
-// frames [first, end) the right hip rotation and knee are turned 1.5 rad away.
+// frames [first, end) the right hip rotation and knee are turned `angle` rad away.
 int TurnedKnee(const Session& s) { return s.nominal.FindCoordinate("knee_angle_r"); }
 int TurnedHip(const Session& s) { return s.nominal.FindCoordinate("hip_rotation_r"); }
-Eigen::VectorXd WithRightLegTurned(const Session& s, int first, int end) {
+Eigen::VectorXd WithRightLegTurned(const Session& s, int first, int end, double angle = 1.5) {
   Eigen::VectorXd x = s.x0;
   x.tail(s.problem->shared_dim()) = s.p_true;
   const int ny = s.problem->frame_dim(), knee = TurnedKnee(s), hip = TurnedHip(s);
@@ -81,8 +81,8 @@ Eigen::VectorXd WithRightLegTurned(const Session& s, int first, int end) {
   EXPECT_GE(hip, 0);
   if (knee < 0 || hip < 0) return x;
   for (int f = first; f < end; ++f) {
-    x[f * ny + knee] += 1.5;
-    x[f * ny + hip] -= 1.5;
+    x[f * ny + knee] += angle;
+    x[f * ny + hip] -= angle;
   }
   return x;
 }
@@ -315,6 +315,12 @@ TEST(CoarseToFine, BadOptionsAreRefusedByName) {
   o = {};
   o.fine_initial_lambda = 0;
   refused(o, "fine_initial_lambda");
+  o = {};
+  o.pose_step_retries = -1;
+  refused(o, "pose_step_retries");
+  o = {};
+  o.pose_step_cap = 0;
+  refused(o, "pose_step_cap");
   EXPECT_TRUE(solver::CoarseToFineOptions().IsValid(nullptr));
 }
 
@@ -474,4 +480,41 @@ TEST(CoarseToFine, RescuedFrameKeepsItsOwnTurnWhenItsNeighbourIsWound) {
   std::vector<double> costs;
   EXPECT_GE(solver::RescueFramesFromNeighbours(s.problem.get(), options, 2, &x, &costs), 1);
   EXPECT_NEAR(x[30 * ny + knee], s.z_true(30, knee), 0.01);
+}
+
+// Retried, capped pose steps (CoarseToFineOptions::pose_step_retries, pose_step_cap): frames with
+// the right leg turned 3 rad, true geometry. No step moves a coordinate further than the cap,
+// no frame's cost rises, and where a plain Gauss-Newton step fails (its frame then stays where it
+// is), the retries bring the frame lower.
+TEST(CoarseToFine, RetriedPoseStepsAreCappedAndGoWhereAFailedStepStops) {
+  Session s(60, 0.0);
+  const Eigen::VectorXd start = WithRightLegTurned(s, 10, 50, 3.0);
+  const std::vector<double> before = FrameCosts(s.problem.get(), start);
+  solver::CoarseToFineOptions plain;
+  plain.pose_iterations = 1;
+  plain.pose_from_predecessor = false;
+  solver::CoarseToFineOptions retried = plain;
+  retried.pose_step_retries = 2;
+  retried.pose_step_cap = 0.1;
+  Eigen::VectorXd x_plain = start, x_retried = start;
+  bool ok = false;
+  solver::RefineFramePoses(s.problem.get(), plain, 2, &x_plain, &ok);
+  ASSERT_TRUE(ok);
+  solver::RefineFramePoses(s.problem.get(), retried, 2, &x_retried, &ok);
+  ASSERT_TRUE(ok);
+  const int ny = s.problem->frame_dim();
+  const std::vector<double> after_plain = FrameCosts(s.problem.get(), x_plain);
+  const std::vector<double> after_retried = FrameCosts(s.problem.get(), x_retried);
+  int plain_stuck = 0, retried_lower = 0;
+  for (int f = 0; f < 60; ++f) {
+    EXPECT_LE((x_retried.segment(f * ny, ny) - start.segment(f * ny, ny)).lpNorm<Eigen::Infinity>(), 0.1 + 1e-12)
+        << "frame " << f;
+    EXPECT_LE(after_retried[f], before[f]) << "frame " << f;
+    if (after_plain[f] == before[f] && before[f] > 2 * before[0]) {
+      ++plain_stuck;
+      retried_lower += after_retried[f] < before[f];
+    }
+  }
+  EXPECT_EQ(plain_stuck, 40);  // turned 3 rad, every Gauss-Newton step of the turned frames fails
+  EXPECT_EQ(retried_lower, plain_stuck);
 }
