@@ -227,6 +227,7 @@ void Tracker::Impl::Allocate() {
   gated_by.resize(mp);
   cost.resize(nm, mp + nm);
   row_to_col.resize(nm);
+  assigned.resize(nm);
   lap.Reserve(nm, mp + nm);
   A.resize(nz, nz);
   b.resize(nz);

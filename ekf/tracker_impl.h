@@ -101,6 +101,7 @@ struct Tracker::Impl {
   std::vector<int> gated_by;  // per point: how many markers' gates hold it
   Eigen::MatrixXd cost;
   std::vector<int> row_to_col;
+  std::vector<int> assigned;  // LabelByGating: the assignment before undecided labels are dropped
   LinearAssignment lap;
   Eigen::MatrixXd A;
   Eigen::VectorXd b;
