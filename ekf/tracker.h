@@ -44,12 +44,14 @@
 // so two labels never take one point and a marker takes a point only when it is the best use of
 // that point. Unassigned points are ghosts or strays (label -1). A marker missing for a while has a
 // growing S_m and is picked up again when it reappears inside its gate. A label the frame cannot
-// decide is left empty: a point that two markers, neither labelled in the last frame, could each
-// take afresh is given to neither, since the assignment would decide it by the pose estimate,
-// which is what is in doubt where both markers are lost (a shank the start placed 8 cm off: RHEE
-// on RANK's point from frame 1 for a whole trial, seed 6 at 8 ghosts). They wait for a frame that
-// tells them apart, or for the segment registration and the limb search, which fit the segment
-// as a whole. A marker continuing its label is not held back so. Two rigid-body facts hold
+// decide is left empty: a point that two markers of different segments, neither labelled in the
+// last frame, could each take afresh is given to neither, since the assignment would decide it by
+// the joint angle between their segments, which is what is in doubt where both markers are lost
+// (a shank the start placed 8 cm off: RHEE on RANK's point from frame 1 for a whole trial, seed 6
+// at 8 ghosts). They wait for a frame that tells them apart, or for the segment registration and
+// the limb search, which fit the segment as a whole. Two markers of one segment are paired by its
+// rigid geometry, which no angle changes, and a marker continuing its label is not held back.
+// Two rigid-body facts hold
 // whatever the pose estimate, and the gate keeps to them. Labels follow point tracks: a point that
 // continues the point a marker held in the last frame (mutual nearest neighbours, moved as the
 // marker's prediction moved, within a frame's motion) is that marker's or nobody's, so a marker
