@@ -425,6 +425,14 @@ std::string ConvergenceHtml(const json& report) {
           Esc(report.value("termination", std::string("?"))) + "</b> after " +
           std::to_string(report.value("iterations", 0)) + " iterations — " +
           Esc(report.value("termination_message", std::string())) + "</p>";
+  // A static trial is fitted as its mean posture: the solver's figure (the plot's end) is then
+  // below the headline's, which is over the frames as measured.
+  const double fitted = Number(report, "fitted_marker_rms_mm");
+  const double headline = Number(report, "marker_rms_mm");
+  if (measured && std::isfinite(fitted) && std::isfinite(headline) && std::abs(fitted - headline) > 0.005)
+    html += "<p class=\"note\">The plot ends at " + Fixed(fitted, 2) +
+            " mm, over the frames as fitted: each static trial as its mean posture. Over its frames as " +
+            "measured the marker RMS is " + Fixed(headline, 2) + " mm.</p>";
   const json coarse = report.value("coarse", json::object());
   if (coarse.value("used", false))
     html += "<p class=\"note\">Coarse-to-fine start: " + std::to_string(coarse.value("iterations", 0)) +

@@ -74,6 +74,7 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["final_cost"] = r.solver.final_cost;
   j["initial_marker_rms_mm"] = r.initial_marker_rms_mm;
   j["marker_rms_mm"] = r.marker_rms_mm;
+  j["fitted_marker_rms_mm"] = r.fitted_marker_rms_mm;
   j["per_trial"] = nlohmann::json::array();
   for (size_t t = 0; t < trials.size(); ++t) {
     nlohmann::json tj = {{"name", trials[t].markers.name},

@@ -1129,6 +1129,7 @@ Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const
     static_index.push_back(t);
   }
   MOCAP_RETURN_IF_ERROR(FitSchedule(initial, postures, options, result));
+  result->report.fitted_marker_rms_mm = result->report.marker_rms_mm;
   FlagFarMovedMarkers(initial, options, result);
   if (static_index.empty()) return Status::Ok();
   // The static trials' own frames, posed by the fitted model (its geometry fixed) from their

@@ -310,6 +310,10 @@ struct FitReport {
   int residuals = 0;
   double initial_marker_rms_mm = 0;
   double marker_rms_mm = 0;
+  // The solver's own figure, over the frames as it fitted them (a static trial as its mean
+  // posture): where the iteration history ends. marker_rms_mm is over the frames as measured
+  // (FitModel); the two differ only when a trial is static.
+  double fitted_marker_rms_mm = 0;
   std::vector<std::pair<std::string, double>> per_marker_rms_mm;
   double median_marker_rms_mm = 0;
   // Markers far above the median (FitOptions::outlier_marker_ratio), worst first: name, RMS mm.
