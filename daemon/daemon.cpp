@@ -1087,6 +1087,7 @@ void Daemon::SubjectCreate(const Request& r) {
     formats::OsimImport import;
     if (Status s = formats::ImportOsim(model_arg, &import); !s)
       return Fail(r, error_code::kFailed, s.message());
+    for (const std::string& what : import.ignored) spdlog::warn("{}: {}", model_arg, what);
     model = import.model;
     if (Status s = formats::detail::ReadWholeFile(model_arg, &osim_text); !s)
       return Fail(r, error_code::kFailed, s.message());

@@ -644,7 +644,12 @@ struct Importer {
     if (XMLElement* mo = Child(Child(mx, "MarkerSet"), "objects")) {
       for (XMLElement* m = mo->FirstChildElement("Marker"); m; m = m->NextSiblingElement("Marker")) {
         Marker mk;
-        MOCAP_RETURN_IF_ERROR(ParseMarker(m, &mk, body_to_m));
+        std::string skip;
+        MOCAP_RETURN_IF_ERROR(ParseMarker(m, &mk, body_to_m, &skip));
+        if (!skip.empty()) {
+          out->ignored.push_back(SkippedMarker(m, skip));
+          continue;
+        }
         map->markers[mk.name] = m;
         markers.push_back(mk);
       }
@@ -662,21 +667,52 @@ struct Importer {
     return Status::Ok();
   }
 
-  Status ParseMarker(XMLElement* m, Marker* mk, const std::vector<Iso>& body_to_m) const {
+  // A marker the fit cannot use -- fixed to the ground, or on a frame that is no body and no
+  // joint's offset frame -- is left out with the reason in *skip (empty otherwise), not an error:
+  // one such marker in a generic model should not refuse the model's other markers.
+  Status ParseMarker(XMLElement* m, Marker* mk, const std::vector<Iso>& body_to_m, std::string* skip) {
+    skip->clear();
     mk->name = NameOf(m);
     if (mk->name.empty()) return rd.Fail(m, "marker without a name");
     XMLElement* where = Child(m, "socket_parent_frame");
     if (!where) where = Child(m, "body");
     if (!where) return rd.Fail(m, "missing <socket_parent_frame> (or 3.x <body>)");
-    const int b = BodyFromPath(Text(where));
-    if (b == kGround) return rd.Fail(where, "markers fixed to the ground are unsupported");
-    if (b < 0) return rd.Fail(where, "no body named '" + Text(where) + "'");
     V3 p = V3::Zero();
     MOCAP_RETURN_IF_ERROR(rd.Vec3(m, "location", &p, false));
+    // The frame it is on: a body, or (4.x) a PhysicalOffsetFrame of a joint, resolved to its body.
+    int b = BodyFromPath(Text(where));
+    Iso frame_in_body = Iso::Identity();
+    if (b == -2) {
+      const std::string name = LastComponent(Text(where));
+      for (const RawJoint& rj : map->joints) {
+        XMLElement* frames = rj.xml ? Child(rj.xml, "frames") : nullptr;
+        bool found = false;
+        for (XMLElement* f = frames ? frames->FirstChildElement() : nullptr; f && !found; f = f->NextSiblingElement())
+          found = NameOf(f) == name;
+        if (!found) continue;
+        FrameSide side;
+        MOCAP_RETURN_IF_ERROR(ResolveFrame(rj.xml, where, name, &side, 0));
+        b = side.body;
+        frame_in_body = side.offset;
+        break;
+      }
+    }
+    if (b == kGround) {
+      *skip = "fixed to the ground: nothing to fit";
+      return Status::Ok();
+    }
+    if (b < 0) {
+      *skip = "on '" + Text(where) + "', which is no body and no offset frame of a joint";
+      return Status::Ok();
+    }
     mk->segment = b;
-    mk->position = body_to_m[b].inverse() * p;
+    mk->position = body_to_m[b].inverse() * (frame_in_body * p);
     mk->fixed = Text(Child(m, "fixed")) == "true";
     return Status::Ok();
+  }
+  static std::string SkippedMarker(XMLElement* m, const std::string& why) {
+    return "MarkerSet: Marker '" + NameOf(m) + "' (line " + std::to_string(m->GetLineNum()) + "): " + why +
+           ", left out";
   }
 
   static void Classify(const std::string& type, Joint* j) {
@@ -876,9 +912,15 @@ Status LoadOsimMarkerSet(const std::string& path, OsimImport* import) {
   // Validate in the marker file's own terms (its name and lines in errors), then merge.
   Importer im{rd, &map, &check};
   std::vector<Iso> identity(map.bodies.size(), Iso::Identity());
+  std::vector<std::string> skipped;  // markers left out, kept past the re-import below
   for (XMLElement* m = objects->FirstChildElement("Marker"); m; m = m->NextSiblingElement("Marker")) {
     Marker mk;
-    MOCAP_RETURN_IF_ERROR(im.ParseMarker(m, &mk, identity));
+    std::string skip;
+    MOCAP_RETURN_IF_ERROR(im.ParseMarker(m, &mk, identity, &skip));
+    if (!skip.empty()) {
+      skipped.push_back(path + ": " + Importer::SkippedMarker(m, skip));
+      continue;
+    }
     if (auto it = map.markers.find(mk.name); it != map.markers.end()) model_objects->DeleteChild(it->second);
     XMLElement* copy = m->DeepClone(&doc)->ToElement();
     if (XMLElement* body = copy->FirstChildElement("body"); body && map.version >= 40000) {
@@ -891,7 +933,9 @@ Status LoadOsimMarkerSet(const std::string& path, OsimImport* import) {
     model_objects->InsertEndChild(copy);
     map.markers[mk.name] = copy;
   }
-  return ImportOsimText(Print(&doc), import->source, import);
+  MOCAP_RETURN_IF_ERROR(ImportOsimText(Print(&doc), import->source, import));
+  import->ignored.insert(import->ignored.end(), skipped.begin(), skipped.end());
+  return Status::Ok();
 }
 
 Status ExportOsimText(const Model& fitted, const OsimImport& import, std::string* xml) {

@@ -618,3 +618,54 @@ TEST(Osim, BadInputIsAClearErrorWithElementAndLine) {
   EXPECT_FALSE(s.ok());
   EXPECT_THAT(s.message(), HasSubstr("/nonexistent/model.osim"));
 }
+
+// A marker on a joint's PhysicalOffsetFrame is on that frame's body, where the offset puts it (the
+// same world place as the offset's own origin plus the location turned by its orientation); a
+// marker fixed to the ground, or on a frame that is nothing of the model, is left out with the
+// reason in `ignored`: one such marker must not refuse a generic model's others.
+TEST(Osim, MarkersOnOffsetFramesResolveAndUnusableOnesAreLeftOut) {
+  std::string text = kSmallModel;
+  const std::string anchor = "<Marker name=\"ANKLE\">";
+  const std::string extra =
+      "<Marker name=\"ON_OFFSET\"><socket_parent_frame>/jointset/hip/femur_offset</socket_parent_frame>"
+      "<location>0.1 0 0</location></Marker>\n"
+      "<Marker name=\"ON_ORIGIN\"><socket_parent_frame>/bodyset/femur</socket_parent_frame>"
+      "<location>0.01 0.02 0</location></Marker>\n"
+      "<Marker name=\"ON_GROUND\"><socket_parent_frame>/ground</socket_parent_frame><location>1 0 0</location></Marker>\n"
+      "<Marker name=\"ON_NOTHING\"><socket_parent_frame>/bodyset/fibula</socket_parent_frame><location>0 0 0</location></Marker>\n";
+  text.insert(text.find(anchor), extra);
+  OsimImport im;
+  const Status s = ImportOsimText(text, "extra.osim", &im);
+  ASSERT_TRUE(s.ok()) << s.message();
+  const Model& m = im.model;
+  EXPECT_EQ(m.FindMarker("ON_GROUND"), -1);
+  EXPECT_EQ(m.FindMarker("ON_NOTHING"), -1);
+  const int on_offset = m.FindMarker("ON_OFFSET"), origin = m.FindMarker("ON_ORIGIN");
+  ASSERT_GE(on_offset, 0);
+  ASSERT_GE(origin, 0);
+  EXPECT_EQ(m.markers()[on_offset].segment, m.markers()[origin].segment);
+  // femur_offset: translation (0.01, 0.02, 0), orientation 0.2 rad about z: the location (0.1, 0, 0)
+  // lies at (0.01 + 0.1 cos 0.2, 0.02 + 0.1 sin 0.2, 0) in the femur, 0.1 m from the offset's origin.
+  Eigen::VectorXd z = m.DefaultCoordinates();
+  const Eigen::Matrix3Xd x = testutil::Positions(m, z, m.InitialParameters());
+  const Eigen::Vector3d from_origin = x.col(on_offset) - x.col(origin);
+  EXPECT_NEAR(from_origin.norm(), 0.1, 1e-12);
+  // In the femur's frame that vector is (0.1 cos 0.2, 0.1 sin 0.2, 0): compare against a marker
+  // placed there directly on the femur.
+  std::ostringstream location;
+  location.precision(17);
+  location << 0.01 + 0.1 * std::cos(0.2) << " " << 0.02 + 0.1 * std::sin(0.2) << " 0";
+  std::string direct = kSmallModel;
+  direct.insert(direct.find(anchor), "<Marker name=\"DIRECT\"><socket_parent_frame>/bodyset/femur</socket_parent_frame>"
+                                     "<location>" + location.str() + "</location></Marker>\n");
+  OsimImport d;
+  ASSERT_TRUE(ImportOsimText(direct, "direct.osim", &d).ok());
+  const Eigen::Matrix3Xd xd = testutil::Positions(d.model, d.model.DefaultCoordinates(), d.model.InitialParameters());
+  EXPECT_LT((x.col(on_offset) - xd.col(d.model.FindMarker("DIRECT"))).norm(), 1e-12);
+  std::string ignored;
+  for (const std::string& i : im.ignored) ignored += i + "\n";
+  EXPECT_THAT(ignored, HasSubstr("Marker 'ON_GROUND' (line " + std::to_string(LineOf(text, "ON_GROUND")) +
+                                 "): fixed to the ground: nothing to fit, left out"));
+  EXPECT_THAT(ignored, HasSubstr("Marker 'ON_NOTHING'"));
+  EXPECT_THAT(ignored, HasSubstr("'/bodyset/fibula', which is no body and no offset frame of a joint"));
+}

@@ -30,6 +30,7 @@ Status LoadModelInput(const std::string& path, const std::string& marker_set, Mo
   MOCAP_RETURN_IF_ERROR(formats::ImportOsim(path, &out->import));
   if (!marker_set.empty()) MOCAP_RETURN_IF_ERROR(formats::LoadOsimMarkerSet(marker_set, &out->import));
   out->model = out->import.model;
+  for (const std::string& what : out->import.ignored) spdlog::warn("{}: {}", path, what);
   if (out->model.num_markers() == 0)
     return Status::Error(path + ": the model has no markers (give its marker set with --marker-set MARKERS.xml)");
   return Status::Ok();
