@@ -99,7 +99,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       blk.rows = 1;
       blk.residual = r;
       blk.num_y = 1;
-      blk.y_index = problem_.limit_columns_[i].data();
+      blk.y_index = &lim.coordinate;  // its one y column
       blk.num_p = 0;
       blk.p_index = nullptr;
       if (with_jacobians) {
@@ -241,14 +241,15 @@ MarkerFitProblem::MarkerFitProblem(const Model& model, formats::RowMatrix measur
         ++samples_;
       }
   block_kind_.assign(nm, -1);
+  int kinds = 0;
   for (int m = 0; m < nm; ++m)
-    if (observed_[m]) block_kind_[m] = first_limit_kind_++;
+    if (observed_[m]) block_kind_[m] = kinds++;
+  first_limit_kind_ = kinds;
   for (int c : LimitedCoordinates(model)) {
     const Coordinate& co = model.coordinates()[c];
     const double sigma = co.rotational ? options.coordinate_limit_sigma_rad : options.coordinate_limit_sigma_m;
     if (!(sigma > 0)) continue;
     limits_.push_back({c, 1.0 / sigma});
-    limit_columns_.push_back({c});
   }
   free_index_.assign(model.num_parameters(), -1);
   std::vector<double> weights;
@@ -475,8 +476,8 @@ void MarkerFitProblem::BlockStructure(std::vector<std::vector<int>>* y_columns,
     y_columns->push_back(model_.marker_coordinates(m));
     p_columns->push_back(marker_free_columns_[m]);
   }
-  for (const auto& columns : limit_columns_) {
-    y_columns->push_back(columns);
+  for (const CoordinateLimit& limit : limits_) {
+    y_columns->push_back({limit.coordinate});
     p_columns->push_back({});
   }
 }

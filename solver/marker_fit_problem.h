@@ -123,7 +123,6 @@ class MarkerFitProblem : public ArrowProblem {
   std::vector<char> observed_;
   std::vector<int> block_kind_;
   std::vector<CoordinateLimit> limits_;
-  std::vector<std::vector<int>> limit_columns_;  // limits_[i]'s y columns: {coordinate}
   int first_limit_kind_ = 0;
   Eigen::VectorXd prior_weight_, prior_target_;
   Eigen::MatrixXd gauge_rows_;
