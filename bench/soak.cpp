@@ -16,7 +16,10 @@
 //     interval, and the high-water mark since start), the end-to-end latency p50/p99 seen by the
 //     first subscriber in the interval (last image of a set handed over -> frame read from the
 //     socket, CLOCK_MONOTONIC), and the frame sets the daemon dropped so far (sets.dropped,
-//     tracker.loop_dropped, tracker.recorder_dropped), the frames the subscribers missed.
+//     tracker.loop_dropped, tracker.recorder_dropped), the sets no camera delivered
+//     (sets.undelivered: ticks the fake cameras, threads of the daemon's process, skipped while
+//     the host did not run them) and the cameras' buffer underruns, the frames the subscribers
+//     missed.
 // At the end: the slope of RSS (least squares over the rows after the first, and over those after
 // the first fit, whose working set may stay with the process as a step), the range of the
 // descriptors, the latency p99 range, the daemon's memory before and after each fit, and the
@@ -187,10 +190,19 @@ bool Call(ControlClient* c, const std::string& method, const json& params, json*
 // The daemon's frame-set losses so far: the sync's, the loop queue's, the recorder queue's.
 std::uint64_t DaemonDropped(const json& status, std::uint64_t* sets, std::uint64_t* loop,
                             std::uint64_t* recorder) {
-  *sets = status["sets"]["dropped"];
+  *sets = status["sets"]["dropped"];  // undelivered sets are not the daemon's (UndeliveredSets)
   *loop = status["tracker"]["loop_dropped"];
   *recorder = status["tracker"]["recorder_dropped"];
   return *sets + *loop + *recorder;
+}
+
+// Frame sets no camera delivered (`sets.undelivered`: the fakes, threads of the daemon's process,
+// skip the ticks the host did not schedule them for) and the cameras' buffer underruns (frames
+// lost in the driver for want of a buffer the daemon had not returned: the daemon's, if any).
+void UndeliveredSets(const json& status, std::uint64_t* undelivered, std::uint64_t* underruns) {
+  *undelivered = status["sets"].value("undelivered", std::uint64_t{0});
+  *underruns = 0;
+  for (const json& c : status["cameras"]) *underruns += c.value("dropped", std::uint64_t{0});
 }
 
 // The daemon's memory from `status` (daemon/process_memory.h), in MB: RSS, heap in use, heap
@@ -284,6 +296,8 @@ int main(int argc, char** argv) {
   if (!Call(poller.get(), "status", json::object(), &status0)) return 1;
   std::uint64_t sets0, loop0, rec0;
   DaemonDropped(status0, &sets0, &loop0, &rec0);
+  std::uint64_t undelivered0, underruns0;
+  UndeliveredSets(status0, &undelivered0, &underruns0);
 
   // The operator: a recording every record_every, a fit (then model.apply) every fit_every.
   const std::multiset<std::string> fds0 = FdTargets(d.pid());
@@ -345,8 +359,8 @@ int main(int argc, char** argv) {
               "mocapd at nice %d, %ld cores\n",
               a.cameras, a.subscribers, a.record_every_min, a.fit_every_min, a.duration_min,
               a.sample_s, ProcNice(d.pid()), sysconf(_SC_NPROCESSORS_ONLN));
-  std::printf("| min | RSS MB | heap in use / free MB | fds | threads | queue depth max in the interval (high-water since start): frames / detections / points / loop / recorder | latency p50 / p99 ms | daemon dropped: sets / loop / recorder | subscribers: frames missing / told dropped | load |\n");
-  std::printf("|---|---|---|---|---|---|---|---|---|---|\n");
+  std::printf("| min | RSS MB | heap in use / free MB | fds | threads | queue depth max in the interval (high-water since start): frames / detections / points / loop / recorder | latency p50 / p99 ms | daemon dropped: sets / loop / recorder | no camera delivered: sets / buffer underruns | subscribers: frames missing / told dropped | load |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|\n");
   std::fflush(stdout);
   json rows = json::array();
   const std::vector<std::string> queues = {"frames", "detections", "points", "loop", "recorder"};
@@ -387,19 +401,24 @@ int main(int argc, char** argv) {
     std::uint64_t sets, loop, rec;
     DaemonDropped(st, &sets, &loop, &rec);
     row["daemon_dropped"] = {{"sets", sets - sets0}, {"loop", loop - loop0}, {"recorder", rec - rec0}};
+    std::uint64_t undelivered, underruns;
+    UndeliveredSets(st, &undelivered, &underruns);
+    row["cameras_undelivered"] = {{"sets", undelivered - undelivered0}, {"underruns", underruns - underruns0}};
     std::uint64_t missing = 0, told = 0;
     for (auto& s : subs) missing += s->missing, told += s->told_dropped;
     row["subscribers"] = {{"missing", missing}, {"told_dropped", told}};
     double load = 0;
     std::ifstream("/proc/loadavg") >> load;
     row["load"] = load;
-    std::printf("| %.1f | %.1f | %.1f / %.1f | %d | %d | %s (%s) | %.2f / %.2f | %llu / %llu / %llu | %llu / %llu | %.1f |\n",
+    std::printf("| %.1f | %.1f | %.1f / %.1f | %d | %d | %s (%s) | %.2f / %.2f | %llu / %llu / %llu | %llu / %llu | %llu / %llu | %.1f |\n",
                 row["minute"].get<double>(), row["rss_mb"].get<double>(), memory.heap_in_use,
                 memory.heap_free, row["fds"].get<int>(),
                 row["threads"].get<int>(), qtext.c_str(), qhigh.c_str(), Pct(lat, 50),
                 Pct(lat, 99), static_cast<unsigned long long>(sets - sets0),
                 static_cast<unsigned long long>(loop - loop0),
                 static_cast<unsigned long long>(rec - rec0),
+                static_cast<unsigned long long>(undelivered - undelivered0),
+                static_cast<unsigned long long>(underruns - underruns0),
                 static_cast<unsigned long long>(missing), static_cast<unsigned long long>(told),
                 load);
     std::fflush(stdout);

@@ -83,6 +83,24 @@ CapturePipeline::CapturePipeline(std::vector<std::unique_ptr<drivers::CameraSour
       detections_(options_.detection_queue_capacity),
       points_(options_.point_queue_capacity) {
   stats_.camera_losses.assign(cameras_.size(), 0);
+  // Slot i starts with a value whose low bits never equal those of a sequence of slot i.
+  delivered_ = std::make_unique<std::atomic<std::uint64_t>[]>(kDeliveredRing);
+  for (std::size_t i = 0; i < kDeliveredRing; ++i) delivered_[i].store((i + 1) % kDeliveredRing);
+}
+
+// The sequence the sync groups a frame by (DetectLoop gives it to the sync).
+std::uint64_t CapturePipeline::SyncSequence(const drivers::Frame& frame) const {
+  return options_.rig_sync == CapturePipelineOptions::RigSync::kSharedClock
+             ? drivers::SequenceOfTimestamp(frame.device_timestamp_ns, options_.rate_hz)
+             : frame.sequence;
+}
+
+// Whether a camera delivered a frame of the sync's sequence `sequence`, compared on the bits the
+// sync keeps (kTrigger unwraps 16-bit ids itself).
+bool CapturePipeline::Delivered(std::uint64_t sequence) const {
+  const int bits = options_.sync.sequence_bits;
+  const std::uint64_t mask = bits >= 64 ? ~std::uint64_t{0} : (std::uint64_t{1} << bits) - 1;
+  return ((delivered_[sequence % kDeliveredRing].load(std::memory_order_relaxed) ^ sequence) & mask) == 0;
 }
 
 CapturePipeline::~CapturePipeline() { Stop(); }
@@ -277,6 +295,10 @@ void CapturePipeline::GrabLoop(int c) {
       last_frame_ns_[c] = MonotonicNs();
       if (count_mismatch) ++stats_.camera_count_mismatches[c];
       if (options_.rig_sync == CapturePipelineOptions::RigSync::kSharedClock) AddTickPhase(c, frame);
+      if (options_.rig_sync != CapturePipelineOptions::RigSync::kFreeRun) {
+        const std::uint64_t sequence = SyncSequence(frame);
+        delivered_[sequence % kDeliveredRing].store(sequence, std::memory_order_relaxed);
+      }
       BoundedQueue<drivers::Frame>& queue = *frames_[c % frames_.size()];
       if (!queue.TryPush(std::move(frame))) {  // full: the frame is left to us
         ++stats_.frames_dropped;
@@ -329,9 +351,7 @@ void CapturePipeline::DetectLoop(int worker) {
     if (options_.test_hold) options_.test_hold("detection");
     reconstruction::CameraDetections d;
     d.camera = frame.camera;
-    d.sequence = options_.rig_sync == CapturePipelineOptions::RigSync::kSharedClock
-                     ? drivers::SequenceOfTimestamp(frame.device_timestamp_ns, options_.rate_hz)
-                     : frame.sequence;
+    d.sequence = SyncSequence(frame);
     d.stream_epoch = frame.stream_epoch;
     d.device_timestamp_ns = frame.device_timestamp_ns;
     d.host_timestamp_ns = frame.host_timestamp_ns;
@@ -436,7 +456,13 @@ void CapturePipeline::EmitSet(reconstruction::DetectionSet& set) {
   triangulate_ms_.Add(std::chrono::duration<double, std::milli>(t1 - t0).count());
   if (!s) ++stats_.triangulation_errors;
   if (any_emitted_ && set.sequence > last_emitted_sequence_ + 1) {
-    stats_.dropped_frame_sets += set.sequence - last_emitted_sequence_ - 1;
+    const std::uint64_t gap = set.sequence - last_emitted_sequence_ - 1;
+    std::uint64_t undelivered = 0;
+    // A gap longer than the ring cannot be told apart: all of it is counted as the daemon's.
+    if (options_.rig_sync != CapturePipelineOptions::RigSync::kFreeRun && gap <= kDeliveredRing)
+      for (std::uint64_t q = last_emitted_sequence_ + 1; q < set.sequence; ++q) undelivered += Delivered(q) ? 0 : 1;
+    stats_.undelivered_frame_sets += undelivered;
+    stats_.dropped_frame_sets += gap - undelivered;
   }
   if (!any_emitted_ || set.sequence > last_emitted_sequence_) last_emitted_sequence_ = set.sequence;
   any_emitted_ = true;

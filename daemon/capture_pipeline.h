@@ -202,7 +202,15 @@ struct CapturePipelineStats {
   std::uint64_t detections_dropped = 0;  // the sync queue was full
   std::uint64_t frame_sets = 0;          // point frames handed to the caller
   std::uint64_t incomplete_sets = 0;     // ... of which with a camera missing
-  std::uint64_t dropped_frame_sets = 0;  // sets that never came out (sequence gaps, full queue)
+  // Sets that never came out although a camera delivered a frame of theirs to the daemon (it
+  // was dropped at a full queue, arrived too late for its set), or whose point frame found the
+  // output queue full: the daemon's losses. kFreeRun (no common numbering): every sequence gap.
+  std::uint64_t dropped_frame_sets = 0;
+  // Sequence gaps that no camera delivered any frame of: not exposed, or lost before the host
+  // (transport, a camera's buffers underrun: CameraCounters::underruns says which). A simulated
+  // camera running in the daemon's own process skips the ticks during which the host did not
+  // schedule it, as hardware, exposing on its own clock, would not. kTrigger and kSharedClock.
+  std::uint64_t undelivered_frame_sets = 0;
   std::uint64_t late_frames = 0;
   std::uint64_t triangulation_errors = 0;
   // Start-up (see the header): sets before the recording began, not handed out; whether it has
@@ -316,6 +324,14 @@ class CapturePipeline {
       latency_ms_{kTimingSamples};
   bool any_emitted_ = false;
   std::uint64_t last_emitted_sequence_ = 0;
+  // The sync's sequence of every frame a camera delivered (grab threads write, the sync reads),
+  // slot = sequence modulo the ring: a sequence gap at the sync is the daemon's loss only if some
+  // camera delivered that sequence (dropped_frame_sets / undelivered_frame_sets). 4096 frames
+  // (20 s at 200 Hz) is far beyond the sync's window; a divisor of 2^16, so 16-bit ids agree.
+  static constexpr std::size_t kDeliveredRing = 4096;
+  std::unique_ptr<std::atomic<std::uint64_t>[]> delivered_;
+  std::uint64_t SyncSequence(const drivers::Frame& frame) const;
+  bool Delivered(std::uint64_t sequence) const;
   // The sync thread's: the stream epoch each camera's detections last had; kFreeRun numbering.
   std::vector<std::uint32_t> sync_epoch_;
   std::vector<double> tick_phase_cos_, tick_phase_sin_;  // camera_tick_phase's running means

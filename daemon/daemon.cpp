@@ -752,6 +752,7 @@ Json Daemon::Status_() const {
     j["sets"] = {{"total", st.capture.frame_sets},
                  {"incomplete", st.capture.incomplete_sets},
                  {"dropped", st.capture.dropped_frame_sets},
+                 {"undelivered", st.capture.undelivered_frame_sets},
                  {"warmup", st.capture.warmup_sets},
                  {"mismatched", st.capture.mismatched_sets}};
     j["tracker"] = {{"state", TrackStateName(st.tracker_state)},

@@ -145,7 +145,8 @@ ServiceSnapshot PipelineSnapshot(LivePipeline& pipeline, const DaemonConfig& con
   s.progress.frames_dropped = st.capture.frames_dropped;
   s.progress.frames_detected = st.capture.frames_detected;
   s.progress.sets_synced =
-      st.capture.frame_sets + st.capture.warmup_sets + st.capture.dropped_frame_sets;
+      st.capture.frame_sets + st.capture.warmup_sets + st.capture.dropped_frame_sets +
+      st.capture.undelivered_frame_sets;
   s.progress.frames_tracked = st.frames_tracked;
   s.cameras = pipeline.num_cameras();
   for (int c = 0; c < s.cameras; ++c) {

@@ -192,8 +192,9 @@ GrabResult SimulatedCamera::Grab(Frame* frame) {
       }
     }
     ++next_sequence_;
-    if (drop_.load() > 0) {  // never arrives
-      drop_.fetch_sub(1);
+    const bool unexposed = options_.unexposed_every > 0 && seq % options_.unexposed_every == 0;
+    if (unexposed || drop_.load() > 0) {  // never arrives
+      if (!unexposed) drop_.fetch_sub(1);
       if (settings_.trigger == TriggerMode::kSoftware) {
         counters_.timeouts++;
         return GrabResult::kTimeout;

@@ -59,6 +59,9 @@ struct SimulatedCameraOptions {
   double timestamp_jitter_ns = 0;   // standard deviation
   std::uint64_t jitter_seed = 1;
   double start_delay_ms = 0;        // the first frame comes this late after Start()
+  // > 0: the frames whose sequence is a multiple of this are never delivered (their ids are
+  // used): ticks the camera did not expose, as a fake camera in a descheduled process skips.
+  std::uint64_t unexposed_every = 0;
 
   bool IsValid(std::string* error) const;
 };

@@ -4,8 +4,11 @@
 // (daemon/live_pipeline.h): subject.select's tracker and model.apply's swap, in order.
 #include <gtest/gtest.h>
 
+
+#include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <cstring>
 #include <memory>
 #include <mutex>
 #include <thread>
@@ -351,6 +354,51 @@ TEST(CapturePipeline, TriggerRigCountsTheFrameWhoseCountSlippedFromItsTimestamp)
   EXPECT_EQ(st.camera_count_mismatches[1], 1u);
   EXPECT_EQ(st.camera_count_mismatches[2], 0u);
   EXPECT_GT(st.mismatched_sets, 50u);
+}
+
+// A sequence that no camera delivered (every camera skipped the tick: a rig of fakes in a
+// descheduled process) is not a set the daemon lost; one whose frames reached the daemon and were
+// dropped at its full queue (detection held) is.
+TEST(CapturePipeline, SetsNoCameraDeliveredAreToldApartFromTheDaemonsLosses) {
+  daemon::CapturePipelineOptions o;
+  o.rig_sync = daemon::CapturePipelineOptions::RigSync::kTrigger;
+  o.rate_hz = Rig::kRate;
+  o.sync.timeout_ns = 40'000'000;
+  o.frame_queue_capacity = 8;
+  std::atomic<bool> hold{false};
+  o.test_hold = [&hold](const char* stage) {
+    while (std::strcmp(stage, "detection") == 0 && hold.load())
+      std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  };
+  std::vector<drivers::SimulatedCameraOptions> co(3);
+  for (auto& c : co) c.unexposed_every = 25;  // the same ticks on every camera
+  Rig rig(3, o, co);
+  ASSERT_TRUE(rig.pipeline->Start().ok());
+  const std::vector<daemon::PointFrame> frames = rig.Collect(1.6);
+  const daemon::CapturePipelineStats before = rig.pipeline->Stats();
+  std::printf("skipped ticks: %llu sets undelivered, %llu dropped, %zu frames\n",
+              static_cast<unsigned long long>(before.undelivered_frame_sets),
+              static_cast<unsigned long long>(before.dropped_frame_sets), frames.size());
+  ASSERT_GE(frames.size(), 40u);
+  for (const daemon::PointFrame& f : frames) EXPECT_NE(f.sequence % 25, 0u) << "an unexposed tick came out";
+  // About one in 25 of the sets handed out (the first ones may precede the first gap).
+  EXPECT_GE(before.undelivered_frame_sets, frames.size() / 25 - 1);
+  EXPECT_LE(before.undelivered_frame_sets, frames.size() / 24 + 2);
+  EXPECT_EQ(before.dropped_frame_sets, 0u);
+  hold = true;  // 0.4 s of detection stopped: the 8-frame queues overflow
+  std::this_thread::sleep_for(std::chrono::milliseconds(400));
+  hold = false;
+  rig.Collect(0.6);
+  rig.pipeline->Stop();
+  const daemon::CapturePipelineStats after = rig.pipeline->Stats();
+  std::printf("detection held 0.4 s: %llu frames dropped at the queue, sets dropped %llu, undelivered %llu\n",
+              static_cast<unsigned long long>(after.frames_dropped),
+              static_cast<unsigned long long>(after.dropped_frame_sets),
+              static_cast<unsigned long long>(after.undelivered_frame_sets));
+  EXPECT_GT(after.frames_dropped, 3u * 20);
+  EXPECT_GE(after.dropped_frame_sets, 20u);
+  // The unexposed ticks of that second go on being counted as such, not as the daemon's.
+  EXPECT_LE(after.undelivered_frame_sets - before.undelivered_frame_sets, 5u);
 }
 
 TEST(CapturePipeline, RecordingStartsAtTheFirstCompleteSet) {
