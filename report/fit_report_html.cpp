@@ -465,9 +465,18 @@ std::string FunctionalCell(const json& joint) {
               Fixed(Number(t, "centre_spread_mm"), 1) + " mm, SCoRE sd " + Fixed(Number(t, "functional_std_mm"), 2) +
               " mm)</small>";
   }
-  if (!html.empty()) return html;
+  // A hip's third reference: the regression of the pelvis markers (solver/fit_trust.h).
+  std::string regression;
+  for (const auto& r : joint.value("regression", json::array()))
+    regression += "<br><span class=\"" + std::string(r.value("far", false) ? "bad" : "fd") + "\">" +
+                  Fixed(Number(r, "centre_from_regression_mm"), 1) + " mm</span> from " +
+                  Esc(r.value("method", std::string())) + "'s regression on " + Esc(r.value("trial", std::string())) +
+                  " <small>(pelvis width " + Fixed(Number(r, "pelvis_width_mm"), 0) + " mm; the generic model's " +
+                  Fixed(Number(r, "generic_from_regression_mm"), 1) + " mm)</small>";
+  if (!html.empty()) return html + regression;
   return std::string("<span class=\"notexcited\" title=\"") + Esc(reasons) + "\">" +
-         (estimated ? "not excited by any trial" : "no reference: fewer than 3 markers on a segment") + "</span>";
+         (estimated ? "not excited by any trial" : "no reference: fewer than 3 markers on a segment") + "</span>" +
+         regression;
 }
 
 std::string JointTableHtml(const FitReportPage& in) {

@@ -176,6 +176,18 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
                            {"centre_from_midpoint_mm", l.centre_from_midpoint_mm},
                            {"generic_from_midpoint_mm", l.generic_from_midpoint_mm},
                            {"far", l.far}});
+    nlohmann::json regression = nlohmann::json::array();
+    for (const RegressionCheck& r : jt.regression)
+      regression.push_back({{"method", r.method},
+                            {"markers", r.markers},
+                            {"trial", r.trial},
+                            {"frames", r.frames},
+                            {"pelvis_width_mm", r.pelvis_width_mm},
+                            {"pelvis_depth_mm", r.pelvis_depth_mm},
+                            {"offset_mm", {r.offset_mm.x(), r.offset_mm.y(), r.offset_mm.z()}},
+                            {"centre_from_regression_mm", r.centre_from_regression_mm},
+                            {"generic_from_regression_mm", r.generic_from_regression_mm},
+                            {"far", r.far}});
     joints.push_back({{"joint", jt.joint},
                       {"type", ToString(jt.type)},
                       {"axis_joint", jt.axis_joint},
@@ -186,7 +198,8 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
                       {"best_trial", jt.best_check >= 0 ? nlohmann::json(jt.checks[jt.best_check].trial)
                                                         : nlohmann::json()},
                       {"trials", std::move(checks)},
-                      {"landmarks", std::move(landmarks)}});
+                      {"landmarks", std::move(landmarks)},
+                      {"regression", std::move(regression)}});
   }
   return joints;
 }

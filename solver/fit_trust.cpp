@@ -1,6 +1,7 @@
 #include "solver/fit_trust.h"
 
 #include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <map>
 #include <set>
@@ -139,6 +140,157 @@ bool MeasureLandmarks(const Model& initial, const Model& fitted, const FitResult
   return true;
 }
 
+// The pelvis landmarks of a model (fit_trust.h): marker indices, -1 where absent.
+struct PelvisLandmarks {
+  int right_asis = -1, left_asis = -1, right_psis = -1, left_psis = -1, sacrum = -1;
+  bool complete() const {
+    return right_asis >= 0 && left_asis >= 0 && ((right_psis >= 0 && left_psis >= 0) || sacrum >= 0);
+  }
+  std::vector<int> markers() const {
+    std::vector<int> m = {right_asis, left_asis};
+    if (right_psis >= 0 && left_psis >= 0) m.insert(m.end(), {right_psis, left_psis});
+    else m.push_back(sacrum);
+    return m;
+  }
+};
+
+}  // namespace
+
+char PelvisLandmarkSide(const std::string& name, const std::string& stem) {
+  std::string s;
+  for (char c : name)
+    if (std::isalnum(static_cast<unsigned char>(c))) s += static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  if (s.size() > 5 && s.compare(s.size() - 5, 5, "study") == 0) s.resize(s.size() - 5);
+  const size_t at = s.find(stem);
+  if (at == std::string::npos) return 0;
+  size_t end = at + stem.size();
+  if (end < s.size() && s[end] == 's') ++end;  // ASIS, PSIS
+  const std::string rest = s.substr(0, at) + s.substr(end);
+  if (rest == "r" || rest == "right") return 'r';
+  if (rest == "l" || rest == "left") return 'l';
+  return 0;
+}
+
+namespace {
+
+// The landmarks among the markers of `segment`.
+PelvisLandmarks FindPelvisLandmarks(const Model& model, int segment) {
+  PelvisLandmarks p;
+  for (int m = 0; m < model.num_markers(); ++m) {
+    const Marker& mk = model.markers()[m];
+    if (mk.segment != segment) continue;
+    std::string lower;
+    for (char c : mk.name) lower += static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    if (const char a = PelvisLandmarkSide(mk.name, "asi"); a == 'r') p.right_asis = m;
+    else if (a == 'l') p.left_asis = m;
+    else if (const char b = PelvisLandmarkSide(mk.name, "psi"); b == 'r') p.right_psis = m;
+    else if (b == 'l') p.left_psis = m;
+    else if (lower.find("sacr") != std::string::npos) p.sacrum = m;
+  }
+  return p;
+}
+
+// The landmarks' pelvis frame (fit_trust.h) from their positions (right ASIS, left ASIS, then the
+// PSIS or the sacrum): origin, rotation (columns anterior, superior, right), width and depth.
+// False when the points do not make a frame.
+bool PelvisFrame(const std::vector<Eigen::Vector3d>& at, Eigen::Vector3d* origin, Eigen::Matrix3d* axes,
+                 double* width, double* depth) {
+  const Eigen::Vector3d mid_asis = 0.5 * (at[0] + at[1]);
+  const Eigen::Vector3d back = at.size() == 4 ? Eigen::Vector3d(0.5 * (at[2] + at[3])) : at[2];
+  Eigen::Vector3d right = at[0] - at[1];
+  *width = right.norm();
+  if (!(*width > 1e-6)) return false;
+  right /= *width;
+  Eigen::Vector3d anterior = mid_asis - back;
+  *depth = anterior.norm();
+  anterior -= anterior.dot(right) * right;
+  if (!(anterior.norm() > 1e-6)) return false;
+  anterior.normalize();
+  axes->col(0) = anterior;
+  axes->col(1) = right.cross(anterior);  // superior
+  axes->col(2) = right;
+  *origin = mid_asis;
+  return true;
+}
+
+// Harrington et al. 2007 in that frame (metres; `side` +1 right, -1 left).
+Eigen::Vector3d HarringtonHip(double width, double depth, double side) {
+  return Eigen::Vector3d(-0.24 * depth - 0.0099, -0.30 * width - 0.0109, side * (0.33 * width + 0.0073));
+}
+
+// The regression check of hip j (fit_trust.h); false when the model has no such landmarks on the
+// joint's parent, the centre is not lateral (not a hip), or no trial sees every landmark.
+bool MeasureRegression(const Model& initial, const Model& fitted, const FitResult& fit,
+                       const std::vector<FitTrial>& trials, int j, RegressionCheck* check) {
+  const int pelvis = initial.joints()[j].parent;
+  const PelvisLandmarks lm = FindPelvisLandmarks(initial, pelvis);
+  if (!lm.complete()) return false;
+  const std::vector<int> markers = lm.markers();
+  // The generic model in its default pose: which side the joint is on, and its own offset.
+  const Geometry gi(initial);
+  ModelData di(initial);
+  ForwardKinematics(initial, gi, initial.DefaultCoordinates(), &di);
+  std::vector<Eigen::Vector3d> at;
+  for (int m : markers) at.push_back(MarkerPosition(initial, gi, di, m));
+  Eigen::Vector3d origin;
+  Eigen::Matrix3d axes;
+  double width = 0, depth = 0;
+  if (!PelvisFrame(at, &origin, &axes, &width, &depth)) return false;
+  const Eigen::Vector3d generic = axes.transpose() * (JointCentre(initial, di, j) - origin);
+  if (std::abs(generic.z()) < 0.03 || generic.y() > 0) return false;  // not beside and below: no hip
+  const double side = generic.z() > 0 ? 1.0 : -1.0;
+  check->generic_from_regression_mm = 1000.0 * (generic - HarringtonHip(width, depth, side)).norm();
+  for (int m : markers) check->markers.push_back(initial.markers()[m].name);
+  // The trial: a static one first, else the one with the most frames seeing every landmark.
+  const std::vector<std::string>& statics = fit.report.static_trials;
+  int chosen = -1, chosen_frames = 0;
+  bool chosen_static = false;
+  std::vector<std::vector<int>> columns(trials.size());
+  auto sees_all = [&](size_t t, int f) {
+    for (int c : columns[t])
+      if (!trials[t].markers.positions.row(f).segment<3>(3 * c).allFinite()) return false;
+    return true;
+  };
+  for (size_t t = 0; t < trials.size(); ++t) {
+    const formats::MarkerTrial& m = trials[t].markers;
+    for (const std::string& name : check->markers) columns[t].push_back(m.FindMarker(name));
+    if (std::find(columns[t].begin(), columns[t].end(), -1) != columns[t].end()) continue;
+    int frames = 0;
+    for (int f = 0; f < m.num_frames(); ++f) frames += sees_all(t, f);
+    const bool is_static = std::find(statics.begin(), statics.end(), m.name) != statics.end();
+    if (frames == 0) continue;
+    if (chosen < 0 || (is_static && !chosen_static) || (is_static == chosen_static && frames > chosen_frames))
+      chosen = static_cast<int>(t), chosen_frames = frames, chosen_static = is_static;
+  }
+  if (chosen < 0) return false;
+  const formats::MarkerTrial& m = trials[chosen].markers;
+  const Geometry g(fitted);
+  ModelData d(fitted);
+  Eigen::Vector3d centre_sum = Eigen::Vector3d::Zero();
+  double width_sum = 0, depth_sum = 0;
+  int n = 0;
+  for (int f = 0; f < m.num_frames(); ++f) {
+    const Eigen::VectorXd z = fit.coordinates[chosen].row(f).transpose();
+    if (!sees_all(chosen, f) || !z.allFinite()) continue;
+    for (size_t k = 0; k < markers.size(); ++k)
+      at[k] = m.positions.row(f).segment<3>(3 * columns[chosen][k]).transpose();
+    if (!PelvisFrame(at, &origin, &axes, &width, &depth)) continue;
+    ForwardKinematics(fitted, g, z, &d);
+    centre_sum += axes.transpose() * (JointCentre(fitted, d, j) - origin);
+    width_sum += width;
+    depth_sum += depth;
+    ++n;
+  }
+  if (n == 0) return false;
+  check->trial = m.name;
+  check->frames = n;
+  check->pelvis_width_mm = 1000.0 * width_sum / n;
+  check->pelvis_depth_mm = 1000.0 * depth_sum / n;
+  check->offset_mm = 1000.0 * (centre_sum / n - HarringtonHip(width_sum / n, depth_sum / n, side));
+  check->centre_from_regression_mm = check->offset_mm.norm();
+  return true;
+}
+
 }  // namespace
 
 bool FitTrustOptions::IsValid(std::string* error) const {
@@ -147,8 +299,8 @@ bool FitTrustOptions::IsValid(std::string* error) const {
     if (error) *error = "functional: " + why;
     return false;
   }
-  if (!(far_mm > 0) || !(far_deg > 0) || !(far_landmark_mm > 0)) {
-    if (error) *error = "far_mm, far_deg and far_landmark_mm must be > 0";
+  if (!(far_mm > 0) || !(far_deg > 0) || !(far_landmark_mm > 0) || !(far_regression_mm > 0)) {
+    if (error) *error = "far_mm, far_deg, far_landmark_mm and far_regression_mm must be > 0";
     return false;
   }
   return true;
@@ -256,6 +408,13 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
         lc.generic_from_midpoint_mm = 1000.0 * (JointCentre(initial, d_initial, j) - mid).norm();
         lc.far = lc.centre_from_midpoint_mm > lc.generic_from_midpoint_mm + options.far_landmark_mm;
         jtr.landmarks.push_back(std::move(lc));
+      }
+    }
+    if (!jtr.axis_joint) {
+      RegressionCheck rc;
+      if (MeasureRegression(initial, fitted, fit, trials, j, &rc)) {
+        rc.far = rc.centre_from_regression_mm > options.far_regression_mm;
+        jtr.regression.push_back(std::move(rc));
       }
     }
     out.joints.push_back(std::move(jtr));

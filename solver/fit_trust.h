@@ -33,6 +33,19 @@
 // Measured on a static trial (report.static_trials) that has both, else on the trial with the
 // most frames that has both; the generic model's own offset (its centre from its two markers'
 // midpoint) is given beside it, since a model may put the joint off the landmarks' midpoint.
+//
+// Per hip too, where the model has markers on both anterior superior iliac spines and on both
+// posterior ones (or the sacrum) on the hips' parent segment, named as labs name them (RASI,
+// r.ASIS, R_ASIS, ASIS_r, L.PSIS_study, SACR, ...): the regression of Harrington et al. 2007 (J
+// Biomech 40:595, the predictive method of clinical gait analysis), in the pelvis frame of those
+// markers (origin between the ASIS, z to the right ASIS, x anterior in the plane of the ASIS and
+// the PSIS' midpoint, y up), with PW the ASIS' distance and PD that of the ASIS' midpoint from the
+// PSIS': anterior -0.24 PD - 9.9 mm, superior -0.30 PW - 10.9 mm, lateral 0.33 PW + 7.3 mm. A
+// third reference beside the functional one and the generic model's, independent of both and of
+// the fit, with its own error (12 +- 6 mm against CT, Mantovani et al. 2016, Gait Posture 44:48):
+// where two references disagree, it says which one the fit's centre sides with. Measured like
+// the landmarks (a static trial first): the fitted centre and the prediction, each averaged in
+// the markers' pelvis frame over the frames with every landmark and a pose.
 #pragma once
 
 #include <string>
@@ -60,6 +73,8 @@ struct FitTrustOptions {
   // A centre further than this from its landmark markers' midpoint, beyond the generic model's
   // own offset, is flagged (issue 14's bound for a centre against an independent reference).
   double far_landmark_mm = 20.0;
+  // A hip further than this from its regression (Harrington's own error is 12 +- 6 mm).
+  double far_regression_mm = 20.0;
   FitTrustOptions() { functional.bootstrap_samples = 50; }
   bool IsValid(std::string* error) const;
 };
@@ -94,6 +109,20 @@ struct LandmarkCheck {
   bool far = false;  // more than FitTrustOptions::far_landmark_mm beyond the generic model's offset
 };
 
+// One hip against the pelvis landmarks' regression (see the header).
+struct RegressionCheck {
+  std::string method = "Harrington 2007";
+  std::vector<std::string> markers;  // right ASIS, left ASIS, right PSIS, left PSIS (or the sacrum)
+  std::string trial;                 // where measured
+  int frames = 0;
+  double pelvis_width_mm = 0, pelvis_depth_mm = 0;  // means over those frames
+  // Fitted centre minus prediction, in the landmarks' pelvis frame (anterior, superior, right).
+  Eigen::Vector3d offset_mm = Eigen::Vector3d::Zero();
+  double centre_from_regression_mm = 0;
+  double generic_from_regression_mm = 0;  // the generic model's, default pose, its own markers
+  bool far = false;                       // beyond FitTrustOptions::far_regression_mm
+};
+
 struct JointTrust {
   std::string joint;
   JointType type = JointType::kCustom;
@@ -108,6 +137,8 @@ struct JointTrust {
   int best_check = -1;
   // Empty when the model has no landmark pair about the joint or no trial sees both.
   std::vector<LandmarkCheck> landmarks;
+  // Hips only, where the model has the pelvis landmarks and a trial sees them: one check.
+  std::vector<RegressionCheck> regression;
 };
 
 struct FitTrust {
@@ -116,6 +147,11 @@ struct FitTrust {
   std::vector<std::pair<std::string, double>> outlier_markers;  // name, RMS mm (FitReport)
   std::vector<std::string> undetermined;                        // parameter names (FitReport)
 };
+
+// 'r' or 'l' when a marker's `name` is that side's pelvis landmark `stem` ("asi": RASI, r.ASIS,
+// R_ASIS, ASIS_r; "psi": the posterior spines), with nothing else in it but separators and
+// OpenCap's "_study" suffix; 0 otherwise.
+char PelvisLandmarkSide(const std::string& name, const std::string& stem);
 
 // `initial` is the generic model the fit started from: its markers say which trial columns make
 // each segment's cluster (markers of the fit's own making, such as AddFunctionalCentres's

@@ -194,6 +194,76 @@ TEST(FitTrust, KneeCentreAgainstItsEpicondyleMarkers) {
   EXPECT_TRUE(off[0].far);
 }
 
+// The hips against Harrington's regression from the pelvis markers (fit_trust.h): found by their
+// names (RASI, LASI, RPSI, LPSI), the fitted right hip where the truth has it against the prediction
+// from the measured markers, the generic model's own offset beside it; a hip moved 25 mm sideways
+// is flagged far; the knees and the lumbar joint have none.
+TEST(FitTrust, HipsAgainstTheRegressionFromThePelvisMarkers) {
+  const SimulatedFit& fit = Fit();
+  solver::FitTrustOptions options;
+  options.joints = {"hip_r", "hip_l", "knee_r"};
+  solver::FitTrust trust;
+  ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &trust).ok());
+  EXPECT_TRUE(Joint(trust, "knee_r").regression.empty());
+  // The truth's own offset from the regression, computed here from its markers in its default
+  // pose: x anterior, z to the right ASIS, y up (Harrington et al. 2007).
+  const Model& truth = fit.session.truth;
+  const Geometry g(truth);
+  ModelData d(truth);
+  ForwardKinematics(truth, g, truth.DefaultCoordinates(), &d);
+  auto at = [&](const char* name) { return MarkerPosition(truth, g, d, truth.FindMarker(name)); };
+  const Eigen::Vector3d ra = at("RASI"), la = at("LASI"), back = 0.5 * (at("RPSI") + at("LPSI"));
+  const Eigen::Vector3d origin = 0.5 * (ra + la);
+  const Eigen::Vector3d right = (ra - la).normalized();
+  const Eigen::Vector3d anterior = ((origin - back) - (origin - back).dot(right) * right).normalized();
+  const Eigen::Vector3d up = right.cross(anterior);
+  const double pw = (ra - la).norm(), pd = (origin - back).norm();
+  for (const char* hip : {"hip_r", "hip_l"}) {
+    const auto& r = Joint(trust, hip).regression;
+    ASSERT_EQ(r.size(), 1u) << hip;
+    const double side = std::string(hip) == "hip_r" ? 1.0 : -1.0;
+    const Eigen::Vector3d c = JointCentre(truth, d, truth.FindJoint(hip)) - origin;
+    const Eigen::Vector3d predicted(-0.24 * pd - 0.0099, -0.30 * pw - 0.0109, side * (0.33 * pw + 0.0073));
+    const double truth_mm = 1000.0 * (Eigen::Vector3d(c.dot(anterior), c.dot(up), c.dot(right)) - predicted).norm();
+    std::printf("%s: %.2f mm from Harrington's regression (the truth's %.2f, the generic model's %.2f), PW %.1f mm\n",
+                hip, r[0].centre_from_regression_mm, truth_mm, r[0].generic_from_regression_mm, r[0].pelvis_width_mm);
+    EXPECT_EQ(r[0].markers, (std::vector<std::string>{"RASI", "LASI", "RPSI", "LPSI"}));
+    EXPECT_GT(r[0].frames, 100);
+    EXPECT_NEAR(r[0].pelvis_width_mm, 1000.0 * pw, 3.0);  // the markers' noise and placement
+    // The right hip's centre is fitted where the truth has it (its trial excites it); the left
+    // one, which no trial moves, keeps the nominal model's place: only its figure is reported.
+    if (side > 0) EXPECT_NEAR(r[0].centre_from_regression_mm, truth_mm, 3.0);
+  }
+  solver::FitResult moved = fit.result;
+  const Model& m = fit.result.model;
+  const int j = m.FindJoint("hip_r");
+  Eigen::VectorXd p = m.InitialParameters();
+  // 25 mm along the pelvis's lateral axis (the default model's y points left).
+  p[m.centre_index(j) + 1] -= 0.025 / p[m.scale_index(m.joints()[j].parent)];
+  ASSERT_TRUE(m.WithParameters(p, &moved.model).ok());
+  solver::FitTrust after;
+  ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, moved, fit.trials, options, &after).ok());
+  const auto& before_r = Joint(trust, "hip_r").regression[0];
+  const auto& after_r = Joint(after, "hip_r").regression[0];
+  EXPECT_NEAR(after_r.offset_mm.z() - before_r.offset_mm.z(), 25.0, 1.0);
+  EXPECT_TRUE(after_r.far);
+  EXPECT_EQ(Joint(after, "hip_l").regression[0].offset_mm, Joint(trust, "hip_l").regression[0].offset_mm);
+}
+
+// The landmark names labs use are read as sides of the spines; others are not.
+TEST(FitTrust, PelvisLandmarkNamesOfLabMarkerSets) {
+  EXPECT_EQ(solver::PelvisLandmarkSide("RASI", "asi"), 'r');
+  EXPECT_EQ(solver::PelvisLandmarkSide("r.ASIS", "asi"), 'r');
+  EXPECT_EQ(solver::PelvisLandmarkSide("L.ASIS_study", "asi"), 'l');
+  EXPECT_EQ(solver::PelvisLandmarkSide("ASIS_left", "asi"), 'l');
+  EXPECT_EQ(solver::PelvisLandmarkSide("R_PSIS", "psi"), 'r');
+  EXPECT_EQ(solver::PelvisLandmarkSide("LPSI", "psi"), 'l');
+  EXPECT_EQ(solver::PelvisLandmarkSide("RASI", "psi"), 0);
+  EXPECT_EQ(solver::PelvisLandmarkSide("midASIS", "asi"), 0);
+  EXPECT_EQ(solver::PelvisLandmarkSide("RASIS_cluster", "asi"), 0);
+  EXPECT_EQ(solver::PelvisLandmarkSide("Rasi2", "asi"), 0);
+}
+
 // Every joint by default; a segment with too few markers is a note, not an error.
 TEST(FitTrust, EveryJointByDefaultWithReasons) {
   const SimulatedFit& fit = Fit();

@@ -45,6 +45,14 @@ double JointCheck(const nlohmann::json& report, const std::string& joint, const 
   return std::nan("");
 }
 
+// The report's regression check of hip `joint` (Harrington 2007 from the pelvis markers): a
+// field of it; NaN when there is none.
+double RegressionCheck(const nlohmann::json& report, const std::string& joint, const char* field) {
+  for (const auto& j : report["joint_checks"])
+    if (j["joint"] == joint && !j["regression"].empty()) return j["regression"][0][field].get<double>();
+  return std::nan("");
+}
+
 // Joint j's centre in its parent segment's frame, scaled (metres).
 Eigen::Vector3d CentreInParent(const Model& m, const std::string& joint) {
   const Joint& j = m.joints()[m.FindJoint(joint)];
@@ -131,6 +139,16 @@ TEST(RealFit, Welk007OneCommandFromTheGenericModel) {
   EXPECT_LE(r["marker_rms_mm"].get<double>(), run.hand_scaled["marker_rms_mm"].get<double>());
   ASSERT_TRUE(std::isfinite(score_mm)) << "no SCoRE check of hip_r on the functional trial";
   EXPECT_LE(score_mm, 10.0);
+  // A third reference, independent of the fit, of SCoRE and of the hand-scaled model: the
+  // regression of the pelvis markers (Harrington 2007, own error 12 +- 6 mm). The right hip lies
+  // within 20 mm of it (the bound the issue sets against the hand-scaled model); the hand-scaled
+  // model's own hip, against its own markers, is further (see Welk007RightHipWithin20mmOfThe...).
+  const double regression_mm = RegressionCheck(r, "hip_r", "centre_from_regression_mm");
+  const double hand_regression_mm = RegressionCheck(run.hand_scaled, "hip_r", "generic_from_regression_mm");
+  std::printf("welk007: right hip %.1f mm from Harrington's regression (the hand-scaled model's own: %.1f mm; "
+              "with our IK on the static trial %.1f mm)\n",
+              regression_mm, hand_regression_mm, RegressionCheck(run.hand_scaled, "hip_r", "centre_from_regression_mm"));
+  EXPECT_LE(regression_mm, 20.0);
   // The generic model stacks each cluster's markers on one point of its segment (placeholders):
   // they are named and placed from the trials, each far from that point.
   std::set<std::string> placed;
@@ -149,8 +167,15 @@ TEST(RealFit, Welk007OneCommandFromTheGenericModel) {
   EXPECT_EQ(r["stages"].back()["name"], "all parameters");
 }
 
-// NOT MET (last run: 26.6 mm RMS over the trial). The hand-scaled model's own hip is ~28 mm from SCoRE on this
-// trial (its marker RMS with our IK is 20.0 mm), so both bounds together leave a few mm.
+// NOT MET, and a reference we question (last run: 25.9 mm RMS over the trial; 24.4 mm between the two
+// centres averaged in the frame of the pelvis markers, 22 of them mediolateral: ours lies wider).
+// The hand-scaled model's hip is the outlier of the three references: 28.9 mm from SCoRE on the
+// hip's own functional trial (ours 9.3) and 22.3 mm from Harrington's regression of the pelvis
+// markers against its own markers (ours 16.1, on the static trial); its marker RMS with our IK is
+// 21.3 mm (ours 5.4). Both bounds together (10 mm of SCoRE, 20 mm of the hand-scaled hip) would ask
+// the fit to move the centre away from both independent references towards the manual one.
+// Welk007OneCommandFromTheGenericModel holds the right hip to SCoRE (10 mm) and to the regression
+// (20 mm) instead.
 TEST(RealFit, DISABLED_Welk007RightHipWithin20mmOfTheHandScaledModel) {
   SKIP_WITHOUT_SHARED_DATA();
   EXPECT_LE(Welk().hip_from_hand_scaled_mm, 20.0);
@@ -202,6 +227,10 @@ TEST(RealFit, Gait2354OneCommandConvergesAndPlacesHipsAndKnees) {
               r["marker_rms_mm"].get<double>(), CentreDifferenceMm(run, "hip_r"), CentreDifferenceMm(run, "hip_l"),
               CentreDifferenceMm(run, "knee_r"), CentreDifferenceMm(run, "knee_l"),
               CentreDifferenceMm(run, "ankle_r"), CentreDifferenceMm(run, "ankle_l"));
+  std::printf("gait2354: Harrington's regression: hip_r %.1f, hip_l %.1f mm (the generic model's own %.1f mm)\n",
+              RegressionCheck(r, "hip_r", "centre_from_regression_mm"),
+              RegressionCheck(r, "hip_l", "centre_from_regression_mm"),
+              RegressionCheck(r, "hip_r", "generic_from_regression_mm"));
   EXPECT_TRUE(r["converged"].get<bool>()) << r["termination_message"];
   EXPECT_LE(r["iterations"].get<int>(), 30);
   EXPECT_TRUE(r["far_moved_markers"].empty()) << r["far_moved_markers"];
@@ -427,6 +456,10 @@ TEST(RealFit, BiobuddyDefaultModelAgreesWithFunctionalJoints) {
               "knee_l %.1f deg, knee_r %.1f deg from SARA\n",
               r["marker_rms_mm"].get<double>(), r["iterations"].get<int>(),
               r["termination"].get<std::string>().c_str(), hip_l, hip_r, knee_l, knee_r);
+  std::printf("biobuddy: Harrington's regression: hip_l %.1f mm, hip_r %.1f mm (the default model's own %.1f mm)\n",
+              RegressionCheck(r, "hip_l", "centre_from_regression_mm"),
+              RegressionCheck(r, "hip_r", "centre_from_regression_mm"),
+              RegressionCheck(r, "hip_r", "generic_from_regression_mm"));
   EXPECT_TRUE(r["converged"].get<bool>()) << r["termination_message"];
   int attached = 0;
   for (const auto& a : r["attached_markers"]) attached += a["segment"].get<std::string>().empty() ? 0 : 1;

@@ -353,7 +353,11 @@ TEST_F(Report, JointFarFromItsFunctionalEstimateIsFlagged) {
       {{{"joint", "hip_l"}, {"axis_joint", false}, {"best_trial", "hip_star_arc_l"},
         {"trials", {{{"trial", "hip_star_arc_l"}, {"estimated", true}, {"excited", true}, {"far", true},
                      {"frames", 250}, {"centre_distance_mm", 23.44}, {"centre_spread_mm", 4.0},
-                     {"functional_std_mm", 1.5}}}}},
+                     {"functional_std_mm", 1.5}}}},
+        {"regression", {{{"method", "Harrington 2007"}, {"trial", "static"}, {"frames", 300},
+                         {"pelvis_width_mm", 231.2}, {"pelvis_depth_mm", 180.0},
+                         {"centre_from_regression_mm", 14.26}, {"generic_from_regression_mm", 15.0},
+                         {"far", false}}}}},
        {{"joint", "knee_l"}, {"axis_joint", true}, {"best_trial", nullptr},
         {"trials", {{{"trial", "static"}, {"estimated", true}, {"excited", false}, {"note", "too still"}}}}}});
   std::string html;
@@ -363,6 +367,11 @@ TEST_F(Report, JointFarFromItsFunctionalEstimateIsFlagged) {
   EXPECT_NE(html.substr(at, html.find("</div>", at) - at).find("<b>hip_l</b> 23.4 mm on hip_star_arc_l"),
             std::string::npos);
   EXPECT_NE(html.find("<span class=\"bad\">23.4 mm</span> on hip_star_arc_l"), std::string::npos);
+  // The hip's regression reference in the same cell (fit_trust.h).
+  const size_t hip = html.find("data-joint=\"hip_l\"><td>");
+  ASSERT_NE(hip, std::string::npos);
+  EXPECT_LT(html.find("<span class=\"fd\">14.3 mm</span> from Harrington 2007's regression on static", hip),
+            html.find("</tr>", hip));
   const size_t knee = html.find("data-joint=\"knee_l\"><td>");
   ASSERT_NE(knee, std::string::npos);
   EXPECT_LT(html.find("title=\"static: too still\">not excited by any trial", knee), html.find("</tr>", knee));

@@ -83,6 +83,14 @@ void LogJointChecks(const solver::FitTrust& trust) {
                   "{}: fitted centre {:.1f} mm from the midpoint of {} and {} on {} (the generic model's: {:.1f} mm){}",
                   j.joint, l.centre_from_midpoint_mm, l.first, l.second, l.trial, l.generic_from_midpoint_mm,
                   l.far ? ": the skeleton is off its landmarks there, more than the generic model puts it" : "");
+  for (const solver::JointTrust& j : trust.joints)
+    for (const solver::RegressionCheck& r : j.regression)
+      spdlog::log(r.far ? spdlog::level::warn : spdlog::level::info,
+                  "{}: fitted centre {:.1f} mm from {}'s regression on {} (pelvis width {:.0f} mm, depth {:.0f} mm; "
+                  "the generic model's: {:.1f} mm){}",
+                  j.joint, r.centre_from_regression_mm, r.method, r.trial, r.pelvis_width_mm, r.pelvis_depth_mm,
+                  r.generic_from_regression_mm,
+                  r.far ? ": further than the regression's own error; see the functional check" : "");
   for (const solver::JointTrust& j : trust.joints) {
     const std::string generic = fmt::format("{:.1f} mm from the generic model's{}", j.from_generic_mm,
                                             j.centre_fitted ? fmt::format(" (fit sd {:.1f} mm)", j.fitted_std_mm)
