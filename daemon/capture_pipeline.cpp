@@ -85,7 +85,17 @@ CapturePipeline::CapturePipeline(std::vector<std::unique_ptr<drivers::CameraSour
   stats_.camera_losses.assign(cameras_.size(), 0);
   // Slot i starts with a value whose low bits never equal those of a sequence of slot i.
   delivered_ = std::make_unique<std::atomic<std::uint64_t>[]>(kDeliveredRing);
-  for (std::size_t i = 0; i < kDeliveredRing; ++i) delivered_[i].store((i + 1) % kDeliveredRing);
+  delivered_underruns_ = std::make_unique<std::atomic<std::uint64_t>[]>(kDeliveredRing);
+  for (std::size_t i = 0; i < kDeliveredRing; ++i) {
+    delivered_[i].store((i + 1) % kDeliveredRing);
+    delivered_underruns_[i].store(0);
+  }
+}
+
+std::uint64_t CapturePipeline::CameraUnderruns() const {
+  std::uint64_t sum = 0;
+  for (const auto& cam : cameras_) sum += cam->Counters().underruns.load(std::memory_order_relaxed);
+  return sum;
 }
 
 // The sequence the sync groups a frame by (DetectLoop gives it to the sync).
@@ -100,7 +110,7 @@ std::uint64_t CapturePipeline::SyncSequence(const drivers::Frame& frame) const {
 bool CapturePipeline::Delivered(std::uint64_t sequence) const {
   const int bits = options_.sync.sequence_bits;
   const std::uint64_t mask = bits >= 64 ? ~std::uint64_t{0} : (std::uint64_t{1} << bits) - 1;
-  return ((delivered_[sequence % kDeliveredRing].load(std::memory_order_relaxed) ^ sequence) & mask) == 0;
+  return ((delivered_[sequence % kDeliveredRing].load(std::memory_order_acquire) ^ sequence) & mask) == 0;
 }
 
 CapturePipeline::~CapturePipeline() { Stop(); }
@@ -297,7 +307,8 @@ void CapturePipeline::GrabLoop(int c) {
       if (options_.rig_sync == CapturePipelineOptions::RigSync::kSharedClock) AddTickPhase(c, frame);
       if (options_.rig_sync != CapturePipelineOptions::RigSync::kFreeRun) {
         const std::uint64_t sequence = SyncSequence(frame);
-        delivered_[sequence % kDeliveredRing].store(sequence, std::memory_order_relaxed);
+        delivered_underruns_[sequence % kDeliveredRing].store(CameraUnderruns(), std::memory_order_relaxed);
+        delivered_[sequence % kDeliveredRing].store(sequence, std::memory_order_release);
       }
       BoundedQueue<drivers::Frame>& queue = *frames_[c % frames_.size()];
       if (!queue.TryPush(std::move(frame))) {  // full: the frame is left to us
@@ -457,9 +468,16 @@ void CapturePipeline::EmitSet(reconstruction::DetectionSet& set) {
   if (!s) ++stats_.triangulation_errors;
   if (any_emitted_ && set.sequence > last_emitted_sequence_ + 1) {
     const std::uint64_t gap = set.sequence - last_emitted_sequence_ - 1;
+    // Whether a camera's ring underran between the deliveries of the sets on either side of the
+    // gap (which sequences an underrun lost is not known): the gap may then be the daemon's doing
+    // and is counted as such, as it is when either side's record is gone.
+    const bool recorded = Delivered(last_emitted_sequence_) && Delivered(set.sequence);
+    const bool underran =
+        !recorded || delivered_underruns_[set.sequence % kDeliveredRing].load(std::memory_order_relaxed) !=
+                         delivered_underruns_[last_emitted_sequence_ % kDeliveredRing].load(std::memory_order_relaxed);
     std::uint64_t undelivered = 0;
     // A gap longer than the ring cannot be told apart: all of it is counted as the daemon's.
-    if (options_.rig_sync != CapturePipelineOptions::RigSync::kFreeRun && gap <= kDeliveredRing)
+    if (options_.rig_sync != CapturePipelineOptions::RigSync::kFreeRun && gap <= kDeliveredRing && !underran)
       for (std::uint64_t q = last_emitted_sequence_ + 1; q < set.sequence; ++q) undelivered += Delivered(q) ? 0 : 1;
     stats_.undelivered_frame_sets += undelivered;
     stats_.dropped_frame_sets += gap - undelivered;

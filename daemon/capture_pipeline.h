@@ -206,10 +206,11 @@ struct CapturePipelineStats {
   // was dropped at a full queue, arrived too late for its set), or whose point frame found the
   // output queue full: the daemon's losses. kFreeRun (no common numbering): every sequence gap.
   std::uint64_t dropped_frame_sets = 0;
-  // Sequence gaps that no camera delivered any frame of: not exposed, or lost before the host
-  // (transport, a camera's buffers underrun: CameraCounters::underruns says which). A simulated
-  // camera running in the daemon's own process skips the ticks during which the host did not
-  // schedule it, as hardware, exposing on its own clock, would not. kTrigger and kSharedClock.
+  // Sequence gaps that no camera delivered any frame of, and during which no camera's buffers
+  // underran (a frame lost in the driver for want of a buffer the daemon held is the daemon's:
+  // such gaps count as dropped): not exposed, or lost in transport. A simulated camera running in the
+  // daemon's own process skips the ticks during which the host did not schedule it, as hardware,
+  // exposing on its own clock, would not. kTrigger and kSharedClock.
   std::uint64_t undelivered_frame_sets = 0;
   std::uint64_t late_frames = 0;
   std::uint64_t triangulation_errors = 0;
@@ -330,6 +331,10 @@ class CapturePipeline {
   // (20 s at 200 Hz) is far beyond the sync's window; a divisor of 2^16, so 16-bit ids agree.
   static constexpr std::size_t kDeliveredRing = 4096;
   std::unique_ptr<std::atomic<std::uint64_t>[]> delivered_;
+  // Per slot, the cameras' buffer underruns (summed) when that sequence was delivered: a gap
+  // between two delivered sequences with underruns between them may be the daemon's doing.
+  std::unique_ptr<std::atomic<std::uint64_t>[]> delivered_underruns_;
+  std::uint64_t CameraUnderruns() const;
   std::uint64_t SyncSequence(const drivers::Frame& frame) const;
   bool Delivered(std::uint64_t sequence) const;
   // The sync thread's: the stream epoch each camera's detections last had; kFreeRun numbering.

@@ -358,13 +358,12 @@ TEST(CapturePipeline, TriggerRigCountsTheFrameWhoseCountSlippedFromItsTimestamp)
 
 // A sequence that no camera delivered (every camera skipped the tick: a rig of fakes in a
 // descheduled process) is not a set the daemon lost; one whose frames reached the daemon and were
-// dropped at its full queue (detection held) is.
+// dropped at its full queue (detection held for longer than the queue holds) is.
 TEST(CapturePipeline, SetsNoCameraDeliveredAreToldApartFromTheDaemonsLosses) {
   daemon::CapturePipelineOptions o;
   o.rig_sync = daemon::CapturePipelineOptions::RigSync::kTrigger;
   o.rate_hz = Rig::kRate;
   o.sync.timeout_ns = 40'000'000;
-  o.frame_queue_capacity = 8;
   std::atomic<bool> hold{false};
   o.test_hold = [&hold](const char* stage) {
     while (std::strcmp(stage, "detection") == 0 && hold.load())
@@ -384,21 +383,31 @@ TEST(CapturePipeline, SetsNoCameraDeliveredAreToldApartFromTheDaemonsLosses) {
   // About one in 25 of the sets handed out (the first ones may precede the first gap).
   EXPECT_GE(before.undelivered_frame_sets, frames.size() / 25 - 1);
   EXPECT_LE(before.undelivered_frame_sets, frames.size() / 24 + 2);
-  EXPECT_EQ(before.dropped_frame_sets, 0u);
-  hold = true;  // 0.4 s of detection stopped: the 8-frame queues overflow
-  std::this_thread::sleep_for(std::chrono::milliseconds(400));
+  // None lost by the pipeline, unless a grab thread fell so far behind on a loaded host that a
+  // camera's ring overflowed (underruns, the daemon's: a set can be lost only with them).
+  std::uint64_t underruns = 0;
+  for (const drivers::SimulatedCamera* c : rig.sources) underruns += c->Counters().underruns.load();
+  EXPECT_LE(before.dropped_frame_sets, underruns);
+  hold = true;  // 2 s of detection stopped: the 128-frame queues (1.28 s) overflow
+  std::this_thread::sleep_for(std::chrono::milliseconds(2000));
   hold = false;
   rig.Collect(0.6);
   rig.pipeline->Stop();
   const daemon::CapturePipelineStats after = rig.pipeline->Stats();
-  std::printf("detection held 0.4 s: %llu frames dropped at the queue, sets dropped %llu, undelivered %llu\n",
+  std::printf("detection held 2 s: %llu frames dropped at the queue, sets dropped %llu, undelivered %llu\n",
               static_cast<unsigned long long>(after.frames_dropped),
               static_cast<unsigned long long>(after.dropped_frame_sets),
               static_cast<unsigned long long>(after.undelivered_frame_sets));
-  EXPECT_GT(after.frames_dropped, 3u * 20);
-  EXPECT_GE(after.dropped_frame_sets, 20u);
-  // The unexposed ticks of that second go on being counted as such, not as the daemon's.
-  EXPECT_LE(after.undelivered_frame_sets - before.undelivered_frame_sets, 5u);
+  // Lost at the full queues, or in the cameras' rings for want of the buffers the queued frames
+  // held: the daemon's either way.
+  std::uint64_t underruns_after = 0;
+  for (const drivers::SimulatedCamera* c : rig.sources) underruns_after += c->Counters().underruns.load();
+  std::printf("  ... and %llu frames lost in the cameras' rings (underruns)\n",
+              static_cast<unsigned long long>(underruns_after - underruns));
+  EXPECT_GT(after.frames_dropped + (underruns_after - underruns), 3u * 40);
+  EXPECT_GE(after.dropped_frame_sets, 40u);
+  // The unexposed ticks of those 2.6 s go on being counted as such (about 10).
+  EXPECT_LE(after.undelivered_frame_sets - before.undelivered_frame_sets, 12u);
 }
 
 TEST(CapturePipeline, RecordingStartsAtTheFirstCompleteSet) {
