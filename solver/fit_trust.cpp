@@ -93,6 +93,38 @@ void CompareWithFunctional(const Model& fitted, const Geometry& g, int j, const 
   check->axis_line_distance_mm = 1000.0 * (off - off.dot(fun_axis) * fun_axis).norm();
 }
 
+// Whether trial t sees every marker of `columns` (its column indices) in frame f.
+bool SeesAll(const formats::MarkerTrial& m, const std::vector<int>& columns, int f) {
+  for (int c : columns)
+    if (!m.positions.row(f).segment<3>(3 * c).allFinite()) return false;
+  return true;
+}
+
+// The trial to measure landmarks on: a static one first (fit.report.static_trials), else the one
+// with the most frames that see every marker of `names`; -1 when none does. *columns: per trial,
+// the names' column indices (empty where one is missing).
+int LandmarkTrial(const FitResult& fit, const std::vector<FitTrial>& trials, const std::vector<std::string>& names,
+                  std::vector<std::vector<int>>* columns) {
+  const std::vector<std::string>& statics = fit.report.static_trials;
+  int chosen = -1, chosen_frames = 0;
+  bool chosen_static = false;
+  columns->assign(trials.size(), {});
+  for (size_t t = 0; t < trials.size(); ++t) {
+    const formats::MarkerTrial& m = trials[t].markers;
+    std::vector<int> c;
+    for (const std::string& name : names) c.push_back(m.FindMarker(name));
+    if (std::find(c.begin(), c.end(), -1) != c.end()) continue;
+    (*columns)[t] = c;
+    int frames = 0;
+    for (int f = 0; f < m.num_frames(); ++f) frames += SeesAll(m, c, f);
+    const bool is_static = std::find(statics.begin(), statics.end(), m.name) != statics.end();
+    if (frames == 0) continue;
+    if (chosen < 0 || (is_static && !chosen_static) || (is_static == chosen_static && frames > chosen_frames))
+      chosen = static_cast<int>(t), chosen_frames = frames, chosen_static = is_static;
+  }
+  return chosen;
+}
+
 // The fitted centre of joint j against the measured midpoint of the pair (indices into
 // `initial`'s markers, looked up by name in the trials). False when no trial sees both.
 bool MeasureLandmarks(const Model& initial, const Model& fitted, const FitResult& fit,
@@ -100,26 +132,11 @@ bool MeasureLandmarks(const Model& initial, const Model& fitted, const FitResult
                       LandmarkCheck* check) {
   check->first = initial.markers()[pair.first].name;
   check->second = initial.markers()[pair.second].name;
-  const std::vector<std::string>& statics = fit.report.static_trials;
-  int chosen = -1, chosen_frames = 0;
-  bool chosen_static = false;
-  std::vector<std::pair<int, int>> columns(trials.size(), {-1, -1});
-  for (size_t t = 0; t < trials.size(); ++t) {
-    const formats::MarkerTrial& m = trials[t].markers;
-    const int ca = m.FindMarker(check->first), cb = m.FindMarker(check->second);
-    if (ca < 0 || cb < 0) continue;
-    columns[t] = {ca, cb};
-    int frames = 0;
-    for (int f = 0; f < m.num_frames(); ++f)
-      frames += m.positions.row(f).segment<3>(3 * ca).allFinite() && m.positions.row(f).segment<3>(3 * cb).allFinite();
-    const bool is_static = std::find(statics.begin(), statics.end(), m.name) != statics.end();
-    if (frames == 0) continue;
-    if (chosen < 0 || (is_static && !chosen_static) || (is_static == chosen_static && frames > chosen_frames))
-      chosen = static_cast<int>(t), chosen_frames = frames, chosen_static = is_static;
-  }
+  std::vector<std::vector<int>> columns;
+  const int chosen = LandmarkTrial(fit, trials, {check->first, check->second}, &columns);
   if (chosen < 0) return false;
   const formats::MarkerTrial& m = trials[chosen].markers;
-  const auto [ca, cb] = columns[chosen];
+  const int ca = columns[chosen][0], cb = columns[chosen][1];
   const Geometry g(fitted);
   ModelData d(fitted);
   double sum = 0;
@@ -241,27 +258,8 @@ bool MeasureRegression(const Model& initial, const Model& fitted, const FitResul
   const double side = generic.z() > 0 ? 1.0 : -1.0;
   check->generic_from_regression_mm = 1000.0 * (generic - HarringtonHip(width, depth, side)).norm();
   for (int m : markers) check->markers.push_back(initial.markers()[m].name);
-  // The trial: a static one first, else the one with the most frames seeing every landmark.
-  const std::vector<std::string>& statics = fit.report.static_trials;
-  int chosen = -1, chosen_frames = 0;
-  bool chosen_static = false;
-  std::vector<std::vector<int>> columns(trials.size());
-  auto sees_all = [&](size_t t, int f) {
-    for (int c : columns[t])
-      if (!trials[t].markers.positions.row(f).segment<3>(3 * c).allFinite()) return false;
-    return true;
-  };
-  for (size_t t = 0; t < trials.size(); ++t) {
-    const formats::MarkerTrial& m = trials[t].markers;
-    for (const std::string& name : check->markers) columns[t].push_back(m.FindMarker(name));
-    if (std::find(columns[t].begin(), columns[t].end(), -1) != columns[t].end()) continue;
-    int frames = 0;
-    for (int f = 0; f < m.num_frames(); ++f) frames += sees_all(t, f);
-    const bool is_static = std::find(statics.begin(), statics.end(), m.name) != statics.end();
-    if (frames == 0) continue;
-    if (chosen < 0 || (is_static && !chosen_static) || (is_static == chosen_static && frames > chosen_frames))
-      chosen = static_cast<int>(t), chosen_frames = frames, chosen_static = is_static;
-  }
+  std::vector<std::vector<int>> columns;
+  const int chosen = LandmarkTrial(fit, trials, check->markers, &columns);
   if (chosen < 0) return false;
   const formats::MarkerTrial& m = trials[chosen].markers;
   const Geometry g(fitted);
@@ -271,7 +269,7 @@ bool MeasureRegression(const Model& initial, const Model& fitted, const FitResul
   int n = 0;
   for (int f = 0; f < m.num_frames(); ++f) {
     const Eigen::VectorXd z = fit.coordinates[chosen].row(f).transpose();
-    if (!sees_all(chosen, f) || !z.allFinite()) continue;
+    if (!SeesAll(m, columns[chosen], f) || !z.allFinite()) continue;
     for (size_t k = 0; k < markers.size(); ++k)
       at[k] = m.positions.row(f).segment<3>(3 * columns[chosen][k]).transpose();
     if (!PelvisFrame(at, &origin, &axes, &width, &depth)) continue;
