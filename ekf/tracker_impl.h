@@ -254,7 +254,13 @@ struct Tracker::Impl {
   };
   bool PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3d& turn,
                  const Eigen::Vector3d& centroid, Eigen::VectorXd* z);
-  Hypothesis Icp(Eigen::VectorXd z, int np);
+  // `held`: an assignment held for the first kHeldIterations steps (ExchangeLabels).
+  Hypothesis Icp(Eigen::VectorXd z, int np, const std::vector<int>* held = nullptr);
+  static constexpr int kHeldIterations = 15;
+  // Tries the best hypothesis with each pair of its labels whose points lie within
+  // kExchangeRadius exchanged; appends what it refines to *hyps (see the definition).
+  void ExchangeLabels(std::vector<Hypothesis>* hyps, int best, int np);
+  static constexpr double kExchangeRadius = 0.10;
 
   // Local re-acquisition of a limb (see tracker.h): per marker, consecutive tracking frames
   // without a label; per joint, the coordinates and markers of its subtree; per marker, the

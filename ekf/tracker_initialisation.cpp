@@ -96,12 +96,23 @@ bool Tracker::Impl::PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3
 // 7 cm apart, would otherwise cross while the arm is still beside the body, and the forearm turn
 // half a revolution into a mirrored local minimum). A final stage refines everything with a
 // radius shrinking to 4 cm.
-Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
-  const Eigen::VectorXd start = z;
+//
+// With `held` (an exchange: see ExchangeLabels), the search starts at the final stage and holds
+// that assignment for its first kHeldIterations steps before it reassigns freely: the pose moves
+// to where the held labels put it (a forearm turned half a revolution), which a search that
+// reassigns by distance from the start never reaches.
+Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const std::vector<int>* held) {
+  Eigen::VectorXd start = z;
   // Weak prior towards the start (metres^2 per rad^2 / per m^2): pins what the markers leave free.
   const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   const int stages = max_depth + 1, per_stage = 3;
-  const int iters = stages * per_stage + options.init_iterations;
+  // An exchange holds its labels first, then runs the final stage in full.
+  const int hold = held ? kHeldIterations : 0;
+  const int iters = hold + stages * per_stage + options.init_iterations;
+  // While the labels are held, the prior barely pulls: the held pose may lie half a joint range
+  // from the start (it is still there to pin what no marker moves). Released, the search starts
+  // afresh from the held pose, its prior centred there.
+  double prior_weight = held ? 0.01 : 1.0;
   Eigen::MatrixXd N(nz, nz), Nd(nz, nz);
   Eigen::VectorXd g(nz), step(nz), trial(nz);
   Eigen::LLT<Eigen::MatrixXd> llt(nz);
@@ -121,12 +132,20 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
         s += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
     for (int i = 0; i < nz; ++i)
       if (free[i])
-        s += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) * (zz[i] - start[i]);
+        s += prior_weight * (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) *
+             (zz[i] - start[i]);
     return s;
   };
   double radius = 0.25;
   double lambda = 1e-3;
-  for (int it = 0; it < iters; ++it) {
+  for (int iteration = held ? stages * per_stage : 0; iteration < iters; ++iteration) {
+    const bool holding = held && iteration < stages * per_stage + hold;
+    if (held && !holding && prior_weight < 1.0) {
+      prior_weight = 1.0;
+      start = z;
+    }
+    // The stage schedule; an exchange's release starts the final stage afresh.
+    const int it = holding ? stages * per_stage : iteration - hold;
     const int stage = it / per_stage;  // >= stages: the final stage
     const bool final_stage = stage >= stages;
     const int depth = final_stage ? max_depth : stage;
@@ -147,8 +166,12 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
       C.row(m).tail(nm).setConstant(kForbidden);
       C(m, np + m) = r2;
     }
-    lap.Solve(C, row_to_col.data());
-    for (int m = 0; m < nm; ++m) assign[m] = row_to_col[m] < np ? row_to_col[m] : -1;
+    if (holding) {
+      assign = *held;
+    } else {
+      lap.Solve(C, row_to_col.data());
+      for (int m = 0; m < nm; ++m) assign[m] = row_to_col[m] < np ? row_to_col[m] : -1;
+    }
     const bool same = assign == previous;
     previous = assign;
 
@@ -166,7 +189,7 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
       }
     }
     for (int i = 0; i < nz; ++i) {
-      const double w = rotational[i] ? prior_rot : prior_trans;
+      const double w = prior_weight * (rotational[i] ? prior_rot : prior_trans);
       N(i, i) += w;
       g[i] += w * (z[i] - start[i]);
       if (!free[i]) {
@@ -187,7 +210,8 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
           return Cost(trial);
         });
     if (accepted) z = trial;
-    if (final_stage && same && (!accepted || step.norm() < 1e-6) && radius <= options.init_radius_m)
+    if (final_stage && !holding && same && (!accepted || step.norm() < 1e-6) &&
+        radius <= options.init_radius_m)
       break;
   }
   // Final assignment at the final pose and its score.
@@ -216,6 +240,44 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
   Wrap(&z);
   h.z = z;
   return h;
+}
+
+// Exchanges. Every search above assigns by distance from where its pose puts the markers, so
+// all of them settle in the same local minimum where two neighbouring markers' points are each
+// nearer the other's prediction than to its own, and only a large turn of the pose makes the
+// right pairing the nearer one: welk007's wrist markers on the radius and the ulna, at the ends
+// of the forearm's 90 degree pronation range -- the static pose holds it at 0, the subject at 90,
+// and every search labelled the two points crossed (a labelled fit of that model leaves 15.4 mm
+// RMS, crossed 16.9 mm). So the best placement's labels are exchanged pair by pair (two markers
+// whose points lie within kExchangeRadius of each other: neighbours the assignment could
+// confuse), each exchange held while the pose follows it and then released (Icp with `held`),
+// and an exchange that lowers the score replaces the best (the exchanged hypothesis is scored as
+// every other, so its pose must fit all markers, not the pair alone). Greedy, best first; the
+// replaced placements stay among the hypotheses, so a near tie is still refused as ambiguous.
+void Tracker::Impl::ExchangeLabels(std::vector<Hypothesis>* hyps, int best, int np) {
+  std::vector<int> held;
+  for (int pass = 0; pass < 2; ++pass) {
+    bool improved = false;
+    for (int a = 0; a < nm; ++a) {
+      for (int b = a + 1; b < nm; ++b) {
+        const Hypothesis& h = (*hyps)[best];
+        const int pa = h.assignment[a], pb = h.assignment[b];
+        if (pa < 0 || pb < 0 ||
+            (points.col(pa) - points.col(pb)).squaredNorm() > kExchangeRadius * kExchangeRadius)
+          continue;
+        held = h.assignment;
+        std::swap(held[a], held[b]);
+        Hypothesis e = Icp(h.z, np, &held);
+        const bool better = e.score < h.score;
+        hyps->push_back(std::move(e));
+        if (better) {
+          best = static_cast<int>(hyps->size()) - 1;
+          improved = true;
+        }
+      }
+    }
+    if (!improved) break;
+  }
 }
 
 bool Tracker::Impl::TryInitialise(int np) {
@@ -289,17 +351,28 @@ bool Tracker::Impl::TryInitialise(int np) {
       hyps.push_back(Icp(z, np));
     }
   }
+  ExchangeLabels(&hyps, Best(), np);
   init.hypotheses = static_cast<int>(hyps.size());
   const int best = Best();
   const Hypothesis& h = hyps[best];
   init.best_score = h.score;
   init.rms_m = h.rms;
   init.labelled = h.labelled;
-  // Unambiguous: no hypothesis that labels >= 3 markers differently comes close.
+  // Unambiguous: no hypothesis that labels >= 3 markers differently comes close. Markers whose
+  // labels are exchanged pairwise (a's point b's and b's a's) do not count: each such pair is
+  // decided by its own exchange (ExchangeLabels), the wrist pairs of both arms are two decisions,
+  // not one ambiguity of four labels.
   double runner_up = std::numeric_limits<double>::infinity();
   for (const Hypothesis& o : hyps) {
     int differ = 0;
-    for (int m = 0; m < nm; ++m) differ += o.assignment[m] != h.assignment[m];
+    for (int m = 0; m < nm; ++m) {
+      if (o.assignment[m] == h.assignment[m]) continue;
+      bool exchanged = false;
+      for (int k = 0; k < nm && !exchanged; ++k)
+        exchanged = k != m && o.assignment[m] >= 0 && o.assignment[m] == h.assignment[k] &&
+                    o.assignment[k] == h.assignment[m];
+      differ += !exchanged;
+    }
     if (differ >= 3) runner_up = std::min(runner_up, o.score);
   }
   init.runner_up_score = std::isfinite(runner_up) ? runner_up : 0.0;
