@@ -259,6 +259,10 @@ struct Tracker::Impl {
   };
   bool PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3d& turn,
                  const Eigen::Vector3d& centroid, Eigen::VectorXd* z);
+  // The optimal assignment of the seen markers at tree depth <= depth to the points within
+  // `radius` of their predictions (Linearise first), a marker free to stay unassigned at
+  // radius^2: *assign (size nm) gets each marker's point or -1; returns the truncated cost.
+  double AssignWithin(int np, double radius, int depth, std::vector<int>* assign);
   // `held`: an assignment held for the first kHeldIterations steps (ExchangeLabels).
   Hypothesis Icp(Eigen::VectorXd z, int np, const std::vector<int>* held = nullptr);
   static constexpr int kHeldIterations = 15;

@@ -89,6 +89,23 @@ bool Tracker::Impl::PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3
   return true;
 }
 
+double Tracker::Impl::AssignWithin(int np, double radius, int depth, std::vector<int>* assign) {
+  auto C = cost.topLeftCorner(nm, np + nm);
+  const double r2 = radius * radius;
+  for (int m = 0; m < nm; ++m) {
+    const bool active = seen[m] && marker_depth[m] <= depth;
+    for (int k = 0; k < np; ++k) {
+      const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
+      C(m, k) = active && d2 < r2 ? d2 : kForbidden;
+    }
+    C.row(m).tail(nm).setConstant(kForbidden);
+    C(m, np + m) = r2;
+  }
+  const double total = lap.Solve(C, row_to_col.data());
+  for (int m = 0; m < nm; ++m) (*assign)[m] = row_to_col[m] < np ? row_to_col[m] : -1;
+  return total;
+}
+
 // ICP-like search from z: assign markers to points by distance (optimal assignment), one damped
 // Gauss-Newton step on the pose, reassign. The body is placed from the root outwards: stage d
 // frees the joints at depth <= d of the tree and assigns only the markers they carry, so a
@@ -117,7 +134,7 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const st
   Eigen::VectorXd g(nz), step(nz), trial(nz);
   Eigen::LLT<Eigen::MatrixXd> llt(nz);
   std::vector<int> assign(nm, -1), previous(nm, -2);
-  std::vector<char> free(nz, 1), active(nm, 1);
+  std::vector<char> free(nz, 1);
   Eigen::VectorXd lower(nz), upper(nz);
   for (int i = 0; i < nz; ++i) {
     // The start itself may be outside (a user's static pose): never clamp it back.
@@ -150,28 +167,15 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const st
     const bool final_stage = stage >= stages;
     const int depth = final_stage ? max_depth : stage;
     for (int i = 0; i < nz; ++i) free[i] = coordinate_depth[i] <= depth;
-    for (int m = 0; m < nm; ++m) active[m] = seen[m] && marker_depth[m] <= depth;
     radius = stage == 0 ? 0.25
              : !final_stage ? 0.15
                             : std::max(options.init_radius_m,
                                        0.12 - 0.02 * (it - stages * per_stage));
     Linearise(z);
-    auto C = cost.topLeftCorner(nm, np + nm);
-    const double r2 = radius * radius;
-    for (int m = 0; m < nm; ++m) {
-      for (int k = 0; k < np; ++k) {
-        const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
-        C(m, k) = active[m] && d2 < r2 ? d2 : kForbidden;
-      }
-      C.row(m).tail(nm).setConstant(kForbidden);
-      C(m, np + m) = r2;
-    }
-    if (holding) {
+    if (holding)
       assign = *held;
-    } else {
-      lap.Solve(C, row_to_col.data());
-      for (int m = 0; m < nm; ++m) assign[m] = row_to_col[m] < np ? row_to_col[m] : -1;
-    }
+    else
+      AssignWithin(np, radius, depth, &assign);
     const bool same = assign == previous;
     previous = assign;
 
@@ -217,23 +221,12 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const st
   // Final assignment at the final pose and its score.
   Hypothesis h;
   Linearise(z);
-  const double r2 = radius * radius;
-  auto C = cost.topLeftCorner(nm, np + nm);
-  for (int m = 0; m < nm; ++m) {
-    for (int k = 0; k < np; ++k) {
-      const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
-      C(m, k) = seen[m] && d2 < r2 ? d2 : kForbidden;
-    }
-    C.row(m).tail(nm).setConstant(kForbidden);
-    C(m, np + m) = r2;
-  }
-  h.score = lap.Solve(C, row_to_col.data());
   h.assignment.assign(nm, -1);
+  h.score = AssignWithin(np, radius, max_depth, &h.assignment);
   double sum = 0;
   for (int m = 0; m < nm; ++m)
-    if (row_to_col[m] < np) {
-      h.assignment[m] = row_to_col[m];
-      sum += C(m, row_to_col[m]);
+    if (h.assignment[m] >= 0) {
+      sum += (points.col(h.assignment[m]) - predicted.col(m)).squaredNorm();
       ++h.labelled;
     }
   h.rms = h.labelled > 0 ? std::sqrt(sum / h.labelled) : std::numeric_limits<double>::infinity();
@@ -339,18 +332,7 @@ void Tracker::Impl::ScaleToSubject(const Hypothesis& h, int np) {
                      : std::max(options.init_radius_m, 0.12 - 0.01 * (it - stages * per_stage));
     SetGeometry(p);
     Linearise(z);
-    auto C = cost.topLeftCorner(nm, np + nm);
-    const double r2 = radius * radius;
-    for (int m = 0; m < nm; ++m) {
-      for (int k = 0; k < np; ++k) {
-        const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
-        C(m, k) = seen[m] && marker_depth[m] <= depth && d2 < r2 ? d2 : kForbidden;
-      }
-      C.row(m).tail(nm).setConstant(kForbidden);
-      C(m, np + m) = r2;
-    }
-    lap.Solve(C, row_to_col.data());
-    for (int m = 0; m < nm; ++m) assign[m] = row_to_col[m] < np ? row_to_col[m] : -1;
+    AssignWithin(np, radius, depth, &assign);
     N.setZero();
     g.setZero();
     for (int m = 0; m < nm; ++m) {
