@@ -137,7 +137,9 @@
 // in the same minimum where two neighbours are each nearer the other's point, when only a large
 // turn of the pose makes the right pairing the nearer one (welk007's wrist markers on radius and
 // ulna, at the end of the 90 degree pronation range the static pose starts at the other end of).
-// An exchange that labels as many markers at a lower score replaces the best. The best score wins
+// An exchange that labels as many markers at a lower score replaces the best; exchanges are tried
+// only on a best placement that passes the acceptance tests on its own (they decide between
+// labellings of a subject found, and do not find one on ghosts). The best score wins
 // when its residual is small, enough markers are labelled, and every differently labelled
 // hypothesis is worse by a log-likelihood margin (markers exchanged pairwise do not count: each
 // pair was its own decision). Tracker::initialisation() says what the last search did and why it
@@ -148,7 +150,10 @@
 // segment's scale factor (its markers and its child joints' centres scale with it, model/model.h)
 // is fitted with the pose to the best placement's points, from the root outwards and reassigned
 // at each step, with a prior at the model's own scale; then the whole search runs again on the
-// scaled model, and the track keeps those scales (InitialisationSummary::segment_scales).
+// scaled model, and the track keeps those scales (InitialisationSummary::segment_scales). By
+// default only before the first track and when the model's own size cannot start (too few
+// labels, too large a residual; not a start refused as ambiguous); told to, at every start, the
+// scaled labelling then taken only when it keeps every label the model's own size gave.
 // Markers the model cannot place -- stacked with another marker of their segment on one point, a
 // generic model's placeholders for a lab's cluster markers (solver/attach_markers.h,
 // StackedMarkers) -- are treated as unseen: never searched for nor labelled (picking them up by

@@ -1,10 +1,12 @@
 // The tracker's (re)initialisation: finding the subject in a cloud of unlabelled points with no
-// labels to go on (TryInitialise: headings about the vertical, ICP-like placement from the root
-// outwards, restarts, an ambiguity test), and finding one limb again while the rest of the body
-// tracks (Reacquire, ReacquireLimb). ekf/tracker.h ("Initialisation and recovery",
-// "Limb re-acquisition") has the design. What it decides: whether a placement is good and
-// unambiguous enough to start (or restart a limb of) the track, and with which labels; a search
-// that cannot tell two labellings apart refuses rather than guesses.
+// labels to go on (TryInitialise and Search: headings about the vertical, ICP-like placement from
+// the root outwards, restarts, exchanges of neighbouring labels, an ambiguity test; the model
+// scaled to the subject when its own size cannot start, ScaleToSubject), and finding one limb
+// again while the rest of the body tracks (Reacquire, ReacquireLimb). ekf/tracker.h
+// ("Initialisation and recovery", "Limb re-acquisition") has the design. What it decides: whether
+// a placement is good and unambiguous enough to start (or restart a limb of) the track, with which
+// labels and at which size; a search that cannot tell two labellings apart refuses rather than
+// guesses.
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
