@@ -301,7 +301,7 @@ TEST(TrackReal, DISABLED_Welk007MeetsTheTargetsWithItsGenericModel) {
 
 // Biobuddy P01 with the default model: NOT MET. Sixth session 0.059 without ghosts, 0.230 with 5
 // (the 21 extra markers near the Plug-in Gait ones take their places); thirteenth, scaled to the
-// subject (when the model does not fit, frame 7; always, the same), 0.616 and 0.031.
+// subject at the start, 0.605 and 0.328.
 TEST(TrackReal, DISABLED_BiobuddyRightHipMeetsTheTargetsWithTheDefaultModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model model = mocap::DefaultFullBodyModel(1.75);
