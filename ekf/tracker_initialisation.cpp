@@ -288,12 +288,12 @@ int Tracker::Impl::ExchangeLabels(std::vector<Hypothesis>* hyps, int best, int n
 // farther from their points than the search's 5 cm: its best placement labels too few, or too
 // far, and no heading or restart mends what is a matter of size. So, as OpenSim's scaling does
 // with labels, each segment's scale factor (model/model.h: its markers and its child joints'
-// centres scale with it) is fitted together with the pose to the best placement's points --
-// reassigned at each step within a radius shrinking from 10 cm to the search's, so that markers
-// the model put too far are taken up as their segments grow -- with a prior at the model's own
-// scale (init_scale_sigma; a segment no marker sizes keeps it) and clamped to [0.75, 1.33]. Then
-// the whole search runs again on the scaled model (TryInitialise). Only a search the model's own
-// size could not satisfy is scaled: a model that fits is not second-guessed by a few frames.
+// centres scale with it) is fitted together with the pose to the best placement's points, from
+// the root outwards as the search places the body, reassigned at each step (within 15 cm, then a
+// radius shrinking from 12 cm to the search's) so that markers the model put too far are taken up
+// as their segments grow, with a prior at the model's own scale (init_scale_sigma; a segment no
+// marker sizes keeps it), within 1/kScaleLimit..kScaleLimit of it. Then the whole search runs
+// again on the scaled model; when that happens and which result is kept: TryInitialise.
 void Tracker::Impl::ScaleToSubject(const Hypothesis& h, int np) {
   const int ns = model->num_segments(), n = nz + ns;
   const Eigen::VectorXd p0 = model->InitialParameters();
