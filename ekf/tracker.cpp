@@ -298,6 +298,8 @@ void Tracker::Impl::ResetState() {
   z_good = start;
   z_static = start;
   had_track = false;
+  // A new subject may come: the model at its own size again (ScaleToSubject).
+  SetGeometry(model->InitialParameters());
   bad_frames = 0;
   last_time = kNaN;
   out.state = TrackState::kInitialising;
