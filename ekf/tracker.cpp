@@ -56,6 +56,7 @@ bool TrackerOptions::IsValid(std::string* error) const {
   if (!(init_ambiguity_margin >= 0)) return Fail(error, "init_ambiguity_margin must be >= 0");
   if (!(init_radius_m > 0)) return Fail(error, "init_radius_m must be > 0");
   if (!(init_scale_sigma > 0)) return Fail(error, "init_scale_sigma must be > 0");
+  if (!(init_scale_after_s >= 0)) return Fail(error, "init_scale_after_s must be >= 0");
   if (!static_pose.allFinite()) return Fail(error, "static_pose must be finite");
   for (double s : {init_sigma_rotational, init_sigma_translational, init_sigma_velocity_rotational,
                    init_sigma_velocity_translational, init_sigma_acceleration_rotational,
@@ -298,6 +299,7 @@ void Tracker::Impl::ResetState() {
   z_good = start;
   z_static = start;
   had_track = false;
+  unfit_searches = 0;
   // A new subject may come: the model at its own size again (ScaleToSubject).
   SetGeometry(model->InitialParameters());
   bad_frames = 0;

@@ -333,6 +333,12 @@ struct TrackerOptions {
   enum class ScaleToSubject { kNever, kWhenTheModelDoesNotFit, kAlways };
   ScaleToSubject init_scale_to_subject = ScaleToSubject::kWhenTheModelDoesNotFit;
   double init_scale_sigma = 0.05;
+  // kWhenTheModelDoesNotFit judges the model's size on this much of the recording (seconds at
+  // rate_hz): it scales once every search over that span failed for too few labels or too large
+  // a residual. A start refused for a few frames is the scene (gait2354's walk: refused at frames
+  // 0-4, started right at frame 5 at the model's own size; scaled at frame 4, the acromion markers
+  // crossed for the whole trial); a model that does not fit fails on.
+  double init_scale_after_s = 0.25;
   // Starting pose of the search (empty: the model's default pose).
   Eigen::VectorXd static_pose;
   // Standard deviations of the state right after an initialisation.

@@ -520,8 +520,9 @@ bool Tracker::Impl::TryInitialise(int np) {
   ClearOffsets(0);
   std::vector<Hypothesis> hyps;
   int best = Search(np, &hyps);
-  // A model that does not fit the subject (the search's labels too few or too far) -- or any,
-  // when told to scale always -- is scaled to the subject from the best placement
+  // A model that does not fit the subject (the search's labels too few or too far, in every
+  // search over init_scale_after_s) -- or any, when told to scale always -- is scaled to the
+  // subject from the best placement
   // (ScaleToSubject) and searched for again. A start refused as ambiguous is not: a tie between
   // labellings is no matter of size (scaled, simulated seed 19's start shifted an arm's labels one
   // marker along the arm). Nor is a model that has tracked the subject: a later refusal is the
@@ -532,8 +533,10 @@ bool Tracker::Impl::TryInitialise(int np) {
   // add labels, not change them: scaled always, seeds 19, 40 and 48 had an arm's labels shifted
   // where the search as given had them right).
   using Scale = TrackerOptions::ScaleToSubject;
-  const bool does_not_fit = !had_track && best < 0 &&
-                            (init.reason == kTooFewLabelled || init.reason == kResidualTooLarge);
+  const bool unfit = !had_track && best < 0 && (init.reason == kTooFewLabelled || init.reason == kResidualTooLarge);
+  unfit_searches = unfit ? unfit_searches + 1 : 0;
+  const int judged = std::max(1, static_cast<int>(std::lround(options.init_scale_after_s * options.rate_hz)));
+  const bool does_not_fit = unfit && unfit_searches >= judged;
   if (!hyps.empty() && ((options.init_scale_to_subject == Scale::kAlways && best >= 0) ||
                         (options.init_scale_to_subject != Scale::kNever && does_not_fit))) {
     const Eigen::VectorXd before = geometry_params;

@@ -160,6 +160,9 @@ TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
   first.labels.resize(40);
   const mocap::sim::TrackRun as_given = Track(first, small, o);
   o.init_scale_to_subject = mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
+  // By default the size is judged over init_scale_after_s of refused searches (below); here
+  // from the first one.
+  o.init_scale_after_s = 0;
   mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(small), o);
   const mocap::sim::TrackRun scaled = mocap::sim::TrackScene(scene, &tracker);
   const std::vector<double>& found = tracker.initialisation().segment_scales;
@@ -184,6 +187,15 @@ TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
   EXPECT_GE(scaled.score.accuracy(), 0.999);
   EXPECT_EQ(scaled.score.swaps_longer_than_5_frames, 0);
   EXPECT_EQ(as_given.frames_tracking(), 0);
+  // The default waits 0.25 s (50 frames at 200 Hz) of searches refused for the model's size
+  // before it scales, then starts as above: no wrong label.
+  mocap::ekf::TrackerOptions d;
+  mocap::ekf::Tracker waiting(std::make_shared<const mocap::Model>(small), d);
+  const mocap::sim::TrackRun later = mocap::sim::TrackScene(scene, &waiting);
+  std::printf("by default: first tracking frame %d, wrong %ld\n", later.first_tracking, later.score.wrong);
+  EXPECT_GE(later.first_tracking, 49);
+  EXPECT_LE(later.first_tracking, 55);
+  EXPECT_EQ(later.score.wrong, 0);
 }
 
 struct RealResult {
