@@ -55,6 +55,8 @@ bool TrackerOptions::IsValid(std::string* error) const {
   if (!(init_ambiguity_ratio >= 1)) return Fail(error, "init_ambiguity_ratio must be >= 1");
   if (!(init_ambiguity_margin >= 0)) return Fail(error, "init_ambiguity_margin must be >= 0");
   if (!(init_radius_m > 0)) return Fail(error, "init_radius_m must be > 0");
+  if (!(init_scale_sigma > 0)) return Fail(error, "init_scale_sigma must be > 0");
+  if (!(init_scale_after_s >= 0)) return Fail(error, "init_scale_after_s must be >= 0");
   if (!static_pose.allFinite()) return Fail(error, "static_pose must be finite");
   for (double s : {init_sigma_rotational, init_sigma_translational, init_sigma_velocity_rotational,
                    init_sigma_velocity_translational, init_sigma_acceleration_rotational,
@@ -80,6 +82,7 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   nz = md.num_coordinates();
   nm = md.num_markers();
   geometry = Geometry(md);
+  geometry_params = md.InitialParameters();
   data = ModelData(md);
   rotational.assign(nz, 0);
   wraps.assign(nz, 0);
@@ -107,13 +110,23 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   for (int k = 0; k < nm; ++k)
     for (const std::string& name : options.unseen_markers)
       if (md.markers()[k].name == name) seen[k] = 0;
+  // Markers the model cannot place (tracker.h, "Initialisation and recovery": stacked on one
+  // point of their segment) are treated as unseen.
+  std::vector<char> stacked(nm, 0);
+  for (int k = 0; k < nm; ++k)
+    for (int j = k + 1; j < nm; ++j)
+      if (seen[k] && seen[j] && md.markers()[k].segment == md.markers()[j].segment &&
+          (md.markers()[k].position - md.markers()[j].position).norm() < kStackedTolerance)
+        stacked[k] = stacked[j] = 1;
+  for (int k = 0; k < nm; ++k)
+    if (stacked[k]) seen[k] = 0;
   nm_seen = static_cast<int>(std::count(seen.begin(), seen.end(), 1));
   offset.assign(nm, Eigen::Vector3d::Zero());
   offset_unknown.assign(nm, 1.0);
   model_error.assign(nm, 0.0);
 
   // Depths (joints are parents first).
-  std::vector<int> segment_depth(md.num_segments(), 0);
+  segment_depth.assign(md.num_segments(), 0);
   max_depth = 0;
   for (const Joint& j : md.joints()) {
     const int d = j.parent < 0 ? 0 : segment_depth[j.parent] + 1;
@@ -286,6 +299,9 @@ void Tracker::Impl::ResetState() {
   z_good = start;
   z_static = start;
   had_track = false;
+  unfit_searches = 0;
+  // A new subject may come: the model at its own size again (ScaleToSubject).
+  SetGeometry(model->InitialParameters());
   bad_frames = 0;
   last_time = kNaN;
   out.state = TrackState::kInitialising;

@@ -131,9 +131,33 @@
 // root outwards: stage d frees the joints at depth <= d of the tree and pairs only the markers
 // they carry, so a distal marker is paired once its parents are in place. Then a few restarts
 // from the best placement (the static pose bent towards the middle of the joint ranges, and
-// random perturbations). The best score wins when its residual is small, enough markers are
-// labelled, and every differently labelled hypothesis is worse by a log-likelihood margin.
-// Tracker::initialisation() says what the last search did and why it refused.
+// random perturbations). Then the best placement's labels are exchanged pair by pair (two
+// markers on points within 10 cm), each exchange held while the pose follows it and then
+// released: every search assigns by distance from where its pose puts the markers, so all settle
+// in the same minimum where two neighbours are each nearer the other's point, when only a large
+// turn of the pose makes the right pairing the nearer one (welk007's wrist markers on radius and
+// ulna, at the end of the 90 degree pronation range the static pose starts at the other end of).
+// An exchange that labels as many markers at a lower score replaces the best; exchanges are tried
+// only on a best placement that passes the acceptance tests on its own (they decide between
+// labellings of a subject found, and do not find one on ghosts). The best score wins
+// when its residual is small, enough markers are labelled, and every differently labelled
+// hypothesis is worse by a log-likelihood margin (markers exchanged pairwise do not count: each
+// pair was its own decision). Tracker::initialisation() says what the last search did and why it
+// refused.
+// Scaled to the subject (TrackerOptions::init_scale_to_subject): a generic model (OpenSim's
+// gait2354, whose femurs are 15 % short of its example subject's) can put markers farther from
+// their points than the search's 5 cm, and no heading or restart mends a matter of size. So each
+// segment's scale factor (its markers and its child joints' centres scale with it, model/model.h)
+// is fitted with the pose to the best placement's points, from the root outwards and reassigned
+// at each step, with a prior at the model's own scale; then the whole search runs again on the
+// scaled model, and the track keeps those scales (InitialisationSummary::segment_scales). By
+// default only before the first track and when the model's own size cannot start (too few
+// labels, too large a residual; not a start refused as ambiguous); told to, at every start, the
+// scaled labelling then taken only when it keeps every label the model's own size gave.
+// Markers the model cannot place -- stacked with another marker of their segment on one point, a
+// generic model's placeholders for a lab's cluster markers (solver/attach_markers.h,
+// StackedMarkers) -- are treated as unseen: never searched for nor labelled (picking them up by
+// their rigid motion with their segment is not done).
 // The track is declared lost when too few markers are labelled, or the NIS per measured
 // coordinate is too high, for `divergence_frames` consecutive frames; the tracker then
 // re-initialises automatically from the incoming frames.
@@ -278,7 +302,8 @@ struct TrackerOptions {
   // centre would otherwise take a ghost or a neighbour's point), never searched for, and not
   // counted in the fractions (init_min_fraction, min_labelled_fraction): counted, a model with 72
   // markers of which 54 are worn can never label 80 % of its markers. Names the model lacks are
-  // ignored (one list serves several models of a lab).
+  // ignored (one list serves several models of a lab). Markers stacked on one point of their
+  // segment are unseen too, unlisted ("Initialisation and recovery").
   std::vector<std::string> unseen_markers;
   int init_headings = 12;
   // Then restarts from the best placement: the static pose blended 10, 20 and 30 % towards the
@@ -298,6 +323,22 @@ struct TrackerOptions {
   double init_ambiguity_margin = 20.0;
   // Final matching radius of the search (markers farther from every point stay unlabelled).
   double init_radius_m = 0.05;
+  // Scaling the model to the subject at a (re)initialisation ("Initialisation and recovery"
+  // above): never; when the model's own size cannot start (the search labels too few markers, or
+  // leaves too large a residual: a generic OpenSim model); or always, the scaled search then taken
+  // when it keeps every label the model's own size gave. The default leaves the simulated sweep's
+  // starts as they were (BENCHMARKS.md: always is better on most seeds and on the real recordings,
+  // worse on the worst seed of each scene). The scales' prior: the model's own, with this
+  // standard deviation.
+  enum class ScaleToSubject { kNever, kWhenTheModelDoesNotFit, kAlways };
+  ScaleToSubject init_scale_to_subject = ScaleToSubject::kWhenTheModelDoesNotFit;
+  double init_scale_sigma = 0.05;
+  // kWhenTheModelDoesNotFit judges the model's size on this much of the recording (seconds at
+  // rate_hz): it scales once every search over that span failed for too few labels or too large
+  // a residual. A start refused for a few frames is the scene (gait2354's walk: refused at frames
+  // 0-4, started right at frame 5 at the model's own size; scaled at frame 4, the acromion markers
+  // crossed for the whole trial); a model that does not fit fails on.
+  double init_scale_after_s = 0.25;
   // Starting pose of the search (empty: the model's default pose).
   Eigen::VectorXd static_pose;
   // Standard deviations of the state right after an initialisation.
@@ -340,6 +381,10 @@ struct InitialisationSummary {
   int labelled = 0;             // markers the best one labelled
   bool accepted = false;
   std::string reason;           // why it was refused (empty when accepted)
+  // Per segment, the scale factors the search fitted when the model did not fit the subject
+  // (TrackerOptions::init_scale_to_subject); the tracker then tracks with them. Empty: the
+  // model's own.
+  std::vector<double> segment_scales;
 };
 
 class Tracker {

@@ -35,6 +35,10 @@ inline constexpr double kBesideSeconds = 2.0;
 // The error of a predicted joint centre (a nominal model's centres are 1-2 cm off).
 inline constexpr double kJointCentreTolerance = 0.02;
 inline constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+// Two markers of one segment nearer than this (unscaled) are stacked: placeholders of a generic
+// model that names a lab's cluster markers without knowing where they are (solver/attach_markers.h,
+// StackedMarkers, which the fit uses alike).
+inline constexpr double kStackedTolerance = 0.001;
 
 }  // namespace mocap::ekf::internal
 
@@ -49,7 +53,8 @@ struct Tracker::Impl {
   Geometry geometry;
   ModelData data;
   int nz = 0, nm = 0;
-  // Per marker: whether the data can show it (not in options.unseen_markers); how many can.
+  // Per marker: whether the tracker labels it (not in options.unseen_markers, not stacked with
+  // another marker of its segment); how many it labels.
   std::vector<char> seen;
   int nm_seen = 0;
   // Turns the lab's vertical (options.up) onto the model's (options.model_up): every input point
@@ -74,7 +79,7 @@ struct Tracker::Impl {
   std::vector<std::pair<int, Eigen::Vector3d>> root_translations;
   std::vector<char> root_free;
   // Depth in the tree (root joint 0) of each coordinate's joint and each marker's segment.
-  std::vector<int> coordinate_depth, marker_depth;
+  std::vector<int> coordinate_depth, marker_depth, segment_depth;
   int max_depth = 0;
 
   // --- state ---
@@ -83,6 +88,7 @@ struct Tracker::Impl {
   Eigen::VectorXd jerk_psd;
   double last_time = kNaN;
   bool had_track = false;
+  int unfit_searches = 0;  // searches in a row refused for the model's size (init_scale_after_s)
   Eigen::VectorXd z_good;  // last pose that passed the divergence test
   Eigen::VectorXd z_static;  // the search's starting pose (options.static_pose or the default)
   int bad_frames = 0;
@@ -254,7 +260,37 @@ struct Tracker::Impl {
   };
   bool PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3d& turn,
                  const Eigen::Vector3d& centroid, Eigen::VectorXd* z);
-  Hypothesis Icp(Eigen::VectorXd z, int np);
+  // The optimal assignment of the seen markers at tree depth <= depth to the points within
+  // `radius` of their predictions (Linearise first), a marker free to stay unassigned at
+  // radius^2: *assign (size nm) gets each marker's point or -1; returns the truncated cost.
+  double AssignWithin(int np, double radius, int depth, std::vector<int>* assign);
+  // `held`: an assignment held for the first kHeldIterations steps (ExchangeLabels).
+  Hypothesis Icp(Eigen::VectorXd z, int np, const std::vector<int>* held = nullptr);
+  static constexpr int kHeldIterations = 15;
+  // Tries the best hypothesis with each pair of its labels whose points lie within
+  // kExchangeRadius exchanged; appends what it refines to *hyps and returns the index of the
+  // best it kept (see the definition).
+  int ExchangeLabels(std::vector<Hypothesis>* hyps, int best, int np);
+  // The whole search at the present geometry (TryInitialise): the best hypothesis, or -1 with
+  // init.reason set.
+  int Search(int np, std::vector<Hypothesis>* hyps);
+  static constexpr const char* kTooFewLabelled = "too few markers labelled";
+  static constexpr const char* kResidualTooLarge = "residual too large";
+  // Fits per-segment scales and the pose to h's points and sets the geometry to them (see the
+  // definition).
+  void ScaleToSubject(const Hypothesis& h, int np);
+  static constexpr int kScaleIterations = 20;
+  // The scales stay within [1 / kScaleLimit, kScaleLimit] of the model's own: a humerus 33 % long
+  // (the first limit tried, 0.75-1.33) fits an arm's markers shifted one along the arm (simulated
+  // seeds 19, 40, 48: the elbow marker on the forearm's point, that one on the wrist's).
+  static constexpr double kScaleLimit = 1.18;
+  // The geometry's parameters (the model's own, or the subject's scales ScaleToSubject found).
+  Eigen::VectorXd geometry_params;
+  void SetGeometry(const Eigen::VectorXd& p) {
+    geometry_params = p;
+    geometry.Set(*model, p);
+  }
+  static constexpr double kExchangeRadius = 0.10;
 
   // Local re-acquisition of a limb (see tracker.h): per marker, consecutive tracking frames
   // without a label; per joint, the coordinates and markers of its subtree; per marker, the

@@ -1,10 +1,12 @@
 // The tracker's (re)initialisation: finding the subject in a cloud of unlabelled points with no
-// labels to go on (TryInitialise: headings about the vertical, ICP-like placement from the root
-// outwards, restarts, an ambiguity test), and finding one limb again while the rest of the body
-// tracks (Reacquire, ReacquireLimb). ekf/tracker.h ("Initialisation and recovery",
-// "Limb re-acquisition") has the design. What it decides: whether a placement is good and
-// unambiguous enough to start (or restart a limb of) the track, and with which labels; a search
-// that cannot tell two labellings apart refuses rather than guesses.
+// labels to go on (TryInitialise and Search: headings about the vertical, ICP-like placement from
+// the root outwards, restarts, exchanges of neighbouring labels, an ambiguity test; the model
+// scaled to the subject when its own size cannot start, ScaleToSubject), and finding one limb
+// again while the rest of the body tracks (Reacquire, ReacquireLimb). ekf/tracker.h
+// ("Initialisation and recovery", "Limb re-acquisition") has the design. What it decides: whether
+// a placement is good and unambiguous enough to start (or restart a limb of) the track, with which
+// labels and at which size; a search that cannot tell two labellings apart refuses rather than
+// guesses.
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
@@ -89,6 +91,23 @@ bool Tracker::Impl::PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3
   return true;
 }
 
+double Tracker::Impl::AssignWithin(int np, double radius, int depth, std::vector<int>* assign) {
+  auto C = cost.topLeftCorner(nm, np + nm);
+  const double r2 = radius * radius;
+  for (int m = 0; m < nm; ++m) {
+    const bool active = seen[m] && marker_depth[m] <= depth;
+    for (int k = 0; k < np; ++k) {
+      const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
+      C(m, k) = active && d2 < r2 ? d2 : kForbidden;
+    }
+    C.row(m).tail(nm).setConstant(kForbidden);
+    C(m, np + m) = r2;
+  }
+  const double total = lap.Solve(C, row_to_col.data());
+  for (int m = 0; m < nm; ++m) (*assign)[m] = row_to_col[m] < np ? row_to_col[m] : -1;
+  return total;
+}
+
 // ICP-like search from z: assign markers to points by distance (optimal assignment), one damped
 // Gauss-Newton step on the pose, reassign. The body is placed from the root outwards: stage d
 // frees the joints at depth <= d of the tree and assigns only the markers they carry, so a
@@ -96,17 +115,28 @@ bool Tracker::Impl::PlaceRoot(const Eigen::VectorXd& start, const Eigen::Matrix3
 // 7 cm apart, would otherwise cross while the arm is still beside the body, and the forearm turn
 // half a revolution into a mirrored local minimum). A final stage refines everything with a
 // radius shrinking to 4 cm.
-Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
-  const Eigen::VectorXd start = z;
+//
+// With `held` (an exchange: see ExchangeLabels), the search starts at the final stage and holds
+// that assignment for its first kHeldIterations steps before it reassigns freely: the pose moves
+// to where the held labels put it (a forearm turned half a revolution), which a search that
+// reassigns by distance from the start never reaches.
+Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const std::vector<int>* held) {
+  Eigen::VectorXd start = z;
   // Weak prior towards the start (metres^2 per rad^2 / per m^2): pins what the markers leave free.
   const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   const int stages = max_depth + 1, per_stage = 3;
-  const int iters = stages * per_stage + options.init_iterations;
+  // An exchange holds its labels first, then runs the final stage in full.
+  const int hold = held ? kHeldIterations : 0;
+  const int iters = hold + stages * per_stage + options.init_iterations;
+  // While the labels are held, the prior barely pulls: the held pose may lie half a joint range
+  // from the start (it is still there to pin what no marker moves). Released, the search starts
+  // afresh from the held pose, its prior centred there.
+  double prior_weight = held ? 0.01 : 1.0;
   Eigen::MatrixXd N(nz, nz), Nd(nz, nz);
   Eigen::VectorXd g(nz), step(nz), trial(nz);
   Eigen::LLT<Eigen::MatrixXd> llt(nz);
   std::vector<int> assign(nm, -1), previous(nm, -2);
-  std::vector<char> free(nz, 1), active(nm, 1);
+  std::vector<char> free(nz, 1);
   Eigen::VectorXd lower(nz), upper(nz);
   for (int i = 0; i < nz; ++i) {
     // The start itself may be outside (a user's static pose): never clamp it back.
@@ -121,34 +151,33 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
         s += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
     for (int i = 0; i < nz; ++i)
       if (free[i])
-        s += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) * (zz[i] - start[i]);
+        s += prior_weight * (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) *
+             (zz[i] - start[i]);
     return s;
   };
   double radius = 0.25;
   double lambda = 1e-3;
-  for (int it = 0; it < iters; ++it) {
+  for (int iteration = held ? stages * per_stage : 0; iteration < iters; ++iteration) {
+    const bool holding = held && iteration < stages * per_stage + hold;
+    if (held && !holding && prior_weight < 1.0) {
+      prior_weight = 1.0;
+      start = z;
+    }
+    // The stage schedule; an exchange's release starts the final stage afresh.
+    const int it = holding ? stages * per_stage : iteration - hold;
     const int stage = it / per_stage;  // >= stages: the final stage
     const bool final_stage = stage >= stages;
     const int depth = final_stage ? max_depth : stage;
     for (int i = 0; i < nz; ++i) free[i] = coordinate_depth[i] <= depth;
-    for (int m = 0; m < nm; ++m) active[m] = seen[m] && marker_depth[m] <= depth;
     radius = stage == 0 ? 0.25
              : !final_stage ? 0.15
                             : std::max(options.init_radius_m,
                                        0.12 - 0.02 * (it - stages * per_stage));
     Linearise(z);
-    auto C = cost.topLeftCorner(nm, np + nm);
-    const double r2 = radius * radius;
-    for (int m = 0; m < nm; ++m) {
-      for (int k = 0; k < np; ++k) {
-        const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
-        C(m, k) = active[m] && d2 < r2 ? d2 : kForbidden;
-      }
-      C.row(m).tail(nm).setConstant(kForbidden);
-      C(m, np + m) = r2;
-    }
-    lap.Solve(C, row_to_col.data());
-    for (int m = 0; m < nm; ++m) assign[m] = row_to_col[m] < np ? row_to_col[m] : -1;
+    if (holding)
+      assign = *held;
+    else
+      AssignWithin(np, radius, depth, &assign);
     const bool same = assign == previous;
     previous = assign;
 
@@ -166,7 +195,7 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
       }
     }
     for (int i = 0; i < nz; ++i) {
-      const double w = rotational[i] ? prior_rot : prior_trans;
+      const double w = prior_weight * (rotational[i] ? prior_rot : prior_trans);
       N(i, i) += w;
       g[i] += w * (z[i] - start[i]);
       if (!free[i]) {
@@ -187,29 +216,19 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
           return Cost(trial);
         });
     if (accepted) z = trial;
-    if (final_stage && same && (!accepted || step.norm() < 1e-6) && radius <= options.init_radius_m)
+    if (final_stage && !holding && same && (!accepted || step.norm() < 1e-6) &&
+        radius <= options.init_radius_m)
       break;
   }
   // Final assignment at the final pose and its score.
   Hypothesis h;
   Linearise(z);
-  const double r2 = radius * radius;
-  auto C = cost.topLeftCorner(nm, np + nm);
-  for (int m = 0; m < nm; ++m) {
-    for (int k = 0; k < np; ++k) {
-      const double d2 = (points.col(k) - predicted.col(m)).squaredNorm();
-      C(m, k) = seen[m] && d2 < r2 ? d2 : kForbidden;
-    }
-    C.row(m).tail(nm).setConstant(kForbidden);
-    C(m, np + m) = r2;
-  }
-  h.score = lap.Solve(C, row_to_col.data());
   h.assignment.assign(nm, -1);
+  h.score = AssignWithin(np, radius, max_depth, &h.assignment);
   double sum = 0;
   for (int m = 0; m < nm; ++m)
-    if (row_to_col[m] < np) {
-      h.assignment[m] = row_to_col[m];
-      sum += C(m, row_to_col[m]);
+    if (h.assignment[m] >= 0) {
+      sum += (points.col(h.assignment[m]) - predicted.col(m)).squaredNorm();
       ++h.labelled;
     }
   h.rms = h.labelled > 0 ? std::sqrt(sum / h.labelled) : std::numeric_limits<double>::infinity();
@@ -218,17 +237,171 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np) {
   return h;
 }
 
-bool Tracker::Impl::TryInitialise(int np) {
-  ++init.attempts;
-  init.accepted = false;
-  init.hypotheses = 0;
-  init.best_score = init.runner_up_score = init.rms_m = 0;
-  init.labelled = 0;
-  if (np < options.init_min_fraction * nm_seen) {
-    init.reason = "too few points";
-    return false;
+// Exchanges. Every search above assigns by distance from where its pose puts the markers, so
+// all of them settle in the same local minimum where two neighbouring markers' points are each
+// nearer the other's prediction than to its own, and only a large turn of the pose makes the
+// right pairing the nearer one: welk007's wrist markers on the radius and the ulna, at the ends
+// of the forearm's 90 degree pronation range -- the static pose holds it at 0, the subject at 90,
+// and every search labelled the two points crossed (a labelled fit of that model leaves 15.4 mm
+// RMS, crossed 16.9 mm). So the best placement's labels are exchanged pair by pair (two markers
+// whose points lie within kExchangeRadius of each other: neighbours the assignment could
+// confuse), each exchange held while the pose follows it and then released (Icp with `held`),
+// and an exchange that labels as many markers at a lower score replaces the best (scored as every
+// other hypothesis, so its pose must fit all markers, not the pair alone; "as many": the truncated
+// score alone would take a crossed pair that leaves two markers unlabelled for smaller
+// residuals, simulated seed 9's left wrist). Greedy, two passes at most. The replaced placement
+// stays among the hypotheses; it differs from the new best by exchanged pairs, which the
+// ambiguity test leaves to this decision. An exchange that loses is not added: as a runner-up of
+// the search's own making it delayed starts the search alone accepted (seed 19: frame 14 instead
+// of 10, then RHEE and RANK crossed for 1,121 frames).
+int Tracker::Impl::ExchangeLabels(std::vector<Hypothesis>* hyps, int best, int np) {
+  std::vector<int> held;
+  for (int pass = 0; pass < 2; ++pass) {
+    bool improved = false;
+    for (int a = 0; a < nm; ++a) {
+      for (int b = a + 1; b < nm; ++b) {
+        const Hypothesis& h = (*hyps)[best];
+        const int pa = h.assignment[a], pb = h.assignment[b];
+        if (pa < 0 || pb < 0 ||
+            (points.col(pa) - points.col(pb)).squaredNorm() > kExchangeRadius * kExchangeRadius)
+          continue;
+        held = h.assignment;
+        std::swap(held[a], held[b]);
+        Hypothesis e = Icp(h.z, np, &held);
+        // Better: as many labels at a lower score (the truncated score alone would trade a
+        // label for smaller residuals: a crossed wrist pair leaving two markers unlabelled). A
+        // refinement back at the same labels is no exchange.
+        if (e.labelled >= h.labelled && e.score < h.score && e.assignment != h.assignment) {
+          hyps->push_back(std::move(e));
+          best = static_cast<int>(hyps->size()) - 1;
+          improved = true;
+        }
+      }
+    }
+    if (!improved) break;
   }
-  ClearOffsets(0);
+  return best;
+}
+
+// Scaling to the subject. A generic model (OpenSim's gait2354 for a subject whose femurs are 15 %
+// longer, welk007's Rajagopal model, 84 mm RMS off that subject with its labels) puts markers
+// farther from their points than the search's 5 cm: its best placement labels too few, or too
+// far, and no heading or restart mends what is a matter of size. So, as OpenSim's scaling does
+// with labels, each segment's scale factor (model/model.h: its markers and its child joints'
+// centres scale with it) is fitted together with the pose to the best placement's points, from
+// the root outwards as the search places the body, reassigned at each step (within 15 cm, then a
+// radius shrinking from 12 cm to the search's) so that markers the model put too far are taken up
+// as their segments grow, with a prior at the model's own scale (init_scale_sigma; a segment no
+// marker sizes keeps it), within 1/kScaleLimit..kScaleLimit of it. Then the whole search runs
+// again on the scaled model; when that happens and which result is kept: TryInitialise.
+void Tracker::Impl::ScaleToSubject(const Hypothesis& h, int np) {
+  const int ns = model->num_segments(), n = nz + ns;
+  const Eigen::VectorXd p0 = model->InitialParameters();
+  Eigen::VectorXd p = geometry_params, ptrial = p;
+  Eigen::VectorXd z = h.z, trial(nz);
+  const Eigen::VectorXd start = z;
+  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
+  const double prior_scale = 0.01 * 0.01 / (options.init_scale_sigma * options.init_scale_sigma);
+  Eigen::MatrixXd N(n, n), Nd(n, n);
+  Eigen::VectorXd g(n), step(n);
+  Eigen::LLT<Eigen::MatrixXd> llt(n);
+  Eigen::Matrix3Xd jpm(3, std::max(1, model->max_chain_parameters()));
+  std::vector<int> assign(nm, -1);
+  auto Cost = [&](const Eigen::VectorXd& zz, const Eigen::VectorXd& pp) {
+    SetGeometry(pp);
+    ForwardKinematics(*model, geometry, zz, &data);
+    double c = 0;
+    for (int m = 0; m < nm; ++m)
+      if (assign[m] >= 0)
+        c += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
+    for (int i = 0; i < nz; ++i)
+      c += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) * (zz[i] - start[i]);
+    for (int k = 0; k < ns; ++k) c += prior_scale * (pp[k] - p0[k]) * (pp[k] - p0[k]);
+    return c;
+  };
+  double lambda = 1e-3;
+  // From the root outwards, as the search places the body (Icp): stage d sizes the segments at
+  // depth <= d with the markers they carry, so a shank is sized once its thigh is.
+  const int stages = max_depth + 1, per_stage = 3;
+  std::vector<char> free_scale(ns, 1);
+  for (int it = 0; it < stages * per_stage + kScaleIterations; ++it) {
+    const int stage = it / per_stage;
+    const bool final_stage = stage >= stages;
+    const int depth = final_stage ? max_depth : stage;
+    for (int k = 0; k < ns; ++k) free_scale[k] = segment_depth[k] <= depth;
+    const double radius =
+        !final_stage ? 0.15
+                     : std::max(options.init_radius_m, 0.12 - 0.01 * (it - stages * per_stage));
+    SetGeometry(p);
+    Linearise(z);
+    AssignWithin(np, radius, depth, &assign);
+    N.setZero();
+    g.setZero();
+    for (int m = 0; m < nm; ++m) {
+      if (assign[m] < 0) continue;
+      const Eigen::Vector3d r = predicted.col(m) - points.col(assign[m]);
+      // Columns: the marker's coordinates, then the scales among its parameters.
+      const std::vector<int>& cz = model->marker_coordinates(m);
+      const std::vector<int>& cp = model->marker_parameters(m);
+      auto J = jpm.leftCols(cp.size());
+      MarkerJacobian(*model, geometry, data, m, static_cast<Eigen::Matrix3Xd*>(nullptr), &J);
+      const int nzc = static_cast<int>(cz.size());
+      auto column = [&](int a) -> Eigen::Vector3d {
+        return a < nzc ? Eigen::Vector3d(jac[m].col(a)) : Eigen::Vector3d(J.col(a - nzc));
+      };
+      auto index = [&](int a) { return a < nzc ? cz[a] : nz + cp[a - nzc]; };
+      const int na = nzc + static_cast<int>(cp.size());
+      for (int a = 0; a < na; ++a) {
+        if (a >= nzc && cp[a - nzc] >= ns) continue;  // not a scale
+        const Eigen::Vector3d ja = column(a);
+        g[index(a)] += ja.dot(r);
+        for (int k = 0; k < na; ++k) {
+          if (k >= nzc && cp[k - nzc] >= ns) continue;
+          N(index(a), index(k)) += ja.dot(column(k));
+        }
+      }
+    }
+    for (int i = 0; i < nz; ++i) {
+      const double w = rotational[i] ? prior_rot : prior_trans;
+      N(i, i) += w;
+      g[i] += w * (z[i] - start[i]);
+    }
+    for (int k = 0; k < ns; ++k) {
+      N(nz + k, nz + k) += prior_scale;
+      g[nz + k] += prior_scale * (p[k] - p0[k]);
+    }
+    for (int i = 0; i < n; ++i) {
+      if (i < nz ? coordinate_depth[i] <= depth : free_scale[i - nz]) continue;
+      N.row(i).setZero();
+      N.col(i).setZero();
+      N(i, i) = 1;
+      g[i] = 0;
+    }
+    const bool accepted = DampedGaussNewtonStep(N, g, Cost(z, p), &lambda, &Nd, &llt, &step, [&] {
+      trial = z + step.head(nz);
+      for (int i = 0; i < nz; ++i)
+        if (!wraps[i])
+          trial[i] = std::clamp(trial[i], std::min(model->coordinates()[i].min_value, start[i]),
+                                std::max(model->coordinates()[i].max_value, start[i]));
+      ptrial = p;
+      for (int k = 0; k < ns; ++k)
+        ptrial[k] = std::clamp(p[k] + step[nz + k], p0[k] / kScaleLimit, p0[k] * kScaleLimit);
+      return Cost(trial, ptrial);
+    });
+    if (accepted) {
+      z = trial;
+      p = ptrial;
+    }
+  }
+  SetGeometry(p);
+}
+
+// The whole search at the present geometry: every start and heading, the restarts from the
+// best, the exchanges; then the acceptance tests. Returns the best hypothesis' index, or -1 when
+// the search refuses (init.reason says why).
+int Tracker::Impl::Search(int np, std::vector<Hypothesis>* out) {
+  std::vector<Hypothesis>& hyps = *out;
+  hyps.clear();
   const Eigen::Vector3d centroid = points.leftCols(np).rowwise().mean();
   std::vector<Eigen::VectorXd> starts;
   starts.push_back(options.static_pose.size() == nz ? options.static_pose
@@ -236,7 +409,6 @@ bool Tracker::Impl::TryInitialise(int np) {
   if (had_track) starts.push_back(z_good);
   // The points are turned so that the lab's vertical is the model's (lab_to_model).
   const Eigen::Vector3d up = options.model_up.normalized();
-  std::vector<Hypothesis> hyps;
   for (const Eigen::VectorXd& s : starts) {
     const int headings = root_euler ? options.init_headings : 1;
     for (int k = 0; k < headings; ++k) {
@@ -249,7 +421,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   }
   if (hyps.empty()) {
     init.reason = "the root cannot be placed";
-    return false;
+    return -1;
   }
   auto Best = [&] {
     int b = 0;
@@ -289,34 +461,117 @@ bool Tracker::Impl::TryInitialise(int np) {
       hyps.push_back(Icp(z, np));
     }
   }
+  // Exchanges decide between labellings of a subject found, they do not find one: only a best
+  // placement that passes the tests below on its own is tried (in a second of ghosts alone, a
+  // placement on ghosts one label short gained it in an exchange's refinement and started).
+  int best = Best();
+  if (hyps[best].labelled >= options.init_min_fraction * nm_seen && hyps[best].rms <= options.init_max_rms_m)
+    best = ExchangeLabels(&hyps, best, np);
   init.hypotheses = static_cast<int>(hyps.size());
-  const int best = Best();
   const Hypothesis& h = hyps[best];
   init.best_score = h.score;
   init.rms_m = h.rms;
   init.labelled = h.labelled;
-  // Unambiguous: no hypothesis that labels >= 3 markers differently comes close.
+  // Unambiguous: no hypothesis that labels >= 3 markers differently comes close. Markers whose
+  // labels are exchanged pairwise (a's point b's and b's a's) do not count: each such pair is
+  // decided by its own exchange (ExchangeLabels), the wrist pairs of both arms are two decisions,
+  // not one ambiguity of four labels.
   double runner_up = std::numeric_limits<double>::infinity();
   for (const Hypothesis& o : hyps) {
     int differ = 0;
-    for (int m = 0; m < nm; ++m) differ += o.assignment[m] != h.assignment[m];
+    for (int m = 0; m < nm; ++m) {
+      if (o.assignment[m] == h.assignment[m]) continue;
+      bool exchanged = false;
+      for (int k = 0; k < nm && !exchanged; ++k)
+        exchanged = k != m && o.assignment[m] >= 0 && o.assignment[m] == h.assignment[k] &&
+                    o.assignment[k] == h.assignment[m];
+      differ += !exchanged;
+    }
     if (differ >= 3) runner_up = std::min(runner_up, o.score);
   }
   init.runner_up_score = std::isfinite(runner_up) ? runner_up : 0.0;
   if (h.labelled < options.init_min_fraction * nm_seen) {
-    init.reason = "too few markers labelled";
-    return false;
+    init.reason = kTooFewLabelled;
+    return -1;
   }
   if (!(h.rms <= options.init_max_rms_m)) {
-    init.reason = "residual too large";
-    return false;
+    init.reason = kResidualTooLarge;
+    return -1;
   }
   const double variance = std::max(h.rms * h.rms / 3.0, 1e-6);
   if (runner_up < options.init_ambiguity_ratio * h.score ||
       runner_up - h.score < options.init_ambiguity_margin * variance) {
     init.reason = "ambiguous";
+    return -1;
+  }
+  return best;
+}
+
+bool Tracker::Impl::TryInitialise(int np) {
+  ++init.attempts;
+  init.accepted = false;
+  init.hypotheses = 0;
+  init.best_score = init.runner_up_score = init.rms_m = 0;
+  init.labelled = 0;
+  if (np < options.init_min_fraction * nm_seen) {
+    init.reason = "too few points";
     return false;
   }
+  ClearOffsets(0);
+  std::vector<Hypothesis> hyps;
+  int best = Search(np, &hyps);
+  // A model that does not fit the subject (the search's labels too few or too far, in every
+  // search over init_scale_after_s) -- or any, when told to scale always -- is scaled to the
+  // subject from the best placement
+  // (ScaleToSubject) and searched for again. A start refused as ambiguous is not: a tie between
+  // labellings is no matter of size (scaled, simulated seed 19's start shifted an arm's labels one
+  // marker along the arm). Nor is a model that has tracked the subject: a later refusal is the
+  // scene's, not the model's size (in a second of ghosts alone, TrackFaults'
+  // AllMarkersOccludedForASecond, 41 ghosts where the body was, a search labelling 27-31 of 39
+  // markers on ghosts scaled itself to label 32). The scales stay for the track when the scaled
+  // search is accepted and keeps every label the model's own size gave, when it gave any (it may
+  // add labels, not change them: scaled always, seeds 19, 40 and 48 had an arm's labels shifted
+  // where the search as given had them right).
+  using Scale = TrackerOptions::ScaleToSubject;
+  const bool unfit = !had_track && best < 0 && (init.reason == kTooFewLabelled || init.reason == kResidualTooLarge);
+  unfit_searches = unfit ? unfit_searches + 1 : 0;
+  const int judged = std::max(1, static_cast<int>(std::lround(options.init_scale_after_s * options.rate_hz)));
+  const bool does_not_fit = unfit && unfit_searches >= judged;
+  if (!hyps.empty() && ((options.init_scale_to_subject == Scale::kAlways && best >= 0) ||
+                        (options.init_scale_to_subject != Scale::kNever && does_not_fit))) {
+    const Eigen::VectorXd before = geometry_params;
+    const InitialisationSummary summary = init;
+    std::vector<Hypothesis> as_given = hyps;
+    const int best_as_given = best;
+    int b = 0;
+    for (size_t i = 1; i < hyps.size(); ++i)
+      if (hyps[i].score < hyps[b].score) b = static_cast<int>(i);
+    ScaleToSubject(hyps[b], np);
+    best = Search(np, &hyps);
+    bool keeps = best >= 0;
+    if (keeps && best_as_given >= 0) {
+      const std::vector<int>& given = as_given[best_as_given].assignment;
+      for (int m = 0; m < nm && keeps; ++m) keeps = given[m] < 0 || given[m] == hyps[best].assignment[m];
+      if (!keeps) init.reason = "scaled to the subject, the search changed the labels the model's size gave";
+    }
+    if (!keeps) {
+      SetGeometry(before);
+      if (best_as_given >= 0) {
+        hyps = std::move(as_given);
+        best = best_as_given;
+        init = summary;
+      } else {
+        best = -1;
+      }
+    }
+  }
+  const Eigen::VectorXd own = model->InitialParameters();
+  if (geometry_params.head(model->num_segments()) == own.head(model->num_segments()))
+    init.segment_scales.clear();
+  else
+    init.segment_scales.assign(geometry_params.data(), geometry_params.data() + model->num_segments());
+  if (best < 0) return false;
+  const Hypothesis& h = hyps[best];
 
   // Start the filter at the found pose, at rest, and update it with the found labels.
   x.setZero();

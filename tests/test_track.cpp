@@ -533,6 +533,7 @@ TEST_F(TrackCli, BadInputGetsAClearError) {
       {sim + "--movements static --model " + P("bad/renamed.json") + " --out " + P("bad/o"), "none of the simulated subject's"},
       {sim + "--movements static --model " + P("bad/missing.json") + " --out " + P("bad/o"), "missing.json"},
       {sim + "--movements static --up w --out " + P("bad/o"), "--up w"},
+      {sim + "--movements static --scale-to-subject sometimes --out " + P("bad/o"), "--scale-to-subject: sometimes"},
       {sim + "--movements static --marker-map " + P("bad/map.txt") + " --out " + P("bad/o"), "--marker-map"},
       {sim + "--movements static --marker-set " + P("bad/set.xml") + " --out " + P("bad/o"), "--marker-set"},
   };

@@ -4,11 +4,14 @@
 // scored against the original labels.
 //
 // Real recordings: welk007 (Motion Analysis, 100 Hz, Z up) against its OpenSim models (Y up, 16
-// virtual markers such as R_HJC that no trial has), biobuddy's P01 (Vicon Plug-in Gait + 21 extra
-// markers, 12 Hz, -Z up) against the default model. The targets (>= 0.999 without ghosts,
-// >= 0.995 with 5 a frame, no swap > 5 frames) are the DISABLED_ tests below: not met yet.
+// virtual markers such as R_HJC that no trial has), OpenSim's gait2354 example subject (60 Hz, Y
+// up) against the generic Gait2354 model, biobuddy's P01 (Vicon Plug-in Gait + 21 extra markers,
+// 12 Hz, -Z up) against the default model. The targets (>= 0.999 without ghosts, >= 0.995
+// with 5 a frame, no swap > 5 frames) hold on the two static trials; the DISABLED_ tests below
+// hold them where they are not met yet (BENCHMARKS.md, "Real recordings, unlabelled").
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <cstdio>
 #include <memory>
 #include <string>
@@ -126,6 +129,75 @@ TEST(TrackLab, VirtualMarkersAreNeitherCountedNorLabelled) {
   EXPECT_EQ(virtual_labels, 0);
 }
 
+// A model smaller than the subject (legs, trunk and arms 10 % short, as a generic model is for a
+// tall subject: OpenSim's gait2354 femurs are 15 % short of its example subject's): its best
+// placement leaves too many markers beyond the search's 5 cm, and as given it does not start.
+// Scaled to the subject from that placement (TrackerOptions::init_scale_to_subject), it starts at
+// once and labels as the right-sized model does, and the scales it found undo the shortening.
+// (Only the legs 15 % short, it starts as given with knees and ankles crossed, 0.854 of the
+// labels, and the scaled search, which would change those labels, is not taken: ekf/tracker.h.)
+TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
+  mocap::sim::TrackingScene scene = ShortScene();
+  scene.times.resize(100);
+  scene.points.resize(100);
+  scene.labels.resize(100);
+  const mocap::Model& n = scene.nominal;
+  Eigen::VectorXd p = n.InitialParameters();
+  std::vector<int> shortened;
+  for (const char* name : {"femur_l", "femur_r", "tibia_l", "tibia_r", "torso", "humerus_l", "humerus_r", "forearm_l", "forearm_r"}) {
+    const int s = n.FindSegment(name);
+    ASSERT_GE(s, 0) << name;
+    p[n.scale_index(s)] *= 0.9;
+    shortened.push_back(s);
+  }
+  mocap::Model small;
+  ASSERT_TRUE(n.WithParameters(p, &small).ok());
+  mocap::ekf::TrackerOptions o;
+  o.init_scale_to_subject = mocap::ekf::TrackerOptions::ScaleToSubject::kNever;
+  mocap::sim::TrackingScene first = scene;  // each refused search costs ~40 ms
+  first.times.resize(40);
+  first.points.resize(40);
+  first.labels.resize(40);
+  const mocap::sim::TrackRun as_given = Track(first, small, o);
+  o.init_scale_to_subject = mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
+  // By default the size is judged over init_scale_after_s of refused searches (below); here
+  // from the first one.
+  o.init_scale_after_s = 0;
+  mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(small), o);
+  const mocap::sim::TrackRun scaled = mocap::sim::TrackScene(scene, &tracker);
+  const std::vector<double>& found = tracker.initialisation().segment_scales;
+  std::printf("model 10 %% short: as given accuracy %.6f (first tracking frame %d); scaled %.6f (first %d), "
+              "wrong %ld, swaps > 5 frames %d; scales",
+              as_given.score.accuracy(), as_given.first_tracking, scaled.score.accuracy(), scaled.first_tracking,
+              scaled.score.wrong, scaled.score.swaps_longer_than_5_frames);
+  for (int s : shortened) std::printf(" %s %.3f", n.segments()[s].name.c_str(), found.empty() ? 0.0 : found[s]);
+  std::printf("\n");
+  ASSERT_EQ(found.size(), static_cast<size_t>(n.num_segments()));
+  // The absolute scales: every one grew from the short model's, and the legs' (the segments
+  // with the most markers below them) are back within 5 % of the right-sized model's. (The
+  // nominal model is not the subject either: one frame sized the torso 0.94 and a forearm 1.06.)
+  const Eigen::VectorXd right = n.InitialParameters();
+  for (int s : shortened) {
+    EXPECT_GT(found[s], 0.9 * right[n.scale_index(s)] + 0.02) << n.segments()[s].name;
+    if (n.segments()[s].name.find("femur") == 0 || n.segments()[s].name.find("tibia") == 0)
+      EXPECT_NEAR(found[s], right[n.scale_index(s)], 0.05) << n.segments()[s].name;
+  }
+  EXPECT_GE(scaled.first_tracking, 0);
+  EXPECT_LE(scaled.first_tracking, 5);
+  EXPECT_GE(scaled.score.accuracy(), 0.999);
+  EXPECT_EQ(scaled.score.swaps_longer_than_5_frames, 0);
+  EXPECT_EQ(as_given.frames_tracking(), 0);
+  // The default waits 0.25 s (50 frames at 200 Hz) of searches refused for the model's size
+  // before it scales, then starts as above: no wrong label.
+  mocap::ekf::TrackerOptions d;
+  mocap::ekf::Tracker waiting(std::make_shared<const mocap::Model>(small), d);
+  const mocap::sim::TrackRun later = mocap::sim::TrackScene(scene, &waiting);
+  std::printf("by default: first tracking frame %d, wrong %ld\n", later.first_tracking, later.score.wrong);
+  EXPECT_GE(later.first_tracking, 49);
+  EXPECT_LE(later.first_tracking, 55);
+  EXPECT_EQ(later.score.wrong, 0);
+}
+
 struct RealResult {
   mocap::sim::TrackRun run;
   std::string summary;
@@ -133,9 +205,12 @@ struct RealResult {
 
 // The trial unlabelled and shuffled (plus `ghosts` a frame), tracked with `model`; the model's
 // markers that the trial never shows are the tracker's unseen markers (what `mocap track
-// --points` does with a labelled file).
+// --points` does with a labelled file). The models are not the subjects': scaled to them at the
+// start (`mocap track --scale-to-subject always`).
 RealResult TrackRecording(const std::string& trial_path, const mocap::Model& model, const Eigen::Vector3d& up,
-                          const Eigen::Vector3d& model_up, int ghosts) {
+                          const Eigen::Vector3d& model_up, int ghosts,
+                          mocap::ekf::TrackerOptions::ScaleToSubject scale =
+                              mocap::ekf::TrackerOptions::ScaleToSubject::kAlways) {
   mocap::formats::MarkerTrial trial;
   const mocap::Status read = mocap::formats::ReadMarkerFile(trial_path, &trial);
   EXPECT_TRUE(read.ok()) << read.message();
@@ -144,13 +219,25 @@ RealResult TrackRecording(const std::string& trial_path, const mocap::Model& mod
   const mocap::sim::UnlabelledTrial frames = mocap::sim::Unlabel(trial, model, uo);
   mocap::ekf::TrackerOptions o;
   o.rate_hz = trial.rate_hz;
+  o.init_scale_to_subject = scale;
   o.up = up;
   o.model_up = model_up;
   for (int m = 0; m < model.num_markers(); ++m)
     if (!frames.model_marker_present[m]) o.unseen_markers.push_back(model.markers()[m].name);
   mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(model), o);
   RealResult r;
-  r.run = mocap::sim::RunTracker(frames.Input(model.num_markers()), &tracker);
+  // Why the search refused, on each frame before the track started (the first few).
+  std::string refusals;
+  r.run = mocap::sim::RunTracker(frames.Input(model.num_markers()), &tracker,
+                                 [&](int f, const mocap::ekf::TrackOutput& out) {
+                                   if (out.state == TrackState::kTracking || f >= 8) return;
+                                   const mocap::ekf::InitialisationSummary& i = tracker.initialisation();
+                                   refusals += "\n  frame " + std::to_string(f) + ": " + i.reason + " (" +
+                                               std::to_string(i.labelled) + " labelled, rms " +
+                                               std::to_string(i.rms_m) + " m, score " +
+                                               std::to_string(i.best_score) + ", runner-up " +
+                                               std::to_string(i.runner_up_score) + ")";
+                                 });
   char line[512];
   std::snprintf(line, sizeof line,
                 "%s, %d ghosts: %d frames, %d tracking (first %d), %d re-inits, accuracy %.6f, %ld "
@@ -160,7 +247,13 @@ RealResult TrackRecording(const std::string& trial_path, const mocap::Model& mod
                 r.run.score.swaps_longer_than_5_frames, r.run.score.longest_wrong_run,
                 tracker.initialisation().reason.c_str());
   r.summary = line;
-  std::printf("%s\n", line);
+  std::string scales;
+  const std::vector<double>& sc = tracker.initialisation().segment_scales;
+  for (size_t k = 0; k < sc.size(); ++k)
+    if (std::abs(sc[k] - 1.0) > 0.01)
+      scales += " " + model.segments()[k].name + " " + std::to_string(sc[k]).substr(0, 5);
+  if (!scales.empty()) scales = "\n  scaled to the subject:" + scales;
+  std::printf("%s%s%s\n", line, refusals.c_str(), scales.c_str());
   for (int m = 0; m < model.num_markers(); ++m)
     if (r.run.marker_samples[m] > 0 && r.run.marker_correct[m] < 0.99 * r.run.marker_samples[m])
       std::printf("  %s: %ld of %ld right\n", model.markers()[m].name.c_str(), r.run.marker_correct[m],
@@ -168,20 +261,26 @@ RealResult TrackRecording(const std::string& trial_path, const mocap::Model& mod
   return r;
 }
 
-mocap::Model OsimModel(const std::string& path) {
+// An OpenSim model, with its marker set when the .osim has none inside (gait2354's).
+mocap::Model OsimModel(const std::string& path, const std::string& marker_set = "") {
   mocap::formats::OsimImport import;
-  const mocap::Status s = mocap::formats::ImportOsim(path, &import);
+  mocap::Status s = mocap::formats::ImportOsim(path, &import);
+  EXPECT_TRUE(s.ok()) << s.message();
+  if (s.ok() && !marker_set.empty()) s = mocap::formats::LoadOsimMarkerSet(marker_set, &import);
   EXPECT_TRUE(s.ok()) << s.message();
   return import.model;
 }
 
 std::string Welk(const std::string& file) { return mocap::testutil::SharedData() + "/welk007_hipfunc/" + file; }
 
-// Z-up lab, Y-up OpenSim model (the subject's hand-scaled one), 16 virtual markers: before, the
-// tracker never started (54 points < 80 % of 72 markers). Now it starts on the first frame and
-// holds every frame; what it still gets wrong is the wrist pair (radius and ulna swapped: a swap
-// of two markers is not among the hypotheses the initialisation's ambiguity test compares).
-TEST(TrackReal, Welk007StaticStartsWithItsScaledOpenSimModel) {
+// Z-up lab, Y-up OpenSim model (the subject's hand-scaled one), 16 virtual markers: the issue's
+// targets. Before the sixth session the tracker never started (54 points < 80 % of 72 markers);
+// then it held every frame with the wrist pairs crossed (radius and ulna markers: 0.923 without
+// ghosts, 0.948 with 5), since every search starts the forearm at the near end of its 90 degree
+// pronation range and the subject holds it at the far end; exchanging the pair is now a
+// hypothesis of the search (ekf/tracker.h, "Initialisation and recovery"). With 5 ghosts C7 was
+// then lost from frame 22 (0.987); scaled to the subject at the start it is not (1.000).
+TEST(TrackReal, Welk007StaticMeetsTheTargetsWithItsScaledOpenSimModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model model = OsimModel(Welk("manually_scaled.osim"));
   for (int ghosts : {0, 5}) {
@@ -189,16 +288,17 @@ TEST(TrackReal, Welk007StaticStartsWithItsScaledOpenSimModel) {
                                         Eigen::Vector3d::UnitY(), ghosts);
     EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
     EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
-    EXPECT_GE(r.run.score.accuracy(), 0.92) << r.summary;
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
   }
 }
 
-// The targets on the real recordings. Not met (sixth session): welk007 static with the
-// scaled model 0.923 (wrists swapped), the right-hip trial 0.94; with unscaled_generic.osim the
-// search labels 19-29 of 52 markers (a labelled IK of that model on the static trial leaves 84 mm
-// RMS, the scaled model 14.7 mm: the generic model does not fit this subject within the 5 cm the
-// search matches in); biobuddy P01 with the default model starts late and wrongly (0.059 without
-// ghosts, 0.230 with 5: the 21 extra markers near the Plug-in Gait ones take their places).
+// The targets on welk007 with its generic model: NOT MET. Sixth session: never started,
+// the search labelling 19-29 of 52 markers (a labelled IK of that model on the static trial leaves
+// 84 mm RMS, the scaled model 14.7 mm). Thirteenth: its 14 stacked cluster markers unseen and the
+// model scaled to the subject, static 0.578 / 0.535 with 5 ghosts (from frames 18 / 2; the
+// stacked markers never labelled, 1,112 / 1,482 wrong), RHJC1 0.015 / 0.436 (from frames 1189 /
+// 198). Left: placing the stacked markers by their rigid motion with their segments.
 TEST(TrackReal, DISABLED_Welk007MeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model model = OsimModel(Welk("unscaled_generic.osim"));
@@ -211,12 +311,56 @@ TEST(TrackReal, DISABLED_Welk007MeetsTheTargetsWithItsGenericModel) {
     }
 }
 
+// Biobuddy P01 with the default model: NOT MET. Sixth session 0.059 without ghosts, 0.230 with 5
+// (the 21 extra markers near the Plug-in Gait ones take their places); thirteenth, scaled to the
+// subject at the start, 0.605 and 0.328.
 TEST(TrackReal, DISABLED_BiobuddyRightHipMeetsTheTargetsWithTheDefaultModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model model = mocap::DefaultFullBodyModel(1.75);
   const std::string trial = mocap::testutil::SharedData() + "/biobuddy_p01_lowerlimb/Test_func_rhip.c3d";
   for (int ghosts : {0, 5}) {
     const RealResult r = TrackRecording(trial, model, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), ghosts);
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
+  }
+}
+
+std::string Gait2354(const std::string& file) {
+  return mocap::testutil::SharedData() + "/opensim_gait2354_subject01/" + file;
+}
+
+// OpenSim's example subject (60 Hz, Y up, 10 arm and head markers the marker set does not model:
+// points that are nobody's), against the generic Gait2354 model with its marker set. Static: as
+// given 0.999316 without ghosts and 0.988632 with 5 (R.Ankle.Lat missed 122 frames); scaled to
+// the subject at the start (femurs 1.10-1.12, OpenSim's own scaling 1.147) 0.999915 both.
+TEST(TrackReal, Gait2354StaticMeetsTheTargetsWithItsGenericModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model model =
+      OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml"));
+  for (int ghosts : {0, 5}) {
+    const RealResult r = TrackRecording(Gait2354("subject01_static.trc"), model, Eigen::Vector3d::UnitY(),
+                                        Eigen::Vector3d::UnitY(), ghosts);
+    EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
+  }
+}
+
+// The walk (151 frames): NOT MET. As given the search refuses the first 5 frames (the generic
+// model's residual just over 3 cm) and then labels every marker right: 0.9656 / 0.9590 with 5
+// ghosts, all of it the late start. Scaled to the subject (when the model does not fit, frame 1),
+// 0.958 / 0.9925 (L.Acromium on an unmodelled arm marker's point for 143 frames without
+// ghosts). Scaled always: 0.9113 / 0.8656, the search as given being refused as ambiguous on
+// frame 0 and the scaled one at frames 4 and 1 turning the torso (the acromion markers on each
+// other's and an arm marker's points; the torso carries 4 markers, 2 of them mirror images, among
+// 6 unmodelled arm and head markers).
+TEST(TrackReal, DISABLED_Gait2354WalkMeetsTheTargetsWithItsGenericModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model model =
+      OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml"));
+  for (int ghosts : {0, 5}) {
+    const RealResult r = TrackRecording(Gait2354("subject01_walk1.trc"), model, Eigen::Vector3d::UnitY(),
+                                        Eigen::Vector3d::UnitY(), ghosts);
     EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
     EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
   }

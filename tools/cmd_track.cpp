@@ -22,7 +22,9 @@
 // --unlabel its labels are removed, each frame's points shuffled and --ghosts added, and
 // stats.json scores the tracker's labels against the file's (label_accuracy, wrong_labels,
 // swaps_longer_than_5_frames, per_marker_accuracy). --up names the lab's vertical; an OpenSim
-// model's own is Y, ours Z (TrackerOptions::up, model_up).
+// model's own is Y, ours Z (TrackerOptions::up, model_up). --scale-to-subject always scales a
+// generic model to the subject at the start (TrackerOptions::init_scale_to_subject); stats.json
+// gives the scales (segment_scales).
 //
 // The model: --model FILE (.json or .osim). With --simulate, also `nominal` (the default: the
 // default model scaled to the subject's height, what `mocap sim` writes as nominal.model.json)
@@ -65,6 +67,7 @@ struct TrackArgs {
   std::string points;
   std::string marker_set, marker_map;
   std::string up = "z";
+  std::string scale_to_subject = "when-needed";
   bool unlabel = false;
   double height_m = 1.75;
   std::string out;
@@ -228,6 +231,9 @@ int RunTrack(const TrackArgs& args) {
     spdlog::error("mocap track: --up {}: expected x, y, z, -x, -y or -z", args.up);
     return 2;
   }
+  topt.init_scale_to_subject = args.scale_to_subject == "never"    ? ekf::TrackerOptions::ScaleToSubject::kNever
+                               : args.scale_to_subject == "always" ? ekf::TrackerOptions::ScaleToSubject::kAlways
+                                   : ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
   // OpenSim's ground is Y up (gravity -Y); our models are Z up.
   topt.model_up = input.osim ? Eigen::Vector3d::UnitY() : Eigen::Vector3d::UnitZ();
   // The model's markers the file never shows (virtual ones such as R_HJC, markers the lab's set
@@ -450,6 +456,10 @@ int RunTrack(const TrackArgs& args) {
               static_cast<double>(run.marker_correct[k]) / run.marker_samples[k];
     }
     j["unseen_markers"] = topt.unseen_markers;
+    j["scale_to_subject"] = args.scale_to_subject;
+    const std::vector<double>& scales = tracker.initialisation().segment_scales;
+    j["segment_scales"] = nlohmann::json::object();  // empty: the model's own
+    for (size_t k = 0; k < scales.size(); ++k) j["segment_scales"][model.segments()[k].name] = scales[k];
     std::printf("mocap track: %d frames, %d tracking, %d reinitialisations, update p50 %.0f us p99 "
                 "%.0f us", nf, j["frames_tracking"].get<int>(),
                 j["reinitialisations"].get<int>(), j["update_us_p50"].get<double>(),
@@ -502,6 +512,10 @@ const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code)
   cmd->add_option("--marker-map", args->marker_map,
                   "with --points: marker-name map, lines 'model_name = file_name' (# comments)");
   cmd->add_option("--up", args->up, "the lab's vertical: x, y, z (default), -x, -y or -z");
+  cmd->add_option("--scale-to-subject", args->scale_to_subject,
+                  "scale the model segment by segment to the subject at the start: never, when-needed "
+                  "(default: when the model's own size cannot start) or always (a generic model)")
+      ->check(CLI::IsMember({"never", "when-needed", "always"}));
   cmd->add_flag("--unlabel", args->unlabel,
                 "with a labelled --points file: remove its labels, shuffle each frame's points, add "
                 "--ghosts, and score the tracker's labels against the file's");
