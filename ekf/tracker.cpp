@@ -112,12 +112,7 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
       if (md.markers()[k].name == name) seen[k] = 0;
   // Markers the model cannot place (tracker.h, "Initialisation and recovery": stacked on one
   // point of their segment) are treated as unseen.
-  std::vector<char> stacked(nm, 0);
-  for (int k = 0; k < nm; ++k)
-    for (int j = k + 1; j < nm; ++j)
-      if (seen[k] && seen[j] && md.markers()[k].segment == md.markers()[j].segment &&
-          (md.markers()[k].position - md.markers()[j].position).norm() < kStackedTolerance)
-        stacked[k] = stacked[j] = 1;
+  const std::vector<char> stacked = StackedOnOnePoint(md, seen, kStackedTolerance);
   for (int k = 0; k < nm; ++k)
     if (stacked[k]) seen[k] = 0;
   nm_seen = static_cast<int>(std::count(seen.begin(), seen.end(), 1));

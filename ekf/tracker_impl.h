@@ -35,9 +35,8 @@ inline constexpr double kBesideSeconds = 2.0;
 // The error of a predicted joint centre (a nominal model's centres are 1-2 cm off).
 inline constexpr double kJointCentreTolerance = 0.02;
 inline constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-// Two markers of one segment nearer than this (unscaled) are stacked: placeholders of a generic
-// model that names a lab's cluster markers without knowing where they are (solver/attach_markers.h,
-// StackedMarkers, which the fit uses alike).
+// Two markers of one segment this near (unscaled) are stacked on one point (StackedOnOnePoint,
+// model/model.h; the fit's FitOptions::stacked_marker_tolerance_m is the same).
 inline constexpr double kStackedTolerance = 0.001;
 
 }  // namespace mocap::ekf::internal

@@ -370,4 +370,17 @@ Status Model::WithMarkerWeights(const std::vector<double>& weights, Model* out) 
   return Status::Ok();
 }
 
+std::vector<char> StackedOnOnePoint(const Model& model, const std::vector<char>& among, double tolerance_m) {
+  const int nm = model.num_markers();
+  std::vector<char> stacked(nm, 0);
+  for (int a = 0; a < nm; ++a)
+    for (int b = a + 1; b < nm; ++b) {
+      const Marker& ma = model.markers()[a];
+      const Marker& mb = model.markers()[b];
+      if (among[a] && among[b] && ma.segment == mb.segment && (ma.position - mb.position).norm() <= tolerance_m)
+        stacked[a] = stacked[b] = 1;
+    }
+  return stacked;
+}
+
 }  // namespace mocap

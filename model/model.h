@@ -215,4 +215,10 @@ void AxisFromAngles(const Eigen::Vector3d& e1, const Eigen::Matrix<double, 3, 2>
                     double alpha, double beta, Eigen::Vector3d* axis, Eigen::Vector3d* d_alpha,
                     Eigen::Vector3d* d_beta);
 
+// Per marker of `model`: 1 when it and another marker of its segment, both flagged in `among`
+// (one flag per marker), sit within tolerance_m of each other (unscaled): placeholders a generic
+// model gives a lab's cluster markers without knowing where they are. The fit places them from
+// the trials (solver/attach_markers.h, StackedMarkers); the tracker leaves them unseen.
+std::vector<char> StackedOnOnePoint(const Model& model, const std::vector<char>& among, double tolerance_m);
+
 }  // namespace mocap

@@ -154,17 +154,11 @@ Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerT
 std::vector<int> StackedMarkers(const Model& model, const std::vector<formats::MarkerTrial>& trials,
                                 double tolerance_m) {
   const int nm = model.num_markers();
-  std::vector<char> seen(nm, 0), stacked(nm, 0);
+  std::vector<char> seen(nm, 0);
   for (const formats::MarkerTrial& t : trials)
     for (const std::string& name : t.marker_names)
       if (const int m = model.FindMarker(name); m >= 0) seen[m] = 1;
-  for (int a = 0; a < nm; ++a)
-    for (int b = a + 1; b < nm; ++b) {
-      const Marker& ma = model.markers()[a];
-      const Marker& mb = model.markers()[b];
-      if (seen[a] && seen[b] && ma.segment == mb.segment && (ma.position - mb.position).norm() <= tolerance_m)
-        stacked[a] = stacked[b] = 1;
-    }
+  const std::vector<char> stacked = StackedOnOnePoint(model, seen, tolerance_m);
   std::vector<int> out;
   for (int m = 0; m < nm; ++m)
     if (stacked[m]) out.push_back(m);
