@@ -13,7 +13,8 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["marker_samples"] = r.marker_samples;
   j["unknowns"] = r.unknowns;
   j["residuals"] = r.residuals;
-  j["iterations"] = r.solver.num_iterations();  // on the whole problem
+  j["iterations"] = r.solver.num_iterations();  // every stage's (FitReport::stages)
+  j["iterations_every_frame"] = r.IterationsOnEveryFrame();
   // The solve's history (the report page's convergence plot): cost and marker RMS (without the
   // priors; null where the solver did not measure it) after each iteration.
   j["iteration_history"] = nlohmann::json::array();
@@ -41,6 +42,7 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
                            {"marker_rms_mm", st.marker_rms_mm},
                            {"marker_sigma_mm", st.marker_sigma_mm},
                            {"residual_correlation_frames", st.residual_correlation_frames},
+                           {"frames", st.frames},
                            {"seconds", st.seconds}});
   j["held_joints"] = nlohmann::json::object();
   for (const auto& [joint, why] : r.held_joints) j["held_joints"][joint] = why;

@@ -175,6 +175,7 @@ bool FitOptions::IsValid(std::string* error) const {
   if (!(robust_tolerance > 0)) return fail("robust_tolerance must be > 0");
   if (rescue_iterations < 1) return fail("rescue_iterations must be >= 1");
   if (staged_iterations < 1) return fail("staged_iterations must be >= 1");
+  if (stage_frames < 0) return fail("stage_frames must be >= 0 (0: every frame)");
   if (!(reweigh_markers_stage_ratio >= 1.0)) return fail("reweigh_markers_stage_ratio must be >= 1");
   if (!(markers_measure_tolerance > 0 && markers_measure_tolerance < 1))
     return fail("markers_measure_tolerance must be in (0, 1)");
@@ -276,6 +277,13 @@ double MedianMarkerMotionMm(const formats::MarkerTrial& trial) {
   return motion[motion.size() / 2];
 }
 
+int FitReport::IterationsOnEveryFrame() const {
+  if (stages.empty()) return solver.num_iterations();
+  int n = 0;
+  for (const FitStageSummary& st : stages) n += st.frames >= frames ? st.iterations : 0;
+  return n;
+}
+
 std::string FitReport::BriefReport() const {
   const std::string coarse_note =
       coarse.used       ? " (after " + std::to_string(coarse.coarse.num_iterations()) + " on " +
@@ -303,10 +311,15 @@ std::string FitReport::BriefReport() const {
     robust = one;
   }
   std::string staging;
+  if (IterationsOnEveryFrame() != solver.num_iterations())
+    staging = ", " + std::to_string(IterationsOnEveryFrame()) + " of them on every frame";
   if (stages.size() > 1) {
-    staging = " (";
+    staging += " (";
     for (size_t k = 0; k < stages.size(); ++k)
-      staging += (k ? " + " : "") + std::to_string(stages[k].iterations) + " " + stages[k].name;
+      staging += (k ? " + " : "") + std::to_string(stages[k].iterations) + " " + stages[k].name +
+                 (stages[k].frames > 0 && stages[k].frames < frames
+                      ? " on " + std::to_string(stages[k].frames) + " frames"
+                      : "");
     staging += ")";
   }
   char buf[1024];
@@ -796,6 +809,34 @@ void AppendIterations(const FitReport& r, LmSummary* before, FitReport* totals) 
   totals->reposed = totals->reposed || r.reposed;
 }
 
+// FitOptions::stage_frames: the rows of a trial the stages before the last solve, every k-th
+// frame from the middle of the first stretch of k.
+std::vector<int> EveryKthFrame(int num_frames, int k) {
+  std::vector<int> rows;
+  for (int f = std::min(k / 2, num_frames - 1); f < num_frames; f += k) rows.push_back(f);
+  return rows;
+}
+
+FitTrial TrialRows(const FitTrial& trial, const std::vector<int>& rows) {
+  FitTrial out;
+  const formats::MarkerTrial& m = trial.markers;
+  out.markers.name = m.name;
+  out.markers.marker_names = m.marker_names;
+  out.markers.rate_hz = rows.size() > 1 ? m.rate_hz / (rows[1] - rows[0]) : m.rate_hz;
+  out.markers.positions.resize(static_cast<Eigen::Index>(rows.size()), m.positions.cols());
+  if (trial.initial_coordinates.rows() > 0)
+    out.initial_coordinates.resize(static_cast<Eigen::Index>(rows.size()), trial.initial_coordinates.cols());
+  for (size_t i = 0; i < rows.size(); ++i) {
+    const int f = rows[i];
+    out.markers.positions.row(static_cast<Eigen::Index>(i)) = m.positions.row(f);
+    if (static_cast<size_t>(f) < m.frame_numbers.size()) out.markers.frame_numbers.push_back(m.frame_numbers[f]);
+    if (static_cast<size_t>(f) < m.times.size()) out.markers.times.push_back(m.times[f]);
+    if (trial.initial_coordinates.rows() > 0)
+      out.initial_coordinates.row(static_cast<Eigen::Index>(i)) = trial.initial_coordinates.row(f);
+  }
+  return out;
+}
+
 FitStageSummary StageSummary(const std::string& name, const FitOptions& o, const FitReport& r) {
   FitStageSummary s;
   s.name = name;
@@ -807,6 +848,7 @@ FitStageSummary StageSummary(const std::string& name, const FitOptions& o, const
   s.seconds = r.wall_seconds;
   s.marker_sigma_mm = 1000.0 * o.marker_sigma_m;
   s.residual_correlation_frames = r.residual_correlation_frames;
+  s.frames = r.frames;
   return s;
 }
 }  // namespace
@@ -938,13 +980,24 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
   if (options.fit_markers) stages.push_back({"markers", false, true});
   FitResult placed;
   const Model* model = &initial;
-  std::vector<FitTrial> stage_trials = trials;
+  // FitOptions::stage_frames: the stages before the last solve every k-th frame of each trial.
+  int total_frames = 0;
+  for (const FitTrial& t : trials) total_frames += t.markers.num_frames();
+  const int stride = options.stage_frames > 0 && total_frames > 2 * options.stage_frames
+                         ? (total_frames + options.stage_frames - 1) / options.stage_frames
+                         : 1;
+  std::vector<std::vector<int>> stage_rows(trials.size());
+  std::vector<FitTrial> stage_trials;
+  for (size_t t = 0; t < trials.size(); ++t) {
+    stage_rows[t] = EveryKthFrame(trials[t].markers.num_frames(), stride);
+    stage_trials.push_back(stride > 1 ? TrialRows(trials[t], stage_rows[t]) : trials[t]);
+  }
   // FitOptions::place_stacked_markers: the first stage without them, placed after it.
   std::vector<Marker> stacked;
   Model unstacked;
   // Every trial's markers, for the steps that read them beside the poses (placement, attachment).
   std::vector<formats::MarkerTrial> trial_markers;
-  for (const FitTrial& t : trials) trial_markers.push_back(t.markers);
+  for (const FitTrial& t : stage_trials) trial_markers.push_back(t.markers);
   if (options.place_stacked_markers) {
     const std::vector<int> stacked_index =
         StackedMarkers(initial, trial_markers, options.stacked_marker_tolerance_m);
@@ -1052,6 +1105,38 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
       placed.model = std::move(with_extra);
     }
     model = &placed.model;
+    for (size_t t = 0; t < trials.size(); ++t) stage_trials[t].initial_coordinates = placed.coordinates[t];
+  }
+  if (stride > 1 && !summaries.empty()) {
+    // Every frame posed by the stages' model, from the poses of the frames they solved (IK
+    // warm-started from the nearest of them, then the poses alone by LM), and the data's error
+    // measured on every frame: the residuals' correlation time is in frames, and a subset's
+    // would be the full trial's divided by the stride.
+    const int nz = placed.model.num_coordinates();
+    std::vector<FitTrial> every = trials;
+    for (size_t t = 0; t < trials.size(); ++t) {
+      every[t].initial_coordinates = Eigen::MatrixXd::Constant(trials[t].markers.num_frames(), nz,
+                                                               std::numeric_limits<double>::quiet_NaN());
+      for (size_t i = 0; i < stage_rows[t].size(); ++i)
+        every[t].initial_coordinates.row(stage_rows[t][i]) = placed.coordinates[t].row(static_cast<Eigen::Index>(i));
+    }
+    FitOptions poses = options;
+    poses.marker_sigma_m = effective_sigma_m;
+    poses.fit_scales = poses.fit_centres = poses.fit_axes = poses.fit_markers = false;
+    poses.robust_loss = RobustLoss::kNone;
+    poses.marker_sigma_rounds = 0;
+    poses.lm.max_iterations = std::max(1, std::min(options.staged_iterations, iterations_left - 1));
+    poses.lm.function_tolerance = std::max(options.lm.function_tolerance, options.stage_function_tolerance);
+    FitResult posed;
+    MOCAP_RETURN_IF_ERROR(FitStage(placed.model, every, poses, /*measure_correlation=*/options.fit_markers, &posed));
+    if (!posed.report.solver.IsSolutionUsable())
+      return Status::Error("fit, stage 'poses': " + posed.report.solver.message);
+    iterations_left -= posed.report.solver.num_iterations();
+    summaries.push_back(StageSummary("poses", poses, posed.report));
+    AppendIterations(posed.report, &before, &totals);
+    if (options.fit_markers) effective_sigma_m = EffectiveMarkerSigma(options, posed.report);
+    placed.coordinates = std::move(posed.coordinates);
+    stage_trials = trials;
     for (size_t t = 0; t < trials.size(); ++t) stage_trials[t].initial_coordinates = placed.coordinates[t];
   }
 

@@ -161,6 +161,20 @@ struct FitOptions {
   // crawling on at the same RMS (gait2354's markers stage: 7.55 mm from its 8th iteration to its
   // 19th). The final stage keeps lm's tolerances.
   double stage_function_tolerance = 1e-5;
+  // The stages before the last are solved on every k-th frame of each trial, k chosen so that
+  // they see at most this many frames in all, when the trials have more than twice as many;
+  // every frame is then posed by their model and the final stage solves them all (0: every
+  // stage on every frame). Why: those stages place the
+  // markers and scale the segments, which a few hundred frames spread over every movement
+  // determine as well as thousands (the coarse-to-fine start of solver/coarse_to_fine.h, for the
+  // same reason), and on real recordings they took most of the iterations over every frame
+  // (welk007: 55 of 82). The weights are unchanged in total: a subset's residuals are
+  // correlated over tau / k of its frames, so each of its samples weighs k times one of the
+  // whole trial's (FitOptions::effective_marker_sigma), and the data's error for the final
+  // stage is measured on every frame. Measured (BENCHMARKS.md, fourteenth session): welk007 the
+  // same right hip (9.3 mm from SCoRE) and RMS (5.407 mm), 29 iterations over every frame
+  // instead of 82; biobuddy 38.9 -> 14.2 s of CPU, 28 iterations over every frame instead of 79.
+  int stage_frames = 400;
   // In the schedule's final stage, a joint whose rotation the trials hardly move keeps its centre
   // and axes where stage 1 left them (the model's, scaled): a ball joint needs its second-largest
   // coordinate spread (RMS about the mean over every frame) at least this, a hinge its one.
@@ -288,6 +302,7 @@ struct FitStageSummary {
   double marker_sigma_mm = 0;               // the data's weight in this stage (1 / sigma^2)
   double residual_correlation_frames = 1;   // of its residuals (FitReport); 1: not measured (scales)
   double seconds = 0;
+  int frames = 0;                           // the frames it solved (FitOptions::stage_frames)
 };
 
 struct FitReport {
@@ -372,6 +387,9 @@ struct FitReport {
   std::vector<RobustMarker> robust_markers;
   CoarseToFineSummary coarse;  // the coarse-to-fine start of the (first) solve
   bool converged() const { return solver.termination == TerminationType::kConvergence; }
+  // The iterations of the stages that solved every frame (FitOptions::stage_frames: the stages
+  // before the last may solve a subset); all of them without stages.
+  int IterationsOnEveryFrame() const;
   std::string BriefReport() const;
 };
 
@@ -407,6 +425,9 @@ double MedianMarkerMotionMm(const formats::MarkerTrial& trial);
 //      stage 1's geometry and poses, the priors of scales and markers centred on stage 1's
 //      values. What the data determine is unaffected (the priors are weak); what they do not
 //      determine stays where stage 1 put it instead of sliding towards the generic guess.
+// Stage 1 solves every k-th frame of each trial when the trials have more than twice
+// stage_frames frames; every frame is then posed by its model (a poses-only solve, "poses", which
+// also measures the data's error for stage 2) and stage 2 solves them all.
 // Static trials are fitted as their mean posture, then their frames posed by the fitted model
 // (static_trial_motion_mm). The report's parameters keep the caller's model as their `initial`
 // values.

@@ -88,6 +88,45 @@ TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
   }
 }
 
+// FitOptions::stage_frames: the stages before the last solve every k-th frame, every frame is
+// then posed, and the last stage solves them all. It moves the start, not the answer: the fitted
+// model is the one the schedule finds with every stage on every frame.
+TEST(GlobalFit, StagesBeforeTheLastSolveASubsetOfTheFrames) {
+  std::mt19937_64 rng(12);
+  const Model nominal = NominalWithoutOptional();
+  const Model truth = mocap::testutil::Baked(nominal, testutil::PerturbedParameters(nominal, rng));
+  std::vector<solver::FitTrial> trials(1);
+  trials[0].markers = testutil::SimulateRandomMotion(truth, 1000, 0.0005, rng);
+  solver::FitOptions subset, every;
+  every.stage_frames = 0;
+  solver::FitResult a, b;
+  ASSERT_TRUE(solver::FitModel(nominal, trials, subset, &a).ok());
+  ASSERT_TRUE(solver::FitModel(nominal, trials, every, &b).ok());
+  std::printf("%s\n%s\n", a.report.BriefReport().c_str(), b.report.BriefReport().c_str());
+  const auto& stages = a.report.stages;
+  ASSERT_GE(stages.size(), 4u);  // scales, markers (and reweighted or continued), poses, all parameters
+  const size_t n = stages.size();
+  for (size_t k = 0; k + 2 < n; ++k) EXPECT_EQ(stages[k].frames, 333) << stages[k].name;  // frames 1, 4, ..., 997
+  EXPECT_EQ(stages[0].name, "scales");
+  EXPECT_EQ(stages[n - 2].name, "poses");
+  EXPECT_EQ(stages[n - 2].frames, 1000);
+  EXPECT_EQ(stages[n - 1].frames, 1000);
+  EXPECT_EQ(a.report.IterationsOnEveryFrame(), stages[n - 2].iterations + stages[n - 1].iterations);
+  EXPECT_LT(a.report.IterationsOnEveryFrame(), a.report.solver.num_iterations());
+  for (const auto& st : b.report.stages) EXPECT_EQ(st.frames, 1000) << st.name;
+  EXPECT_EQ(b.report.IterationsOnEveryFrame(), b.report.solver.num_iterations());
+  EXPECT_TRUE(a.report.converged() && b.report.converged());
+  EXPECT_NEAR(a.report.marker_rms_mm, b.report.marker_rms_mm, 0.002);
+  ModelComparison cmp;
+  ASSERT_TRUE(CompareModels(b.model, a.model, &cmp).ok());
+  for (const auto& jd : cmp.joints) EXPECT_LT(jd.centre_error_mm, 0.05) << jd.joint;
+  solver::FitOptions bad;
+  bad.stage_frames = -1;
+  std::string why;
+  EXPECT_FALSE(bad.IsValid(&why));
+  EXPECT_NE(why.find("stage_frames"), std::string::npos) << why;
+}
+
 // Two markers on different segments swapped throughout the trial (a labelling error): marker
 // offsets cannot absorb it, the fit still ends and names the right leg's markers. Least squares
 // spreads the error over the leg (measured: RTHI 10.4, RKNE 7.2, RASI 6.8, RHEE 6.4, RANK 6.3 mm,

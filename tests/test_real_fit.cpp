@@ -130,12 +130,15 @@ TEST(RealFit, Welk007OneCommandFromTheGenericModel) {
   ASSERT_FALSE(run.report.is_null());
   const auto& r = run.report;
   const double score_mm = JointCheck(r, "hip_r", "c3d_Trimmed_RHJC1", "centre_distance_mm");
-  std::printf("welk007: marker RMS %.2f mm (hand-scaled model, our IK: %.2f mm), %d iterations, %s; "
-              "right hip %.1f mm from SCoRE, %.1f mm RMS from the hand-scaled model's\n",
+  std::printf("welk007: marker RMS %.2f mm (hand-scaled model, our IK: %.2f mm), %d iterations (%d on every "
+              "frame), %s; right hip %.1f mm from SCoRE, %.1f mm RMS from the hand-scaled model's\n",
               r["marker_rms_mm"].get<double>(), run.hand_scaled["marker_rms_mm"].get<double>(),
-              r["iterations"].get<int>(), r["termination"].get<std::string>().c_str(), score_mm,
-              run.hip_from_hand_scaled_mm);
+              r["iterations"].get<int>(), r["iterations_every_frame"].get<int>(),
+              r["termination"].get<std::string>().c_str(), score_mm, run.hip_from_hand_scaled_mm);
   EXPECT_TRUE(r["converged"].get<bool>()) << r["termination_message"];
+  // The 30 iterations, over every frame (the stages before the last solve every 4th
+  // frame: FitOptions::stage_frames; their iterations are in "iterations").
+  EXPECT_LE(r["iterations_every_frame"].get<int>(), 30);
   EXPECT_LE(r["marker_rms_mm"].get<double>(), run.hand_scaled["marker_rms_mm"].get<double>());
   ASSERT_TRUE(std::isfinite(score_mm)) << "no SCoRE check of hip_r on the functional trial";
   EXPECT_LE(score_mm, 10.0);
@@ -452,15 +455,16 @@ TEST(RealFit, BiobuddyDefaultModelAgreesWithFunctionalJoints) {
   const double hip_r = JointCheck(r, "hip_r", "Test_func_rhip", "centre_distance_mm");
   const double knee_l = JointCheck(r, "knee_l", "Test_func_lknee", "axis_angle_deg");
   const double knee_r = JointCheck(r, "knee_r", "Test_func_rknee", "axis_angle_deg");
-  std::printf("biobuddy: marker RMS %.2f mm, %d iterations, %s; hip_l %.1f mm, hip_r %.1f mm from SCoRE; "
-              "knee_l %.1f deg, knee_r %.1f deg from SARA\n",
-              r["marker_rms_mm"].get<double>(), r["iterations"].get<int>(),
+  std::printf("biobuddy: marker RMS %.2f mm, %d iterations (%d on every frame), %s; hip_l %.1f mm, hip_r %.1f mm "
+              "from SCoRE; knee_l %.1f deg, knee_r %.1f deg from SARA\n",
+              r["marker_rms_mm"].get<double>(), r["iterations"].get<int>(), r["iterations_every_frame"].get<int>(),
               r["termination"].get<std::string>().c_str(), hip_l, hip_r, knee_l, knee_r);
   std::printf("biobuddy: Harrington's regression: hip_l %.1f mm, hip_r %.1f mm (the default model's own %.1f mm)\n",
               RegressionCheck(r, "hip_l", "centre_from_regression_mm"),
               RegressionCheck(r, "hip_r", "centre_from_regression_mm"),
               RegressionCheck(r, "hip_r", "generic_from_regression_mm"));
   EXPECT_TRUE(r["converged"].get<bool>()) << r["termination_message"];
+  EXPECT_LE(r["iterations_every_frame"].get<int>(), 30);  // the target, see Welk007OneCommand...
   int attached = 0;
   for (const auto& a : r["attached_markers"]) attached += a["segment"].get<std::string>().empty() ? 0 : 1;
   EXPECT_GE(attached, 8);  // L/R THIB, THID, TIBF, TIBD at least

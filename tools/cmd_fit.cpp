@@ -43,6 +43,7 @@ struct FitArgs {
   std::string groups = "scales,centres,axes,markers";
   int max_iterations = 150;  // over every stage of the schedule
   int coarse_frames = solver::CoarseToFineOptions().coarse_frames;  // 0: no coarse-to-fine start
+  int stage_frames = solver::FitOptions().stage_frames;
   int marker_sigma_rounds = solver::FitOptions().marker_sigma_rounds;  // 0: one sigma for all
   int scaling_marker_rounds = solver::FitOptions().scaling_marker_rounds;
   bool coordinate_limits = true;
@@ -177,6 +178,7 @@ int RunFit(const FitArgs& args) {
     return 2;
   }
   options.robust_scale = args.robust_scale;
+  options.stage_frames = args.stage_frames;
   options.coarse.enabled = args.coarse_frames > 0;
   if (args.coarse_frames > 0) {
     options.coarse.coarse_frames = args.coarse_frames;
@@ -363,6 +365,7 @@ int RunFit(const FitArgs& args) {
     page.options = {{"fit", args.groups},
                     {"max_iterations", args.max_iterations},
                     {"coarse_frames", args.coarse_frames},
+                    {"stage_frames", args.stage_frames},
                     {"marker_sigma_rounds", args.marker_sigma_rounds},
                     {"scaling_marker_rounds", args.scaling_marker_rounds},
                     {"coordinate_limits", args.coordinate_limits},
@@ -448,6 +451,11 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
                   "frames of the coarse-to-fine start, used from 3,000 frames (or twice this) on "
                   "(0: LM on all frames from the start)")
       ->check(CLI::NonNegativeNumber);
+  cmd->add_option("--stage-frames", args->stage_frames,
+                  "frames the schedule's stages before the last solve, every k-th of each trial; the "
+                  "last stage solves every frame (0: every stage on every frame)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   cmd->add_option("--marker-sigma-rounds", args->marker_sigma_rounds,
                   "rounds of re-weighting each marker by its own residual spread after a converged "
                   "solve (never above the stage's marker sigma; 0: one sigma for every marker; see README)")
