@@ -393,8 +393,15 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
                                                        : check.centre_distance_mm > options.far_mm);
         }
       }
+      // The headline is the most precise estimate, by its own bootstrap sd: the trial made for
+      // the joint. By the most frames (the earlier rule) biobuddy's right knee was judged on the
+      // trunk trial (1,047 frames, SARA sd 7.9 deg: 42 deg "far") instead of its own (217
+      // frames, 0.5 deg: 7 deg).
+      auto precision_sd = [&](const FunctionalCheck& c) {
+        return jtr.axis_joint ? c.functional_axis_std_deg : c.functional_std_mm;
+      };
       if (check.excited &&
-          (jtr.best_check < 0 || check.frames > jtr.checks[jtr.best_check].frames))
+          (jtr.best_check < 0 || precision_sd(check) < precision_sd(jtr.checks[jtr.best_check])))
         jtr.best_check = static_cast<int>(jtr.checks.size());
       jtr.checks.push_back(std::move(check));
     }

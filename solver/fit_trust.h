@@ -133,7 +133,8 @@ struct JointTrust {
   bool centre_fitted = false;
   bool undetermined = false;         // a centre parameter the data did not determine
   std::vector<FunctionalCheck> checks;  // one per trial, in trial order
-  // The excited check with the most frames (-1: no trial excites the joint): the headline.
+  // The excited check whose functional estimate has the smallest bootstrap standard deviation
+  // (-1: no trial excites the joint): the headline.
   int best_check = -1;
   // Empty when the model has no landmark pair about the joint or no trial sees both.
   std::vector<LandmarkCheck> landmarks;
