@@ -17,6 +17,21 @@ using namespace mocap;
 
 namespace {
 using testutil::NominalWithoutOptional;
+
+namespace {
+// A perturbed copy of `nominal` (the truth) and one trial of it moving at random, 0.5 mm noise.
+struct RandomSession {
+  Model truth;
+  std::vector<solver::FitTrial> trials;
+};
+RandomSession SimulateRandomSession(const Model& nominal, std::uint64_t seed, int frames) {
+  std::mt19937_64 rng(seed);
+  RandomSession out{mocap::testutil::Baked(nominal, testutil::PerturbedParameters(nominal, rng)), {}};
+  out.trials.resize(1);
+  out.trials[0].markers = testutil::SimulateRandomMotion(out.truth, frames, 0.0005, rng);
+  return out;
+}
+}  // namespace
 }  // namespace
 
 TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
@@ -92,11 +107,8 @@ TEST(GlobalFit, RecoversSphericalJointCentresAndReachesTheNoiseFloor) {
 // then posed, and the last stage solves them all. It moves the start, not the answer: the fitted
 // model is the one the schedule finds with every stage on every frame.
 TEST(GlobalFit, StagesBeforeTheLastSolveASubsetOfTheFrames) {
-  std::mt19937_64 rng(12);
   const Model nominal = NominalWithoutOptional();
-  const Model truth = mocap::testutil::Baked(nominal, testutil::PerturbedParameters(nominal, rng));
-  std::vector<solver::FitTrial> trials(1);
-  trials[0].markers = testutil::SimulateRandomMotion(truth, 1000, 0.0005, rng);
+  const std::vector<solver::FitTrial> trials = SimulateRandomSession(nominal, 12, 1000).trials;
   solver::FitOptions subset, every;
   every.stage_frames = 0;
   solver::FitResult a, b;
@@ -133,11 +145,8 @@ TEST(GlobalFit, StagesBeforeTheLastSolveASubsetOfTheFrames) {
 // RTIB itself absorbed): the report points at the limb, not at the pair; a robust loss would
 // be needed to single the pair out.
 TEST(GlobalFit, SwappedMarkersAreNamedInTheReport) {
-  std::mt19937_64 rng(21);
   const Model nominal = NominalWithoutOptional();
-  const Model truth = mocap::testutil::Baked(nominal, testutil::PerturbedParameters(nominal, rng));
-  std::vector<solver::FitTrial> trials(1);
-  trials[0].markers = testutil::SimulateRandomMotion(truth, 300, 0.0005, rng);
+  std::vector<solver::FitTrial> trials = SimulateRandomSession(nominal, 21, 300).trials;
   formats::MarkerTrial& t = trials[0].markers;
   const int a = t.FindMarker("RKNE"), b = t.FindMarker("RTIB");
   ASSERT_GE(a, 0);
