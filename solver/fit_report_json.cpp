@@ -190,6 +190,17 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
                             {"centre_from_regression_mm", r.centre_from_regression_mm},
                             {"generic_from_regression_mm", r.generic_from_regression_mm},
                             {"far", r.far}});
+    nlohmann::json profile = nlohmann::json::array();
+    for (const ProfileCheck& pc : jt.profile)
+      profile.push_back({{"trial", pc.trial},
+                         {"centre_distance_mm", pc.centre_distance_mm},
+                         {"delta_chi2", pc.delta_chi2},
+                         {"free_centre_moved_mm", pc.free_centre_moved_mm},
+                         {"marker_rms_free_mm", pc.marker_rms_free_mm},
+                         {"marker_rms_held_mm", pc.marker_rms_held_mm},
+                         {"iterations_free", pc.iterations_free},
+                         {"iterations_held", pc.iterations_held},
+                         {"told_apart", pc.told_apart}});
     joints.push_back({{"joint", jt.joint},
                       {"type", ToString(jt.type)},
                       {"axis_joint", jt.axis_joint},
@@ -201,7 +212,8 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
                                                         : nlohmann::json()},
                       {"trials", std::move(checks)},
                       {"landmarks", std::move(landmarks)},
-                      {"regression", std::move(regression)}});
+                      {"regression", std::move(regression)},
+                      {"profile", std::move(profile)}});
   }
   return joints;
 }

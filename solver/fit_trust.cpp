@@ -76,6 +76,7 @@ void CompareWithFunctional(const Model& fitted, const Geometry& g, int j, const 
     double spread = 0;
     for (const Eigen::Vector3d& c : centres) spread += (c - fun_centre).squaredNorm();
     check->centre_distance_mm = 1000.0 * (fit_centre - fun_centre).norm();
+    check->functional_centre_in_parent = fun_centre;
     check->centre_spread_mm = 1000.0 * std::sqrt(spread / n);
     check->functional_std_mm = fj.centre.std_mm;
     return;
@@ -289,6 +290,29 @@ bool MeasureRegression(const Model& initial, const Model& fitted, const FitResul
   return true;
 }
 
+// FitTrustOptions::profile_far_centres: the options of the re-solves, those of the fit's last
+// stage (see the header).
+FitOptions ProfileOptions(const FitResult& fit, const FitTrustOptions& options) {
+  FitOptions o = options.fit;
+  o.staged = false;
+  o.fit_scales = false;  // the schedule's last stage keeps the first stage's scales
+  if (!fit.report.stages.empty()) o.marker_sigma_m = 1e-3 * fit.report.stages.back().marker_sigma_mm;
+  for (const auto& held : fit.report.held_joints)
+    for (const ParameterInfo& p : fit.model.parameters())
+      if (p.name.rfind(held.first + ".centre.", 0) == 0 || p.name.rfind(held.first + ".axis", 0) == 0)
+        o.fixed_parameters.push_back(p.name);
+  return o;
+}
+
+// The fit solved again from its own result by `model` (the fitted model, or it with a centre
+// moved) and the fit's poses.
+Status Resolve(const Model& model, const FitResult& fit, const std::vector<FitTrial>& trials,
+               const FitOptions& o, FitResult* out) {
+  std::vector<FitTrial> from = trials;
+  for (size_t t = 0; t < from.size(); ++t) from[t].initial_coordinates = fit.coordinates[t];
+  return FitModel(model, from, o, out);
+}
+
 }  // namespace
 
 bool FitTrustOptions::IsValid(std::string* error) const {
@@ -299,6 +323,14 @@ bool FitTrustOptions::IsValid(std::string* error) const {
   }
   if (!(far_mm > 0) || !(far_deg > 0) || !(far_landmark_mm > 0) || !(far_regression_mm > 0)) {
     if (error) *error = "far_mm, far_deg, far_landmark_mm and far_regression_mm must be > 0";
+    return false;
+  }
+  if (!(told_apart_chi2 > 0)) {
+    if (error) *error = "told_apart_chi2 must be > 0";
+    return false;
+  }
+  if (profile_far_centres && !fit.IsValid(&why)) {
+    if (error) *error = "fit: " + why;
     return false;
   }
   return true;
@@ -423,6 +455,49 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
       }
     }
     out.joints.push_back(std::move(jtr));
+  }
+  // FitTrustOptions::profile_far_centres (see the header).
+  FitResult free_fit;
+  bool free_solved = false;
+  for (JointTrust& jtr : out.joints) {
+    if (!options.profile_far_centres || jtr.axis_joint || !jtr.centre_fitted || jtr.best_check < 0) continue;
+    const FunctionalCheck& best = jtr.checks[jtr.best_check];
+    if (!best.far) continue;
+    const int j = fitted.FindJoint(jtr.joint);
+    bool held = false;
+    for (const auto& h : report.held_joints) held |= h.first == jtr.joint;
+    if (j < 0 || held || fitted.centre_index(j) < 0) continue;
+    const FitOptions o = ProfileOptions(fit, options);
+    if (!free_solved) {
+      MOCAP_RETURN_IF_ERROR(Resolve(fitted, fit, trials, o, &free_fit));
+      free_solved = true;
+    }
+    const InParent now = JointInParent(fitted, g_fit, d_fit, j);
+    const Geometry g_free(free_fit.model);
+    ModelData d_free(free_fit.model);
+    ForwardKinematics(free_fit.model, g_free, free_fit.model.DefaultCoordinates(), &d_free);
+    const double free_moved_mm = 1000.0 * (JointInParent(free_fit.model, g_free, d_free, j).centre - now.centre).norm();
+    // The centre parameter moved by the difference, in the parent's unscaled frame.
+    Eigen::VectorXd p = fitted.InitialParameters();
+    p.segment<3>(fitted.centre_index(j)) +=
+        (best.functional_centre_in_parent - now.centre) / g_fit.scale[fitted.joints()[j].parent];
+    Model moved;
+    MOCAP_RETURN_IF_ERROR(fitted.WithParameters(p, &moved));
+    FitOptions held_centre = o;
+    for (const char* xyz : {"x", "y", "z"}) held_centre.fixed_parameters.push_back(jtr.joint + ".centre." + xyz);
+    FitResult held_fit;
+    MOCAP_RETURN_IF_ERROR(Resolve(moved, fit, trials, held_centre, &held_fit));
+    ProfileCheck pc;
+    pc.trial = best.trial;
+    pc.centre_distance_mm = best.centre_distance_mm;
+    pc.delta_chi2 = 2.0 * (held_fit.report.solver.final_cost - free_fit.report.solver.final_cost);
+    pc.free_centre_moved_mm = free_moved_mm;
+    pc.marker_rms_free_mm = free_fit.report.marker_rms_mm;
+    pc.marker_rms_held_mm = held_fit.report.marker_rms_mm;
+    pc.iterations_free = free_fit.report.solver.num_iterations();
+    pc.iterations_held = held_fit.report.solver.num_iterations();
+    pc.told_apart = pc.delta_chi2 > options.told_apart_chi2;
+    jtr.profile.push_back(std::move(pc));
   }
   *trust = std::move(out);
   return Status::Ok();

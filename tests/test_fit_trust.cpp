@@ -147,6 +147,58 @@ TEST(FitTrust, AMovedCentreShowsItsDistance) {
   EXPECT_EQ(after.joints[0].checks[0].functional_std_mm, before.joints[0].checks[0].functional_std_mm);
 }
 
+// The profile check (fit_trust.h): the fit solved again free and with the hip held at SCoRE's
+// centre. Here every check counts as far (far_mm tiny) so that it runs. On the fitted result the
+// free solve stays where the fit ended, holding the centre costs what its distance from the
+// fitted centre is worth against the fit's own standard deviation, and told_apart follows the
+// chi-square; on a result whose hip was moved 10 mm the free solve goes back (the fit was not at
+// its minimum) and says so.
+TEST(FitTrust, ProfileHoldsTheCentreAtItsFunctionalEstimate) {
+  const SimulatedFit& fit = Fit();
+  solver::FitTrustOptions options;
+  options.joints = {"hip_r"};
+  options.far_mm = 1e-6;
+  solver::FitTrust trust;
+  ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &trust).ok());
+  const solver::JointTrust& hip = Joint(trust, "hip_r");
+  ASSERT_EQ(hip.profile.size(), 1u);
+  const solver::ProfileCheck& p = hip.profile[0];
+  const double sigma_mm = hip.fitted_std_mm;
+  std::printf("hip_r held at SCoRE (%.2f mm away, fit sd %.3f mm): chi-square +%.2f, free moved %.3f mm, "
+              "iterations %d / %d, RMS %.4f -> %.4f mm\n",
+              p.centre_distance_mm, sigma_mm, p.delta_chi2, p.free_centre_moved_mm, p.iterations_free,
+              p.iterations_held, p.marker_rms_free_mm, p.marker_rms_held_mm);
+  EXPECT_EQ(p.trial, "hip_star_arc_r");
+  EXPECT_LT(p.free_centre_moved_mm, 0.05);
+  EXPECT_GT(p.delta_chi2, 0.0);
+  EXPECT_GE(p.marker_rms_held_mm, p.marker_rms_free_mm);
+  // A 3-D centre held d away costs about (d / sd)^2 where sd is the fit's (its covariance).
+  const double expected = std::pow(p.centre_distance_mm / sigma_mm, 2);
+  EXPECT_GT(p.delta_chi2, 0.2 * expected);
+  EXPECT_LT(p.delta_chi2, 5.0 * expected);
+  EXPECT_EQ(p.told_apart, p.delta_chi2 > options.told_apart_chi2);
+  // In the report's JSON.
+  const nlohmann::json j = solver::FitTrustJson(trust);
+  ASSERT_EQ(j[0]["profile"].size(), 1u);
+  EXPECT_DOUBLE_EQ(j[0]["profile"][0]["delta_chi2"].get<double>(), p.delta_chi2);
+
+  solver::FitResult moved = fit.result;
+  const Model& m = fit.result.model;
+  const int hip_j = m.FindJoint("hip_r");
+  Eigen::VectorXd par = m.InitialParameters();
+  par[m.centre_index(hip_j)] += 0.010 / par[m.scale_index(m.joints()[hip_j].parent)];
+  ASSERT_TRUE(m.WithParameters(par, &moved.model).ok());
+  solver::FitTrust off;
+  ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, moved, fit.trials, options, &off).ok());
+  ASSERT_EQ(Joint(off, "hip_r").profile.size(), 1u);
+  std::printf("hip_r moved 10 mm: the free solve moved it %.2f mm\n", Joint(off, "hip_r").profile[0].free_centre_moved_mm);
+  EXPECT_GT(Joint(off, "hip_r").profile[0].free_centre_moved_mm, 5.0);
+
+  options.profile_far_centres = false;
+  ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, fit.result, fit.trials, options, &trust).ok());
+  EXPECT_TRUE(Joint(trust, "hip_r").profile.empty());
+}
+
 // The landmark check (fit_trust.h): the knee's epicondyle markers are found by their geometry,
 // the fitted centre lies where the model puts it against their measured midpoint, and a centre
 // moved 40 mm is flagged far.

@@ -115,6 +115,20 @@ void LogJointChecks(const solver::FitTrust& trust) {
                   "sd {:.2f} mm), {}",
                   j.joint, c.centre_distance_mm, c.trial, c.centre_spread_mm, c.functional_std_mm, generic);
   }
+  for (const solver::JointTrust& j : trust.joints)
+    for (const solver::ProfileCheck& p : j.profile)
+      spdlog::log(p.told_apart ? spdlog::level::info : spdlog::level::warn,
+                  "{}: held at its functional centre on {} ({:.1f} mm away) the fit's chi-square rises by {:.1f} "
+                  "(marker RMS {:.3f} -> {:.3f} mm): {}{}",
+                  j.joint, p.trial, p.centre_distance_mm, p.delta_chi2, p.marker_rms_free_mm, p.marker_rms_held_mm,
+                  p.free_centre_moved_mm > 1.0
+                      ? fmt::format("solved again free from the fit (its priors then centred on the fit's "
+                                    "values), the centre moved {:.1f} mm; ",
+                                    p.free_centre_moved_mm)
+                      : std::string(),
+                  p.told_apart ? "the data tell the two centres apart and side with the fit's"
+                               : "the data cannot tell the two centres apart (below the chi-square of 3 degrees "
+                                 "of freedom at 95 %): another reference must choose");
   if (!never_excited.empty())
     spdlog::info("joints no trial excites (no functional reference): {}", never_excited);
   if (!no_clusters.empty())
@@ -312,7 +326,9 @@ int RunFit(const FitArgs& args) {
   // Whether to trust the model (issue 14): each joint against its functional estimate on every
   // trial, and against the generic model.
   solver::FitTrust trust;
-  if (Status t = solver::CheckFitTrust(generic, result, trials, solver::FitTrustOptions(), &trust); !t) {
+  solver::FitTrustOptions trust_options;
+  trust_options.fit = options;  // the profile checks solve the fit's problem again
+  if (Status t = solver::CheckFitTrust(generic, result, trials, trust_options, &trust); !t) {
     spdlog::error("joint checks: {}", t.message());
     return 1;
   }
