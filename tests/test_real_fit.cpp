@@ -47,6 +47,14 @@ double JointCheck(const nlohmann::json& report, const std::string& joint, const 
 
 // The report's regression check of hip `joint` (Harrington 2007 from the pelvis markers): a
 // field of it; NaN when there is none.
+// The report's profile check of `joint` (fit_trust.h: the fit with that centre held at its
+// functional estimate); null when there is none.
+nlohmann::json Profile(const nlohmann::json& report, const std::string& joint) {
+  for (const auto& j : report["joint_checks"])
+    if (j["joint"] == joint && !j["profile"].empty()) return j["profile"][0];
+  return nullptr;
+}
+
 double RegressionCheck(const nlohmann::json& report, const std::string& joint, const char* field) {
   for (const auto& j : report["joint_checks"])
     if (j["joint"] == joint && !j["regression"].empty()) return j["regression"][0][field].get<double>();
@@ -152,6 +160,16 @@ TEST(RealFit, Welk007OneCommandFromTheGenericModel) {
               "with our IK on the static trial %.1f mm)\n",
               regression_mm, hand_regression_mm, RegressionCheck(run.hand_scaled, "hip_r", "centre_from_regression_mm"));
   EXPECT_LE(regression_mm, 20.0);
+  // The left hip, 17 mm from SCoRE on the right hip's trial (the stance leg), is profiled: held
+  // there, the fit's chi-square rises by far more than the data allow, and a free solve from the
+  // fit stays near its centre (the fit ended at its minimum).
+  const nlohmann::json hip_l = Profile(r, "hip_l");
+  ASSERT_FALSE(hip_l.is_null()) << "no profile check of hip_l";
+  std::printf("welk007: left hip held at SCoRE (%.1f mm away): chi-square +%.1f, free solve moved %.1f mm\n",
+              hip_l["centre_distance_mm"].get<double>(), hip_l["delta_chi2"].get<double>(),
+              hip_l["free_centre_moved_mm"].get<double>());
+  EXPECT_TRUE(hip_l["told_apart"].get<bool>());
+  EXPECT_LT(hip_l["free_centre_moved_mm"].get<double>(), 3.0);
   // The generic model stacks each cluster's markers on one point of its segment (placeholders):
   // they are named and placed from the trials, each far from that point.
   std::set<std::string> placed;
@@ -470,6 +488,12 @@ TEST(RealFit, BiobuddyDefaultModelAgreesWithFunctionalJoints) {
   EXPECT_GE(attached, 8);  // L/R THIB, THID, TIBF, TIBD at least
   EXPECT_LE(hip_l, 10.0);  // 10.3 mm before the markers stage was weighed by its measured error
   EXPECT_LE(knee_l, 5.0);
+  const nlohmann::json hip_r_profile = Profile(r, "hip_r");  // far (10.7 mm): profiled
+  if (!hip_r_profile.is_null()) {
+    std::printf("biobuddy: right hip held at SCoRE: chi-square +%.1f, free solve moved %.1f mm\n",
+                hip_r_profile["delta_chi2"].get<double>(), hip_r_profile["free_centre_moved_mm"].get<double>());
+    EXPECT_LT(hip_r_profile["free_centre_moved_mm"].get<double>(), 3.0);
+  }
   // The report's headline check of each joint is its own functional trial, the most precise
   // estimate (the one with the most frames judged the right knee on the trunk trial: SARA sd
   // 7.9 deg, 42 deg "far").
