@@ -473,6 +473,13 @@ std::string FunctionalCell(const json& joint) {
                   Esc(r.value("method", std::string())) + "'s regression on " + Esc(r.value("trial", std::string())) +
                   " <small>(pelvis width " + Fixed(Number(r, "pelvis_width_mm"), 0) + " mm; the generic model's " +
                   Fixed(Number(r, "generic_from_regression_mm"), 1) + " mm)</small>";
+  // Whether the data tell the fitted centre from the functional one (fit_trust.h, profile).
+  for (const auto& p : joint.value("profile", json::array()))
+    regression += "<br><small>held at its functional centre on " + Esc(p.value("trial", std::string())) +
+                  ": chi-square +" + Fixed(Number(p, "delta_chi2"), 1) + ", " +
+                  (p.value("told_apart", false) ? "the data side with the fitted centre"
+                                                : "<span class=\"bad\">the data cannot tell the two apart</span>") +
+                  "</small>";
   if (!html.empty()) return html + regression;
   return std::string("<span class=\"notexcited\" title=\"") + Esc(reasons) + "\">" +
          (estimated ? "not excited by any trial" : "no reference: fewer than 3 markers on a segment") + "</span>" +

@@ -357,7 +357,9 @@ TEST_F(Report, JointFarFromItsFunctionalEstimateIsFlagged) {
         {"regression", {{{"method", "Harrington 2007"}, {"trial", "static"}, {"frames", 300},
                          {"pelvis_width_mm", 231.2}, {"pelvis_depth_mm", 180.0},
                          {"centre_from_regression_mm", 14.26}, {"generic_from_regression_mm", 15.0},
-                         {"far", false}}}}},
+                         {"far", false}}}},
+        {"profile", {{{"trial", "hip_star_arc_l"}, {"centre_distance_mm", 23.44}, {"delta_chi2", 3.21},
+                      {"told_apart", false}}}}},
        {{"joint", "knee_l"}, {"axis_joint", true}, {"best_trial", nullptr},
         {"trials", {{{"trial", "static"}, {"estimated", true}, {"excited", false}, {"note", "too still"}}}}}});
   std::string html;
@@ -371,6 +373,11 @@ TEST_F(Report, JointFarFromItsFunctionalEstimateIsFlagged) {
   const size_t hip = html.find("data-joint=\"hip_l\"><td>");
   ASSERT_NE(hip, std::string::npos);
   EXPECT_LT(html.find("<span class=\"fd\">14.3 mm</span> from Harrington 2007's regression on static", hip),
+            html.find("</tr>", hip));
+  // The profile check: held at SCoRE's centre the chi-square rose by less than the data allow.
+  EXPECT_LT(html.find("held at its functional centre on hip_star_arc_l: chi-square +3.2, <span class=\"bad\">the "
+                      "data cannot tell the two apart</span>",
+                      hip),
             html.find("</tr>", hip));
   const size_t knee = html.find("data-joint=\"knee_l\"><td>");
   ASSERT_NE(knee, std::string::npos);
