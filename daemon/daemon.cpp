@@ -1559,7 +1559,10 @@ void Daemon::FitStart(const Request& r) {
         // Each joint against its functional estimate per recording (solver/fit_trust.h): the
         // stored report and its page say whether to trust the model, as `mocap fit`'s do.
         solver::FitTrust trust;
-        if (Status t = solver::CheckFitTrust(*model, result, trials, solver::FitTrustOptions(), &trust); t)
+        solver::FitTrustOptions trust_options;
+        trust_options.fit = fo;  // its profile checks solve the fit's problem again (fit_trust.h)
+        trust_options.fit.lm.callbacks.clear();  // no progress events from those solves
+        if (Status t = solver::CheckFitTrust(*model, result, trials, trust_options, &trust); t)
           report["joint_checks"] = solver::FitTrustJson(trust);
         else
           spdlog::warn("fit: joint checks: {}", t.message());
