@@ -49,6 +49,17 @@ const SimulatedFit& Fit() {
   return *fit;
 }
 
+// The fit's result with its hip_r centre moved `metres` along the pelvis's x axis.
+solver::FitResult WithHipMoved(const solver::FitResult& result, double metres) {
+  solver::FitResult moved = result;
+  const Model& m = result.model;
+  const int j = m.FindJoint("hip_r");
+  Eigen::VectorXd p = m.InitialParameters();
+  p[m.centre_index(j)] += metres / p[m.scale_index(m.joints()[j].parent)];
+  EXPECT_TRUE(m.WithParameters(p, &moved.model).ok());
+  return moved;
+}
+
 const solver::JointTrust& Joint(const solver::FitTrust& trust, const std::string& name) {
   for (const auto& j : trust.joints)
     if (j.joint == name) return j;
@@ -130,12 +141,7 @@ TEST(FitTrust, FittedCentresAgreeWithFunctionalOnTheTrialsThatExciteThem) {
 // the 10 mm (the functional estimate does not depend on the model's geometry).
 TEST(FitTrust, AMovedCentreShowsItsDistance) {
   const SimulatedFit& fit = Fit();
-  solver::FitResult moved = fit.result;
-  const Model& m = fit.result.model;
-  const int j = m.FindJoint("hip_r");
-  Eigen::VectorXd p = m.InitialParameters();
-  p[m.centre_index(j)] += 0.010 / p[m.scale_index(m.joints()[j].parent)];
-  ASSERT_TRUE(m.WithParameters(p, &moved.model).ok());
+  const solver::FitResult moved = WithHipMoved(fit.result, 0.010);
   solver::FitTrustOptions options;
   options.joints = {"hip_r"};
   solver::FitTrust before, after;
@@ -182,12 +188,7 @@ TEST(FitTrust, ProfileHoldsTheCentreAtItsFunctionalEstimate) {
   ASSERT_EQ(j[0]["profile"].size(), 1u);
   EXPECT_DOUBLE_EQ(j[0]["profile"][0]["delta_chi2"].get<double>(), p.delta_chi2);
 
-  solver::FitResult moved = fit.result;
-  const Model& m = fit.result.model;
-  const int hip_j = m.FindJoint("hip_r");
-  Eigen::VectorXd par = m.InitialParameters();
-  par[m.centre_index(hip_j)] += 0.010 / par[m.scale_index(m.joints()[hip_j].parent)];
-  ASSERT_TRUE(m.WithParameters(par, &moved.model).ok());
+  const solver::FitResult moved = WithHipMoved(fit.result, 0.010);
   solver::FitTrust off;
   ASSERT_TRUE(solver::CheckFitTrust(fit.session.nominal, moved, fit.trials, options, &off).ok());
   ASSERT_EQ(Joint(off, "hip_r").profile.size(), 1u);
