@@ -475,10 +475,15 @@ std::string FunctionalCell(const json& joint) {
                   Fixed(Number(r, "generic_from_regression_mm"), 1) + " mm)</small>";
   // Whether the data tell the fitted centre from the functional one (fit_trust.h, profile).
   for (const auto& p : joint.value("profile", json::array()))
-    regression += "<br><small>held at its functional centre on " + Esc(p.value("trial", std::string())) +
-                  ": chi-square +" + Fixed(Number(p, "delta_chi2"), 1) + ", " +
-                  (p.value("told_apart", false) ? "the data side with the fitted centre"
-                                                : "<span class=\"bad\">the data cannot tell the two apart</span>") +
+    regression += "<br><small>held at its functional " +
+                  std::string(joint.value("axis_joint", false) ? "axis" : "centre") + " on " +
+                  Esc(p.value("trial", std::string())) +
+                  ": chi-square " + (Number(p, "delta_chi2") >= 0 ? "+" : "") + Fixed(Number(p, "delta_chi2"), 1) +
+                  ", " +
+                  (p.value("told_apart", false)         ? "the data side with the fit"
+                   : p.value("held_fits_better", false) ? "<span class=\"bad\">the functional estimate fits better: the "
+                                                          "fit ended in a worse minimum</span>"
+                                                        : "<span class=\"bad\">the data cannot tell the two apart</span>") +
                   "</small>";
   if (!html.empty()) return html + regression;
   return std::string("<span class=\"notexcited\" title=\"") + Esc(reasons) + "\">" +

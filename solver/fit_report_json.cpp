@@ -194,13 +194,15 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
     for (const ProfileCheck& pc : jt.profile)
       profile.push_back({{"trial", pc.trial},
                          {"centre_distance_mm", pc.centre_distance_mm},
+                         {"axis_angle_deg", pc.axis_angle_deg},
                          {"delta_chi2", pc.delta_chi2},
                          {"free_centre_moved_mm", pc.free_centre_moved_mm},
                          {"marker_rms_free_mm", pc.marker_rms_free_mm},
                          {"marker_rms_held_mm", pc.marker_rms_held_mm},
                          {"iterations_free", pc.iterations_free},
                          {"iterations_held", pc.iterations_held},
-                         {"told_apart", pc.told_apart}});
+                         {"told_apart", pc.told_apart},
+                         {"held_fits_better", pc.held_fits_better}});
     joints.push_back({{"joint", jt.joint},
                       {"type", ToString(jt.type)},
                       {"axis_joint", jt.axis_joint},

@@ -92,6 +92,7 @@ void CompareWithFunctional(const Model& fitted, const Geometry& g, int j, const 
   check->axis_spread_deg = std::sqrt(spread_deg / n);
   check->functional_axis_std_deg = fj.axis.direction_std_deg;
   check->axis_line_distance_mm = 1000.0 * (off - off.dot(fun_axis) * fun_axis).norm();
+  check->functional_axis_in_parent = fun_axis;
 }
 
 // Whether trial t sees every marker of `columns` (its column indices) in frame f.
@@ -304,6 +305,46 @@ FitOptions ProfileOptions(const FitResult& fit, const FitTrustOptions& options) 
   return o;
 }
 
+// The parameters p with the axis angles of joint j's rotation element e (its k-th) turned so
+// that the axis, in the parent's frame, is `target` (either sign): Gauss-Newton on the two
+// angles with a numerical Jacobian of the model's own kinematics, so that it holds for any joint
+// frame. False if the model refuses a step or the axis does not reach the target.
+bool AxisAnglesTowards(const Model& model, int j, int e, int k, const Eigen::Vector3d& target,
+                       Eigen::VectorXd* p) {
+  const int a = model.axis_index(j, e);
+  if (a < 0) return false;
+  auto axis_at = [&](const Eigen::VectorXd& q, Eigen::Vector3d* axis) {
+    Model m;
+    if (!model.WithParameters(q, &m).ok()) return false;
+    const Geometry g(m);
+    ModelData d(m);
+    ForwardKinematics(m, g, m.DefaultCoordinates(), &d);
+    const InParent in = JointInParent(m, g, d, j);
+    if (k >= static_cast<int>(in.axes.size())) return false;
+    *axis = in.axes[k].normalized();
+    return true;
+  };
+  Eigen::Vector3d axis;
+  if (!axis_at(*p, &axis)) return false;
+  const Eigen::Vector3d t = (axis.dot(target) < 0 ? -target : target).normalized();
+  for (int it = 0; it < 20; ++it) {
+    if (!axis_at(*p, &axis)) return false;
+    const Eigen::Vector3d r = axis - t;
+    if (r.norm() < 1e-9) return true;
+    Eigen::Matrix<double, 3, 2> jac;
+    for (int c = 0; c < 2; ++c) {
+      Eigen::VectorXd q = *p;
+      q[a + c] += 1e-6;
+      Eigen::Vector3d moved;
+      if (!axis_at(q, &moved)) return false;
+      jac.col(c) = (moved - axis) / 1e-6;
+    }
+    const Eigen::Vector2d step = (jac.transpose() * jac).ldlt().solve(-jac.transpose() * r);
+    p->segment<2>(a) += step;
+  }
+  return axis_at(*p, &axis) && (axis - t).norm() < 1e-6;
+}
+
 // The fit solved again from its own result by `model` (the fitted model, or it with a centre
 // moved) and the fit's poses.
 Status Resolve(const Model& model, const FitResult& fit, const std::vector<FitTrial>& trials,
@@ -325,8 +366,8 @@ bool FitTrustOptions::IsValid(std::string* error) const {
     if (error) *error = "far_mm, far_deg, far_landmark_mm and far_regression_mm must be > 0";
     return false;
   }
-  if (!(told_apart_chi2 > 0)) {
-    if (error) *error = "told_apart_chi2 must be > 0";
+  if (!(told_apart_chi2 > 0) || !(told_apart_chi2_axis > 0)) {
+    if (error) *error = "told_apart_chi2 and told_apart_chi2_axis must be > 0";
     return false;
   }
   if (profile_far_centres && !fit.IsValid(&why)) {
@@ -460,13 +501,32 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
   FitResult free_fit;
   bool free_solved = false;
   for (JointTrust& jtr : out.joints) {
-    if (!options.profile_far_centres || jtr.axis_joint || !jtr.centre_fitted || jtr.best_check < 0) continue;
+    if (!options.profile_far_centres || jtr.best_check < 0) continue;
     const FunctionalCheck& best = jtr.checks[jtr.best_check];
     if (!best.far) continue;
     const int j = fitted.FindJoint(jtr.joint);
     bool held = false;
     for (const auto& h : report.held_joints) held |= h.first == jtr.joint;
     if (j < 0 || held || fitted.centre_index(j) < 0) continue;
+    if (!jtr.axis_joint && !jtr.centre_fitted) continue;
+    // Axis joints: the fitted rotation axis nearest SARA's, and its element.
+    int axis_element = -1, axis_k = -1;
+    if (jtr.axis_joint) {
+      const Joint& jt = fitted.joints()[j];
+      const InParent in = JointInParent(fitted, g_fit, d_fit, j);
+      double nearest = 1e9;
+      for (size_t e = 0, k = 0; e < jt.elements.size(); ++e) {
+        if (jt.elements[e].kind != ElementKind::kRotation) continue;
+        const double angle = AngleDeg(in.axes[k], best.functional_axis_in_parent);
+        if (fitted.axis_index(j, static_cast<int>(e)) >= 0 && angle < nearest) {
+          nearest = angle;
+          axis_element = static_cast<int>(e);
+          axis_k = static_cast<int>(k);
+        }
+        ++k;
+      }
+      if (axis_element < 0) continue;  // axes not fitted
+    }
     const FitOptions o = ProfileOptions(fit, options);
     if (!free_solved) {
       MOCAP_RETURN_IF_ERROR(Resolve(fitted, fit, trials, o, &free_fit));
@@ -476,27 +536,40 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
     const Geometry g_free(free_fit.model);
     ModelData d_free(free_fit.model);
     ForwardKinematics(free_fit.model, g_free, free_fit.model.DefaultCoordinates(), &d_free);
-    const double free_moved_mm = 1000.0 * (JointInParent(free_fit.model, g_free, d_free, j).centre - now.centre).norm();
-    // The centre parameter moved by the difference, in the parent's unscaled frame.
+    const InParent free_now = JointInParent(free_fit.model, g_free, d_free, j);
+    const double free_moved_mm = 1000.0 * (free_now.centre - now.centre).norm();
     Eigen::VectorXd p = fitted.InitialParameters();
-    p.segment<3>(fitted.centre_index(j)) +=
-        (best.functional_centre_in_parent - now.centre) / g_fit.scale[fitted.joints()[j].parent];
+    FitOptions held_centre = o;
+    if (jtr.axis_joint) {
+      // The axis angles turned onto SARA's axis.
+      if (!AxisAnglesTowards(fitted, j, axis_element, axis_k, best.functional_axis_in_parent, &p)) continue;
+      const int a = fitted.axis_index(j, axis_element);
+      held_centre.fixed_parameters.push_back(fitted.parameters()[a].name);
+      held_centre.fixed_parameters.push_back(fitted.parameters()[a + 1].name);
+    } else {
+      // The centre parameter moved by the difference, in the parent's unscaled frame.
+      p.segment<3>(fitted.centre_index(j)) +=
+          (best.functional_centre_in_parent - now.centre) / g_fit.scale[fitted.joints()[j].parent];
+      for (const char* xyz : {"x", "y", "z"}) held_centre.fixed_parameters.push_back(jtr.joint + ".centre." + xyz);
+    }
     Model moved;
     MOCAP_RETURN_IF_ERROR(fitted.WithParameters(p, &moved));
-    FitOptions held_centre = o;
-    for (const char* xyz : {"x", "y", "z"}) held_centre.fixed_parameters.push_back(jtr.joint + ".centre." + xyz);
     FitResult held_fit;
     MOCAP_RETURN_IF_ERROR(Resolve(moved, fit, trials, held_centre, &held_fit));
     ProfileCheck pc;
     pc.trial = best.trial;
-    pc.centre_distance_mm = best.centre_distance_mm;
+    pc.centre_distance_mm = jtr.axis_joint ? 0.0 : best.centre_distance_mm;
+    pc.axis_angle_deg = jtr.axis_joint ? best.axis_angle_deg : 0.0;
     pc.delta_chi2 = 2.0 * (held_fit.report.solver.final_cost - free_fit.report.solver.final_cost);
     pc.free_centre_moved_mm = free_moved_mm;
     pc.marker_rms_free_mm = free_fit.report.marker_rms_mm;
     pc.marker_rms_held_mm = held_fit.report.marker_rms_mm;
     pc.iterations_free = free_fit.report.solver.num_iterations();
     pc.iterations_held = held_fit.report.solver.num_iterations();
-    pc.told_apart = pc.delta_chi2 > options.told_apart_chi2;
+    // A centre is three numbers, an axis direction two.
+    const double threshold = jtr.axis_joint ? options.told_apart_chi2_axis : options.told_apart_chi2;
+    pc.told_apart = pc.delta_chi2 > threshold;
+    pc.held_fits_better = pc.delta_chi2 < -threshold;
     jtr.profile.push_back(std::move(pc));
   }
   *trust = std::move(out);

@@ -35,7 +35,8 @@
 // midpoint) is given beside it, since a model may put the joint off the landmarks' midpoint.
 //
 // Whether the data tell the fitted centre from the functional one (a profile of the fit's
-// likelihood). Where a ball joint's fitted centre is `far` from its headline functional estimate,
+// likelihood). Where a ball joint's fitted centre (a hinge's axis: the same with SARA's axis) is
+// `far` from its headline functional estimate,
 // the fit is solved again twice from its own result, with the same weights as its last stage
 // (FitTrustOptions::fit, the stage's marker sigma, its held joints): once free, once with that
 // joint's centre held at the functional estimate (every other parameter and pose free to follow).
@@ -45,7 +46,9 @@
 // below the chi-square quantile with 3 degrees of freedom (7.81 at 95 %) the data cannot tell the
 // two centres apart -- two minima, or one flat valley, that a lab must choose between by other
 // means; above it the fit's centre is what the data say, and the disagreement is the functional
-// estimate's (its one trial, its skin motion) or the model's. The free solve gives the reference
+// estimate's (its one trial, its skin motion) or the model's; and a FALL beyond it says the fit
+// ended in a worse minimum than the one next to the functional estimate. Axes: the threshold of
+// 2 degrees of freedom (5.99). The free solve gives the reference
 // cost, so the comparison is between two solves of the same problem, not with the schedule's
 // (whose priors are centred on its first stage).
 //
@@ -96,6 +99,7 @@ struct FitTrustOptions {
   bool profile_far_centres = true;
   FitOptions fit;
   double told_apart_chi2 = 7.815;  // chi-square, 3 degrees of freedom, 95 %
+  double told_apart_chi2_axis = 5.991;  // an axis direction: 2 degrees of freedom, 95 %
   FitTrustOptions() { functional.bootstrap_samples = 50; }
   bool IsValid(std::string* error) const;
 };
@@ -119,6 +123,8 @@ struct FunctionalCheck {
   // Centre joints: the functional centre averaged in the fitted parent segment's frame (metres,
   // scaled), where the profile check holds the centre.
   Eigen::Vector3d functional_centre_in_parent = Eigen::Vector3d::Zero();
+  // Axis joints: SARA's axis averaged in the fitted parent segment's frame (unit).
+  Eigen::Vector3d functional_axis_in_parent = Eigen::Vector3d::UnitX();
   bool far = false;  // excited, and the distance (centre joints) or the angle (axis joints) is
                      // above FitTrustOptions::far_mm / far_deg
 };
@@ -147,10 +153,12 @@ struct RegressionCheck {
   bool far = false;                       // beyond FitTrustOptions::far_regression_mm
 };
 
-// The fit solved again with a joint's centre held at its functional estimate (see the header).
+// The fit solved again with a joint's centre (a ball joint) or axis (a hinge or universal
+// joint) held at its functional estimate (see the header).
 struct ProfileCheck {
-  std::string trial;                 // the functional check whose centre was held
-  double centre_distance_mm = 0;     // how far that is from the fitted centre
+  std::string trial;                 // the functional check whose centre or axis was held
+  double centre_distance_mm = 0;     // ball joints: how far that is from the fitted centre
+  double axis_angle_deg = 0;         // axis joints: the angle from the fitted axis
   double delta_chi2 = 0;             // chi-square with the centre held, minus without
   // How far the free re-solve moved the centre from the fit's. Its priors are centred on the
   // fit's values, the schedule's on its first stage's, so a centre the priors held back moves a
@@ -161,6 +169,10 @@ struct ProfileCheck {
   double marker_rms_free_mm = 0, marker_rms_held_mm = 0;
   int iterations_free = 0, iterations_held = 0;
   bool told_apart = false;           // delta_chi2 above FitTrustOptions::told_apart_chi2
+  // delta_chi2 below minus that: held at the functional estimate the fit is BETTER, so the fit
+  // ended in a worse minimum than the one next to the estimate (biobuddy's left ankle axis, 22
+  // deg from SARA: -19.7).
+  bool held_fits_better = false;
 };
 
 struct JointTrust {
@@ -180,7 +192,7 @@ struct JointTrust {
   std::vector<LandmarkCheck> landmarks;
   // Hips only, where the model has the pelvis landmarks and a trial sees them: one check.
   std::vector<RegressionCheck> regression;
-  // Centre joints whose headline check is far (FitTrustOptions::profile_far_centres): one check.
+  // Joints whose headline check is far (FitTrustOptions::profile_far_centres): one check.
   std::vector<ProfileCheck> profile;
 };
 

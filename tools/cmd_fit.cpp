@@ -118,17 +118,22 @@ void LogJointChecks(const solver::FitTrust& trust) {
   for (const solver::JointTrust& j : trust.joints)
     for (const solver::ProfileCheck& p : j.profile)
       spdlog::log(p.told_apart ? spdlog::level::info : spdlog::level::warn,
-                  "{}: held at its functional centre on {} ({:.1f} mm away) the fit's chi-square rises by {:.1f} "
+                  "{}: held at its functional {} on {} ({}) the fit's chi-square changes by {:+.1f} "
                   "(marker RMS {:.3f} -> {:.3f} mm): {}{}",
-                  j.joint, p.trial, p.centre_distance_mm, p.delta_chi2, p.marker_rms_free_mm, p.marker_rms_held_mm,
+                  j.joint, j.axis_joint ? "axis (SARA)" : "centre (SCoRE)", p.trial,
+                  j.axis_joint ? fmt::format("{:.1f} deg away", p.axis_angle_deg)
+                               : fmt::format("{:.1f} mm away", p.centre_distance_mm),
+                  p.delta_chi2, p.marker_rms_free_mm, p.marker_rms_held_mm,
                   p.free_centre_moved_mm > 1.0
                       ? fmt::format("solved again free from the fit (its priors then centred on the fit's "
                                     "values), the centre moved {:.1f} mm; ",
                                     p.free_centre_moved_mm)
                       : std::string(),
-                  p.told_apart ? "the data tell the two centres apart and side with the fit's"
-                               : "the data cannot tell the two centres apart (below the chi-square of 3 degrees "
-                                 "of freedom at 95 %): another reference must choose");
+                  p.told_apart         ? "the data tell the two apart and side with the fit's"
+                  : p.held_fits_better ? "the functional estimate fits the data better: the fit ended in a worse "
+                                         "minimum; start it there (--functional) or check the joint"
+                                       : "the data cannot tell the two apart (within the chi-square's 95 % "
+                                         "quantile): another reference must choose");
   if (!never_excited.empty())
     spdlog::info("joints no trial excites (no functional reference): {}", never_excited);
   if (!no_clusters.empty())
