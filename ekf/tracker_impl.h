@@ -184,6 +184,10 @@ struct Tracker::Impl {
   void Predict(double dt);
   void Linearise(const Eigen::VectorXd& z);
   void LabelByGating(int np);
+  // LabelByGating's parts: the optimal assignment of a frame where a point lies in two gates, and
+  // the fresh labels whose point a segment's rigid geometry gives to a mate, left empty.
+  void AssignContested(int np);
+  void DropLabelsAMateFitsBetter(int np);
   // Segment registration (see tracker.h, "Labelling"): per segment, its seen markers (depth
   // order: parents first), and the workspace of the enumeration.
   std::vector<std::vector<int>> segment_markers;
@@ -234,10 +238,10 @@ struct Tracker::Impl {
   // kMinTrackFrames or more at constant distances (within kRigidTolerance) from marker m's joint
   // centre and from each labelled marker of its segment: rigid with the segment over time.
   bool RigidWithSegment(int m, int k) const;
-  // The rigid fit of segment `segment` with the current choice of points for its unlabelled
-  // markers (seg.choice, -1: none): false when fewer than 3 anchors or an anchor lies outside
-  // its tolerance; else *cost = sum of squared residuals over the anchors' variances.
-  bool SegmentFitCost(int segment, double* cost) const;
+  // The rigid fit of segment `segment` with `labelling` (per marker of segment_markers[segment]:
+  // its point, or -1): false when fewer than 3 anchors or an anchor lies outside its tolerance;
+  // else *cost = sum of squared residuals over the anchors' variances.
+  bool SegmentFitCost(int segment, const int* labelling, double* cost) const;
   // How far a marker may lie from where its segment's rigid fit puts it: its gate on its own
   // variance, plus the predicted joint centre's error.
   double SegmentTolerance(int m) const {
