@@ -52,10 +52,11 @@
 // the limb search, which fit the segment as a whole. Two markers of one segment are paired by its
 // rigid geometry, which no angle changes, and a marker continuing its label is not held back.
 // Within a segment the same holds where its rigid geometry, not its pose, says whose a point is:
-// a point taken afresh that the segment's joint centre and labelled markers fit better as an
-// unlabelled mate is left empty (a forearm turned about the line from its elbow centre to its
-// forearm marker while both wrist markers were hidden: one wrist point back is the other's
-// mirror image, and the drifted prediction took it for the wrong one, seed 13 at 8 ghosts).
+// a point taken afresh that the segment's joint centre and labelled markers fit clearly better
+// as an unlabelled mate is left empty, and the verdict follows the point's track (a forearm
+// turned about the line from its elbow centre to its forearm marker while both wrist markers were
+// hidden: one wrist point back is the other's mirror image, and the drifted prediction took it
+// for the wrong one, seed 13 at 8 ghosts). Not in the first second, whose offsets are not learnt.
 // Two rigid-body facts hold
 // whatever the pose estimate, and the gate keeps to them. Labels follow point tracks: a point that
 // continues the point a marker held in the last frame (mutual nearest neighbours, moved as the

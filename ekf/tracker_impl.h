@@ -32,6 +32,11 @@ inline constexpr double kRegistrationTravel = 0.02;
 // How long the record of a point seen beside a marker holds (SeenBeside): about the longest life
 // of a stray reflection.
 inline constexpr double kBesideSeconds = 2.0;
+// DropLabelsAMateFitsBetter: how much better (in the rigid fit's chi-square) a mate must fit a
+// point for the marker's label to be left empty: a likelihood ratio of e^(1/2). Seed 13's wrist
+// marker on its drifted mate's point: 1.8-3.4 better as the mate; seed 31's wrist marker back
+// 17 mm from its prediction on its own point: 0.4 better as the mate, a difference of offsets.
+inline constexpr double kMateFitMargin = 1.0;
 // The error of a predicted joint centre (a nominal model's centres are 1-2 cm off).
 inline constexpr double kJointCentreTolerance = 0.02;
 inline constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
@@ -142,6 +147,12 @@ struct Tracker::Impl {
   // another point while this point's track was alive (kNever: not within its track).
   static constexpr int kNever = std::numeric_limits<int>::min() / 2;
   std::vector<int> beside_prev, beside_now;
+  // This frame's labels left empty because the segment's rigid geometry fits the point better as
+  // a mate (DropLabelsAMateFitsBetter): (point, marker) pairs, entered in the point's record as if
+  // seen beside the marker (PushHistory), so that the verdict follows the point's track into the
+  // frames whose anchors are too few to give it again. Sized nm in Allocate.
+  std::vector<std::pair<int, int>> doubted;
+  int doubted_count = 0;
   // Per marker: its longest run of labelled frames since the (re)initialisation.
   std::vector<int> held_run;
   static constexpr int kHeldFrames = 20;

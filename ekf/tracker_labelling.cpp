@@ -136,22 +136,32 @@ void Tracker::Impl::AssignContested(int np) {
 // while it was hidden, which the filter's covariance does not bound: a forearm held by its elbow
 // centre and its forearm marker alone turns about the line between them unseen (seed 13, 8
 // ghosts: the subject pronating, the wrist markers' predictions 7 cm off after 35 hidden frames,
-// each predicted 1-3 cm from the other's point and 50-60 Mahalanobis units from its own). The
-// segment's rigid geometry does not drift: its joint centre, its labelled markers and the point,
-// fitted as a rigid body (SegmentFitCost) with the point as this marker and as each unlabelled
-// mate in turn (with fewer than three anchors, the point's distance from the centre). One wrist
-// point with the elbow centre and the forearm marker is a triangle congruent with the other
-// wrist marker's, a mirror image about the plane of the three, so the two fits differ only by
-// the model's asymmetries and the learnt offsets; where the mate's fits better the label is left
-// empty, to wait for a frame whose points do tell (both wrist points: the mirror is not a
-// rotation) or for the segment registration. Given, it was followed as a point track for
-// seconds, the finger marker on the freed wrist point (13 and 50: 0.972 and 0.980 of the labels).
-// Where the marker's own fit is as good or better the prediction decides, as before: leaving
-// every such label empty (the first version, with init_ambiguity_margin) left wrist markers
-// unlabelled for 20-60 frames 1-3 mm from their predictions whenever the other was hidden (seed
-// 1, 5 ghosts: 0.99985 -> 0.99938). Two markers of a segment taking points afresh together are
-// judged as a pair, exchanged.
+// each 1-3 cm from the other's point and 50-60 Mahalanobis units from its own). The segment's
+// rigid geometry does not drift: its joint centre, its labelled markers and the point, fitted as
+// a rigid body (SegmentFitCost) with the point as this marker and as each unlabelled mate in
+// turn. One wrist point with the elbow centre and the forearm marker is a triangle congruent with
+// the other wrist marker's, a mirror image about the plane of the three, so the fits differ only
+// by the model's asymmetries and the learnt offsets; where the mate's is better by
+// kMateFitMargin the label is left empty, to wait for a frame whose points do tell (both wrist
+// points: the mirror is not a rotation) or for the segment registration. Given, the label was
+// followed as a point track for seconds and the finger marker took the freed wrist point (seeds
+// 13 and 50: 0.972 and 0.980 of the labels). The verdict goes with the point: it is entered in
+// the point's seen-beside record for the marker (PushHistory), which keeps the point out of the
+// marker's gate while its track lasts (kBesideSeconds), through frames with too few anchors to
+// give it again (the forearm marker hidden too: the centre and one point say only a distance,
+// alike for both wrist markers, and the difference is the predicted centre's error -- judged on
+// that alone, seed 27's wrist marker was kept from its own point, 0.97 of the labels).
+// Where the marker's own fit is as good, or better, the prediction decides as before: leaving
+// every such label empty (the first version, within init_ambiguity_margin) left wrist markers
+// unlabelled for 20-60 frames 1-3 mm from their predictions while the other was hidden (seed 1,
+// 5 ghosts: 0.99985 -> 0.99938). Not in a fresh track: its offsets are not yet learnt, and one
+// learnt on a ghost makes the geometry itself wrong (seed 10: a wrist marker on a lasting ghost
+// for its first 135 frames, its offset 43 mm; held back from its own point afterwards, 0.9979 ->
+// 0.93 at 5 ghosts). Two markers of a segment taking points afresh together are judged as a
+// pair, exchanged.
 void Tracker::Impl::DropLabelsAMateFitsBetter(int np) {
+  doubted_count = 0;
+  if (FreshTrack()) return;
   for (int m = 0; m < nm; ++m) {
     const int k = row_to_col[m];
     if (k >= np || labelled_run[m] > 0) continue;
@@ -165,36 +175,24 @@ void Tracker::Impl::DropLabelsAMateFitsBetter(int np) {
       labelling[i] = row_to_col[ms[i]] < np ? row_to_col[ms[i]] : -1;
       if (ms[i] == m) im = i;
     }
-    // Too few anchors for a fit (the joint centre and the point alone): the point's distance
-    // from the centre is all the segment tells, and a mate at that distance is as good.
-    const bool has_centre = marker_depth[m] > 0;
-    int anchors = has_centre ? 1 : 0;
+    // With fewer than three anchors there is no fit: the prediction decides, and an earlier
+    // verdict on the point's track (its seen-beside record, in the gating).
+    int anchors = marker_depth[m] > 0 ? 1 : 0;
     for (int i = 0; i < nms; ++i) anchors += labelling[i] >= 0;
-    if (anchors < 3 && !has_centre) continue;
-    auto admits = [&](double* c) {
-      if (anchors >= 3) return SegmentFitCost(segment, labelling, c);
-      *c = 0;
-      for (int i = 0; i < nms; ++i) {
-        if (labelling[i] < 0) continue;
-        const int a = ms[i];
-        if (!OnSegmentSphere(a, points.col(labelling[i]))) return false;
-        const Eigen::Vector3d centre = centre_now[segment];
-        const double r =
-            (points.col(labelling[i]) - centre).norm() - (predicted.col(a) - centre).norm();
-        *c += r * r / (MeasurementVariance(a) + model_error[a]);
-      }
-      return true;
-    };
+    if (anchors < 3) continue;
     double as_given = 0;
-    const bool fits = admits(&as_given);
+    const bool fits = SegmentFitCost(segment, labelling, &as_given);
     for (int io = 0; io < nms; ++io) {
       const int o = ms[io];
       if (io == im || labelled_run[o] > 0) continue;
       std::swap(labelling[im], labelling[io]);
       double exchanged = 0;
-      const bool undecided = admits(&exchanged) && (!fits || exchanged < as_given);
+      const bool undecided =
+          SegmentFitCost(segment, labelling, &exchanged) &&
+          (!fits || exchanged < as_given - kMateFitMargin);
       std::swap(labelling[im], labelling[io]);
       if (!undecided) continue;
+      if (doubted_count < nm) doubted[doubted_count++] = {k, m};
       row_to_col[m] = np + m;
       if (row_to_col[o] < np) row_to_col[o] = np + o;
       break;
@@ -646,6 +644,10 @@ void Tracker::Impl::PushHistory(int np) {
       now[a] = row_to_col[a] >= 0 && row_to_col[a] != k && measured[a] ? frame_index
                : before ? before[a]
                         : kNever;
+  }
+  for (int i = 0; i < doubted_count; ++i) {
+    const auto [k, m] = doubted[i];
+    if (!claimed[k]) beside_now[static_cast<size_t>(k) * nm + m] = frame_index;
   }
   beside_prev.swap(beside_now);
   prev_points.leftCols(np) = points.leftCols(np);
