@@ -337,6 +337,7 @@ struct Tracker::Impl {
   bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
   static constexpr double kFreshTrackSeconds = 1.0;
   bool RigidlyPlausible(int m, int k) const;
+  bool LoneMarkerWithoutPast(int m, int k) const;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
   bool ReacquireLimb(int joint, int np, bool place);
   // Per marker: labelled this frame outside its gate (not measured: its limb is placed anew).
