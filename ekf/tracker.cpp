@@ -258,6 +258,8 @@ void Tracker::Impl::Allocate() {
   hist_head = hist_size = 0;
   beside_prev.assign(static_cast<size_t>(mp) * nm, kNever);
   held_run.assign(nm, 0);
+  doubted.assign(nm, {-1, -1});
+  doubted_count = 0;
   beside_now.assign(static_cast<size_t>(mp) * nm, kNever);
   prev_points.setZero(3, mp);
   prev_free.assign(mp, 0);

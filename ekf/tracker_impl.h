@@ -32,6 +32,11 @@ inline constexpr double kRegistrationTravel = 0.02;
 // How long the record of a point seen beside a marker holds (SeenBeside): about the longest life
 // of a stray reflection.
 inline constexpr double kBesideSeconds = 2.0;
+// DropLabelsAMateFitsBetter: how much better (in the rigid fit's chi-square) a mate must fit a
+// point for the marker's label to be left empty: a likelihood ratio of e^(1/2). Seed 13's wrist
+// marker on its drifted mate's point: 1.8-3.4 better as the mate; seed 31's wrist marker back
+// 17 mm from its prediction on its own point: 0.4 better as the mate, a difference of offsets.
+inline constexpr double kMateFitMargin = 1.0;
 // The error of a predicted joint centre (a nominal model's centres are 1-2 cm off).
 inline constexpr double kJointCentreTolerance = 0.02;
 inline constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
@@ -142,6 +147,12 @@ struct Tracker::Impl {
   // another point while this point's track was alive (kNever: not within its track).
   static constexpr int kNever = std::numeric_limits<int>::min() / 2;
   std::vector<int> beside_prev, beside_now;
+  // This frame's labels left empty because the segment's rigid geometry fits the point better as
+  // a mate (DropLabelsAMateFitsBetter): (point, marker) pairs, entered in the point's record as if
+  // seen beside the marker (PushHistory), so that the verdict follows the point's track into the
+  // frames whose anchors are too few to give it again. Sized nm in Allocate.
+  std::vector<std::pair<int, int>> doubted;
+  int doubted_count = 0;
   // Per marker: its longest run of labelled frames since the (re)initialisation.
   std::vector<int> held_run;
   static constexpr int kHeldFrames = 20;
@@ -184,6 +195,10 @@ struct Tracker::Impl {
   void Predict(double dt);
   void Linearise(const Eigen::VectorXd& z);
   void LabelByGating(int np);
+  // LabelByGating's parts: the optimal assignment of a frame where a point lies in two gates, and
+  // the fresh labels whose point a segment's rigid geometry gives to a mate, left empty.
+  void AssignContested(int np);
+  void DropLabelsAMateFitsBetter(int np);
   // Segment registration (see tracker.h, "Labelling"): per segment, its seen markers (depth
   // order: parents first), and the workspace of the enumeration.
   std::vector<std::vector<int>> segment_markers;
@@ -234,10 +249,10 @@ struct Tracker::Impl {
   // kMinTrackFrames or more at constant distances (within kRigidTolerance) from marker m's joint
   // centre and from each labelled marker of its segment: rigid with the segment over time.
   bool RigidWithSegment(int m, int k) const;
-  // The rigid fit of segment `segment` with the current choice of points for its unlabelled
-  // markers (seg.choice, -1: none): false when fewer than 3 anchors or an anchor lies outside
-  // its tolerance; else *cost = sum of squared residuals over the anchors' variances.
-  bool SegmentFitCost(int segment, double* cost) const;
+  // The rigid fit of segment `segment` with `labelling` (per marker of segment_markers[segment]:
+  // its point, or -1): false when fewer than 3 anchors or an anchor lies outside its tolerance;
+  // else *cost = sum of squared residuals over the anchors' variances.
+  bool SegmentFitCost(int segment, const int* labelling, double* cost) const;
   // How far a marker may lie from where its segment's rigid fit puts it: its gate on its own
   // variance, plus the predicted joint centre's error.
   double SegmentTolerance(int m) const {
@@ -322,6 +337,7 @@ struct Tracker::Impl {
   bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
   static constexpr double kFreshTrackSeconds = 1.0;
   bool RigidlyPlausible(int m, int k) const;
+  bool LoneMarkerWithoutPast(int m, int k) const;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
   bool ReacquireLimb(int joint, int np, bool place);
   // Per marker: labelled this frame outside its gate (not measured: its limb is placed anew).
