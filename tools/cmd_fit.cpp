@@ -131,7 +131,7 @@ void LogJointChecks(const solver::FitTrust& trust) {
                       : std::string(),
                   p.told_apart         ? "the data tell the two apart and side with the fit's"
                   : p.held_fits_better ? "the functional estimate fits the data better: the fit ended in a worse "
-                                         "minimum; start it there (--functional) or check the joint"
+                                         "minimum than the one there; check the joint's markers and trials"
                                        : "the data cannot tell the two apart (within the chi-square's 95 % "
                                          "quantile): another reference must choose");
   if (!never_excited.empty())
