@@ -293,6 +293,19 @@ TEST(TrackReal, Welk007StaticMeetsTheTargetsWithItsScaledOpenSimModel) {
   }
 }
 
+// The functional hip trial (1224 frames, 48 markers) with the subject's hand-scaled model.
+TEST(TrackReal, Welk007HipTrialMeetsTheTargetsWithItsScaledOpenSimModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model model = OsimModel(Welk("manually_scaled.osim"));
+  for (int ghosts : {0, 5}) {
+    const RealResult r = TrackRecording(Welk("c3d_Trimmed_RHJC1.c3d"), model, Eigen::Vector3d::UnitZ(),
+                                        Eigen::Vector3d::UnitY(), ghosts);
+    EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
+  }
+}
+
 // The targets on welk007 with its generic model: NOT MET. Sixth session: never started,
 // the search labelling 19-29 of 52 markers (a labelled IK of that model on the static trial leaves
 // 84 mm RMS, the scaled model 14.7 mm). Thirteenth: its 14 stacked cluster markers unseen and the
