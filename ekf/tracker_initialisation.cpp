@@ -874,16 +874,17 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place) {
   // Exchanges, as the initialisation's (ExchangeLabels): every start assigns by distance from
   // where its pose puts the markers, so all can settle with two neighbours each on the other's
   // point when only a large turn makes the right pairing the nearer one (welk007's wrist markers
-  // on radius and ulna, the forearm pronated to the end of its range). Each pair of the
-  // placement's labels, one of them new, on points within kExchangeRadius is exchanged, held
-  // while the limb follows, released; one that labels as many at a lower score is the placement.
-  // Only for a placement that would be taken otherwise (a search costs ~1 ms; this doubles it).
+  // on radius and ulna, the forearm pronated past the end of its range). Each pair of the
+  // placement's new labels (a label it keeps is not its decision) on points within
+  // kExchangeRadius is exchanged, held while the limb follows, released; one that labels as many
+  // at a lower score is the placement. Only for a placement that would be taken otherwise: each
+  // exchange costs about what two starts do.
   for (int pass = 0; pass < 2; ++pass) {
     bool improved = false;
     for (int ia = 0; ia < ns; ++ia)
       for (int ib = ia + 1; ib < ns; ++ib) {
         const int a = rows[ia], b = rows[ib], pa = lbest_assign[a], pb = lbest_assign[b];
-        if (pa < 0 || pb < 0 || (pa == row_to_col[a] && pb == row_to_col[b]) ||
+        if (pa < 0 || pb < 0 || pa == row_to_col[a] || pb == row_to_col[b] ||
             (points.col(pa) - points.col(pb)).squaredNorm() > kExchangeRadius * kExchangeRadius)
           continue;
         for (int m : rows) lheld[m] = lbest_assign[m];
