@@ -331,7 +331,8 @@ struct Tracker::Impl {
   static constexpr double kFreshTrackSeconds = 1.0;
   bool RigidlyPlausible(int m, int k, bool anywhere = false) const;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
-  bool ReacquireLimb(int joint, int np, bool place);
+  // `unheld`: searched for a marker whose own limb has no label (AnchoredLimb).
+  bool ReacquireLimb(int joint, int np, bool place, bool unheld);
   // Per marker: labelled this frame outside its gate (not measured: its limb is placed anew).
   std::vector<char> beyond_gate;
   // Per coordinate: whether the last update's measurements observed it (pinned it: see
