@@ -271,6 +271,21 @@ mocap::Model OsimModel(const std::string& path, const std::string& marker_set = 
   return import.model;
 }
 
+// The targets on `trial` without ghosts and with 5 a frame: >= 0.999 / 0.995 of the
+// labels right, no swap longer than 5 frames; `from_the_first_frame`: also tracking every frame.
+void ExpectTheTargets(const std::string& trial, const mocap::Model& model, const Eigen::Vector3d& up,
+                      const Eigen::Vector3d& model_up, bool from_the_first_frame) {
+  for (int ghosts : {0, 5}) {
+    const RealResult r = TrackRecording(trial, model, up, model_up, ghosts);
+    if (from_the_first_frame) {
+      EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
+      EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
+    }
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
+  }
+}
+
 std::string Welk(const std::string& file) { return mocap::testutil::SharedData() + "/welk007_hipfunc/" + file; }
 
 // Z-up lab, Y-up OpenSim model (the subject's hand-scaled one), 16 virtual markers: the issue's
@@ -282,15 +297,8 @@ std::string Welk(const std::string& file) { return mocap::testutil::SharedData()
 // then lost from frame 22 (0.987); scaled to the subject at the start it is not (1.000).
 TEST(TrackReal, Welk007StaticMeetsTheTargetsWithItsScaledOpenSimModel) {
   SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model model = OsimModel(Welk("manually_scaled.osim"));
-  for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(Welk("c3d_Trimmed_static1.c3d"), model, Eigen::Vector3d::UnitZ(),
-                                        Eigen::Vector3d::UnitY(), ghosts);
-    EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
-    EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-  }
+  ExpectTheTargets(Welk("c3d_Trimmed_static1.c3d"), OsimModel(Welk("manually_scaled.osim")),
+                   Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitY(), true);
 }
 
 // The functional hip trial (1224 frames, 48 markers) with the subject's hand-scaled model. The
@@ -302,14 +310,8 @@ TEST(TrackReal, Welk007StaticMeetsTheTargetsWithItsScaledOpenSimModel) {
 // 0.999716, 0 wrong, with and without ghosts.
 TEST(TrackReal, Welk007HipTrialMeetsTheTargetsWithItsScaledOpenSimModel) {
   SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model model = OsimModel(Welk("manually_scaled.osim"));
-  for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(Welk("c3d_Trimmed_RHJC1.c3d"), model, Eigen::Vector3d::UnitZ(),
-                                        Eigen::Vector3d::UnitY(), ghosts);
-    EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-  }
+  ExpectTheTargets(Welk("c3d_Trimmed_RHJC1.c3d"), OsimModel(Welk("manually_scaled.osim")),
+                   Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitY(), true);
 }
 
 // The targets on welk007 with its generic model: NOT MET. Sixth session: never started,
@@ -327,12 +329,7 @@ TEST(TrackReal, DISABLED_Welk007MeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model model = OsimModel(Welk("unscaled_generic.osim"));
   for (const char* trial : {"c3d_Trimmed_static1.c3d", "c3d_Trimmed_RHJC1.c3d"})
-    for (int ghosts : {0, 5}) {
-      const RealResult r = TrackRecording(Welk(trial), model, Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitY(),
-                                          ghosts);
-      EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-      EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-    }
+    ExpectTheTargets(Welk(trial), model, Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitY(), false);
 }
 
 // Biobuddy P01 with the default model: NOT MET. Sixth session 0.059 without ghosts, 0.230 with 5
@@ -344,17 +341,12 @@ TEST(TrackReal, DISABLED_Welk007MeetsTheTargetsWithItsGenericModel) {
 // (distance from the knee marker at frame 20: model THI 213 mm, RTHI 279, RTHID 209; model TIB
 // 222, LTIB 184, LTIBD 237, RTIB 139, RTIBD 194). Both points are rigid with the segment, so no
 // rule of the tracker tells them apart: the model's marker places decide, and they are the extra
-// markers'. From frame ~300 (12 Hz, the
-// hip's fastest swings) the track breaks up (everything on anything for ~200 frames).
+// markers'. From frame ~300 (12 Hz, the hip's fastest swings) the track breaks up (everything
+// on anything for ~200 frames).
 TEST(TrackReal, DISABLED_BiobuddyRightHipMeetsTheTargetsWithTheDefaultModel) {
   SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model model = mocap::DefaultFullBodyModel(1.75);
-  const std::string trial = mocap::testutil::SharedData() + "/biobuddy_p01_lowerlimb/Test_func_rhip.c3d";
-  for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(trial, model, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), ghosts);
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-  }
+  ExpectTheTargets(mocap::testutil::SharedData() + "/biobuddy_p01_lowerlimb/Test_func_rhip.c3d",
+                   mocap::DefaultFullBodyModel(1.75), -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), false);
 }
 
 std::string Gait2354(const std::string& file) {
@@ -367,15 +359,9 @@ std::string Gait2354(const std::string& file) {
 // the subject at the start (femurs 1.10-1.12, OpenSim's own scaling 1.147) 0.999915 both.
 TEST(TrackReal, Gait2354StaticMeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model model =
-      OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml"));
-  for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(Gait2354("subject01_static.trc"), model, Eigen::Vector3d::UnitY(),
-                                        Eigen::Vector3d::UnitY(), ghosts);
-    EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-  }
+  ExpectTheTargets(Gait2354("subject01_static.trc"),
+                   OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml")),
+                   Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), true);
 }
 
 // The walk (151 frames): NOT MET. As given the search refuses the first 5 frames (the generic
@@ -383,22 +369,16 @@ TEST(TrackReal, Gait2354StaticMeetsTheTargetsWithItsGenericModel) {
 // ghosts, all of it the late start. Scaled to the subject (when the model does not fit, frame 1),
 // 0.958 / 0.9925 (L.Acromium on an unmodelled arm marker's point for 143 frames without
 // ghosts). Scaled always (thirteenth session): 0.9113 / 0.8656, the search as given being
-// refused as ambiguous on
-// frame 0 and the scaled one at frames 4 and 1 turning the torso (the acromion markers on each
-// other's and an arm marker's points; the torso carries 4 markers, 2 of them mirror images, among
-// 6 unmodelled arm and head markers). Fourteenth: `always` scales only a start the model's own
+// refused as ambiguous on frame 0 and the scaled one at frames 4 and 1 turning the torso (the
+// acromion markers on each other's and an arm marker's points; the torso carries 4 markers, 2 of
+// them mirror images, among 6 unmodelled arm and head markers). Fourteenth: `always` scales only a start the model's own
 // size accepted, so as given: 0.965606 / 0.958983, 0 wrong, from frames 5 / 6 (frames 0-4 refused:
 // ambiguous, then a residual of 30.1-30.4 mm, just over init_max_rms_m).
 TEST(TrackReal, DISABLED_Gait2354WalkMeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model model =
-      OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml"));
-  for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(Gait2354("subject01_walk1.trc"), model, Eigen::Vector3d::UnitY(),
-                                        Eigen::Vector3d::UnitY(), ghosts);
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-  }
+  ExpectTheTargets(Gait2354("subject01_walk1.trc"),
+                   OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml")),
+                   Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), false);
 }
 
 }  // namespace
