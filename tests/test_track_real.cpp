@@ -40,6 +40,14 @@ mocap::sim::TrackingScene ShortScene() {
   return scene;
 }
 
+// The scene's first `frames` frames.
+mocap::sim::TrackingScene FirstFrames(mocap::sim::TrackingScene scene, int frames) {
+  scene.times.resize(frames);
+  scene.points.resize(frames);
+  scene.labels.resize(frames);
+  return scene;
+}
+
 mocap::sim::TrackRun Track(const mocap::sim::TrackingScene& scene, const mocap::Model& model,
                            const mocap::ekf::TrackerOptions& options) {
   mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(model), options);
@@ -106,10 +114,7 @@ TEST(TrackLab, VirtualMarkersAreNeitherCountedNorLabelled) {
                                   n.derived_coordinates(), &with_virtual)
                   .ok());
   mocap::ekf::TrackerOptions o;
-  mocap::sim::TrackingScene first_second = scene;  // each failed search costs ~20 ms
-  first_second.times.resize(200);
-  first_second.points.resize(200);
-  first_second.labels.resize(200);
+  const mocap::sim::TrackingScene first_second = FirstFrames(scene, 200);  // each failed search costs ~20 ms
   const mocap::sim::TrackRun counted = Track(first_second, with_virtual, o);
   EXPECT_EQ(counted.frames_tracking(), 0) << "39 of 51 markers can never be 80 %";
   o.unseen_markers = virtual_names;
@@ -137,10 +142,7 @@ TEST(TrackLab, VirtualMarkersAreNeitherCountedNorLabelled) {
 // (Only the legs 15 % short, it starts as given with knees and ankles crossed, 0.854 of the
 // labels, and the scaled search, which would change those labels, is not taken: ekf/tracker.h.)
 TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
-  mocap::sim::TrackingScene scene = ShortScene();
-  scene.times.resize(100);
-  scene.points.resize(100);
-  scene.labels.resize(100);
+  const mocap::sim::TrackingScene scene = FirstFrames(ShortScene(), 100);
   const mocap::Model& n = scene.nominal;
   Eigen::VectorXd p = n.InitialParameters();
   std::vector<int> shortened;
@@ -154,10 +156,7 @@ TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
   ASSERT_TRUE(n.WithParameters(p, &small).ok());
   mocap::ekf::TrackerOptions o;
   o.init_scale_to_subject = mocap::ekf::TrackerOptions::ScaleToSubject::kNever;
-  mocap::sim::TrackingScene first = scene;  // each refused search costs ~40 ms
-  first.times.resize(40);
-  first.points.resize(40);
-  first.labels.resize(40);
+  const mocap::sim::TrackingScene first = FirstFrames(scene, 40);  // each refused search costs ~40 ms
   const mocap::sim::TrackRun as_given = Track(first, small, o);
   o.init_scale_to_subject = mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
   // By default the size is judged over init_scale_after_s of refused searches (below); here
@@ -205,10 +204,7 @@ TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
 // re-acquisition"); before, RFRM came at frame 77, RWRA at 45, RWRB and RFIN not in these 200
 // frames (0.898750 of the labels).
 TEST(TrackLab, AForearmTheStartLeavesIsPlacedAtOnce) {
-  mocap::sim::TrackingScene scene = ShortScene();
-  scene.times.resize(200);
-  scene.points.resize(200);
-  scene.labels.resize(200);
+  const mocap::sim::TrackingScene scene = FirstFrames(ShortScene(), 200);
   const mocap::Model& n = scene.nominal;
   Eigen::VectorXd pose(n.num_coordinates());
   for (int i = 0; i < n.num_coordinates(); ++i) pose[i] = n.coordinates()[i].default_value;
