@@ -310,8 +310,9 @@ struct Tracker::Impl {
   std::vector<int> llocal;  // per coordinate: its index among the limb's, or -1
   void LineariseLimb(int joint, const Eigen::VectorXd& z);
   std::vector<int> lcand, lassign, lbest_assign, lrow_to_col, lfree, lheld;
-  // ltaken: per point, a marker's; lunanchored: per coordinate, whether no marker below its
-  // joint is labelled (ReacquireLimb starts it across its range).
+  // ltaken: per point, a marker's; lunanchored: per coordinate, in a search for a limb with no
+  // label, whether no marker below its joint is labelled (ReacquireLimb starts it across its
+  // range, and past it by kLimbRangeSlack).
   std::vector<char> ltaken, lunanchored;
   void Reacquire(int np);
   // The limb searched for a stuck marker m: marker_limb[m], or when none of that limb's markers

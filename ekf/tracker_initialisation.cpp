@@ -640,11 +640,12 @@ constexpr double kLimbFinalRadius = 0.05;
 constexpr double kLimbMaxRms = 0.03;
 constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
 constexpr double kLimbCentreTolerance = 0.02;
-// How far (rad) the search may take a limb's angles past the model's ranges. A generic model's
-// range is not the subject's: Rajagopal's forearm pronates 0-90 degrees from supination, and
-// welk007, hands held in front in the hip trial, fits its wrist markers on radius and ulna only at
-// 147 degrees (the pose score at 90 degrees prefers them crossed: 19.4 mm RMS crossed, 15.2 mm
-// right at 147 degrees; 0.3 rad of slack still crossed both arms, 0.6 one).
+// How far (rad) the search for a limb with no label may take its unheld angles past the model's
+// ranges. A generic model's range is not the subject's: Rajagopal's forearm pronates 0-90
+// degrees from supination, and welk007, hands held in front in the hip trial, fits its wrist
+// markers on radius and ulna the right way round only past it (the right arm's 6 markers: 18.0
+// mm RMS crossed; right, 22.6 mm with the pronation held at 90 degrees, 15.2 mm at 147; tried with
+// the slack in the filter too, 0.3 rad left both arms crossed and 0.6 one).
 constexpr double kLimbRangeSlack = 1.0;
 }  // namespace
 
@@ -1004,7 +1005,9 @@ void Tracker::Impl::Reacquire(int np) {
   ++tracked_frames;
   for (int m = 0; m < nm; ++m) unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
   // One search per frame: the largest limb (nearest the root) among those due, and only when an
-  // unclaimed point lies near the marker's prediction (a hidden marker costs nothing).
+  // unclaimed point lies near the marker's prediction -- or, for a marker whose limb has no
+  // label (no prediction to be near), anywhere at its distance from its joint centre (a hidden
+  // marker costs nothing).
   int joint = -1;
   bool unheld = false;  // the limb searched is one with no label (AnchoredLimb)
   bool claimed_known = false;
