@@ -282,6 +282,8 @@ void Tracker::Impl::Allocate() {
   lrow_to_col.assign(nm, -1);
   lfree.assign(nm, -1);
   ltaken.assign(mp, 0);
+  lunanchored.assign(nz, 0);
+  lheld.assign(nm, -1);
   jerk_psd.resize(nz);
   for (int i = 0; i < nz; ++i)
     jerk_psd[i] = rotational[i] ? options.jerk_psd_rotational : options.jerk_psd_translational;

@@ -203,6 +203,21 @@
 // point near costs nothing. At most one limb search a frame (the one nearest the root): with the
 // segment registration's fit budget, that bounds a tracking frame's work (the search's five
 // starts of ten damped Gauss-Newton steps are the largest item, about 1 ms on the 2-core VM).
+// A limb none of whose markers is labelled (welk007's forearms in its hip trial: flexed 90
+// degrees and pronated, where the start's search, from arms hanging, left all six unlabelled)
+// has no pose to search near, and its parent's pose is only as good as the markers that hold
+// it. So its search takes the smallest subtree above it that holds a labelled marker (the whole
+// arm: the forearm's markers also turn the upper arm about its long axis), the angles of its
+// joints with no label below them start (after the current and the static pose) at a quarter,
+// half and three quarters of their ranges and may pass the ranges by 1 rad (a generic model's
+// range is not the subject's: Rajagopal's pronation stops at 90 degrees, welk007's wrist
+// markers fit right only at 147; the filter brings the angle back and the offsets learn the
+// rest), it runs for any unclaimed point at the marker's distance from its joint centre however
+// far from the prediction, and, for a marker the start did not label, from the first tracking
+// frame (it has no gate to come back through). Only there: across and past their ranges, the
+// wrist angles of a hand whose finger marker was hidden settled on ghosts (simulated seed 10 at
+// 8 ghosts). And a placement about to be taken has its new labels exchanged pair by pair, as at
+// the start ("Initialisation and recovery"): every start settled with the wrist markers crossed.
 //
 // Model error. A nominal model (before the global fit) misplaces markers by 1-4 cm; each marker
 // carries a slowly learnt offset in its segment's frame, and its measurement variance is inflated

@@ -324,9 +324,18 @@ struct Tracker::Impl {
   std::vector<std::vector<int>> limb_coord_list;
   std::vector<int> llocal;  // per coordinate: its index among the limb's, or -1
   void LineariseLimb(int joint, const Eigen::VectorXd& z);
-  std::vector<int> lcand, lassign, lbest_assign, lrow_to_col, lfree;
-  std::vector<char> ltaken;
+  std::vector<int> lcand, lassign, lbest_assign, lrow_to_col, lfree, lheld;
+  // ltaken: per point, a marker's; lunanchored: per coordinate, in a search for a limb with no
+  // label, whether no marker below its joint is labelled (ReacquireLimb starts it across its
+  // range, and past it by kLimbRangeSlack).
+  std::vector<char> ltaken, lunanchored;
   void Reacquire(int np);
+  // The limb searched for a stuck marker m: marker_limb[m], or when none of that limb's markers
+  // is labelled, the smallest subtree above it that holds a labelled marker (within
+  // kMaxLimbCoords). A limb with no label has no pose of its own to start from, and its parent's
+  // pose is only as good as the markers that hold it: a forearm flexed 90 degrees turns the
+  // upper arm's estimate about its long axis, which the elbow markers alone hold loosely.
+  int AnchoredLimb(int m) const;
   // Frames tracked since the last (re)initialisation. The labels of a fresh track come from a
   // search over one frame and can be wrong on a whole limb (self-consistently: a thigh turned
   // about its long axis); labels that tracking has kept are not. So for the first second a limb
@@ -336,10 +345,11 @@ struct Tracker::Impl {
   int tracked_frames = 0;
   bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
   static constexpr double kFreshTrackSeconds = 1.0;
-  bool RigidlyPlausible(int m, int k) const;
+  bool RigidlyPlausible(int m, int k, bool anywhere = false) const;
   bool LoneMarkerWithoutPast(int m, int k) const;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
-  bool ReacquireLimb(int joint, int np, bool place);
+  // `unheld`: searched for a marker whose own limb has no label (AnchoredLimb).
+  bool ReacquireLimb(int joint, int np, bool place, bool unheld);
   // Per marker: labelled this frame outside its gate (not measured: its limb is placed anew).
   std::vector<char> beyond_gate;
   // Per coordinate: whether the last update's measurements observed it (pinned it: see

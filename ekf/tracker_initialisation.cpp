@@ -640,6 +640,13 @@ constexpr double kLimbFinalRadius = 0.05;
 constexpr double kLimbMaxRms = 0.03;
 constexpr double kLimbNearRadius = 0.25;  // an unclaimed point this near a due marker
 constexpr double kLimbCentreTolerance = 0.02;
+// How far (rad) the search for a limb with no label may take its unheld angles past the model's
+// ranges. A generic model's range is not the subject's: Rajagopal's forearm pronates 0-90
+// degrees from supination, and welk007, hands held in front in the hip trial, fits its wrist
+// markers on radius and ulna the right way round only past it (the right arm's 6 markers: 18.0
+// mm RMS crossed; right, 22.6 mm with the pronation held at 90 degrees, 15.2 mm at 147; tried with
+// the slack in the filter too, 0.3 rad left both arms crossed and 0.6 one).
+constexpr double kLimbRangeSlack = 1.0;
 }  // namespace
 
 // Assigns the limb's markers among the candidate points by distance at z (within radius);
@@ -685,7 +692,7 @@ double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, do
   return total;
 }
 
-bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place) {
+bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
   const std::vector<int>& rows = limb_markers[joint];
   const std::vector<char>& freec = limb_coord[joint];
   const int ns = static_cast<int>(rows.size());
@@ -717,6 +724,20 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place) {
   if ((nc == 0 || current == ns) && !place) return false;
 
   const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
+  // The unheld angles (below) may pass the model's ranges by kLimbRangeSlack (see there); the
+  // filter brings them back (Wrap) and the markers' offsets learn the difference.
+  auto WrapLimb = [&](Eigen::VectorXd* zz) {
+    const auto& co = model->coordinates();
+    for (int i = 0; i < nz; ++i) {
+      if (wraps[i]) {
+        (*zz)[i] = std::remainder((*zz)[i], 2 * M_PI);
+      } else {
+        const double slack = freec[i] && lunanchored[i] ? kLimbRangeSlack : 0.0;
+        (*zz)[i] = std::clamp((*zz)[i], co[i].min_value - slack, co[i].max_value + slack);
+      }
+    }
+  };
+  double prior_scale = 1.0;  // the prior's weight (Refine)
   auto Cost = [&](const Eigen::VectorXd& zz) {
     ForwardKinematics(*model, geometry, zz, &data);
     double c = 0;
@@ -728,36 +749,31 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place) {
                  .squaredNorm();
     for (int i = 0; i < nz; ++i)
       if (freec[i])
-        c += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - lstart[i]) * (zz[i] - lstart[i]);
+        c += prior_scale * (rotational[i] ? prior_rot : prior_trans) * (zz[i] - lstart[i]) *
+             (zz[i] - lstart[i]);
     return c;
   };
-  lz0 = x.head(nz);
-  std::mt19937 rng(777);
-  std::uniform_real_distribution<double> u(-1.0, 1.0);
-  const int starts = 5;
-  double best = std::numeric_limits<double>::infinity(), runner_up = best;
-  int best_labelled = 0;
-  double best_sum = 0;
-  for (int v = 0; v < starts; ++v) {
-    lstart = lz0;
-    for (int i = 0; i < nz; ++i) {
-      if (!freec[i] || !rotational[i]) continue;
-      const Coordinate& co = model->coordinates()[i];
-      if (v == 1) {
-        lstart[i] = z_static[i];  // the prior's mode: a limb lost far from its pose
-      } else if (v == 2) {
-        if (co.max_value - co.min_value < 2 * M_PI)
-          lstart[i] += 0.5 * (0.5 * (co.min_value + co.max_value) - lstart[i]);
-      } else if (v > 2) {
-        lstart[i] += options.init_variant_rad * u(rng);
-      }
-    }
-    Wrap(&lstart);
-    lz = lstart;
+  // Damped Gauss-Newton from lz with the prior centred at lstart: kLimbIterations steps
+  // reassigning by distance (the radius shrinking to kLimbFinalRadius); or, holding lheld (an
+  // exchange, below), kLimbIterations steps on those labels with the prior barely pulling, then
+  // as many reassigning at the final radius with the prior centred at the held pose.
+  auto Refine = [&](bool holding_pair) {
     double lambda = 1e-3;
-    for (int it = 0; it < kLimbIterations; ++it) {
-      const double radius = std::max(kLimbFinalRadius, 0.15 - 0.01 * it);
-      LimbAssign(joint, lz, nc, radius);
+    prior_scale = holding_pair ? 0.01 : 1.0;
+    for (int it = 0; it < (holding_pair ? 2 : 1) * kLimbIterations; ++it) {
+      const bool holding = holding_pair && it < kLimbIterations;
+      if (holding_pair && it == kLimbIterations) {
+        lstart = lz;
+        prior_scale = 1.0;
+        lambda = 1e-3;
+      }
+      if (holding) {
+        LineariseLimb(joint, lz);
+        for (int m : rows) lassign[m] = lheld[m];
+      } else {
+        LimbAssign(joint, lz, nc,
+                   holding_pair ? kLimbFinalRadius : std::max(kLimbFinalRadius, 0.15 - 0.01 * it));
+      }
       lN.setZero(nl, nl);
       lg.setZero(nl);
       for (int m : rows) {
@@ -775,26 +791,75 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place) {
       }
       for (int l = 0; l < nl; ++l) {
         const int i = lcoords[l];
-        const double w = rotational[i] ? prior_rot : prior_trans;
+        const double w = prior_scale * (rotational[i] ? prior_rot : prior_trans);
         lN(l, l) += w;
         lg[l] += w * (lz[i] - lstart[i]);
       }
       const bool accepted = DampedGaussNewtonStep(lN, lg, Cost(lz), &lambda, &lNd, &lllt, &lstep, [&] {
         ltrial = lz;
         for (int l = 0; l < nl; ++l) ltrial[lcoords[l]] += lstep[l];
-        Wrap(&ltrial);
+        WrapLimb(&ltrial);
         return Cost(ltrial);
       });
       if (accepted) lz = ltrial;
     }
+  };
+  // The final assignment at lz: its truncated score, labels and sum of squared distances.
+  auto Score = [&](int* labelled, double* sum) {
     const double score = LimbAssign(joint, lz, nc, kLimbFinalRadius);
-    int labelled = 0;
-    double sum = 0;
+    *labelled = 0;
+    *sum = 0;
     for (int m : rows)
       if (lassign[m] >= 0) {
-        ++labelled;
-        sum += (points.col(lassign[m]) - predicted.col(m)).squaredNorm();
+        ++*labelled;
+        *sum += (points.col(lassign[m]) - predicted.col(m)).squaredNorm();
       }
+    return score;
+  };
+  lz0 = x.head(nz);
+  std::mt19937 rng(777);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  const int starts = 5;
+  // In a limb searched for a marker whose own limb has no label (`unheld`: AnchoredLimb), a
+  // joint whose subtree has no labelled marker has no angle to start near: its prediction is
+  // the prior's. Its angles' later starts then span their ranges (a quarter, half and three
+  // quarters): an elbow flexed 90 degrees puts the wrist markers 35 cm from where the hanging arm
+  // of the static pose predicts them, beyond what a search from the near poses can pull in.
+  // Not for a limb some of whose markers are labelled (a hand whose finger marker is hidden:
+  // started across their ranges, and past them, the wrist angles of simulated seed 10 at 8
+  // ghosts settled on ghosts, 0.990 -> 0.939).
+  for (int l = 0; l < nl; ++l) {
+    const int i = lcoords[l];
+    bool held = false;
+    for (int a : limb_markers[model->coordinates()[i].joint]) held |= row_to_col[a] >= 0;
+    lunanchored[i] = unheld && !held;
+  }
+  double best = std::numeric_limits<double>::infinity(), runner_up = best;
+  int best_labelled = 0;
+  double best_sum = 0;
+  for (int v = 0; v < starts; ++v) {
+    lstart = lz0;
+    for (int i = 0; i < nz; ++i) {
+      if (!freec[i] || !rotational[i]) continue;
+      const Coordinate& co = model->coordinates()[i];
+      if (v == 1) {
+        lstart[i] = z_static[i];  // the prior's mode: a limb lost far from its pose
+      } else if (lunanchored[i] && v >= 2) {
+        if (co.max_value - co.min_value < 2 * M_PI)
+          lstart[i] = co.min_value + 0.25 * (v - 1) * (co.max_value - co.min_value);
+      } else if (v == 2) {
+        if (co.max_value - co.min_value < 2 * M_PI)
+          lstart[i] += 0.5 * (0.5 * (co.min_value + co.max_value) - lstart[i]);
+      } else if (v > 2) {
+        lstart[i] += options.init_variant_rad * u(rng);
+      }
+    }
+    Wrap(&lstart);
+    lz = lstart;
+    Refine(false);
+    int labelled = 0;
+    double sum = 0;
+    const double score = Score(&labelled, &sum);
     int differ = 0;
     if (std::isfinite(best))
       for (int m : rows) differ += lassign[m] != lbest_assign[m];
@@ -810,6 +875,44 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place) {
     }
   }
   if (best_labelled < current || (best_labelled == current && !place)) return false;
+  if (!(best_sum <= kLimbMaxRms * kLimbMaxRms * best_labelled)) return false;
+  // Exchanges, as the initialisation's (ExchangeLabels): every start assigns by distance from
+  // where its pose puts the markers, so all can settle with two neighbours each on the other's
+  // point when only a large turn makes the right pairing the nearer one (welk007's wrist markers
+  // on radius and ulna, the forearm pronated past the end of its range). Each pair of the
+  // placement's new labels (a label it keeps is not its decision) on points within
+  // kExchangeRadius is exchanged, held while the limb follows, released; one that labels as many
+  // at a lower score is the placement. Only for a placement that would be taken otherwise: each
+  // exchange costs about what two starts do.
+  for (int pass = 0; pass < 2; ++pass) {
+    bool improved = false;
+    for (int ia = 0; ia < ns; ++ia)
+      for (int ib = ia + 1; ib < ns; ++ib) {
+        const int a = rows[ia], b = rows[ib], pa = lbest_assign[a], pb = lbest_assign[b];
+        if (pa < 0 || pb < 0 || pa == row_to_col[a] || pb == row_to_col[b] ||
+            (points.col(pa) - points.col(pb)).squaredNorm() > kExchangeRadius * kExchangeRadius)
+          continue;
+        for (int m : rows) lheld[m] = lbest_assign[m];
+        std::swap(lheld[a], lheld[b]);
+        lstart = lbest;
+        lz = lbest;
+        Refine(true);
+        int labelled = 0;
+        double sum = 0;
+        const double score = Score(&labelled, &sum);
+        bool differs = false;
+        for (int m : rows) differs |= lassign[m] != lbest_assign[m];
+        if (labelled >= best_labelled && score < best && differs) {
+          best = score;
+          best_labelled = labelled;
+          best_sum = sum;
+          lbest = lz;
+          for (int m : rows) lbest_assign[m] = lassign[m];
+          improved = true;
+        }
+      }
+    if (!improved) break;
+  }
   const double rms = std::sqrt(best_sum / best_labelled);
   if (!(rms <= kLimbMaxRms)) return false;
   // Every label the placement gives (a marker on a point it did not hold) within its own gate on
@@ -886,9 +989,9 @@ bool Tracker::Impl::LoneMarkerWithoutPast(int m, int k) const {
 // prediction, and at m's distance from the segment's other labelled markers and from its joint
 // centre (rigid-body distances, whatever the pose). Ghosts near the body are nearly always within
 // the radius; few also sit on these spheres, so a hidden marker rarely sets off a search.
-bool Tracker::Impl::RigidlyPlausible(int m, int k) const {
+bool Tracker::Impl::RigidlyPlausible(int m, int k, bool anywhere) const {
   const Eigen::Vector3d p = points.col(k), pm = predicted.col(m);
-  if ((p - pm).squaredNorm() >= kLimbNearRadius * kLimbNearRadius) return false;
+  if (!anywhere && (p - pm).squaredNorm() >= kLimbNearRadius * kLimbNearRadius) return false;
   const int segment = model->markers()[m].segment;
   const double var_m = MeasurementVariance(m);
   // The joint centre is predicted, not measured: allow for the parent's pose and for a nominal
@@ -906,29 +1009,59 @@ bool Tracker::Impl::RigidlyPlausible(int m, int k) const {
   return true;
 }
 
+int Tracker::Impl::AnchoredLimb(int m) const {
+  int j = marker_limb[m];
+  if (j <= 0) return j;
+  for (;;) {
+    bool anchored = false;
+    for (int a : limb_markers[j]) anchored |= row_to_col[a] >= 0;
+    if (anchored) return j;
+    const int parent = model->joints()[j].parent;
+    const int up = parent >= 0 ? model->segments()[parent].joint : -1;
+    if (up <= 0 || static_cast<int>(limb_coord_list[up].size()) > kMaxLimbCoords) return j;
+    j = up;
+  }
+}
+
 void Tracker::Impl::Reacquire(int np) {
   ++tracked_frames;
   for (int m = 0; m < nm; ++m) unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
   // One search per frame: the largest limb (nearest the root) among those due, and only when an
-  // unclaimed point lies near the marker's prediction (a hidden marker costs nothing).
+  // unclaimed point lies near the marker's prediction -- or, for a marker whose limb has no
+  // label (no prediction to be near), anywhere at its distance from its joint centre (a hidden
+  // marker costs nothing).
   int joint = -1;
+  bool unheld = false;  // the limb searched is one with no label (AnchoredLimb)
   bool claimed_known = false;
   for (int m = 0; m < nm; ++m) {
     const int run = unlabelled_run[m];
-    if (run < kLimbFrames || run % kLimbFrames != 0 || marker_limb[m] < 0) continue;
+    // Every kLimbFrames of a run; and every frame for a marker the start did not label (run ==
+    // tracked_frames), until it is kLimbFrames old: it has no gate that could bring it back, so
+    // waiting for one only leaves it unlabelled (welk007's forearms, flexed away from the static
+    // pose, 20 frames of 6 markers).
+    const bool due = run >= kLimbFrames ? run % kLimbFrames == 0 : run == tracked_frames;
+    if (!due || marker_limb[m] < 0) continue;
     if (!claimed_known) {
       std::fill(ltaken.begin(), ltaken.begin() + np, 0);
       for (int k = 0; k < nm; ++k)
         if (row_to_col[k] >= 0) ltaken[row_to_col[k]] = 1;
       claimed_known = true;
     }
+    const int limb = AnchoredLimb(m);
+    bool unanchored = true;
+    for (int a : limb_markers[marker_limb[m]]) unanchored &= row_to_col[a] < 0;
     bool near = false;
     for (int k = 0; k < np && !near; ++k)
-      near = !ltaken[k] && (FreshTrack() ? (points.col(k) - predicted.col(m)).squaredNorm() <
-                                               kLimbNearRadius * kLimbNearRadius
-                                         : RigidlyPlausible(m, k));
+      near = !ltaken[k] && ((FreshTrack() && (points.col(k) - predicted.col(m)).squaredNorm() <
+                                                 kLimbNearRadius * kLimbNearRadius) ||
+                            RigidlyPlausible(m, k, unanchored));
     if (!near) continue;
-    if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
+    if (joint < 0 || limb < joint) {  // parents come first
+      joint = limb;
+      unheld = unanchored;
+    } else if (limb == joint) {
+      unheld |= unanchored;
+    }
   }
   // A label outside its gate (the segment registration's) is not measured: its limb is placed
   // anew once the label is out of probation (its second frame: a point that moved as the segment
@@ -937,9 +1070,12 @@ void Tracker::Impl::Reacquire(int np) {
   for (int m = 0; m < nm; ++m) {
     if (!beyond_gate[m] || marker_limb[m] < 0 || labelled_run[m] % kLimbFrames != 2) continue;
     place = true;
-    if (joint < 0 || marker_limb[m] < joint) joint = marker_limb[m];  // parents come first
+    if (joint < 0 || marker_limb[m] < joint) {  // parents come first
+      joint = marker_limb[m];
+      unheld = false;
+    }
   }
-  if (joint >= 0) ReacquireLimb(joint, np, place);
+  if (joint >= 0) ReacquireLimb(joint, np, place, unheld);
 }
 
 }  // namespace mocap::ekf

@@ -40,6 +40,14 @@ mocap::sim::TrackingScene ShortScene() {
   return scene;
 }
 
+// The scene's first `frames` frames.
+mocap::sim::TrackingScene FirstFrames(mocap::sim::TrackingScene scene, int frames) {
+  scene.times.resize(frames);
+  scene.points.resize(frames);
+  scene.labels.resize(frames);
+  return scene;
+}
+
 mocap::sim::TrackRun Track(const mocap::sim::TrackingScene& scene, const mocap::Model& model,
                            const mocap::ekf::TrackerOptions& options) {
   mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(model), options);
@@ -106,10 +114,7 @@ TEST(TrackLab, VirtualMarkersAreNeitherCountedNorLabelled) {
                                   n.derived_coordinates(), &with_virtual)
                   .ok());
   mocap::ekf::TrackerOptions o;
-  mocap::sim::TrackingScene first_second = scene;  // each failed search costs ~20 ms
-  first_second.times.resize(200);
-  first_second.points.resize(200);
-  first_second.labels.resize(200);
+  const mocap::sim::TrackingScene first_second = FirstFrames(scene, 200);  // each failed search costs ~20 ms
   const mocap::sim::TrackRun counted = Track(first_second, with_virtual, o);
   EXPECT_EQ(counted.frames_tracking(), 0) << "39 of 51 markers can never be 80 %";
   o.unseen_markers = virtual_names;
@@ -137,10 +142,7 @@ TEST(TrackLab, VirtualMarkersAreNeitherCountedNorLabelled) {
 // (Only the legs 15 % short, it starts as given with knees and ankles crossed, 0.854 of the
 // labels, and the scaled search, which would change those labels, is not taken: ekf/tracker.h.)
 TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
-  mocap::sim::TrackingScene scene = ShortScene();
-  scene.times.resize(100);
-  scene.points.resize(100);
-  scene.labels.resize(100);
+  const mocap::sim::TrackingScene scene = FirstFrames(ShortScene(), 100);
   const mocap::Model& n = scene.nominal;
   Eigen::VectorXd p = n.InitialParameters();
   std::vector<int> shortened;
@@ -154,10 +156,7 @@ TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
   ASSERT_TRUE(n.WithParameters(p, &small).ok());
   mocap::ekf::TrackerOptions o;
   o.init_scale_to_subject = mocap::ekf::TrackerOptions::ScaleToSubject::kNever;
-  mocap::sim::TrackingScene first = scene;  // each refused search costs ~40 ms
-  first.times.resize(40);
-  first.points.resize(40);
-  first.labels.resize(40);
+  const mocap::sim::TrackingScene first = FirstFrames(scene, 40);  // each refused search costs ~40 ms
   const mocap::sim::TrackRun as_given = Track(first, small, o);
   o.init_scale_to_subject = mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
   // By default the size is judged over init_scale_after_s of refused searches (below); here
@@ -196,6 +195,48 @@ TEST(TrackLab, AModelTooSmallIsScaledToTheSubject) {
   EXPECT_GE(later.first_tracking, 49);
   EXPECT_LE(later.first_tracking, 55);
   EXPECT_EQ(later.score.wrong, 0);
+}
+
+// A forearm the start cannot place: the search starts from a pose with the right elbow flexed
+// 100 degrees while the subject's arm hangs (welk007's hip trial the other way round), so it
+// labels all but the right forearm's 4 markers, whose limb then has no label. The limb search
+// places it with the whole arm from the first tracking frame (ekf/tracker.h, "Limb
+// re-acquisition"); before, RFRM came at frame 77, RWRA at 45, RWRB and RFIN not in these 200
+// frames (0.898750 of the labels).
+TEST(TrackLab, AForearmTheStartLeavesIsPlacedAtOnce) {
+  const mocap::sim::TrackingScene scene = FirstFrames(ShortScene(), 200);
+  const mocap::Model& n = scene.nominal;
+  Eigen::VectorXd pose(n.num_coordinates());
+  for (int i = 0; i < n.num_coordinates(); ++i) pose[i] = n.coordinates()[i].default_value;
+  int elbow = -1;
+  for (int i = 0; i < n.num_coordinates(); ++i)
+    if (n.coordinates()[i].name == "elbow_flex_r") elbow = i;
+  ASSERT_GE(elbow, 0);
+  pose[elbow] = 100 * M_PI / 180;
+  mocap::ekf::TrackerOptions o;
+  o.static_pose = pose;
+  mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(n), o);
+  std::vector<int> first_label(n.num_markers(), -1);
+  int start_labelled = -1;
+  const mocap::sim::TrackRun run =
+      mocap::sim::TrackScene(scene, &tracker, [&](int f, const mocap::ekf::TrackOutput& out) {
+        if (out.reinitialised && start_labelled < 0) start_labelled = out.labelled;
+        for (int m = 0; m < n.num_markers(); ++m)
+          if (out.point_of_marker[m] >= 0 && first_label[m] < 0) first_label[m] = f;
+      });
+  std::printf("right elbow flexed at the start: accuracy %.6f, %ld wrong, first tracking frame %d, the start labelled %d;",
+              run.score.accuracy(), run.score.wrong, run.first_tracking, start_labelled);
+  for (const char* name : {"RFRM", "RWRA", "RWRB", "RFIN"})
+    std::printf(" %s from %d", name, first_label[n.FindMarker(name)]);
+  std::printf("\n");
+  ASSERT_EQ(run.first_tracking, 0);
+  EXPECT_EQ(start_labelled, n.num_markers() - 4) << "the start labels all but the right forearm";
+  for (const char* name : {"RFRM", "RWRA", "RWRB", "RFIN"}) {
+    EXPECT_GE(first_label[n.FindMarker(name)], 1) << name;
+    EXPECT_LE(first_label[n.FindMarker(name)], 2) << name;
+  }
+  EXPECT_EQ(run.score.wrong, 0);
+  EXPECT_GE(run.score.accuracy(), 0.998);  // 0.998889: the forearm's 4 markers missing 2 frames
 }
 
 struct RealResult {
@@ -271,6 +312,21 @@ mocap::Model OsimModel(const std::string& path, const std::string& marker_set = 
   return import.model;
 }
 
+// The issue's targets on `trial` without ghosts and with 5 a frame: >= 0.999 / 0.995 of the
+// labels right, no swap longer than 5 frames; `from_the_first_frame`: also tracking every frame.
+void ExpectTheTargets(const std::string& trial, const mocap::Model& model, const Eigen::Vector3d& up,
+                      const Eigen::Vector3d& model_up, bool from_the_first_frame) {
+  for (int ghosts : {0, 5}) {
+    const RealResult r = TrackRecording(trial, model, up, model_up, ghosts);
+    if (from_the_first_frame) {
+      EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
+      EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
+    }
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
+  }
+}
+
 std::string Welk(const std::string& file) { return mocap::testutil::SharedData() + "/welk007_hipfunc/" + file; }
 
 // Z-up lab, Y-up OpenSim model (the subject's hand-scaled one), 16 virtual markers: the issue's
@@ -282,15 +338,21 @@ std::string Welk(const std::string& file) { return mocap::testutil::SharedData()
 // then lost from frame 22 (0.987); scaled to the subject at the start it is not (1.000).
 TEST(TrackReal, Welk007StaticMeetsTheTargetsWithItsScaledOpenSimModel) {
   SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model model = OsimModel(Welk("manually_scaled.osim"));
-  for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(Welk("c3d_Trimmed_static1.c3d"), model, Eigen::Vector3d::UnitZ(),
-                                        Eigen::Vector3d::UnitY(), ghosts);
-    EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
-    EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-  }
+  ExpectTheTargets(Welk("c3d_Trimmed_static1.c3d"), OsimModel(Welk("manually_scaled.osim")),
+                   Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitY(), true);
+}
+
+// The functional hip trial (1224 frames, 48 markers) with the subject's hand-scaled model. The
+// subject holds the forearms flexed about 90 degrees in front, pronated past the model's range:
+// the start's search, from arms hanging, labels neither forearm, and until the fourteenth session
+// their 6 markers were never labelled (0.869547, 0 wrong; with 5 ghosts 117-132 wrong). Now the
+// limb search places each forearm with its whole arm from the first tracking frames (ekf/
+// tracker.h, "Limb re-acquisition": a limb with no label), its wrist markers exchanged right:
+// 0.999716, 0 wrong, with and without ghosts.
+TEST(TrackReal, Welk007HipTrialMeetsTheTargetsWithItsScaledOpenSimModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  ExpectTheTargets(Welk("c3d_Trimmed_RHJC1.c3d"), OsimModel(Welk("manually_scaled.osim")),
+                   Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitY(), true);
 }
 
 // The issue's targets on welk007 with its generic model: NOT MET. Sixth session: never started,
@@ -298,31 +360,34 @@ TEST(TrackReal, Welk007StaticMeetsTheTargetsWithItsScaledOpenSimModel) {
 // 84 mm RMS, the scaled model 14.7 mm). Thirteenth: its 14 stacked cluster markers unseen and the
 // model scaled to the subject, static 0.578 / 0.535 with 5 ghosts (from frames 18 / 2; the
 // stacked markers never labelled, 1,112 / 1,482 wrong), RHJC1 0.015 / 0.436 (from frames 1189 /
-// 198). Left: placing the stacked markers by their rigid motion with their segments.
+// 198). Fourteenth (main since `always` scales only a start the model's own size accepted, and
+// this branch alike): static 0.511785 / 0.516835 (from frames 50 / 12), RHJC1 never starts /
+// 0.012374. The target cannot be met with this model: r_thigh1..5 (and each shank's) share one
+// point of their segment, so which cluster point is r_thigh3 is not in the model -- any labelling
+// of them is a guess among 5! permutations, and leaving them unlabelled caps the accuracy at
+// 38/52 of the samples.
 TEST(TrackReal, DISABLED_Welk007MeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model model = OsimModel(Welk("unscaled_generic.osim"));
   for (const char* trial : {"c3d_Trimmed_static1.c3d", "c3d_Trimmed_RHJC1.c3d"})
-    for (int ghosts : {0, 5}) {
-      const RealResult r = TrackRecording(Welk(trial), model, Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitY(),
-                                          ghosts);
-      EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-      EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-    }
+    ExpectTheTargets(Welk(trial), model, Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitY(), false);
 }
 
 // Biobuddy P01 with the default model: NOT MET. Sixth session 0.059 without ghosts, 0.230 with 5
 // (the 21 extra markers near the Plug-in Gait ones take their places); thirteenth, scaled to the
-// subject at the start, 0.605 and 0.328.
+// subject at the start, 0.605 and 0.328 (fourteenth: 0.604884 and 0.328449). Why (fourteenth):
+// from the start (frame 9) RTHI is on RTHID's point (375 frames), LTIB and RTIB on TIBD's (381,
+// 260), RBAK on T6's (312), LTOE on LNAV's (292): this lab wears RTHI and the TIBs 4-8 cm higher
+// than the default model places them, and its extra THID and TIBD at about the model's heights
+// (distance from the knee marker at frame 20: model THI 213 mm, RTHI 279, RTHID 209; model TIB
+// 222, LTIB 184, LTIBD 237, RTIB 139, RTIBD 194). Both points are rigid with the segment, so no
+// rule of the tracker tells them apart: the model's marker places decide, and they are the extra
+// markers'. From frame ~300 (12 Hz, the hip's fastest swings) the track breaks up (everything
+// on anything for ~200 frames).
 TEST(TrackReal, DISABLED_BiobuddyRightHipMeetsTheTargetsWithTheDefaultModel) {
   SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model model = mocap::DefaultFullBodyModel(1.75);
-  const std::string trial = mocap::testutil::SharedData() + "/biobuddy_p01_lowerlimb/Test_func_rhip.c3d";
-  for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(trial, model, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), ghosts);
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-  }
+  ExpectTheTargets(mocap::testutil::SharedData() + "/biobuddy_p01_lowerlimb/Test_func_rhip.c3d",
+                   mocap::DefaultFullBodyModel(1.75), -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), false);
 }
 
 std::string Gait2354(const std::string& file) {
@@ -335,35 +400,26 @@ std::string Gait2354(const std::string& file) {
 // the subject at the start (femurs 1.10-1.12, OpenSim's own scaling 1.147) 0.999915 both.
 TEST(TrackReal, Gait2354StaticMeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model model =
-      OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml"));
-  for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(Gait2354("subject01_static.trc"), model, Eigen::Vector3d::UnitY(),
-                                        Eigen::Vector3d::UnitY(), ghosts);
-    EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-  }
+  ExpectTheTargets(Gait2354("subject01_static.trc"),
+                   OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml")),
+                   Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), true);
 }
 
 // The walk (151 frames): NOT MET. As given the search refuses the first 5 frames (the generic
 // model's residual just over 3 cm) and then labels every marker right: 0.9656 / 0.9590 with 5
 // ghosts, all of it the late start. Scaled to the subject (when the model does not fit, frame 1),
 // 0.958 / 0.9925 (L.Acromium on an unmodelled arm marker's point for 143 frames without
-// ghosts). Scaled always: 0.9113 / 0.8656, the search as given being refused as ambiguous on
-// frame 0 and the scaled one at frames 4 and 1 turning the torso (the acromion markers on each
-// other's and an arm marker's points; the torso carries 4 markers, 2 of them mirror images, among
-// 6 unmodelled arm and head markers).
+// ghosts). Scaled always (thirteenth session): 0.9113 / 0.8656, the search as given being
+// refused as ambiguous on frame 0 and the scaled one at frames 4 and 1 turning the torso (the
+// acromion markers on each other's and an arm marker's points; the torso carries 4 markers, 2 of
+// them mirror images, among 6 unmodelled arm and head markers). Fourteenth: `always` scales only a start the model's own
+// size accepted, so as given: 0.965606 / 0.958983, 0 wrong, from frames 5 / 6 (frames 0-4 refused:
+// ambiguous, then a residual of 30.1-30.4 mm, just over init_max_rms_m).
 TEST(TrackReal, DISABLED_Gait2354WalkMeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model model =
-      OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml"));
-  for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(Gait2354("subject01_walk1.trc"), model, Eigen::Vector3d::UnitY(),
-                                        Eigen::Vector3d::UnitY(), ghosts);
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.999 : 0.995) << r.summary;
-    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
-  }
+  ExpectTheTargets(Gait2354("subject01_walk1.trc"),
+                   OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml")),
+                   Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), false);
 }
 
 }  // namespace
