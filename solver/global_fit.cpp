@@ -813,6 +813,7 @@ void AppendIterations(const FitReport& r, LmSummary* before, FitReport* totals) 
 // frame from the middle of the first stretch of k.
 std::vector<int> EveryKthFrame(int num_frames, int k) {
   std::vector<int> rows;
+  if (num_frames <= 0) return rows;  // an empty trial stays empty: FitStage names it
   for (int f = std::min(k / 2, num_frames - 1); f < num_frames; f += k) rows.push_back(f);
   return rows;
 }

@@ -132,6 +132,18 @@ TEST(GlobalFit, StagesBeforeTheLastSolveASubsetOfTheFrames) {
   ModelComparison cmp;
   ASSERT_TRUE(CompareModels(b.model, a.model, &cmp).ok());
   for (const auto& jd : cmp.joints) EXPECT_LT(jd.centre_error_mm, 0.05) << jd.joint;
+  // A trial without frames beside them is named, with or without the subset.
+  std::vector<solver::FitTrial> with_empty = trials;
+  with_empty.push_back({});
+  with_empty.back().markers.name = "empty";
+  with_empty.back().markers.marker_names = trials[0].markers.marker_names;
+  with_empty.back().markers.positions.resize(0, trials[0].markers.positions.cols());
+  for (const solver::FitOptions& o : {subset, every}) {
+    solver::FitResult r;
+    const Status s = solver::FitModel(nominal, with_empty, o, &r);
+    EXPECT_FALSE(s.ok());
+    EXPECT_NE(s.message().find("'empty'"), std::string::npos) << s.message();
+  }
   solver::FitOptions bad;
   bad.stage_frames = -1;
   std::string why;
