@@ -475,7 +475,11 @@ std::string FunctionalCell(const json& joint) {
                   Fixed(Number(r, "generic_from_regression_mm"), 1) + " mm)</small>";
   // Whether the data tell the fitted centre from the functional one (fit_trust.h, profile).
   for (const auto& p : joint.value("profile", json::array()))
-    regression += "<br><small>held at its functional " +
+    if (!p.value("note", std::string()).empty())
+      regression += "<br><small>not held at its functional estimate: " + Esc(p.value("note", std::string())) +
+                    "</small>";
+    else
+      regression += "<br><small>held at its functional " +
                   std::string(joint.value("axis_joint", false) ? "axis" : "centre") + " on " +
                   Esc(p.value("trial", std::string())) +
                   ": chi-square " + (Number(p, "delta_chi2") >= 0 ? "+" : "") + Fixed(Number(p, "delta_chi2"), 1) +

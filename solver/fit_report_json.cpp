@@ -202,7 +202,8 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
                          {"iterations_free", pc.iterations_free},
                          {"iterations_held", pc.iterations_held},
                          {"told_apart", pc.told_apart},
-                         {"held_fits_better", pc.held_fits_better}});
+                         {"held_fits_better", pc.held_fits_better},
+                         {"note", pc.note}});
     joints.push_back({{"joint", jt.joint},
                       {"type", ToString(jt.type)},
                       {"axis_joint", jt.axis_joint},

@@ -500,6 +500,7 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
   // FitTrustOptions::profile_far_centres (see the header).
   FitResult free_fit;
   bool free_solved = false;
+  Status free_status = Status::Ok();
   for (JointTrust& jtr : out.joints) {
     if (!options.profile_far_centres || jtr.best_check < 0) continue;
     const FunctionalCheck& best = jtr.checks[jtr.best_check];
@@ -528,9 +529,24 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
       if (axis_element < 0) continue;  // axes not fitted
     }
     const FitOptions o = ProfileOptions(fit, options);
+    ProfileCheck pc;
+    pc.trial = best.trial;
+    pc.centre_distance_mm = jtr.axis_joint ? 0.0 : best.centre_distance_mm;
+    pc.axis_angle_deg = jtr.axis_joint ? best.axis_angle_deg : 0.0;
+    // A check that cannot be made says why; it never fails the fit it checks.
+    auto unmade = [&](const std::string& why) {
+      pc.note = why;
+      jtr.profile.push_back(pc);
+    };
     if (!free_solved) {
-      MOCAP_RETURN_IF_ERROR(Resolve(fitted, fit, trials, o, &free_fit));
+      free_status = Resolve(fitted, fit, trials, o, &free_fit);
+      if (free_status.ok() && !free_fit.report.solver.IsSolutionUsable())
+        free_status = Status::Error(free_fit.report.solver.message);
       free_solved = true;
+    }
+    if (!free_status.ok()) {
+      unmade("the fit solved again from its result failed: " + free_status.message());
+      continue;
     }
     const InParent now = JointInParent(fitted, g_fit, d_fit, j);
     const Geometry g_free(free_fit.model);
@@ -542,7 +558,10 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
     FitOptions held_centre = o;
     if (jtr.axis_joint) {
       // The axis angles turned onto SARA's axis.
-      if (!AxisAnglesTowards(fitted, j, axis_element, axis_k, best.functional_axis_in_parent, &p)) continue;
+      if (!AxisAnglesTowards(fitted, j, axis_element, axis_k, best.functional_axis_in_parent, &p)) {
+        unmade("the model's axis parameters cannot turn the axis onto the functional one");
+        continue;
+      }
       const int a = fitted.axis_index(j, axis_element);
       held_centre.fixed_parameters.push_back(fitted.parameters()[a].name);
       held_centre.fixed_parameters.push_back(fitted.parameters()[a + 1].name);
@@ -553,13 +572,18 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
       for (const char* xyz : {"x", "y", "z"}) held_centre.fixed_parameters.push_back(jtr.joint + ".centre." + xyz);
     }
     Model moved;
-    MOCAP_RETURN_IF_ERROR(fitted.WithParameters(p, &moved));
+    if (Status s = fitted.WithParameters(p, &moved); !s) {
+      unmade("the model refuses the functional estimate: " + s.message());
+      continue;
+    }
     FitResult held_fit;
-    MOCAP_RETURN_IF_ERROR(Resolve(moved, fit, trials, held_centre, &held_fit));
-    ProfileCheck pc;
-    pc.trial = best.trial;
-    pc.centre_distance_mm = jtr.axis_joint ? 0.0 : best.centre_distance_mm;
-    pc.axis_angle_deg = jtr.axis_joint ? best.axis_angle_deg : 0.0;
+    Status held_status = Resolve(moved, fit, trials, held_centre, &held_fit);
+    if (held_status.ok() && !held_fit.report.solver.IsSolutionUsable())
+      held_status = Status::Error(held_fit.report.solver.message);
+    if (!held_status.ok()) {
+      unmade("the fit with it held there failed: " + held_status.message());
+      continue;
+    }
     pc.delta_chi2 = 2.0 * (held_fit.report.solver.final_cost - free_fit.report.solver.final_cost);
     pc.free_centre_moved_mm = free_moved_mm;
     pc.marker_rms_free_mm = free_fit.report.marker_rms_mm;

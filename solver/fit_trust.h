@@ -173,6 +173,8 @@ struct ProfileCheck {
   // ended in a worse minimum than the one next to the estimate (biobuddy's left ankle axis, 22
   // deg from SARA: -19.7).
   bool held_fits_better = false;
+  // Not empty when the check could not be made (a solve failed): why. The figures are then 0.
+  std::string note;
 };
 
 struct JointTrust {

@@ -117,7 +117,10 @@ void LogJointChecks(const solver::FitTrust& trust) {
   }
   for (const solver::JointTrust& j : trust.joints)
     for (const solver::ProfileCheck& p : j.profile)
-      spdlog::log(p.told_apart ? spdlog::level::info : spdlog::level::warn,
+      if (!p.note.empty())
+        spdlog::warn("{}: not held at its functional estimate on {}: {}", j.joint, p.trial, p.note);
+      else
+        spdlog::log(p.told_apart ? spdlog::level::info : spdlog::level::warn,
                   "{}: held at its functional {} on {} ({}) the fit's chi-square changes by {:+.1f} "
                   "(marker RMS {:.3f} -> {:.3f} mm): {}{}",
                   j.joint, j.axis_joint ? "axis (SARA)" : "centre (SCoRE)", p.trial,
