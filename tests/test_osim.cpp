@@ -594,6 +594,10 @@ TEST(Osim, BadInputIsAClearErrorWithElementAndLine) {
       {"<x>-2 -1 0 1 2</x>", "<x>-2 -1 0 0 2</x>", "<SimmSpline name=\"function\"><x>-2", "spline x values must increase"},
       {"<translation>-0.07 -0.06 0.08</translation>", "<translation>-0.07 oops 0.08</translation>",
        "<translation>-0.07 -0.06 0.08</translation>", "translation: expected numbers, got 'oops'"},
+      // Found by the fuzzer: a '/' in a joint's name made an offset frame's path that export wrote
+      // and import could not find again.
+      {"<PinJoint name=\"hip\">", "<PinJoint name=\"h/ip\">", "<PinJoint name=\"hip\">",
+       "PinJoint 'h/ip': the name contains '/', OpenSim's path separator"},
   };
   for (size_t i = 0; i < cases.size(); ++i) {
     const Case& c = cases[i];
