@@ -498,6 +498,7 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
     out.joints.push_back(std::move(jtr));
   }
   // FitTrustOptions::profile_far_centres (see the header).
+  const FitOptions o = ProfileOptions(fit, options);  // the same for every joint's re-solves
   FitResult free_fit;
   bool free_solved = false;
   Status free_status = Status::Ok();
@@ -528,7 +529,6 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
       }
       if (axis_element < 0) continue;  // axes not fitted
     }
-    const FitOptions o = ProfileOptions(fit, options);
     ProfileCheck pc;
     pc.trial = best.trial;
     pc.centre_distance_mm = jtr.axis_joint ? 0.0 : best.centre_distance_mm;
