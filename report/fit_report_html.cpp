@@ -488,6 +488,12 @@ std::string FunctionalCell(const json& joint) {
                    : p.value("held_fits_better", false) ? "<span class=\"bad\">the functional estimate fits better: the "
                                                           "fit ended in a worse minimum</span>"
                                                         : "<span class=\"bad\">the data cannot tell the two apart</span>") +
+                  (p.value("released", false)
+                       ? "; released from there, chi-square " +
+                             std::string(Number(p, "released_delta_chi2") >= 0 ? "+" : "") +
+                             Fixed(Number(p, "released_delta_chi2"), 1) +
+                             (p.value("adopted", false) ? ": <b>adopted</b> (the fit is that minimum)" : ": not adopted")
+                       : std::string()) +
                   "</small>";
   if (!html.empty()) return html + regression;
   return std::string("<span class=\"notexcited\" title=\"") + Esc(reasons) + "\">" +

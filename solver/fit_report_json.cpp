@@ -15,6 +15,8 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
   j["residuals"] = r.residuals;
   j["iterations"] = r.solver.num_iterations();  // every stage's (FitReport::stages)
   j["iterations_every_frame"] = r.IterationsOnEveryFrame();
+  // Of those, the search for a better minimum after the schedule (solver/fit_trust.h).
+  j["iterations_better_minimum"] = r.IterationsSearchingBetterMinimum();
   // The solve's history (the report page's convergence plot): cost and marker RMS (without the
   // priors; null where the solver did not measure it) after each iteration.
   j["iteration_history"] = nlohmann::json::array();
@@ -43,6 +45,7 @@ nlohmann::json FitReportJson(const FitReport& r, const std::vector<FitTrial>& tr
                            {"marker_sigma_mm", st.marker_sigma_mm},
                            {"residual_correlation_frames", st.residual_correlation_frames},
                            {"frames", st.frames},
+                           {"better_minimum_search", st.better_minimum_search},
                            {"seconds", st.seconds}});
   j["held_joints"] = nlohmann::json::object();
   for (const auto& [joint, why] : r.held_joints) j["held_joints"][joint] = why;
@@ -203,6 +206,10 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
                          {"iterations_held", pc.iterations_held},
                          {"told_apart", pc.told_apart},
                          {"held_fits_better", pc.held_fits_better},
+                         {"released", pc.released},
+                         {"released_delta_chi2", pc.released_delta_chi2},
+                         {"iterations_released", pc.iterations_released},
+                         {"adopted", pc.adopted},
                          {"note", pc.note}});
     joints.push_back({{"joint", jt.joint},
                       {"type", ToString(jt.type)},

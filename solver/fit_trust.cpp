@@ -594,9 +594,85 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
     const double threshold = jtr.axis_joint ? options.told_apart_chi2_axis : options.told_apart_chi2;
     pc.told_apart = pc.delta_chi2 > threshold;
     pc.held_fits_better = pc.delta_chi2 < -threshold;
+    // FitTrustOptions::adopt_better_minimum: released, the held fit finds its own minimum.
+    if (pc.held_fits_better && options.adopt_better_minimum) {
+      FitResult released;
+      Status rs = Resolve(held_fit.model, held_fit, trials, o, &released);
+      if (rs.ok() && released.report.solver.IsSolutionUsable()) {
+        pc.released = true;
+        pc.released_delta_chi2 = 2.0 * (released.report.solver.final_cost - free_fit.report.solver.final_cost);
+        pc.iterations_released = released.report.solver.num_iterations();
+        if (pc.released_delta_chi2 < -threshold &&
+            (!out.better_minimum || pc.released_delta_chi2 < out.better_minimum->delta_chi2))
+          out.better_minimum = BetterMinimum{jtr.joint, pc.released_delta_chi2, std::move(held_fit), std::move(released)};
+      }
+    }
     jtr.profile.push_back(std::move(pc));
   }
   *trust = std::move(out);
+  return Status::Ok();
+}
+
+Status CheckFitTrustAndAdopt(const Model& initial, const std::vector<FitTrial>& trials,
+                             const FitTrustOptions& options, FitResult* fit, FitTrust* trust) {
+  MOCAP_RETURN_IF_ERROR(CheckFitTrust(initial, *fit, trials, options, trust));
+  if (!trust->better_minimum) return Status::Ok();
+  BetterMinimum better = std::move(*trust->better_minimum);
+  trust->better_minimum.reset();
+  ProfileCheck first;
+  for (const JointTrust& j : trust->joints)
+    if (j.joint == better.joint)
+      for (const ProfileCheck& p : j.profile)
+        if (p.released) first = p;
+  first.adopted = true;
+
+  const FitOptions o = ProfileOptions(*fit, options);
+  const FitReport& from = fit->report;
+  FitResult adopted = std::move(better.released);
+  FitReport& r = adopted.report;
+  // The schedule's account, then the two solves that found the better minimum.
+  std::vector<FitStageSummary> stages = from.stages;
+  if (stages.empty()) stages.push_back(StageSummary("all parameters", options.fit, from));
+  stages.push_back(StageSummary(better.joint + " held at its functional estimate", o, better.held.report));
+  stages.push_back(StageSummary("all parameters, released from there", o, r));
+  stages.end()[-1].better_minimum_search = stages.end()[-2].better_minimum_search = true;
+  std::vector<IterationSummary> iterations = from.solver.iterations;
+  for (const LmSummary* s : {&better.held.report.solver, &r.solver})
+    iterations.insert(iterations.end(), s->iterations.begin(), s->iterations.end());
+  r.solver.iterations = std::move(iterations);
+  r.solver.initial_cost = from.solver.initial_cost;
+  r.solver.num_linear_solves += from.solver.num_linear_solves + better.held.report.solver.num_linear_solves;
+  r.solver.total_seconds += from.solver.total_seconds + better.held.report.solver.total_seconds;
+  r.stages = std::move(stages);
+  r.initial_marker_rms_mm = from.initial_marker_rms_mm;
+  r.held_joints = from.held_joints;
+  r.attached_markers = from.attached_markers;
+  r.placed_markers = from.placed_markers;
+  r.scaling_marker_weights = from.scaling_marker_weights;
+  r.far_moved_markers = from.far_moved_markers;
+  r.coarse = from.coarse;
+  r.reposed = r.reposed || from.reposed;
+  r.rescued_frames += from.rescued_frames + better.held.report.rescued_frames;
+  r.ik_seconds += from.ik_seconds + better.held.report.ik_seconds;
+  r.solve_seconds += from.solve_seconds + better.held.report.solve_seconds;
+  r.wall_seconds += from.wall_seconds + better.held.report.wall_seconds;
+  // A held joint's parameters stay undetermined; the caller's model is the parameters' start.
+  for (const std::string& name : o.fixed_parameters)
+    if (std::find(r.undetermined.begin(), r.undetermined.end(), name) == r.undetermined.end())
+      r.undetermined.push_back(name);
+  std::map<std::string, double> initial_value;
+  for (const ParameterEstimate& e : from.parameters) initial_value[e.name] = e.initial;
+  for (ParameterEstimate& e : r.parameters)
+    if (auto it = initial_value.find(e.name); it != initial_value.end()) e.initial = it->second;
+  *fit = std::move(adopted);
+
+  FitTrustOptions again = options;
+  again.adopt_better_minimum = false;
+  MOCAP_RETURN_IF_ERROR(CheckFitTrust(initial, *fit, trials, again, trust));
+  trust->adopted_joint = better.joint;
+  trust->adopted_delta_chi2 = better.delta_chi2;
+  for (JointTrust& j : trust->joints)
+    if (j.joint == better.joint) j.profile.insert(j.profile.begin(), first);
   return Status::Ok();
 }
 

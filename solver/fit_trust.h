@@ -51,6 +51,15 @@
 // 2 degrees of freedom (5.99). The free solve gives the reference
 // cost, so the comparison is between two solves of the same problem, not with the schedule's
 // (whose priors are centred on its first stage).
+// A worse minimum is not only reported: with FitTrustOptions::adopt_better_minimum the held fit
+// is solved again with the hold released (every parameter and pose free, the paper's whole
+// problem), and where that ends lower than the free solve by more than the same quantile, the
+// fit found next to the functional estimate IS the better answer the data give, and
+// CheckFitTrustAndAdopt makes it the fit (the report's stages say so; the checks are made again
+// on it). The functional estimate only chose the start: the adopted centre is where the data put
+// it, not held at the estimate (biobuddy's left ankle axis: 22 deg from SARA before, the data's
+// own minimum next to it after). A release that climbs back to the first minimum changes
+// nothing.
 //
 // Per hip too, where the model has markers on both anterior superior iliac spines and on both
 // posterior ones (or the sacrum) on the hips' parent segment, named as labs name them (RASI,
@@ -66,6 +75,7 @@
 // the markers' pelvis frame over the frames with every landmark and a pose.
 #pragma once
 
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -100,6 +110,9 @@ struct FitTrustOptions {
   FitOptions fit;
   double told_apart_chi2 = 7.815;  // chi-square, 3 degrees of freedom, 95 %
   double told_apart_chi2_axis = 5.991;  // an axis direction: 2 degrees of freedom, 95 %
+  // A held fit that fits better is released and, where it stays better, adopted (see the
+  // header; CheckFitTrustAndAdopt). Off: the worse minimum is only reported.
+  bool adopt_better_minimum = true;
   FitTrustOptions() { functional.bootstrap_samples = 50; }
   bool IsValid(std::string* error) const;
 };
@@ -173,6 +186,13 @@ struct ProfileCheck {
   // ended in a worse minimum than the one next to the estimate (biobuddy's left ankle axis, 22
   // deg from SARA: -19.7).
   bool held_fits_better = false;
+  // FitTrustOptions::adopt_better_minimum, where held_fits_better: the held fit solved again with
+  // the hold released; its chi-square minus the free solve's (negative: still better), its
+  // iterations, and whether the fit was replaced by it (CheckFitTrustAndAdopt).
+  bool released = false;
+  double released_delta_chi2 = 0;
+  int iterations_released = 0;
+  bool adopted = false;
   // Not empty when the check could not be made (a solve failed): why. The figures are then 0.
   std::string note;
 };
@@ -198,8 +218,22 @@ struct JointTrust {
   std::vector<ProfileCheck> profile;
 };
 
+// The fit released from a held joint that ended in a better minimum (see the header).
+struct BetterMinimum {
+  std::string joint;
+  double delta_chi2 = 0;     // the released fit's chi-square minus the free re-solve's (< 0)
+  FitResult held, released;  // the two solves, from the fit's result
+};
+
 struct FitTrust {
   std::vector<JointTrust> joints;   // in the model's joint order
+  // The lowest of the released fits that stayed better than the fit (FitTrustOptions::
+  // adopt_better_minimum); CheckFitTrustAndAdopt makes it the fit and empties this.
+  std::optional<BetterMinimum> better_minimum;
+  // Set by CheckFitTrustAndAdopt when it adopted one: the joint whose release it was, and the
+  // chi-square the fit gained.
+  std::string adopted_joint;
+  double adopted_delta_chi2 = 0;
   // The report's own warnings, gathered here so the reader needs one structure.
   std::vector<std::pair<std::string, double>> outlier_markers;  // name, RMS mm (FitReport)
   std::vector<std::string> undetermined;                        // parameter names (FitReport)
@@ -219,5 +253,15 @@ char PelvisLandmarkSide(const std::string& name, const std::string& stem);
 // says why.
 Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vector<FitTrial>& trials,
                      const FitTrustOptions& options, FitTrust* trust);
+
+// CheckFitTrust, then, where it found a better minimum (FitTrust::better_minimum), that minimum
+// made the fit: *fit's model and poses are the released solve's, its report the released solve's
+// figures with the schedule's account kept (its stages, then the held and the released solves as
+// two more; the attached, placed and held markers and joints; the parameters' initial values),
+// and the checks are made again on it (without a second adoption) into *trust, which names the
+// joint (FitTrust::adopted_joint) and keeps that joint's first profile check, marked adopted.
+// Errors: CheckFitTrust's.
+Status CheckFitTrustAndAdopt(const Model& initial, const std::vector<FitTrial>& trials,
+                             const FitTrustOptions& options, FitResult* fit, FitTrust* trust);
 
 }  // namespace mocap::solver

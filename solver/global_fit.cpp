@@ -284,6 +284,12 @@ int FitReport::IterationsOnEveryFrame() const {
   return n;
 }
 
+int FitReport::IterationsSearchingBetterMinimum() const {
+  int n = 0;
+  for (const FitStageSummary& st : stages) n += st.better_minimum_search ? st.iterations : 0;
+  return n;
+}
+
 std::string FitReport::BriefReport() const {
   const std::string coarse_note =
       coarse.used       ? " (after " + std::to_string(coarse.coarse.num_iterations()) + " on " +
@@ -721,17 +727,6 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
   return Status::Ok();
 }
 
-std::string GroupList(const FitOptions& o) {
-  std::string list;
-  auto add = [&](bool on, const char* name) {
-    if (on) list += (list.empty() ? "" : ",") + std::string(name);
-  };
-  add(o.fit_scales, "scales");
-  add(o.fit_centres, "centres");
-  add(o.fit_axes, "axes");
-  add(o.fit_markers, "markers");
-  return list.empty() ? "none" : list;
-}
 
 // FitOptions::min_excitation_deg: the joints whose centre or axes are free but whose rotation
 // the poses `z` (every trial's frames) hardly move, with the parameters to hold and why.
@@ -838,6 +833,22 @@ FitTrial TrialRows(const FitTrial& trial, const std::vector<int>& rows) {
   return out;
 }
 
+}  // namespace
+
+namespace {
+std::string GroupList(const FitOptions& o) {
+  std::string list;
+  auto add = [&](bool on, const char* name) {
+    if (on) list += (list.empty() ? "" : ",") + std::string(name);
+  };
+  add(o.fit_scales, "scales");
+  add(o.fit_centres, "centres");
+  add(o.fit_axes, "axes");
+  add(o.fit_markers, "markers");
+  return list.empty() ? "none" : list;
+}
+}  // namespace
+
 FitStageSummary StageSummary(const std::string& name, const FitOptions& o, const FitReport& r) {
   FitStageSummary s;
   s.name = name;
@@ -852,7 +863,6 @@ FitStageSummary StageSummary(const std::string& name, const FitOptions& o, const
   s.frames = r.frames;
   return s;
 }
-}  // namespace
 
 namespace {
 

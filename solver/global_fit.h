@@ -303,6 +303,9 @@ struct FitStageSummary {
   double residual_correlation_frames = 1;   // of its residuals (FitReport); 1: not measured (scales)
   double seconds = 0;
   int frames = 0;                           // the frames it solved (FitOptions::stage_frames)
+  // One of the two solves that found a better minimum after the schedule (solver/fit_trust.h,
+  // CheckFitTrustAndAdopt), not a stage of the schedule.
+  bool better_minimum_search = false;
 };
 
 struct FitReport {
@@ -390,6 +393,8 @@ struct FitReport {
   // The iterations of the stages that solved every frame (FitOptions::stage_frames: the stages
   // before the last may solve a subset); all of them without stages.
   int IterationsOnEveryFrame() const;
+  // The iterations of the stages that searched for a better minimum (better_minimum_search).
+  int IterationsSearchingBetterMinimum() const;
   std::string BriefReport() const;
 };
 
@@ -433,5 +438,9 @@ double MedianMarkerMotionMm(const formats::MarkerTrial& trial);
 // values.
 Status FitModel(const Model& initial, const std::vector<FitTrial>& trials, const FitOptions& options,
                 FitResult* result);
+
+// A stage of a schedule, from the options it was solved with and its report (FitModel's own, and
+// the adoption of a better minimum's: solver/fit_trust.h).
+FitStageSummary StageSummary(const std::string& name, const FitOptions& options, const FitReport& report);
 
 }  // namespace mocap::solver

@@ -200,6 +200,70 @@ TEST(FitTrust, ProfileHoldsTheCentreAtItsFunctionalEstimate) {
   EXPECT_TRUE(Joint(trust, "hip_r").profile.empty());
 }
 
+// A fit that ended in a worse minimum is released from the functional estimate and the better
+// minimum adopted (fit_trust.h, CheckFitTrustAndAdopt). The worse minimum is made here by the
+// re-solves' own priors, which are centred where each solve starts: centres and markers pinned
+// there (sigma 10 um), the fit handed in with its hip moved 10 mm stays there solved free, while
+// held at SCoRE, and released from there, it fits far better. (A real one: biobuddy's left
+// ankle, test_real_fit.)
+TEST(FitTrust, AWorseMinimumIsReleasedFromTheFunctionalEstimateAndAdopted) {
+  const SimulatedFit& fit = Fit();
+  solver::FitTrustOptions options;
+  options.joints = {"hip_r"};
+  options.far_mm = 1.0;
+  options.fit.prior_sigma_position_m = 1e-5;
+  solver::FitResult result = WithHipMoved(fit.result, 0.010);
+  const solver::FitReport before = result.report;
+  solver::FitTrust trust;
+  ASSERT_TRUE(solver::CheckFitTrustAndAdopt(fit.session.nominal, fit.trials, options, &result, &trust).ok());
+  const solver::JointTrust& hip = Joint(trust, "hip_r");
+  ASSERT_GE(hip.profile.size(), 1u);
+  const solver::ProfileCheck& p = hip.profile[0];
+  std::printf("hip_r moved 10 mm, pinned: held at SCoRE chi-square %+.1f, released %+.1f (%d iterations), adopted %d; "
+              "now %.2f mm from SCoRE\n",
+              p.delta_chi2, p.released_delta_chi2, p.iterations_released, p.adopted,
+              hip.checks[hip.best_check].centre_distance_mm);
+  EXPECT_TRUE(p.held_fits_better);
+  EXPECT_TRUE(p.released);
+  EXPECT_TRUE(p.adopted);
+  EXPECT_LT(p.released_delta_chi2, -options.told_apart_chi2);
+  EXPECT_EQ(trust.adopted_joint, "hip_r");
+  EXPECT_DOUBLE_EQ(trust.adopted_delta_chi2, p.released_delta_chi2);
+  EXPECT_FALSE(trust.better_minimum.has_value());
+  // The fit is the adopted one: its hip back where the first fit had it, and the checks made on it.
+  const int j = fit.result.model.FindJoint("hip_r");
+  const Eigen::VectorXd p0 = fit.result.model.InitialParameters(), p1 = result.model.InitialParameters();
+  EXPECT_LT(1000.0 * (p1.segment<3>(fit.result.model.centre_index(j)) - p0.segment<3>(fit.result.model.centre_index(j)))
+                         .norm() * p0[fit.result.model.scale_index(fit.result.model.joints()[j].parent)],
+            1.0);
+  EXPECT_LT(hip.checks[hip.best_check].centre_distance_mm, 2.0);
+  // The report keeps the schedule's account and adds the two solves.
+  const solver::FitReport& r = result.report;
+  ASSERT_EQ(r.stages.size(), before.stages.size() + 2);
+  EXPECT_FALSE(r.stages[before.stages.size() - 1].better_minimum_search);
+  EXPECT_TRUE(r.stages.end()[-2].better_minimum_search);
+  EXPECT_TRUE(r.stages.end()[-1].better_minimum_search);
+  EXPECT_EQ(r.stages.end()[-1].iterations, p.iterations_released);
+  EXPECT_EQ(r.IterationsSearchingBetterMinimum(), r.stages.end()[-2].iterations + r.stages.end()[-1].iterations);
+  EXPECT_EQ(r.solver.num_iterations(), before.solver.num_iterations() + r.IterationsSearchingBetterMinimum());
+  EXPECT_LT(r.marker_rms_mm, p.marker_rms_free_mm);  // (before.marker_rms_mm is the unmoved fit's)
+  for (const solver::ParameterEstimate& e : r.parameters)
+    for (const solver::ParameterEstimate& b : before.parameters)
+      if (b.name == e.name) EXPECT_EQ(e.initial, b.initial) << e.name;
+  const nlohmann::json json = solver::FitTrustJson(trust);
+  EXPECT_TRUE(json[0]["profile"][0]["adopted"].get<bool>());
+
+  // Off: the worse minimum is reported, the fit kept.
+  options.adopt_better_minimum = false;
+  solver::FitResult kept = WithHipMoved(fit.result, 0.010);
+  ASSERT_TRUE(solver::CheckFitTrustAndAdopt(fit.session.nominal, fit.trials, options, &kept, &trust).ok());
+  EXPECT_TRUE(trust.adopted_joint.empty());
+  ASSERT_EQ(Joint(trust, "hip_r").profile.size(), 1u);
+  EXPECT_TRUE(Joint(trust, "hip_r").profile[0].held_fits_better);
+  EXPECT_FALSE(Joint(trust, "hip_r").profile[0].released);
+  EXPECT_EQ(kept.report.stages.size(), before.stages.size());
+}
+
 // The landmark check (fit_trust.h): the knee's epicondyle markers are found by their geometry,
 // the fitted centre lies where the model puts it against their measured midpoint, and a centre
 // moved 40 mm is flagged far.

@@ -382,6 +382,16 @@ TEST_F(Report, JointFarFromItsFunctionalEstimateIsFlagged) {
   const size_t knee = html.find("data-joint=\"knee_l\"><td>");
   ASSERT_NE(knee, std::string::npos);
   EXPECT_LT(html.find("title=\"static: too still\">not excited by any trial", knee), html.find("</tr>", knee));
+  // A worse minimum released and adopted (fit_trust.h, CheckFitTrustAndAdopt) says so.
+  page.report["joint_checks"][0]["profile"].push_back({{"trial", "hip_star_arc_l"}, {"centre_distance_mm", 23.44},
+                                                       {"delta_chi2", -19.7}, {"held_fits_better", true},
+                                                       {"released", true}, {"released_delta_chi2", -31.3},
+                                                       {"adopted", true}});
+  ASSERT_TRUE(report::WriteFitReportHtml(page, &html));
+  const size_t adopted = html.find("data-joint=\"hip_l\"><td>");
+  EXPECT_LT(html.find("the fit ended in a worse minimum</span>; released from there, chi-square -31.3: <b>adopted</b>",
+                      adopted),
+            html.find("</tr>", adopted));
   page.report["joint_checks"][0]["trials"][0]["far"] = false;
   ASSERT_TRUE(report::WriteFitReportHtml(page, &html));
   EXPECT_EQ(html.find("id=\"functional-far\""), std::string::npos);

@@ -137,6 +137,20 @@ void LogJointChecks(const solver::FitTrust& trust) {
                                          "minimum than the one there; check the joint's markers and trials"
                                        : "the data cannot tell the two apart (within the chi-square's 95 % "
                                          "quantile): another reference must choose");
+  for (const solver::JointTrust& j : trust.joints)
+    for (const solver::ProfileCheck& p : j.profile)
+      if (p.released)
+        spdlog::log(p.adopted ? spdlog::level::warn : spdlog::level::info,
+                    "{}: released from its functional estimate on {}, the fit ends {:+.1f} in chi-square from its "
+                    "first minimum ({} iterations): {}",
+                    j.joint, p.trial, p.released_delta_chi2, p.iterations_released,
+                    p.adopted ? "a better minimum, ADOPTED: the fitted model and poses are that fit's, the checks "
+                                "above made on it"
+                              : "not adopted");
+  if (!trust.adopted_joint.empty())
+    spdlog::warn("the fit's first minimum was not the best one: the fit released from {}'s functional estimate "
+                 "ended {:.1f} lower in chi-square and is the result (the report's last two stages)",
+                 trust.adopted_joint, -trust.adopted_delta_chi2);
   if (!never_excited.empty())
     spdlog::info("joints no trial excites (no functional reference): {}", never_excited);
   if (!no_clusters.empty())
@@ -317,6 +331,20 @@ int RunFit(const FitArgs& args) {
     }
     result.model = std::move(without);
   }
+  // Whether to trust the model (issue 14): each joint against its functional estimate on every
+  // trial, and against the generic model; where the fit ended in a worse minimum than the one
+  // next to a functional estimate, that one is adopted (solver/fit_trust.h). Before the lines
+  // below, which are then the adopted fit's. Not with --functional: its prior is the lab's
+  // choice, and the re-solves run without it (the checks say what they find).
+  solver::FitTrust trust;
+  solver::FitTrustOptions trust_options;
+  trust_options.fit = options;  // the profile checks solve the fit's problem again
+  trust_options.adopt_better_minimum = virtual_markers.empty();
+  if (Status t = solver::CheckFitTrustAndAdopt(generic, trials, trust_options, &result, &trust); !t) {
+    spdlog::error("joint checks: {}", t.message());
+    return 1;
+  }
+  LogJointChecks(trust);
   if (!r.undetermined.empty())
     spdlog::warn("{} parameters not determined by these trials (kept near the initial model): {}{}",
                  r.undetermined.size(), r.undetermined.front(), r.undetermined.size() > 1 ? ", ..." : "");
@@ -331,16 +359,6 @@ int RunFit(const FitArgs& args) {
                    "slipping, or attached to another body than the model's?",
                    name, rms, rms / std::max(1e-9, r.median_marker_rms_mm), r.median_marker_rms_mm);
   }
-  // Whether to trust the model (issue 14): each joint against its functional estimate on every
-  // trial, and against the generic model.
-  solver::FitTrust trust;
-  solver::FitTrustOptions trust_options;
-  trust_options.fit = options;  // the profile checks solve the fit's problem again
-  if (Status t = solver::CheckFitTrust(generic, result, trials, trust_options, &trust); !t) {
-    spdlog::error("joint checks: {}", t.message());
-    return 1;
-  }
-  LogJointChecks(trust);
   if (r.coarse.used || r.coarse.fallback) std::printf("%s\n", r.coarse.BriefReport().c_str());
   std::printf("%s\n%s\n", r.solver.BriefReport().c_str(), r.BriefReport().c_str());
 
