@@ -473,6 +473,30 @@ Status Reader::Read(const C3dReadOptions& options, MarkerTrial* trial) {
   std::vector<std::string> labels;
   if (Status s = Labels(points, &labels); !s.ok()) return s;
   labels.resize(points);
+  // C3dReadOptions::skip_model_outputs: the labels the model-output groups list, as stored.
+  std::set<std::string> outputs;
+  if (options.skip_model_outputs)
+    for (const char* kind : {"ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS"}) {
+      const Param* p = Find("POINT", kind);
+      if (p == nullptr || p->type != kChar) continue;
+      std::vector<std::string> listed;
+      if (Status s = Strings(*p, &listed); !s.ok()) return s;
+      for (const std::string& l : listed)
+        if (!l.empty()) outputs.insert(l.substr(l.rfind(':') + 1));  // with or without a subject prefix
+    }
+  std::vector<uint32_t> kept;  // the points read, file order
+  std::vector<std::string> skipped;
+  for (uint32_t m = 0; m < points; ++m) {
+    if (outputs.count(labels[m].substr(labels[m].rfind(':') + 1)))
+      skipped.push_back(labels[m]);
+    else
+      kept.push_back(m);
+  }
+  if (kept.empty())
+    return Error("parameter section, group POINT",
+                 "every one of its " + std::to_string(points) +
+                     " points is a model output (listed in ANGLES, FORCES, MOMENTS, POWERS, SCALARS or "
+                     "REACTIONS): the file has no markers");
   std::set<std::string> taken;
   for (size_t m = 0; m < points; ++m) {
     std::string name = labels[m];
@@ -497,15 +521,17 @@ Status Reader::Read(const C3dReadOptions& options, MarkerTrial* trial) {
   MarkerTrial out;
   out.name = detail::FileStem(path_);
   out.rate_hz = rate;
-  out.marker_names = std::move(labels);
-  out.positions.resize(static_cast<Eigen::Index>(frames), 3 * static_cast<Eigen::Index>(points));
+  for (uint32_t k = 0; k < kept.size(); ++k) out.marker_names.push_back(std::move(labels[kept[k]]));
+  out.skipped_points = std::move(skipped);
+  out.positions.resize(static_cast<Eigen::Index>(frames), 3 * static_cast<Eigen::Index>(kept.size()));
   out.frame_numbers.resize(frames);
   out.times.resize(frames);
   for (uint64_t f = 0; f < frames; ++f) {
     const unsigned char* row = b_ + data_begin + f * frame_bytes;
     out.frame_numbers[f] = static_cast<int>(first + f);
     out.times[f] = (static_cast<double>(first + f) - 1.0) / rate;
-    for (uint32_t m = 0; m < points; ++m) {
+    for (uint32_t k = 0; k < kept.size(); ++k) {
+      const uint32_t m = kept[k];
       const unsigned char* q = row + 4 * word_bytes * m;
       double xyz[3];
       bool missing;
@@ -521,7 +547,7 @@ Status Reader::Read(const C3dReadOptions& options, MarkerTrial* trial) {
         missing = dec_.I16(q + 6) < 0;
       }
       for (int c = 0; c < 3; ++c) {
-        out.positions(static_cast<Eigen::Index>(f), 3 * m + c) =
+        out.positions(static_cast<Eigen::Index>(f), 3 * k + c) =
             missing ? nan : xyz[c] * unit / per_metre;
       }
     }
@@ -673,6 +699,9 @@ Status WriteC3d(const std::string& path, const MarkerTrial& trial, const C3dWrit
                            " is followed by " + std::to_string(trial.frame_numbers[f]));
     }
   }
+  for (const std::string& name : options.angle_points)
+    if (trial.FindMarker(name) < 0)
+      return Status::Error(cannot + "angle point " + Quote(name) + " is not one of the trial's markers");
   std::set<std::string> seen;
   for (const std::string& name : trial.marker_names) {
     if (name.empty() || name.size() > 255 || TrimRight(name).size() != name.size()) {
@@ -720,6 +749,7 @@ Status WriteC3d(const std::string& path, const MarkerTrial& trial, const C3dWrit
     const std::vector<std::string> chunk(begin, begin + std::min(255, nm - 255 * k));
     params.Strings(kPoint, k == 0 ? "LABELS" : "LABELS" + std::to_string(k + 1), chunk, true);
   }
+  if (!options.angle_points.empty()) params.Strings(kPoint, "ANGLES", options.angle_points, true);
   params.Group(kAnalog, "ANALOG");
   params.Int16(kAnalog, "USED", 0);
   params.Float(kAnalog, "RATE", static_cast<float>(trial.rate_hz));

@@ -26,12 +26,21 @@
 //   last frame saturates on long trials: then TRIAL:ACTUAL_START_FIELD/END_FIELD (two words
 //   forming a 32-bit number) or a larger POINT:FRAMES give the real count.
 // - POINT:UNITS mm, cm or m (absent: mm, the standard's default) -> metres.
+// - Not every point is a marker: Vicon Nexus (Plug-in Gait), Visual3D and others store their
+//   model's outputs as points too -- joint angles in degrees, forces, moments, powers -- and list
+//   their labels in POINT:ANGLES, FORCES, MOMENTS, POWERS, SCALARS and REACTIONS (the C3D
+//   manual's convention, as BTK and ezc3d read it). Read as markers they would be "markers" a few
+//   centimetres from the lab's origin: ghosts to the tracker, noise to the fit's attachment of
+//   unknown markers. They are skipped (C3dReadOptions::skip_model_outputs) and named in
+//   MarkerTrial::skipped_points. Virtual points a model places in the lab (Plug-in Gait's joint
+//   centres, segment origins) are not listed there and stay: they are positions.
 // - Every count and offset read from the file is checked against the file size before it is
 //   used (no out-of-bounds read, no allocation larger than the file justifies), so corrupt or
 //   truncated files give an error naming the file and the place, never a crash.
 #pragma once
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "formats/marker_data.h"
 #include "model/status.h"
@@ -43,6 +52,8 @@ struct C3dReadOptions {
   // "r_knee"), as the TRC conversions in shared/data did. Set false to keep the labels as stored
   // (only trailing spaces are removed either way).
   bool strip_label_prefix = true;
+  // Leave out the points listed as model outputs (see above); false reads every point.
+  bool skip_model_outputs = true;
 };
 
 // Reads the 3D points of a C3D file into `trial` (metres; NaN where the residual marks a sample
@@ -67,6 +78,9 @@ struct C3dWriteOptions {
   // Scaled 16-bit integers instead of floats: each coordinate is rounded to a multiple of the
   // scale, chosen so the largest |coordinate| maps to 30000 counts (at most 0.5 scale of error).
   bool integer_points = false;
+  // Trial markers that are a model's joint angles, listed in POINT:ANGLES as Vicon Nexus lists
+  // Plug-in Gait's outputs (see the reader's pitfalls): files such as a lab's exports, for tests.
+  std::vector<std::string> angle_points;
 };
 
 // Writes `trial` (metres) as a C3D file: POINT:USED, LABELS (+ LABELS2, ... past 255 markers),

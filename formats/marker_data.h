@@ -18,6 +18,9 @@ struct MarkerTrial {
   std::vector<int> frame_numbers;        // as in the file
   std::vector<double> times;             // seconds, as in the file
   RowMatrix positions;                   // frames x (3 * markers)
+  // Points the file held that are not markers and were not read (a C3D's model outputs, listed
+  // in POINT:ANGLES, FORCES, MOMENTS, POWERS, SCALARS or REACTIONS: formats/c3d.h).
+  std::vector<std::string> skipped_points;
 
   int num_frames() const { return static_cast<int>(positions.rows()); }
   int num_markers() const { return static_cast<int>(marker_names.size()); }

@@ -464,6 +464,42 @@ TEST(C3dRoundTrip, LabelPrefixesRepeatsAndEmptyLabels) {
   EXPECT_EQ(stripped.marker_names.back(), "P4");
 }
 
+// A lab's export holds its model's outputs as points too (Vicon Nexus: Plug-in Gait's joint
+// angles, listed in POINT:ANGLES): they are not markers, so they are skipped and named, with or
+// without the subject prefix, and the markers after them keep their own samples.
+TEST(C3dRoundTrip, ModelOutputPointsAreNotReadAsMarkers) {
+  MarkerTrial t = MakeTrial(4, 20);
+  t.marker_names = {"Bob:RKNE", "Bob:LKneeAngles", "Bob:RANK", "LHipAngles"};
+  C3dWriteOptions w;
+  w.angle_points = {"Bob:LKneeAngles", "LHipAngles"};
+  const std::string path = TmpPath("_angles.c3d");
+  ASSERT_TRUE(WriteC3d(path, t, w).ok());
+  MarkerTrial r;
+  ASSERT_TRUE(ReadC3d(path, &r).ok());
+  EXPECT_EQ(r.marker_names, (std::vector<std::string>{"RKNE", "RANK"}));
+  EXPECT_EQ(r.skipped_points, (std::vector<std::string>{"Bob:LKneeAngles", "LHipAngles"}));
+  ASSERT_EQ(r.positions.cols(), 6);
+  for (int f = 0; f < t.num_frames(); ++f) {
+    EXPECT_NEAR((r.At(f, 0) - t.At(f, 0)).norm(), 0.0, 1e-6) << f;
+    if (t.Has(f, 2)) EXPECT_NEAR((r.At(f, 1) - t.At(f, 2)).norm(), 0.0, 1e-6) << f;
+  }
+  C3dReadOptions all;
+  all.skip_model_outputs = false;
+  ASSERT_TRUE(ReadC3d(path, &r, all).ok());
+  EXPECT_EQ(r.marker_names, (std::vector<std::string>{"RKNE", "LKneeAngles", "RANK", "LHipAngles"}));
+  EXPECT_TRUE(r.skipped_points.empty());
+  // Nothing but model outputs: no markers, said so.
+  w.angle_points = t.marker_names;
+  ASSERT_TRUE(WriteC3d(path, t, w).ok());
+  const Status none = ReadC3d(path, &r);
+  ASSERT_FALSE(none.ok());
+  EXPECT_THAT(none.message(), HasSubstr("every one of its 4 points is a model output"));
+  w.angle_points = {"LKneeAngles"};  // not a label of the trial as written
+  const Status bad = WriteC3d(path, t, w);
+  ASSERT_FALSE(bad.ok());
+  EXPECT_THAT(bad.message(), HasSubstr("angle point 'LKneeAngles' is not one of the trial's markers"));
+}
+
 TEST(C3dWrite, RejectsWhatC3dCannotHold) {
   const std::string path = TmpPath(".c3d");
   MarkerTrial t = MakeTrial(2, 5);

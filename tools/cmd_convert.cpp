@@ -12,6 +12,7 @@
 #include "formats/marker_file.h"
 #include "formats/trc.h"
 #include "tools/command.h"
+#include "tools/trial_inputs.h"
 
 namespace {
 
@@ -50,6 +51,7 @@ int RunConvert(const ConvertArgs& args) {
     spdlog::error("mocap convert: {}", s.message());
     return 1;
   }
+  mocap::tools::LogSkippedPoints(args.in, trial);
   if (MarkerFileKindOf(args.out) == MarkerFileKind::kC3d) {
     s = mocap::formats::WriteC3d(args.out, trial);
   } else {

@@ -140,6 +140,8 @@ int RunTrack(const TrackArgs& args) {
     // Read here for its errors first; read again with the model's names below (LoadTrials).
     spdlog::error("mocap track: {}", s.message());
     return 2;
+  } else {
+    LogSkippedPoints(args.points, file);
   }
 
   // --- the model ---

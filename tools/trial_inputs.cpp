@@ -98,6 +98,15 @@ void AddInputOptions(CLI::App* cmd, InputArgs* args) {
   cmd->add_option("trials", args->trials, "marker trials (.trc, .c3d)")->required();
 }
 
+void LogSkippedPoints(const std::string& path, const formats::MarkerTrial& trial) {
+  if (trial.skipped_points.empty()) return;
+  std::string list;
+  for (size_t k = 0; k < trial.skipped_points.size() && k < 6; ++k) list += (k ? ", " : "") + trial.skipped_points[k];
+  spdlog::info("{}: {} points are the file's model outputs (angles, forces, moments, powers), not markers: not "
+               "read ({}{})",
+               path, trial.skipped_points.size(), list, trial.skipped_points.size() > 6 ? ", ..." : "");
+}
+
 bool LoadInputs(const InputArgs& args, Inputs* out) {
   Status s = LoadModelInput(args.model_path, args.marker_set, &out->model);
   if (s) s = LoadTrials(args.trials, args.marker_map, out->model.model, &out->trials, &out->match);
@@ -108,6 +117,7 @@ bool LoadInputs(const InputArgs& args, Inputs* out) {
   for (size_t t = 0; t < out->trials.size(); ++t)
     spdlog::info("{}: {} frames, {} markers at {} Hz", args.trials[t], out->trials[t].num_frames(),
                  out->trials[t].num_markers(), out->trials[t].rate_hz);
+  for (size_t t = 0; t < out->trials.size(); ++t) LogSkippedPoints(args.trials[t], out->trials[t]);
   LogMarkerMatch(out->match);
   return true;
 }

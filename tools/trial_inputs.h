@@ -43,6 +43,8 @@ Status LoadTrials(const std::vector<std::string>& paths, const std::string& mark
 
 // Logs (spdlog warn) the two lists of `match`, when not empty.
 void LogMarkerMatch(const MarkerMatch& match);
+// Logs the points a file held that are not markers (formats::MarkerTrial::skipped_points), if any.
+void LogSkippedPoints(const std::string& path, const formats::MarkerTrial& trial);
 
 // The inputs of `mocap fit` and `mocap ik`: --model, --marker-set, --marker-map and the trials.
 struct InputArgs {
