@@ -207,6 +207,59 @@ Status PlaceMarkersOnTheirSegments(const Model& model, const std::vector<formats
                       model.derived_coordinates(), out);
 }
 
+Status TieCentreMarkers(const std::vector<formats::MarkerTrial>& trials, double tolerance_m, Model* model,
+                        std::vector<CentreMarker>* tied) {
+  tied->clear();
+  if (!(tolerance_m > 0)) return Status::Error("tie centre markers: the tolerance must be > 0");
+  const Geometry g(*model);
+  ModelData d(*model);
+  ForwardKinematics(*model, g, model->DefaultCoordinates(), &d);
+  std::vector<Marker> markers = model->markers();
+  for (int m = 0; m < model->num_markers(); ++m) {
+    bool seen = false;
+    for (const formats::MarkerTrial& t : trials) {
+      const int c = t.FindMarker(markers[m].name);
+      for (int f = 0; c >= 0 && f < t.num_frames() && !seen; ++f) seen = t.Has(f, c);
+    }
+    if (!seen) continue;
+    const Eigen::Vector3d x = MarkerPosition(*model, g, d, m);
+    int nearest = -1;
+    double distance = tolerance_m;
+    for (int j = 0; j < model->num_joints(); ++j) {
+      const Joint& jt = model->joints()[j];
+      if (jt.parent < 0 || (markers[m].segment != jt.parent && markers[m].segment != jt.child)) continue;
+      const double r = (x - JointCentre(*model, d, j)).norm();
+      if (r <= distance) distance = r, nearest = j;
+    }
+    if (nearest < 0) continue;
+    tied->push_back({markers[m].name, model->joints()[nearest].name, markers[m].segment, markers[m].position,
+                     1000.0 * distance});
+    markers[m].segment = model->joints()[nearest].child;
+    markers[m].position.setZero();
+  }
+  if (tied->empty()) return Status::Ok();
+  return Model::Build(model->name(), model->segments(), model->joints(), model->coordinates(), markers,
+                      model->derived_coordinates(), model);
+}
+
+Status UntieCentreMarkers(const std::vector<CentreMarker>& tied, Model* fitted) {
+  if (tied.empty()) return Status::Ok();
+  std::vector<Marker> markers = fitted->markers();
+  const Eigen::VectorXd p = fitted->InitialParameters();
+  for (const CentreMarker& c : tied) {
+    const int m = fitted->FindMarker(c.marker), j = fitted->FindJoint(c.joint);
+    if (m < 0 || j < 0)
+      return Status::Error("untie centre markers: the fitted model has no " +
+                           (m < 0 ? "marker '" + c.marker + "'" : "joint '" + c.joint + "'"));
+    const Joint& jt = fitted->joints()[j];
+    markers[m].segment = c.segment;
+    markers[m].position =
+        c.segment == jt.child ? Eigen::Vector3d::Zero() : Eigen::Vector3d(p.segment<3>(fitted->centre_index(j)));
+  }
+  return Model::Build(fitted->name(), fitted->segments(), fitted->joints(), fitted->coordinates(), markers,
+                      fitted->derived_coordinates(), fitted);
+}
+
 std::pair<int, int> LandmarkPairAbout(const Model& model, int j) {
   const Geometry g(model);
   ModelData d(model);

@@ -100,6 +100,33 @@ Status PlaceMarkersOnTheirSegments(const Model& model, const std::vector<formats
                                    const std::vector<Eigen::MatrixXd>& poses, const std::vector<Marker>& markers,
                                    const AttachOptions& options, Model* out, std::vector<PlacedMarker>* report);
 
+// A model marker its author put on a joint centre -- OpenCap's RHJC_study and LHJC_study on the
+// pelvis of its LaiUhlrich2022 model, a model made for a Plug-in Gait export's RHJC -- and that
+// the trials see is not a skin marker: its trajectory is another tool's estimate of the centre
+// (OpenCap's marker augmenter, a regression). Fitted as a skin marker its place on the segment
+// would be free, and the fitted centre would not follow it (the OpenCap-style subject:
+// a right hip 105 mm from the pipeline's own hip-centre markers); OpenSim keeps it where the
+// author put it, at the centre, so its Scale and IK carry the centre with it. Tied here, it is a
+// point of the centre itself: moved to the joint's child segment at its origin (the centre, in
+// every pose) and its place held (FitOptions::fixed_markers), as AddFunctionalCentres's virtual
+// markers are; after the fit, UntieCentreMarkers puts it back on its own segment at the fitted
+// centre.
+struct CentreMarker {
+  std::string marker, joint;
+  int segment = -1;                                   // its own segment in the model
+  Eigen::Vector3d position = Eigen::Vector3d::Zero();  // its own place there (unscaled)
+  double from_centre_mm = 0;                           // from the centre, the model's default pose
+};
+
+// The model markers that `trials` see and that lie within tolerance_m of a joint centre in the
+// model's default pose, on that joint's parent or child segment (the nearest joint's, where two
+// are that close), moved onto the centre (*model rebuilt) and named in *tied, model order.
+Status TieCentreMarkers(const std::vector<formats::MarkerTrial>& trials, double tolerance_m, Model* model,
+                        std::vector<CentreMarker>* tied);
+// Each of `tied` back on its own segment, at its joint's centre in *fitted (the fitted centre in
+// the parent's frame, or the child's origin). Errors name a marker or joint *fitted lacks.
+Status UntieCentreMarkers(const std::vector<CentreMarker>& tied, Model* fitted);
+
 // The two landmark markers about joint j (the femoral epicondyles about a knee, the malleoli
 // about an ankle), found in the model's default pose by geometry, not by name (labs name them
 // every way): two markers of the joint's parent or child segment 5-20 cm apart, their line within

@@ -693,6 +693,71 @@ TEST(GlobalFit, StackedPlaceholderMarkersArePlacedOnTheirSegment) {
   for (const auto& f : result.report.far_moved_markers) EXPECT_NE(f.name, "RTHI");
 }
 
+// A model marker on a joint centre (OpenCap's RHJC_study on the pelvis) that the trials see is
+// a point of the centre, not a skin marker (solver/attach_markers.h): tied to the centre for the
+// fit, its place held, it ends on the fitted centre, and untied it is back on the pelvis there.
+// Markers away from every centre, and a centre marker no trial sees, are left alone.
+TEST(GlobalFit, AMarkerOnAJointCentreIsFittedAsAPointOfTheCentre) {
+  std::mt19937_64 rng(29);
+  const Model nominal = NominalWithoutOptional();
+  const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
+  const Model truth = mocap::testutil::Baked(nominal, p_true);
+  const int hip = nominal.FindJoint("hip_r"), pelvis = nominal.joints()[hip].parent;
+  auto with_centre_markers = [&](const Model& m) {
+    std::vector<Marker> markers = m.markers();
+    Marker c;
+    c.name = "RHJC";
+    c.segment = pelvis;
+    c.position = m.InitialParameters().segment<3>(m.centre_index(hip));
+    markers.push_back(c);
+    c.name = "LHJC";  // on the left hip's centre, but in no trial
+    c.position = m.InitialParameters().segment<3>(m.centre_index(m.FindJoint("hip_l")));
+    markers.push_back(c);
+    return WithMarkerList(m, markers);
+  };
+  std::vector<solver::FitTrial> trials(1);
+  trials[0].markers = testutil::SimulateRandomMotion(with_centre_markers(truth), 300, 0.0005, rng);
+  const int lhjc_column = trials[0].markers.FindMarker("LHJC");
+  ASSERT_GE(lhjc_column, 0);
+  for (int f = 0; f < trials[0].markers.num_frames(); ++f)
+    trials[0].markers.positions.block<1, 3>(f, 3 * lhjc_column).setConstant(std::nan(""));
+  Model generic = with_centre_markers(nominal);
+  std::vector<solver::CentreMarker> tied;
+  ASSERT_TRUE(solver::TieCentreMarkers({trials[0].markers}, 0.002, &generic, &tied).ok());
+  ASSERT_EQ(tied.size(), 1u);
+  EXPECT_EQ(tied[0].marker, "RHJC");
+  EXPECT_EQ(tied[0].joint, "hip_r");
+  EXPECT_EQ(tied[0].segment, pelvis);
+  EXPECT_LT(tied[0].from_centre_mm, 1e-6);
+  EXPECT_EQ(generic.markers()[generic.FindMarker("RHJC")].segment, nominal.joints()[hip].child);
+  EXPECT_EQ(generic.markers()[generic.FindMarker("LHJC")].segment, pelvis);  // not seen: untouched
+  EXPECT_EQ(generic.markers()[generic.FindMarker("RTHI")].segment, nominal.markers()[nominal.FindMarker("RTHI")].segment);
+
+  solver::FitOptions options;
+  options.fixed_markers = {"RHJC"};
+  solver::FitResult result;
+  ASSERT_TRUE(solver::FitModel(generic, trials, options, &result).ok());
+  ASSERT_TRUE(solver::UntieCentreMarkers(tied, &result.model).ok());
+  const Model& fitted = result.model;
+  const Marker& rhjc = fitted.markers()[fitted.FindMarker("RHJC")];
+  EXPECT_EQ(rhjc.segment, pelvis);
+  EXPECT_LT((rhjc.position - fitted.InitialParameters().segment<3>(fitted.centre_index(hip))).norm(), 1e-12);
+  ModelComparison cmp;
+  ASSERT_TRUE(CompareModels(truth, fitted, &cmp).ok());
+  for (const auto& jd : cmp.joints) {
+    if (jd.joint == "hip_r") EXPECT_LT(jd.centre_error_mm, 1.0);
+  }
+  double rms = 0;
+  for (const auto& [name, r] : result.report.per_marker_rms_mm)
+    if (name == "RHJC") rms = r;
+  EXPECT_GT(rms, 0.0);
+  EXPECT_LT(rms, 1.5);  // noise 0.5 mm a coordinate
+  std::vector<solver::CentreMarker> none;
+  Model plain = nominal;
+  ASSERT_TRUE(solver::TieCentreMarkers({trials[0].markers}, 0.002, &plain, &none).ok());
+  EXPECT_TRUE(none.empty());
+}
+
 // FitOptions::scaling_marker_rounds: a model marker placed 10 cm from where the subject wears it
 // (a generic model's guess) is weighed down while the scales are fitted, and named with its weight.
 TEST(GlobalFit, ScalingWeighsDownAMarkerTheModelMisplaces) {

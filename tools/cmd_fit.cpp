@@ -191,9 +191,21 @@ int RunFit(const FitArgs& args) {
     }
     for (const std::string& n : notes) spdlog::info("--functional: {}", n);
   }
+  // Markers the model puts on a joint centre (OpenCap's RHJC_study): points of the centre, not
+  // skin markers (solver/attach_markers.h); back on their own segments before the model is written.
+  std::vector<solver::CentreMarker> centre_markers;
+  if (Status s = solver::TieCentreMarkers(inputs.trials, 0.002, &inputs.model.model, &centre_markers); !s) {
+    spdlog::error("{}", s.message());
+    return 1;
+  }
+  for (const solver::CentreMarker& c : centre_markers)
+    spdlog::info("{}: the model puts it on {}'s centre ({:.1f} mm away): read as another tool's estimate of that "
+                 "centre, fitted as a point of the centre, not as a skin marker",
+                 c.marker, c.joint, c.from_centre_mm);
   const Model& model = inputs.model.model;
   solver::FitOptions options;
   options.fixed_markers = virtual_markers;
+  for (const solver::CentreMarker& c : centre_markers) options.fixed_markers.push_back(c.marker);
   if (Status s = options.SetGroups(args.groups); !s) {
     spdlog::error("--fit: {}", s.message());
     return 2;
@@ -362,6 +374,10 @@ int RunFit(const FitArgs& args) {
   if (r.coarse.used || r.coarse.fallback) std::printf("%s\n", r.coarse.BriefReport().c_str());
   std::printf("%s\n%s\n", r.solver.BriefReport().c_str(), r.BriefReport().c_str());
 
+  if (Status u = solver::UntieCentreMarkers(centre_markers, &result.model); !u) {
+    spdlog::error("{}", u.message());
+    return 1;
+  }
   fs::path out(args.out);
   if (out.has_parent_path()) fs::create_directories(out.parent_path());
   if (Status w = osim_out ? formats::ExportOsim(result.model, inputs.model.import, args.out)
