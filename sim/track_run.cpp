@@ -17,6 +17,25 @@ double ThreadCpuUs() {
   return static_cast<double>(t.tv_sec) * 1e6 + static_cast<double>(t.tv_nsec) * 1e-3;
 }
 
+// The run scored against input.labels from its labels (run->point_of_marker), frame by frame.
+void Score(const TrackInput& input, TrackRun* run) {
+  run->scored = input.labels != nullptr;
+  if (!run->scored) return;
+  const std::vector<Eigen::Matrix3Xd>& frames = *input.points;
+  LabelScorer scorer(input.num_labels);
+  run->frame_scores.assign(run->frames, LabelScore());
+  std::vector<int> given;
+  for (int f = 0; f < run->frames; ++f) {
+    given.assign(frames[f].cols(), -1);
+    for (int m = 0; m < run->point_of_marker.cols() && m < static_cast<int>(input.label_of_marker.size()); ++m)
+      if (const int i = run->point_of_marker(f, m); i >= 0) given[i] = input.label_of_marker[m];
+    run->frame_scores[f] = scorer.Add((*input.labels)[f], given);
+  }
+  run->score = scorer.Finish();
+  run->marker_samples = scorer.marker_samples();
+  run->marker_correct = scorer.marker_correct();
+}
+
 }  // namespace
 
 TrackRun RunTracker(const TrackInput& input, ekf::Tracker* tracker,
@@ -32,10 +51,6 @@ TrackRun RunTracker(const TrackInput& input, ekf::Tracker* tracker,
   run.point_of_marker.setConstant(nf, nm, -1);
   run.update_us.reserve(nf);
   run.update_cpu_us.reserve(nf);
-  run.scored = input.labels != nullptr;
-  LabelScorer scorer(run.scored ? input.num_labels : 0);
-  if (run.scored) run.frame_scores.resize(nf);
-  std::vector<int> given;
   double sum_points = 0;
   for (int f = 0; f < nf; ++f) {
     const Eigen::Matrix3Xd& points = frames[f];
@@ -58,24 +73,73 @@ TrackRun RunTracker(const TrackInput& input, ekf::Tracker* tracker,
       const int i = o.point_of_marker[m];
       if (i >= 0 && i < points.cols()) run.point_of_marker(f, m) = i;
     }
-    if (run.scored) {
-      given.assign(points.cols(), -1);
-      for (int i = 0; i < points.cols() && i < static_cast<int>(o.marker_of_point.size()); ++i) {
-        const int m = o.marker_of_point[i];
-        if (m >= 0 && m < static_cast<int>(input.label_of_marker.size()))
-          given[i] = input.label_of_marker[m];
-      }
-      run.frame_scores[f] = scorer.Add((*input.labels)[f], given);
-    }
     if (after) after(f, o);
   }
   run.points_per_frame_mean = sum_points / std::max(1, nf);
-  if (run.scored) {
-    run.score = scorer.Finish();
-    run.marker_samples = scorer.marker_samples();
-    run.marker_correct = scorer.marker_correct();
-  }
+  Score(input, &run);
   return run;
+}
+
+constexpr int kBackfillLeadInFrames = 20;
+
+int BackfillBeforeStart(const TrackInput& input, std::shared_ptr<const Model> model,
+                        const ekf::TrackerOptions& options, TrackRun* run) {
+  const int start = run->first_tracking;
+  if (start <= 0) return 0;
+  const std::vector<double>& times = *input.times;
+  const int nm = run->point_of_marker.cols(), nz = static_cast<int>(run->z.cols());
+  ekf::Tracker backward(std::move(model), options);
+  // From a little after the start, so that markers a start leaves for the following frames to
+  // pick up (a head marker, a forearm) are labelled by the time the backward run passes it.
+  const int from = std::min(run->frames - 1, start + kBackfillLeadInFrames);
+  int filled = 0;
+  for (int f = from; f >= 0; --f) {
+    const ekf::TrackOutput& o = backward.Update(times[from] - times[f], (*input.points)[f]);
+    if (f >= start || o.state != ekf::TrackState::kTracking) continue;
+    ++filled;
+    --run->state_count[static_cast<int>(run->states[f])];
+    run->states[f] = o.state;
+    ++run->state_count[static_cast<int>(o.state)];
+    if (o.z.size() == nz) run->z.row(f) = o.z.transpose();
+    for (int m = 0; m < nm && m < static_cast<int>(o.point_of_marker.size()); ++m) {
+      const int i = o.point_of_marker[m];
+      run->point_of_marker(f, m) = i >= 0 && i < (*input.points)[f].cols() ? i : -1;
+    }
+  }
+  for (int f = 0; f < start && run->first_tracking == start; ++f)
+    if (run->states[f] == ekf::TrackState::kTracking) run->first_tracking = f;
+  run->backfilled_frames = filled;
+  Score(input, run);
+  return filled;
+}
+
+Eigen::Vector3d FindLabVertical(const TrackInput& input, const std::shared_ptr<const Model>& model,
+                                const ekf::TrackerOptions& options, int frames, int* started, int* labelled) {
+  const std::vector<Eigen::Vector3d> axes = {Eigen::Vector3d::UnitZ(),  Eigen::Vector3d::UnitY(),
+                                             -Eigen::Vector3d::UnitZ(), -Eigen::Vector3d::UnitY(),
+                                             Eigen::Vector3d::UnitX(),  -Eigen::Vector3d::UnitX()};
+  Eigen::Vector3d best = options.up;
+  *started = -1;
+  *labelled = 0;
+  const int n = std::min<int>(frames, static_cast<int>(input.points->size()));
+  for (const Eigen::Vector3d& up : axes) {
+    ekf::TrackerOptions o = options;
+    o.up = up;
+    ekf::Tracker tracker(model, o);
+    // Past the best start found so far an axis cannot win.
+    const int last = *started >= 0 ? std::min(n - 1, *started) : n - 1;
+    for (int f = 0; f <= last; ++f) {
+      const ekf::TrackOutput& out = tracker.Update((*input.times)[f], (*input.points)[f]);
+      if (out.state != ekf::TrackState::kTracking) continue;
+      if (*started < 0 || f < *started || out.labelled > *labelled) {
+        *started = f;
+        *labelled = out.labelled;
+        best = up;
+      }
+      break;
+    }
+  }
+  return best;
 }
 
 TrackRun TrackScene(const TrackingScene& scene, ekf::Tracker* tracker,

@@ -11,6 +11,7 @@
 #pragma once
 #include <Eigen/Core>
 #include <functional>
+#include <memory>
 #include <vector>
 
 #include "ekf/tracker.h"
@@ -29,6 +30,7 @@ struct TrackRun {
   int initialisations = 0;                      // frames with TrackOutput::reinitialised
   int nan_poses = 0;
   int first_tracking = -1;
+  int backfilled_frames = 0;                    // BackfillBeforeStart's
   double points_per_frame_mean = 0, points_per_frame_max = 0;
   // With truth labels only:
   bool scored = false;
@@ -55,6 +57,30 @@ struct TrackInput {
 // Runs `tracker` over every frame. `after(f, output)` (optional) sees each frame's output.
 TrackRun RunTracker(const TrackInput& input, ekf::Tracker* tracker,
                     const std::function<void(int, const ekf::TrackOutput&)>& after = {});
+
+// Offline only (a recording read from a file, `mocap track --points`): the frames before the
+// run's first start (run->first_tracking), which the live tracker leaves unlabelled while its
+// start is refused, labelled by a fresh tracker of `options` run backward in time from that start
+// (from 20 frames after first_tracking down to frame 0, times mirrored so they increase: the lead-
+// in lets it pick up the markers a start leaves to the frames after it, as the forward run did),
+// and each frame before the start that it tracks takes its labels, pose and state; the run is
+// scored again. A whole-trial labeller does as
+// much (Nexus, QTM label a trial from any frame, both ways); the real-time tracker cannot look
+// back, and the simulated sweep measures that tracker, so it does not backfill. Returns the frames
+// filled.
+int BackfillBeforeStart(const TrackInput& input, std::shared_ptr<const Model> model,
+                        const ekf::TrackerOptions& options, TrackRun* run);
+
+// Offline too: the lab's vertical of a recording when nobody said it (`mocap track --points`
+// without --up). Labs differ -- Z up in most C3D files, Y in OpenSim's TRC files, -Z in a data
+// set turned upside down -- and the tracker's start needs it (its search turns the points so that
+// the lab's vertical is the model's). Each of the six axes is tried by a fresh tracker of
+// `options` over the first `frames` frames; a wrong vertical does not start (the start needs 80 %
+// of the markers within 3 cm of a posed model). The axis that starts first wins, ties going to the
+// one that labels more markers there, then to the order z, y, -z, -y, x, -x. *started: that
+// frame (-1: no axis started; options.up is returned). *labelled: the markers it labelled there.
+Eigen::Vector3d FindLabVertical(const TrackInput& input, const std::shared_ptr<const Model>& model,
+                                const ekf::TrackerOptions& options, int frames, int* started, int* labelled);
 
 // RunTracker over a simulated scene, scored against its labels (model markers matched by name).
 TrackRun TrackScene(const TrackingScene& scene, ekf::Tracker* tracker,

@@ -745,7 +745,9 @@ TEST(GlobalFit, AMarkerOnAJointCentreIsFittedAsAPointOfTheCentre) {
   ModelComparison cmp;
   ASSERT_TRUE(CompareModels(truth, fitted, &cmp).ok());
   for (const auto& jd : cmp.joints) {
-    if (jd.joint == "hip_r") EXPECT_LT(jd.centre_error_mm, 1.0);
+    if (jd.joint == "hip_r") {
+      EXPECT_LT(jd.centre_error_mm, 1.0);
+    }
   }
   double rms = 0;
   for (const auto& [name, r] : result.report.per_marker_rms_mm)

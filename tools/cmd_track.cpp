@@ -21,8 +21,10 @@
 // markers it never shows are the tracker's unseen markers (virtual ones such as R_HJC); with
 // --unlabel its labels are removed, each frame's points shuffled and --ghosts added, and
 // stats.json scores the tracker's labels against the file's (label_accuracy, wrong_labels,
-// swaps_longer_than_5_frames, per_marker_accuracy). --up names the lab's vertical; an OpenSim
-// model's own is Y, ours Z (TrackerOptions::up, model_up). --scale-to-subject always scales a
+// swaps_longer_than_5_frames, per_marker_accuracy). --up names the lab's vertical (auto, the
+// default: found, sim::FindLabVertical); an OpenSim model's own is Y, ours Z (TrackerOptions::up,
+// model_up). A file's frames before the first start are labelled backward from it
+// (sim::BackfillBeforeStart; --no-backfill: as live). --scale-to-subject always scales a
 // generic model to the subject at the start (TrackerOptions::init_scale_to_subject); stats.json
 // gives the scales (segment_scales).
 //
@@ -66,12 +68,13 @@ struct TrackArgs {
   std::string fault = "none";
   std::string points;
   std::string marker_set, marker_map;
-  std::string up = "z";
+  std::string up = "auto";
   std::string scale_to_subject = "when-needed";
   bool unlabel = false;
   double height_m = 1.75;
   std::string out;
   bool write_points = false;
+  bool no_backfill = false;
 };
 
 std::vector<std::string> SplitList(const std::string& list) {
@@ -95,17 +98,24 @@ std::string FlagOf(const std::string& message) {
 
 double WrapAngle(double a) { return std::remainder(a, 2.0 * M_PI); }
 
+const std::pair<const char*, Eigen::Vector3d> kAxes[] = {
+    {"x", Eigen::Vector3d::UnitX()},  {"y", Eigen::Vector3d::UnitY()},  {"z", Eigen::Vector3d::UnitZ()},
+    {"-x", -Eigen::Vector3d::UnitX()}, {"-y", -Eigen::Vector3d::UnitY()}, {"-z", -Eigen::Vector3d::UnitZ()}};
+
 // "x", "-y", ... as a unit vector.
 bool ParseAxis(const std::string& text, Eigen::Vector3d* axis) {
-  static const std::pair<const char*, Eigen::Vector3d> axes[] = {
-      {"x", Eigen::Vector3d::UnitX()},  {"y", Eigen::Vector3d::UnitY()},  {"z", Eigen::Vector3d::UnitZ()},
-      {"-x", -Eigen::Vector3d::UnitX()}, {"-y", -Eigen::Vector3d::UnitY()}, {"-z", -Eigen::Vector3d::UnitZ()}};
-  for (const auto& [name, a] : axes)
+  for (const auto& [name, a] : kAxes)
     if (text == name) {
       *axis = a;
       return true;
     }
   return false;
+}
+// The other way round.
+std::string AxisName(const Eigen::Vector3d& axis) {
+  for (const auto& [name, a] : kAxes)
+    if (a == axis) return name;
+  return "?";
 }
 
 int RunTrack(const TrackArgs& args) {
@@ -229,8 +239,11 @@ int RunTrack(const TrackArgs& args) {
   topt.rate_hz = args.simulate ? scene.options.rate_hz
                                : (file.rate_hz > 0 ? file.rate_hz
                                                    : 1.0 / (file.times[1] - file.times[0]));
-  if (!ParseAxis(args.up, &topt.up)) {
-    spdlog::error("mocap track: --up {}: expected x, y, z, -x, -y or -z", args.up);
+  const bool find_up = args.up == "auto";
+  if (find_up) {
+    topt.up = Eigen::Vector3d::UnitZ();  // a simulated lab's; a file's is found below
+  } else if (!ParseAxis(args.up, &topt.up)) {
+    spdlog::error("mocap track: --up {}: expected auto, x, y, z, -x, -y or -z", args.up);
     return 2;
   }
   topt.init_scale_to_subject = args.scale_to_subject == "never"    ? ekf::TrackerOptions::ScaleToSubject::kNever
@@ -259,7 +272,6 @@ int RunTrack(const TrackArgs& args) {
   const int nf = args.simulate ? scene.num_frames() : file.num_frames();
   const int nm = model.num_markers(), nz = model.num_coordinates();
   auto shared = std::make_shared<const Model>(model);
-  ekf::Tracker tracker(shared, topt);
   // A points file as frames of points (NaN columns dropped); with --unlabel its labels are
   // removed, each frame's points shuffled and --ghosts added, and the tracker scored against them.
   sim::UnlabelledTrial file_frames;
@@ -268,7 +280,21 @@ int RunTrack(const TrackArgs& args) {
     uo.shuffle_seed = args.unlabel ? 1 : 0;
     uo.ghosts = args.unlabel ? args.scene.ghosts : 0;
     file_frames = sim::Unlabel(file, model, uo);
+    if (find_up) {  // --up auto: the axis on which the tracker starts first (sim::FindLabVertical)
+      int started = -1, labelled = 0;
+      const int tried = std::min(nf, 10);
+      topt.up = sim::FindLabVertical(file_frames.Input(nm), shared, topt, tried, &started, &labelled);
+      const std::string axis = AxisName(topt.up);
+      if (started >= 0)
+        spdlog::info("the lab's vertical: {} (the tracker starts there at frame {} with {} markers; --up to set it)",
+                     axis, started + 1, labelled);
+      else
+        spdlog::warn("the lab's vertical: the tracker starts on no axis in the first {} frames; taking {} (--up to "
+                     "set it)",
+                     tried, axis);
+    }
   }
+  ekf::Tracker tracker(shared, topt);
   const int progress_every = std::max(1, nf / 10);
   const auto progress = [&](int f, const ekf::TrackOutput& o) {
     if ((f + 1) % progress_every == 0 || f + 1 == nf)
@@ -282,6 +308,14 @@ int RunTrack(const TrackArgs& args) {
     sim::TrackInput in = file_frames.Input(nm);
     if (!args.unlabel) in.labels = nullptr;
     run = sim::RunTracker(in, &tracker, progress);
+    // A file is offline: the frames before the first start are labelled backward from it.
+    if (!args.no_backfill && run.first_tracking > 0) {
+      const int start = run.first_tracking;
+      const int filled = sim::BackfillBeforeStart(in, shared, topt, &run);
+      spdlog::info("the tracker first started at frame {}; tracked backward from there, {} of the {} frames before "
+                   "it labelled (--no-backfill: the live tracker's view)",
+                   start + 1, filled, start);
+    }
   }
   const std::vector<double>& times = args.simulate ? scene.times : file_frames.times;
   const std::vector<Eigen::Matrix3Xd>& frames = args.simulate ? scene.points : file_frames.points;
@@ -315,6 +349,7 @@ int RunTrack(const TrackArgs& args) {
   j["model"] = input.path;
   j["model_markers"] = nm;
   j["rate_hz"] = topt.rate_hz;
+  j["backfilled_frames"] = run.backfilled_frames;
   j["points_per_frame_mean"] = run.points_per_frame_mean;
   j["points_per_frame_max"] = run.points_per_frame_max;
   j["frames_tracking"] = run.frames_tracking();
@@ -510,10 +545,15 @@ const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code)
   cmd->add_option("--fault-time", args->scene.fault_time_s, "simulation: when the fault starts (s; default 40 % in)");
   cmd->add_flag("--write-points", args->write_points, "simulation: also write the points as DIR/points.trc");
   cmd->add_option("--points", args->points, "unlabelled points (.trc or .c3d, NaN for empty slots)");
+  cmd->add_flag("--no-backfill", args->no_backfill,
+                "with --points: leave the frames before the first start unlabelled (as live), instead of "
+                "tracking backward from it");
   cmd->add_option("--marker-set", args->marker_set, "OpenSim marker set (.xml) added to an .osim model");
   cmd->add_option("--marker-map", args->marker_map,
                   "with --points: marker-name map, lines 'model_name = file_name' (# comments)");
-  cmd->add_option("--up", args->up, "the lab's vertical: x, y, z (default), -x, -y or -z");
+  cmd->add_option("--up", args->up,
+                  "the lab's vertical: x, y, z, -x, -y or -z; auto (default): z in a simulation, with --points "
+                  "the axis on which the tracker starts in the first 10 frames");
   cmd->add_option("--scale-to-subject", args->scale_to_subject,
                   "scale the model segment by segment to the subject at the start: never, when-needed "
                   "(default: when the model's own size cannot start) or always (a generic model)")
