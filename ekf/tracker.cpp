@@ -248,6 +248,7 @@ void Tracker::Impl::Allocate() {
   observed.assign(nz, 1);
   unobserved_frames.assign(nz, 0);
   labelled_run.assign(nm, 0);
+  provisional.assign(nm, 0);
   hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
   hist_count.assign(kHistory, 0);
   hist_claimed.assign(kHistory, std::vector<char>(mp, 0));
@@ -402,7 +403,7 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
 void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
   const double k = OffsetGain();
   for (int m = 0; m < nm; ++m) {
-    if (row_to_col[m] < 0 || !measured[m]) continue;
+    if (row_to_col[m] < 0 || !measured[m] || provisional[m]) continue;
     const std::vector<int>& cols = model->marker_coordinates(m);
     Eigen::Vector3d r = points.col(row_to_col[m]) - predicted.col(m);
     for (size_t a = 0; a < cols.size(); ++a) r -= jac[m].col(a) * dzv[cols[a]];
@@ -547,6 +548,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   // probation) and restarted the ghost protections; so they are carried over the re-allocation.
   auto measured = std::move(s.measured);
   auto labelled_run = std::move(s.labelled_run);
+  auto provisional = std::move(s.provisional);
   auto unlabelled_run = std::move(s.unlabelled_run);
   auto last_point = std::move(s.last_point);
   auto last_predicted = std::move(s.last_predicted);
@@ -566,6 +568,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   s.Allocate();
   s.measured = std::move(measured);
   s.labelled_run = std::move(labelled_run);
+  s.provisional = std::move(provisional);
   s.unlabelled_run = std::move(unlabelled_run);
   s.last_point = std::move(last_point);
   s.last_predicted = std::move(last_predicted);

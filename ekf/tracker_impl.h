@@ -121,6 +121,10 @@ struct Tracker::Impl {
   // prediction were in the last frame.
   std::vector<char> measured;
   std::vector<int> labelled_run;
+  // Per marker: its label is provisional (see ChooseMeasurements): taken afresh less than
+  // kProvisionalFrames ago, on a point its window has not yet decided.
+  std::vector<char> provisional;
+  static constexpr int kProvisionalFrames = 20;
   Eigen::Matrix3Xd last_point, last_predicted;
   int measured_count = 0;
   void ChooseMeasurements();

@@ -775,14 +775,18 @@ void Tracker::Impl::ChooseMeasurements() {
       continue;
     }
     const Eigen::Vector3d p = points.col(col), q = predicted.col(m);
-    if (labelled_run[m] == 1) {
+    if (labelled_run[m] >= 1) {
+      // The point of the last frame, continued? On probation within kProbationDistance; later
+      // within a frame's motion (kTrackStep). Otherwise a different point: its first frame.
       const Eigen::Vector3d moved = (p - last_point.col(m)) - (q - last_predicted.col(m));
-      measured[m] = moved.squaredNorm() <= kProbationDistance * kProbationDistance;
-      if (!measured[m]) labelled_run[m] = 0;  // a different point: this is its first frame
-    } else {
-      measured[m] = labelled_run[m] > 1;
+      const double limit = labelled_run[m] == 1 ? kProbationDistance : kTrackStep;
+      if (moved.squaredNorm() > limit * limit) labelled_run[m] = 0;
     }
+    if (labelled_run[m] == 0) provisional[m] = 1;
     ++labelled_run[m];
+    if (labelled_run[m] > kProvisionalFrames) provisional[m] = 0;
+    const double committed = options.gate_chi2 * (MeasurementVariance(m) + model_error[m]);
+    measured[m] = labelled_run[m] > 1 && (!provisional[m] || (p - q).squaredNorm() <= committed);
     held_run[m] = std::max(held_run[m], labelled_run[m]);
     last_point.col(m) = p;
     last_predicted.col(m) = q;
