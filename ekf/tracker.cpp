@@ -249,6 +249,7 @@ void Tracker::Impl::Allocate() {
   unobserved_frames.assign(nz, 0);
   labelled_run.assign(nm, 0);
   provisional.assign(nm, 0);
+  window_measured.assign(nm, 0);
   hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
   hist_count.assign(kHistory, 0);
   hist_claimed.assign(kHistory, std::vector<char>(mp, 0));
@@ -467,6 +468,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     for (size_t i = 0; i < s.centre_now.size(); ++i) s.centre_now[i] = s.data.segment_position[i];
     s.LabelByGating(np);
     s.RegisterSegments(np);
+    s.DecideProvisionalLabels(np);
     const int labelled = s.ApplyLabels(np);
     s.ChooseMeasurements();
     double nis = 0;
@@ -549,6 +551,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   auto measured = std::move(s.measured);
   auto labelled_run = std::move(s.labelled_run);
   auto provisional = std::move(s.provisional);
+  auto window_measured = std::move(s.window_measured);
   auto unlabelled_run = std::move(s.unlabelled_run);
   auto last_point = std::move(s.last_point);
   auto last_predicted = std::move(s.last_predicted);
@@ -569,6 +572,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   s.measured = std::move(measured);
   s.labelled_run = std::move(labelled_run);
   s.provisional = std::move(provisional);
+  s.window_measured = std::move(window_measured);
   s.unlabelled_run = std::move(unlabelled_run);
   s.last_point = std::move(last_point);
   s.last_predicted = std::move(last_predicted);
