@@ -248,8 +248,6 @@ void Tracker::Impl::Allocate() {
   observed.assign(nz, 1);
   unobserved_frames.assign(nz, 0);
   labelled_run.assign(nm, 0);
-  provisional.assign(nm, 0);
-  window_measured.assign(nm, 0);
   hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
   hist_count.assign(kHistory, 0);
   hist_claimed.assign(kHistory, std::vector<char>(mp, 0));
@@ -404,7 +402,7 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
 void Tracker::Impl::LearnOffsets(const Eigen::VectorXd& dzv) {
   const double k = OffsetGain();
   for (int m = 0; m < nm; ++m) {
-    if (row_to_col[m] < 0 || !measured[m] || provisional[m]) continue;
+    if (row_to_col[m] < 0 || !measured[m]) continue;
     const std::vector<int>& cols = model->marker_coordinates(m);
     Eigen::Vector3d r = points.col(row_to_col[m]) - predicted.col(m);
     for (size_t a = 0; a < cols.size(); ++a) r -= jac[m].col(a) * dzv[cols[a]];
@@ -468,7 +466,6 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     for (size_t i = 0; i < s.centre_now.size(); ++i) s.centre_now[i] = s.data.segment_position[i];
     s.LabelByGating(np);
     s.RegisterSegments(np);
-    s.DecideProvisionalLabels(np);
     const int labelled = s.ApplyLabels(np);
     s.ChooseMeasurements();
     double nis = 0;
@@ -550,8 +547,6 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   // probation) and restarted the ghost protections; so they are carried over the re-allocation.
   auto measured = std::move(s.measured);
   auto labelled_run = std::move(s.labelled_run);
-  auto provisional = std::move(s.provisional);
-  auto window_measured = std::move(s.window_measured);
   auto unlabelled_run = std::move(s.unlabelled_run);
   auto last_point = std::move(s.last_point);
   auto last_predicted = std::move(s.last_predicted);
@@ -571,8 +566,6 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   s.Allocate();
   s.measured = std::move(measured);
   s.labelled_run = std::move(labelled_run);
-  s.provisional = std::move(provisional);
-  s.window_measured = std::move(window_measured);
   s.unlabelled_run = std::move(unlabelled_run);
   s.last_point = std::move(last_point);
   s.last_predicted = std::move(last_predicted);

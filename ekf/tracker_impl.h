@@ -121,21 +121,6 @@ struct Tracker::Impl {
   // prediction were in the last frame.
   std::vector<char> measured;
   std::vector<int> labelled_run;
-  // Per marker: its label is provisional (see ChooseMeasurements): taken afresh less than
-  // kProvisionalFrames ago, on a point its window has not yet decided.
-  std::vector<char> provisional;
-  std::vector<int> window_measured;  // frames of its window in which it was measured
-  static constexpr int kProvisionalFrames = 20;
-  // Whether the point in column `col` continues marker m's point of the last frame (moved as its
-  // prediction moved: on probation within kProbationDistance, later within kTrackStep).
-  bool ContinuesItsPoint(int m, int col) const {
-    const Eigen::Vector3d moved =
-        (points.col(col) - last_point.col(m)) - (predicted.col(m) - last_predicted.col(m));
-    const double limit = labelled_run[m] == 1 ? kProbationDistance : kTrackStep;
-    return moved.squaredNorm() <= limit * limit;
-  }
-  void DecideProvisionalLabels(int np);
-  bool ConfirmedByItsSegment(int m, int k) const;
   Eigen::Matrix3Xd last_point, last_predicted;
   int measured_count = 0;
   void ChooseMeasurements();

@@ -596,7 +596,6 @@ bool Tracker::Impl::TryInitialise(int np) {
   for (int m = 0; m < nm; ++m) {
     measured[m] = row_to_col[m] >= 0;
     labelled_run[m] = measured[m] ? 2 : 0;
-    provisional[m] = 0;
     if (measured[m]) {
       last_point.col(m) = points.col(row_to_col[m]);
       last_predicted.col(m) = predicted.col(m);

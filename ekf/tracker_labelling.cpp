@@ -775,45 +775,18 @@ void Tracker::Impl::ChooseMeasurements() {
       continue;
     }
     const Eigen::Vector3d p = points.col(col), q = predicted.col(m);
-    // A different point from the last frame's: its first frame.
-    if (labelled_run[m] >= 1 && !ContinuesItsPoint(m, col)) labelled_run[m] = 0;
-    if (labelled_run[m] == 0) {
-      provisional[m] = 1;
-      window_measured[m] = 0;
+    if (labelled_run[m] == 1) {
+      const Eigen::Vector3d moved = (p - last_point.col(m)) - (q - last_predicted.col(m));
+      measured[m] = moved.squaredNorm() <= kProbationDistance * kProbationDistance;
+      if (!measured[m]) labelled_run[m] = 0;  // a different point: this is its first frame
+    } else {
+      measured[m] = labelled_run[m] > 1;
     }
     ++labelled_run[m];
-    if (labelled_run[m] > kProvisionalFrames) provisional[m] = 0;
-    const double committed = options.gate_chi2 * (MeasurementVariance(m) + model_error[m]);
-    measured[m] = labelled_run[m] > 1 &&
-                  (!provisional[m] || (p - q).squaredNorm() <= committed || ConfirmedByItsSegment(m, col));
-    window_measured[m] += provisional[m] && measured[m];
     held_run[m] = std::max(held_run[m], labelled_run[m]);
     last_point.col(m) = p;
     last_predicted.col(m) = q;
     measured_count += measured[m];
-  }
-}
-
-// Whether point k moved rigidly with marker m's segment (RigidWithSegment) and no unlabelled mate
-// of m could be it instead (at the mate's distance from the joint centre): rigidity says the
-// point is on the segment, not which of its markers it is (two wrist markers are mirror images
-// about the plane of the elbow centre and the forearm marker, at one distance from both).
-bool Tracker::Impl::ConfirmedByItsSegment(int m, int k) const {
-  for (const int o : segment_markers[model->markers()[m].segment])
-    if (o != m && row_to_col[o] < 0 && OnSegmentSphere(o, points.col(k))) return false;
-  return RigidWithSegment(m, k);
-}
-
-// The end of a provisional label's window: a label that its point never confirmed (never within
-// its committed gate, so never measured) and whose point has not moved rigidly with its segment
-// is left empty, and the verdict follows the point's track (its seen-beside record).
-void Tracker::Impl::DecideProvisionalLabels(int np) {
-  for (int m = 0; m < nm; ++m) {
-    const int k = row_to_col[m];
-    if (k < 0 || k >= np || !provisional[m] || labelled_run[m] != kProvisionalFrames) continue;
-    if (!ContinuesItsPoint(m, k) || window_measured[m] > 0 || ConfirmedByItsSegment(m, k)) continue;
-    if (doubted_count < nm) doubted[doubted_count++] = {k, m};
-    row_to_col[m] = -1;
   }
 }
 
