@@ -121,6 +121,23 @@ struct Tracker::Impl {
   // prediction were in the last frame.
   std::vector<char> measured;
   std::vector<int> labelled_run;
+  // The provisional window (ReviewProvisionalLabels): per marker, the rival point it is compared
+  // with (where it was in the last frame), the frames they have been compared over, and the sums
+  // of the two points' rigid residuals (RigidResidual) over them.
+  static constexpr int kProvisionalFrames = 40;
+  static constexpr int kRivalFrames = 5;
+  static constexpr double kRivalRadius = 0.10;
+  static constexpr double kRivalRatio = 0.25;
+  static constexpr double kRivalFloor = 0.005;
+  Eigen::Matrix3Xd rival_last;
+  std::vector<int> rival_frames;
+  std::vector<double> own_residual, rival_residual;
+  std::vector<char> claimed_now;  // per point of this frame: a marker's (ReviewProvisionalLabels)
+  void ReviewProvisionalLabels(int np);
+  // The mean square, over marker m's anchors (its joint centre, its segment's labelled markers),
+  // of the difference between p's distance to each and the marker's predicted distance (both
+  // fixed on a rigid segment, whatever its pose); NaN without anchors.
+  double RigidResidual(int m, const Eigen::Vector3d& p) const;
   Eigen::Matrix3Xd last_point, last_predicted;
   int measured_count = 0;
   void ChooseMeasurements();

@@ -26,6 +26,8 @@
 #include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 #include <limits>
 
 #include "ekf/tracker_impl.h"
@@ -788,6 +790,83 @@ void Tracker::Impl::ChooseMeasurements() {
     last_predicted.col(m) = q;
     measured_count += measured[m];
   }
+}
+
+// The provisional window: a label taken afresh is provisional for kProvisionalFrames, and while it
+// is, the point it holds is compared with its nearest rival over the frames both are seen.
+void Tracker::Impl::ReviewProvisionalLabels(int np) {
+  std::fill(claimed_now.begin(), claimed_now.begin() + np, 0);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= 0) claimed_now[row_to_col[m]] = 1;
+  for (int m = 0; m < nm; ++m) {
+    const int k = row_to_col[m];
+    if (k < 0 || labelled_run[m] == 0 || labelled_run[m] >= kProvisionalFrames) {
+      rival_frames[m] = 0;
+      continue;
+    }
+    const Eigen::Vector3d p = points.col(k);
+    const double own = RigidResidual(m, p);
+    if (!std::isfinite(own)) {
+      rival_frames[m] = 0;
+      continue;
+    }
+    int best = -1;
+    double best_r = std::numeric_limits<double>::infinity();
+    for (int j = 0; j < np; ++j) {
+      if (claimed_now[j] || (points.col(j) - p).squaredNorm() > kRivalRadius * kRivalRadius) continue;
+      const double r = RigidResidual(m, points.col(j));
+      if (r < best_r) {
+        best_r = r;
+        best = j;
+      }
+    }
+    if (best < 0) {
+      rival_frames[m] = 0;
+      continue;
+    }
+    if (rival_frames[m] > 0 &&
+        (points.col(best) - rival_last.col(m)).squaredNorm() > kTrackStep * kTrackStep)
+      rival_frames[m] = 0;
+    if (rival_frames[m] == 0) own_residual[m] = rival_residual[m] = 0;
+    own_residual[m] += own;
+    rival_residual[m] += best_r;
+    rival_last.col(m) = points.col(best);
+    ++rival_frames[m];
+    if (std::getenv("MOCAP_DEBUG_RIVAL"))
+      std::fprintf(stderr, "frame %d marker %s run %d rival %d own %.1f mm rival %.1f mm\n",
+                   frame_index, model->markers()[m].name.c_str(), labelled_run[m], rival_frames[m],
+                   1000 * std::sqrt(own_residual[m] / rival_frames[m]),
+                   1000 * std::sqrt(rival_residual[m] / rival_frames[m]));
+    if (rival_frames[m] < kRivalFrames || rival_residual[m] >= kRivalRatio * own_residual[m] ||
+        own_residual[m] < rival_frames[m] * kRivalFloor * kRivalFloor)
+      continue;
+    if (doubted_count < nm) doubted[doubted_count++] = {k, m};
+    ForgetRecords(m);
+    row_to_col[m] = best;
+    labelled_run[m] = 0;
+    rival_frames[m] = 0;
+    claimed_now[k] = 0;
+    claimed_now[best] = 1;
+  }
+}
+
+double Tracker::Impl::RigidResidual(int m, const Eigen::Vector3d& p) const {
+  const int segment = model->markers()[m].segment;
+  double sum = 0;
+  int n = 0;
+  if (marker_depth[m] > 0) {
+    const Eigen::Vector3d& c = centre_now[segment];
+    const double r = (p - c).norm() - (predicted.col(m) - c).norm();
+    sum += r * r;
+    ++n;
+  }
+  for (const int o : segment_markers[segment]) {
+    if (o == m || row_to_col[o] < 0) continue;
+    const double r = (p - points.col(row_to_col[o])).norm() - (predicted.col(m) - predicted.col(o)).norm();
+    sum += r * r;
+    ++n;
+  }
+  return n > 0 ? sum / n : kNaN;
 }
 
 // Whether point p lies at marker m's distance from its segment's joint centre (within the
