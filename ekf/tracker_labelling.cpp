@@ -800,7 +800,7 @@ void Tracker::Impl::ReviewProvisionalLabels(int np) {
     if (row_to_col[m] >= 0) claimed_now[row_to_col[m]] = 1;
   for (int m = 0; m < nm; ++m) {
     const int k = row_to_col[m];
-    if (k < 0 || labelled_run[m] == 0 || labelled_run[m] >= kProvisionalFrames) {
+    if (k < 0 || labelled_run[m] == 0 || labelled_run[m] >= kProvisionalFrames || FreshTrack()) {
       rival_frames[m] = 0;
       continue;
     }
@@ -861,7 +861,7 @@ double Tracker::Impl::RigidResidual(int m, const Eigen::Vector3d& p) const {
     ++n;
   }
   for (const int o : segment_markers[segment]) {
-    if (o == m || row_to_col[o] < 0) continue;
+    if (o == m || row_to_col[o] < 0 || labelled_run[o] < kProvisionalFrames) continue;
     const double r = (p - points.col(row_to_col[o])).norm() - (predicted.col(m) - predicted.col(o)).norm();
     sum += r * r;
     ++n;
