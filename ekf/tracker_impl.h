@@ -123,7 +123,11 @@ struct Tracker::Impl {
   std::vector<int> labelled_run;
   // The provisional window (ReviewProvisionalLabels): per marker, the rival point it is compared
   // with (where it was in the last frame), the frames they have been compared over, and the sums
-  // of the two points' rigid residuals (RigidResidual) over them.
+  // of the two points' rigid residuals (RigidResidual) over them. The window covers an occlusion
+  // (5-30 frames in the simulated scenes) after a wrong label was given; a rival is judged over
+  // kRivalFrames of its track (a single-frame ghost is none); it must fit with half the RMS
+  // residual (kRivalRatio of the mean square) of a label that is itself off by kRivalFloor or
+  // more (a nominal model's right labels are 1-3 mm off their distances).
   static constexpr int kProvisionalFrames = 40;
   static constexpr int kRivalFrames = 5;
   static constexpr double kRivalRadius = 0.10;

@@ -15,9 +15,13 @@
 //      centre) puts them, and labelled when one choice of points fits clearly best; beside a
 //      marker stuck for 20 frames, the labels of its segment are re-checked with it (a swap or
 //      shift within the segment is one more hypothesis of the same fit).
-//   4. Probation (ChooseMeasurements): a returning marker's label enters the update from its
+//   4. The provisional window (ReviewProvisionalLabels): for kProvisionalFrames after a label is
+//      taken afresh, its point is compared over the frames with the nearest unclaimed rival by
+//      the segment's rigid distances; a rival that fits clearly better over several frames takes
+//      the label (a marker that took a reflection while hidden, back beside it).
+//   5. Probation (ChooseMeasurements): a returning marker's label enters the update from its
 //      second consecutive frame.
-//   5. The records the next frames judge points by (PushHistory): the last frames' points, and
+//   6. The records the next frames judge points by (PushHistory): the last frames' points, and
 //      which markers each unclaimed point has been seen beside.
 // Why: the frame-by-frame assignment alone let a marker whose gate had grown take a neighbour's
 // point and the filter settle in that wrong pose; each step removes one way for that to happen
@@ -26,8 +30,6 @@
 #include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
-#include <cstdlib>
 #include <limits>
 
 #include "ekf/tracker_impl.h"
@@ -792,8 +794,22 @@ void Tracker::Impl::ChooseMeasurements() {
   }
 }
 
-// The provisional window: a label taken afresh is provisional for kProvisionalFrames, and while it
-// is, the point it holds is compared with its nearest rival over the frames both are seen.
+// The provisional window (ekf/tracker.h, "Labelling"). A label taken afresh was decided on one
+// frame, by a prediction that drifted while the marker was hidden; labels then follow point
+// tracks, so a wrong one lasts as long as its point. For kProvisionalFrames after a label is
+// taken (outside the fresh track, whose labels the limb search still revises), its point and the
+// best unclaimed rival within kRivalRadius are scored every frame by RigidResidual -- their
+// distances to the segment's joint centre and committed markers against the marker's own, which
+// no error of the pose changes -- and the scores are summed while the rival's point track lasts.
+// After kRivalFrames frames, a rival whose mean square is under kRivalRatio of the label's, the
+// label's being over kRivalFloor^2, takes the label: the marker held the wrong point (its records
+// go, ForgetRecords; the verdict follows the old point, as DropLabelsAMateFitsBetter's does), and
+// the new label starts on probation. Why a window and not the frame: the rival appears when the
+// marker's own point comes back, frames after the wrong label was given (seed 47 at 5 ghosts:
+// RFIN took a reflection riding 30 mm from its hidden point; its own point came back 26 frames
+// later 4 mm from its distance to the wrist, the reflection 12 mm, and was left unlabelled for
+// the rest of the take, 0.981 of the labels). Only committed mates (held kProvisionalFrames) are
+// anchors: a mate on a wrong point made a right label look wrong (seed 10's start).
 void Tracker::Impl::ReviewProvisionalLabels(int np) {
   std::fill(claimed_now.begin(), claimed_now.begin() + np, 0);
   for (int m = 0; m < nm; ++m)
@@ -832,11 +848,6 @@ void Tracker::Impl::ReviewProvisionalLabels(int np) {
     rival_residual[m] += best_r;
     rival_last.col(m) = points.col(best);
     ++rival_frames[m];
-    if (std::getenv("MOCAP_DEBUG_RIVAL"))
-      std::fprintf(stderr, "frame %d marker %s run %d rival %d own %.1f mm rival %.1f mm\n",
-                   frame_index, model->markers()[m].name.c_str(), labelled_run[m], rival_frames[m],
-                   1000 * std::sqrt(own_residual[m] / rival_frames[m]),
-                   1000 * std::sqrt(rival_residual[m] / rival_frames[m]));
     if (rival_frames[m] < kRivalFrames || rival_residual[m] >= kRivalRatio * own_residual[m] ||
         own_residual[m] < rival_frames[m] * kRivalFloor * kRivalFloor)
       continue;
