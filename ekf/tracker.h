@@ -57,6 +57,13 @@
 // turned about the line from its elbow centre to its forearm marker while both wrist markers were
 // hidden: one wrist point back is the other's mirror image, and the drifted prediction took it
 // for the wrong one, seed 13 at 8 ghosts). Not in the first second, whose offsets are not learnt.
+// A label taken afresh is provisional for a window of 40 frames (0.2 s) -- one frame's decision,
+// made by a prediction that drifted while the marker was hidden -- and within it the point it
+// holds is compared, frame after frame, with the nearest unclaimed rival by the segment's rigid
+// distances (to its joint centre and its committed markers); a rival that fits clearly better
+// over 5 frames of its track takes the label. A hidden marker whose gate took a reflection riding
+// beside it is then given its own point when that comes back (seed 47, 5 ghosts: the finger
+// marker on a reflection, then without a label for the rest of the take).
 // Two rigid-body facts hold
 // whatever the pose estimate, and the gate keeps to them. Labels follow point tracks: a point that
 // continues the point a marker held in the last frame (mutual nearest neighbours, moved as the
