@@ -133,6 +133,7 @@ struct Tracker::Impl {
   static constexpr double kRivalRadius = 0.10;
   static constexpr double kRivalRatio = 0.25;
   static constexpr double kRivalFloor = 0.005;
+  static constexpr double kRivalFit = 0.008;
   Eigen::Matrix3Xd rival_last;
   std::vector<int> rival_frames;
   std::vector<double> own_residual, rival_residual;

@@ -849,8 +849,12 @@ void Tracker::Impl::ReviewProvisionalLabels(int np) {
     rival_last.col(m) = points.col(best);
     ++rival_frames[m];
     if (rival_frames[m] < kRivalFrames || rival_residual[m] >= kRivalRatio * own_residual[m] ||
-        own_residual[m] < rival_frames[m] * kRivalFloor * kRivalFloor)
+        own_residual[m] < rival_frames[m] * kRivalFloor * kRivalFloor ||
+        rival_residual[m] > rival_frames[m] * kRivalFit * kRivalFit)
       continue;
+    // A rival that was already there when the label was given was judged then.
+    double spread = 0;
+    if (TrackBack(m, points.col(best), &spread) > std::min(labelled_run[m], kHistory)) continue;
     if (doubted_count < nm) doubted[doubted_count++] = {k, m};
     ForgetRecords(m);
     row_to_col[m] = best;
