@@ -253,6 +253,11 @@ void Tracker::Impl::Allocate() {
   own_residual.assign(nm, 0.0);
   rival_residual.assign(nm, 0.0);
   claimed_now.assign(mp, 0);
+  committed_rel = window_rel = Eigen::Matrix3Xd::Zero(3, nm);
+  has_committed_rel.assign(nm, 0);
+  has_window_rel.assign(nm, 0);
+  own_prior.assign(nm, 0.0);
+  rival_prior.assign(nm, 0.0);
   hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
   hist_count.assign(kHistory, 0);
   hist_claimed.assign(kHistory, std::vector<char>(mp, 0));

@@ -138,6 +138,19 @@ struct Tracker::Impl {
   std::vector<int> rival_frames;
   std::vector<double> own_residual, rival_residual;
   std::vector<char> claimed_now;  // per point of this frame: a marker's (ReviewProvisionalLabels)
+  // Where each marker's point last was while its label was committed, and where it was when the
+  // present window began: relative to its joint centre, in its parent segment's frame (a marker
+  // hidden for a few frames is near there; a placement that moved it by decimetres is not
+  // evidence against that). And per marker the window's sums of the squared distances from that
+  // place of its point and of its rival.
+  Eigen::Matrix3Xd committed_rel, window_rel;
+  std::vector<char> has_committed_rel, has_window_rel;
+  std::vector<double> own_prior, rival_prior;
+  static constexpr double kPriorFloor = 0.02;
+  // Marker m's segment's parent (-1: the root's), for the frame of committed_rel.
+  int ParentSegment(int m) const {
+    return model->joints()[model->segments()[model->markers()[m].segment].joint].parent;
+  }
   void ReviewProvisionalLabels(int np);
   // The mean square, over marker m's anchors (its joint centre, its segment's labelled markers),
   // of the difference between p's distance to each and the marker's predicted distance (both

@@ -788,6 +788,16 @@ void Tracker::Impl::ChooseMeasurements() {
     }
     ++labelled_run[m];
     held_run[m] = std::max(held_run[m], labelled_run[m]);
+    if (const int parent = ParentSegment(m); parent >= 0) {
+      if (labelled_run[m] == 1) {
+        window_rel.col(m) = committed_rel.col(m);
+        has_window_rel[m] = has_committed_rel[m];
+      } else if (labelled_run[m] > kProvisionalFrames) {
+        committed_rel.col(m) = data.segment_rotation[parent].transpose() *
+                               (p - data.segment_position[model->markers()[m].segment]);
+        has_committed_rel[m] = 1;
+      }
+    }
     last_point.col(m) = p;
     last_predicted.col(m) = q;
     measured_count += measured[m];
@@ -843,14 +853,24 @@ void Tracker::Impl::ReviewProvisionalLabels(int np) {
     if (rival_frames[m] > 0 &&
         (points.col(best) - rival_last.col(m)).squaredNorm() > kTrackStep * kTrackStep)
       rival_frames[m] = 0;
-    if (rival_frames[m] == 0) own_residual[m] = rival_residual[m] = 0;
+    if (rival_frames[m] == 0) own_residual[m] = rival_residual[m] = own_prior[m] = rival_prior[m] = 0;
     own_residual[m] += own;
     rival_residual[m] += best_r;
+    const int parent = ParentSegment(m);
+    if (has_window_rel[m] && parent >= 0) {
+      const Eigen::Vector3d was = data.segment_position[model->markers()[m].segment] +
+                                  data.segment_rotation[parent] * window_rel.col(m);
+      own_prior[m] += (p - was).squaredNorm();
+      rival_prior[m] += (points.col(best) - was).squaredNorm();
+    }
     rival_last.col(m) = points.col(best);
-    ++rival_frames[m];
-    if (rival_frames[m] < kRivalFrames || rival_residual[m] >= kRivalRatio * own_residual[m] ||
-        own_residual[m] < rival_frames[m] * kRivalFloor * kRivalFloor ||
-        rival_residual[m] > rival_frames[m] * kRivalFit * kRivalFit)
+    const int n = ++rival_frames[m];
+    const bool fits_better = rival_residual[m] < kRivalRatio * own_residual[m] &&
+                             own_residual[m] >= n * kRivalFloor * kRivalFloor;
+    const bool where_it_was = has_window_rel[m] && rival_prior[m] < kRivalRatio * own_prior[m] &&
+                              own_prior[m] >= n * kPriorFloor * kPriorFloor;
+    if (n < kRivalFrames || rival_residual[m] > n * kRivalFit * kRivalFit ||
+        !(fits_better || where_it_was))
       continue;
     // A rival that was already there when the label was given was judged then.
     double spread = 0;
