@@ -130,7 +130,7 @@ struct Tracker::Impl {
   // more (a nominal model's right labels are 1-3 mm off their distances).
   static constexpr int kProvisionalFrames = 40;
   static constexpr int kRivalFrames = 5;
-  static constexpr double kRivalRadius = 0.10;
+  static constexpr double kRivalRadius = 0.15;
   static constexpr double kRivalRatio = 0.25;
   static constexpr double kRivalFloor = 0.005;
   static constexpr double kRivalFit = 0.008;
