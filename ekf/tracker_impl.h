@@ -133,7 +133,7 @@ struct Tracker::Impl {
   static constexpr double kRivalRadius = 0.15;
   static constexpr double kRivalRatio = 0.25;
   static constexpr double kRivalFloor = 0.005;
-  static constexpr double kRivalFit = 0.008;
+  static constexpr double kRivalFit = 0.015;
   Eigen::Matrix3Xd rival_last;
   std::vector<int> rival_frames;
   std::vector<double> own_residual, rival_residual;
