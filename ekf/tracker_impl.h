@@ -125,9 +125,13 @@ struct Tracker::Impl {
   // with (where it was in the last frame), the frames they have been compared over, and the sums
   // of the two points' rigid residuals (RigidResidual) over them. The window covers an occlusion
   // (5-30 frames in the simulated scenes) after a wrong label was given; a rival is judged over
-  // kRivalFrames of its track (a single-frame ghost is none); it must fit with half the RMS
-  // residual (kRivalRatio of the mean square) of a label that is itself off by kRivalFloor or
-  // more (a nominal model's right labels are 1-3 mm off their distances).
+  // kRivalFrames of its track (a single-frame ghost is none); it must fit the marker's distances
+  // within kRivalFit (a nominal model's toe marker: 14 mm off; a wrist marker's point taken for
+  // the finger marker's on a mispredicted wrist centre: 14-25 mm), and either with half the RMS
+  // residual (kRivalRatio of the mean square) of a label itself off by kRivalFloor or more (a
+  // nominal model's right labels are 1-3 mm off their distances), or at half the RMS distance
+  // from where the marker was of a label 2 cm or more from there (kPriorFloor). The radius: a
+  // toe marker's own point came back 116 mm from the reflection it had been placed on (seed 4).
   static constexpr int kProvisionalFrames = 40;
   static constexpr int kRivalFrames = 5;
   static constexpr double kRivalRadius = 0.15;

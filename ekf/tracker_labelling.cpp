@@ -808,18 +808,26 @@ void Tracker::Impl::ChooseMeasurements() {
 // frame, by a prediction that drifted while the marker was hidden; labels then follow point
 // tracks, so a wrong one lasts as long as its point. For kProvisionalFrames after a label is
 // taken (outside the fresh track, whose labels the limb search still revises), its point and the
-// best unclaimed rival within kRivalRadius are scored every frame by RigidResidual -- their
-// distances to the segment's joint centre and committed markers against the marker's own, which
-// no error of the pose changes -- and the scores are summed while the rival's point track lasts.
-// After kRivalFrames frames, a rival whose mean square is under kRivalRatio of the label's, the
-// label's being over kRivalFloor^2, takes the label: the marker held the wrong point (its records
-// go, ForgetRecords; the verdict follows the old point, as DropLabelsAMateFitsBetter's does), and
-// the new label starts on probation. Why a window and not the frame: the rival appears when the
-// marker's own point comes back, frames after the wrong label was given (seed 47 at 5 ghosts:
-// RFIN took a reflection riding 30 mm from its hidden point; its own point came back 26 frames
-// later 4 mm from its distance to the wrist, the reflection 12 mm, and was left unlabelled for
-// the rest of the take, 0.981 of the labels). Only committed mates (held kProvisionalFrames) are
-// anchors: a mate on a wrong point made a right label look wrong (seed 10's start).
+// best unclaimed rival within kRivalRadius are scored every frame, and the scores summed while the
+// rival's point track lasts, on two pieces of evidence that the placement which gave the label
+// cannot have bent: RigidResidual (their distances to the segment's joint centre and committed
+// markers against the marker's own) and their distances to where the marker's point was when its
+// label was last committed, carried with its parent segment (window_rel: a limb search that
+// moved a hidden foot by decimetres to put its toe marker on a reflection moved the prediction,
+// not that). After kRivalFrames frames, a rival that fits the marker's distances within kRivalFit
+// takes the label when it fits them clearly better (mean square under kRivalRatio of the label's,
+// the label's over kRivalFloor^2) or lies clearly nearer where the marker was (likewise, the
+// label's over kPriorFloor): the marker held the wrong point (its records go, ForgetRecords; the
+// verdict follows the old point, as DropLabelsAMateFitsBetter's does), and the new label starts
+// on probation. Only a rival that came after the label was given is one (one there before was
+// judged then), and only committed mates (held kProvisionalFrames) are anchors: a mate on a wrong
+// point made a right label look wrong (seed 10's start, its forearm mirrored: the finger marker
+// moved to a wrist marker's unclaimed point). Why a window and not the frame: the rival appears
+// when the marker's own point comes back, frames after the wrong label was given (seed 47 at 5
+// ghosts: RFIN took a reflection riding 30 mm from its hidden point; its own point came back 26
+// frames later, 4 mm off its distance to the wrist, the reflection 12 mm, and was then left
+// unlabelled for the rest of the take, 0.981 of the labels; seeds 4, 34, 42 at 8 ghosts: a toe
+// marker placed on a reflection by the limb search, its own point back 5-12 cm away).
 void Tracker::Impl::ReviewProvisionalLabels(int np) {
   std::fill(claimed_now.begin(), claimed_now.begin() + np, 0);
   for (int m = 0; m < nm; ++m)
