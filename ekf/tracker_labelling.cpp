@@ -883,6 +883,12 @@ void Tracker::Impl::ReviewProvisionalLabels(int np) {
     // A rival that was already there when the label was given was judged then.
     double spread = 0;
     if (TrackBack(m, points.col(best), &spread) > std::min(labelled_run[m], kHistory)) continue;
+    // Nor one an unlabelled mate could be: which of a segment's markers a point is, the rigid
+    // distances and the past place cannot tell where both fit (DropLabelsAMateFitsBetter).
+    bool a_mates = false;
+    for (const int o : segment_markers[model->markers()[m].segment])
+      a_mates = a_mates || (o != m && row_to_col[o] < 0 && OnSegmentSphere(o, points.col(best)));
+    if (a_mates) continue;
     if (doubted_count < nm) doubted[doubted_count++] = {k, m};
     ForgetRecords(m);
     row_to_col[m] = best;
