@@ -169,6 +169,10 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
   int traced = -1;
   for (int m = 0; m < tracker.model().num_markers(); ++m)
     if (tracker.model().markers()[m].name == trace.marker) traced = m;
+  if (!trace.marker.empty() && traced < 0) {
+    r.error = "--trace " + trace.marker + ": the model has no marker of that name";
+    return r;
+  }
   TrackRun run = mocap::sim::TrackScene(
       scene, &tracker, [&](int f, const mocap::ekf::TrackOutput& out) {
         if (traced >= 0 && f >= trace.first && f <= trace.last) {
