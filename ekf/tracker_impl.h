@@ -132,6 +132,7 @@ struct Tracker::Impl {
   // nominal model's right labels are 1-3 mm off their distances), or at half the RMS distance
   // from where the marker was of a label 2 cm or more from there (kPriorFloor). The radius: a
   // toe marker's own point came back 116 mm from the reflection it had been placed on (seed 4).
+  // SwapModel restarts all of it (the distances are the model's).
   static constexpr int kProvisionalFrames = 40;
   static constexpr int kRivalFrames = 5;
   static constexpr double kRivalRadius = 0.15;

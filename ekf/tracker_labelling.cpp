@@ -16,9 +16,10 @@
 //      marker stuck for 20 frames, the labels of its segment are re-checked with it (a swap or
 //      shift within the segment is one more hypothesis of the same fit).
 //   4. The provisional window (ReviewProvisionalLabels): for kProvisionalFrames after a label is
-//      taken afresh, its point is compared over the frames with the nearest unclaimed rival by
-//      the segment's rigid distances; a rival that fits clearly better over several frames takes
-//      the label (a marker that took a reflection while hidden, back beside it).
+//      taken afresh, its point is compared over the frames with the best unclaimed rival that
+//      came after it, by the segment's rigid distances and by where the marker last was while
+//      committed; a rival clearly better over several frames takes the label (a marker that took
+//      a reflection while hidden, or that the limb search put on one, back beside it).
 //   5. Probation (ChooseMeasurements): a returning marker's label enters the update from its
 //      second consecutive frame.
 //   6. The records the next frames judge points by (PushHistory): the last frames' points, and
