@@ -186,7 +186,8 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
           else if (labels[given] == scene_of[traced]) std::printf(" own");
           else if (labels[given] < 0) std::printf(" ghost");
           else std::printf(" %s", scene.marker_names[labels[given]].c_str());
-          if (given >= 0) std::printf(" %.0f mm", 1000 * (scene.points[f].col(given) - pred).norm());
+          if (given >= 0)
+            std::printf(" %.0f mm", 1000 * (scene.points[f].col(given) - pred).norm());
           std::vector<std::pair<double, int>> near;
           for (size_t i = 0; i < labels.size(); ++i)
             near.emplace_back(1000 * (scene.points[f].col(i) - pred).norm(), static_cast<int>(i));

@@ -848,7 +848,8 @@ void Tracker::Impl::ReviewProvisionalLabels(int np) {
     int best = -1;
     double best_r = std::numeric_limits<double>::infinity();
     for (int j = 0; j < np; ++j) {
-      if (claimed_now[j] || (points.col(j) - p).squaredNorm() > kRivalRadius * kRivalRadius) continue;
+      if (claimed_now[j] || (points.col(j) - p).squaredNorm() > kRivalRadius * kRivalRadius)
+        continue;
       const double r = RigidResidual(m, points.col(j));
       if (r < best_r) {
         best_r = r;
@@ -862,7 +863,8 @@ void Tracker::Impl::ReviewProvisionalLabels(int np) {
     if (rival_frames[m] > 0 &&
         (points.col(best) - rival_last.col(m)).squaredNorm() > kTrackStep * kTrackStep)
       rival_frames[m] = 0;
-    if (rival_frames[m] == 0) own_residual[m] = rival_residual[m] = own_prior[m] = rival_prior[m] = 0;
+    if (rival_frames[m] == 0)
+      own_residual[m] = rival_residual[m] = own_prior[m] = rival_prior[m] = 0;
     own_residual[m] += own;
     rival_residual[m] += best_r;
     const int parent = ParentSegment(m);
@@ -912,7 +914,8 @@ double Tracker::Impl::RigidResidual(int m, const Eigen::Vector3d& p) const {
   }
   for (const int o : segment_markers[segment]) {
     if (o == m || row_to_col[o] < 0 || labelled_run[o] < kProvisionalFrames) continue;
-    const double r = (p - points.col(row_to_col[o])).norm() - (predicted.col(m) - predicted.col(o)).norm();
+    const double r = (p - points.col(row_to_col[o])).norm() -
+                     (predicted.col(m) - predicted.col(o)).norm();
     sum += r * r;
     ++n;
   }
