@@ -758,7 +758,8 @@ TEST(EkfTracker, AWristPointBackAloneIsNotTakenForItsMirrorImage) {
 // so its own point was left unlabelled for seconds (simulated seed 47 at 5 ghosts: RFIN on a
 // reflection for 338 frames, then 80-200 mm from its own point for the rest of the take). Within
 // the label's provisional window its point and the rival are compared by their distances to the
-// hand's joint centre (ReviewProvisionalLabels), and the label goes to its own point.
+// hand's joint centre and to where the marker was before (ReviewProvisionalLabels), and the label
+// goes to its own point.
 TEST(EkfTracker, ALoneMarkerBackBesideAReflectionItTookIsGivenItsOwnPoint) {
   const auto& session = Session();
   const auto& trial = session.trials[TrialIndex("ankle_circles")];
