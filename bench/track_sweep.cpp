@@ -140,8 +140,15 @@ std::string ErrorRuns(const mocap::sim::TrackingScene& scene, const mocap::Model
   return out.str();
 }
 
+// --trace: one marker's frames, one line each (what it was given, where its own point and the
+// given one lay from its prediction, the nearest other points): the per-frame view behind a run.
+struct Trace {
+  std::string marker;
+  int first = 0, last = -1;
+};
+
 SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& base, bool truth,
-                   int runs_min_frames) {
+                   int runs_min_frames, const Trace& trace = {}) {
   SeedResult r;
   r.seed = seed;
   mocap::sim::TrackingSceneOptions o = base;
@@ -159,8 +166,40 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
   Eigen::MatrixXf miss_mm;
   if (runs_min_frames > 0)
     miss_mm.setConstant(scene.num_frames(), tracker.model().num_markers(), NAN);
+  int traced = -1;
+  for (int m = 0; m < tracker.model().num_markers(); ++m)
+    if (tracker.model().markers()[m].name == trace.marker) traced = m;
+  if (!trace.marker.empty() && traced < 0) {
+    r.error = "--trace " + trace.marker + ": the model has no marker of that name";
+    return r;
+  }
   TrackRun run = mocap::sim::TrackScene(
       scene, &tracker, [&](int f, const mocap::ekf::TrackOutput& out) {
+        if (traced >= 0 && f >= trace.first && f <= trace.last) {
+          const Eigen::Vector3d pred = tracker.predicted_markers().col(traced);
+          const std::vector<int>& labels = scene.labels[f];
+          const int given = traced < static_cast<int>(out.point_of_marker.size())
+                                ? out.point_of_marker[traced] : -1;
+          std::printf("seed %llu frame %d %s %s given", static_cast<unsigned long long>(seed), f,
+                      trace.marker.c_str(), mocap::ekf::ToString(out.state));
+          if (given < 0) std::printf(" none");
+          else if (labels[given] == scene_of[traced]) std::printf(" own");
+          else if (labels[given] < 0) std::printf(" ghost");
+          else std::printf(" %s", scene.marker_names[labels[given]].c_str());
+          if (given >= 0)
+            std::printf(" %.0f mm", 1000 * (scene.points[f].col(given) - pred).norm());
+          std::vector<std::pair<double, int>> near;
+          for (size_t i = 0; i < labels.size(); ++i)
+            near.emplace_back(1000 * (scene.points[f].col(i) - pred).norm(), static_cast<int>(i));
+          std::sort(near.begin(), near.end());
+          std::printf(" | nearest:");
+          for (size_t k = 0; k < std::min<size_t>(4, near.size()); ++k) {
+            const int l = labels[near[k].second];
+            std::printf(" %s%s %.0f", l == scene_of[traced] ? "*" : "",
+                        l >= 0 ? scene.marker_names[l].c_str() : "ghost", near[k].first);
+          }
+          std::printf("\n");
+        }
         if (runs_min_frames <= 0 || out.state != mocap::ekf::TrackState::kTracking) return;
         const Eigen::Matrix3Xd& pred = tracker.predicted_markers();
         const std::vector<int>& labels = scene.labels[f];
@@ -242,6 +281,12 @@ int main(int argc, char** argv) {
                  "which point, in which movement)")
       ->check(CLI::NonNegativeNumber);
   app.add_option("--threads", threads, "seeds tracked at once")->check(CLI::PositiveNumber);
+  Trace trace;
+  std::string trace_frames;
+  app.add_option("--trace", trace.marker,
+                 "print one marker's frames, one line each: what it was given, and the points "
+                 "nearest its prediction (mm; * its own)");
+  app.add_option("--trace-frames", trace_frames, "the traced frames: FIRST-LAST");
   CLI11_PARSE(app, argc, argv);
   std::vector<std::uint64_t> seeds;
   if (!ParseSeeds(seeds_text, &seeds)) {
@@ -249,6 +294,13 @@ int main(int argc, char** argv) {
                  seeds_text.c_str());
     return 2;
   }
+  if (!trace_frames.empty() &&
+      std::sscanf(trace_frames.c_str(), "%d-%d", &trace.first, &trace.last) != 2) {
+    std::fprintf(stderr, "track_sweep: --trace-frames %s: expected FIRST-LAST\n",
+                 trace_frames.c_str());
+    return 2;
+  }
+  if (!trace.marker.empty() && trace_frames.empty()) trace.last = 1 << 30;
   std::string why;
   if (!scene.IsValid(&why)) {
     std::fprintf(stderr, "track_sweep: scene options: %s\n", why.c_str());
@@ -260,7 +312,7 @@ int main(int argc, char** argv) {
   std::mutex print_mutex;
   auto worker = [&] {
     for (size_t k = next++; k < seeds.size(); k = next++) {
-      results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames);
+      results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames, trace);
       if (json) continue;
       const SeedResult& r = results[k];
       std::lock_guard<std::mutex> lock(print_mutex);

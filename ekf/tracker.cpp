@@ -248,6 +248,16 @@ void Tracker::Impl::Allocate() {
   observed.assign(nz, 1);
   unobserved_frames.assign(nz, 0);
   labelled_run.assign(nm, 0);
+  rival_last = Eigen::Matrix3Xd::Zero(3, nm);
+  rival_frames.assign(nm, 0);
+  own_residual.assign(nm, 0.0);
+  rival_residual.assign(nm, 0.0);
+  claimed_now.assign(mp, 0);
+  committed_rel = window_rel = Eigen::Matrix3Xd::Zero(3, nm);
+  has_committed_rel.assign(nm, 0);
+  has_window_rel.assign(nm, 0);
+  own_prior.assign(nm, 0.0);
+  rival_prior.assign(nm, 0.0);
   hist_points.assign(kHistory, Eigen::Matrix3Xd::Zero(3, mp));
   hist_count.assign(kHistory, 0);
   hist_claimed.assign(kHistory, std::vector<char>(mp, 0));
@@ -466,6 +476,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     for (size_t i = 0; i < s.centre_now.size(); ++i) s.centre_now[i] = s.data.segment_position[i];
     s.LabelByGating(np);
     s.RegisterSegments(np);
+    s.ReviewProvisionalLabels(np);
     const int labelled = s.ApplyLabels(np);
     s.ChooseMeasurements();
     double nis = 0;

@@ -121,6 +121,46 @@ struct Tracker::Impl {
   // prediction were in the last frame.
   std::vector<char> measured;
   std::vector<int> labelled_run;
+  // The provisional window (ReviewProvisionalLabels): per marker, the rival point it is compared
+  // with (where it was in the last frame), the frames they have been compared over, and the sums
+  // of the two points' rigid residuals (RigidResidual) over them. The window covers an occlusion
+  // (5-30 frames in the simulated scenes) after a wrong label was given; a rival is judged over
+  // kRivalFrames of its track (a single-frame ghost is none); it must fit the marker's distances
+  // within kRivalFit (a nominal model's toe marker: 14 mm off; a wrist marker's point taken for
+  // the finger marker's on a mispredicted wrist centre: 14-25 mm), and either with half the RMS
+  // residual (kRivalRatio of the mean square) of a label itself off by kRivalFloor or more (a
+  // nominal model's right labels are 1-3 mm off their distances), or at half the RMS distance
+  // from where the marker was of a label 2 cm or more from there (kPriorFloor). The radius: a
+  // toe marker's own point came back 116 mm from the reflection it had been placed on (seed 4).
+  // SwapModel restarts all of it (the distances are the model's).
+  static constexpr int kProvisionalFrames = 40;
+  static constexpr int kRivalFrames = 5;
+  static constexpr double kRivalRadius = 0.15;
+  static constexpr double kRivalRatio = 0.25;
+  static constexpr double kRivalFloor = 0.005;
+  static constexpr double kRivalFit = 0.015;
+  Eigen::Matrix3Xd rival_last;
+  std::vector<int> rival_frames;
+  std::vector<double> own_residual, rival_residual;
+  std::vector<char> claimed_now;  // per point of this frame: a marker's (ReviewProvisionalLabels)
+  // Where each marker's point last was while its label was committed, and where it was when the
+  // present window began: relative to its joint centre, in its parent segment's frame (a marker
+  // hidden for a few frames is near there; a placement that moved it by decimetres is not
+  // evidence against that). And per marker the window's sums of the squared distances from that
+  // place of its point and of its rival.
+  Eigen::Matrix3Xd committed_rel, window_rel;
+  std::vector<char> has_committed_rel, has_window_rel;
+  std::vector<double> own_prior, rival_prior;
+  static constexpr double kPriorFloor = 0.02;
+  // Marker m's segment's parent (-1: the root's), for the frame of committed_rel.
+  int ParentSegment(int m) const {
+    return model->joints()[model->segments()[model->markers()[m].segment].joint].parent;
+  }
+  void ReviewProvisionalLabels(int np);
+  // The mean square, over marker m's anchors (its joint centre, its segment's labelled markers),
+  // of the difference between p's distance to each and the marker's predicted distance (both
+  // fixed on a rigid segment, whatever its pose); NaN without anchors.
+  double RigidResidual(int m, const Eigen::Vector3d& p) const;
   Eigen::Matrix3Xd last_point, last_predicted;
   int measured_count = 0;
   void ChooseMeasurements();

@@ -15,9 +15,14 @@
 //      centre) puts them, and labelled when one choice of points fits clearly best; beside a
 //      marker stuck for 20 frames, the labels of its segment are re-checked with it (a swap or
 //      shift within the segment is one more hypothesis of the same fit).
-//   4. Probation (ChooseMeasurements): a returning marker's label enters the update from its
+//   4. The provisional window (ReviewProvisionalLabels): for kProvisionalFrames after a label is
+//      taken afresh, its point is compared over the frames with the best unclaimed rival that
+//      came after it, by the segment's rigid distances and by where the marker last was while
+//      committed; a rival clearly better over several frames takes the label (a marker that took
+//      a reflection while hidden, or that the limb search put on one, back beside it).
+//   5. Probation (ChooseMeasurements): a returning marker's label enters the update from its
 //      second consecutive frame.
-//   5. The records the next frames judge points by (PushHistory): the last frames' points, and
+//   6. The records the next frames judge points by (PushHistory): the last frames' points, and
 //      which markers each unclaimed point has been seen beside.
 // Why: the frame-by-frame assignment alone let a marker whose gate had grown take a neighbour's
 // point and the filter settle in that wrong pose; each step removes one way for that to happen
@@ -784,10 +789,137 @@ void Tracker::Impl::ChooseMeasurements() {
     }
     ++labelled_run[m];
     held_run[m] = std::max(held_run[m], labelled_run[m]);
+    if (const int parent = ParentSegment(m); parent >= 0) {
+      if (labelled_run[m] == 1) {
+        window_rel.col(m) = committed_rel.col(m);
+        has_window_rel[m] = has_committed_rel[m];
+      } else if (labelled_run[m] > kProvisionalFrames) {
+        committed_rel.col(m) = data.segment_rotation[parent].transpose() *
+                               (p - data.segment_position[model->markers()[m].segment]);
+        has_committed_rel[m] = 1;
+      }
+    }
     last_point.col(m) = p;
     last_predicted.col(m) = q;
     measured_count += measured[m];
   }
+}
+
+// The provisional window (ekf/tracker.h, "Labelling"). A label taken afresh was decided on one
+// frame, by a prediction that drifted while the marker was hidden; labels then follow point
+// tracks, so a wrong one lasts as long as its point. For kProvisionalFrames after a label is
+// taken (outside the fresh track, whose labels the limb search still revises), its point and the
+// best unclaimed rival within kRivalRadius are scored every frame, and the scores summed while the
+// rival's point track lasts, on two pieces of evidence that the placement which gave the label
+// cannot have bent: RigidResidual (their distances to the segment's joint centre and committed
+// markers against the marker's own) and their distances to where the marker's point was when its
+// label was last committed, carried with its parent segment (window_rel: a limb search that
+// moved a hidden foot by decimetres to put its toe marker on a reflection moved the prediction,
+// not that). After kRivalFrames frames, a rival that fits the marker's distances within kRivalFit
+// takes the label when it fits them clearly better (mean square under kRivalRatio of the label's,
+// the label's over kRivalFloor^2) or lies clearly nearer where the marker was (likewise, the
+// label's over kPriorFloor): the marker held the wrong point (its records go, ForgetRecords; the
+// verdict follows the old point, as DropLabelsAMateFitsBetter's does), and the new label starts
+// on probation. Only a rival that came after the label was given is one (one there before was
+// judged then), and only committed mates (held kProvisionalFrames) are anchors: a mate on a wrong
+// point made a right label look wrong (seed 10's start, its forearm mirrored: the finger marker
+// moved to a wrist marker's unclaimed point). Why a window and not the frame: the rival appears
+// when the marker's own point comes back, frames after the wrong label was given (seed 47 at 5
+// ghosts: RFIN took a reflection riding 30 mm from its hidden point; its own point came back 26
+// frames later, 4 mm off its distance to the wrist, the reflection 12 mm, and was then left
+// unlabelled for the rest of the take, 0.981 of the labels; seeds 4, 34, 42 at 8 ghosts: a toe
+// marker placed on a reflection by the limb search, its own point back 5-12 cm away).
+void Tracker::Impl::ReviewProvisionalLabels(int np) {
+  std::fill(claimed_now.begin(), claimed_now.begin() + np, 0);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= 0) claimed_now[row_to_col[m]] = 1;
+  for (int m = 0; m < nm; ++m) {
+    const int k = row_to_col[m];
+    if (k < 0 || labelled_run[m] == 0 || labelled_run[m] >= kProvisionalFrames || FreshTrack()) {
+      rival_frames[m] = 0;
+      continue;
+    }
+    const Eigen::Vector3d p = points.col(k);
+    const double own = RigidResidual(m, p);
+    if (!std::isfinite(own)) {
+      rival_frames[m] = 0;
+      continue;
+    }
+    int best = -1;
+    double best_r = std::numeric_limits<double>::infinity();
+    for (int j = 0; j < np; ++j) {
+      if (claimed_now[j] || (points.col(j) - p).squaredNorm() > kRivalRadius * kRivalRadius)
+        continue;
+      const double r = RigidResidual(m, points.col(j));
+      if (r < best_r) {
+        best_r = r;
+        best = j;
+      }
+    }
+    if (best < 0) {
+      rival_frames[m] = 0;
+      continue;
+    }
+    if (rival_frames[m] > 0 &&
+        (points.col(best) - rival_last.col(m)).squaredNorm() > kTrackStep * kTrackStep)
+      rival_frames[m] = 0;
+    if (rival_frames[m] == 0)
+      own_residual[m] = rival_residual[m] = own_prior[m] = rival_prior[m] = 0;
+    own_residual[m] += own;
+    rival_residual[m] += best_r;
+    const int parent = ParentSegment(m);
+    if (has_window_rel[m] && parent >= 0) {
+      const Eigen::Vector3d was = data.segment_position[model->markers()[m].segment] +
+                                  data.segment_rotation[parent] * window_rel.col(m);
+      own_prior[m] += (p - was).squaredNorm();
+      rival_prior[m] += (points.col(best) - was).squaredNorm();
+    }
+    rival_last.col(m) = points.col(best);
+    const int n = ++rival_frames[m];
+    const bool fits_better = rival_residual[m] < kRivalRatio * own_residual[m] &&
+                             own_residual[m] >= n * kRivalFloor * kRivalFloor;
+    const bool where_it_was = has_window_rel[m] && rival_prior[m] < kRivalRatio * own_prior[m] &&
+                              own_prior[m] >= n * kPriorFloor * kPriorFloor;
+    if (n < kRivalFrames || rival_residual[m] > n * kRivalFit * kRivalFit ||
+        !(fits_better || where_it_was))
+      continue;
+    // A rival that was already there when the label was given was judged then.
+    double spread = 0;
+    if (TrackBack(m, points.col(best), &spread) > std::min(labelled_run[m], kHistory)) continue;
+    // Nor one an unlabelled mate could be: which of a segment's markers a point is, the rigid
+    // distances and the past place cannot tell where both fit (DropLabelsAMateFitsBetter).
+    bool a_mates = false;
+    for (const int o : segment_markers[model->markers()[m].segment])
+      a_mates = a_mates || (o != m && row_to_col[o] < 0 && OnSegmentSphere(o, points.col(best)));
+    if (a_mates) continue;
+    if (doubted_count < nm) doubted[doubted_count++] = {k, m};
+    ForgetRecords(m);
+    row_to_col[m] = best;
+    labelled_run[m] = 0;
+    rival_frames[m] = 0;
+    claimed_now[k] = 0;
+    claimed_now[best] = 1;
+  }
+}
+
+double Tracker::Impl::RigidResidual(int m, const Eigen::Vector3d& p) const {
+  const int segment = model->markers()[m].segment;
+  double sum = 0;
+  int n = 0;
+  if (marker_depth[m] > 0) {
+    const Eigen::Vector3d& c = centre_now[segment];
+    const double r = (p - c).norm() - (predicted.col(m) - c).norm();
+    sum += r * r;
+    ++n;
+  }
+  for (const int o : segment_markers[segment]) {
+    if (o == m || row_to_col[o] < 0 || labelled_run[o] < kProvisionalFrames) continue;
+    const double r = (p - points.col(row_to_col[o])).norm() -
+                     (predicted.col(m) - predicted.col(o)).norm();
+    sum += r * r;
+    ++n;
+  }
+  return n > 0 ? sum / n : kNaN;
 }
 
 // Whether point p lies at marker m's distance from its segment's joint centre (within the
