@@ -87,6 +87,10 @@ class WithInnerIterations : public LmProblem {
   void AnticipateDamping(double lambda, double min_diagonal, double max_diagonal) override {
     whole_->AnticipateDamping(lambda, min_diagonal, max_diagonal);
   }
+  bool SolveAcceleration(const Eigen::VectorXd& damping, const Eigen::VectorXd& velocity, double h,
+                         Eigen::VectorXd* acceleration) override {
+    return whole_->SolveAcceleration(damping, velocity, h, acceleration);
+  }
   void InnerIteration(Eigen::VectorXd* x) override {
     candidate_ = *x;
     bool ok = false;
