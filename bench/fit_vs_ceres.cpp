@@ -251,7 +251,7 @@ struct Args {
                "         [--ceres-radius R1,R2] [--ceres-pose-tolerance T] [--ceres-pose-iterations K]\n"
                "         [--ceres-max-seconds S] [--repeat R] [--verbose]\n"
                "         [--plain] [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]\n"
-               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap]\n"
+               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap] [--no-halve]\n"
                "         [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA]\n"
                "         [--min-diagonal D] [--fit-model] [--rescue-rounds N] [--max-iterations K]\n"
                "         [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]\n"
@@ -299,6 +299,7 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--pose-iterations") args.coarse.pose_iterations = static_cast<int>(number(0));
     else if (a == "--no-inner") args.coarse.inner_iterations = false;
     else if (a == "--wrap") args.coarse.wrap_frame_turns = true;
+    else if (a == "--no-halve") args.coarse.fine_halve_rejected_steps = false;
     else if (a == "--pose-tolerance") args.coarse.pose_tolerance = number(0);
     else if (a == "--fine-lambda") args.coarse.fine_initial_lambda = number(1e-300);
     else if (a == "--missing") {

@@ -242,7 +242,14 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         break;
       }
       // Reject.
-      lambda *= nu;
+      double halving = 0;
+      if (options.halve_rejected_steps && solved && dx.allFinite()) {
+        // predicted = (lambda v^T S v - v^T g) / 2 and v^T J^T J v = -v^T g - lambda v^T S v.
+        const double vsv = dx.dot(damping.cwiseProduct(dx)) / lambda;
+        const double vjjv = 2.0 * predicted - 2.0 * lambda * vsv;
+        if (vsv > 0 && vjjv > 0) halving = vjjv / vsv + 2.0 * lambda;
+      }
+      lambda = std::max(lambda * nu, halving);
       nu *= 2.0;
       ++rejections;
       if (lambda > options.max_lambda || rejections >= options.max_consecutive_rejections) {

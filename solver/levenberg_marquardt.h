@@ -76,6 +76,15 @@ struct LmOptions {
   double max_diagonal = 1e32;
   double min_gain_ratio = 1e-3;       // eta: accept steps whose gain ratio exceeds this
   int max_consecutive_rejections = 10;
+  // After a rejected step v, lambda rises at least to the damping at which the quadratic model's
+  // minimiser along v is v / 2: lambda' = v^T J^T J v / v^T S v + 2 lambda (S = the damping's
+  // scaling, clamp(diag(J^T J)); v^T J^T J v from the identity above, no product with J), not
+  // only by Nielsen's nu (2, 4, 8, ...). Nielsen's doubling assumes the damping is already of the
+  // scale that shapes the step; from a Gauss–Newton-like start (lambda 1e-8, coarse_to_fine.h's
+  // fine stage) a rejected step is nearly the undamped one, and doubling re-solves the same step
+  // four or five times (each a pass over every frame) before lambda reaches that scale. Off by
+  // default here; on in the coarse-to-fine fine stage (CoarseToFineOptions::fine_halve_rejected_steps).
+  bool halve_rejected_steps = false;
   // Geodesic acceleration (see the top of this file). Needs LmProblem::SolveAcceleration; a problem
   // without it (or whose acceleration solve fails) gets the plain step. acceleration_step is h of
   // the finite difference r_vv ~ (2 / h) ((r(x + h v) - r(x)) / h - J v), relative to v (GSL's

@@ -139,3 +139,29 @@ TEST(LevenbergMarquardt, AccelerationOptionsAreValidated) {
   EXPECT_EQ(s.termination, solver::TerminationType::kFailure);
   EXPECT_NE(s.message.find("max_acceleration_ratio"), std::string::npos);
 }
+
+// LmOptions::halve_rejected_steps: from a Gauss–Newton-like start (lambda 1e-8) a rejected step
+// raises lambda at once to where the model's minimiser along it is half as long, instead of
+// doubling lambda through re-solves that give nearly the same step: the first accepted step
+// costs far fewer solves (measured, k = 10, 100, 1000: 7, 6, 4 doubling, 2, 2, 2 halving), and
+// the minimum is the same. (Over a whole Rosenbrock solve it is no
+// better than Nielsen's rule: measured, k = 10, 100, 1000: 39, 84, 248 solves doubling, 29, 83,
+// 270 halving. It is for the coarse-to-fine fine stage's start, coarse_to_fine.h.)
+TEST(LevenbergMarquardt, HalvingARejectedStepSavesTheResolvesOfNielsensDoubling) {
+  for (double k : {10.0, 100.0, 1000.0}) {
+    SCOPED_TRACE("valley steepness " + std::to_string(k));
+    solver::LmOptions doubling = Options(false), halving = Options(false);
+    doubling.initial_lambda = halving.initial_lambda = 1e-8;
+    halving.halve_rejected_steps = true;
+    Eigen::VectorXd x_doubling = Eigen::Vector2d(-1.2, 1.0), x_halving = x_doubling;
+    DenseProblem p_doubling = Rosenbrock(k, false), p_halving = Rosenbrock(k, false);
+    const solver::LmSummary d = solver::Solve(doubling, &p_doubling, &x_doubling);
+    const solver::LmSummary h = solver::Solve(halving, &p_halving, &x_halving);
+    ASSERT_EQ(h.termination, solver::TerminationType::kConvergence) << h.FullReport();
+    EXPECT_NEAR(x_halving[0], 1.0, 1e-6);
+    EXPECT_NEAR(x_halving[1], 1.0, 1e-6);
+    ASSERT_FALSE(d.iterations.empty());
+    ASSERT_FALSE(h.iterations.empty());
+    EXPECT_LT(h.iterations[0].linear_solves, d.iterations[0].linear_solves) << d.FullReport() << h.FullReport();
+  }
+}
