@@ -89,7 +89,12 @@ struct LmOptions {
   // without it (or whose acceleration solve fails) gets the plain step. acceleration_step is h of
   // the finite difference r_vv ~ (2 / h) ((r(x + h v) - r(x)) / h - J v), relative to v (GSL's
   // h_fvv, 0.02); max_acceleration_ratio is alpha of the test 2 |a| / |v| <= alpha (0.75 in
-  // Transtrum and Sethna and in GSL).
+  // Transtrum and Sethna and in GSL). Off: measured on the global fit with marker gaps (6,000
+  // frames, 5 and 10 % missing, seeds 1-3; BENCHMARKS.md, "With gaps", fifteenth session) it turns
+  // the crawl's gain ratios from 0.2-0.7 to 0.9-1.0, but the first Gauss–Newton-like step is
+  // refused (2|a|/|v| = 11.5) up to a higher damping than plain LM's, and each trial costs about
+  // 40 % of a linearisation more: CPU +56 % over the six runs. On Rosenbrock's narrow valley
+  // (k = 1000) it takes 70 iterations instead of 245 (test_levenberg_marquardt).
   bool geodesic_acceleration = false;
   double acceleration_step = 0.02;
   double max_acceleration_ratio = 0.75;
