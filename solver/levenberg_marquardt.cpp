@@ -54,9 +54,10 @@ std::string LmSummary::BriefReport() const {
                 num_linear_solves, total_seconds, message.c_str());
   std::string out = buf;
   if (num_accelerated_steps + num_acceleration_rejections + num_acceleration_failures > 0) {
-    std::snprintf(buf, sizeof(buf), "; geodesic acceleration: %d steps accelerated, %d refused (2|a|/|v| too large)%s",
-                  num_accelerated_steps, num_acceleration_rejections,
-                  num_acceleration_failures > 0 ? (", " + std::to_string(num_acceleration_failures) + " solves failed").c_str() : "");
+    std::snprintf(buf, sizeof(buf),
+                  "; geodesic acceleration: %d steps accelerated, %d refused (2|a|/|v| too large), "
+                  "%d acceleration solves failed",
+                  num_accelerated_steps, num_acceleration_rejections, num_acceleration_failures);
     out += buf;
   }
   return out;
@@ -155,7 +156,7 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
       double new_cost = std::numeric_limits<double>::infinity();
       double predicted = 0;
       double acceleration_ratio = 0;
-      bool refused = false;
+      bool refused = false, accelerated = false;
       if (solved && dx.allFinite()) {
         // The quadratic model's decrease for the velocity dx, with or without an acceleration.
         predicted = 0.5 * (dx.dot(damping.cwiseProduct(dx)) - dx.dot(gradient));
@@ -173,10 +174,10 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
               ++summary.num_acceleration_rejections;
             } else {
               x_new += 0.5 * acceleration;
+              accelerated = true;
               ++summary.num_accelerated_steps;
             }
           } else {
-            acceleration_ratio = 0;
             ++summary.num_acceleration_failures;
           }
           summary.acceleration_seconds += Since(t);
@@ -189,7 +190,7 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
       }
       const double actual = cost - new_cost;
       const double rho = predicted > 0 ? actual / predicted : -1.0;
-      it.step_norm = solved && !refused ? (x_new - *x).norm() : 0.0;
+      it.step_norm = !solved || refused ? 0.0 : accelerated ? (dx + 0.5 * acceleration).norm() : dx.norm();
       it.acceleration_ratio = refused ? 0.0 : acceleration_ratio;
       it.gain_ratio = std::isfinite(rho) ? rho : -1.0;
       if (std::isfinite(new_cost) && rho > options.min_gain_ratio) {
