@@ -238,6 +238,8 @@ struct Args {
   bool clamp_ranges = false;     // mark the model's ranged joint rotations clamped (ClampRangedRotations)
   double ik_limit_stiffness = -1;  // >= 0: IkOptions::coordinate_limit_stiffness; -1: its default
   double limit_sigma = 0;          // > 0: FitOptions::coordinate_limit_sigma_rad; 0: its default
+  int geodesic = -1;               // 1 / 0: LmOptions::geodesic_acceleration on / off; -1: its default
+  double geodesic_alpha = 0, geodesic_h = 0;  // > 0: max_acceleration_ratio, acceleration_step
 };
 
 [[noreturn]] void Usage(const std::string& error) {
@@ -249,12 +251,13 @@ struct Args {
                "         [--ceres-radius R1,R2] [--ceres-pose-tolerance T] [--ceres-pose-iterations K]\n"
                "         [--ceres-max-seconds S] [--repeat R] [--verbose]\n"
                "         [--plain] [--coarse-frames N] [--coarse-tolerance T] [--pose-iterations K]\n"
-               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap]\n"
+               "         [--pose-tolerance T] [--fine-lambda L] [--no-inner] [--wrap] [--no-halve]\n"
                "         [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA]\n"
                "         [--min-diagonal D] [--fit-model] [--rescue-rounds N] [--max-iterations K]\n"
                "         [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]\n"
                "         [--clamp-ranges] [--ik-limit-stiffness S] [--limit-sigma SIGMA]\n"
-               "         [--pose-retries K] [--pose-cap R]\n",
+               "         [--pose-retries K] [--pose-cap R]\n"
+               "         [--geodesic | --no-geodesic] [--geodesic-alpha A] [--geodesic-h H]\n",
                error.c_str());
   std::exit(2);
 }
@@ -296,6 +299,7 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--pose-iterations") args.coarse.pose_iterations = static_cast<int>(number(0));
     else if (a == "--no-inner") args.coarse.inner_iterations = false;
     else if (a == "--wrap") args.coarse.wrap_frame_turns = true;
+    else if (a == "--no-halve") args.coarse.fine_halve_rejected_steps = false;
     else if (a == "--pose-tolerance") args.coarse.pose_tolerance = number(0);
     else if (a == "--fine-lambda") args.coarse.fine_initial_lambda = number(1e-300);
     else if (a == "--missing") {
@@ -315,6 +319,10 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--ik-limit-stiffness") args.ik_limit_stiffness = number(0);
     else if (a == "--limit-sigma") args.limit_sigma = number(1e-300);
     else if (a == "--max-iterations") args.max_iterations = static_cast<int>(number(0));
+    else if (a == "--geodesic") args.geodesic = 1;
+    else if (a == "--no-geodesic") args.geodesic = 0;
+    else if (a == "--geodesic-alpha") args.geodesic_alpha = number(1e-300);
+    else if (a == "--geodesic-h") args.geodesic_h = number(1e-300);
     else if (a == "--frame-prior") args.frame_prior_sigma = number(1e-6);
     else if (a == "--seed") args.seed = static_cast<std::uint64_t>(number(0));
     else if (a == "--threads") args.threads = static_cast<int>(number(1));
@@ -1299,6 +1307,9 @@ int main(int argc, char** argv) {
   fit_options.staged = false;
   if (args.min_diagonal > 0) fit_options.lm.min_diagonal = args.min_diagonal;
   if (args.max_iterations >= 0) fit_options.lm.max_iterations = args.max_iterations;
+  if (args.geodesic >= 0) fit_options.lm.geodesic_acceleration = args.geodesic == 1;
+  if (args.geodesic_alpha > 0) fit_options.lm.max_acceleration_ratio = args.geodesic_alpha;
+  if (args.geodesic_h > 0) fit_options.lm.acceleration_step = args.geodesic_h;
   fit_options.unobserved_hold.enabled = args.hold;
   if (args.hold_weak > 0) fit_options.unobserved_hold.weak_ratio = args.hold_weak;
   if (args.hold_ratio > 0) fit_options.unobserved_hold.hold_ratio = args.hold_ratio;
@@ -1405,7 +1416,14 @@ int main(int argc, char** argv) {
   out["ours_breakdown"] = {{"linearize_s", ours.linearize_seconds},
                            {"linear_solver_s", ours.linear_solver_seconds},
                            {"cost_s", ours.cost_evaluation_seconds},
-                           {"inner_iterations_s", ours.inner_iteration_seconds}};
+                           {"inner_iterations_s", ours.inner_iteration_seconds},
+                           {"acceleration_s", ours.acceleration_seconds}};
+  out["ours_geodesic"] = {{"enabled", fit_options.lm.geodesic_acceleration},
+                          {"accelerated_steps", ours.num_accelerated_steps},
+                          {"refused_steps", ours.num_acceleration_rejections},
+                          {"failed_solves", ours.num_acceleration_failures},
+                          {"coarse_accelerated_steps", ours_coarse.coarse.num_accelerated_steps},
+                          {"coarse_refused_steps", ours_coarse.coarse.num_acceleration_rejections}};
   out["ours_coarse"] = {{"used", ours_coarse.used},
                         {"fallback", ours_coarse.fallback},
                         {"frames", ours_coarse.coarse_frames},

@@ -87,6 +87,10 @@ class WithInnerIterations : public LmProblem {
   void AnticipateDamping(double lambda, double min_diagonal, double max_diagonal) override {
     whole_->AnticipateDamping(lambda, min_diagonal, max_diagonal);
   }
+  bool SolveAcceleration(const Eigen::VectorXd& damping, const Eigen::VectorXd& velocity, double h,
+                         Eigen::VectorXd* acceleration) override {
+    return whole_->SolveAcceleration(damping, velocity, h, acceleration);
+  }
   void InnerIteration(Eigen::VectorXd* x) override {
     candidate_ = *x;
     bool ok = false;
@@ -630,6 +634,7 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   // Stage 3.
   LmOptions fine_lm = options;
   fine_lm.initial_lambda = std::clamp(coarse.fine_initial_lambda, options.min_lambda, options.max_lambda);
+  fine_lm.halve_rejected_steps = options.halve_rejected_steps || coarse.fine_halve_rejected_steps;
   LmSummary result;
   if (coarse.inner_iterations) {
     WithInnerIterations with_inner(&fine, problem, coarse, num_threads, /*refine_poses=*/true,

@@ -99,6 +99,17 @@ struct CoarseToFineOptions {
   // a curvature far below 1e-4 of its data diagonal): each LM step would close only part of their
   // gap. Gauss–Newton-like steps from the start; Nielsen's rule raises it if a step fails.
   double fine_initial_lambda = 1e-8;
+  // Stage 3 with LmOptions::halve_rejected_steps: a step rejected at that Gauss–Newton-like
+  // damping (frames in marker gaps whose cost is far from quadratic, e.g. a hidden forearm's
+  // pro-supination) raised lambda 2x, 4x, 8x, 16x, 32x: five re-solves of the whole problem, each
+  // a pass over every frame, to reach ~3e-4. Measured at 6,000 frames, 0.8 mm noise, seeds 1-3
+  // (BENCHMARKS.md, "With gaps", fifteenth session): whole-problem linear solves at 5 % / 10 %
+  // missing 15, 2, 5 / 15, 18, 22 -> 8, 2, 5 / 6, 14, 15 (iterations 7, 2, 5 / 7, 10, 15 ->
+  // 6, 2, 5 / 5, 10, 14), CPU 30.0 -> 23.5 s in all, the same centres (+-0.001 mm), end costs
+  // within +1.1 of Nielsen's alone; without gaps nothing changes (no step is rejected). Not in
+  // stage 1: there (a far start) Nielsen's gentle rise suits, and with the halving there 5 % seed
+  // 2 took 4 whole-problem iterations instead of 2.
+  bool fine_halve_rejected_steps = true;
   // After stage 2, a frame whose cost is above `rescue_ratio` times the median frame's (a pose
   // in a wrong branch: a two-marker foot turned round during a gap) is re-solved, up to
   // `rescue_iterations` Gauss–Newton steps, from its neighbour's pose, sweeping each run of such

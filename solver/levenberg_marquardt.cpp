@@ -40,6 +40,8 @@ bool LmOptions::IsValid(std::string* error) const {
     return fail("need 0 < min_diagonal <= max_diagonal");
   if (!(min_gain_ratio >= 0 && min_gain_ratio < 1)) return fail("min_gain_ratio must be in [0, 1)");
   if (max_consecutive_rejections < 1) return fail("max_consecutive_rejections must be >= 1");
+  if (!(acceleration_step > 0 && acceleration_step <= 1)) return fail("acceleration_step must be in (0, 1]");
+  if (!(max_acceleration_ratio > 0)) return fail("max_acceleration_ratio must be > 0");
   return true;
 }
 
@@ -50,7 +52,15 @@ std::string LmSummary::BriefReport() const {
                 "%d linear solves, %.3f s (%s)",
                 ToString(termination), initial_cost, final_cost, num_iterations(),
                 num_linear_solves, total_seconds, message.c_str());
-  return buf;
+  std::string out = buf;
+  if (num_accelerated_steps + num_acceleration_rejections + num_acceleration_failures > 0) {
+    std::snprintf(buf, sizeof(buf),
+                  "; geodesic acceleration: %d steps accelerated, %d refused (2|a|/|v| too large), "
+                  "%d acceleration solves failed",
+                  num_accelerated_steps, num_acceleration_rejections, num_acceleration_failures);
+    out += buf;
+  }
+  return out;
 }
 
 std::string LmSummary::FullReport() const {
@@ -72,6 +82,14 @@ std::string LmSummary::FullReport() const {
                 initial_cost, final_cost, linearize_seconds, linear_solver_seconds,
                 cost_evaluation_seconds, inner_iteration_seconds, total_seconds);
   os << buf;
+  if (num_accelerated_steps + num_acceleration_rejections + num_acceleration_failures > 0) {
+    std::snprintf(buf, sizeof(buf),
+                  "  geodesic acceleration: %d steps accelerated, %d refused (2|a|/|v| too large), %d solves "
+                  "failed, %.3f s\n",
+                  num_accelerated_steps, num_acceleration_rejections, num_acceleration_failures,
+                  acceleration_seconds);
+    os << buf;
+  }
   os << "  termination: " << ToString(termination) << " (" << message << ")\n";
   return os.str();
 }
@@ -91,7 +109,7 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
     return summary;
   }
 
-  Eigen::VectorXd gradient, diagonal, damping, dx, x_new;
+  Eigen::VectorXd gradient, diagonal, damping, dx, x_new, acceleration;
   double cost = 0;
   auto t = Clock::now();
   problem->AnticipateDamping(options.initial_lambda, options.min_diagonal, options.max_diagonal);
@@ -137,16 +155,43 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
       ++summary.num_linear_solves;
       double new_cost = std::numeric_limits<double>::infinity();
       double predicted = 0;
+      double acceleration_ratio = 0;
+      bool refused = false, accelerated = false;
       if (solved && dx.allFinite()) {
+        // The quadratic model's decrease for the velocity dx, with or without an acceleration.
         predicted = 0.5 * (dx.dot(damping.cwiseProduct(dx)) - dx.dot(gradient));
         x_new = *x + dx;
-        t = Clock::now();
-        if (!problem->Cost(x_new, &new_cost)) new_cost = std::numeric_limits<double>::infinity();
-        summary.cost_evaluation_seconds += Since(t);
+        if (options.geodesic_acceleration) {
+          t = Clock::now();
+          if (problem->SolveAcceleration(damping, dx, options.acceleration_step, &acceleration) &&
+              acceleration.allFinite()) {
+            // The damping is lambda times the scaling: the ratio does not depend on lambda.
+            const double v_norm = std::sqrt(dx.dot(damping.cwiseProduct(dx)));
+            acceleration_ratio = 2.0 * std::sqrt(acceleration.dot(damping.cwiseProduct(acceleration))) /
+                                 std::max(v_norm, std::numeric_limits<double>::min());
+            if (acceleration_ratio > options.max_acceleration_ratio) {
+              refused = true;
+              ++summary.num_acceleration_rejections;
+            } else {
+              x_new += 0.5 * acceleration;
+              accelerated = true;
+              ++summary.num_accelerated_steps;
+            }
+          } else {
+            ++summary.num_acceleration_failures;
+          }
+          summary.acceleration_seconds += Since(t);
+        }
+        if (!refused) {
+          t = Clock::now();
+          if (!problem->Cost(x_new, &new_cost)) new_cost = std::numeric_limits<double>::infinity();
+          summary.cost_evaluation_seconds += Since(t);
+        }
       }
       const double actual = cost - new_cost;
       const double rho = predicted > 0 ? actual / predicted : -1.0;
-      it.step_norm = solved ? dx.norm() : 0.0;
+      it.step_norm = !solved || refused ? 0.0 : accelerated ? (dx + 0.5 * acceleration).norm() : dx.norm();
+      it.acceleration_ratio = refused ? 0.0 : acceleration_ratio;
       it.gain_ratio = std::isfinite(rho) ? rho : -1.0;
       if (std::isfinite(new_cost) && rho > options.min_gain_ratio) {
         // Accept.
@@ -198,7 +243,14 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         break;
       }
       // Reject.
-      lambda *= nu;
+      double halving = 0;
+      if (options.halve_rejected_steps && solved && dx.allFinite()) {
+        // predicted = (lambda v^T S v - v^T g) / 2 and v^T J^T J v = -v^T g - lambda v^T S v.
+        const double vsv = dx.dot(damping.cwiseProduct(dx)) / lambda;
+        const double vjjv = 2.0 * predicted - 2.0 * lambda * vsv;
+        if (vsv > 0 && vjjv > 0) halving = vjjv / vsv + 2.0 * lambda;
+      }
+      lambda = std::max(lambda * nu, halving);
       nu *= 2.0;
       ++rejections;
       if (lambda > options.max_lambda || rejections >= options.max_consecutive_rejections) {

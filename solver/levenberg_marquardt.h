@@ -9,6 +9,17 @@
 // lambda *= max(1/3, 1 - (2 rho - 1)^3); otherwise lambda *= nu, nu *= 2. The predicted decrease
 // uses the identity dx^T J^T J dx = -dx^T g - dx^T D dx, so no extra product with J is needed.
 // Options, Summary and termination types follow Ceres Solver's shape.
+//
+// Optional geodesic acceleration (M. K. Transtrum and J. P. Sethna, "Improvements to the
+// Levenberg-Marquardt algorithm for nonlinear least-squares minimization", arXiv:1201.5885, 2012;
+// GSL's gsl_multifit_nlinear "lmaccel"): in a narrow curved valley the LM step v (the velocity)
+// leaves the valley floor and is rejected or cut short by the damping. The second-order term of
+// the geodesic through x along v adds an acceleration a, solving the same damped system
+// (J^T J + D) a = -J^T r_vv, with r_vv the residuals' second directional derivative along v
+// (a finite difference: one more residual evaluation at x + h v, LmProblem::SolveAcceleration).
+// The step is v + a / 2; it is refused (as a failed step: lambda rises) when 2 |a| / |v| > alpha
+// in the damping's scaled norm, where the second-order model cannot be trusted. The gain ratio
+// is measured against v's predicted decrease (the quadratic model's, as GSL does).
 #pragma once
 #include <atomic>
 
@@ -42,6 +53,9 @@ struct IterationSummary {
   double iteration_seconds = 0;
   double total_seconds = 0;
   bool coarse = false;          // of a coarse stage on a subset of the frames (coarse_to_fine.h)
+  // Geodesic acceleration (LmOptions::geodesic_acceleration) of the accepted step: 2 |a| / |v| in
+  // the damping's scaled norm; 0 when the step had none.
+  double acceleration_ratio = 0;
   // LmOptions::data_rms at the iterate this iteration ended on; NaN without one.
   double data_rms = std::numeric_limits<double>::quiet_NaN();
 };
@@ -62,6 +76,28 @@ struct LmOptions {
   double max_diagonal = 1e32;
   double min_gain_ratio = 1e-3;       // eta: accept steps whose gain ratio exceeds this
   int max_consecutive_rejections = 10;
+  // After a rejected step v, lambda rises at least to the damping at which the quadratic model's
+  // minimiser along v is v / 2: lambda' = v^T J^T J v / v^T S v + 2 lambda (S = the damping's
+  // scaling, clamp(diag(J^T J)); v^T J^T J v from the identity above, no product with J), not
+  // only by Nielsen's nu (2, 4, 8, ...). Nielsen's doubling assumes the damping is already of the
+  // scale that shapes the step; from a Gauss–Newton-like start (lambda 1e-8, coarse_to_fine.h's
+  // fine stage) a rejected step is nearly the undamped one, and doubling re-solves the same step
+  // four or five times (each a pass over every frame) before lambda reaches that scale. Off by
+  // default here; on in the coarse-to-fine fine stage (CoarseToFineOptions::fine_halve_rejected_steps).
+  bool halve_rejected_steps = false;
+  // Geodesic acceleration (see the top of this file). Needs LmProblem::SolveAcceleration; a problem
+  // without it (or whose acceleration solve fails) gets the plain step. acceleration_step is h of
+  // the finite difference r_vv ~ (2 / h) ((r(x + h v) - r(x)) / h - J v), relative to v (GSL's
+  // h_fvv, 0.02); max_acceleration_ratio is alpha of the test 2 |a| / |v| <= alpha (0.75 in
+  // Transtrum and Sethna and in GSL). Off: measured on the global fit with marker gaps (6,000
+  // frames, 5 and 10 % missing, seeds 1-3; BENCHMARKS.md, "With gaps", fifteenth session) it turns
+  // the crawl's gain ratios from 0.2-0.7 to 0.9-1.0, but the first Gauss–Newton-like step is
+  // refused (2|a|/|v| = 11.5) up to a higher damping than plain LM's, and each trial costs about
+  // 40 % of a linearisation more: CPU +56 % over the six runs. On Rosenbrock's narrow valley
+  // (k = 1000) it takes 70 iterations instead of 245 (test_levenberg_marquardt).
+  bool geodesic_acceleration = false;
+  double acceleration_step = 0.02;
+  double max_acceleration_ratio = 0.75;
   std::vector<IterationCallback> callbacks;
   // Optional: how well x fits the data alone, in the problem's own unit (the body fit: marker
   // RMS in mm, without the priors' rows that the cost also holds), evaluated after each
@@ -92,6 +128,13 @@ struct LmSummary {
   double linear_solver_seconds = 0;
   double cost_evaluation_seconds = 0;
   double inner_iteration_seconds = 0;
+  // Geodesic acceleration: steps taken with an acceleration (accepted or not by the gain ratio),
+  // steps refused by the test 2 |a| / |v| > alpha, acceleration solves that failed (plain step
+  // taken), and their time (the residual pass at x + h v, J^T r_vv and the extra back-substitution).
+  int num_accelerated_steps = 0;
+  int num_acceleration_rejections = 0;
+  int num_acceleration_failures = 0;
+  double acceleration_seconds = 0;
 
   int num_iterations() const { return static_cast<int>(iterations.size()); }
   bool IsSolutionUsable() const { return termination != TerminationType::kFailure; }
@@ -120,6 +163,14 @@ class LmProblem {
   // iterations": each frame's own block re-solved with the shared parameters fixed). The next
   // iteration's cost change includes what it gained. Doing nothing is correct.
   virtual void InnerIteration(Eigen::VectorXd* x) {}
+  // Geodesic acceleration (LmOptions::geodesic_acceleration): solves (J^T J + damping) a = -J^T r_vv
+  // at the last linearisation point, with `damping` that of the last SolveDamped (whose
+  // factorisation it may reuse) and r_vv = (2 / h) ((r(x + h v) - r(x)) / h - J v). False: not
+  // available (LM then takes the plain step v).
+  virtual bool SolveAcceleration(const Eigen::VectorXd& damping, const Eigen::VectorXd& velocity, double h,
+                                 Eigen::VectorXd* acceleration) {
+    return false;
+  }
 };
 
 // Minimises from *x in place. Never leaves a non-finite value in *x.

@@ -31,6 +31,8 @@ struct alignas(64) ArrowSchurProblem::ThreadState {
   std::vector<Eigen::MatrixXd> v_stack, v_acc, g_stack, g_acc;
   std::vector<Eigen::VectorXd> g_rhs;  // per row group: Y_g^T v_g over its own columns
   std::vector<int> v_count, g_count;
+  std::vector<int> kind_slot;  // SolveAcceleration: where a block kind's shifted residuals are, -1 none
+  Eigen::VectorXd by;          // SolveAcceleration: the frame's J_y^T r_vv, by y index
   double cost = 0;
   bool ok = true;
 };
@@ -81,6 +83,8 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
       ts->g_rhs.emplace_back(n);
     }
     ts->g_count.assign(groups_.size(), 0);
+    ts->kind_slot.assign(kinds_.size(), -1);
+    ts->by.resize(ny_);
     threads_.push_back(std::move(ts));
   }
 }
@@ -304,6 +308,7 @@ bool ArrowSchurProblem::Cost(const Eigen::VectorXd& x, double* cost) {
 bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen::VectorXd* gradient,
                                   Eigen::VectorXd* diagonal) {
   x_ = x;
+  damped_solve_ready_ = false;
   const int n = num_parameters();
   gradient->setZero(n);
   diagonal->setZero(n);
@@ -637,6 +642,7 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
 }
 
 bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::VectorXd* dx) {
+  damped_solve_ready_ = false;
   Eigen::MatrixXd s;
   Eigen::VectorXd rhs;
   if (anticipated_ready_ && damping.size() == anticipated_damping_.size() &&
@@ -651,11 +657,19 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
   dx->resize(num_parameters());
   Eigen::VectorXd dp = Eigen::VectorXd::Zero(np_);
   if (np_ > 0) {
-    Eigen::LLT<Eigen::MatrixXd> llt(s);  // reads the lower triangle only
-    if (llt.info() != Eigen::Success) return false;
-    dp = llt.solve(rhs);
+    s_factor_.compute(s);  // reads the lower triangle only
+    if (s_factor_.info() != Eigen::Success) return false;
+    dp = s_factor_.solve(rhs);
     dx->tail(np_) = dp;
   }
+  if (!BackSubstitute(damping, gradient_, dp, dx)) return false;
+  damped_solve_ready_ = true;
+  solved_damping_ = damping;
+  return true;
+}
+
+bool ArrowSchurProblem::BackSubstitute(const Eigen::VectorXd& damping, const Eigen::VectorXd& gradient,
+                                       const Eigen::VectorXd& dp, Eigen::VectorXd* dx) {
   // Back-substitution, frame by frame: dy_f = -U_f^{-1} (g_yf + W_f dp).
   if (!cached_ && !problem_->SetShared(x_.tail(np_))) return false;
   ParallelChunks(nf_, num_threads_, [&](int t, int b, int e) {
@@ -666,12 +680,12 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
         const double* packed = CachedL(f);
         for (size_t k = 0; k < u_pattern_.size(); ++k) ts.u.data()[u_pattern_[k]] = packed[k];
         ts.w_frame = CachedW(f);
-        const double* g = gradient_.data() + static_cast<size_t>(f) * ny_;
-        for (int i = 0; i < ny_; ++i) ts.gy[position_[i]] = g[i];
       } else if (!LoadFrame(ts, f, damping)) {
         ts.ok = false;
         return;
       }
+      const double* g = gradient.data() + static_cast<size_t>(f) * ny_;
+      for (int i = 0; i < ny_; ++i) ts.gy[position_[i]] = g[i];
       ts.wdp = ts.gy;
       for (const RowGroup& g : groups_) {
         const int n = static_cast<int>(g.columns.size());
@@ -695,6 +709,132 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
   for (int t = 0; t < std::max(1, std::min(num_threads_, nf_)); ++t)
     if (!threads_[t]->ok) return false;
   return dx->allFinite();
+}
+
+bool ArrowSchurProblem::SolveAcceleration(const Eigen::VectorXd& damping, const Eigen::VectorXd& velocity, double h,
+                                          Eigen::VectorXd* acceleration) {
+  const int n = num_parameters();
+  const int threads = std::max(1, std::min(num_threads_, nf_));
+  if (!cached_ || !damped_solve_ready_ || !(h > 0) || velocity.size() != n || damping.size() != n ||
+      !(damping.array() == solved_damping_.array()).all())
+    return false;
+  // (1) Residuals at x + h v, by frame and block: (kind, r0, r1, r2).
+  const Eigen::VectorXd shifted = x_ + h * velocity;
+  if (!problem_->SetShared(shifted.tail(np_))) {
+    problem_->SetShared(x_.tail(np_));
+    return false;
+  }
+  shifted_residuals_.resize(nf_);
+  ParallelChunks(nf_, num_threads_, [&](int t, int b, int e) {
+    ThreadState& ts = *threads_[t];
+    ts.ok = true;
+    for (int f = b; f < e; ++f) {
+      if (!ts.evaluator->Evaluate(f, shifted.data() + static_cast<size_t>(f) * ny_, false)) {
+        ts.ok = false;
+        return;
+      }
+      std::vector<double>& out = shifted_residuals_[f];
+      out.clear();
+      for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
+        const ResidualBlock& blk = ts.evaluator->block(k);
+        out.push_back(blk.kind);
+        for (int r = 0; r < kMaxBlockRows; ++r) out.push_back(r < blk.rows ? blk.residual[r] : 0.0);
+      }
+    }
+  });
+  bool ok = problem_->SetShared(x_.tail(np_));
+  for (int t = 0; t < threads; ++t) ok = ok && threads_[t]->ok;
+  if (!ok) return false;
+  // (2) At x: b = J^T r_vv; each frame's share of the reduced right-hand side from its cached
+  // factor while it is hot. The priors' rows are linear in x: their r_vv is zero.
+  Eigen::VectorXd b = Eigen::VectorXd::Zero(n);
+  const double* vp = velocity.data() + static_cast<size_t>(nf_) * ny_;
+  ParallelChunks(nf_, num_threads_, [&](int t, int bf, int ef) {
+    ThreadState& ts = *threads_[t];
+    ts.ok = true;
+    ts.gp.setZero();
+    ts.rhs.setZero();
+    for (int f = bf; f < ef; ++f) {
+      const double* vy = velocity.data() + static_cast<size_t>(f) * ny_;
+      const std::vector<double>& stored = shifted_residuals_[f];
+      bool unique = true;
+      for (size_t s = 0; s < stored.size(); s += 1 + kMaxBlockRows) {
+        const int kind = static_cast<int>(stored[s]);
+        if (kind < 0 || kind >= static_cast<int>(kinds_.size()) || ts.kind_slot[kind] >= 0) unique = false;
+        else ts.kind_slot[kind] = static_cast<int>(s);
+      }
+      const bool evaluated = unique && ts.evaluator->Evaluate(f, x_.data() + static_cast<size_t>(f) * ny_, true);
+      ts.by.setZero();
+      for (int k = 0; evaluated && k < ts.evaluator->num_blocks(); ++k) {
+        const ResidualBlock& blk = ts.evaluator->block(k);
+        const int slot = blk.kind >= 0 && blk.kind < static_cast<int>(kinds_.size()) ? ts.kind_slot[blk.kind] : -1;
+        double rvv[kMaxBlockRows] = {0, 0, 0};
+        for (int r = 0; r < blk.rows; ++r) {
+          double jv = 0;
+          for (int a = 0; a < blk.num_y; ++a) jv += blk.jy[a * kMaxBlockRows + r] * vy[blk.y_index[a]];
+          for (int c = 0; c < blk.num_p; ++c)
+            if (blk.p_index[c] >= 0) jv += blk.jp[c * kMaxBlockRows + r] * vp[blk.p_index[c]];
+          const double shifted_r = slot >= 0 ? stored[slot + 1 + r] : 0.0;
+          rvv[r] = (2.0 / h) * ((shifted_r - blk.residual[r]) / h - jv);
+        }
+        for (int a = 0; a < blk.num_y; ++a) {
+          double sum = 0;
+          for (int r = 0; r < blk.rows; ++r) sum += blk.jy[a * kMaxBlockRows + r] * rvv[r];
+          ts.by[blk.y_index[a]] += sum;
+        }
+        for (int c = 0; c < blk.num_p; ++c) {
+          if (blk.p_index[c] < 0) continue;
+          double sum = 0;
+          for (int r = 0; r < blk.rows; ++r) sum += blk.jp[c * kMaxBlockRows + r] * rvv[r];
+          ts.gp[blk.p_index[c]] += sum;
+        }
+      }
+      for (size_t s = 0; s < stored.size(); s += 1 + kMaxBlockRows) {
+        const int kind = static_cast<int>(stored[s]);
+        if (kind >= 0 && kind < static_cast<int>(kinds_.size())) ts.kind_slot[kind] = -1;
+      }
+      if (!evaluated) {
+        ts.ok = false;
+        return;
+      }
+      b.segment(static_cast<Eigen::Index>(f) * ny_, ny_) = ts.by;
+      if (np_ == 0) continue;
+      // W_f^T U_f^{-1} b_f, U_f's damped factor from the cache (the last SolveDamped's).
+      const double* packed = CachedL(f);
+      for (size_t k = 0; k < u_pattern_.size(); ++k) ts.u.data()[u_pattern_[k]] = packed[k];
+      for (int i = 0; i < ny_; ++i) ts.v[position_[i]] = ts.by[i];
+      SolveLower(ts.u, &ts.v);
+      SolveLowerTransposed(ts.u, &ts.v);
+      const double* w = CachedW(f);
+      for (const RowGroup& g : groups_) {
+        const int gn = static_cast<int>(g.columns.size());
+        for (int r = 0; r < g.num_rows; ++r) {
+          const double z = ts.v[g.first_row + r];
+          if (z == 0.0) continue;
+          const double* wr = w + g.offset + r * gn;
+          if (g.contiguous) {
+            ts.rhs.segment(g.columns.front(), gn) += z * Eigen::Map<const Eigen::VectorXd>(wr, gn);
+          } else {
+            for (int c = 0; c < gn; ++c) ts.rhs[g.columns[c]] += z * wr[c];
+          }
+        }
+      }
+    }
+  });
+  Eigen::VectorXd rhs = Eigen::VectorXd::Zero(np_);
+  for (int t = 0; t < threads; ++t) {
+    if (!threads_[t]->ok) return false;
+    b.tail(np_) += threads_[t]->gp;
+    rhs += threads_[t]->rhs;
+  }
+  acceleration->resize(n);
+  Eigen::VectorXd dp = Eigen::VectorXd::Zero(np_);
+  if (np_ > 0) {
+    // (S) dp = -b_p + sum_f W_f^T U_f^{-1} b_f, as SolveDamped's reduced system with b for g.
+    dp = s_factor_.solve(rhs - b.tail(np_));
+    acceleration->tail(np_) = dp;
+  }
+  return BackSubstitute(damping, b, dp, acceleration);
 }
 
 bool ArrowSchurProblem::SharedCovariance(const Eigen::VectorXd& x, Eigen::MatrixXd* covariance,

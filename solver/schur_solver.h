@@ -38,6 +38,7 @@
 // per-thread accumulators.
 #pragma once
 
+#include <Eigen/Cholesky>
 #include <Eigen/Core>
 #include <memory>
 #include <string>
@@ -76,6 +77,19 @@ class ArrowSchurProblem : public LmProblem {
     anticipated_min_ = min_diagonal;
     anticipated_max_ = max_diagonal;
   }
+
+  // Geodesic acceleration (LmProblem::SolveAcceleration): two passes over the frames, then the
+  // reduced system's factor of the last SolveDamped once more. (1) Residuals at x + h v, with p + h
+  // v_p set on the problem (SetShared is global, so this pass cannot be fused with the next).
+  // (2) At x, with Jacobians: per residual block r_vv = (2 / h) ((r(x + h v) - r(x)) / h - J v)
+  // (blocks matched by kind: a coordinate-limit block that exists at only one of the two points is
+  // zero at the other), J_y^T r_vv and J_p^T r_vv, and while the frame is hot its share of the
+  // reduced right-hand side W_f^T U_f^-1 (J_y^T r_vv) from the cached factor. Then dp from the kept
+  // Cholesky of S and the frames' back-substitution as in SolveDamped. About a linearisation's
+  // Jacobian evaluations and one back-substitution; no new factorisation. Needs the per-frame cache
+  // (false without it) and `damping` equal to the last SolveDamped's since the last Linearize.
+  bool SolveAcceleration(const Eigen::VectorXd& damping, const Eigen::VectorXd& velocity, double h,
+                         Eigen::VectorXd* acceleration) override;
 
   // Covariance of the shared parameters at x, (S^{-1} with no damping on p), in the units of the
   // residuals. Frame blocks that the data leave singular get a ridge of `frame_ridge` relative
@@ -136,6 +150,10 @@ class ArrowSchurProblem : public LmProblem {
   double* CachedW(int f) { return w_cache_.get() + static_cast<size_t>(f) * w_size_; }
   // Accumulates S (lower triangle) and the reduced right-hand side over all frames.
   bool FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s, Eigen::VectorXd* rhs);
+  // dx_f = -U_f^{-1} (b_f + W_f dp) for every frame, b = `gradient` (the frames' part), with the
+  // factors of `damping` (cached, or re-formed without the cache); dx's tail is left as it is.
+  bool BackSubstitute(const Eigen::VectorXd& damping, const Eigen::VectorXd& gradient, const Eigen::VectorXd& dp,
+                      Eigen::VectorXd* dx);
 
   ArrowProblem* problem_;
   int num_threads_;
@@ -163,6 +181,12 @@ class ArrowSchurProblem : public LmProblem {
   int reduction_passes_ = 0;
   Eigen::VectorXd anticipated_damping_, anticipated_rhs_;
   Eigen::MatrixXd anticipated_s_;
+  // The last SolveDamped's damping and Cholesky factor of S, for SolveAcceleration; valid until
+  // the next Linearize. shifted_residuals_: per frame, (kind, r0, r1, r2) per block at x + h v.
+  bool damped_solve_ready_ = false;
+  Eigen::VectorXd solved_damping_;
+  Eigen::LLT<Eigen::MatrixXd> s_factor_;
+  std::vector<std::vector<double>> shifted_residuals_;
 };
 
 }  // namespace mocap::solver
