@@ -212,6 +212,7 @@ TEST(FitTrust, AWorseMinimumIsReleasedFromTheFunctionalEstimateAndAdopted) {
   options.joints = {"hip_r"};
   options.far_mm = 1.0;
   options.fit.prior_sigma_position_m = 1e-5;
+  options.adopt_better_minimum = true;  // off by default (fit_trust.h)
   solver::FitResult result = WithHipMoved(fit.result, 0.010);
   const solver::FitReport before = result.report;
   solver::FitTrust trust;
@@ -253,7 +254,7 @@ TEST(FitTrust, AWorseMinimumIsReleasedFromTheFunctionalEstimateAndAdopted) {
   const nlohmann::json json = solver::FitTrustJson(trust);
   EXPECT_TRUE(json[0]["profile"][0]["adopted"].get<bool>());
 
-  // Off: the worse minimum is reported, the fit kept.
+  // Off (the default): the worse minimum is reported, the fit kept.
   options.adopt_better_minimum = false;
   solver::FitResult kept = WithHipMoved(fit.result, 0.010);
   ASSERT_TRUE(solver::CheckFitTrustAndAdopt(fit.session.nominal, fit.trials, options, &kept, &trust).ok());

@@ -485,30 +485,18 @@ TEST(RealFit, BiobuddyDefaultModelAgreesWithFunctionalJoints) {
   // The target, see Welk007OneCommand...: the schedule's iterations, without the search
   // for a better minimum after it (below).
   EXPECT_LE(r["iterations_every_frame"].get<int>() - r["iterations_better_minimum"].get<int>(), 30);
-  // Each far joint's fit held at its functional estimate is released (fit_trust.h), and a release
-  // that ends below the free fit by more than the quantile is adopted (the lowest). Which joint
-  // that is depends on where the solves stop in these flat valleys (fifteenth session: the left
-  // ankle, -31.3, with one LM damping rule; the lumbar joint, -15.2, with the rule of the
-  // merged tree), so asserted here is the rule, and the report's account of it.
-  const nlohmann::json* adopted = nullptr;
+  // A release of a joint's held fit is adopted only on request (`--adopt-better-minimum`,
+  // fit_trust.h: off, since a lower cost was not a better model here -- the fifteenth session's
+  // adoption moved biobuddy's left ankle axis from 22.4 to 26.6 deg off SARA and welk007's left
+  // knee to 28 mm from its epicondyles); by default nothing is adopted and the report says so.
   for (const auto& j : r["joint_checks"])
     for (const auto& p : j["profile"]) {
-      if (!p["note"].get<std::string>().empty()) continue;
-      std::printf("biobuddy: %s held at its functional estimate: chi-square %+.1f%s\n",
-                  j["joint"].get<std::string>().c_str(), p["delta_chi2"].get<double>(),
-                  p["adopted"].get<bool>()
-                      ? (", released " + std::to_string(p["released_delta_chi2"].get<double>()) + ", ADOPTED").c_str()
-                      : "");
-      if (p["adopted"].get<bool>()) adopted = &p;
+      std::printf("biobuddy: %s held at its functional estimate: chi-square %+.1f\n",
+                  j["joint"].get<std::string>().c_str(), p["delta_chi2"].get<double>());
+      EXPECT_FALSE(p["released"].get<bool>()) << j["joint"];
+      EXPECT_FALSE(p["adopted"].get<bool>()) << j["joint"];
     }
-  if (adopted != nullptr) {
-    EXPECT_TRUE((*adopted)["released"].get<bool>());
-    EXPECT_LT((*adopted)["released_delta_chi2"].get<double>(), -5.99);
-    EXPECT_GT(r["iterations_better_minimum"].get<int>(), 0);
-    EXPECT_EQ(r["stages"].back()["better_minimum_search"], true);
-  } else {
-    EXPECT_EQ(r["iterations_better_minimum"].get<int>(), 0);
-  }
+  EXPECT_EQ(r["iterations_better_minimum"].get<int>(), 0);
   int attached = 0;
   for (const auto& a : r["attached_markers"]) attached += a["segment"].get<std::string>().empty() ? 0 : 1;
   EXPECT_GE(attached, 8);  // L/R THIB, THID, TIBF, TIBD at least

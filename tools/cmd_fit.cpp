@@ -53,6 +53,7 @@ struct FitArgs {
   std::string functional;  // joints (comma-separated) whose SCoRE centres join the fit as data
   double functional_sigma_mm = 5.0;
   bool single_stage = false;  // no automatic schedule (solver::FitOptions::staged)
+  bool adopt_better_minimum = false;  // solver::FitTrustOptions::adopt_better_minimum
   std::string robust_loss = solver::ToString(solver::FitOptions().robust_loss);
   double robust_scale = solver::FitOptions().robust_scale;
 };
@@ -351,7 +352,7 @@ int RunFit(const FitArgs& args) {
   solver::FitTrust trust;
   solver::FitTrustOptions trust_options;
   trust_options.fit = options;  // the profile checks solve the fit's problem again
-  trust_options.adopt_better_minimum = virtual_markers.empty();
+  trust_options.adopt_better_minimum = args.adopt_better_minimum && virtual_markers.empty();
   if (Status t = solver::CheckFitTrustAndAdopt(generic, trials, trust_options, &result, &trust); !t) {
     spdlog::error("joint checks: {}", t.message());
     return 1;
@@ -554,6 +555,10 @@ const CommandRegistrar kRegisterFit("fit", [](CLI::App& app, int* exit_code) {
                   "how far (mm, 1 sigma) a fitted centre may sit from its functional estimate")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  cmd->add_flag("--adopt-better-minimum", args->adopt_better_minimum,
+                "release each profiled joint's fit held at its functional estimate and adopt the lowest release "
+                "below the chi-square quantile (solver/fit_trust.h; off: a lower cost was not a better model on "
+                "the real recordings)");
   cmd->add_flag("--single-stage", args->single_stage,
                "no automatic schedule: every group free from the first iteration (by default, with "
                "centres or axes fitted, scales and markers are fitted first, then everything)");
