@@ -45,6 +45,7 @@
 #include "model/model.h"
 #include "model/status.h"
 #include "sim/protocol.h"
+#include "sim/random.h"
 #include "sim/subject.h"
 
 namespace mocap::sim {
@@ -112,6 +113,14 @@ struct SessionModels {
 Status MakeSessionModels(const VirtualSubject& subject, const std::vector<int>& markers,
                          SessionModels* models);
 
+// What the simulated capture adds to true marker positions (frames x 3 markers, metres), shared by
+// every simulation (this one, sim/osim_subject.h):
+//   Gaussian noise of standard deviation sigma_m on each coordinate, independent per sample;
+void AddMarkerNoise(double sigma_m, Random& rng, formats::RowMatrix* positions);
+//   occlusions: gaps of 5..30 frames at random markers and times, NaN, until `fraction` of the
+//   samples are gone (gaps may overlap and merge; the last one may overshoot by a few samples).
+void RemoveMarkerSamples(double fraction, Random& rng, formats::RowMatrix* positions);
+
 // Row `frame` of a SimulatedTrial's coordinate table as the model's z (radians, metres).
 Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTable& table,
                                 int frame);
@@ -124,6 +133,9 @@ Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTab
 // have the truth's joints, in the same order.
 std::vector<double> JointCentreTrackRmsMm(const SimulatedSession& session, const Model& fitted,
                                           const std::vector<Eigen::MatrixXd>& coordinates);
+// The same for any simulation: its truth and its trials (sim/osim_subject.h).
+std::vector<double> JointCentreTrackRmsMm(const Model& truth, const std::vector<SimulatedTrial>& trials,
+                                          const Model& fitted, const std::vector<Eigen::MatrixXd>& coordinates);
 
 // subject.json of `mocap sim`: seed, height, options, protocol name, markers, each marker's
 // artefact amplitude (sta_rms_mm) and the movements with their frame counts and file names.
