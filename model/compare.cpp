@@ -223,6 +223,17 @@ Status CheckTopology(const Model& a, const Model& b, std::vector<int>* segment_b
 
 }  // namespace
 
+int AlongAxisGaugeElement(const Joint& j) {
+  if (j.parent < 0) return -1;
+  int found = -1;
+  for (size_t e = 0; e < j.elements.size(); ++e) {
+    if (j.elements[e].kind != ElementKind::kRotation || !Varying(j.elements[e])) continue;
+    if (found >= 0) return -1;
+    found = static_cast<int>(e);
+  }
+  return found;
+}
+
 Status CompareModels(const Model& a, const Model& b, ModelComparison* out) {
   std::vector<int> segment_b, joint_b;
   if (Status s = CheckTopology(a, b, &segment_b, &joint_b); !s) return s;
@@ -353,7 +364,7 @@ Status CompareModels(const Model& a, const Model& b, ModelComparison* out) {
     if (jt.parent < 0) continue;  // the root's centre trades with the root translation: a gauge
     const int jb = joint_b[ja];
     const int p = jt.parent, c = jt.child;
-    const int he = HingeElement(jt);
+    const int he = AlongAxisGaugeElement(jt);
     JointDifference jd;
     jd.joint = jt.name;
     jd.type = jt.type;

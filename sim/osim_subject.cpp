@@ -61,9 +61,8 @@ Status SimulateOsimSubject(const Model& generic, const std::vector<PrescribedMot
   const Model& truth = subject.truth;
   const Geometry geometry(truth);
   ModelData data(truth);
-  const int nm = truth.num_markers(), nc = truth.num_coordinates();
-  std::vector<std::string> marker_names, coordinate_names;
-  for (const Marker& m : truth.markers()) marker_names.push_back(m.name);
+  const int nc = truth.num_coordinates();
+  std::vector<std::string> coordinate_names;
   for (const Coordinate& c : truth.coordinates()) coordinate_names.push_back(c.name);
 
   for (size_t i = 0; i < motions.size(); ++i) {
@@ -81,12 +80,26 @@ Status SimulateOsimSubject(const Model& generic, const std::vector<PrescribedMot
     Eigen::MatrixXd z;
     MOCAP_RETURN_IF_ERROR(formats::PosesFromTable(truth, table, source, &z));
     if (!z.allFinite()) return Status::Error(source + ": a coordinate is NaN or infinite");
+    std::vector<char> recorded(truth.num_markers(), motions[i].markers.empty() ? 1 : 0);
+    for (const std::string& name : motions[i].markers) {
+      const int m = truth.FindMarker(name);
+      if (m < 0) return Status::Error(source + ": recorded marker '" + name + "' is not in model '" + truth.name() + "'");
+      recorded[m] = 1;
+    }
+    std::vector<int> markers;
+    std::vector<std::string> marker_names;
+    for (int m = 0; m < truth.num_markers(); ++m)
+      if (recorded[m]) {
+        markers.push_back(m);
+        marker_names.push_back(truth.markers()[m].name);
+      }
+    const int nm = static_cast<int>(markers.size());
 
     formats::RowMatrix positions(nf, 3 * nm);
     for (int f = 0; f < nf; ++f) {
       ForwardKinematics(truth, geometry, z.row(f).transpose(), &data);
-      for (int m = 0; m < nm; ++m)
-        positions.row(f).segment<3>(3 * m) = MarkerPosition(truth, geometry, data, m).transpose();
+      for (int k = 0; k < nm; ++k)
+        positions.row(f).segment<3>(3 * k) = MarkerPosition(truth, geometry, data, markers[k]).transpose();
     }
     // Each motion draws from its own streams, as `mocap sim`'s movements do.
     if (options.noise_mm > 0.0) {

@@ -45,13 +45,17 @@ struct OsimSubjectOptions {
 struct PrescribedMotion {
   formats::CoordinateTable table;
   std::string source;  // e.g. the .mot's path
+  // The model markers the trial records, by name (a lab's walk has no medial knee markers, its
+  // static trial has them); empty: every marker of the model. Virtual markers of a model (a
+  // *_HJC, a midpoint) are no data: leave them out.
+  std::vector<std::string> markers;
 };
 
 struct OsimSubject {
   Model generic;  // the fit's starting point: the given model, unchanged
   Model truth;    // generic.WithParameters(truth_parameters)
   Eigen::VectorXd truth_parameters;  // in the generic model's layout
-  // One per motion, in order: every marker of the model (model order), metres, NaN in gaps, the
+  // One per motion, in order: the markers it records (model order), metres, NaN in gaps, the
   // motion's times (frame numbers from 1); the true coordinates as sim/simulate.h's trials hold
   // them (model order, rotational ones in degrees), so TrueCoordinates and JointCentreTrackRmsMm
   // apply.
@@ -59,8 +63,8 @@ struct OsimSubject {
 };
 
 // Errors, naming the motion's source and what is wrong: invalid options, a model without
-// markers, a motion without rows, with times that do not increase, a column the model lacks or a
-// coordinate it has no column for.
+// markers, a motion without rows, with times that do not increase, a column the model lacks, a
+// coordinate it has no column for, or a recorded marker the model lacks.
 Status SimulateOsimSubject(const Model& generic, const std::vector<PrescribedMotion>& motions,
                            const OsimSubjectOptions& options, OsimSubject* out);
 

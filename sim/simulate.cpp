@@ -6,6 +6,7 @@
 #include <limits>
 #include <nlohmann/json.hpp>
 
+#include "model/compare.h"
 #include "model/kinematics.h"
 #include "sim/motion.h"
 #include "sim/random.h"
@@ -350,8 +351,8 @@ std::vector<double> JointCentreTrackRmsMm(const Model& truth, const std::vector<
       ForwardKinematics(fitted, gf, coordinates[t].row(f).transpose(), &df);
       for (int j = 0; j < truth.num_joints(); ++j) {
         Eigen::Vector3d d = JointCentre(fitted, df, j) - JointCentre(truth, dt, j);
-        if (truth.joints()[j].type == JointType::kHinge) {
-          const Eigen::Vector3d u = (dt.element_rotation[j][0] * gt.axis[j][0]).normalized();
+        if (const int e = AlongAxisGaugeElement(truth.joints()[j]); e >= 0) {
+          const Eigen::Vector3d u = (dt.element_rotation[j][e] * gt.axis[j][e]).normalized();
           d -= d.dot(u) * u;
         }
         sum[j] += d.squaredNorm();

@@ -129,7 +129,8 @@ Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTab
 // RMS over every frame of every trial of the distance (mm) between the joint centre of `fitted`
 // posed by `coordinates` (one matrix per trial, frames x fitted.num_coordinates(), the fit's
 // poses) and the true centre of the truth posed by the true coordinates; for a hinge only the
-// part across its true axis (a hinge's centre along its axis is a convention). `fitted` must
+// part across its true axis (a hinge's centre along its axis is a convention; likewise for any
+// joint with one moving rotation, model/compare.h AlongAxisGaugeElement). `fitted` must
 // have the truth's joints, in the same order.
 std::vector<double> JointCentreTrackRmsMm(const SimulatedSession& session, const Model& fitted,
                                           const std::vector<Eigen::MatrixXd>& coordinates);
