@@ -17,6 +17,7 @@
 #include "model/kinematics.h"
 #include "sim/osim_subject.h"
 #include "solver/global_fit.h"
+#include "solver/inverse_kinematics.h"
 #include "tests/file_test_util.h"
 
 using namespace mocap;
@@ -296,5 +297,122 @@ TEST(OsimSubject, DISABLED_Gait2354Sweep) {
     for (const char* joint : {"hip_r", "hip_l", "knee_r", "knee_l", "ankle_r", "ankle_l", "back"})
       std::printf(" %s %5.1f", joint, o.lab_mm[generic.FindJoint(joint)]);
     std::printf("\n");
+  }
+}
+
+namespace {
+
+std::string Welk(const std::string& file) { return SharedData() + "/welk007_hipfunc/" + file; }
+
+// A motion of `model` from a real trial: our IK of every `step`-th frame of `trc`, as a .mot
+// would hold it (degrees), recording the markers of `record` that the trial has.
+sim::PrescribedMotion IkMotion(const Model& model, const std::string& trc, int step, const Model& record) {
+  sim::PrescribedMotion out;
+  formats::MarkerTrial trial;
+  Status s = formats::ReadTrc(trc, &trial);
+  EXPECT_TRUE(s.ok()) << s.message();
+  const int nf = (trial.num_frames() + step - 1) / step;
+  formats::RowMatrix measured(nf, 3 * model.num_markers());
+  measured.setConstant(std::nan(""));
+  for (int m = 0; m < model.num_markers(); ++m) {
+    const int k = trial.FindMarker(model.markers()[m].name);
+    if (k < 0) continue;
+    for (int f = 0; f < nf; ++f) measured.row(f).segment<3>(3 * m) = trial.positions.row(f * step).segment<3>(3 * k);
+  }
+  const Geometry g(model);
+  solver::InverseKinematics ik(model, g);
+  Eigen::MatrixXd z;
+  s = ik.SolveTrial(measured, &z);
+  EXPECT_TRUE(s.ok()) << s.message();
+  out.source = trc;
+  out.table.name = trial.name;
+  out.table.in_degrees = true;
+  out.table.values = z;
+  for (int c = 0; c < model.num_coordinates(); ++c) {
+    out.table.column_names.push_back(model.coordinates()[c].name);
+    if (model.coordinates()[c].rotational) out.table.values.col(c) *= 180.0 / M_PI;
+  }
+  for (int f = 0; f < nf; ++f) out.table.times.push_back(trial.times[f * step]);
+  for (const Marker& m : record.markers())
+    if (trial.FindMarker(m.name) >= 0) out.markers.push_back(m.name);
+  return out;
+}
+
+struct WelkOutcome {
+  solver::FitResult fit;
+  std::vector<double> lab_mm;  // per joint: JointCentreTrackRmsMm against the truth
+};
+
+// welk007's generic model (Rajagopal-based: CustomJoint knees with coupled rotations and
+// translations, wrists and hands, 72 markers with virtual ones) as the generic model; the
+// motions are our IK, with the hand-scaled model, of every 30th frame of the static trial and
+// every 6th of the right hip's functional trial (204 frames); each trial records the generic
+// model's markers its real recording has (no virtual ones, no thigh clusters: the model has
+// only placeholders for them). The fit starts from the generic model, or from the truth.
+WelkOutcome FitWelk(int seed, bool from_truth) {
+  static const auto* setup = [] {
+    auto* out = new std::pair<formats::OsimImport, std::vector<sim::PrescribedMotion>>;
+    formats::OsimImport hand;
+    EXPECT_TRUE(formats::ImportOsim(Welk("manually_scaled.osim"), &hand).ok());
+    EXPECT_TRUE(formats::ImportOsim(Welk("unscaled_generic.osim"), &out->first).ok());
+    out->second = {IkMotion(hand.model, Welk("derived_trc/c3d_Trimmed_static1.trc"), 30, out->first.model),
+                   IkMotion(hand.model, Welk("derived_trc/c3d_Trimmed_RHJC1.trc"), 6, out->first.model)};
+    return out;
+  }();
+  const Model& generic = setup->first.model;
+  WelkOutcome out;
+  sim::OsimSubjectOptions options;
+  options.seed = seed;
+  sim::OsimSubject subject;
+  Status s = sim::SimulateOsimSubject(generic, setup->second, options, &subject);
+  EXPECT_TRUE(s.ok()) << s.message();
+  std::vector<solver::FitTrial> trials;
+  for (const auto& t : subject.trials) trials.push_back({t.markers, {}});
+  s = solver::FitModel(from_truth ? subject.truth : generic, trials, solver::FitOptions(), &out.fit);
+  EXPECT_TRUE(s.ok()) << s.message();
+  if (!s.ok()) return out;
+  out.lab_mm = sim::JointCentreTrackRmsMm(subject.truth, subject.trials, out.fit.model, out.fit.coordinates);
+  std::printf("seed %d from the %s: %s\n", seed, from_truth ? "truth" : "generic model",
+              out.fit.report.BriefReport().c_str());
+  for (const char* joint : {"hip_r", "hip_l", "walker_knee_r", "walker_knee_l"})
+    std::printf("  %-14s lab %6.2f mm RMS%s\n", joint, out.lab_mm[generic.FindJoint(joint)],
+                Held(out.fit.report, joint) ? "  (held)" : "");
+  return out;
+}
+
+}  // namespace
+
+// The hips of welk007's model fitted from the generic model on three subjects (seeds 1-3): the
+// right hip's functional trial excites both hips (the left is the stance leg): right within
+// 3 mm, left within 6 mm RMS in the lab (seeds 1-7 measured: 0.55-1.43 and 0.69-4.76 mm).
+TEST(OsimSubject, Welk007HipsFromTheGenericModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  for (int seed = 1; seed <= 3; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    const WelkOutcome o = FitWelk(seed, false);
+    ASSERT_FALSE(o.lab_mm.empty());
+    const solver::FitReport& r = o.fit.report;
+    EXPECT_TRUE(r.converged()) << r.solver.message;
+    EXPECT_LE(r.solver.num_iterations(), 30);
+    EXPECT_LE(o.lab_mm[o.fit.model.FindJoint("hip_r")], 3.0);
+    EXPECT_LE(o.lab_mm[o.fit.model.FindJoint("hip_l")], 6.0);
+  }
+}
+
+// NOT MET, hence disabled: from the generic model the fit stops, CONVERGENCE, in a worse minimum
+// than the one at the truth, and the right knee (fitted: the functional trial moves it) is off
+// while the report gives its centre a standard deviation of 0.1-0.3 mm. Seed 1: marker RMS
+// 0.808 mm against 0.761 from the truth, right knee 8.8 mm RMS in the lab (0.37 from the truth);
+// seeds 2-7 from the generic model 0.801-0.837 mm and 2.5-6.7 mm, from the truth 0.761-0.771 mm
+// and 0.3-0.6 mm. The "never a silent wrong answer reported as CONVERGENCE".
+TEST(OsimSubject, DISABLED_Welk007ReachesTheMinimumAtTheTruth) {
+  SKIP_WITHOUT_SHARED_DATA();
+  for (int seed = 1; seed <= 3; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    const WelkOutcome generic = FitWelk(seed, false), truth = FitWelk(seed, true);
+    ASSERT_FALSE(generic.lab_mm.empty());
+    ASSERT_FALSE(truth.lab_mm.empty());
+    EXPECT_LE(generic.fit.report.marker_rms_mm, 1.01 * truth.fit.report.marker_rms_mm);
+    EXPECT_LE(generic.lab_mm[generic.fit.model.FindJoint("walker_knee_r")], 2.0);
   }
 }
