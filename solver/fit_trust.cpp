@@ -594,8 +594,11 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
     const double threshold = jtr.axis_joint ? options.told_apart_chi2_axis : options.told_apart_chi2;
     pc.told_apart = pc.delta_chi2 > threshold;
     pc.held_fits_better = pc.delta_chi2 < -threshold;
-    // FitTrustOptions::adopt_better_minimum: released, the held fit finds its own minimum.
-    if (pc.held_fits_better && options.adopt_better_minimum) {
+    // FitTrustOptions::adopt_better_minimum: released, the held fit finds its own minimum. Not
+    // only where the held fit is the lower: where a held solve ends in a flat valley is the
+    // solver's path (biobuddy's left ankle, held at SARA: -19.7 with one damping rule, +12.2 with
+    // another), the minimum its basin holds is not.
+    if (options.adopt_better_minimum) {
       FitResult released;
       Status rs = Resolve(held_fit.model, held_fit, trials, o, &released);
       if (rs.ok() && released.report.solver.IsSolutionUsable()) {

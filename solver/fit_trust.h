@@ -53,7 +53,9 @@
 // (whose priors are centred on its first stage).
 // A worse minimum is not only reported: with FitTrustOptions::adopt_better_minimum the held fit
 // is solved again with the hold released (every parameter and pose free, the paper's whole
-// problem), and where that ends lower than the free solve by more than the same quantile, the
+// problem) -- for every profiled joint, not only where the held fit came out lower: where a held
+// solve stops in a flat valley depends on the solver's path, the minimum of the basin it is in
+// does not -- and where that ends lower than the free solve by more than the same quantile, the
 // fit found next to the functional estimate IS the better answer the data give, and
 // CheckFitTrustAndAdopt makes it the fit (the report's stages say so; the checks are made again
 // on it). The functional estimate only chose the start: the adopted centre is where the data put
@@ -186,9 +188,9 @@ struct ProfileCheck {
   // ended in a worse minimum than the one next to the estimate (biobuddy's left ankle axis, 22
   // deg from SARA: -19.7).
   bool held_fits_better = false;
-  // FitTrustOptions::adopt_better_minimum, where held_fits_better: the held fit solved again with
-  // the hold released; its chi-square minus the free solve's (negative: still better), its
-  // iterations, and whether the fit was replaced by it (CheckFitTrustAndAdopt).
+  // FitTrustOptions::adopt_better_minimum: the held fit solved again with the hold released; its
+  // chi-square minus the free solve's (negative: a better minimum), its iterations, and whether
+  // the fit was replaced by it (CheckFitTrustAndAdopt).
   bool released = false;
   double released_delta_chi2 = 0;
   int iterations_released = 0;

@@ -175,6 +175,17 @@ int RunFit(const FitArgs& args) {
   // The generic model as given: its markers make the clusters of the joint checks (without the
   // virtual markers --functional adds), and the report compares the fitted centres with its.
   const Model generic = inputs.model.model;
+  // Markers the model puts on a joint centre (OpenCap's RHJC_study): points of the centre, not
+  // skin markers (solver/attach_markers.h); back on their own segments before the model is written.
+  std::vector<solver::CentreMarker> centre_markers;
+  if (Status s = solver::TieCentreMarkers(inputs.trials, 0.002, &inputs.model.model, &centre_markers); !s) {
+    spdlog::error("{}", s.message());
+    return 1;
+  }
+  for (const solver::CentreMarker& c : centre_markers)
+    spdlog::info("{}: the model puts it on {}'s centre ({:.1f} mm away): read as another tool's estimate of that "
+                 "centre, fitted as a point of the centre, not as a skin marker",
+                 c.marker, c.joint, c.from_centre_mm);
   std::vector<std::string> virtual_markers;
   if (!args.functional.empty()) {
     std::vector<std::string> joints, notes;
@@ -191,21 +202,10 @@ int RunFit(const FitArgs& args) {
     }
     for (const std::string& n : notes) spdlog::info("--functional: {}", n);
   }
-  // Markers the model puts on a joint centre (OpenCap's RHJC_study): points of the centre, not
-  // skin markers (solver/attach_markers.h); back on their own segments before the model is written.
-  std::vector<solver::CentreMarker> centre_markers;
-  if (Status s = solver::TieCentreMarkers(inputs.trials, 0.002, &inputs.model.model, &centre_markers); !s) {
-    spdlog::error("{}", s.message());
-    return 1;
-  }
-  for (const solver::CentreMarker& c : centre_markers)
-    spdlog::info("{}: the model puts it on {}'s centre ({:.1f} mm away): read as another tool's estimate of that "
-                 "centre, fitted as a point of the centre, not as a skin marker",
-                 c.marker, c.joint, c.from_centre_mm);
   const Model& model = inputs.model.model;
   solver::FitOptions options;
   options.fixed_markers = virtual_markers;
-  for (const solver::CentreMarker& c : centre_markers) options.fixed_markers.push_back(c.marker);
+  for (const solver::CentreMarker& c : centre_markers) options.fixed_markers.push_back(c.marker);  // before --functional's
   if (Status s = options.SetGroups(args.groups); !s) {
     spdlog::error("--fit: {}", s.message());
     return 2;
