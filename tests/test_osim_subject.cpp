@@ -368,6 +368,9 @@ WelkOutcome FitWelk(int seed, bool from_truth) {
   EXPECT_TRUE(s.ok()) << s.message();
   std::vector<solver::FitTrial> trials;
   for (const auto& t : subject.trials) trials.push_back({t.markers, {}});
+  if (const char* dir = std::getenv("WRITE_TRC"))  // for `mocap fit` by hand
+    for (const auto& t : subject.trials)
+      EXPECT_TRUE(formats::WriteTrc(std::string(dir) + "/" + t.markers.name + ".trc", t.markers).ok());
   s = solver::FitModel(from_truth ? subject.truth : generic, trials, solver::FitOptions(), &out.fit);
   EXPECT_TRUE(s.ok()) << s.message();
   if (!s.ok()) return out;
