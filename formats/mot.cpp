@@ -277,4 +277,46 @@ Status ReadMot(const std::string& path, CoordinateTable* table) {
   return Status::Ok();
 }
 
+namespace {
+constexpr double kPi = 3.14159265358979323846;
+}  // namespace
+
+Status PosesFromTable(const Model& model, const CoordinateTable& table, const std::string& source,
+                      Eigen::MatrixXd* z) {
+  if (table.values.cols() != static_cast<Eigen::Index>(table.column_names.size()))
+    return Status::Error(source + ": the table's columns do not match its labels");
+  std::vector<int> column(model.num_coordinates(), -1);
+  for (size_t k = 0; k < table.column_names.size(); ++k) {
+    const std::string& name = table.column_names[k];
+    const int c = model.FindCoordinate(name);
+    if (c >= 0) {
+      if (column[c] >= 0) return Status::Error(source + ": column '" + name + "' appears twice");
+      column[c] = static_cast<int>(k);
+      continue;
+    }
+    bool derived = false;
+    for (const DerivedCoordinate& d : model.derived_coordinates()) derived |= d.name == name;
+    if (!derived)
+      return Status::Error(source + ": column '" + name + "' is not a coordinate of model '" +
+                           model.name() + "' (angles of another model?)");
+  }
+  std::string absent;
+  int n_absent = 0;
+  for (int c = 0; c < model.num_coordinates(); ++c)
+    if (column[c] < 0) {
+      if (n_absent < 5) absent += (absent.empty() ? "" : ", ") + model.coordinates()[c].name;
+      ++n_absent;
+    }
+  if (n_absent > 0)
+    return Status::Error(source + ": no column for " + std::to_string(n_absent) +
+                         " coordinate(s) of model '" + model.name() + "': " + absent +
+                         (n_absent > 5 ? ", ..." : ""));
+  z->resize(table.num_frames(), model.num_coordinates());
+  for (int c = 0; c < model.num_coordinates(); ++c) {
+    const double k = model.coordinates()[c].rotational && table.in_degrees ? kPi / 180.0 : 1.0;
+    z->col(c) = table.values.col(column[c]) * k;
+  }
+  return Status::Ok();
+}
+
 }  // namespace mocap::formats

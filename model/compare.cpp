@@ -30,10 +30,8 @@ bool HasTranslation(const Joint& j) {
   return false;
 }
 
-// The element a hinge turns about, or -1 if j is not a hinge (one moving rotation, no
-// translation: then its centre may slide along the axis without changing any marker).
-int HingeElement(const Joint& j) {
-  if (j.type != JointType::kHinge || HasTranslation(j)) return -1;
+// The element of j's one moving rotation, or -1 if it has none or several.
+int SingleMovingRotation(const Joint& j) {
   int found = -1;
   for (size_t e = 0; e < j.elements.size(); ++e) {
     if (j.elements[e].kind != ElementKind::kRotation || !Varying(j.elements[e])) continue;
@@ -41,6 +39,13 @@ int HingeElement(const Joint& j) {
     found = static_cast<int>(e);
   }
   return found;
+}
+
+// The element a hinge turns about, or -1 if j is not a hinge (one moving rotation, no
+// translation: then its centre may slide along the axis without changing any marker).
+int HingeElement(const Joint& j) {
+  if (j.type != JointType::kHinge || HasTranslation(j)) return -1;
+  return SingleMovingRotation(j);
 }
 
 // An element's axis is fixed in the parent if no moving rotation comes before it, and in the
@@ -223,6 +228,8 @@ Status CheckTopology(const Model& a, const Model& b, std::vector<int>* segment_b
 
 }  // namespace
 
+int AlongAxisGaugeElement(const Joint& j) { return j.parent < 0 ? -1 : SingleMovingRotation(j); }
+
 Status CompareModels(const Model& a, const Model& b, ModelComparison* out) {
   std::vector<int> segment_b, joint_b;
   if (Status s = CheckTopology(a, b, &segment_b, &joint_b); !s) return s;
@@ -353,7 +360,7 @@ Status CompareModels(const Model& a, const Model& b, ModelComparison* out) {
     if (jt.parent < 0) continue;  // the root's centre trades with the root translation: a gauge
     const int jb = joint_b[ja];
     const int p = jt.parent, c = jt.child;
-    const int he = HingeElement(jt);
+    const int he = AlongAxisGaugeElement(jt);
     JointDifference jd;
     jd.joint = jt.name;
     jd.type = jt.type;

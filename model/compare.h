@@ -12,7 +12,9 @@
 //                 distance to A's centre; the larger of the two. If neither segment can be
 //                 aligned: the union of P's and C's markers in the world at the zero pose is
 //                 aligned instead ("union"); if even that is impossible, P's frame as is
-//                 ("unaligned"). Hinges: only the component perpendicular to A's axis. The root
+//                 ("unaligned"). Joints with one moving rotation (hinges, and CustomJoints such
+//                 as OpenSim's knee whose translations follow the angle): only the component
+//                 perpendicular to A's axis, the other is a gauge. The root
 //                 joint is skipped (its centre is a gauge).
 //   axis          each fitted axis, mapped through the alignment of the segments it is FIXED in
 //                 (no moving rotation of its joint between it and the segment: a hinge axis is
@@ -51,7 +53,9 @@ struct AxisDifference {
 struct JointDifference {
   std::string joint;
   JointType type = JointType::kCustom;
-  bool hinge = false;  // one rotation about a fitted axis: along-axis centre offsets ignored
+  // One moving rotation (a hinge, or a knee whose translations follow its angle): along-axis
+  // centre offsets ignored, a gauge.
+  bool hinge = false;
   double centre_error_mm = std::numeric_limits<double>::quiet_NaN();
   // Largest over the joint's fitted axes; NaN for joints without fitted axes.
   double axis_error_deg = std::numeric_limits<double>::quiet_NaN();
@@ -86,6 +90,13 @@ struct ModelComparison {
   std::vector<MarkerDifference> markers;    // markers in both models, in A's order
   std::vector<std::string> markers_only_in_a, markers_only_in_b;  // ignored by the comparison
 };
+
+// The element of a joint with exactly one moving rotation (a hinge, or OpenSim's knee whose
+// translations follow its angle), or -1 (also for the root). Its centre's offset along that axis
+// is a gauge for marker data even with translations: shifting the centre by d along the axis a
+// and the child's markers and child joints by -d (a is fixed in both frames, R(q) a = a) leaves
+// every marker where it was.
+int AlongAxisGaugeElement(const Joint& joint);
 
 // A is the reference (e.g. the truth). Fails, naming the first mismatch, unless both models have
 // the same segments, coordinates and joints (by name; same parent, child, type and elements) and

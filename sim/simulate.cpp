@@ -6,6 +6,7 @@
 #include <limits>
 #include <nlohmann/json.hpp>
 
+#include "model/compare.h"
 #include "model/kinematics.h"
 #include "sim/motion.h"
 #include "sim/random.h"
@@ -140,14 +141,14 @@ void AddSta(const Model& truth, const Geometry& geometry, const std::vector<int>
   }
 }
 
-void AddNoise(double sigma_m, Random& rng, RowMatrix* positions) {
+}  // namespace
+
+void AddMarkerNoise(double sigma_m, Random& rng, RowMatrix* positions) {
   for (int f = 0; f < positions->rows(); ++f)
     for (int c = 0; c < positions->cols(); ++c) (*positions)(f, c) += sigma_m * rng.Normal();
 }
 
-// Occlusions: gaps of 5..30 frames at random markers and times until `fraction` of the samples
-// are gone (gaps may overlap and merge; the last one may overshoot by a few samples).
-void RemoveSamples(double fraction, Random& rng, RowMatrix* positions) {
+void RemoveMarkerSamples(double fraction, Random& rng, RowMatrix* positions) {
   const int nf = static_cast<int>(positions->rows());
   const int nm = static_cast<int>(positions->cols() / 3);
   const long total = static_cast<long>(nf) * nm;
@@ -169,8 +170,6 @@ void RemoveSamples(double fraction, Random& rng, RowMatrix* positions) {
     }
   }
 }
-
-}  // namespace
 
 bool SimulationOptions::IsValid(std::string* error) const {
   auto fail = [&](const std::string& message) {
@@ -303,11 +302,11 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
     const std::string& name = protocol.movements[i].name;
     if (options.noise_mm > 0.0) {
       Random rng(options.seed, Stream::kNoise, static_cast<std::uint64_t>(i));
-      AddNoise(options.noise_mm * 1e-3, rng, &positions[i]);
+      AddMarkerNoise(options.noise_mm * 1e-3, rng, &positions[i]);
     }
     if (options.missing > 0.0) {
       Random rng(options.seed, Stream::kMissing, static_cast<std::uint64_t>(i));
-      RemoveSamples(options.missing, rng, &positions[i]);
+      RemoveMarkerSamples(options.missing, rng, &positions[i]);
     }
     const int nf = plans[i].frames;
     SimulatedTrial trial;
@@ -337,19 +336,23 @@ Status SimulateSession(const SimulationOptions& options, const Protocol& protoco
 
 std::vector<double> JointCentreTrackRmsMm(const SimulatedSession& session, const Model& fitted,
                                           const std::vector<Eigen::MatrixXd>& coordinates) {
-  const Model& truth = session.truth;
+  return JointCentreTrackRmsMm(session.truth, session.trials, fitted, coordinates);
+}
+
+std::vector<double> JointCentreTrackRmsMm(const Model& truth, const std::vector<SimulatedTrial>& trials,
+                                          const Model& fitted, const std::vector<Eigen::MatrixXd>& coordinates) {
   const Geometry gt(truth), gf(fitted);
   ModelData dt(truth), df(fitted);
   std::vector<double> sum(truth.num_joints(), 0.0);
   long n = 0;
-  for (size_t t = 0; t < session.trials.size() && t < coordinates.size(); ++t)
-    for (int f = 0; f < session.trials[t].markers.num_frames(); ++f) {
-      ForwardKinematics(truth, gt, TrueCoordinates(truth, session.trials[t].coordinates, f), &dt);
+  for (size_t t = 0; t < trials.size() && t < coordinates.size(); ++t)
+    for (int f = 0; f < trials[t].markers.num_frames(); ++f) {
+      ForwardKinematics(truth, gt, TrueCoordinates(truth, trials[t].coordinates, f), &dt);
       ForwardKinematics(fitted, gf, coordinates[t].row(f).transpose(), &df);
       for (int j = 0; j < truth.num_joints(); ++j) {
         Eigen::Vector3d d = JointCentre(fitted, df, j) - JointCentre(truth, dt, j);
-        if (truth.joints()[j].type == JointType::kHinge) {
-          const Eigen::Vector3d u = (dt.element_rotation[j][0] * gt.axis[j][0]).normalized();
+        if (const int e = AlongAxisGaugeElement(truth.joints()[j]); e >= 0) {
+          const Eigen::Vector3d u = (dt.element_rotation[j][e] * gt.axis[j][e]).normalized();
           d -= d.dot(u) * u;
         }
         sum[j] += d.squaredNorm();

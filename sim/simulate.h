@@ -45,6 +45,7 @@
 #include "model/model.h"
 #include "model/status.h"
 #include "sim/protocol.h"
+#include "sim/random.h"
 #include "sim/subject.h"
 
 namespace mocap::sim {
@@ -112,6 +113,14 @@ struct SessionModels {
 Status MakeSessionModels(const VirtualSubject& subject, const std::vector<int>& markers,
                          SessionModels* models);
 
+// What the simulated capture adds to true marker positions (frames x 3 markers, metres), shared by
+// every simulation (this one, sim/osim_subject.h):
+//   Gaussian noise of standard deviation sigma_m on each coordinate, independent per sample;
+void AddMarkerNoise(double sigma_m, Random& rng, formats::RowMatrix* positions);
+//   occlusions: gaps of 5..30 frames at random markers and times, NaN, until `fraction` of the
+//   samples are gone (gaps may overlap and merge; the last one may overshoot by a few samples).
+void RemoveMarkerSamples(double fraction, Random& rng, formats::RowMatrix* positions);
+
 // Row `frame` of a SimulatedTrial's coordinate table as the model's z (radians, metres).
 Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTable& table,
                                 int frame);
@@ -120,10 +129,14 @@ Eigen::VectorXd TrueCoordinates(const Model& model, const formats::CoordinateTab
 // RMS over every frame of every trial of the distance (mm) between the joint centre of `fitted`
 // posed by `coordinates` (one matrix per trial, frames x fitted.num_coordinates(), the fit's
 // poses) and the true centre of the truth posed by the true coordinates; for a hinge only the
-// part across its true axis (a hinge's centre along its axis is a convention). `fitted` must
+// part across its true axis (a hinge's centre along its axis is a convention; likewise for any
+// joint with one moving rotation, model/compare.h AlongAxisGaugeElement). `fitted` must
 // have the truth's joints, in the same order.
 std::vector<double> JointCentreTrackRmsMm(const SimulatedSession& session, const Model& fitted,
                                           const std::vector<Eigen::MatrixXd>& coordinates);
+// The same for any simulation: its truth and its trials (sim/osim_subject.h).
+std::vector<double> JointCentreTrackRmsMm(const Model& truth, const std::vector<SimulatedTrial>& trials,
+                                          const Model& fitted, const std::vector<Eigen::MatrixXd>& coordinates);
 
 // subject.json of `mocap sim`: seed, height, options, protocol name, markers, each marker's
 // artefact amplitude (sta_rms_mm) and the movements with their frame counts and file names.

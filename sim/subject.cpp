@@ -24,16 +24,7 @@ bool SubjectOptions::IsValid(std::string* error) const {
   return true;
 }
 
-Status MakeVirtualSubject(std::uint64_t seed, const SubjectOptions& options, VirtualSubject* out) {
-  std::string error;
-  if (!options.IsValid(&error)) return Status::Error("subject options: " + error);
-  VirtualSubject subject;
-  subject.seed = seed;
-  Random height_rng(seed, Stream::kHeight);
-  subject.height_m = height_rng.Uniform(options.min_height_m, options.max_height_m);
-  subject.nominal = DefaultFullBodyModel(subject.height_m);
-  const Model& model = subject.nominal;
-
+Eigen::VectorXd PerturbedParameters(const Model& model, std::uint64_t seed, const SubjectOptions& options) {
   Eigen::VectorXd p = model.InitialParameters();
   Random scale_rng(seed, Stream::kScale);
   for (int s = 0; s < model.num_segments(); ++s)
@@ -61,6 +52,20 @@ Status MakeVirtualSubject(std::uint64_t seed, const SubjectOptions& options, Vir
     const double s_segment = p[model.scale_index(model.markers()[m].segment)];
     p.segment<3>(model.marker_index(m)) += marker_rng.InBall(options.marker_mm * 1e-3) / s_segment;
   }
+  return p;
+}
+
+Status MakeVirtualSubject(std::uint64_t seed, const SubjectOptions& options, VirtualSubject* out) {
+  std::string error;
+  if (!options.IsValid(&error)) return Status::Error("subject options: " + error);
+  VirtualSubject subject;
+  subject.seed = seed;
+  Random height_rng(seed, Stream::kHeight);
+  subject.height_m = height_rng.Uniform(options.min_height_m, options.max_height_m);
+  subject.nominal = DefaultFullBodyModel(subject.height_m);
+  const Model& model = subject.nominal;
+
+  const Eigen::VectorXd p = PerturbedParameters(model, seed, options);
   subject.truth_parameters = p;
   MOCAP_RETURN_IF_ERROR(model.WithParameters(p, &subject.truth));
   *out = std::move(subject);

@@ -43,6 +43,12 @@ struct VirtualSubject {
   Eigen::VectorXd truth_parameters;  // p of the truth in the nominal model's layout
 };
 
+// The parameters of `model` (model.InitialParameters()) perturbed as described above, drawn from
+// `seed`: works on any model (the default one, an imported OpenSim model); joints without a
+// fitted centre or axis are left as they are. The height fields of `options` are not used here.
+// `options` must be valid (IsValid).
+Eigen::VectorXd PerturbedParameters(const Model& model, std::uint64_t seed, const SubjectOptions& options);
+
 // A subject drawn from `seed`. An error when the options are not valid (IsValid's message).
 Status MakeVirtualSubject(std::uint64_t seed, const SubjectOptions& options, VirtualSubject* out);
 

@@ -9,6 +9,7 @@
 #include <set>
 #include <sstream>
 
+#include "formats/mot.h"
 #include "solver/marker_fit_problem.h"
 #include "solver/parallel.h"
 #include "solver/schur_solver.h"
@@ -115,40 +116,7 @@ Status InitialCoordinatesFromTable(const Model& model, const formats::Coordinate
   if (table.num_frames() != num_frames)
     return Status::Error(source + ": has " + std::to_string(table.num_frames()) +
                          " frames, its trial has " + std::to_string(num_frames));
-  if (table.values.cols() != static_cast<Eigen::Index>(table.column_names.size()))
-    return Status::Error(source + ": the table's columns do not match its labels");
-  std::vector<int> column(model.num_coordinates(), -1);
-  for (size_t k = 0; k < table.column_names.size(); ++k) {
-    const std::string& name = table.column_names[k];
-    const int c = model.FindCoordinate(name);
-    if (c >= 0) {
-      if (column[c] >= 0) return Status::Error(source + ": column '" + name + "' appears twice");
-      column[c] = static_cast<int>(k);
-      continue;
-    }
-    bool derived = false;
-    for (const DerivedCoordinate& d : model.derived_coordinates()) derived |= d.name == name;
-    if (!derived)
-      return Status::Error(source + ": column '" + name + "' is not a coordinate of model '" +
-                           model.name() + "' (angles of another model?)");
-  }
-  std::string absent;
-  int n_absent = 0;
-  for (int c = 0; c < model.num_coordinates(); ++c)
-    if (column[c] < 0) {
-      if (n_absent < 5) absent += (absent.empty() ? "" : ", ") + model.coordinates()[c].name;
-      ++n_absent;
-    }
-  if (n_absent > 0)
-    return Status::Error(source + ": no column for " + std::to_string(n_absent) +
-                         " coordinate(s) of model '" + model.name() + "': " + absent +
-                         (n_absent > 5 ? ", ..." : ""));
-  z->resize(num_frames, model.num_coordinates());
-  for (int c = 0; c < model.num_coordinates(); ++c) {
-    const double k = model.coordinates()[c].rotational && table.in_degrees ? M_PI / 180.0 : 1.0;
-    z->col(c) = table.values.col(column[c]) * k;
-  }
-  return Status::Ok();
+  return formats::PosesFromTable(model, table, source, z);
 }
 
 bool FitOptions::IsValid(std::string* error) const {

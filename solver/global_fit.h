@@ -274,11 +274,8 @@ struct FitTrial {
 };
 
 // Starting poses of one trial from a table of coordinates (a .mot of `mocap track`, `mocap ik`,
-// or the simulator's truth), in the model's coordinate order, radians and metres (rotational
-// columns converted from degrees when table.in_degrees). Checked, with errors naming `source`:
-// the table has `num_frames` rows; every coordinate of the model has a column; every column is a
-// coordinate or a derived coordinate of the model (another model's angles are refused rather
-// than half used). NaN entries are kept (see FitTrial).
+// or the simulator's truth): formats::PosesFromTable (its checks, errors naming `source`), and
+// the table has `num_frames` rows. NaN entries are kept (see FitTrial).
 Status InitialCoordinatesFromTable(const Model& model, const formats::CoordinateTable& table,
                                    int num_frames, const std::string& source, Eigen::MatrixXd* z);
 
