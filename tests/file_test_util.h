@@ -7,6 +7,7 @@
 #include <array>
 #include <cstdio>
 #include <filesystem>
+#include <unistd.h>
 #include <fstream>
 #include <sstream>
 #include <string>
@@ -40,8 +41,12 @@ inline std::string ReadBytes(const std::string& path) {
 }
 
 // An empty scratch directory MOCAP_TEST_TMP/group/name (emptied if it exists).
+// Per process: ctest runs each test of a binary as its own process, in parallel, and two of them
+// emptying and writing one directory read each other's half-written files (RealFit's gait2354
+// tests: an empty report.json once).
 inline std::filesystem::path FreshDir(const std::string& group, const std::string& name) {
-  const std::filesystem::path dir = std::filesystem::path(MOCAP_TEST_TMP) / group / name;
+  const std::filesystem::path dir =
+      std::filesystem::path(MOCAP_TEST_TMP) / group / (name + "-" + std::to_string(::getpid()));
   std::filesystem::remove_all(dir);
   std::filesystem::create_directories(dir);
   return dir;
