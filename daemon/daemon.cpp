@@ -1556,20 +1556,17 @@ void Daemon::FitStart(const Request& r) {
       if (s) s = solver::FitModel(*model, trials, fo, &result);
       if (s) {
         // Each joint against its functional estimate per recording (solver/fit_trust.h): the
-        // stored report and its page say whether to trust the model, as `mocap fit`'s do; a
-        // better minimum next to a functional estimate is adopted before the report is made.
+        // stored report and its page say whether to trust the model, as `mocap fit`'s do (no
+        // better minimum adopted: FitTrustOptions::adopt_better_minimum is off, as there).
+        Json report = solver::FitReportJson(result.report, trials, names);
         solver::FitTrust trust;
         solver::FitTrustOptions trust_options;
         trust_options.fit = fo;  // its profile checks solve the fit's problem again (fit_trust.h)
         trust_options.fit.lm.callbacks.clear();  // no progress events from those solves
-        const Status t = solver::CheckFitTrustAndAdopt(*model, trials, trust_options, &result, &trust);
-        if (!t) spdlog::warn("fit: joint checks: {}", t.message());
-        if (!trust.adopted_joint.empty())
-          spdlog::warn("fit: released from {}'s functional estimate the fit ended {:.1f} lower in chi-square: "
-                       "adopted",
-                       trust.adopted_joint, -trust.adopted_delta_chi2);
-        Json report = solver::FitReportJson(result.report, trials, names);
-        if (t) report["joint_checks"] = solver::FitTrustJson(trust);
+        if (Status t = solver::CheckFitTrust(*model, result, trials, trust_options, &trust); t)
+          report["joint_checks"] = solver::FitTrustJson(trust);
+        else
+          spdlog::warn("fit: joint checks: {}", t.message());
         report_text = report.dump();
         model_text = ModelToJsonString(result.model);
         ModelComparison diff;

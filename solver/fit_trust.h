@@ -55,13 +55,11 @@
 // is solved again with the hold released (every parameter and pose free, the paper's whole
 // problem) -- for every profiled joint, not only where the held fit came out lower: where a held
 // solve stops in a flat valley depends on the solver's path, the minimum of the basin it is in
-// does not -- and where that ends lower than the free solve by more than the same quantile, the
-// fit found next to the functional estimate IS the better answer the data give, and
-// CheckFitTrustAndAdopt makes it the fit (the report's stages say so; the checks are made again
-// on it). The functional estimate only chose the start: the adopted centre is where the data put
-// it, not held at the estimate (biobuddy's left ankle axis: 22 deg from SARA before, the data's
-// own minimum next to it after). A release that climbs back to the first minimum changes
-// nothing.
+// does not -- and where that ends lower than the free solve by more than the same quantile,
+// CheckFitTrustAndAdopt makes the lowest such release the fit (the report's stages say so; the
+// checks are made again on it). The functional estimate only chooses the start: the adopted
+// centre is where the objective puts it, not held at the estimate. A lower objective was not a
+// better model on the real recordings (the option's comment), hence off.
 //
 // Per hip too, where the model has markers on both anterior superior iliac spines and on both
 // posterior ones (or the sacrum) on the hips' parent segment, named as labs name them (RASI,

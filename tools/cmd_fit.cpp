@@ -345,10 +345,10 @@ int RunFit(const FitArgs& args) {
     result.model = std::move(without);
   }
   // Whether to trust the model (issue 14): each joint against its functional estimate on every
-  // trial, and against the generic model; where the fit ended in a worse minimum than the one
-  // next to a functional estimate, that one is adopted (solver/fit_trust.h). Before the lines
-  // below, which are then the adopted fit's. Not with --functional: its prior is the lab's
-  // choice, and the re-solves run without it (the checks say what they find).
+  // trial, and against the generic model; with --adopt-better-minimum, a release from a
+  // functional estimate that ends lower becomes the fit (solver/fit_trust.h), so this comes
+  // before the lines below, which are then the adopted fit's. Not with --functional: its prior
+  // is the lab's choice, and the re-solves run without it (the checks say what they find).
   solver::FitTrust trust;
   solver::FitTrustOptions trust_options;
   trust_options.fit = options;  // the profile checks solve the fit's problem again
