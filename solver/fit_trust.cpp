@@ -301,7 +301,7 @@ FitOptions ProfileOptions(const FitResult& fit, const FitTrustOptions& options) 
   for (const auto& held : fit.report.held_joints)
     for (const ParameterInfo& p : fit.model.parameters())
       if (p.name.rfind(held.first + ".centre.", 0) == 0 || p.name.rfind(held.first + ".axis", 0) == 0)
-        o.fixed_parameters.push_back(p.name);
+        o.held_parameters.push_back(p.name);
   return o;
 }
 
@@ -660,7 +660,7 @@ Status CheckFitTrustAndAdopt(const Model& initial, const std::vector<FitTrial>& 
   r.solve_seconds += from.solve_seconds + better.held.report.solve_seconds;
   r.wall_seconds += from.wall_seconds + better.held.report.wall_seconds;
   // A held joint's parameters stay undetermined; the caller's model is the parameters' start.
-  for (const std::string& name : o.fixed_parameters)
+  for (const std::string& name : o.held_parameters)
     if (std::find(r.undetermined.begin(), r.undetermined.end(), name) == r.undetermined.end())
       r.undetermined.push_back(name);
   std::map<std::string, double> initial_value;

@@ -159,6 +159,8 @@ bool FitOptions::IsValid(std::string* error) const {
   if (!(frame_prior_sigma_rad > 0) || !(frame_prior_sigma_m > 0))
     return fail("frame prior sigmas must be > 0");
   if (!(prior_sigma_fixed_marker_m > 0)) return fail("prior_sigma_fixed_marker_m must be > 0");
+  if (!(held_centre_sigma_m >= 0) || !(held_axis_sigma_rad >= 0))
+    return fail("held_centre_sigma_m and held_axis_sigma_rad must be >= 0 (0: the holds count as exact)");
   if (!(coordinate_limit_sigma_rad >= 0) || !(coordinate_limit_sigma_m >= 0))
     return fail("coordinate_limit_sigma_rad and coordinate_limit_sigma_m must be >= 0 (0: ranges not enforced)");
   if (num_threads < 0) return fail("num_threads must be >= 0");
@@ -607,6 +609,36 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
   const double variance = 2.0 * report.solver.final_cost / dof;
   const Eigen::VectorXd p0 = initial.InitialParameters();
   const Eigen::VectorXd p = problem.FullParameters(x.tail(np));
+  // FitOptions::held_parameters: the holds counted at what they are worth. The same problem at
+  // the same point with the holds free against their priors (MarkerFitProblem, relax_holds); its
+  // covariance gives the fitted parameters' standard deviations.
+  std::vector<double> relaxed_variance(np, -1.0);
+  if (have_covariance && problem.has_holds()) {
+    MarkerFitProblem relaxed(initial, problem.measurements(), options, /*relax_holds=*/true);
+    for (int m = 0; m < nm; ++m) relaxed.SetMarkerSigma(m, problem.marker_sigma(m));
+    if (options.robust_loss != RobustLoss::kNone) {
+      Eigen::MatrixXd weights(total_frames, nm);
+      for (int f = 0; f < total_frames; ++f)
+        for (int m = 0; m < nm; ++m) weights(f, m) = problem.sample_weight(f, m);
+      relaxed.SetSampleWeights(std::move(weights));
+    }
+    const int nr = relaxed.shared_dim();
+    Eigen::VectorXd xr(static_cast<Eigen::Index>(total_frames) * nz + nr);
+    xr.head(static_cast<Eigen::Index>(total_frames) * nz) = x.head(static_cast<Eigen::Index>(total_frames) * nz);
+    for (int k = 0; k < nr; ++k) xr[static_cast<Eigen::Index>(total_frames) * nz + k] = p[relaxed.free_parameters()[k]];
+    relaxed.SetFramePriorTargets(xr);
+    formats::RowMatrix frame_weights;
+    UnobservedCoordinateWeights(&relaxed, xr, relaxed.uniform_frame_prior_weight(), options.unobserved_hold, threads,
+                                &frame_weights);
+    relaxed.SetFramePriorWeights(std::move(frame_weights));
+    ArrowSchurProblem relaxed_schur(&relaxed, threads);
+    Eigen::MatrixXd relaxed_covariance;
+    if (relaxed_schur.SharedCovariance(xr, &relaxed_covariance))
+      for (int k = 0; k < np; ++k) {
+        const int r = relaxed.free_index()[problem.free_parameters()[k]];
+        if (r >= 0) relaxed_variance[k] = std::max(0.0, relaxed_covariance(r, r));
+      }
+  }
   for (int k = 0; k < np; ++k) {
     const int i = problem.free_parameters()[k];
     ParameterEstimate e;
@@ -616,7 +648,7 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
     e.value = p[i];
     e.fitted = true;
     if (have_covariance) {
-      const double c = std::max(0.0, covariance(k, k));
+      const double c = std::max({0.0, covariance(k, k), relaxed_variance[k]});
       e.std = std::sqrt(c * variance);
       e.determined = std::sqrt(c) <= options.undetermined_ratio * problem.prior_sigma(k);
     } else {
@@ -1132,7 +1164,7 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
   // held it is a back door through which the held centre moves after all.
   last.fit_scales = false;
   std::vector<std::pair<std::string, std::string>> held;
-  UnexcitedJoints(placed.model, placed.coordinates, options, &held, &last.fixed_parameters);
+  UnexcitedJoints(placed.model, placed.coordinates, options, &held, &last.held_parameters);
   last.lm.max_iterations = std::max(1, iterations_left);
   const Model placed_model = placed.model;  // *result may be `placed`'s storage
   MOCAP_RETURN_IF_ERROR(FitStage(placed_model, stage_trials, last, true, result));
@@ -1151,7 +1183,7 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
   report.rescued_frames += totals.rescued_frames;
   report.reposed = report.reposed || totals.reposed;
   // A held joint's centre and axes are parameters these trials do not determine: listed as such.
-  for (const std::string& name : last.fixed_parameters)
+  for (const std::string& name : last.held_parameters)
     if (std::find(report.undetermined.begin(), report.undetermined.end(), name) == report.undetermined.end())
       report.undetermined.push_back(name);
   report.held_joints = std::move(held);

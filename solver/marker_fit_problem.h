@@ -33,7 +33,14 @@ class MarkerFitProblem : public ArrowProblem {
   // measurements: frames x 3 n_markers in MODEL marker order, metres, NaN = missing.
   // options: which groups are fitted, sigmas of residuals, priors and gauge rows. Markers with
   // no sample stay fixed.
-  MarkerFitProblem(const Model& model, formats::RowMatrix measurements, const FitOptions& options);
+  // relax_holds: what the fit holds at the starting model without the data being unable to see
+  // it -- FitOptions::held_parameters, and the rows that hold an observable direction (a
+  // segment's orientation against a joint below it whose axes are no parameters, a coupled
+  // knee's centre along its flexion axis: BuildGaugeRows) -- is free instead, against a prior of
+  // FitOptions::held_centre_sigma_m / held_axis_sigma_rad (nothing changes where those are 0).
+  // Not for solving: the fit's uncertainty counts the holds' own (FitStage).
+  MarkerFitProblem(const Model& model, formats::RowMatrix measurements, const FitOptions& options,
+                   bool relax_holds = false);
 
   int num_frames() const override { return static_cast<int>(measurements_.rows()); }
   int frame_dim() const override { return model_.num_coordinates(); }
@@ -62,6 +69,8 @@ class MarkerFitProblem : public ArrowProblem {
   void SetFramePriorWeights(formats::RowMatrix weights) { frame_prior_weights_ = std::move(weights); }
   const Eigen::VectorXd& uniform_frame_prior_weight() const { return frame_prior_weight_; }
   const std::vector<std::string>& gauge_names() const { return gauge_names_; }
+  // Whether relax_holds would change the problem (see the constructor).
+  bool has_holds() const { return has_holds_; }
   void BlockStructure(std::vector<std::vector<int>>* y_columns,
                       std::vector<std::vector<int>>* p_columns) const override;
 
@@ -131,9 +140,11 @@ class MarkerFitProblem : public ArrowProblem {
   formats::RowMatrix frame_prior_weights_;  // empty: frame_prior_weight_ for every frame
   std::vector<std::string> gauge_names_;
   std::vector<char> periodic_;
-  void BuildGaugeRows(double gauge_sigma_m);
+  // Rows that hold an observable direction get 1 / hold_sigma_m; `relaxable`: has_holds_ counts them.
+  void BuildGaugeRows(double gauge_sigma_m, double hold_sigma_m, bool relaxable);
+  bool has_holds_ = false;
   bool hold_hinge_centres_ = true;
-  std::vector<char> held_centre_;  // per joint: centre in FitOptions::fixed_parameters
+  std::vector<char> held_centre_;  // per joint: centre in FitOptions::fixed_ or held_parameters
   int samples_ = 0;
 };
 

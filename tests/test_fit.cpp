@@ -785,3 +785,105 @@ TEST(GlobalFit, ScalingWeighsDownAMarkerTheModelMisplaces) {
   for (const auto& [name, w] : result.report.scaling_marker_weights)
     if (name != "RTIB") EXPECT_GT(w, weight) << name;
 }
+
+namespace {
+// A pelvis (free), a thigh on a ball joint and a shank on a knee driven by one coordinate, three
+// markers a segment. `coupled`: the knee's coordinate also turns it about two other axes, as
+// OpenSim's walker knee does, and its axes are no parameters; otherwise it turns about one
+// fitted axis, with a translation riding on the flexion (gait2354's knee).
+Model ThighAndShank(bool coupled) {
+  auto rotation = [](const Eigen::Vector3d& axis, int coordinate, CoordinateFunction f = CoordinateFunction()) {
+    JointElement e;
+    e.axis = axis;
+    e.coordinate = coordinate;
+    e.function = std::move(f);
+    return e;
+  };
+  auto translation = [](const Eigen::Vector3d& axis, int coordinate, CoordinateFunction f = CoordinateFunction()) {
+    JointElement e;
+    e.kind = ElementKind::kTranslation;
+    e.axis = axis;
+    e.coordinate = coordinate;
+    e.function = std::move(f);
+    return e;
+  };
+  const Eigen::Vector3d x = Eigen::Vector3d::UnitX(), y = Eigen::Vector3d::UnitY(), z = Eigen::Vector3d::UnitZ();
+  std::vector<Coordinate> coordinates;
+  for (const char* name : {"tx", "ty", "tz", "rx", "ry", "rz", "hip_x", "hip_y", "hip_z", "knee"})
+    coordinates.push_back({name, name[0] != 't'});
+  Joint root{"root", JointType::kFree, -1, 0};
+  root.elements = {translation(x, 0), translation(y, 1), translation(z, 2), rotation(x, 3), rotation(y, 4),
+                   rotation(z, 5)};
+  Joint hip{"hip", JointType::kSpherical, 0, 1, Eigen::Vector3d(0, -0.1, 0.1)};
+  hip.elements = {rotation(x, 6), rotation(y, 7), rotation(z, 8)};
+  Joint knee{"knee", JointType::kCustom, 1, 2, Eigen::Vector3d(0, -0.4, 0)};
+  knee.elements = {rotation(z, 9), translation(y, 9, CoordinateFunction::Linear(0.01, 0))};
+  if (coupled) {
+    knee.elements.push_back(rotation(x, 9, CoordinateFunction::Linear(0.1, 0)));
+    knee.elements.push_back(rotation(y, 9, CoordinateFunction::Linear(0.3, 0)));
+  } else {
+    knee.elements[0].fitted_axis = true;
+  }
+  std::vector<Marker> markers;
+  const std::vector<Eigen::Vector3d> places = {{0.1, 0, 0}, {0, -0.1, 0.05}, {0, 0.05, -0.1}};
+  for (int s = 0; s < 3; ++s)
+    for (int k = 0; k < 3; ++k) markers.push_back({"m" + std::to_string(3 * s + k), s, places[k]});
+  Model model;
+  const Status status = Model::Build("thigh and shank", {{"pelvis"}, {"thigh"}, {"shank"}}, {root, hip, knee},
+                                     coordinates, markers, &model);
+  EXPECT_TRUE(status.ok()) << status.message();
+  return model;
+}
+
+// The row of `problem`'s shared rows named `name` (its norm is 1 / its sigma); empty if none.
+Eigen::VectorXd SharedRow(const solver::MarkerFitProblem& problem, const std::string& name) {
+  const auto& names = problem.gauge_names();
+  const auto it = std::find(names.begin(), names.end(), name);
+  if (it == names.end()) return {};
+  return problem.shared_rows().row(it - names.begin()).transpose();
+}
+}  // namespace
+
+// A segment's rotation against its markers is a convention only where the joints below it can
+// follow it, a knee's centre along its axis only where the knee turns about that axis alone.
+// Elsewhere the same rows hold a direction the data see: the solve keeps them (as before), and
+// the problem built for the report's uncertainty (relax_holds) weighs them, and the parameters
+// FitOptions::held_parameters holds, at the holds' own sigmas.
+TEST(GlobalFit, HoldsThatAreNoGaugeAreRelaxedForTheUncertainty) {
+  solver::FitOptions options;
+  options.fit_scales = false;
+  options.held_parameters = {"hip.centre.x", "hip.centre.y", "hip.centre.z"};
+  for (bool coupled : {false, true}) {
+    SCOPED_TRACE(coupled ? "coupled knee" : "one-axis knee");
+    const Model model = ThighAndShank(coupled);
+    formats::RowMatrix measured = testutil::Positions(model, model.DefaultCoordinates(), model.InitialParameters())
+                                      .reshaped(1, 3 * model.num_markers());
+    const solver::MarkerFitProblem solve(model, measured, options);
+    const solver::MarkerFitProblem relaxed(model, measured, options, /*relax_holds=*/true);
+    EXPECT_TRUE(solve.has_holds());  // the held hip
+    for (const char* row : {"thigh.rotation0", "thigh.rotation1", "thigh.rotation2", "knee.centre_along_axis"}) {
+      const Eigen::VectorXd held = SharedRow(solve, row), loose = SharedRow(relaxed, row);
+      ASSERT_GT(held.size(), 0) << row;
+      ASSERT_GT(loose.size(), 0) << row;
+      EXPECT_NEAR(held.norm(), 1.0 / options.gauge_sigma_m, 1e-6 / options.gauge_sigma_m) << row;
+      // Not even the thigh's rotation about the flexion axis (z): as a change of the knee angle
+      // it would turn the coupled rotations too.
+      const bool gauge = !coupled;
+      EXPECT_NEAR(loose.norm(), 1.0 / (gauge ? options.gauge_sigma_m : options.held_centre_sigma_m),
+                  1e-6 / (gauge ? options.gauge_sigma_m : options.held_centre_sigma_m))
+          << row;
+    }
+    const int hip_x = model.FindParameter("hip.centre.x");
+    EXPECT_LT(solve.free_index()[hip_x], 0);
+    ASSERT_GE(relaxed.free_index()[hip_x], 0);
+    EXPECT_DOUBLE_EQ(relaxed.prior_sigma(relaxed.free_index()[hip_x]), options.held_centre_sigma_m);
+  }
+  // Without the held hip, only the coupled knee's rows are holds.
+  options.held_parameters.clear();
+  for (bool coupled : {false, true}) {
+    const Model model = ThighAndShank(coupled);
+    formats::RowMatrix measured = testutil::Positions(model, model.DefaultCoordinates(), model.InitialParameters())
+                                      .reshaped(1, 3 * model.num_markers());
+    EXPECT_EQ(solver::MarkerFitProblem(model, measured, options).has_holds(), coupled);
+  }
+}

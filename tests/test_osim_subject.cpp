@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <utility>
 
 #include "formats/mot.h"
 #include "formats/osim.h"
@@ -349,7 +350,7 @@ struct WelkOutcome {
 // every 6th of the right hip's functional trial (204 frames); each trial records the generic
 // model's markers its real recording has (no virtual ones, no thigh clusters: the model has
 // only placeholders for them). The fit starts from the generic model, or from the truth.
-WelkOutcome FitWelk(int seed, bool from_truth) {
+WelkOutcome FitWelk(int seed, bool from_truth, const solver::FitOptions& fit_options = solver::FitOptions()) {
   static const auto* setup = [] {
     auto* out = new std::pair<formats::OsimImport, std::vector<sim::PrescribedMotion>>;
     formats::OsimImport hand;
@@ -371,7 +372,7 @@ WelkOutcome FitWelk(int seed, bool from_truth) {
   if (const char* dir = std::getenv("WRITE_TRC"))  // for `mocap fit` by hand
     for (const auto& t : subject.trials)
       EXPECT_TRUE(formats::WriteTrc(std::string(dir) + "/" + t.markers.name + ".trc", t.markers).ok());
-  s = solver::FitModel(from_truth ? subject.truth : generic, trials, solver::FitOptions(), &out.fit);
+  s = solver::FitModel(from_truth ? subject.truth : generic, trials, fit_options, &out.fit);
   EXPECT_TRUE(s.ok()) << s.message();
   if (!s.ok()) return out;
   out.lab_mm = sim::JointCentreTrackRmsMm(subject.truth, subject.trials, out.fit.model, out.fit.coordinates);
@@ -402,12 +403,36 @@ TEST(OsimSubject, Welk007HipsFromTheGenericModel) {
   }
 }
 
+namespace {
+// The right knee's centre as the report gives it: its standard deviation (mm, the three
+// coordinates' in quadrature, scaled by the femur's scale) and whether a coordinate of it is
+// named undetermined.
+std::pair<double, bool> KneeUncertainty(const solver::FitResult& fit) {
+  const std::string knee = "walker_knee_r";
+  double var = 0;
+  for (const solver::ParameterEstimate& e : fit.report.parameters)
+    if (e.name.rfind(knee + ".centre.", 0) == 0) var += e.std * e.std;
+  bool undetermined = false;
+  for (const std::string& name : fit.report.undetermined) undetermined |= name.rfind(knee + ".centre.", 0) == 0;
+  const Joint& joint = fit.model.joints()[fit.model.FindJoint(knee)];
+  return {1000 * fit.model.segments()[joint.parent].scale * std::sqrt(var), undetermined};
+}
+}  // namespace
+
 // NOT MET, hence disabled: from the generic model the fit stops, CONVERGENCE, in a worse minimum
-// than the one at the truth, and the right knee (fitted: the functional trial moves it) is off
-// while the report gives its centre a standard deviation of 0.1-0.3 mm. Seed 1: marker RMS
-// 0.808 mm against 0.761 from the truth, right knee 8.8 mm RMS in the lab (0.37 from the truth);
-// seeds 2-7 from the generic model 0.801-0.837 mm and 2.5-6.7 mm, from the truth 0.761-0.771 mm
-// and 0.3-0.6 mm. The "never a silent wrong answer reported as CONVERGENCE".
+// than the one at the truth (seeds 1-7: marker RMS 0.801-0.837 mm against 0.761-0.771, right knee
+// 2.5-8.8 mm RMS in the lab against 0.3-0.6). Why (BENCHMARKS.md, "welk007's model": figures):
+// the fit holds what its design says the data cannot place at the scaled generic model's, and the
+// fit from the truth holds it at the truth's. The right knee leans on two such holds: its held
+// ankle and subtalar joint (2.9 and 6.2 deg of rotation, below FitOptions::min_excitation_deg)
+// below it, and the femur's orientation against its markers, which a gauge row fixes although the
+// walker knee below it has no axis parameters to follow it. Released (holds at 2 deg and the rows
+// that are no gauge dropped, or the holds as 10 mm priors) the fit from the generic model reaches
+// the truth's RMS within 0.2 % (and the fit from the truth then lands 1.3-3.2 mm off too: the
+// data place this knee to a few mm), but on the real recordings the same releases let the knees,
+// hips and ankles follow the skin (welk007's right knee 13 -> 22-34 mm from its epicondyles,
+// gait2354's hips 0.1 -> 22 mm from OpenSim's). The holds stay; the report now counts them
+// (Welk007ReportsTheRightKneeAsUncertainAsItIs).
 TEST(OsimSubject, DISABLED_Welk007ReachesTheMinimumAtTheTruth) {
   SKIP_WITHOUT_SHARED_DATA();
   for (int seed = 1; seed <= 3; ++seed) {
@@ -417,5 +442,53 @@ TEST(OsimSubject, DISABLED_Welk007ReachesTheMinimumAtTheTruth) {
     ASSERT_FALSE(truth.lab_mm.empty());
     EXPECT_LE(generic.fit.report.marker_rms_mm, 1.01 * truth.fit.report.marker_rms_mm);
     EXPECT_LE(generic.lab_mm[generic.fit.model.FindJoint("walker_knee_r")], 2.0);
+  }
+}
+
+// What the report says of the right knee that the fit from the generic model misplaces (see
+// above): not the 0.1-0.3 mm standard deviation it gave while 2.5-8.8 mm off, but one that
+// counts what the fit held at the generic model's (FitOptions::held_parameters, the rows that
+// hold an observable direction) at what a scaled generic model is worth: the centre named
+// undetermined, and the lab error within 3 of its standard deviations (seeds 1-7: sd 3.2-3.7 mm,
+// errors 0.8-2.7 sd, 6 of 7 named undetermined).
+TEST(OsimSubject, Welk007ReportsTheRightKneeAsUncertainAsItIs) {
+  SKIP_WITHOUT_SHARED_DATA();
+  for (int seed = 1; seed <= 3; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    const WelkOutcome o = FitWelk(seed, false);
+    ASSERT_FALSE(o.lab_mm.empty());
+    EXPECT_TRUE(o.fit.report.converged()) << o.fit.report.solver.message;
+    const double error_mm = o.lab_mm[o.fit.model.FindJoint("walker_knee_r")];
+    const auto [sd_mm, undetermined] = KneeUncertainty(o.fit);
+    std::printf("  right knee %.2f mm from the truth, reported sd %.2f mm%s\n", error_mm, sd_mm,
+                undetermined ? ", undetermined" : "");
+    EXPECT_TRUE(undetermined);
+    EXPECT_LE(error_mm, 3.0 * sd_mm);
+  }
+}
+
+// The sweep behind Welk007ReachesTheMinimumAtTheTruth (run with --gtest_also_run_disabled_tests):
+// seeds 1-SEEDS (environment, default 7), one line each: marker RMS from the generic model and
+// from the truth, the right knee's lab RMS from each, the report's sd of that centre and whether
+// it names it undetermined. HELD_SIGMA_MM (environment): FitOptions::held_centre_sigma_m in mm
+// (0: the report counts the holds as exact, as before the sixteenth session; the fit is the same).
+TEST(OsimSubject, DISABLED_Welk007Sweep) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const int seeds = std::getenv("SEEDS") ? std::atoi(std::getenv("SEEDS")) : 7;
+  solver::FitOptions options;
+  if (const char* held = std::getenv("HELD_SIGMA_MM")) options.held_centre_sigma_m = 1e-3 * std::atof(held);
+  if (options.held_centre_sigma_m == 0) options.held_axis_sigma_rad = 0;
+  for (int seed = 1; seed <= seeds; ++seed) {
+    const WelkOutcome g = FitWelk(seed, false, options), t = FitWelk(seed, true, options);
+    ASSERT_FALSE(g.lab_mm.empty());
+    ASSERT_FALSE(t.lab_mm.empty());
+    const int k = g.fit.model.FindJoint("walker_knee_r");
+    const auto [sd, undetermined] = KneeUncertainty(g.fit);
+    const auto [sd_truth, undetermined_truth] = KneeUncertainty(t.fit);
+    std::printf("SWEEP seed %d  rms %.3f / %.3f mm  (%+.2f %%)  knee_r %.2f / %.2f mm  sd %.2f / %.2f mm%s%s  it %d / %d\n",
+                seed, g.fit.report.marker_rms_mm, t.fit.report.marker_rms_mm,
+                100 * (g.fit.report.marker_rms_mm / t.fit.report.marker_rms_mm - 1), g.lab_mm[k], t.lab_mm[k], sd,
+                sd_truth, undetermined ? "  undetermined" : "", undetermined_truth ? "  (truth: undetermined)" : "",
+                g.fit.report.solver.num_iterations(), t.fit.report.solver.num_iterations());
   }
 }
