@@ -7,8 +7,11 @@
 // virtual markers such as R_HJC that no trial has), OpenSim's gait2354 example subject (60 Hz, Y
 // up) against the generic Gait2354 model, biobuddy's P01 (Vicon Plug-in Gait + 21 extra markers,
 // 12 Hz, -Z up) against the default model. The issue's targets (>= 0.999 without ghosts, >= 0.995
-// with 5 a frame, no swap > 5 frames) hold on the two static trials; the DISABLED_ tests below
-// hold them where they are not met yet (BENCHMARKS.md, "Real recordings, unlabelled").
+// with 5 a frame, no swap > 5 frames) hold on the two static trials, welk007's hip trial with its
+// scaled model, and -- with the generic models calibrated on the subject's static trial first, as
+// a lab labels (solver/subject_calibration.h) -- welk007's hip trial and gait2354's walk; the
+// DISABLED_ tests below hold them where they are not met (BENCHMARKS.md, "Real recordings,
+// unlabelled").
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -519,9 +522,10 @@ TEST(TrackReal, DISABLED_Gait2354WalkMeetsTheTargetsWithItsGenericModel) {
 }
 
 // The walk with the generic model calibrated on the subject's static trial (scaled, its markers
-// fitted; the 10 arm and head markers beside none of its segments' left out): tracking from the
-// first frame, 0.999573 of the labels with and without ghosts, 0 wrong (the acromion markers
-// missed in one frame each).
+// fitted; the 10 arm and head markers beside none of its segments' left out): every frame
+// labelled (without ghosts the search starts at frame 3, the frames before labelled backward;
+// with 5 at frame 0), 0.999573 of the labels with and without ghosts, 0 wrong (the acromion
+// markers missed in one frame each).
 TEST(TrackReal, Gait2354WalkMeetsTheTargetsWithItsGenericModelCalibratedOnTheStaticTrial) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model subject =
