@@ -427,6 +427,7 @@ int RunTrack(const TrackArgs& args) {
   j["model_markers"] = nm;
   j["rate_hz"] = topt.rate_hz;
   j["backfilled_frames"] = run.backfilled_frames;
+  j["backfilled_labels"] = run.backfilled_labels;  // in the frames after the start (sim::BackfillBeforeStart)
   j["points_per_frame_mean"] = run.points_per_frame_mean;
   j["points_per_frame_max"] = run.points_per_frame_max;
   j["frames_tracking"] = run.frames_tracking();
