@@ -75,7 +75,7 @@ Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerT
 // every model marker of any other segment is at least `min_ratio` times as far, and that nearest
 // one is within max_distance_mm (beside it: a marker farther from every marker of the model rides
 // on something the model may not have, gait2354's elbow markers on its armless torso); else it is left
-// out and named, with why (biobuddy's S1, a sacral marker 129 mm from the torso's T10 and 134
+// out and named, with why (biobuddy's S1, a sacral marker 129 mm from the torso's T10 and 135
 // mm from the pelvis's LPSI: a guess either way). Placed as AttachTrialMarkers places (mean position in the
 // segment's frame over `poses`, optional); `report` gets one entry per name, spread_mm and
 // runner_up_mm there being the two distances (mm).

@@ -35,11 +35,11 @@ struct SubjectCalibrationOptions {
   // AttachMarkersByProximity's: the nearest model marker of any other segment at least this many
   // times as far as the nearest one. At 1.5 a marker beside its own segment's markers (biobuddy's
   // THID 67-76 mm from THI, TIBD 55-57 mm from TIB, the other segments' beyond 170 mm) is
-  // attached, one between two segments (S1: 129 / 134 mm) is not.
+  // attached, one between two segments (S1: 129 / 135 mm) is not.
   double proximity_ratio = 1.5;
   // And the nearest within this (mm): biobuddy's attached ones are 45-117 mm from theirs (T6 from
-  // T10 the farthest); gait2354's arm markers, 175-292 mm from its armless torso's, ride on no
-  // segment of that model.
+  // T10 the farthest); gait2354's arm and head markers are 175-537 mm from its torso's (its arms
+  // ride on no segment of that model).
   double proximity_max_mm = 150.0;
   bool IsValid(std::string* error) const;
 };
