@@ -93,9 +93,16 @@ int BackfillBeforeStart(const TrackInput& input, std::shared_ptr<const Model> mo
   // pick up (a head marker, a forearm) are labelled by the time the backward run passes it.
   const int from = std::min(run->frames - 1, start + kBackfillLeadInFrames);
   int filled = 0;
+  // The backward run's labels in the lead-in, where both runs may track (-1: none).
+  Eigen::MatrixXi lead_in = Eigen::MatrixXi::Constant(from - start + 1, nm, -1);
   for (int f = from; f >= 0; --f) {
     const ekf::TrackOutput& o = backward.Update(times[from] - times[f], (*input.points)[f]);
-    if (f >= start || o.state != ekf::TrackState::kTracking) continue;
+    if (o.state != ekf::TrackState::kTracking) continue;
+    if (f >= start) {
+      if (o.point_of_marker.size() == static_cast<size_t>(nm))
+        for (int m = 0; m < nm; ++m) lead_in(f - start, m) = o.point_of_marker[m];
+      continue;
+    }
     ++filled;
     --run->state_count[static_cast<int>(run->states[f])];
     run->states[f] = o.state;
@@ -104,6 +111,29 @@ int BackfillBeforeStart(const TrackInput& input, std::shared_ptr<const Model> mo
     for (int m = 0; m < nm && m < static_cast<int>(o.point_of_marker.size()); ++m) {
       const int i = o.point_of_marker[m];
       run->point_of_marker(f, m) = i >= 0 && i < (*input.points)[f].cols() ? i : -1;
+    }
+  }
+  // In the lead-in, a marker the forward run's start left for later frames (gait2354's Top.Head
+  // to its third frame) takes the backward run's label where the forward run has none, when the
+  // two runs agree on that marker wherever both label it there (at least once) and the forward
+  // run gave that point to no other marker: the forward run's labels stand.
+  for (int m = 0; m < nm; ++m) {
+    int agree = 0, disagree = 0;
+    for (int f = start; f <= from; ++f) {
+      const int a = run->point_of_marker(f, m), b = lead_in(f - start, m);
+      if (a >= 0 && b >= 0) (a == b ? agree : disagree) += 1;
+    }
+    if (agree == 0 || disagree > 0) continue;
+    for (int f = start; f <= from; ++f) {
+      const int i = lead_in(f - start, m);
+      if (i < 0 || i >= (*input.points)[f].cols() || run->point_of_marker(f, m) >= 0 ||
+          run->states[f] != ekf::TrackState::kTracking)
+        continue;
+      bool taken = false;
+      for (int k = 0; k < nm && !taken; ++k) taken = run->point_of_marker(f, k) == i;
+      if (taken) continue;
+      run->point_of_marker(f, m) = i;
+      ++run->backfilled_labels;
     }
   }
   for (int f = 0; f < start && run->first_tracking == start; ++f)

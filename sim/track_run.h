@@ -31,6 +31,7 @@ struct TrackRun {
   int nan_poses = 0;
   int first_tracking = -1;
   int backfilled_frames = 0;                    // BackfillBeforeStart's
+  int backfilled_labels = 0;                    // and its labels added in the frames after the start
   double points_per_frame_mean = 0, points_per_frame_max = 0;
   // With truth labels only:
   bool scored = false;
@@ -63,8 +64,10 @@ TrackRun RunTracker(const TrackInput& input, ekf::Tracker* tracker,
 // start is refused, labelled by a fresh tracker of `options` run backward in time from that start
 // (from 20 frames after first_tracking down to frame 0, times mirrored so they increase: the lead-
 // in lets it pick up the markers a start leaves to the frames after it, as the forward run did),
-// and each frame before the start that it tracks takes its labels, pose and state; the run is
-// scored again. A whole-trial labeller does as
+// and each frame before the start that it tracks takes its labels, pose and state; in the lead-in
+// itself, where both runs track, a marker the forward run has not labelled yet takes the backward
+// run's label when the two runs agree on that marker wherever both label it there and the forward
+// run gave that point to no other marker. The run is scored again. A whole-trial labeller does as
 // much (Nexus, QTM label a trial from any frame, both ways); the real-time tracker cannot look
 // back, and the simulated sweep measures that tracker, so it does not backfill. Returns the frames
 // filled.

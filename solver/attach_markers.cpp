@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 
 #include "model/kinematics.h"
@@ -138,6 +139,99 @@ Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerT
       m.name = name;
       m.segment = best;
       m.position = s.mean_local[best] / model.segments()[best].scale;  // unscaled, like the model's
+      m.optional = true;
+      markers.push_back(m);
+    }
+    report->push_back(a);
+  }
+  if (markers.size() == model.markers().size()) {
+    *out = model;
+    return Status::Ok();
+  }
+  return Model::Build(model.name(), model.segments(), model.joints(), model.coordinates(), markers,
+                      model.derived_coordinates(), out);
+}
+
+Status AttachMarkersByProximity(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                                const std::vector<Eigen::MatrixXd>& poses, const std::vector<std::string>& names,
+                                double min_ratio, double max_distance_mm, int min_samples, Model* out,
+                                std::vector<AttachedMarker>* report) {
+  if (!(min_ratio >= 1)) return Status::Error("attach markers by proximity: min_ratio must be >= 1");
+  for (const std::string& name : names)
+    if (model.FindMarker(name) >= 0)
+      return Status::Error("attach markers by proximity: model " + model.name() + " already has a marker '" + name +
+                           "'");
+  std::vector<MarkerOnSegments> spreads;
+  if (Status s = MarkerSpreadOnSegments(model, trials, poses, names, &spreads); !s)
+    return Status::Error("attach markers by proximity: " + s.message());
+  const int nm = model.num_markers(), ns = model.num_segments();
+  // Per name, per model marker: the sum and count of their distances in frames with both.
+  std::vector<std::vector<double>> sum(names.size(), std::vector<double>(nm, 0.0));
+  std::vector<std::vector<int>> count(names.size(), std::vector<int>(nm, 0));
+  for (const formats::MarkerTrial& t : trials) {
+    std::vector<int> model_column(nm, -1);
+    for (int m = 0; m < nm; ++m) model_column[m] = t.FindMarker(model.markers()[m].name);
+    for (size_t i = 0; i < names.size(); ++i) {
+      const int c = t.FindMarker(names[i]);
+      if (c < 0) continue;
+      for (int f = 0; f < t.num_frames(); ++f) {
+        if (!t.Has(f, c)) continue;
+        const Eigen::Vector3d x = t.At(f, c);
+        for (int m = 0; m < nm; ++m)
+          if (model_column[m] >= 0 && t.Has(f, model_column[m])) {
+            sum[i][m] += (t.At(f, model_column[m]) - x).norm();
+            ++count[i][m];
+          }
+      }
+    }
+  }
+  std::vector<Marker> markers = model.markers();
+  report->clear();
+  for (size_t i = 0; i < names.size(); ++i) {
+    AttachedMarker a;
+    a.name = names[i];
+    a.samples = spreads[i].samples;
+    // The nearest model marker of each segment.
+    std::vector<double> nearest(ns, std::numeric_limits<double>::infinity());
+    for (int m = 0; m < nm; ++m)
+      if (count[i][m] >= min_samples) {
+        const int s = model.markers()[m].segment;
+        nearest[s] = std::min(nearest[s], 1000.0 * sum[i][m] / count[i][m]);
+      }
+    int best = -1, second = -1;
+    for (int s = 0; s < ns; ++s) {
+      if (best < 0 || nearest[s] < nearest[best]) {
+        second = best;
+        best = s;
+      } else if (second < 0 || nearest[s] < nearest[second]) {
+        second = s;
+      }
+    }
+    char text[200];
+    if (a.samples < min_samples || best < 0 || !std::isfinite(nearest[best])) {
+      std::snprintf(text, sizeof text, "seen with a pose and a model marker in fewer than %d frames", min_samples);
+      a.why_not = text;
+      report->push_back(a);
+      continue;
+    }
+    a.spread_mm = nearest[best];
+    a.runner_up_mm = second >= 0 ? nearest[second] : std::numeric_limits<double>::infinity();
+    if (a.spread_mm > max_distance_mm) {
+      std::snprintf(text, sizeof text, "%.0f mm from the nearest model marker (on %s): beside none (limit %.0f mm)",
+                    a.spread_mm, model.segments()[best].name.c_str(), max_distance_mm);
+      a.why_not = text;
+    } else if (a.runner_up_mm < min_ratio * a.spread_mm) {
+      std::snprintf(text, sizeof text,
+                    "as near to %s's markers (%.0f mm) as to %s's (%.0f mm): the posture does not tell",
+                    model.segments()[best].name.c_str(), a.spread_mm, model.segments()[second].name.c_str(),
+                    a.runner_up_mm);
+      a.why_not = text;
+    } else {
+      a.segment = model.segments()[best].name;
+      Marker m;
+      m.name = names[i];
+      m.segment = best;
+      m.position = spreads[i].mean_local[best] / model.segments()[best].scale;  // unscaled, like the model's
       m.optional = true;
       markers.push_back(m);
     }

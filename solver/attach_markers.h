@@ -66,6 +66,24 @@ Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerT
                           const std::vector<Eigen::MatrixXd>& poses, const AttachOptions& options,
                           Model* out, std::vector<AttachedMarker>* report);
 
+// A static trial (one posture: a lab's calibration trial) moves no joint, so the rule above
+// tells no segment from another: every segment carries every marker alike. What the posture does
+// show is where the marker sits among the model's markers: a lab puts an extra thigh marker
+// beside the thigh's, a medial knee marker across the knee from the lateral one. Each of `names`
+// (trial markers the model lacks) goes to the segment of the model marker nearest to it in the
+// trials (mean distance over the frames where both are seen, the data's own positions) when
+// every model marker of any other segment is at least `min_ratio` times as far, and that nearest
+// one is within max_distance_mm (beside it: a marker farther from every marker of the model rides
+// on something the model may not have, gait2354's elbow markers on its armless torso); else it is left
+// out and named, with why (biobuddy's S1, a sacral marker 129 mm from the torso's T10 and 135
+// mm from the pelvis's LPSI: a guess either way). Placed as AttachTrialMarkers places (mean position in the
+// segment's frame over `poses`, optional); `report` gets one entry per name, spread_mm and
+// runner_up_mm there being the two distances (mm).
+Status AttachMarkersByProximity(const Model& model, const std::vector<formats::MarkerTrial>& trials,
+                                const std::vector<Eigen::MatrixXd>& poses, const std::vector<std::string>& names,
+                                double min_ratio, double max_distance_mm, int min_samples, Model* out,
+                                std::vector<AttachedMarker>* report);
+
 // A generic model may name a lab's cluster markers without knowing where the lab puts them, and
 // stack them on one point of their segment (welk007's generic model has r_thigh1..5 at one point
 // of femur_r, 7-29 cm from where its lab's are; the shank's and the other thigh's alike). A fit

@@ -11,6 +11,7 @@
 #include "solver/global_fit.h"
 #include "solver/marker_fit_problem.h"
 #include "solver/schur_solver.h"
+#include "solver/subject_calibration.h"
 #include "tests/model_test_util.h"
 
 using namespace mocap;
@@ -691,6 +692,78 @@ TEST(GlobalFit, StackedPlaceholderMarkersArePlacedOnTheirSegment) {
     }
   // Not named as markers the fit moved far: their model place was never a place.
   for (const auto& f : result.report.far_moved_markers) EXPECT_NE(f.name, "RTHI");
+}
+
+// solver::CalibrateSubject on a static posture (a lab's calibration trial): the model is fitted
+// to it and the trial's markers the model lacks are attached by the markers they sit beside,
+// since a posture moves no joint: one 6 cm below the right thigh marker goes to the femur, at
+// its place; one halfway between the femur's lateral knee marker and the tibia's marker is left
+// out (the posture cannot tell the two segments apart), as is one 30 cm in front of the thigh,
+// beside no marker of the model.
+TEST(SubjectCalibration, AStaticTrialAttachesTheMarkersBesideASegmentsMarkers) {
+  std::mt19937_64 rng(5);
+  const Model nominal = NominalWithoutOptional();
+  const Model truth_base = mocap::testutil::Baked(nominal, testutil::PerturbedParameters(nominal, rng));
+  const int thigh = truth_base.FindMarker("RTHI");
+  ASSERT_GE(thigh, 0);
+  std::vector<Marker> markers = truth_base.markers();
+  Marker beside = markers[thigh], far = markers[thigh];
+  beside.name = "RTHID";
+  beside.position += Eigen::Vector3d(0, 0, -0.06);
+  far.name = "FAR";
+  far.position += Eigen::Vector3d(0.3, 0, 0);
+  markers.push_back(beside);
+  markers.push_back(far);
+  const Model truth = WithMarkerList(truth_base, markers);
+  // 100 frames of the standing posture, 0.5 mm of noise, and a point between two segments.
+  formats::MarkerTrial trial;
+  trial.name = "static";
+  trial.rate_hz = 100;
+  for (const Marker& m : truth.markers()) trial.marker_names.push_back(m.name);
+  trial.marker_names.push_back("KNEE_TIB");
+  const int nm = truth.num_markers();
+  trial.positions.resize(100, 3 * (nm + 1));
+  const Geometry g(truth);
+  ModelData d(truth);
+  ForwardKinematics(truth, g, truth.DefaultCoordinates(), &d);
+  std::normal_distribution<double> noise(0.0, 0.0005);
+  const Eigen::Vector3d between =
+      0.5 * (MarkerPosition(truth, g, d, truth.FindMarker("RKNE")) + MarkerPosition(truth, g, d, truth.FindMarker("RTIB")));
+  for (int f = 0; f < 100; ++f) {
+    for (int m = 0; m <= nm; ++m) {
+      const Eigen::Vector3d x = m < nm ? MarkerPosition(truth, g, d, m) : between;
+      for (int k = 0; k < 3; ++k) trial.positions(f, 3 * m + k) = x[k] + noise(rng);
+    }
+    trial.frame_numbers.push_back(f + 1);
+    trial.times.push_back(f / 100.0);
+  }
+  solver::SubjectCalibrationOptions options;
+  options.fit.num_threads = 1;
+  Model subject;
+  solver::SubjectCalibrationSummary summary;
+  ASSERT_TRUE(solver::CalibrateSubject(nominal, trial, options, &subject, &summary).ok());
+  std::printf("%s\n", summary.BriefReport().c_str());
+  for (const std::string& n : summary.NotAttached()) std::printf("  not attached: %s\n", n.c_str());
+  EXPECT_LT(summary.fit.marker_rms_mm, 2.0);
+  EXPECT_EQ(summary.Attached(), 1);
+  const int m = subject.FindMarker("RTHID");
+  ASSERT_GE(m, 0);
+  EXPECT_EQ(subject.segments()[subject.markers()[m].segment].name, "femur_r");
+  // On the femur, 6 cm (scaled) from the thigh marker, as on the subject: whatever the pose.
+  const Geometry sg(subject), tg(truth);
+  ModelData sd(subject), td(truth);
+  ForwardKinematics(subject, sg, subject.DefaultCoordinates(), &sd);
+  ForwardKinematics(truth, tg, truth.DefaultCoordinates(), &td);
+  const double fitted = (MarkerPosition(subject, sg, sd, m) - MarkerPosition(subject, sg, sd, subject.FindMarker("RTHI"))).norm();
+  const double true_distance =
+      (MarkerPosition(truth, tg, td, truth.FindMarker("RTHID")) - MarkerPosition(truth, tg, td, thigh)).norm();
+  EXPECT_NEAR(fitted, true_distance, 0.003);
+  EXPECT_LT(subject.FindMarker("KNEE_TIB"), 0);
+  EXPECT_LT(subject.FindMarker("FAR"), 0);
+  const std::vector<std::string> left_out = summary.NotAttached();
+  ASSERT_EQ(left_out.size(), 2u);
+  for (const std::string& n : left_out)
+    EXPECT_NE(n.find(n.rfind("KNEE_TIB", 0) == 0 ? "does not tell" : "beside none"), std::string::npos) << n;
 }
 
 // A model marker on a joint centre (OpenCap's RHJC_study on the pelvis) that the trials see is

@@ -7,8 +7,11 @@
 // virtual markers such as R_HJC that no trial has), OpenSim's gait2354 example subject (60 Hz, Y
 // up) against the generic Gait2354 model, biobuddy's P01 (Vicon Plug-in Gait + 21 extra markers,
 // 12 Hz, -Z up) against the default model. The issue's targets (>= 0.999 without ghosts, >= 0.995
-// with 5 a frame, no swap > 5 frames) hold on the two static trials; the DISABLED_ tests below
-// hold them where they are not met yet (BENCHMARKS.md, "Real recordings, unlabelled").
+// with 5 a frame, no swap > 5 frames) hold on the two static trials, welk007's hip trial with its
+// scaled model, and -- with the generic models calibrated on the subject's static trial first, as
+// a lab labels (solver/subject_calibration.h) -- welk007's hip trial and gait2354's walk; the
+// DISABLED_ tests below hold them where they are not met (BENCHMARKS.md, "Real recordings,
+// unlabelled").
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -26,6 +29,7 @@
 #include "model/default_model.h"
 #include "sim/track_run.h"
 #include "sim/tracking_scene.h"
+#include "solver/subject_calibration.h"
 
 namespace {
 
@@ -322,9 +326,11 @@ mocap::Model OsimModel(const std::string& path, const std::string& marker_set = 
 // The issue's targets on `trial` without ghosts and with 5 a frame: >= 0.999 / 0.995 of the
 // labels right, no swap longer than 5 frames; `from_the_first_frame`: also tracking every frame.
 void ExpectTheTargets(const std::string& trial, const mocap::Model& model, const Eigen::Vector3d& up,
-                      const Eigen::Vector3d& model_up, bool from_the_first_frame) {
+                      const Eigen::Vector3d& model_up, bool from_the_first_frame,
+                      mocap::ekf::TrackerOptions::ScaleToSubject scale =
+                          mocap::ekf::TrackerOptions::ScaleToSubject::kAlways) {
   for (int ghosts : {0, 5}) {
-    const RealResult r = TrackRecording(trial, model, up, model_up, ghosts);
+    const RealResult r = TrackRecording(trial, model, up, model_up, ghosts, scale);
     if (from_the_first_frame) {
       EXPECT_EQ(r.run.first_tracking, 0) << r.summary;
       EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
@@ -372,7 +378,8 @@ TEST(TrackReal, Welk007HipTrialMeetsTheTargetsWithItsScaledOpenSimModel) {
 // 0.012374. The target cannot be met with this model: r_thigh1..5 (and each shank's) share one
 // point of their segment, so which cluster point is r_thigh3 is not in the model -- any labelling
 // of them is a guess among 5! permutations, and leaving them unlabelled caps the accuracy at
-// 38/52 of the samples.
+// 38/52 of the samples. (Main 9fbd3ee today: static 0.605025 / 0.537037.) Calibrated on the static
+// trial first, as a lab does, the model knows them: the hip trial meets the targets (below).
 TEST(TrackReal, DISABLED_Welk007MeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model model = OsimModel(Welk("unscaled_generic.osim"));
@@ -390,11 +397,96 @@ TEST(TrackReal, DISABLED_Welk007MeetsTheTargetsWithItsGenericModel) {
 // 222, LTIB 184, LTIBD 237, RTIB 139, RTIBD 194). Both points are rigid with the segment, so no
 // rule of the tracker tells them apart: the model's marker places decide, and they are the extra
 // markers'. From frame ~300 (12 Hz, the hip's fastest swings) the track breaks up (everything
-// on anything for ~200 frames).
+// on anything for ~200 frames). (Main 9fbd3ee today: 0.621636 / 0.391697.) Calibrated on the
+// anatomical posture the extra markers are the subject model's and RTHI is right in every frame;
+// what is left is the 12 Hz frame rate (below).
 TEST(TrackReal, DISABLED_BiobuddyRightHipMeetsTheTargetsWithTheDefaultModel) {
   SKIP_WITHOUT_SHARED_DATA();
   ExpectTheTargets(mocap::testutil::SharedData() + "/biobuddy_p01_lowerlimb/Test_func_rhip.c3d",
                    mocap::DefaultFullBodyModel(1.75), -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), false);
+}
+
+// The subject model a lab labels with (solver/subject_calibration.h): `generic` fitted to the
+// labelled static trial, the trial's markers it lacks attached. A static trial is one posture:
+// cheap to fit (two threads, as CI has).
+mocap::Model Calibrated(const mocap::Model& generic, const std::string& static_trial) {
+  mocap::formats::MarkerTrial trial;
+  const mocap::Status read = mocap::formats::ReadMarkerFile(static_trial, &trial);
+  EXPECT_TRUE(read.ok()) << read.message();
+  mocap::solver::SubjectCalibrationOptions o;
+  o.fit.num_threads = 2;
+  mocap::Model subject;
+  mocap::solver::SubjectCalibrationSummary summary;
+  const mocap::Status s = mocap::solver::CalibrateSubject(generic, trial, o, &subject, &summary);
+  EXPECT_TRUE(s.ok()) << s.message();
+  std::printf("%s: %s\n", static_trial.c_str(), summary.BriefReport().c_str());
+  for (const std::string& n : summary.NotAttached()) std::printf("  not attached: %s\n", n.c_str());
+  return s.ok() ? subject : generic;
+}
+
+// welk007 with its generic model calibrated on the static trial, as a lab would: the 16 stacked
+// cluster placeholders placed where the static trial puts them (which cluster point is r_thigh3
+// is in the static trial's labels, not in the model), the segments scaled. Then the functional
+// hip trial unlabelled: the issue's targets, as with the hand-scaled model (0.999745 with and
+// without ghosts, 0 wrong; the generic model as given: never starts / 0.012374).
+TEST(TrackReal, Welk007HipTrialMeetsTheTargetsWithItsGenericModelCalibratedOnTheStaticTrial) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model subject = Calibrated(OsimModel(Welk("unscaled_generic.osim")), Welk("c3d_Trimmed_static1.c3d"));
+  ExpectTheTargets(Welk("c3d_Trimmed_RHJC1.c3d"), subject, Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitY(), true,
+                   mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
+}
+
+std::string Bio(const std::string& file) {
+  return mocap::testutil::SharedData() + "/biobuddy_p01_lowerlimb/" + file;
+}
+
+// Biobuddy P01 with the default model calibrated on its anatomical posture: RTHI and the TIBs
+// fitted to where this lab wears them, and 17 of its 21 extra markers attached to the segments
+// whose markers they sit beside (S1 between torso and pelvis, the medial ankles and LNAV between
+// tibia and foot are not). The start no longer puts RTHI on RTHID's point (375 frames with the
+// default model as given, 0.604884 of the labels): every right-thigh marker right in every frame,
+// 0.907628 of the labels of the 60-marker subject model (the extra ones counted too).
+TEST(TrackReal, BiobuddyCalibratedModelTellsTheLabsExtraMarkersApart) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
+  const std::vector<std::pair<const char*, const char*>> on = {
+      {"LTHIB", "femur_l"}, {"LTHID", "femur_l"}, {"LKNEM", "femur_l"}, {"LTIBF", "tibia_l"}, {"LTIBD", "tibia_l"},
+      {"RTHIB", "femur_r"}, {"RTHID", "femur_r"}, {"RKNEM", "femur_r"}, {"RTIBF", "tibia_r"}, {"RTIBD", "tibia_r"},
+      {"LTOE5", "foot_l"},  {"RTOE5", "foot_r"},  {"RNAV", "foot_r"},   {"S3", "pelvis"},    {"T6", "torso"},
+      {"T1", "torso"},      {"C2", "torso"}};
+  for (const auto& [marker, segment] : on) {
+    const int m = subject.FindMarker(marker);
+    ASSERT_GE(m, 0) << marker;
+    EXPECT_EQ(subject.segments()[subject.markers()[m].segment].name, segment) << marker;
+  }
+  for (const char* left_out : {"S1", "LANKM", "RANKM", "LNAV"}) EXPECT_LT(subject.FindMarker(left_out), 0) << left_out;
+  const RealResult r = TrackRecording(Bio("Test_func_rhip.c3d"), subject, -Eigen::Vector3d::UnitZ(),
+                                      Eigen::Vector3d::UnitZ(), 0,
+                                      mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
+  for (const char* marker : {"RTHI", "RTHID", "RTHIB", "RKNE", "RKNEM"}) {
+    const int m = subject.FindMarker(marker);
+    EXPECT_EQ(r.run.marker_correct[m], r.run.marker_samples[m]) << marker;
+  }
+  EXPECT_GE(r.run.score.accuracy(), 0.9) << r.summary;
+}
+
+// The issue's targets on biobuddy's functional trials with that subject model: NOT MET, and not
+// for want of a model. The trials are 12 Hz (the uploader kept one frame in ten): from frame to
+// frame a swinging foot or shank moves off its constant-velocity prediction by 40 mm (median;
+// 107 mm at the 95th percentile: RTOE, RHEE, RANK, RTIB, RTIBF on the right hip trial), more
+// than the 47-65 mm between the lab's neighbouring markers (TIB and TIBF, TOE and TOE5, THI and
+// THIB), so a frame-to-frame tracker's prediction cannot say which is which. The feet and shanks
+// of the moving leg swap (right hip: 0.907628 / 0.901640 with 5 ghosts, 35 / 53 swaps longer than
+// 5 frames; left hip 0.876182; right knee 0.949638; left knee 0.968006). The same cause on data
+// that meet the targets: welk007's hip trial, 100 Hz, 0.999745 with its calibrated model, every
+// 8th frame kept (12.5 Hz: prediction error 95th percentile 1.5 -> 63.6 mm) 0.808824
+// (BENCHMARKS.md, "Real recordings, unlabelled").
+TEST(TrackReal, DISABLED_BiobuddyFunctionalTrialsMeetTheTargetsWithTheDefaultModelCalibratedOnTheStaticTrial) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
+  for (const char* trial : {"Test_func_rhip.c3d", "Test_func_lhip.c3d", "Test_func_rknee.c3d", "Test_func_lknee.c3d"})
+    ExpectTheTargets(Bio(trial), subject, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), false,
+                     mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
 }
 
 std::string Gait2354(const std::string& file) {
@@ -412,7 +504,8 @@ TEST(TrackReal, Gait2354StaticMeetsTheTargetsWithItsGenericModel) {
                    Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), true);
 }
 
-// The walk (151 frames): NOT MET. As given the search refuses the first 5 frames (the generic
+// The walk (151 frames): met since the sixteenth session (below). As given the search refuses
+// the first 5 frames (the generic
 // model's residual just over 3 cm) and then labels every marker right: 0.9656 / 0.9590 with 5
 // ghosts, all of it the late start. Scaled to the subject (when the model does not fit, frame 1),
 // 0.958 / 0.9925 (L.Acromium on an unmodelled arm marker's point for 143 frames without
@@ -425,17 +518,81 @@ TEST(TrackReal, Gait2354StaticMeetsTheTargetsWithItsGenericModel) {
 // before the start are labelled backward from it, as `mocap track --points` does
 // (sim::BackfillBeforeStart): 0.998718 with and without ghosts, 0 wrong; what is left is Top.Head
 // in 3 of the first frames (its backward run picks it up a few frames after its own start).
-TEST(TrackReal, DISABLED_Gait2354WalkMeetsTheTargetsWithItsGenericModel) {
+// Sixteenth: those 6 samples were all in the forward run's first frames, at and after its start
+// (frame 5: Top.Head, R.Acromium, V.Sacral, L.Shank.Front; frames 6-7: Top.Head), the markers a
+// start leaves for later frames; the backward run, tracking since frame 25, had labelled them
+// there. Where both runs track, a marker the forward run has not labelled takes the backward
+// run's label on a point the forward run gave nobody, when the two runs agree on that marker
+// wherever both label it: 1.000000 without ghosts, 0.999786 with 5, 0 wrong.
+TEST(TrackReal, Gait2354WalkMeetsTheTargetsWithItsGenericModel) {
   SKIP_WITHOUT_SHARED_DATA();
   ExpectTheTargets(Gait2354("subject01_walk1.trc"),
                    OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml")),
-                   Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), false);
+                   Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), true);
+}
+
+// The walk with the generic model calibrated on the subject's static trial (scaled, its markers
+// fitted; the 10 arm and head markers beside none of its segments' left out): every frame
+// labelled (without ghosts the search starts at frame 3, the frames before labelled backward;
+// with 5 at frame 0), 0.999573 of the labels with and without ghosts, 0 wrong (the acromion
+// markers missed in one frame each).
+TEST(TrackReal, Gait2354WalkMeetsTheTargetsWithItsGenericModelCalibratedOnTheStaticTrial) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model subject =
+      Calibrated(OsimModel(Gait2354("gait2354_simbody.osim"), Gait2354("gait2354_Scale_MarkerSet.xml")),
+                 Gait2354("subject01_static.trc"));
+  ExpectTheTargets(Gait2354("subject01_walk1.trc"), subject, Eigen::Vector3d::UnitY(), Eigen::Vector3d::UnitY(), true,
+                   mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
+}
+
+// `mocap track --calibrate STATIC` does the above and writes the subject model; that model, and
+// the one `mocap fit --out fitted.osim STATIC` writes, track the trial as the calibration's own
+// run does (the .osim written and read back loses nothing the tracker uses).
+TEST(TrackReal, TheCliCalibratesOnTheStaticTrialAndItsModelTracksAsWell) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const std::string out = mocap::testutil::TmpPath("track_real", "calibrate");
+  const std::string points = " --points " + Welk("c3d_Trimmed_RHJC1.c3d") + " --unlabel --ghosts 5 --up z --out ";
+  auto stats = [](const std::string& dir) {
+    std::ifstream in(dir + "/stats.json");
+    return nlohmann::json::parse(in);
+  };
+  mocap::testutil::CommandResult r =
+      mocap::testutil::Mocap("track --model " + Welk("unscaled_generic.osim") + " --calibrate " +
+                             Welk("c3d_Trimmed_static1.c3d") + " --threads 2" + points + out + "_calibrated");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("r_thigh3 (a placeholder stacked with others in the model) placed on femur_r"),
+            std::string::npos)
+      << r.output;
+  EXPECT_NE(r.output.find("subject calibration: marker RMS"), std::string::npos) << r.output;
+  const nlohmann::json calibrated = stats(out + "_calibrated");
+  ASSERT_TRUE(calibrated.contains("calibration")) << calibrated.dump(1);
+  EXPECT_EQ(calibrated["calibration"]["placed"].size(), 16u);
+  EXPECT_LT(calibrated["calibration"]["marker_rms_mm"].get<double>(), 5.0);
+  r = mocap::testutil::Mocap("track --model " + out + "_calibrated/calibrated.osim" + points + out + "_written");
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = mocap::testutil::Mocap("fit --model " + Welk("unscaled_generic.osim") + " --threads 2 --out " + out +
+                             "_fit/fitted.osim " + Welk("c3d_Trimmed_static1.c3d"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = mocap::testutil::Mocap("track --model " + out + "_fit/fitted.osim" + points + out + "_fitted");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json written = stats(out + "_written"), fitted = stats(out + "_fitted");
+  std::printf("welk007 RHJC1, 5 ghosts: calibrated %.6f (%d wrong), its written model %.6f, mocap fit's %.6f\n",
+              calibrated["label_accuracy"].get<double>(), calibrated["wrong_labels"].get<int>(),
+              written["label_accuracy"].get<double>(), fitted["label_accuracy"].get<double>());
+  EXPECT_GE(calibrated["label_accuracy"].get<double>(), 0.995);
+  EXPECT_EQ(calibrated["wrong_labels"].get<int>(), 0);
+  for (const nlohmann::json* j : {&written, &fitted}) {
+    EXPECT_DOUBLE_EQ((*j)["label_accuracy"].get<double>(), calibrated["label_accuracy"].get<double>());
+    EXPECT_EQ((*j)["wrong_labels"].get<int>(), 0);
+    EXPECT_EQ((*j)["swaps_longer_than_5_frames"].get<int>(), 0);
+  }
 }
 
 // `mocap track --points` on a file labels the frames before its first start backward from it
 // (sim::BackfillBeforeStart); --no-backfill leaves them as the live tracker does. The gait2354
 // walk, its labels removed, its lab's vertical not given: started at frame 6, the first 5 frames
-// filled (0.965606 -> 0.998718), none of them wrong.
+// filled (0.965606 -> 0.998718; 1.000000 since the lead-in's labels are merged too), none of them
+// wrong.
 TEST(TrackReal, TheCliLabelsTheFramesBeforeTheStartBackward) {
   SKIP_WITHOUT_SHARED_DATA();
   const std::string out = mocap::testutil::TmpPath("track_real", "walk");

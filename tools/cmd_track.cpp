@@ -26,7 +26,10 @@
 // model_up). A file's frames before the first start are labelled backward from it
 // (sim::BackfillBeforeStart; --no-backfill: as live). --scale-to-subject always scales a
 // generic model to the subject at the start (TrackerOptions::init_scale_to_subject); stats.json
-// gives the scales (segment_scales).
+// gives the scales (segment_scales). --calibrate STATIC first fits the model to a labelled static
+// trial of the subject (solver/subject_calibration.h: scales, marker places, the lab's markers the
+// model lacks attached) and tracks with that subject model, as a lab labels with a skeleton
+// calibrated on a static trial; stats.json's "calibration" says what the fit did.
 //
 // The model: --model FILE (.json or .osim). With --simulate, also `nominal` (the default: the
 // default model scaled to the subject's height, what `mocap sim` writes as nominal.model.json)
@@ -51,6 +54,7 @@
 #include "model/kinematics.h"
 #include "model/model_io.h"
 #include "sim/track_run.h"
+#include "solver/subject_calibration.h"
 #include "sim/tracking_scene.h"
 #include "tools/command.h"
 #include "tools/trial_inputs.h"
@@ -70,6 +74,8 @@ struct TrackArgs {
   std::string marker_set, marker_map;
   std::string up = "auto";
   std::string scale_to_subject = "when-needed";
+  std::string calibrate;  // a labelled static trial: the model is fitted to it first
+  int threads = 0;        // the calibration's fit
   bool unlabel = false;
   double height_m = 1.75;
   std::string out;
@@ -179,6 +185,77 @@ int RunTrack(const TrackArgs& args) {
   if (args.simulate && !args.marker_map.empty()) {
     spdlog::error("mocap track: --marker-map {}: only with --points", args.marker_map);
     return 2;
+  }
+  // --- the subject model: the generic one calibrated on a labelled static trial (--calibrate) ---
+  nlohmann::ordered_json calibration;  // stats.json's
+  if (!args.calibrate.empty()) {
+    if (args.simulate) {
+      spdlog::error("mocap track: --calibrate {}: only with --points", args.calibrate);
+      return 2;
+    }
+    std::vector<formats::MarkerTrial> statics;
+    MarkerMatch static_match;
+    if (Status s = LoadTrials({args.calibrate}, args.marker_map, input.model, &statics, &static_match); !s) {
+      spdlog::error("mocap track: --calibrate: {}", s.message());
+      return 2;
+    }
+    LogSkippedPoints(args.calibrate, statics[0]);
+    spdlog::info("calibrating {} to the subject on {} ({} frames, {} markers)", input.path, args.calibrate,
+                 statics[0].num_frames(), statics[0].num_markers());
+    solver::SubjectCalibrationOptions co;
+    co.fit.num_threads = args.threads;
+    Model subject;
+    solver::SubjectCalibrationSummary cs;
+    if (Status s = solver::CalibrateSubject(input.model, statics[0], co, &subject, &cs); !s) {
+      spdlog::error("mocap track: --calibrate {}: {}", args.calibrate, s.message());
+      return 1;
+    }
+    for (const solver::CentreMarker& c : cs.centre_markers)
+      spdlog::info("calibration: {} is on {}'s centre in the model ({:.1f} mm): fitted as a point of the centre",
+                   c.marker, c.joint, c.from_centre_mm);
+    for (const solver::PlacedMarker& p : cs.fit.placed_markers)
+      if (p.why_not.empty())
+        spdlog::info("calibration: {} (a placeholder stacked with others in the model) placed on {}, {:.0f} mm from "
+                     "the model's point", p.name, p.segment, p.from_model_mm);
+      else
+        spdlog::warn("calibration: {} (a placeholder) not placed: {}", p.name, p.why_not);
+    for (const solver::AttachedMarker& a : cs.fit.attached_markers)
+      if (!a.segment.empty())
+        spdlog::info("calibration: {} (not in the model) attached to {} by its motion ({:.1f} mm RMS there, {:.1f} "
+                     "on the next best segment)", a.name, a.segment, a.spread_mm, a.runner_up_mm);
+    for (const solver::AttachedMarker& a : cs.attached_by_proximity)
+      if (!a.segment.empty())
+        spdlog::info("calibration: {} (not in the model) attached to {}: its markers the nearest ({:.0f} mm; another "
+                     "segment's {:.0f} mm)", a.name, a.segment, a.spread_mm, a.runner_up_mm);
+    for (const std::string& n : cs.NotAttached())
+      spdlog::warn("calibration: not attached (its points are nobody's to the tracker): {}", n);
+    spdlog::info("{}", cs.BriefReport());
+    // The subject model, as `mocap fit --out` would write it: track more trials with it.
+    std::error_code dir_ec;
+    fs::create_directories(args.out, dir_ec);
+    const std::string written =
+        (fs::path(args.out) / (input.osim ? "calibrated.osim" : "calibrated.model.json")).string();
+    if (Status w = input.osim ? formats::ExportOsim(subject, input.import, written) : SaveModelJson(written, subject);
+        !w) {
+      spdlog::error("mocap track: {}", w.message());
+      return 1;
+    }
+    spdlog::info("wrote the subject model {}", written);
+    calibration = {{"trial", args.calibrate},
+                   {"model", written},
+                   {"initial_marker_rms_mm", cs.fit.initial_marker_rms_mm},
+                   {"marker_rms_mm", cs.fit.marker_rms_mm},
+                   {"iterations", cs.fit.solver.num_iterations()},
+                   {"converged", cs.fit.converged()},
+                   {"attached", nlohmann::json::object()},
+                   {"placed", nlohmann::json::object()},
+                   {"not_attached", cs.NotAttached()}};
+    for (const auto* list : {&cs.fit.attached_markers, &cs.attached_by_proximity})
+      for (const solver::AttachedMarker& a : *list)
+        if (!a.segment.empty()) calibration["attached"][a.name] = a.segment;
+    for (const solver::PlacedMarker& p : cs.fit.placed_markers)
+      if (p.why_not.empty()) calibration["placed"][p.name] = p.segment;
+    input.model = std::move(subject);
   }
   const Model& model = input.model;
   if (model.num_markers() < 4) {
@@ -350,6 +427,7 @@ int RunTrack(const TrackArgs& args) {
   j["model_markers"] = nm;
   j["rate_hz"] = topt.rate_hz;
   j["backfilled_frames"] = run.backfilled_frames;
+  j["backfilled_labels"] = run.backfilled_labels;  // in the frames after the start (sim::BackfillBeforeStart)
   j["points_per_frame_mean"] = run.points_per_frame_mean;
   j["points_per_frame_max"] = run.points_per_frame_max;
   j["frames_tracking"] = run.frames_tracking();
@@ -493,6 +571,7 @@ int RunTrack(const TrackArgs& args) {
               static_cast<double>(run.marker_correct[k]) / run.marker_samples[k];
     }
     j["unseen_markers"] = topt.unseen_markers;
+    if (!calibration.is_null()) j["calibration"] = calibration;
     j["scale_to_subject"] = args.scale_to_subject;
     const std::vector<double>& scales = tracker.initialisation().segment_scales;
     j["segment_scales"] = nlohmann::json::object();  // empty: the model's own
@@ -558,6 +637,13 @@ const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code)
                   "scale the model segment by segment to the subject at the start: never, when-needed "
                   "(default: when the model's own size cannot start) or always (a generic model)")
       ->check(CLI::IsMember({"never", "when-needed", "always"}));
+  cmd->add_option("--calibrate", args->calibrate,
+                  "with --points: a labelled static trial of the subject (.c3d/.trc, --marker-map applies): the "
+                  "model is first fitted to it -- scaled, its markers placed, the trial's markers it lacks "
+                  "attached -- and the points tracked with that subject model (written as DIR/calibrated.osim "
+                  "or DIR/calibrated.model.json), as a lab labels with a skeleton calibrated on a static trial");
+  cmd->add_option("--threads", args->threads, "the calibration's fit: worker threads (0: all cores)")
+      ->check(CLI::NonNegativeNumber);
   cmd->add_flag("--unlabel", args->unlabel,
                 "with a labelled --points file: remove its labels, shuffle each frame's points, add "
                 "--ghosts, and score the tracker's labels against the file's");
