@@ -706,20 +706,37 @@ TEST(EkfTracker, UpdateAllocatesNothingWhileTracking) {
   ekf::Tracker tracker(Share(session.nominal));
   ASSERT_EQ(tracker.Update(trial.markers.times[0], frames[0].points).state,
             ekf::TrackState::kTracking);
-  long correct = 0, total = 0;
+  long correct = 0, total = 0, wrong = 0, withheld_returns = 0;
+  // Every label is reported and right, except that a marker's first frame back from a gap may
+  // be withheld (TrackerOptions::min_return_probability: 5 ghosts a frame in the body's box).
+  std::vector<char> seen_before(session.nominal.num_markers(), 0), seen_now(session.nominal.num_markers(), 0);
+  for (int t : frames[0].truth)
+    if (t >= 0) seen_before[t] = 1;
   mocap::testing::g_allocations = 0;
   for (int f = 1; f < 600; ++f) {
     mocap::testing::BeginNoAllocation();
     const ekf::TrackOutput& out = tracker.Update(trial.markers.times[f], frames[f].points);
     mocap::testing::EndNoAllocation();
     ASSERT_EQ(out.state, ekf::TrackState::kTracking) << f;
+    std::fill(seen_now.begin(), seen_now.end(), 0);
     for (size_t k = 0; k < frames[f].truth.size(); ++k) {
-      total += frames[f].truth[k] >= 0;
-      correct += frames[f].truth[k] >= 0 && out.marker_of_point[k] == frames[f].truth[k];
+      const int t = frames[f].truth[k], l = out.marker_of_point[k];
+      if (t >= 0) seen_now[t] = 1;
+      total += t >= 0;
+      correct += t >= 0 && l == t;
+      wrong += l >= 0 && l != t;
+      if (t >= 0 && l < 0) {
+        EXPECT_FALSE(seen_before[t]) << "frame " << f << ": " << session.nominal.markers()[t].name
+                                     << " unlabelled, though not back from a gap";
+        ++withheld_returns;
+      }
     }
+    seen_before.swap(seen_now);
   }
   EXPECT_EQ(mocap::testing::g_allocations.load(), 0);
-  EXPECT_EQ(correct, total);
+  EXPECT_EQ(wrong, 0);
+  EXPECT_EQ(correct + withheld_returns, total);
+  EXPECT_LE(withheld_returns, 2);  // measured: 1 of some 320 returns
 }
 
 
