@@ -148,7 +148,7 @@ struct Trace {
 };
 
 SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& base, bool truth,
-                   int runs_min_frames, const Trace& trace = {}) {
+                   int runs_min_frames, double min_return_probability, const Trace& trace = {}) {
   SeedResult r;
   r.seed = seed;
   mocap::sim::TrackingSceneOptions o = base;
@@ -160,6 +160,7 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
   }
   mocap::ekf::TrackerOptions topt;
   topt.rate_hz = o.rate_hz;
+  topt.min_return_probability = min_return_probability;
   mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(truth ? scene.truth : scene.nominal),
                               topt);
   const std::vector<int> scene_of = mocap::sim::SceneMarkerOf(tracker.model(), scene);
@@ -269,6 +270,7 @@ int main(int argc, char** argv) {
   scene.occlusion = 0.1;
   bool json = false;
   int threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  double min_return_probability = mocap::ekf::TrackerOptions().min_return_probability;
   app.add_option("--seeds", seeds_text, "seeds: 1-50, 3, 1,4,9-12");
   app.add_option("--ghosts", scene.ghosts, "ghost points per frame")->check(CLI::NonNegativeNumber);
   app.add_option("--occlusion", scene.occlusion, "fraction of marker samples occluded");
@@ -280,6 +282,9 @@ int main(int argc, char** argv) {
                  "also list each seed's error runs of at least this many frames (which marker, on "
                  "which point, in which movement)")
       ->check(CLI::NonNegativeNumber);
+  app.add_option("--min-return-probability", min_return_probability,
+                 "TrackerOptions::min_return_probability (0: every returning label reported)")
+      ->check(CLI::Range(0.0, 0.999999));
   app.add_option("--threads", threads, "seeds tracked at once")->check(CLI::PositiveNumber);
   Trace trace;
   std::string trace_frames;
@@ -312,7 +317,7 @@ int main(int argc, char** argv) {
   std::mutex print_mutex;
   auto worker = [&] {
     for (size_t k = next++; k < seeds.size(); k = next++) {
-      results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames, trace);
+      results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames, min_return_probability, trace);
       if (json) continue;
       const SeedResult& r = results[k];
       std::lock_guard<std::mutex> lock(print_mutex);

@@ -32,6 +32,9 @@ bool TrackerOptions::IsValid(std::string* error) const {
   if (!(velocity_time_constant_s > 0) || !(acceleration_time_constant_s > 0))
     return Fail(error, "velocity_time_constant_s and acceleration_time_constant_s must be > 0");
   if (!(gate_chi2 > 0)) return Fail(error, "gate_chi2 must be > 0");
+  if (!(min_return_probability >= 0 && min_return_probability < 1))
+    return Fail(error, "min_return_probability must be in [0, 1)");
+  if (!(clutter_time_constant_s > 0)) return Fail(error, "clutter_time_constant_s must be > 0");
   if (!(marker_offset_sigma >= 0) || !(marker_offset_floor >= 0))
     return Fail(error, "marker_offset_sigma and marker_offset_floor must be >= 0");
   if (!(marker_offset_time_constant_s > 0))
@@ -309,6 +312,7 @@ void Tracker::Impl::ResetState() {
   z_static = start;
   had_track = false;
   unfit_searches = 0;
+  clutter_density = -1;
   // A new subject may come: the model at its own size again (ScaleToSubject).
   SetGeometry(model->InitialParameters());
   bad_frames = 0;
@@ -479,6 +483,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     s.ReviewProvisionalLabels(np);
     const int labelled = s.ApplyLabels(np);
     s.ChooseMeasurements();
+    s.WithholdDoubtfulReturns(np, dt);
     double nis = 0;
     if (s.measured_count == 0) {
       std::fill(s.observed.begin(), s.observed.end(), 0);

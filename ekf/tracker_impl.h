@@ -164,6 +164,11 @@ struct Tracker::Impl {
   Eigen::Matrix3Xd last_point, last_predicted;
   int measured_count = 0;
   void ChooseMeasurements();
+  // TrackerOptions::min_return_probability: the density of unclaimed points near the body (per
+  // m^3, averaged over clutter_time_constant_s; negative until a tracking frame measured it), and
+  // the reported labels of markers on their first frame back that clutter explains about as well.
+  double clutter_density = -1;
+  void WithholdDoubtfulReturns(int np, double dt);
   // The last kHistory tracking frames' points and predicted joint centres (a ring), to follow a
   // point back in time (NonRigidTrack).
   static constexpr int kHistory = 20;

@@ -805,6 +805,56 @@ void Tracker::Impl::ChooseMeasurements() {
   }
 }
 
+// TrackerOptions::min_return_probability. The clutter near the body: the points no marker
+// claimed inside the labelled points' box grown by kClutterMargin (the simulated ghosts fill the
+// body's box grown by 10 cm; a reflection far from the body is in no marker's gate), per m^3,
+// averaged over the last clutter_time_constant_s. A single-frame ghost that took a returning
+// marker's label is claimed, so the average over frames, not this frame's count, is the density.
+// Withholding only clears the output: the label itself stays, so its probation (the next frame's
+// point, moved as the prediction did) runs and reports it from its second frame, and the track
+// is the same as without it.
+void Tracker::Impl::WithholdDoubtfulReturns(int np, double dt) {
+  if (options.min_return_probability <= 0) return;
+  constexpr double kClutterMargin = 0.1;
+  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+  Eigen::Vector3d hi = -lo;
+  std::fill(claimed_now.begin(), claimed_now.begin() + np, 0);
+  for (int m = 0; m < nm; ++m) {
+    const int col = row_to_col[m];
+    if (col < 0 || col >= np) continue;
+    claimed_now[col] = 1;
+    lo = lo.cwiseMin(points.col(col));
+    hi = hi.cwiseMax(points.col(col));
+  }
+  if (!(hi.x() >= lo.x())) return;  // nothing labelled
+  lo.array() -= kClutterMargin;
+  hi.array() += kClutterMargin;
+  int unclaimed = 0;
+  for (int k = 0; k < np; ++k)
+    if (!claimed_now[k] && (points.col(k).array() >= lo.array()).all() &&
+        (points.col(k).array() <= hi.array()).all())
+      ++unclaimed;
+  const double density = unclaimed / (hi - lo).prod();
+  const double w = 1.0 - std::exp(-dt / options.clutter_time_constant_s);
+  clutter_density = clutter_density < 0 ? density : clutter_density + w * (density - clutter_density);
+  if (clutter_density <= 0) return;
+  // g / (g + lambda) < p  <=>  g < lambda p / (1 - p).
+  const double p = options.min_return_probability;
+  const double min_density = clutter_density * p / (1 - p);
+  const double norm = std::pow(2 * M_PI, -1.5);
+  for (int m = 0; m < nm; ++m) {
+    const int col = row_to_col[m];
+    if (col < 0 || col >= np || labelled_run[m] != 1) continue;
+    const Eigen::Vector3d e = points.col(col) - predicted.col(m);
+    const double d2 = e.dot(s_inv[m] * e);
+    const double g = norm * std::sqrt(std::max(s_inv[m].determinant(), 0.0)) * std::exp(-0.5 * d2);
+    if (g >= min_density) continue;
+    out.point_of_marker[m] = -1;
+    out.marker_of_point[valid[col]] = -1;
+    --out.labelled;
+  }
+}
+
 // The provisional window (ekf/tracker.h, "Labelling"). A label taken afresh was decided on one
 // frame, by a prediction that drifted while the marker was hidden; labels then follow point
 // tracks, so a wrong one lasts as long as its point. For kProvisionalFrames after a label is

@@ -560,6 +560,9 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   LmOptions coarse_lm = options;
   coarse_lm.function_tolerance = std::max(options.function_tolerance, coarse.coarse_function_tolerance);
   coarse_lm.max_iterations = std::min(options.max_iterations, coarse.coarse_max_iterations);
+  // The subset's standard deviations are the subset's (sqrt(F / n) times the whole problem's):
+  // its own statistical convergence is not the start the fine stage is tuned for.
+  coarse_lm.shared_step_tolerance = 0;
   coarse_lm.callbacks.clear();
   coarse_lm.data_rms = nullptr;  // of the whole problem's x, not the subset's
   for (const IterationCallback& cb : options.callbacks)

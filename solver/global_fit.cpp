@@ -1042,6 +1042,10 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
     // The final stage keeps at least one of the caller's iterations; a stage left none is skipped.
     o.lm.max_iterations = std::min(options.staged_iterations, iterations_left - 1);
     o.lm.function_tolerance = std::max(options.lm.function_tolerance, options.stage_function_tolerance);
+    // A stage before the last weighs the data by a sigma it assumed (the first, the nominal
+    // marker_sigma_m), so its reduced system is no inverse covariance: the statistical stop
+    // (LmOptions::shared_step_tolerance) is the final stage's.
+    o.lm.shared_step_tolerance = 0;
     if (o.lm.max_iterations < 1) break;
     // The markers stage weighs its data before their error is known (nominal sigma), so it first
     // solves only until the residual level settles (the cost changes by less than

@@ -272,6 +272,7 @@ struct FitOptions {
     lm.function_tolerance = 1e-6;  // Ceres's default; the benchmark compares final costs at 1e-6
     lm.parameter_tolerance = 1e-9;
     lm.max_iterations = 100;
+    lm.shared_step_tolerance = 0.1;  // the body model within a tenth of its standard deviation
   }
   bool IsValid(std::string* error) const;
   // Parses "scales,centres,axes,markers" (any subset, or "all"/"none").

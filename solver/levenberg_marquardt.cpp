@@ -31,6 +31,7 @@ bool LmOptions::IsValid(std::string* error) const {
   if (max_iterations < 0) return fail("max_iterations must be >= 0");
   if (!(max_seconds > 0)) return fail("max_seconds must be > 0");
   if (!(function_tolerance >= 0)) return fail("function_tolerance must be >= 0");
+  if (!(shared_step_tolerance >= 0)) return fail("shared_step_tolerance must be >= 0");
   if (!(gradient_tolerance >= 0)) return fail("gradient_tolerance must be >= 0");
   if (!(parameter_tolerance >= 0)) return fail("parameter_tolerance must be >= 0");
   if (!(initial_lambda > 0)) return fail("initial_lambda must be > 0");
@@ -195,6 +196,7 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
       it.gain_ratio = std::isfinite(rho) ? rho : -1.0;
       if (std::isfinite(new_cost) && rho > options.min_gain_ratio) {
         // Accept.
+        const double step_lambda = lambda;
         const double parameter_norm = x->norm();
         x->swap(x_new);
         const double old_cost = cost;
@@ -212,6 +214,11 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
           converged = "function tolerance reached";
         else if (it.step_norm <= options.parameter_tolerance * (parameter_norm + options.parameter_tolerance))
           converged = "parameter tolerance reached";
+        else if (options.shared_step_tolerance > 0 && it.linear_solves == 1 && step_lambda <= 0.1 && !accelerated) {
+          const double mahalanobis_sq = problem->LastSharedStepMahalanobisSq();
+          if (mahalanobis_sq < options.shared_step_tolerance * options.shared_step_tolerance)
+            converged = "the shared parameters' step is below their tolerance in standard deviations";
+        }
         if (converged == nullptr) {
           t = Clock::now();
           problem->InnerIteration(x);

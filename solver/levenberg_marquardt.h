@@ -95,6 +95,25 @@ struct LmOptions {
   // refused (2|a|/|v| = 11.5) up to a higher damping than plain LM's, and each trial costs about
   // 40 % of a linearisation more: CPU +56 % over the six runs. On Rosenbrock's narrow valley
   // (k = 1000) it takes 70 iterations instead of 245 (test_levenberg_marquardt).
+  // Statistical convergence of the shared parameters (problems that can measure it, i.e.
+  // LmProblem::LastSharedStepMahalanobisSq; 0: off). With the cost 1/2 chi^2 (residuals in units
+  // of their standard deviations), the shared part dp of a step measured in the metric of the
+  // reduced system it solved, dp^T S dp, is its length in the shared parameters' own standard
+  // deviations (S is their inverse covariance, the poses eliminated). A step shorter than
+  // `shared_step_tolerance` of a standard deviation ends the solve, converged: what is left to
+  // gain moves the estimate by less than the data can tell. Why: on real recordings (biobuddy,
+  // 3,724 frames at 12 Hz) the last iterations gain 0.005-0.1 of a cost of 3,292 each, the poses
+  // of a few frames still moving while the body model moves by 0.05-0.07 standard deviations a
+  // step; the function tolerance (1e-6 of the cost) let that run on for up to 8 iterations, and
+  // how many depended on the rounding (27-31 on one machine with 1 or 2 threads). Only a step
+  // taken without a rejection in its iteration and at lambda <= 0.1 counts: the damping
+  // shortens a step (S here includes it), and a step cut short by a large lambda is no evidence
+  // of convergence. Like the function tolerance, it judges the step, not the way left along a
+  // curved valley: on Rosenbrock's (k = 100) it stops with 0.024 of cost above the minimum, within
+  // a quarter of a standard deviation by the likelihood (test_levenberg_marquardt). The global fit
+  // uses it in its final stage only (FitOptions), whose residuals are weighted by the data's own
+  // spread; a stage that assumes a sigma has no standard deviations to measure a step in.
+  double shared_step_tolerance = 0;
   bool geodesic_acceleration = false;
   double acceleration_step = 0.02;
   double max_acceleration_ratio = 0.75;
@@ -163,6 +182,9 @@ class LmProblem {
   // iterations": each frame's own block re-solved with the shared parameters fixed). The next
   // iteration's cost change includes what it gained. Doing nothing is correct.
   virtual void InnerIteration(Eigen::VectorXd* x) {}
+  // LmOptions::shared_step_tolerance: dp^T S dp of the last SolveDamped's step, S the damped
+  // reduced system of the shared parameters it solved; NaN when the problem has no such split.
+  virtual double LastSharedStepMahalanobisSq() const { return std::numeric_limits<double>::quiet_NaN(); }
   // Geodesic acceleration (LmOptions::geodesic_acceleration): solves (J^T J + damping) a = -J^T r_vv
   // at the last linearisation point, with `damping` that of the last SolveDamped (whose
   // factorisation it may reuse) and r_vv = (2 / h) ((r(x + h v) - r(x)) / h - J v). False: not

@@ -643,6 +643,7 @@ bool ArrowSchurProblem::FormReducedSystem(const Eigen::VectorXd& damping, Eigen:
 
 bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::VectorXd* dx) {
   damped_solve_ready_ = false;
+  last_shared_step_sq_ = std::numeric_limits<double>::quiet_NaN();
   Eigen::MatrixXd s;
   Eigen::VectorXd rhs;
   if (anticipated_ready_ && damping.size() == anticipated_damping_.size() &&
@@ -661,6 +662,7 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
     if (s_factor_.info() != Eigen::Success) return false;
     dp = s_factor_.solve(rhs);
     dx->tail(np_) = dp;
+    last_shared_step_sq_ = rhs.dot(dp);
   }
   if (!BackSubstitute(damping, gradient_, dp, dx)) return false;
   damped_solve_ready_ = true;

@@ -40,6 +40,7 @@
 
 #include <Eigen/Cholesky>
 #include <Eigen/Core>
+#include <limits>
 #include <memory>
 #include <string>
 #include <vector>
@@ -70,6 +71,7 @@ class ArrowSchurProblem : public LmProblem {
   bool Linearize(const Eigen::VectorXd& x, double* cost, Eigen::VectorXd* gradient,
                  Eigen::VectorXd* jtj_diagonal) override;
   bool SolveDamped(const Eigen::VectorXd& damping, Eigen::VectorXd* dx) override;
+  double LastSharedStepMahalanobisSq() const override { return last_shared_step_sq_; }
   // Linearize then also forms the reduced system for this damping (one pass over the frames
   // fewer per iteration); SolveDamped uses it when asked for exactly that damping.
   void AnticipateDamping(double lambda, double min_diagonal, double max_diagonal) override {
@@ -183,6 +185,7 @@ class ArrowSchurProblem : public LmProblem {
   Eigen::MatrixXd anticipated_s_;
   // The last SolveDamped's damping and Cholesky factor of S, for SolveAcceleration; valid until
   // the next Linearize. shifted_residuals_: per frame, (kind, r0, r1, r2) per block at x + h v.
+  double last_shared_step_sq_ = std::numeric_limits<double>::quiet_NaN();  // dp^T S dp
   bool damped_solve_ready_ = false;
   Eigen::VectorXd solved_damping_;
   Eigen::LLT<Eigen::MatrixXd> s_factor_;
