@@ -806,7 +806,7 @@ void Tracker::Impl::ChooseMeasurements() {
 }
 
 // TrackerOptions::min_return_probability. The clutter near the body: the points no marker
-// claimed inside the labelled points' box grown by kClutterMargin (the simulated ghosts fill the
+// claimed, new in this frame (no Predecessor), inside the labelled points' box grown by kClutterMargin (the simulated ghosts fill the
 // body's box grown by 10 cm; a reflection far from the body is in no marker's gate), per m^3,
 // averaged over the last clutter_time_constant_s. A single-frame ghost that took a returning
 // marker's label is claimed, so the average over frames, not this frame's count, is the density.
@@ -831,7 +831,7 @@ void Tracker::Impl::WithholdDoubtfulReturns(int np, double dt) {
   hi.array() += kClutterMargin;
   int unclaimed = 0;
   for (int k = 0; k < np; ++k)
-    if (!claimed_now[k] && (points.col(k).array() >= lo.array()).all() &&
+    if (!claimed_now[k] && Predecessor(k, np) < 0 && (points.col(k).array() >= lo.array()).all() &&
         (points.col(k).array() <= hi.array()).all())
       ++unclaimed;
   const double density = unclaimed / (hi - lo).prod();
@@ -844,7 +844,10 @@ void Tracker::Impl::WithholdDoubtfulReturns(int np, double dt) {
   const double norm = std::pow(2 * M_PI, -1.5);
   for (int m = 0; m < nm; ++m) {
     const int col = row_to_col[m];
-    if (col < 0 || col >= np || labelled_run[m] != 1) continue;
+    // A point that continues an unclaimed point of the last frame is no single-frame ghost (a
+    // marker the start or the gates left unlabelled while in view; a lasting reflection is
+    // judged by its past, NonRigidTrack and SeenBeside).
+    if (col < 0 || col >= np || labelled_run[m] != 1 || Predecessor(col, np) >= 0) continue;
     const Eigen::Vector3d e = points.col(col) - predicted.col(m);
     const double d2 = e.dot(s_inv[m] * e);
     const double g = norm * std::sqrt(std::max(s_inv[m].determinant(), 0.0)) * std::exp(-0.5 * d2);
