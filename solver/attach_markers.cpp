@@ -9,6 +9,32 @@
 
 namespace mocap::solver {
 
+namespace {
+
+// A trial marker attached to `segment` where the trials put it in that segment's frame (scaled),
+// written unscaled like the model's own; optional, as the trials may not all show it.
+Marker MarkerAt(const Model& model, const std::string& name, int segment, const Eigen::Vector3d& local) {
+  Marker m;
+  m.name = name;
+  m.segment = segment;
+  m.position = local / model.segments()[segment].scale;
+  m.optional = true;
+  return m;
+}
+
+// The model with `markers` (its own and the attached ones after them); the model itself when none
+// was attached.
+Status WithMarkers(const Model& model, const std::vector<Marker>& markers, Model* out) {
+  if (markers.size() == model.markers().size()) {
+    *out = model;
+    return Status::Ok();
+  }
+  return Model::Build(model.name(), model.segments(), model.joints(), model.coordinates(), markers,
+                      model.derived_coordinates(), out);
+}
+
+}  // namespace
+
 bool AttachOptions::IsValid(std::string* error) const {
   auto fail = [&](const char* what) {
     if (error) *error = what;
@@ -135,21 +161,11 @@ Status AttachTrialMarkers(const Model& model, const std::vector<formats::MarkerT
       a.why_not = text;
     } else {
       a.segment = seg;
-      Marker m;
-      m.name = name;
-      m.segment = best;
-      m.position = s.mean_local[best] / model.segments()[best].scale;  // unscaled, like the model's
-      m.optional = true;
-      markers.push_back(m);
+      markers.push_back(MarkerAt(model, name, best, s.mean_local[best]));
     }
     report->push_back(a);
   }
-  if (markers.size() == model.markers().size()) {
-    *out = model;
-    return Status::Ok();
-  }
-  return Model::Build(model.name(), model.segments(), model.joints(), model.coordinates(), markers,
-                      model.derived_coordinates(), out);
+  return WithMarkers(model, markers, out);
 }
 
 Status AttachMarkersByProximity(const Model& model, const std::vector<formats::MarkerTrial>& trials,
@@ -228,21 +244,11 @@ Status AttachMarkersByProximity(const Model& model, const std::vector<formats::M
       a.why_not = text;
     } else {
       a.segment = model.segments()[best].name;
-      Marker m;
-      m.name = names[i];
-      m.segment = best;
-      m.position = spreads[i].mean_local[best] / model.segments()[best].scale;  // unscaled, like the model's
-      m.optional = true;
-      markers.push_back(m);
+      markers.push_back(MarkerAt(model, names[i], best, spreads[i].mean_local[best]));
     }
     report->push_back(a);
   }
-  if (markers.size() == model.markers().size()) {
-    *out = model;
-    return Status::Ok();
-  }
-  return Model::Build(model.name(), model.segments(), model.joints(), model.coordinates(), markers,
-                      model.derived_coordinates(), out);
+  return WithMarkers(model, markers, out);
 }
 
 std::vector<int> StackedMarkers(const Model& model, const std::vector<formats::MarkerTrial>& trials,

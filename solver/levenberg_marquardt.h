@@ -112,7 +112,10 @@ struct LmOptions {
   // curved valley: on Rosenbrock's (k = 100) it stops with 0.024 of cost above the minimum, within
   // a quarter of a standard deviation by the likelihood (test_levenberg_marquardt). The global fit
   // uses it in its final stage only (FitOptions), whose residuals are weighted by the data's own
-  // spread; a stage that assumes a sigma has no standard deviations to measure a step in.
+  // spread; a stage that assumes a sigma has no standard deviations to measure a step in. Only a
+  // problem that eliminates the frames measures it (ArrowSchurProblem): a whole-system solve
+  // (CholmodProblem) goes on to the function tolerance, so the two may stop at different points
+  // within that tenth.
   double shared_step_tolerance = 0;
   bool geodesic_acceleration = false;
   double acceleration_step = 0.02;
