@@ -32,6 +32,10 @@ bool TrackerOptions::IsValid(std::string* error) const {
   if (!(velocity_time_constant_s > 0) || !(acceleration_time_constant_s > 0))
     return Fail(error, "velocity_time_constant_s and acceleration_time_constant_s must be > 0");
   if (!(gate_chi2 > 0)) return Fail(error, "gate_chi2 must be > 0");
+  if (!(process_noise_time_constant_s >= 0))
+    return Fail(error, "process_noise_time_constant_s must be >= 0");
+  if (!(min_process_noise_scale > 0 && min_process_noise_scale <= 1))
+    return Fail(error, "min_process_noise_scale must be in (0, 1]");
   if (!(min_return_probability >= 0 && min_return_probability < 1))
     return Fail(error, "min_return_probability must be in [0, 1)");
   if (!(clutter_time_constant_s > 0)) return Fail(error, "clutter_time_constant_s must be > 0");
@@ -300,6 +304,13 @@ void Tracker::Impl::Allocate() {
   jerk_psd.resize(nz);
   for (int i = 0; i < nz; ++i)
     jerk_psd[i] = rotational[i] ? options.jerk_psd_rotational : options.jerk_psd_translational;
+  q_scale.assign(nz, 1.0);
+  jerk_psd_now = jerk_psd;
+  prediction_trace.assign(nm, 0.0);
+  q_innovation.setZero(nz);
+  q_predicted.setZero(nz);
+  q_weight.setZero(nz);
+  q_count.setZero(nz);
 }
 
 void Tracker::Impl::ResetState() {
@@ -313,6 +324,8 @@ void Tracker::Impl::ResetState() {
   had_track = false;
   unfit_searches = 0;
   clutter_density = -1;
+  std::fill(q_scale.begin(), q_scale.end(), 1.0);
+  jerk_psd_now = jerk_psd;
   // A new subject may come: the model at its own size again (ScaleToSubject).
   SetGeometry(model->InitialParameters());
   bad_frames = 0;
@@ -334,7 +347,7 @@ double Tracker::Impl::Dt(double time_s) const {
 }
 
 void Tracker::Impl::Predict(double dt) {
-  PredictConstantAcceleration(dt, jerk_psd, std::exp(-dt / options.velocity_time_constant_s),
+  PredictConstantAcceleration(dt, jerk_psd_now, std::exp(-dt / options.velocity_time_constant_s),
                               std::exp(-dt / options.acceleration_time_constant_s), &x, &P);
   // A coordinate no measurement has observed for kUnobservedFrames frames stops within
   // kUnobservedSeconds: what it did before is no evidence of where it went (the knee of a leg
@@ -365,12 +378,16 @@ void Tracker::Impl::Linearise(const Eigen::VectorXd& z) {
 
 // The information-form update of tracker.h with the labelled markers of row_to_col (Linearise
 // already called at the predicted z).
-bool Tracker::Impl::FilterUpdate(double* nis) {
+bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
   A.setZero();
   b.setZero();
   std::fill(beyond_gate.begin(), beyond_gate.end(), 0);
   std::fill(observed.begin(), observed.end(), 0);
   double nu_r_nu = 0;
+  q_innovation.setZero();
+  q_predicted.setZero();
+  q_weight.setZero();
+  q_count.setZero();
   for (int m = 0; m < nm; ++m) {
     if (row_to_col[m] < 0) continue;
     const Eigen::Vector3d nu = points.col(row_to_col[m]) - predicted.col(m);
@@ -385,6 +402,26 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
     nu_r_nu += w * nu.squaredNorm();
     const std::vector<int>& cols = model->marker_coordinates(m);
     const auto& J = jac[m];
+    {
+      // Each marker's part in its coordinates' process noise (LearnProcessNoise): its squared
+      // innovation against its predicted spread (with the measurement variance), weighted by how
+      // far the prediction makes more than half of that spread (2 f - 1: where the measurement
+      // noise makes the gate, at 200 Hz, the innovations say little about q), shared among its
+      // chain's coordinates as they make its prediction's covariance.
+      double share = 0;
+      for (size_t a = 0; a < cols.size(); ++a) share += J.col(a).squaredNorm() * P(cols[a], cols[a]);
+      const double spread = prediction_trace[m] + 3.0 / w;
+      if (share > 0 && spread > 0) {
+        const double f = std::max(0.0, 2.0 * prediction_trace[m] / spread - 1.0);
+        for (size_t a = 0; a < cols.size(); ++a) {
+          const double c = J.col(a).squaredNorm() * P(cols[a], cols[a]) / share;
+          q_innovation[cols[a]] += c * f * nu.squaredNorm();
+          q_predicted[cols[a]] += c * f * spread;
+          q_weight[cols[a]] += c * f;
+          q_count[cols[a]] += c;
+        }
+      }
+    }
     for (size_t a = 0; a < cols.size(); ++a) {
       b[cols[a]] += w * J.col(a).dot(nu);
       for (size_t k = 0; k <= a; ++k) A(cols[a], cols[k]) += w * J.col(a).dot(J.col(k));
@@ -403,9 +440,32 @@ bool Tracker::Impl::FilterUpdate(double* nis) {
   }
   A.triangularView<Eigen::StrictlyUpper>() = A.transpose();
   if (!update.Apply(A, b, nu_r_nu, &x, &P, nis)) return false;
+  LearnProcessNoise(dt);
   dz = x.head(nz) - zbuf;
   LearnOffsets(dz);
   return true;
+}
+
+// Covariance matching (tracker.h, "Process noise"; Mehra 1972): with the labels right, a
+// measured marker's squared innovation is, on average, its predicted spread (J P_zz J^T plus its
+// measurement variance). FilterUpdate shares each marker's among its chain's coordinates, weighted
+// by how much of the spread the prediction makes; each coordinate's factor on the bound moves by
+// (ratio - 1) times that weight over the time constant (an arithmetic average: a burst of fast
+// motion counts at its size), the ratio capped at kMaxRatio, the factor kept within
+// [min_process_noise_scale, 1]. Wrong labels and ghosts make the innovations larger, which only
+// moves the factor back towards the bound.
+void Tracker::Impl::LearnProcessNoise(double dt) {
+  if (options.process_noise_time_constant_s <= 0) return;
+  constexpr double kMaxRatio = 16.0;
+  const double gain = std::min(1.0, dt / options.process_noise_time_constant_s);
+  for (int i = 0; i < nz; ++i) {
+    if (!(q_predicted[i] > 0) || !(q_count[i] > 0)) continue;
+    const double ratio = std::min(q_innovation[i] / q_predicted[i], kMaxRatio);
+    const double informed = q_weight[i] / q_count[i];
+    q_scale[i] = std::clamp(q_scale[i] * (1.0 + gain * informed * (ratio - 1.0)),
+                            options.min_process_noise_scale, 1.0);
+    jerk_psd_now[i] = q_scale[i] * jerk_psd[i];
+  }
 }
 
 // Each labelled marker's residual after the update (linearised: nu - J_m dz), in its segment's
@@ -489,7 +549,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
       std::fill(s.observed.begin(), s.observed.end(), 0);
       std::fill(s.beyond_gate.begin(), s.beyond_gate.end(), 0);
     }
-    bool ok = s.measured_count == 0 || s.FilterUpdate(&nis);
+    bool ok = s.measured_count == 0 || s.FilterUpdate(&nis, dt);
     if (ok) {
       s.zbuf = s.x.head(s.nz);
       s.Wrap(&s.zbuf);
@@ -577,6 +637,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   auto prev_points = std::move(s.prev_points);
   auto prev_free = std::move(s.prev_free);
   auto prev_free_list = std::move(s.prev_free_list);
+  auto q_scale = std::move(s.q_scale);  // the subject's motion, not the model's
   const int prev_np = s.prev_np, prev_free_count = s.prev_free_count;
   s.SetModel(std::move(model));
   s.Allocate();
@@ -602,6 +663,8 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   s.prev_points = std::move(prev_points);
   s.prev_free = std::move(prev_free);
   s.prev_free_list = std::move(prev_free_list);
+  s.q_scale = std::move(q_scale);
+  for (int i = 0; i < s.nz; ++i) s.jerk_psd_now[i] = s.q_scale[i] * s.jerk_psd[i];
   s.prev_np = prev_np;
   s.prev_free_count = prev_free_count;
   // The new model's markers are where the fit put them: forget the old model's corrections, but

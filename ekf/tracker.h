@@ -68,6 +68,9 @@
 // gate took a reflection riding beside it, or a toe marker the limb search put on a reflection,
 // is then given its own point when that comes back (seed 47 at 5 ghosts: the finger marker on a
 // reflection, then without a label for the rest of the take, 0.981 -> 0.9993 of the labels).
+// The start's labels are the last frame's for the first tracking frame (at 12 Hz its 83 ms of
+// the start's velocity uncertainty made an unlabelled forearm marker's gate 30 cm wide, and it
+// took an elbow marker's point, the elbow markers shifted along the arm for the whole trial).
 // Two rigid-body facts hold
 // whatever the pose estimate, and the gate keeps to them. Labels follow point tracks: a point that
 // continues the point a marker held in the last frame (mutual nearest neighbours, moved as the
@@ -255,6 +258,26 @@
 // offset learnt the turned pose as its own error (66 mm on seed 44, whose heel then stayed
 // unlabelled for most of the trial).
 //
+// Process noise. The jerk spectral densities (options) are an upper bound: what the simulated
+// 200 Hz scenes' fast limb motion needs to keep the filter's velocities and accelerations agile.
+// A subject's motion can be far smoother, which at 100-200 Hz hides under the measurement noise
+// (welk007's hip trial labels the same with the bound or a hundredth of it) but at 12 Hz decides
+// every gate: one 83 ms step adds q dt (56 rad/s^2 at the bound) to an acceleration's standard
+// deviation, and a swinging foot's gate was a metre wide while its points came 4-15 cm from
+// their predictions; the gate then said nothing and the assignment paired the foot's markers
+// with their neighbours' points (welk007's hip trial with every 8th frame kept: 0.80 of the
+// labels). So each coordinate's noise is learnt below the bound by covariance matching (Mehra
+// 1972): each measured marker's squared innovation against its predicted spread (J P_zz J^T plus
+// its measurement variance), shared among its chain's coordinates as they make its prediction's
+// covariance, moves the coordinate's factor by (ratio - 1) over process_noise_time_constant_s --
+// an arithmetic average, so the bursts of fast motion count at their size. A marker counts only
+// as far as the prediction makes most of its spread (weight 2 f - 1 for a fraction f over a
+// half): where the measurement noise makes the gate (200 Hz), the innovations say little about
+// q, and a factor learnt from them anyway made the simulated sweep's labels worse (worst seed
+// 0.93 at 5 ghosts, from 0.996), as did following the factor in the logarithm (a geometric mean,
+// which the bursts hardly move). The predicted covariance is close to proportional to q where the noise makes
+// it, so the factor that matches is the present one times the ratio.
+//
 // Angles. A coordinate that only drives identity rotations and whose range covers a full turn
 // (the pelvis heading of the default model) is kept in (-pi, pi]: h is 2 pi-periodic in it, the
 // innovations are in marker space, so wrapping it changes nothing but keeps z bounded.
@@ -283,6 +306,14 @@ struct TrackerOptions {
   // (rad^2/s^5 for rotations, m^2/s^5 for translations).
   double jerk_psd_rotational = 4.0e4;
   double jerk_psd_translational = 4.0e2;
+  // Learnt process noise: the jerk PSDs above are an upper bound, each coordinate's scaled down
+  // (to no less than min_process_noise_scale of it) while the measured markers' innovations are
+  // smaller than their predicted covariance says, where the prediction makes most of that
+  // covariance (covariance matching over process_noise_time_constant_s; "Process noise" above).
+  // At 100-200 Hz the measurement noise makes most of a gate and the factor moves little; at
+  // 12 Hz the prediction's uncertainty is all of it. 0: the PSDs as given.
+  double process_noise_time_constant_s = 0.5;
+  double min_process_noise_scale = 1.0 / 256;
   // Decay of the velocities and accelerations between frames (exp(-dt / tau)): a coordinate that
   // the markers stop observing (a foot whose toe marker is hidden, so that only the heel marker
   // holds its two angles) coasts to a stop instead of running away on its last acceleration and

@@ -90,6 +90,21 @@ struct Tracker::Impl {
   Eigen::VectorXd x;  // [z; z'; z'']
   Eigen::MatrixXd P;
   Eigen::VectorXd jerk_psd;
+  // The process noise learnt from the innovations (tracker.h, "Process noise"): per coordinate,
+  // the factor on jerk_psd, and the spectral densities it gives (jerk_psd_now, what Predict
+  // uses).
+  std::vector<double> q_scale;
+  Eigen::VectorXd jerk_psd_now;
+  // Per marker: the trace of its predicted position's covariance J P_zz J^T (ComputeGates).
+  std::vector<double> prediction_trace;
+  // Per coordinate, this frame's measured markers' squared innovations and predicted spreads
+  // (with the measurement variances), each weighted by the part the prediction makes of its
+  // spread, and those weights and the markers' count, each marker's shared among the
+  // coordinates of its chain as they make its predicted covariance (FilterUpdate).
+  Eigen::VectorXd q_innovation, q_predicted, q_weight, q_count;
+  // Moves each q_scale towards the factor that makes its share of the innovations as large as
+  // the predicted covariance says, over process_noise_time_constant_s.
+  void LearnProcessNoise(double dt);
   double last_time = kNaN;
   bool had_track = false;
   int unfit_searches = 0;  // searches in a row refused for the model's size (init_scale_after_s)
@@ -240,6 +255,9 @@ struct Tracker::Impl {
   void Predict(double dt);
   void Linearise(const Eigen::VectorXd& z);
   void LabelByGating(int np);
+  // The gates (s_inv, reject_sq, prediction_trace) of every marker at the present
+  // linearisation and P.
+  void ComputeGates();
   // LabelByGating's parts: the optimal assignment of a frame where a point lies in two gates, and
   // the fresh labels whose point a segment's rigid geometry gives to a mate, left empty.
   void AssignContested(int np);
@@ -305,7 +323,7 @@ struct Tracker::Impl {
            kJointCentreTolerance;
   }
   int ApplyLabels(int np);
-  bool FilterUpdate(double* nis);
+  bool FilterUpdate(double* nis, double dt);
   void Wrap(Eigen::VectorXd* z) const;
   bool TryInitialise(int np);
 

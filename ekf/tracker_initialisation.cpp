@@ -604,7 +604,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   // No gate yet: every label of the search is measured at its full weight.
   std::fill(s_inv.begin(), s_inv.end(), Eigen::Matrix3d::Zero());
   double nis = 0;
-  if (!FilterUpdate(&nis)) {
+  if (!FilterUpdate(&nis, 0.0)) {
     init.reason = "the first update failed";
     return false;
   }
@@ -616,7 +616,16 @@ bool Tracker::Impl::TryInitialise(int np) {
   std::fill(unlabelled_run.begin(), unlabelled_run.end(), 0);
   tracked_frames = 0;
   hist_size = 0;
-  prev_np = 0;
+  // The search's labels are this frame's: the next frame's labels follow their points
+  // (FollowLabelledTracks). At 200 Hz the first prediction is tight enough to keep them anyway;
+  // at 12 Hz it is not (83 ms of the start's velocity and acceleration uncertainty): an arm's
+  // unlabelled forearm marker, its gate 30 cm wide, took an elbow marker's point and the elbow
+  // markers shifted along to the next points (welk007's hip trial, every 8th frame). The
+  // unclaimed points have no past yet (no predecessor, no record).
+  prev_points.leftCols(np) = points.leftCols(np);
+  std::fill(prev_free.begin(), prev_free.begin() + np, 0);
+  prev_free_count = 0;
+  prev_np = np;
   std::fill(held_run.begin(), held_run.end(), 0);
   init.accepted = true;
   init.reason.clear();

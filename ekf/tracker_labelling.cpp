@@ -41,7 +41,7 @@ namespace mocap::ekf {
 using namespace internal;
 
 // Mahalanobis gating with S_m = J_m P_zz J_m^T + R_m and the optimal assignment.
-void Tracker::Impl::LabelByGating(int np) {
+void Tracker::Impl::ComputeGates() {
   const double gate = options.gate_chi2;
   for (int m = 0; m < nm; ++m) {
     const std::vector<int>& cols = model->marker_coordinates(m);
@@ -57,11 +57,17 @@ void Tracker::Impl::LabelByGating(int np) {
       JP.col(bcol) = sum;
     }
     Eigen::Matrix3d S = JP.lazyProduct(J.transpose());  // 3 x k x 3: no GEMM machinery
+    prediction_trace[m] = S.trace();
     S.diagonal().array() += MeasurementVariance(m) + (labelled_run[m] > 0 ? model_error[m] : 0.0);
     s_inv[m] = S.inverse();
     // d^2 >= |e|^2 / lambda_max(S) >= |e|^2 / trace(S): a cheap test before the quadratic form.
     reject_sq[m] = gate * S.trace();
   }
+}
+
+void Tracker::Impl::LabelByGating(int np) {
+  const double gate = options.gate_chi2;
+  ComputeGates();
   auto C = cost.topLeftCorner(nm, np + nm);
   std::fill(gated_by.begin(), gated_by.begin() + np, 0);
   std::fill(pred_cache.begin(), pred_cache.begin() + np, -2);

@@ -254,14 +254,30 @@ struct RealResult {
 // The trial unlabelled and shuffled (plus `ghosts` a frame), tracked with `model`; the model's
 // markers that the trial never shows are the tracker's unseen markers (what `mocap track
 // --points` does with a labelled file). The models are not the subjects': scaled to them at the
-// start (`mocap track --scale-to-subject always`).
+// start (`mocap track --scale-to-subject always`). `keep_every` n > 1: only every n-th frame
+// of the trial (a lower frame rate, the same motion).
 RealResult TrackRecording(const std::string& trial_path, const mocap::Model& model, const Eigen::Vector3d& up,
                           const Eigen::Vector3d& model_up, int ghosts,
                           mocap::ekf::TrackerOptions::ScaleToSubject scale =
-                              mocap::ekf::TrackerOptions::ScaleToSubject::kAlways) {
+                              mocap::ekf::TrackerOptions::ScaleToSubject::kAlways,
+                          int keep_every = 1) {
   mocap::formats::MarkerTrial trial;
   const mocap::Status read = mocap::formats::ReadMarkerFile(trial_path, &trial);
   EXPECT_TRUE(read.ok()) << read.message();
+  if (keep_every > 1) {
+    const int kept = (trial.num_frames() + keep_every - 1) / keep_every;
+    mocap::formats::MarkerTrial thinned = trial;
+    thinned.rate_hz = trial.rate_hz / keep_every;
+    thinned.positions.resize(kept, trial.positions.cols());
+    thinned.times.resize(kept);
+    thinned.frame_numbers.resize(kept);
+    for (int f = 0; f < kept; ++f) {
+      thinned.positions.row(f) = trial.positions.row(f * keep_every);
+      thinned.times[f] = trial.times[f * keep_every];
+      thinned.frame_numbers[f] = trial.frame_numbers[f * keep_every];
+    }
+    trial = std::move(thinned);
+  }
   mocap::sim::UnlabelOptions uo;
   uo.ghosts = ghosts;
   const mocap::sim::UnlabelledTrial frames = mocap::sim::Unlabel(trial, model, uo);
@@ -436,6 +452,32 @@ TEST(TrackReal, Welk007HipTrialMeetsTheTargetsWithItsGenericModelCalibratedOnThe
                    mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
 }
 
+// The same trial with every 8th frame kept (12.5 Hz, 153 frames): the motion between two frames
+// is no longer the prediction's (a marker 5.1 mm from its constant-velocity prediction at the
+// median, 63.6 mm at the 95th percentile; the swinging foot's 4-15 cm from the tracker's). The
+// issue's targets: NOT MET. Before the sixteenth session 0.797794 without ghosts (1,230 wrong, 24
+// swaps > 5 frames): the right arm's labels shifted along the arm from the first tracking frame
+// (the start's labels not followed as point tracks, the unlabelled forearm marker's gate 30 cm
+// wide) and a foot's gate a metre wide (the process noise at its 200 Hz bound). The process noise
+// learnt from the innovations and the start's labels followed: 0.958333 (65 wrong, 3 swaps > 5
+// frames) / 0.932190 with 5 ghosts (187 wrong, 7 swaps);
+// what is left is the swinging right foot and shank (ekf/tracker.h, "Process noise"; BENCHMARKS.md,
+// "Real recordings, unlabelled").
+TEST(TrackReal, Welk007HipTrialAt12HzWithItsCalibratedModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model subject = Calibrated(OsimModel(Welk("unscaled_generic.osim")), Welk("c3d_Trimmed_static1.c3d"));
+  for (int ghosts : {0, 5}) {
+    const RealResult r = TrackRecording(Welk("c3d_Trimmed_RHJC1.c3d"), subject, Eigen::Vector3d::UnitZ(),
+                                        Eigen::Vector3d::UnitY(), ghosts,
+                                        mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit, 8);
+    EXPECT_EQ(r.run.frames, 153);
+    EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
+    // What is reached (0.958333, 3 swaps; 0.932190, 7 with ghosts), not the targets.
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.958 : 0.932) << r.summary;
+    EXPECT_LE(r.run.score.swaps_longer_than_5_frames, ghosts == 0 ? 3 : 7) << r.summary;
+  }
+}
+
 std::string Bio(const std::string& file) {
   return mocap::testutil::SharedData() + "/biobuddy_p01_lowerlimb/" + file;
 }
@@ -480,7 +522,11 @@ TEST(TrackReal, BiobuddyCalibratedModelTellsTheLabsExtraMarkersApart) {
 // 5 frames; left hip 0.876182; right knee 0.949638; left knee 0.968006). The same cause on data
 // that meet the targets: welk007's hip trial, 100 Hz, 0.999745 with its calibrated model, every
 // 8th frame kept (12.5 Hz: prediction error 95th percentile 1.5 -> 63.6 mm) 0.808824
-// (BENCHMARKS.md, "Real recordings, unlabelled").
+// (BENCHMARKS.md, "Real recordings, unlabelled"). Sixteenth session, the process noise learnt
+// from the innovations (the bound's made every 12 Hz gate a metre wide) and the start's labels
+// followed as point tracks: right hip 0.980369 / 0.979484 with 5 ghosts (16 swaps > 5 frames),
+// left hip 0.928303 / 0.928778 (58 / 49), right knee 0.998436 / 0.998354 (0 swaps), left knee
+// 0.978257 / 0.978092 (1) -- still short of the targets.
 TEST(TrackReal, DISABLED_BiobuddyFunctionalTrialsMeetTheTargetsWithTheDefaultModelCalibratedOnTheStaticTrial) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
