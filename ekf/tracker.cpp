@@ -384,10 +384,14 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
   std::fill(beyond_gate.begin(), beyond_gate.end(), 0);
   std::fill(observed.begin(), observed.end(), 0);
   double nu_r_nu = 0;
-  q_innovation.setZero();
-  q_predicted.setZero();
-  q_weight.setZero();
-  q_count.setZero();
+  // The start's update (dt 0) and a tracker told not to learn its process noise skip its sums.
+  const bool learn_noise = dt > 0 && options.process_noise_time_constant_s > 0;
+  if (learn_noise) {
+    q_innovation.setZero();
+    q_predicted.setZero();
+    q_weight.setZero();
+    q_count.setZero();
+  }
   for (int m = 0; m < nm; ++m) {
     if (row_to_col[m] < 0) continue;
     const Eigen::Vector3d nu = points.col(row_to_col[m]) - predicted.col(m);
@@ -402,7 +406,7 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
     nu_r_nu += w * nu.squaredNorm();
     const std::vector<int>& cols = model->marker_coordinates(m);
     const auto& J = jac[m];
-    {
+    if (learn_noise) {
       // Each marker's part in its coordinates' process noise (LearnProcessNoise): its squared
       // innovation against its predicted spread (with the measurement variance), weighted by how
       // far the prediction makes more than half of that spread (2 f - 1: where the measurement
@@ -440,7 +444,7 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
   }
   A.triangularView<Eigen::StrictlyUpper>() = A.transpose();
   if (!update.Apply(A, b, nu_r_nu, &x, &P, nis)) return false;
-  LearnProcessNoise(dt);
+  if (learn_noise) LearnProcessNoise(dt);
   dz = x.head(nz) - zbuf;
   LearnOffsets(dz);
   return true;
@@ -455,7 +459,6 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
 // [min_process_noise_scale, 1]. Wrong labels and ghosts make the innovations larger, which only
 // moves the factor back towards the bound.
 void Tracker::Impl::LearnProcessNoise(double dt) {
-  if (options.process_noise_time_constant_s <= 0) return;
   constexpr double kMaxRatio = 16.0;
   const double gain = std::min(1.0, dt / options.process_noise_time_constant_s);
   for (int i = 0; i < nz; ++i) {

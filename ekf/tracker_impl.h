@@ -157,7 +157,8 @@ struct Tracker::Impl {
   Eigen::Matrix3Xd rival_last;
   std::vector<int> rival_frames;
   std::vector<double> own_residual, rival_residual;
-  std::vector<char> claimed_now;  // per point of this frame: a marker's (ReviewProvisionalLabels)
+  // Per point of this frame: a marker's (ReviewProvisionalLabels, then WithholdDoubtfulReturns).
+  std::vector<char> claimed_now;
   // Where each marker's point last was while its label was committed, and where it was when the
   // present window began: relative to its joint centre, in its parent segment's frame (a marker
   // hidden for a few frames is near there; a placement that moved it by decimetres is not

@@ -812,9 +812,9 @@ void Tracker::Impl::ChooseMeasurements() {
 }
 
 // TrackerOptions::min_return_probability. The clutter near the body: the points no marker
-// claimed, new in this frame (no Predecessor), inside the labelled points' box grown by kClutterMargin (the simulated ghosts fill the
-// body's box grown by 10 cm; a reflection far from the body is in no marker's gate), per m^3,
-// averaged over the last clutter_time_constant_s. A single-frame ghost that took a returning
+// claimed, new in this frame (no Predecessor), inside the labelled points' box grown by
+// kClutterMargin (the simulated ghosts fill the body's box grown by 10 cm; a reflection far from
+// the body is in no marker's gate), per m^3, averaged over the last clutter_time_constant_s. A single-frame ghost that took a returning
 // marker's label is claimed, so the average over frames, not this frame's count, is the density.
 // Withholding only clears the output: the label itself stays, so its probation (the next frame's
 // point, moved as the prediction did) runs and reports it from its second frame, and the track
