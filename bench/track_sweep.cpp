@@ -148,7 +148,8 @@ struct Trace {
 };
 
 SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& base, bool truth,
-                   int runs_min_frames, double min_return_probability, const Trace& trace = {}) {
+                   int runs_min_frames, double min_return_probability, double process_noise_time_constant_s,
+                   const Trace& trace = {}) {
   SeedResult r;
   r.seed = seed;
   mocap::sim::TrackingSceneOptions o = base;
@@ -161,6 +162,7 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
   mocap::ekf::TrackerOptions topt;
   topt.rate_hz = o.rate_hz;
   topt.min_return_probability = min_return_probability;
+  topt.process_noise_time_constant_s = process_noise_time_constant_s;
   mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(truth ? scene.truth : scene.nominal),
                               topt);
   const std::vector<int> scene_of = mocap::sim::SceneMarkerOf(tracker.model(), scene);
@@ -271,6 +273,7 @@ int main(int argc, char** argv) {
   bool json = false;
   int threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   double min_return_probability = mocap::ekf::TrackerOptions().min_return_probability;
+  double process_noise_time_constant_s = mocap::ekf::TrackerOptions().process_noise_time_constant_s;
   app.add_option("--seeds", seeds_text, "seeds: 1-50, 3, 1,4,9-12");
   app.add_option("--ghosts", scene.ghosts, "ghost points per frame")->check(CLI::NonNegativeNumber);
   app.add_option("--occlusion", scene.occlusion, "fraction of marker samples occluded");
@@ -285,6 +288,9 @@ int main(int argc, char** argv) {
   app.add_option("--min-return-probability", min_return_probability,
                  "TrackerOptions::min_return_probability (0: every returning label reported)")
       ->check(CLI::Range(0.0, 0.999999));
+  app.add_option("--process-noise-time-constant", process_noise_time_constant_s,
+                 "TrackerOptions::process_noise_time_constant_s (0: the jerk PSDs as given)")
+      ->check(CLI::NonNegativeNumber);
   app.add_option("--threads", threads, "seeds tracked at once")->check(CLI::PositiveNumber);
   Trace trace;
   std::string trace_frames;
@@ -317,7 +323,8 @@ int main(int argc, char** argv) {
   std::mutex print_mutex;
   auto worker = [&] {
     for (size_t k = next++; k < seeds.size(); k = next++) {
-      results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames, min_return_probability, trace);
+      results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames, min_return_probability,
+                           process_noise_time_constant_s, trace);
       if (json) continue;
       const SeedResult& r = results[k];
       std::lock_guard<std::mutex> lock(print_mutex);
