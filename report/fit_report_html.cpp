@@ -465,6 +465,13 @@ std::string FunctionalCell(const json& joint) {
               Fixed(Number(t, "centre_spread_mm"), 1) + " mm, SCoRE sd " + Fixed(Number(t, "functional_std_mm"), 2) +
               " mm)</small>";
   }
+  // What the reference itself is worth: the two most precise trials' estimates apart.
+  const bool axis = joint.value("axis_joint", false);
+  const double between = Number(joint, axis ? "functional_between_trials_deg" : "functional_between_trials_mm");
+  if (!html.empty() && std::isfinite(between))
+    html += "<br><small>the functional " + std::string(axis ? "axes" : "centres") + " on " +
+            Esc(joint.value("best_trial", std::string())) + " and " + Esc(joint.value("second_trial", std::string())) +
+            " are " + Fixed(between, 1) + (axis ? "°" : " mm") + " apart</small>";
   // A hip's third reference: the regression of the pelvis markers (solver/fit_trust.h).
   std::string regression;
   for (const auto& r : joint.value("regression", json::array()))

@@ -220,6 +220,10 @@ nlohmann::json FitTrustJson(const FitTrust& trust) {
                       {"undetermined", jt.undetermined},
                       {"best_trial", jt.best_check >= 0 ? nlohmann::json(jt.checks[jt.best_check].trial)
                                                         : nlohmann::json()},
+                      {"second_trial", jt.second_check >= 0 ? nlohmann::json(jt.checks[jt.second_check].trial)
+                                                            : nlohmann::json()},
+                      {jt.axis_joint ? "functional_between_trials_deg" : "functional_between_trials_mm",
+                       jt.second_check >= 0 ? nlohmann::json(jt.functional_between_trials) : nlohmann::json()},
                       {"trials", std::move(checks)},
                       {"landmarks", std::move(landmarks)},
                       {"regression", std::move(regression)},

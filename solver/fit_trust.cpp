@@ -478,6 +478,21 @@ Status CheckFitTrust(const Model& initial, const FitResult& fit, const std::vect
         jtr.best_check = static_cast<int>(jtr.checks.size());
       jtr.checks.push_back(std::move(check));
     }
+    for (int c = 0; c < static_cast<int>(jtr.checks.size()); ++c) {
+      const FunctionalCheck& check = jtr.checks[c];
+      const double sd = jtr.axis_joint ? check.functional_axis_std_deg : check.functional_std_mm;
+      if (!check.excited || c == jtr.best_check) continue;
+      const FunctionalCheck* second = jtr.second_check < 0 ? nullptr : &jtr.checks[jtr.second_check];
+      if (second == nullptr || sd < (jtr.axis_joint ? second->functional_axis_std_deg : second->functional_std_mm))
+        jtr.second_check = c;
+    }
+    if (jtr.second_check >= 0) {
+      const FunctionalCheck& a = jtr.checks[jtr.best_check];
+      const FunctionalCheck& b = jtr.checks[jtr.second_check];
+      jtr.functional_between_trials =
+          jtr.axis_joint ? AngleDeg(a.functional_axis_in_parent, b.functional_axis_in_parent)
+                         : 1000.0 * (a.functional_centre_in_parent - b.functional_centre_in_parent).norm();
+    }
     if (const auto pair = LandmarkPairAbout(initial, j); pair.first >= 0) {
       LandmarkCheck lc;
       if (MeasureLandmarks(initial, fitted, fit, trials, j, pair, &lc)) {

@@ -215,6 +215,15 @@ struct JointTrust {
   // The excited check whose functional estimate has the smallest bootstrap standard deviation
   // (-1: no trial excites the joint): the headline.
   int best_check = -1;
+  // The next most precise excited check (-1: fewer than two trials excite the joint), and how far
+  // its functional estimate lies from the headline's, both averaged in the fitted parent's frame:
+  // centres in mm, axes in degrees. A bootstrap sd resamples one trial's frames, so it sees the
+  // noise and not the soft-tissue artefact of that trial's movement, which moves the estimate as
+  // a whole; two trials that both excite the joint show what the reference itself is worth.
+  // biobuddy_p01's hips: SCoRE sd 1.5-2.2 mm on each of the two hip trials, 17.5-17.7 mm between them
+  // (BENCHMARKS.md, "How far a functional reference can be trusted").
+  int second_check = -1;
+  double functional_between_trials = 0;
   // Empty when the model has no landmark pair about the joint or no trial sees both.
   std::vector<LandmarkCheck> landmarks;
   // Hips only, where the model has the pelvis landmarks and a trial sees them: one check.

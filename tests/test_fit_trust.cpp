@@ -124,6 +124,32 @@ TEST(FitTrust, FittedCentresAgreeWithFunctionalOnTheTrialsThatExciteThem) {
   EXPECT_LT(flex.axis_line_distance_mm, 2.0);
   EXPECT_EQ(knee.best_check, 1);
 
+  // The next most precise trial's estimate and its distance from the headline's: none for the
+  // hip (one trial excites it); for every joint, the excited non-headline check with the smallest
+  // sd, and the distance between the two estimates in the parent's frame.
+  EXPECT_EQ(hip.second_check, -1);
+  for (const solver::JointTrust* jt : {&hip, &knee}) {
+    int second = -1;
+    for (int c = 0; c < static_cast<int>(jt->checks.size()); ++c) {
+      const auto sd = [&](int k) {
+        return jt->axis_joint ? jt->checks[k].functional_axis_std_deg : jt->checks[k].functional_std_mm;
+      };
+      if (jt->checks[c].excited && c != jt->best_check && (second < 0 || sd(c) < sd(second))) second = c;
+    }
+    EXPECT_EQ(jt->second_check, second) << jt->joint;
+    if (second < 0) continue;
+    const solver::FunctionalCheck& a = jt->checks[jt->best_check];
+    const solver::FunctionalCheck& b = jt->checks[second];
+    const double expected =
+        jt->axis_joint ? std::acos(std::min(1.0, std::abs(a.functional_axis_in_parent.dot(b.functional_axis_in_parent)))) * 180.0 / M_PI
+                       : 1000.0 * (a.functional_centre_in_parent - b.functional_centre_in_parent).norm();
+    EXPECT_NEAR(jt->functional_between_trials, expected, 1e-9) << jt->joint;
+    std::printf("%s: functional estimates on %s and %s %.3f %s apart\n", jt->joint.c_str(), a.trial.c_str(),
+                b.trial.c_str(), jt->functional_between_trials, jt->axis_joint ? "deg" : "mm");
+    // Rigid clusters, 0.5 mm noise: two trials that excite the joint agree.
+    EXPECT_LT(jt->functional_between_trials, jt->axis_joint ? 2.0 : 3.0) << jt->joint;
+  }
+
   // The JSON the report page reads.
   const nlohmann::json j = solver::FitTrustJson(trust);
   ASSERT_EQ(j.size(), 2u);
@@ -135,6 +161,10 @@ TEST(FitTrust, FittedCentresAgreeWithFunctionalOnTheTrialsThatExciteThem) {
   EXPECT_TRUE(j[1]["trials"][1].contains("axis_angle_deg"));
   EXPECT_FALSE(j[1]["trials"][1].contains("centre_distance_mm"));  // SCoRE's centre: no hinge reference
   EXPECT_FALSE(j[0]["trials"][0].contains("axis_angle_deg"));
+  EXPECT_TRUE(j[0]["second_trial"].is_null());
+  EXPECT_TRUE(j[0]["functional_between_trials_mm"].is_null());
+  EXPECT_FALSE(j[1].contains("functional_between_trials_mm"));  // an axis joint's is in degrees
+  EXPECT_EQ(j[1]["functional_between_trials_deg"].is_null(), knee.second_check < 0);
 }
 
 // A fitted model whose hip centre is moved 10 mm along the pelvis's x axis: the check reports

@@ -516,9 +516,39 @@ TEST(RealFit, BiobuddyDefaultModelAgreesWithFunctionalJoints) {
            {"knee_r", "Test_func_rknee"}})
     for (const auto& j : r["joint_checks"])
       if (j["joint"] == joint) EXPECT_EQ(j["best_trial"], trial) << joint;
+  // What the reference itself is worth: each hip is excited by both hip trials, and SCoRE's two
+  // centres of one hip lie 17.5-17.7 mm apart, while each one's bootstrap sd is 1.5-2.2 mm (it
+  // resamples frames, not the movement's skin motion). The 10 mm bound against one trial's SCoRE
+  // is within that (BENCHMARKS.md, "How far a functional reference can be trusted").
+  for (const auto& [joint, second] : std::vector<std::pair<std::string, std::string>>{
+           {"hip_l", "Test_func_rhip"}, {"hip_r", "Test_func_lhip"}})
+    for (const auto& j : r["joint_checks"])
+      if (j["joint"] == joint) {
+        EXPECT_EQ(j["second_trial"], second) << joint;
+        ASSERT_TRUE(j["functional_between_trials_mm"].is_number()) << joint;
+        const double between = j["functional_between_trials_mm"].get<double>();
+        std::printf("biobuddy: %s's SCoRE centres on its two hip trials %.1f mm apart\n", joint.c_str(), between);
+        EXPECT_GT(between, 15.0) << joint;
+        EXPECT_LT(between, 30.0) << joint;
+      }
+  // The right side, whose targets against one trial are not met (DISABLED_BiobuddyRightHipAnd-
+  // RightKnee below), against the target that the references can defend: no further from the
+  // headline estimate than the next trial's estimate of the same joint is (hip_r 10.6 mm against
+  // 17.7 mm; knee_r 7.1 deg against SARA's 7.5 deg between the right knee and right ankle trials).
+  for (const auto& j : r["joint_checks"]) {
+    const bool axis = j["axis_joint"].get<bool>();
+    if (j["joint"] != "hip_r" && j["joint"] != "knee_r") continue;
+    const auto& between = j[axis ? "functional_between_trials_deg" : "functional_between_trials_mm"];
+    ASSERT_TRUE(between.is_number()) << j["joint"];
+    EXPECT_LE(axis ? knee_r : hip_r, between.get<double>()) << j["joint"];
+  }
 }
 
-// NOT MET, and bounds the data argue against (fourteenth session: hip_r 10.7 mm, knee_r 7.1 deg;
+// NOT MET, and bounds the references themselves cannot defend (seventeenth session: the right hip
+// trial's SCoRE lies 17.7 mm from the left hip trial's, the right knee trial's SARA 7.5 deg from the
+// right ankle trial's; BENCHMARKS.md, "How far a functional reference can be trusted"; the target
+// the references defend is tested in BiobuddyDefaultModelAgreesWithFunctionalJoints), and bounds
+// the data argue against (fourteenth session: hip_r 10.7 mm, knee_r 7.1 deg;
 // the report's profile check holds each at its functional estimate and the fit's chi-square rises
 // by 30.5 and 68.0, far above the 95 % quantiles of 7.81 and 5.99: all nine trials' markers put
 // them where the fit has them, SCoRE's and SARA's single trials elsewhere). Earlier: 10.2 mm and

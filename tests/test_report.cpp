@@ -379,6 +379,8 @@ TEST_F(Report, JointFarFromItsFunctionalEstimateIsFlagged) {
                       "data cannot tell the two apart</span>",
                       hip),
             html.find("</tr>", hip));
+  // Without a second trial that excites the hip, no line on what the reference is worth.
+  EXPECT_EQ(html.find("apart</small>", hip), std::string::npos);
   const size_t knee = html.find("data-joint=\"knee_l\"><td>");
   ASSERT_NE(knee, std::string::npos);
   EXPECT_LT(html.find("title=\"static: too still\">not excited by any trial", knee), html.find("</tr>", knee));
@@ -392,6 +394,13 @@ TEST_F(Report, JointFarFromItsFunctionalEstimateIsFlagged) {
   EXPECT_LT(html.find("the fit ended in a worse minimum</span>; released from there, chi-square -31.3: <b>adopted</b>",
                       adopted),
             html.find("</tr>", adopted));
+  // Two trials that excite the hip: how far apart their functional centres are (fit_trust.h).
+  page.report["joint_checks"][0]["second_trial"] = "hip_star_arc_r";
+  page.report["joint_checks"][0]["functional_between_trials_mm"] = 22.94;
+  ASSERT_TRUE(report::WriteFitReportHtml(page, &html));
+  const size_t two = html.find("data-joint=\"hip_l\"><td>");
+  EXPECT_LT(html.find("the functional centres on hip_star_arc_l and hip_star_arc_r are 22.9 mm apart", two),
+            html.find("</tr>", two));
   page.report["joint_checks"][0]["trials"][0]["far"] = false;
   ASSERT_TRUE(report::WriteFitReportHtml(page, &html));
   EXPECT_EQ(html.find("id=\"functional-far\""), std::string::npos);

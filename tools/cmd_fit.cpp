@@ -104,6 +104,11 @@ void LogJointChecks(const solver::FitTrust& trust) {
       continue;
     }
     const solver::FunctionalCheck& c = j.checks[j.best_check];
+    if (j.second_check >= 0)
+      spdlog::info("{}: its functional {} on {} is {:.1f} {} from the one on {}: a reference is worth no more than "
+                   "that, whatever its sd",
+                   j.joint, j.axis_joint ? "axis" : "centre", j.checks[j.second_check].trial,
+                   j.functional_between_trials, j.axis_joint ? "deg" : "mm", c.trial);
     if (j.axis_joint)
       spdlog::log(c.far ? spdlog::level::warn : spdlog::level::info,
                   "{}: fitted axis {:.1f} deg from its functional (SARA) axis on {} (spread {:.1f} deg, SARA sd "
