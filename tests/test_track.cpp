@@ -159,6 +159,29 @@ TEST(TrackingScene, SwapTrapsBringMarkersWithin15mm) {
               "closest %.1f mm\n", in_traps, plain.traps.size(), 1000 * closest);
 }
 
+// Subjects whose hand does not reach the front of the hip with the arm alone (seeds 21, 70 and 73:
+// 15-40 mm short) lean towards it (TrapPlan::lean), and their scenes have every trap: the sweep
+// had no scene for them.
+TEST(TrackingScene, SwapTrapsLeanWhereTheArmAloneDoesNotReach) {
+  for (std::uint64_t seed : {21, 70, 73}) {
+    TrackingSceneOptions o = ShortScene();
+    o.seed = seed;
+    o.swap_traps = true;
+    TrackingScene scene;
+    const mocap::Status s = mocap::sim::MakeTrackingScene(o, &scene);
+    ASSERT_TRUE(s.ok()) << "seed " << seed << ": " << s.message();
+    const mocap::sim::SceneSegment& seg = scene.segments.back();
+    ASSERT_EQ(seg.name, "swap_traps");
+    std::set<std::pair<std::string, std::string>> pairs;
+    for (const mocap::sim::TrapMoment& t : scene.traps)
+      if (t.frame >= seg.begin && t.frame < seg.end)
+        pairs.insert({scene.marker_names[t.marker_a], scene.marker_names[t.marker_b]});
+    for (const auto& planned : std::vector<std::pair<std::string, std::string>>{
+             {"RTHI", "RFIN"}, {"LTHI", "LFIN"}, {"LWRA", "RWRA"}, {"RASI", "RWRB"}})
+      EXPECT_TRUE(pairs.count(planned)) << "seed " << seed << ": " << planned.first << "-" << planned.second;
+  }
+}
+
 TEST(TrackingScene, SameSeedSameSceneAndTheSubjectOfMocapSim) {
   TrackingSceneOptions o = ShortScene();
   o.ghosts = 3;
