@@ -177,6 +177,21 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   for (int j = 0; j < nj; ++j)
     for (int i = 0; i < nz; ++i)
       if (limb_coord[j][i]) limb_coord_list[j].push_back(i);
+  limb_joint_list.assign(nj, {});
+  {
+    std::vector<char> moved(md.num_segments(), 0);
+    for (int j = 0; j < nj; ++j) {
+      std::fill(moved.begin(), moved.end(), 0);
+      for (int i = 0; i < nj; ++i) {
+        const Joint& ji = md.joints()[i];
+        bool moves = i == j || (ji.parent >= 0 && moved[ji.parent]);
+        for (const JointElement& e : ji.elements) moves |= e.coordinate >= 0 && limb_coord[j][e.coordinate];
+        if (!moves) continue;
+        moved[ji.child] = 1;
+        limb_joint_list[j].push_back(i);
+      }
+    }
+  }
   marker_limb.assign(nm, -1);
   for (int k = 0; k < nm; ++k) {
     int j = md.segments()[md.markers()[k].segment].joint;

@@ -662,7 +662,7 @@ constexpr double kLimbRangeSlack = 1.0;
 // lassign receives compact point indices (or -1); returns the truncated cost.
 // Predictions and Jacobians of the limb's markers only.
 void Tracker::Impl::LineariseLimb(int joint, const Eigen::VectorXd& z) {
-  ForwardKinematics(*model, geometry, z, &data);
+  ForwardKinematics(*model, geometry, z, limb_joint_list[joint], &data);
   for (int m : limb_markers[joint]) {
     predicted.col(m) = MarkerPosition(*model, geometry, data, m) +
                        data.segment_rotation[model->markers()[m].segment] * offset[m];
@@ -748,7 +748,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
   };
   double prior_scale = 1.0;  // the prior's weight (Refine)
   auto Cost = [&](const Eigen::VectorXd& zz) {
-    ForwardKinematics(*model, geometry, zz, &data);
+    ForwardKinematics(*model, geometry, zz, limb_joint_list[joint], &data);
     double c = 0;
     for (int m : rows)
       if (lassign[m] >= 0)
@@ -826,6 +826,9 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
     return score;
   };
   lz0 = x.head(nz);
+  // The rest of the body, placed once: the search moves only the limb's coordinates, and places
+  // only what they move (limb_joint_list).
+  ForwardKinematics(*model, geometry, lz0, &data);
   std::mt19937 rng(777);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   const int starts = 5;

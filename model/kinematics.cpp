@@ -59,37 +59,47 @@ ModelData::ModelData(const Model& model) {
   }
 }
 
+namespace {
+// Joint j's child segment from its parent's place in *d.
+void PlaceChild(const Model& model, const Geometry& g, const Eigen::VectorXd& z, int j, ModelData* d) {
+  const Joint& jt = model.joints()[j];
+  Eigen::Matrix3d r;
+  Eigen::Vector3d t;
+  if (jt.parent >= 0) {
+    const Eigen::Matrix3d& rp = d->segment_rotation[jt.parent];
+    t = d->segment_position[jt.parent] + rp * g.centre_scaled[j];
+    r = rp * jt.orientation;
+  } else {
+    t = g.centre_scaled[j];
+    r = jt.orientation;
+  }
+  for (size_t e = 0; e < jt.elements.size(); ++e) {
+    const JointElement& el = jt.elements[e];
+    d->element_rotation[j][e] = r;
+    d->element_origin[j][e] = t;
+    double v, dv;
+    el.function.Evaluate(el.coordinate >= 0 ? z[el.coordinate] : 0.0, &v, &dv);
+    d->element_value[j][e] = v;
+    d->element_derivative[j][e] = dv;
+    if (el.kind == ElementKind::kRotation)
+      r = r * Eigen::AngleAxisd(v, g.axis[j][e]).toRotationMatrix();
+    else
+      t += r * (g.axis[j][e] * (TranslationScale(jt, el, g) * v));
+  }
+  d->segment_rotation[jt.child] = r;
+  d->segment_position[jt.child] = t;
+}
+}  // namespace
+
 void ForwardKinematics(const Model& model, const Geometry& g, const Eigen::VectorXd& z,
                        ModelData* d) {
   const int nj = model.num_joints();
-  for (int j = 0; j < nj; ++j) {
-    const Joint& jt = model.joints()[j];
-    Eigen::Matrix3d r;
-    Eigen::Vector3d t;
-    if (jt.parent >= 0) {
-      const Eigen::Matrix3d& rp = d->segment_rotation[jt.parent];
-      t = d->segment_position[jt.parent] + rp * g.centre_scaled[j];
-      r = rp * jt.orientation;
-    } else {
-      t = g.centre_scaled[j];
-      r = jt.orientation;
-    }
-    for (size_t e = 0; e < jt.elements.size(); ++e) {
-      const JointElement& el = jt.elements[e];
-      d->element_rotation[j][e] = r;
-      d->element_origin[j][e] = t;
-      double v, dv;
-      el.function.Evaluate(el.coordinate >= 0 ? z[el.coordinate] : 0.0, &v, &dv);
-      d->element_value[j][e] = v;
-      d->element_derivative[j][e] = dv;
-      if (el.kind == ElementKind::kRotation)
-        r = r * Eigen::AngleAxisd(v, g.axis[j][e]).toRotationMatrix();
-      else
-        t += r * (g.axis[j][e] * (TranslationScale(jt, el, g) * v));
-    }
-    d->segment_rotation[jt.child] = r;
-    d->segment_position[jt.child] = t;
-  }
+  for (int j = 0; j < nj; ++j) PlaceChild(model, g, z, j, d);
+}
+
+void ForwardKinematics(const Model& model, const Geometry& g, const Eigen::VectorXd& z,
+                       const std::vector<int>& joints, ModelData* d) {
+  for (int j : joints) PlaceChild(model, g, z, j, d);
 }
 
 void MarkerPositions(const Model& model, const Geometry& g, const ModelData& d,

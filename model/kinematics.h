@@ -71,6 +71,12 @@ inline double TranslationScale(const Joint& joint, const JointElement& element,
 // Places every segment for coordinates z.
 void ForwardKinematics(const Model& model, const Geometry& geometry, const Eigen::VectorXd& z,
                        ModelData* data);
+// Places the child segments of `joints` only (indices in the model's joint order, parents first),
+// each from its parent's place in *data: the same figures as the whole pass when every other
+// joint's parent and coordinates are as *data was placed. For a search that moves one limb's
+// coordinates many times (the tracker's limb search): the rest of the body is placed once.
+void ForwardKinematics(const Model& model, const Geometry& geometry, const Eigen::VectorXd& z,
+                       const std::vector<int>& joints, ModelData* data);
 
 // World position of marker m (after ForwardKinematics).
 inline Eigen::Vector3d MarkerPosition(const Model& model, const Geometry& geometry,

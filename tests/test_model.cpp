@@ -60,6 +60,48 @@ TEST(Kinematics, JacobiansMatchCentralDifferences) {
   }
 }
 
+// The pass over a joint list (the tracker's limb search) places the listed joints' children exactly
+// as the whole pass does, when only those joints' coordinates changed; and nothing else.
+TEST(Kinematics, ForwardKinematicsOverAJointListMatchesTheWholePass) {
+  Model model = DefaultFullBodyModel();
+  const Geometry g(model);
+  std::mt19937 rng(5);
+  const Eigen::VectorXd z0 = RandomPose(model, rng);
+  const int knee = model.FindJoint("knee_r");
+  ASSERT_GE(knee, 0);
+  // The knee's subtree: the knee and every joint below the shank.
+  std::vector<int> joints;
+  std::vector<char> moved(model.num_segments(), 0);
+  for (int j = 0; j < model.num_joints(); ++j) {
+    const Joint& jt = model.joints()[j];
+    if (j != knee && !(jt.parent >= 0 && moved[jt.parent])) continue;
+    moved[jt.child] = 1;
+    joints.push_back(j);
+  }
+  ASSERT_GE(joints.size(), 2u);
+  Eigen::VectorXd z1 = RandomPose(model, rng);
+  Eigen::VectorXd z = z0;
+  for (int j : joints)
+    for (const JointElement& e : model.joints()[j].elements)
+      if (e.coordinate >= 0) z[e.coordinate] = z1[e.coordinate];
+  ModelData whole(model), listed(model);
+  ForwardKinematics(model, g, z, &whole);
+  ForwardKinematics(model, g, z0, &listed);
+  ForwardKinematics(model, g, z, joints, &listed);
+  for (int s = 0; s < model.num_segments(); ++s) {
+    EXPECT_EQ(listed.segment_position[s], whole.segment_position[s]) << model.segments()[s].name;
+    EXPECT_EQ(listed.segment_rotation[s], whole.segment_rotation[s]) << model.segments()[s].name;
+  }
+  // A joint left out keeps its place: the knee's child where z0 put it.
+  ModelData before(model), partial(model);
+  ForwardKinematics(model, g, z0, &before);
+  ForwardKinematics(model, g, z0, &partial);
+  ForwardKinematics(model, g, z, std::vector<int>(joints.begin() + 1, joints.end()), &partial);
+  const int shank = model.joints()[knee].child;
+  EXPECT_EQ(partial.segment_rotation[shank], before.segment_rotation[shank]);
+  EXPECT_NE(partial.segment_rotation[shank], whole.segment_rotation[shank]);
+}
+
 TEST(Kinematics, WithParametersReproducesPositions) {
   Model model = DefaultFullBodyModel();
   std::mt19937 rng(3);
