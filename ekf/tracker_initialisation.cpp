@@ -735,9 +735,10 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
   const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   // The unheld angles (below) may pass the model's ranges by kLimbRangeSlack (see there); the
   // filter brings them back (Wrap) and the markers' offsets learn the difference.
+  // Only the limb's coordinates: the others are lz0's, which the filter has wrapped already.
   auto WrapLimb = [&](Eigen::VectorXd* zz) {
     const auto& co = model->coordinates();
-    for (int i = 0; i < nz; ++i) {
+    for (int i : lcoords) {
       if (wraps[i]) {
         (*zz)[i] = std::remainder((*zz)[i], 2 * M_PI);
       } else {
@@ -756,10 +757,8 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
               data.segment_rotation[model->markers()[m].segment] * offset[m] -
               points.col(lassign[m]))
                  .squaredNorm();
-    for (int i = 0; i < nz; ++i)
-      if (freec[i])
-        c += prior_scale * (rotational[i] ? prior_rot : prior_trans) * (zz[i] - lstart[i]) *
-             (zz[i] - lstart[i]);
+    for (int i : lcoords)
+      c += prior_scale * (rotational[i] ? prior_rot : prior_trans) * (zz[i] - lstart[i]) * (zz[i] - lstart[i]);
     return c;
   };
   // Damped Gauss-Newton from lz with the prior centred at lstart: kLimbIterations steps
