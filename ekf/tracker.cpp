@@ -287,6 +287,13 @@ void Tracker::Impl::Allocate() {
   hist_centre.assign(kHistory,
                      std::vector<Eigen::Vector3d>(model->num_segments(), Eigen::Vector3d::Zero()));
   centre_now.assign(model->num_segments(), Eigen::Vector3d::Zero());
+  segment_loose.assign(model->num_segments(), 0);
+  segment_fitted.assign(model->num_segments(), 0);
+  segment_wants_fit.assign(model->num_segments(), 0);
+  fit_rotation.assign(model->num_segments(), Eigen::Matrix3d::Identity());
+  fit_translation.assign(model->num_segments(), Eigen::Vector3d::Zero());
+  centre_predicted.assign(model->num_segments(), Eigen::Vector3d::Zero());
+  centre_variance.assign(model->num_segments(), 0.0);
   hist_head = hist_size = 0;
   beside_prev.assign(static_cast<size_t>(mp) * nm, kNever);
   held_run.assign(nm, 0);
@@ -557,6 +564,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     s.Linearise(s.zbuf);
     for (size_t i = 0; i < s.centre_now.size(); ++i) s.centre_now[i] = s.data.segment_position[i];
     s.LabelByGating(np);
+    s.LabelLooseSegments(np);
     s.RegisterSegments(np);
     s.ReviewProvisionalLabels(np);
     const int labelled = s.ApplyLabels(np);

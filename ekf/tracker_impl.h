@@ -323,6 +323,34 @@ struct Tracker::Impl {
     return std::sqrt(options.gate_chi2 * (MeasurementVariance(m) + model_error[m])) +
            kJointCentreTolerance;
   }
+  // Rigid-group labelling of loose segments (LabelLooseSegments; tracker.h, "Rigid groups"): a
+  // segment whose best-held marker's prediction is uncertain over more than half the distance to
+  // its nearest neighbouring marker (12 Hz: a swinging shank or foot 4-11 cm off its prediction,
+  // its markers 5-6 cm apart) has its markers labelled as one rigid body about its joint centre,
+  // the prediction only a prior. Per segment: whether it was so labelled this frame, and the pose
+  // the group's fit found (world = R local + t, local in the segment's frame about its joint
+  // centre), which places its children's joint centres (centre_now) for their own groups.
+  std::vector<char> segment_loose, segment_fitted, segment_wants_fit;
+  std::vector<Eigen::Matrix3d> fit_rotation;
+  std::vector<Eigen::Vector3d> fit_translation, centre_predicted;
+  std::vector<double> centre_variance;  // per segment: of centre_now (m^2)
+  static constexpr int kGroupCandidates = 5;  // points tried per marker, nearest (Mahalanobis) first
+  // Labels a group's labelling must give: with the joint centre, four anchors, so that the fit
+  // is over-determined. Two markers and the centre fix only three distances, which a mirror image
+  // fits as well (a simulated forearm turned about its axis, its wrist markers 40 mm off their
+  // predictions at 200 Hz: one wrist marker took the other's long-held point, 202 frames wrong on
+  // seed 9 at 8 ghosts).
+  static constexpr int kMinGroupLabels = 3;
+  // The group's labelling is taken when every differently labelling pose costs this much more
+  // (twice a log-likelihood ratio); where the runner-up comes nearer, only the labels the two
+  // agree on are the group's.
+  static constexpr double kGroupMargin = 6.0;
+  // A segment is labelled as a group only while the track holds it: a marker of it labelled
+  // within this time.
+  static constexpr double kGroupRecentSeconds = 0.5;
+  void LabelLooseSegments(int np);
+  bool LooseSegment(int segment) const;
+  bool FitSegmentPose(int segment, Eigen::Matrix3d* R, Eigen::Vector3d* t) const;
   int ApplyLabels(int np);
   bool FilterUpdate(double* nis, double dt);
   void Wrap(Eigen::VectorXd* z) const;

@@ -10,6 +10,10 @@
 //      them, the very thing in doubt); and a point taken afresh that its segment's rigid geometry
 //      fits better as an unlabelled mate (one wrist marker's point, the other's mirror image) is
 //      left empty too (DropLabelsAMateFitsBetter).
+//   2b. Rigid groups (LabelLooseSegments): where a segment's prediction is looser than the
+//      spacing of its markers (a low frame rate against the motion: 12 Hz), its markers are
+//      labelled as one rigid body about its joint centre, placed by its parent's fitted pose,
+//      the prediction only a prior.
 //   3. Segment registration (RegisterSegments): the markers the gates left unlabelled are looked
 //      for as a group, where their segment's rigid geometry (its labelled markers, its joint
 //      centre) puts them, and labelled when one choice of points fits clearly best; beside a
@@ -994,6 +998,306 @@ bool Tracker::Impl::OnSegmentSphere(int m, const Eigen::Vector3d& p) const {
   const Eigen::Vector3d centre = centre_now[segment];
   const double radius = (predicted.col(m) - centre).norm();
   return std::abs((p - centre).norm() - radius) <= SegmentTolerance(m);
+}
+
+}  // namespace mocap::ekf
+
+namespace mocap::ekf {
+
+using namespace internal;
+
+bool Tracker::Impl::LooseSegment(int segment) const {
+  const std::vector<int>& ms = segment_markers[segment];
+  // Three or more markers: with its joint centre, two markers fix only three distances, which a
+  // point of the neighbouring segment or a ghost fits as well (a simulated foot's heel and toe).
+  // The root has no joint centre to anchor it (and moves least).
+  if (ms.size() < 3 || marker_depth[ms[0]] == 0) return false;
+  // Only a segment the track holds: one with a marker labelled in the last kGroupRecentSeconds.
+  // A limb never labelled, or lost for longer, has no pose its prediction could be a prior of
+  // (welk007's forearms at the start, 30-44 cm off): the limb search places it.
+  bool held = false;
+  for (int m : ms)
+    held |= labelled_run[m] > 0 ||
+            (held_run[m] > 0 && unlabelled_run[m] < kGroupRecentSeconds * options.rate_hz);
+  if (!held) return false;
+  // The segment's best-held marker: where even its prediction is uncertain over more than half
+  // the way to its nearest neighbour, the prediction cannot say which point is which. So every
+  // marker's predicted spread (the gate's radius on the prediction alone) must reach past half
+  // the distance to some other seen marker; the first that does not settles it (most frames, at
+  // the first marker: this runs every frame).
+  for (int m : ms) {
+    const double reach = 2.0 * std::sqrt(options.gate_chi2 * prediction_trace[m] / 3.0);
+    bool near = false;
+    for (int o = 0; o < nm && !near; ++o)
+      near = o != m && seen[o] && (predicted.col(o) - predicted.col(m)).squaredNorm() < reach * reach;
+    if (!near) return false;
+  }
+  return true;
+}
+
+bool Tracker::Impl::FitSegmentPose(int segment, Eigen::Matrix3d* R, Eigen::Vector3d* t) const {
+  const std::vector<int>& ms = segment_markers[segment];
+  constexpr int kMaxAnchors = kMaxSegmentMarkers + 1;
+  Eigen::Matrix<double, 3, kMaxAnchors> local, world;
+  double w[kMaxAnchors];
+  int n = 0;
+  const Eigen::Matrix3d& R0 = data.segment_rotation[segment];
+  if (marker_depth[ms[0]] > 0) {
+    local.col(n).setZero();
+    world.col(n) = centre_now[segment];
+    w[n++] = 1.0 / std::max(centre_variance[segment], 1e-8);
+  }
+  for (int m : ms) {
+    if (row_to_col[m] < 0 || n == kMaxAnchors) continue;
+    local.col(n) = R0.transpose() * (predicted.col(m) - centre_predicted[segment]);
+    world.col(n) = points.col(row_to_col[m]);
+    w[n++] = 1.0 / (MeasurementVariance(m) + model_error[m]);
+  }
+  if (n < 3) return false;
+  double sw = 0;
+  Eigen::Vector3d cl = Eigen::Vector3d::Zero(), cw = Eigen::Vector3d::Zero();
+  for (int i = 0; i < n; ++i) {
+    sw += w[i];
+    cl += w[i] * local.col(i);
+    cw += w[i] * world.col(i);
+  }
+  cl /= sw;
+  cw /= sw;
+  Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
+  for (int i = 0; i < n; ++i) H += w[i] * (local.col(i) - cl) * (world.col(i) - cw).transpose();
+  *R = KabschRotation(H);
+  *t = cw - *R * cl;
+  return true;
+}
+
+// Rigid-group labelling (ekf/tracker.h, "Rigid groups"). Where the frame rate is low against the
+// motion (12 Hz: a swinging foot 4-11 cm off its constant-acceleration prediction, its markers
+// 5-6 cm apart), a marker's prediction cannot say which of the points near it is its own, and
+// the gating's labels are guesses that the point tracks then keep (a lateral ankle marker on the
+// medial one's point for 60 frames). What does not depend on the frame rate is the segment's
+// rigid geometry: its markers and its joint centre keep their distances in every frame. So a
+// loose segment (LooseSegment) has its markers labelled as one rigid body: every pair of its
+// markers on a pair of candidate points at their distance (each candidate within the marker's
+// gate, the prediction then only a prior, and at the marker's distance from the joint centre)
+// gives, with the joint centre, a pose; each pose places the segment's other markers, which take
+// the candidate points there; the labelling is refitted and scored -- the rigid residuals over
+// their variances, the prediction's Mahalanobis distances as the prior, the gate for each marker
+// left without a point, as the assignment prices it; a labelling must label kMinGroupLabels
+// markers (an over-determined fit). The best labelling is taken when every different one costs
+// kGroupMargin more; where one comes nearer, the markers the two label alike take the group's
+// points and the others keep the gating's labels (left empty instead, the labels lost took the
+// track with them: welk007 at 12.5 Hz 0.956 of the labels, biobuddy's right knee 0.961).
+// Segments are labelled root first, and each fitted segment's pose places its loose children's
+// joint centres (their own prediction is as loose as theirs: the knee of a swinging leg). The
+// points of a segment that is not loose are its gating's. At 100-200 Hz a segment is loose only
+// where its markers' predictions have grown (a forearm turned about its axis while its wrist
+// markers were hidden), a few frames in a take.
+void Tracker::Impl::LabelLooseSegments(int np) {
+  const int ns = model->num_segments();
+  std::fill(segment_loose.begin(), segment_loose.end(), 0);
+  std::fill(segment_fitted.begin(), segment_fitted.end(), 0);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= np) row_to_col[m] = -1;
+  bool any = false;
+  for (int s : segment_order) any |= (segment_loose[s] = LooseSegment(s)) != 0;
+  if (!any) return;
+  // Which segments' poses are fitted: the loose ones and their parents.
+  for (int s = 0; s < ns; ++s) {
+    centre_predicted[s] = data.segment_position[s];
+    centre_variance[s] = 0.25 * kJointCentreTolerance * kJointCentreTolerance;
+    segment_wants_fit[s] = segment_loose[s];
+  }
+  for (int s = 0; s < ns; ++s)
+    if (segment_loose[s]) {
+      const int parent = model->joints()[model->segments()[s].joint].parent;
+      if (parent >= 0) segment_wants_fit[parent] = 1;
+    }
+  // Point ownership: per point, the marker labelled on it.
+  std::fill(lcand.begin(), lcand.begin() + np, -1);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= 0) lcand[row_to_col[m]] = m;
+  // Points claimed for good: by a marker of a segment that is not loose, or of a group decided.
+  std::fill(ltaken.begin(), ltaken.begin() + np, 0);
+  for (int m = 0; m < nm; ++m)
+    if (row_to_col[m] >= 0 && !segment_loose[model->markers()[m].segment]) ltaken[row_to_col[m]] = 1;
+
+  const double gate = options.gate_chi2;
+  for (int s : segment_order) {
+    const int parent = model->joints()[model->segments()[s].joint].parent;
+    const std::vector<int>& ms = segment_markers[s];
+    const int nms = static_cast<int>(ms.size());
+    const bool centre_fitted = segment_loose[s] && parent >= 0 && segment_fitted[parent];
+    if (centre_fitted) {
+      // Where the parent's fitted pose puts this segment's joint centre.
+      const Eigen::Vector3d rel = data.segment_rotation[parent].transpose() *
+                                  (centre_predicted[s] - centre_predicted[parent]);
+      centre_now[s] = fit_rotation[parent] * rel + fit_translation[parent];
+      centre_variance[s] = options.sigma_m * options.sigma_m;
+    }
+    if (segment_loose[s] && nms <= kMaxSegmentMarkers) {
+      const Eigen::Matrix3d& R0 = data.segment_rotation[s];
+      const Eigen::Vector3d c = centre_now[s];
+      const double tol_c = std::sqrt(gate * centre_variance[s]);
+      Eigen::Matrix<double, 3, kMaxSegmentMarkers> local;
+      double var[kMaxSegmentMarkers], tol[kMaxSegmentMarkers];
+      int cand[kMaxSegmentMarkers][kGroupCandidates], ncand[kMaxSegmentMarkers];
+      double cd2[kMaxSegmentMarkers][kGroupCandidates];
+      int with = 0;
+      for (int i = 0; i < nms; ++i) {
+        const int m = ms[i];
+        local.col(i) = R0.transpose() * (predicted.col(m) - centre_predicted[s]);
+        var[i] = MeasurementVariance(m) + model_error[m];
+        tol[i] = std::sqrt(gate * var[i]);
+        ncand[i] = 0;
+        const double radius = local.col(i).norm();
+        for (int k = 0; k < np; ++k) {
+          if (ltaken[k]) continue;
+          const Eigen::Vector3d e = points.col(k) - predicted.col(m);
+          if (e.squaredNorm() >= reject_sq[m]) continue;
+          const double d2 = e.dot(s_inv[m] * e);
+          if (d2 >= gate) continue;
+          if (std::abs((points.col(k) - c).norm() - radius) > tol[i] + tol_c) continue;
+          int& n = ncand[i];
+          if (n == kGroupCandidates && d2 >= cd2[i][n - 1]) continue;
+          int j = n < kGroupCandidates ? n++ : n - 1;
+          for (; j > 0 && cd2[i][j - 1] > d2; --j) {
+            cd2[i][j] = cd2[i][j - 1];
+            cand[i][j] = cand[i][j - 1];
+          }
+          cd2[i][j] = d2;
+          cand[i][j] = k;
+        }
+        with += ncand[i] > 0;
+      }
+      int best_label[kMaxSegmentMarkers], label[kMaxSegmentMarkers];
+      double best_cost = std::numeric_limits<double>::infinity(), runner_up = best_cost;
+      int second_label[kMaxSegmentMarkers];
+      bool have_second = false;
+      // A pose from the centre and two markers' points, or from the whole labelling.
+      auto fit = [&](const int* lab, Eigen::Matrix3d* R, Eigen::Vector3d* t) {
+        const double wc = 1.0 / centre_variance[s];
+        double sw = wc;
+        Eigen::Vector3d cl = Eigen::Vector3d::Zero(), cw = wc * c;
+        for (int i = 0; i < nms; ++i) {
+          if (lab[i] < 0) continue;
+          sw += 1.0 / var[i];
+          cl += local.col(i) / var[i];
+          cw += points.col(lab[i]) / var[i];
+        }
+        cl /= sw;
+        cw /= sw;
+        Eigen::Matrix3d H = wc * (-cl) * (c - cw).transpose();
+        for (int i = 0; i < nms; ++i)
+          if (lab[i] >= 0) H += (local.col(i) - cl) * (points.col(lab[i]) - cw).transpose() / var[i];
+        *R = KabschRotation(H);
+        *t = cw - *R * cl;
+      };
+      auto score = [&](int a, int ka, int b, int kb) {
+        for (int i = 0; i < nms; ++i) label[i] = -1;
+        label[a] = ka;
+        label[b] = kb;
+        Eigen::Matrix3d R;
+        Eigen::Vector3d t;
+        fit(label, &R, &t);
+        // The pose places the other markers: each takes its nearest candidate within tolerance.
+        for (int i = 0; i < nms; ++i) {
+          if (i == a || i == b) continue;
+          const Eigen::Vector3d w = R * local.col(i) + t;
+          double bd = tol[i] * tol[i];
+          for (int j = 0; j < ncand[i]; ++j) {
+            const int k = cand[i][j];
+            bool used = false;
+            for (int o = 0; o < nms; ++o) used |= label[o] == k;
+            const double d = (points.col(k) - w).squaredNorm();
+            if (!used && d < bd) {
+              bd = d;
+              label[i] = k;
+            }
+          }
+        }
+        fit(label, &R, &t);
+        double cost = (t - c).squaredNorm() / centre_variance[s];  // the centre: local origin
+        if (cost > gate) return;
+        int labels = 0;
+        for (int i = 0; i < nms; ++i) {
+          if (label[i] < 0) {
+            cost += gate;
+            continue;
+          }
+          const double e2 = (R * local.col(i) + t - points.col(label[i])).squaredNorm();
+          if (e2 > tol[i] * tol[i]) {
+            label[i] = -1;
+            cost += gate;
+            continue;
+          }
+          ++labels;
+          double d2 = 0;
+          for (int j = 0; j < ncand[i]; ++j)
+            if (cand[i][j] == label[i]) d2 = cd2[i][j];
+          cost += e2 / var[i] + d2;
+        }
+        if (labels < kMinGroupLabels) return;
+        if (cost < best_cost) {
+          if (std::isfinite(best_cost) && !std::equal(label, label + nms, best_label)) {
+            runner_up = best_cost;
+            std::copy(best_label, best_label + nms, second_label);
+            have_second = true;
+          }
+          best_cost = cost;
+          std::copy(label, label + nms, best_label);
+        } else if (cost < runner_up && !std::equal(label, label + nms, best_label)) {
+          runner_up = cost;
+          std::copy(label, label + nms, second_label);
+          have_second = true;
+        }
+      };
+      if (with >= 2) {
+        for (int a = 0; a < nms; ++a)
+          for (int b = a + 1; b < nms; ++b) {
+            const double dab = (local.col(a) - local.col(b)).norm();
+            for (int i = 0; i < ncand[a]; ++i)
+              for (int j = 0; j < ncand[b]; ++j) {
+                const int ka = cand[a][i], kb = cand[b][j];
+                if (ka == kb) continue;
+                if (std::abs((points.col(ka) - points.col(kb)).norm() - dab) > tol[a] + tol[b]) continue;
+                score(a, ka, b, kb);
+              }
+          }
+      }
+      if (std::isfinite(best_cost)) {
+        const bool decided = !have_second || runner_up - best_cost >= kGroupMargin;
+        // Undecided: the markers the two label alike take the group's points; the others keep
+        // the gating's, where no marker of the group took it.
+        int keep[kMaxSegmentMarkers];
+        for (int i = 0; i < nms; ++i) {
+          keep[i] = -1;
+          if (decided || second_label[i] == best_label[i]) continue;
+          const int old = row_to_col[ms[i]];
+          bool taken = false;
+          for (int j = 0; j < nms; ++j)
+            taken |= (decided || second_label[j] == best_label[j]) && best_label[j] == old && old >= 0;
+          keep[i] = taken ? -1 : old;
+        }
+        for (int i = 0; i < nms; ++i) {
+          const int m = ms[i];
+          int k = best_label[i];
+          if (!decided && second_label[i] != k) k = keep[i];
+          const int old = row_to_col[m];
+          if (old == k) continue;
+          if (old >= 0 && lcand[old] == m) lcand[old] = -1;
+          if (k >= 0) {
+            const int o = lcand[k];
+            if (o >= 0 && o != m) row_to_col[o] = -1;
+            lcand[k] = m;
+          }
+          row_to_col[m] = k;
+        }
+        for (int i = 0; i < nms; ++i)
+          if (row_to_col[ms[i]] >= 0) ltaken[row_to_col[ms[i]]] = 1;
+      }
+    }
+    if (segment_wants_fit[s]) segment_fitted[s] = FitSegmentPose(s, &fit_rotation[s], &fit_translation[s]);
+  }
 }
 
 }  // namespace mocap::ekf

@@ -460,9 +460,12 @@ TEST(TrackReal, Welk007HipTrialMeetsTheTargetsWithItsGenericModelCalibratedOnThe
 // (the start's labels not followed as point tracks, the unlabelled forearm marker's gate 30 cm
 // wide) and a foot's gate a metre wide (the process noise at its 200 Hz bound). The process noise
 // learnt from the innovations and the start's labels followed: 0.958333 (65 wrong, 3 swaps > 5
-// frames) / 0.932190 with 5 ghosts (187 wrong, 7 swaps);
-// what is left is the swinging right foot and shank (ekf/tracker.h, "Process noise"; BENCHMARKS.md,
-// "Real recordings, unlabelled").
+// frames) / 0.932190 with 5 ghosts (187 wrong, 7 swaps); main before the seventeenth session
+// 0.963508 (86 wrong, 3 swaps) / 0.939270 (198 wrong, 7), the right foot and shank swapping.
+// Seventeenth, their markers labelled as rigid groups (ekf/tracker.h, "Rigid groups"): 0.987609
+// (13 wrong) / 0.986928 (15 wrong), no swap longer than 5 frames; what is left is markers missed
+// in the fastest swings, where the points lie beyond the gates (BENCHMARKS.md, "Real recordings,
+// unlabelled").
 TEST(TrackReal, Welk007HipTrialAt12HzWithItsCalibratedModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model subject = Calibrated(OsimModel(Welk("unscaled_generic.osim")), Welk("c3d_Trimmed_static1.c3d"));
@@ -472,9 +475,10 @@ TEST(TrackReal, Welk007HipTrialAt12HzWithItsCalibratedModel) {
                                         mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit, 8);
     EXPECT_EQ(r.run.frames, 153);
     EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
-    // What is reached (0.958333, 3 swaps; 0.932190, 7 with ghosts), not the targets.
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.958 : 0.932) << r.summary;
-    EXPECT_LE(r.run.score.swaps_longer_than_5_frames, ghosts == 0 ? 3 : 7) << r.summary;
+    // What is reached (0.987609; 0.986928 with ghosts), not the accuracy targets; the swap
+    // target is met.
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.987 : 0.986) << r.summary;
+    EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
   }
 }
 
@@ -509,11 +513,14 @@ TEST(TrackReal, BiobuddyCalibratedModelTellsTheLabsExtraMarkersApart) {
     const int m = subject.FindMarker(marker);
     EXPECT_EQ(r.run.marker_correct[m], r.run.marker_samples[m]) << marker;
   }
-  EXPECT_GE(r.run.score.accuracy(), 0.9) << r.summary;
+  // 0.907628 before the seventeenth session; 1.000000 since the shanks and feet of the swinging
+  // leg are labelled as rigid groups (ekf/tracker.h, "Rigid groups").
+  EXPECT_GE(r.run.score.accuracy(), 0.999) << r.summary;
 }
 
-// The issue's targets on biobuddy's functional trials with that subject model: NOT MET, and not
-// for want of a model. The trials are 12 Hz (the uploader kept one frame in ten): from frame to
+// The issue's targets on biobuddy's functional trials with that subject model: met on the right
+// hip and knee trials since the seventeenth session (the tests after this one), NOT MET on the
+// left ones -- and not for want of a model. The trials are 12 Hz (the uploader kept one frame in ten): from frame to
 // frame a swinging foot or shank moves off its constant-velocity prediction by 40 mm (median;
 // 107 mm at the 95th percentile: RTOE, RHEE, RANK, RTIB, RTIBF on the right hip trial), more
 // than the 47-65 mm between the lab's neighbouring markers (TIB and TIBF, TOE and TOE5, THI and
@@ -526,13 +533,51 @@ TEST(TrackReal, BiobuddyCalibratedModelTellsTheLabsExtraMarkersApart) {
 // from the innovations (the bound's made every 12 Hz gate a metre wide) and the start's labels
 // followed as point tracks: right hip 0.980369 / 0.979484 with 5 ghosts (16 swaps > 5 frames),
 // left hip 0.928303 / 0.928778 (58 / 49), right knee 0.998436 / 0.998354 (0 swaps), left knee
-// 0.978257 / 0.978092 (1) -- still short of the targets.
+// 0.978257 / 0.978092 (1) -- still short of the targets. Seventeenth (main before it: right hip
+// 0.981492 / 0.981185, 18 / 17 swaps; left hip 0.932357 / 0.932393, 62 / 52; right knee 0.998436
+// both; left knee 0.978919 / 0.978671, 1 each): a segment whose prediction is looser than its
+// markers' spacing has them labelled as one rigid body about its joint centre, placed by its
+// parent's fitted pose (ekf/tracker.h, "Rigid groups"): right hip 1.000000 / 0.999966, right knee
+// 0.999753 both, 0 wrong -- the targets -- left hip 0.992659 / 0.990905 (39 / 45 wrong, 0 / 1
+// swaps > 5 frames), left knee 0.981151 both (3 wrong, 0 swaps). What is left on the left leg:
+// its fastest swings put the shank's and foot's points 7-20 cm from their predictions, beyond
+// the gates the group's candidates are taken from, and the leg is lost for a few frames (left
+// knee: its foot then stays 13 cm off, unlabelled, for the last 20 frames of the trial).
 TEST(TrackReal, DISABLED_BiobuddyFunctionalTrialsMeetTheTargetsWithTheDefaultModelCalibratedOnTheStaticTrial) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
-  for (const char* trial : {"Test_func_rhip.c3d", "Test_func_lhip.c3d", "Test_func_rknee.c3d", "Test_func_lknee.c3d"})
+  for (const char* trial : {"Test_func_lhip.c3d", "Test_func_lknee.c3d"})
     ExpectTheTargets(Bio(trial), subject, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), false,
                      mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
+}
+
+// The right hip and knee trials meet the issue's targets (above).
+TEST(TrackReal, BiobuddyRightHipAndKneeTrialsMeetTheTargetsWithTheCalibratedModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
+  for (const char* trial : {"Test_func_rhip.c3d", "Test_func_rknee.c3d"})
+    ExpectTheTargets(Bio(trial), subject, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), false,
+                     mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
+}
+
+// The left hip and knee trials: what is reached (above), not the targets.
+TEST(TrackReal, BiobuddyLeftHipAndKneeTrialsWithTheCalibratedModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
+  struct Reached {
+    const char* trial;
+    double accuracy[2];
+    int swaps[2];
+  };
+  for (const Reached& e : {Reached{"Test_func_lhip.c3d", {0.992, 0.990}, {0, 1}},
+                           Reached{"Test_func_lknee.c3d", {0.981, 0.981}, {0, 0}}})
+    for (int g = 0; g < 2; ++g) {
+      const RealResult r = TrackRecording(Bio(e.trial), subject, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(),
+                                          g * 5, mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
+      EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
+      EXPECT_GE(r.run.score.accuracy(), e.accuracy[g]) << r.summary;
+      EXPECT_LE(r.run.score.swaps_longer_than_5_frames, e.swaps[g]) << r.summary;
+    }
 }
 
 std::string Gait2354(const std::string& file) {
@@ -667,5 +712,6 @@ TEST(TrackReal, TheCliLabelsTheFramesBeforeTheStartBackward) {
   EXPECT_EQ(both["wrong_labels"].get<int>(), 0);
   EXPECT_EQ(both["swaps_longer_than_5_frames"].get<int>(), 0);
 }
+
 
 }  // namespace
