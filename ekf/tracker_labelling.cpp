@@ -1000,12 +1000,6 @@ bool Tracker::Impl::OnSegmentSphere(int m, const Eigen::Vector3d& p) const {
   return std::abs((p - centre).norm() - radius) <= SegmentTolerance(m);
 }
 
-}  // namespace mocap::ekf
-
-namespace mocap::ekf {
-
-using namespace internal;
-
 bool Tracker::Impl::LooseSegment(int segment) const {
   const std::vector<int>& ms = segment_markers[segment];
   // Three or more markers: with its joint centre, two markers fix only three distances, which a
