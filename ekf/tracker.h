@@ -198,7 +198,8 @@
 // Limb re-acquisition. While the rest of the body tracks, one limb can settle in a wrong but
 // self-consistent pose (a foot left with its heel marker only; a thigh turned about its long axis
 // or a head turned after a re-initialisation) from which its other markers' gates never meet
-// their points again. A marker unlabelled for 20 tracking frames (re-tried every 20) has the
+// their points again. A marker unlabelled for 0.1 s of tracking frames (re-tried every 0.1 s; at
+// least every frame at low rates) has the
 // subtree of the joint that moves it (the nearest one whose subtree carries another marker, so a
 // hand with one finger marker goes with its forearm; up to 12 coordinates; the root and the
 // trunk are the global search's) searched again ICP-like among the points no other marker took,

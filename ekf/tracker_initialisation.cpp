@@ -637,13 +637,15 @@ bool Tracker::Impl::TryInitialise(int np) {
 // Local re-acquisition of a limb. While the rest of the body tracks, a limb can settle in a wrong
 // but self-consistent pose (a foot left with its heel marker only, a thigh turned about its long
 // axis after a re-initialisation) from which its other markers' gates never meet their points
-// again. When a marker has been unlabelled for kLimbFrames tracking frames, the subtree of the
+// again. When a marker has been unlabelled for kLimbSeconds of tracking frames, the subtree of the
 // joint that moves it is searched again ICP-like among the points the rest of the body did not
 // take, from its current pose and a few restarts; a clearly better, unambiguous placement that
 // keeps the limb's present labels replaces the limb's coordinates, with their velocities and
 // accelerations zeroed and their covariance reset to the initialisation's. Allocation-free.
 namespace {
-constexpr int kLimbFrames = 20;        // 0.1 s at 200 Hz
+// A limb search's period: 20 frames at 200 Hz. In seconds, not frames: at 12 Hz 20 frames are 1.7 s,
+// and a leg the filter lost in a fast swing ran on unlabelled for that long (biobuddy's knee trials).
+constexpr double kLimbSeconds = 0.1;
 constexpr int kLimbIterations = 10;
 constexpr double kLimbFinalRadius = 0.05;
 constexpr double kLimbMaxRms = 0.03;
@@ -1036,6 +1038,7 @@ int Tracker::Impl::AnchoredLimb(int m) const {
 
 void Tracker::Impl::Reacquire(int np) {
   ++tracked_frames;
+  const int limb_frames = std::max(2, static_cast<int>(std::lround(kLimbSeconds * options.rate_hz)));
   for (int m = 0; m < nm; ++m) unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
   // One search per frame: the largest limb (nearest the root) among those due, and only when an
   // unclaimed point lies near the marker's prediction -- or, for a marker whose limb has no
@@ -1046,11 +1049,11 @@ void Tracker::Impl::Reacquire(int np) {
   bool claimed_known = false;
   for (int m = 0; m < nm; ++m) {
     const int run = unlabelled_run[m];
-    // Every kLimbFrames of a run; and every frame for a marker the start did not label (run ==
-    // tracked_frames), until it is kLimbFrames old: it has no gate that could bring it back, so
+    // Every limb_frames of a run; and every frame for a marker the start did not label (run ==
+    // tracked_frames), until it is limb_frames old: it has no gate that could bring it back, so
     // waiting for one only leaves it unlabelled (welk007's forearms, flexed away from the static
     // pose, 20 frames of 6 markers).
-    const bool due = run >= kLimbFrames ? run % kLimbFrames == 0 : run == tracked_frames;
+    const bool due = run >= limb_frames ? run % limb_frames == 0 : run == tracked_frames;
     if (!due || marker_limb[m] < 0) continue;
     if (!claimed_known) {
       std::fill(ltaken.begin(), ltaken.begin() + np, 0);
@@ -1076,10 +1079,11 @@ void Tracker::Impl::Reacquire(int np) {
   }
   // A label outside its gate (the segment registration's) is not measured: its limb is placed
   // anew once the label is out of probation (its second frame: a point that moved as the segment
-  // did, not a one-frame reflection) and every kLimbFrames after, until it is inside.
+  // did, not a one-frame reflection) and every limb_frames after, until it is inside.
   bool place = false;
   for (int m = 0; m < nm; ++m) {
-    if (!beyond_gate[m] || marker_limb[m] < 0 || labelled_run[m] % kLimbFrames != 2) continue;
+    if (!beyond_gate[m] || marker_limb[m] < 0 || labelled_run[m] < 2 || (labelled_run[m] - 2) % limb_frames != 0)
+      continue;
     place = true;
     if (joint < 0 || marker_limb[m] < joint) {  // parents come first
       joint = marker_limb[m];

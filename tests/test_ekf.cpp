@@ -488,7 +488,9 @@ TEST(EkfTracker, TracksThroughOcclusions) {
 // bound's, 0.958580 (528 wrong) learnt. The bound's gates make every limb loose, and its groups
 // leave what they cannot decide unlabelled rather than wrong: it now has fewer wrong labels than
 // the learnt noise (which it had not before), and fewer right ones by 0.048 of the labels. So
-// the learnt noise's wrong labels are held to what is reached, not to the bound's.
+// the learnt noise's wrong labels are held to what is reached, not to the bound's. With the limb
+// search's period in seconds (0.1 s, at least 2 frames, instead of 20 frames: 1.6 s here) the
+// learnt noise reaches 0.962355 (496 wrong); the bound's is unchanged.
 TEST(EkfTracker, LearntProcessNoiseLabelsALowFrameRate) {
   sim::SimulatedSession session;
   sim::SimulationOptions o;
@@ -516,9 +518,9 @@ TEST(EkfTracker, LearntProcessNoiseLabelsALowFrameRate) {
                 learnt ? "learnt process noise" : "the bound's", total[learnt].accuracy(),
                 total[learnt].correct, total[learnt].marker_points, total[learnt].wrong);
   }
-  EXPECT_GE(total[1].accuracy(), 0.958);
+  EXPECT_GE(total[1].accuracy(), 0.962);
   EXPECT_GT(total[1].accuracy(), total[0].accuracy() + 0.03);
-  EXPECT_LE(total[1].wrong, 528);
+  EXPECT_LE(total[1].wrong, 496);
 }
 
 // The subject in the static pose, turned to random headings and placed anywhere in the volume:
