@@ -494,7 +494,9 @@ void Tracker::Impl::LearnProcessNoise(double dt) {
 // frame of the static took a ghost 7-10 cm from its point (seeds 41, 46, 48 at 5 ghosts: RASI,
 // RHEE, C7, RFHD), or jumped from its own point 35 mm off to a ghost 9 mm from its half-learnt
 // prediction (seed 44, LANK, then kept from its point for 2 s as seen beside it). Learnt as the
-// mean, a marker seen in the static is looked for where it was seen. Not in motion: residuals
+// mean, a marker seen in the static is looked for where it was seen. Off by default: a label the
+// first frames gave wrong is learnt as fast, and the segment's geometry then agrees with it
+// (BENCHMARKS.md, seventeenth session: seeds 57, 63, 78). Not in motion: residuals
 // there carry the pose's lag and error, and learnt as a mean from the first frame they froze it
 // into the offsets (gait2354's walk, which starts walking: 0.967 of the labels; welk007's hip
 // trial at 12 Hz, 0.910; a start after a second of occlusion mid-movement, 0.974). n0 = 0: the
