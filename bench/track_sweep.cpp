@@ -149,7 +149,7 @@ struct Trace {
 
 SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& base, bool truth,
                    int runs_min_frames, double min_return_probability, double process_noise_time_constant_s,
-                   const Trace& trace = {}) {
+                   double marker_offset_prior_frames, const Trace& trace = {}) {
   SeedResult r;
   r.seed = seed;
   mocap::sim::TrackingSceneOptions o = base;
@@ -163,6 +163,7 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
   topt.rate_hz = o.rate_hz;
   topt.min_return_probability = min_return_probability;
   topt.process_noise_time_constant_s = process_noise_time_constant_s;
+  topt.marker_offset_prior_frames = marker_offset_prior_frames;
   mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(truth ? scene.truth : scene.nominal),
                               topt);
   const std::vector<int> scene_of = mocap::sim::SceneMarkerOf(tracker.model(), scene);
@@ -274,6 +275,7 @@ int main(int argc, char** argv) {
   int threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   double min_return_probability = mocap::ekf::TrackerOptions().min_return_probability;
   double process_noise_time_constant_s = mocap::ekf::TrackerOptions().process_noise_time_constant_s;
+  double marker_offset_prior_frames = mocap::ekf::TrackerOptions().marker_offset_prior_frames;
   app.add_option("--seeds", seeds_text, "seeds: 1-50, 3, 1,4,9-12");
   app.add_option("--ghosts", scene.ghosts, "ghost points per frame")->check(CLI::NonNegativeNumber);
   app.add_option("--occlusion", scene.occlusion, "fraction of marker samples occluded");
@@ -291,6 +293,13 @@ int main(int argc, char** argv) {
   app.add_option("--process-noise-time-constant", process_noise_time_constant_s,
                  "TrackerOptions::process_noise_time_constant_s (0: the jerk PSDs as given)")
       ->check(CLI::NonNegativeNumber);
+  app.add_option("--marker-offset-prior-frames", marker_offset_prior_frames,
+                 "TrackerOptions::marker_offset_prior_frames (0: the offsets' slow gain from the "
+                 "first frame, as before issue 15's static start)")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--movements", scene.movements,
+                 "protocol movements, comma-separated (default: all, from 'static')")
+      ->delimiter(',');
   app.add_option("--threads", threads, "seeds tracked at once")->check(CLI::PositiveNumber);
   Trace trace;
   std::string trace_frames;
@@ -324,7 +333,7 @@ int main(int argc, char** argv) {
   auto worker = [&] {
     for (size_t k = next++; k < seeds.size(); k = next++) {
       results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames, min_return_probability,
-                           process_noise_time_constant_s, trace);
+                           process_noise_time_constant_s, marker_offset_prior_frames, trace);
       if (json) continue;
       const SeedResult& r = results[k];
       std::lock_guard<std::mutex> lock(print_mutex);

@@ -71,7 +71,9 @@ struct Tracker::Impl {
   // Online marker offsets (see tracker.h): per marker, in its segment's frame, and how many
   // frames have contributed since the last (re)initialisation.
   std::vector<Eigen::Vector3d> offset;
-  std::vector<double> offset_unknown;  // (1 - gain)^frames seen: the part still unknown
+  // The part of marker_offset_sigma^2 still unknown: the offset estimate's variance over the
+  // prior's (LearnOffsets).
+  std::vector<double> offset_unknown;
   // Per marker: the mean square (per coordinate) of its residuals after the update, averaged
   // like the offsets: the model error that the pose and the offset do not explain.
   std::vector<double> model_error;
@@ -179,6 +181,14 @@ struct Tracker::Impl {
   double RigidResidual(int m, const Eigen::Vector3d& p) const;
   Eigen::Matrix3Xd last_point, last_predicted;
   int measured_count = 0;
+  // Whether the subject stood still between the last frame and this one (ChooseMeasurements): the
+  // median displacement of the markers measured in both is within kStillDisplacement plus
+  // kStillSpeed x dt. Only then are the offsets learnt as a mean (LearnOffsets).
+  bool subject_still = false;
+  double frame_dt = 0;
+  std::vector<double> moved_buf;
+  static constexpr double kStillDisplacement = 0.002;
+  static constexpr double kStillSpeed = 0.1;
   void ChooseMeasurements();
   // TrackerOptions::min_return_probability: the density of unclaimed points near the body (per
   // m^3, averaged over clutter_time_constant_s; negative until a tracking frame measured it), and

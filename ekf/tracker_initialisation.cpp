@@ -602,6 +602,7 @@ bool Tracker::Impl::TryInitialise(int np) {
     }
   }
   // No gate yet: every label of the search is measured at its full weight.
+  subject_still = false;  // no last frame to tell
   std::fill(s_inv.begin(), s_inv.end(), Eigen::Matrix3d::Zero());
   double nis = 0;
   if (!FilterUpdate(&nis, 0.0)) {

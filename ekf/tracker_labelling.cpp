@@ -782,6 +782,7 @@ int Tracker::Impl::TrackBack(int m, const Eigen::Vector3d& p, double* spread) co
 // point of a ghost is another one or none. A true marker costs one frame of information.
 void Tracker::Impl::ChooseMeasurements() {
   measured_count = 0;
+  int nmoved = 0;
   for (int m = 0; m < nm; ++m) {
     const int col = row_to_col[m];
     if (col < 0) {
@@ -790,6 +791,7 @@ void Tracker::Impl::ChooseMeasurements() {
       continue;
     }
     const Eigen::Vector3d p = points.col(col), q = predicted.col(m);
+    if (labelled_run[m] > 1 && measured[m]) moved_buf[nmoved++] = (p - last_point.col(m)).norm();
     if (labelled_run[m] == 1) {
       const Eigen::Vector3d moved = (p - last_point.col(m)) - (q - last_predicted.col(m));
       measured[m] = moved.squaredNorm() <= kProbationDistance * kProbationDistance;
@@ -812,6 +814,11 @@ void Tracker::Impl::ChooseMeasurements() {
     last_point.col(m) = p;
     last_predicted.col(m) = q;
     measured_count += measured[m];
+  }
+  subject_still = false;
+  if (nmoved >= 3) {
+    std::nth_element(moved_buf.begin(), moved_buf.begin() + nmoved / 2, moved_buf.begin() + nmoved);
+    subject_still = moved_buf[nmoved / 2] <= kStillDisplacement + kStillSpeed * frame_dt;
   }
 }
 
