@@ -764,6 +764,16 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
       c += prior_scale * (rotational[i] ? prior_rot : prior_trans) * (zz[i] - lstart[i]) * (zz[i] - lstart[i]);
     return c;
   };
+  // Cost at the pose the last LineariseLimb placed (lz): from its predictions, without placing
+  // the limb again.
+  auto CostAtLinearisation = [&]() {
+    double c = 0;
+    for (int m : rows)
+      if (lassign[m] >= 0) c += (predicted.col(m) - points.col(lassign[m])).squaredNorm();
+    for (int i : lcoords)
+      c += prior_scale * (rotational[i] ? prior_rot : prior_trans) * (lz[i] - lstart[i]) * (lz[i] - lstart[i]);
+    return c;
+  };
   // Damped Gauss-Newton from lz with the prior centred at lstart: kLimbIterations steps
   // reassigning by distance (the radius shrinking to kLimbFinalRadius); or, holding lheld (an
   // exchange, below), kLimbIterations steps on those labels with the prior barely pulling, then
@@ -806,7 +816,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
         lN(l, l) += w;
         lg[l] += w * (lz[i] - lstart[i]);
       }
-      const bool accepted = DampedGaussNewtonStep(lN, lg, Cost(lz), &lambda, &lNd, &lllt, &lstep, [&] {
+      const bool accepted = DampedGaussNewtonStep(lN, lg, CostAtLinearisation(), &lambda, &lNd, &lllt, &lstep, [&] {
         ltrial = lz;
         for (int l = 0; l < nl; ++l) ltrial[lcoords[l]] += lstep[l];
         WrapLimb(&ltrial);
