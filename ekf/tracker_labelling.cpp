@@ -783,6 +783,8 @@ int Tracker::Impl::TrackBack(int m, const Eigen::Vector3d& p, double* spread) co
 void Tracker::Impl::ChooseMeasurements() {
   measured_count = 0;
   int nmoved = 0;
+  // Whether the subject stands still is asked only by the offsets' prior (LearnOffsets).
+  const bool judge_stillness = options.marker_offset_prior_frames > 0;
   for (int m = 0; m < nm; ++m) {
     const int col = row_to_col[m];
     if (col < 0) {
@@ -791,7 +793,7 @@ void Tracker::Impl::ChooseMeasurements() {
       continue;
     }
     const Eigen::Vector3d p = points.col(col), q = predicted.col(m);
-    if (labelled_run[m] > 1 && measured[m]) moved_buf[nmoved++] = (p - last_point.col(m)).norm();
+    if (judge_stillness && labelled_run[m] > 1 && measured[m]) moved_buf[nmoved++] = (p - last_point.col(m)).norm();
     if (labelled_run[m] == 1) {
       const Eigen::Vector3d moved = (p - last_point.col(m)) - (q - last_predicted.col(m));
       measured[m] = moved.squaredNorm() <= kProbationDistance * kProbationDistance;
