@@ -148,8 +148,8 @@ struct Trace {
 };
 
 SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& base, bool truth,
-                   int runs_min_frames, double min_return_probability, double process_noise_time_constant_s,
-                   double marker_offset_prior_frames, const Trace& trace = {}) {
+                   int runs_min_frames, const mocap::ekf::TrackerOptions& tracker_options,
+                   const Trace& trace = {}) {
   SeedResult r;
   r.seed = seed;
   mocap::sim::TrackingSceneOptions o = base;
@@ -159,11 +159,8 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
     r.error = s.message();
     return r;
   }
-  mocap::ekf::TrackerOptions topt;
+  mocap::ekf::TrackerOptions topt = tracker_options;
   topt.rate_hz = o.rate_hz;
-  topt.min_return_probability = min_return_probability;
-  topt.process_noise_time_constant_s = process_noise_time_constant_s;
-  topt.marker_offset_prior_frames = marker_offset_prior_frames;
   mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(truth ? scene.truth : scene.nominal),
                               topt);
   const std::vector<int> scene_of = mocap::sim::SceneMarkerOf(tracker.model(), scene);
@@ -297,6 +294,10 @@ int main(int argc, char** argv) {
                  "TrackerOptions::marker_offset_prior_frames (0: the offsets' slow gain from the "
                  "first frame, as before issue 15's static start)")
       ->check(CLI::NonNegativeNumber);
+  std::string scale_to_subject = "when-needed";
+  app.add_option("--scale-to-subject", scale_to_subject,
+                 "TrackerOptions::init_scale_to_subject: never, when-needed (the default) or always")
+      ->check(CLI::IsMember({"never", "when-needed", "always"}));
   app.add_option("--movements", scene.movements,
                  "protocol movements, comma-separated (default: all, from 'static')")
       ->delimiter(',');
@@ -327,13 +328,20 @@ int main(int argc, char** argv) {
     return 2;
   }
 
+  mocap::ekf::TrackerOptions tracker_options;
+  tracker_options.min_return_probability = min_return_probability;
+  tracker_options.process_noise_time_constant_s = process_noise_time_constant_s;
+  tracker_options.marker_offset_prior_frames = marker_offset_prior_frames;
+  using Scale = mocap::ekf::TrackerOptions::ScaleToSubject;
+  tracker_options.init_scale_to_subject = scale_to_subject == "never"    ? Scale::kNever
+                                          : scale_to_subject == "always" ? Scale::kAlways
+                                                                         : Scale::kWhenTheModelDoesNotFit;
   std::vector<SeedResult> results(seeds.size());
   std::atomic<size_t> next{0};
   std::mutex print_mutex;
   auto worker = [&] {
     for (size_t k = next++; k < seeds.size(); k = next++) {
-      results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames, min_return_probability,
-                           process_noise_time_constant_s, marker_offset_prior_frames, trace);
+      results[k] = RunSeed(seeds[k], scene, model == "truth", runs_min_frames, tracker_options, trace);
       if (json) continue;
       const SeedResult& r = results[k];
       std::lock_guard<std::mutex> lock(print_mutex);
