@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 namespace mocap::reconstruction {
 bool ClockFitOptions::IsValid(std::string* error) const {
@@ -18,6 +19,7 @@ bool ClockFitOptions::IsValid(std::string* error) const {
     return fail("min_samples_for_drift " + std::to_string(min_samples_for_drift) +
                 " is outside [2 x segments, window]");
   if (refit_every < 1) return fail("refit_every must be >= 1");
+  if (!(near_line_ns >= 0)) return fail("near_line_ns must be >= 0");
   if (!(max_drift_ppm >= 0 && max_drift_ppm <= 1e5))
     return fail("max_drift_ppm must be in [0, 100000]");
   return true;
@@ -98,6 +100,29 @@ void ClockFit::Refit() {
   if (!found) {  // every support line is steeper than the limit: the offset alone
     best_b = 0;
     best_a = *std::min_element(my_.begin(), my_.end());
+  }
+  // The support line rests on two minima only, and a camera's own timestamps jitter: the minima
+  // scatter on both sides of the true line by about that jitter, and a support line through two
+  // neighbouring runs tilts by their difference over the runs' spacing (10 us over 0.17 s is 60
+  // ppm). So its slope is then refitted by least squares through the minima within
+  // `near_line_ns` of it (the scatter; the runs that waited lie far above and are left out
+  // however many they are), which averages the jitter over all of them; and the line is lowered
+  // onto the lowest of them, so that it stays the lower edge of the arrivals.
+  if (found) {
+    double n = 0, sx = 0, sy = 0, sxx = 0, sxy = 0;
+    for (int k = 0; k < s; ++k) {
+      if (my_[k] - (best_a + best_b * mx_[k]) > options_.near_line_ns) continue;
+      n += 1, sx += mx_[k], sy += my_[k], sxx += mx_[k] * mx_[k], sxy += mx_[k] * my_[k];
+    }
+    const double det = n * sxx - sx * sx;
+    const double b = det > 0 ? (n * sxy - sx * sy) / det : best_b;
+    if (n >= 3 && det > 0 && std::abs(b) <= limit) {
+      double a = std::numeric_limits<double>::infinity();
+      for (int k = 0; k < s; ++k)
+        if (my_[k] - (best_a + best_b * mx_[k]) <= options_.near_line_ns) a = std::min(a, my_[k] - b * mx_[k]);
+      best_a = a;
+      best_b = b;
+    }
   }
   slope_ = best_b;
   intercept_ = best_a;
