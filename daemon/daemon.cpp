@@ -773,7 +773,8 @@ Json Daemon::Status_() const {
     j["latency_ms"] = {{"p50", st.capture.latency_ms_p50},
                        {"p99", st.capture.latency_ms_p99},
                        {"track_p50", st.track_ms_p50},
-                       {"track_p99", st.track_ms_p99}};
+                       {"track_p99", st.track_ms_p99},
+                       {"track_max", st.track_ms_max}};
     j["frame"] = last_frame_;
   }
   j["subject"] = subject_ ? Json{{"id", subject_->id}, {"name", subject_->name}} : Json();

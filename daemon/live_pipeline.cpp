@@ -290,6 +290,7 @@ void LivePipeline::TrackLoop() {
       stats_.markers = static_cast<int>(lf.markers.cols());
       stats_.model_version = model_version_;
       track_ms_.Add(track_ms);
+      stats_.track_ms_max = std::max(stats_.track_ms_max, track_ms);
     }
     Publish(std::move(lf));
   }

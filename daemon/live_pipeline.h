@@ -83,6 +83,12 @@ struct LivePipelineStats {
   std::uint64_t recorder_dropped = 0;    // the recorder's queue was full (a recording lost frames)
   QueueDepth loop_queue, recorder_queue;
   double track_ms_p50 = 0, track_ms_p99 = 0;
+  // The slowest frame through the tracking stage since the pipeline started: the tracker's start
+  // (its search for the subject among unlabelled points, tens of ms once) is the usual one. The
+  // capture pipeline's point queue (point_queue_capacity, 1.28 s at 200 Hz) holds the frames that
+  // arrive meanwhile, and the stage, at ~0.1 ms a frame, drains them within a frame period or two:
+  // queues.points.max in the status shows how many waited.
+  double track_ms_max = 0;
   int tracker_state = -1;
   int labelled = 0;
   int markers = 0;
