@@ -135,7 +135,9 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
               status["queues"]["points"]["capacity"].get<int>(),
               status["sets"]["dropped"].get<int>() - dropped_before_tracking);
   EXPECT_GT(status["latency_ms"]["track_max"].get<double>(), 0.0);
-  EXPECT_LT(status["queues"]["points"]["max"].get<int>(), status["queues"]["points"]["capacity"].get<int>() / 4);
+  // At most half the queue: the start leaves as much again for a slower moment (37 ms on a quiet
+  // machine, 120 ms with two other agents' benchmarks running: 7 and 23 of the 256 frames).
+  EXPECT_LT(status["queues"]["points"]["max"].get<int>(), status["queues"]["points"]["capacity"].get<int>() / 2);
   EXPECT_EQ(status["sets"]["dropped"].get<int>(), dropped_before_tracking);
 
   // Every movement of the protocol; squats first under-performed (40 % of the range).
