@@ -87,6 +87,9 @@ class WithInnerIterations : public LmProblem {
   void AnticipateDamping(double lambda, double min_diagonal, double max_diagonal) override {
     whole_->AnticipateDamping(lambda, min_diagonal, max_diagonal);
   }
+  // Without it the base class's NaN reached LM, and the final stage's statistical stop
+  // (LmOptions::shared_step_tolerance) never fired in this, its usual, path.
+  double LastSharedStepMahalanobisSq() const override { return whole_->LastSharedStepMahalanobisSq(); }
   bool SolveAcceleration(const Eigen::VectorXd& damping, const Eigen::VectorXd& velocity, double h,
                          Eigen::VectorXd* acceleration) override {
     return whole_->SolveAcceleration(damping, velocity, h, acceleration);
