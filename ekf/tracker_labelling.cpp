@@ -1091,7 +1091,9 @@ bool Tracker::Impl::FitSegmentPose(int segment, Eigen::Matrix3d* R, Eigen::Vecto
 // points and the others keep the gating's labels (left empty instead, the labels lost took the
 // track with them: welk007 at 12.5 Hz 0.956 of the labels, biobuddy's right knee 0.961).
 // Segments are labelled root first, and each fitted segment's pose places its loose children's
-// joint centres (their own prediction is as loose as theirs: the knee of a swinging leg). The
+// joint centres (their own prediction is as loose as theirs: the knee of a swinging leg), and the
+// children's gates move with their centres: the prediction's error at a swinging foot is mostly
+// the shank's, which the shank's fit has measured (tracker.h: why moved, not turned). The
 // points of a segment that is not loose are its gating's. At 100-200 Hz a segment is loose only
 // where its markers' predictions have grown (a forearm turned about its axis while its wrist
 // markers were hidden), a few frames in a take.
@@ -1146,6 +1148,11 @@ void Tracker::Impl::LabelLooseSegments(int np) {
       int cand[kMaxSegmentMarkers][kGroupCandidates], ncand[kMaxSegmentMarkers];
       double cd2[kMaxSegmentMarkers][kGroupCandidates];
       int with = 0;
+      // The gates (and the prior) are centred where the joint centre went: each prediction moved
+      // with the centre (zero when the parent was not fitted), the segment's own angles as
+      // predicted. The gate keeps its size, S_m, which also holds the parent chain's uncertainty
+      // the fit has taken out: no tighter than before, only where the evidence puts it.
+      const Eigen::Vector3d centre_moved = c - centre_predicted[s];
       for (int i = 0; i < nms; ++i) {
         const int m = ms[i];
         local.col(i) = R0.transpose() * (predicted.col(m) - centre_predicted[s]);
@@ -1153,9 +1160,10 @@ void Tracker::Impl::LabelLooseSegments(int np) {
         tol[i] = std::sqrt(gate * var[i]);
         ncand[i] = 0;
         const double radius = local.col(i).norm();
+        const Eigen::Vector3d expected = predicted.col(m) + centre_moved;
         for (int k = 0; k < np; ++k) {
           if (ltaken[k]) continue;
-          const Eigen::Vector3d e = points.col(k) - predicted.col(m);
+          const Eigen::Vector3d e = points.col(k) - expected;
           if (e.squaredNorm() >= reject_sq[m]) continue;
           const double d2 = e.dot(s_inv[m] * e);
           if (d2 >= gate) continue;

@@ -490,7 +490,11 @@ TEST(EkfTracker, TracksThroughOcclusions) {
 // the learnt noise (which it had not before), and fewer right ones by 0.048 of the labels. So
 // the learnt noise's wrong labels are held to what is reached, not to the bound's. With the limb
 // search's period in seconds (0.1 s, at least 2 frames, instead of 20 frames: 1.6 s here) the
-// learnt noise reaches 0.962355 (496 wrong); the bound's is unchanged.
+// learnt noise reaches 0.962355 (496 wrong); the bound's is unchanged. Eighteenth, a loose
+// segment's gates centred where its fitted parent moved its joint centre: learnt 0.963375 (276
+// wrong), the bound's 0.947936 (432 wrong) -- every limb of the bound's is loose, and it gained
+// the most. The learnt noise is again the better on both counts, by 0.015 of the labels (0.03
+// before: the bound's moved up) and 156 wrong labels.
 TEST(EkfTracker, LearntProcessNoiseLabelsALowFrameRate) {
   sim::SimulatedSession session;
   sim::SimulationOptions o;
@@ -518,9 +522,10 @@ TEST(EkfTracker, LearntProcessNoiseLabelsALowFrameRate) {
                 learnt ? "learnt process noise" : "the bound's", total[learnt].accuracy(),
                 total[learnt].correct, total[learnt].marker_points, total[learnt].wrong);
   }
-  EXPECT_GE(total[1].accuracy(), 0.962);
-  EXPECT_GT(total[1].accuracy(), total[0].accuracy() + 0.03);
-  EXPECT_LE(total[1].wrong, 496);
+  EXPECT_GE(total[1].accuracy(), 0.963);
+  EXPECT_GT(total[1].accuracy(), total[0].accuracy() + 0.015);
+  EXPECT_LE(total[1].wrong, 276);
+  EXPECT_LT(total[1].wrong, total[0].wrong);
 }
 
 // The subject in the static pose, turned to random headings and placed anywhere in the volume:

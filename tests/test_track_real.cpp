@@ -521,8 +521,8 @@ TEST(TrackReal, BiobuddyCalibratedModelTellsTheLabsExtraMarkersApart) {
 }
 
 // The issue's targets on biobuddy's functional trials with that subject model: met on the right
-// hip and both knee trials since the seventeenth session (the tests after this one), NOT MET on
-// the left hip's -- and not for want of a model. The trials are 12 Hz (the uploader kept one frame in ten): from frame to
+// hip and both knee trials since the seventeenth session (the test after this one), on the left
+// hip's (this test) since the eighteenth. The trials are 12 Hz (the uploader kept one frame in ten): from frame to
 // frame a swinging foot or shank moves off its constant-velocity prediction by 40 mm (median;
 // 107 mm at the 95th percentile: RTOE, RHEE, RANK, RTIB, RTIBF on the right hip trial), more
 // than the 47-65 mm between the lab's neighbouring markers (TIB and TIBF, TOE and TOE5, THI and
@@ -548,12 +548,19 @@ TEST(TrackReal, BiobuddyCalibratedModelTellsTheLabsExtraMarkersApart) {
 // search came every 20 frames, 1.7 s at 12 Hz). The limb search's period is now 0.1 s (20 frames
 // at 200 Hz, as before), at least 2 frames (a label's probation): left knee 0.999917 both (1
 // wrong) -- the targets --, left hip 0.994010 / 0.993243 (0 swaps > 5 frames), right knee 0.999342
-// both (2 wrong; 0.999753 with the 20 frames).
-TEST(TrackReal, DISABLED_BiobuddyFunctionalTrialsMeetTheTargetsWithTheDefaultModelCalibratedOnTheStaticTrial) {
+// both (2 wrong; 0.999753 with the 20 frames). Eighteenth: what the left hip lost was its foot in
+// the fastest swings, 8-10 cm from its prediction, at the edge of its gates (LTOE, LTOE5 and LHEE
+// missed or on each other's points and the unmodelled LNAV's; one such label measured drove the
+// ankle to its range, where it stayed for a second). That error is the swinging shank's, which
+// the shank's group fit has just measured: a loose segment's gates are now centred on its
+// markers' predictions moved as its fitted parent moved its joint centre (ekf/tracker.h, "Rigid
+// groups"): left hip 0.999963 / 0.999671 (0 / 1 wrong), left knee 1.000000 both, right hip and
+// right knee as before.
+TEST(TrackReal, BiobuddyFunctionalTrialsMeetTheTargetsWithTheDefaultModelCalibratedOnTheStaticTrial) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
   for (const char* trial : {"Test_func_lhip.c3d"})
-    ExpectTheTargets(Bio(trial), subject, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), false,
+    ExpectTheTargets(Bio(trial), subject, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), true,
                      mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
 }
 
@@ -564,25 +571,6 @@ TEST(TrackReal, BiobuddyRightHipAndBothKneeTrialsMeetTheTargetsWithTheCalibrated
   for (const char* trial : {"Test_func_rhip.c3d", "Test_func_rknee.c3d", "Test_func_lknee.c3d"})
     ExpectTheTargets(Bio(trial), subject, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(), false,
                      mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
-}
-
-// The left hip trial: what is reached (above), not the targets.
-TEST(TrackReal, BiobuddyLeftHipTrialWithTheCalibratedModel) {
-  SKIP_WITHOUT_SHARED_DATA();
-  const mocap::Model subject = Calibrated(mocap::DefaultFullBodyModel(1.75), Bio("anatomical_posture.c3d"));
-  struct Reached {
-    const char* trial;
-    double accuracy[2];
-    int swaps[2];
-  };
-  for (const Reached& e : {Reached{"Test_func_lhip.c3d", {0.994, 0.993}, {0, 0}}})
-    for (int g = 0; g < 2; ++g) {
-      const RealResult r = TrackRecording(Bio(e.trial), subject, -Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitZ(),
-                                          g * 5, mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit);
-      EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
-      EXPECT_GE(r.run.score.accuracy(), e.accuracy[g]) << r.summary;
-      EXPECT_LE(r.run.score.swaps_longer_than_5_frames, e.swaps[g]) << r.summary;
-    }
 }
 
 std::string Gait2354(const std::string& file) {
