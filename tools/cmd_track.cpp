@@ -24,8 +24,8 @@
 // swaps_longer_than_5_frames, per_marker_accuracy). --up names the lab's vertical (auto, the
 // default: found, sim::FindLabVertical); an OpenSim model's own is Y, ours Z (TrackerOptions::up,
 // model_up). A file's frames before the first start are labelled backward from it
-// (sim::BackfillBeforeStart; --no-backfill: as live). --scale-to-subject always scales a
-// generic model to the subject at the start (TrackerOptions::init_scale_to_subject); stats.json
+// (sim::BackfillBeforeStart; --no-backfill: as live). The model is scaled to the subject at every
+// start (--scale-to-subject always, the default; TrackerOptions::init_scale_to_subject); stats.json
 // gives the scales (segment_scales). --calibrate STATIC first fits the model to a labelled static
 // trial of the subject (solver/subject_calibration.h: scales, marker places, the lab's markers the
 // model lacks attached) and tracks with that subject model, as a lab labels with a skeleton
@@ -73,7 +73,7 @@ struct TrackArgs {
   std::string points;
   std::string marker_set, marker_map;
   std::string up = "auto";
-  std::string scale_to_subject = "when-needed";
+  std::string scale_to_subject = "always";
   std::string calibrate;  // a labelled static trial: the model is fitted to it first
   int threads = 0;        // the calibration's fit
   bool unlabel = false;
@@ -635,7 +635,7 @@ const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code)
                   "the axis on which the tracker starts in the first 10 frames");
   cmd->add_option("--scale-to-subject", args->scale_to_subject,
                   "scale the model segment by segment to the subject at the start: never, when-needed "
-                  "(default: when the model's own size cannot start) or always (a generic model)")
+                  "(when the model's own size cannot start) or always (the default)")
       ->check(CLI::IsMember({"never", "when-needed", "always"}));
   cmd->add_option("--calibrate", args->calibrate,
                   "with --points: a labelled static trial of the subject (.c3d/.trc, --marker-map applies): the "
