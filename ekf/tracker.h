@@ -359,7 +359,8 @@ struct TrackerOptions {
   // constant), and its measurement variance is inflated by what is not yet known of it:
   // sigma^2 = sigma_m^2 / w_m + marker_offset_sigma^2 (1 - g)^(frames seen) + marker_offset_floor^2,
   // g = 1 / (time constant x rate) (the floor: model errors that change with the pose, skin
-  // motion).
+  // motion); after a start on a model scaled to the subject, a marker the start labelled has the
+  // scaled placement's RMS in place of marker_offset_sigma ("Initialisation and recovery").
   // The offsets are a filter-side stand-in for the marker parameters that the global fit
   // identifies properly; they are cleared at every initialisation and by SwapModel.
   // While the subject stands still (the median marker moved under 2 mm + 0.1 m/s x dt since the
