@@ -294,9 +294,9 @@ int main(int argc, char** argv) {
                  "TrackerOptions::marker_offset_prior_frames (0: the offsets' slow gain from the "
                  "first frame, as before issue 15's static start)")
       ->check(CLI::NonNegativeNumber);
-  std::string scale_to_subject = "when-needed";
+  std::string scale_to_subject = "always";
   app.add_option("--scale-to-subject", scale_to_subject,
-                 "TrackerOptions::init_scale_to_subject: never, when-needed (the default) or always")
+                 "TrackerOptions::init_scale_to_subject: never, when-needed or always (the default)")
       ->check(CLI::IsMember({"never", "when-needed", "always"}));
   app.add_option("--movements", scene.movements,
                  "protocol movements, comma-separated (default: all, from 'static')")

@@ -127,6 +127,7 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   nm_seen = static_cast<int>(std::count(seen.begin(), seen.end(), 1));
   offset.assign(nm, Eigen::Vector3d::Zero());
   offset_unknown.assign(nm, 1.0);
+  offset_sigma.assign(nm, options.marker_offset_sigma);
   model_error.assign(nm, 0.0);
 
   // Depths (joints are parents first).

@@ -187,16 +187,25 @@
 // hypothesis is worse by a log-likelihood margin (markers exchanged pairwise do not count: each
 // pair was its own decision). Tracker::initialisation() says what the last search did and why it
 // refused.
-// Scaled to the subject (TrackerOptions::init_scale_to_subject): a generic model (OpenSim's
-// gait2354, whose femurs are 15 % short of its example subject's) can put markers farther from
-// their points than the search's 5 cm, and no heading or restart mends a matter of size. So each
-// segment's scale factor (its markers and its child joints' centres scale with it, model/model.h)
-// is fitted with the pose to the best placement's points, from the root outwards and reassigned
-// at each step, with a prior at the model's own scale; then the whole search runs again on the
-// scaled model, and the track keeps those scales (InitialisationSummary::segment_scales). By
-// default only before the first track and when the model's own size cannot start (too few
-// labels, too large a residual; not a start refused as ambiguous); told to, at every start, the
-// scaled labelling then taken only when it keeps every label the model's own size gave.
+// Scaled to the subject (TrackerOptions::init_scale_to_subject): a lab calibrates a generic
+// model to its subject, and so does the tracker, at every start by default. A generic model
+// (OpenSim's gait2354, whose femurs are 15 % short of its example subject's) can put markers
+// farther from their points than the search's 5 cm, and no heading or restart mends a matter of
+// size; a nominal model that does start leaves its markers 15-25 mm RMS from their points, and
+// markers that its predictions miss by 3-20 cm unlabelled. So each segment's scale factor (its
+// markers and its child joints' centres scale with it, model/model.h) is fitted with the pose to
+// the best placement's points, from the root outwards and reassigned at each step, with a prior
+// at the model's own scale; then the whole search runs again on the scaled model. Where the
+// model's own size gave a labelling too and the scaled one differs, each is fitted with the scales
+// free to its labels alone, and the scaled one is taken only when it fits clearly better (the
+// search's log-likelihood margin) and every label it adds or changes lies within its gate of the
+// noise the model's own labels leave; else the model's own labels start, at the scales fitted to
+// them. The track keeps the scales (InitialisationSummary::segment_scales), and the offsets'
+// prior is then what the scaled placement left unexplained (its RMS, 7-9 mm on the simulated
+// subjects) instead of the nominal model's marker_offset_sigma: a first-second gate ~4 cm wide, not
+// ~10 cm, in which a hidden wrist marker no longer takes a ghost. Told to, only before the first
+// track and when the model's own size cannot start (too few labels, too large a residual; not a
+// start refused as ambiguous), or never.
 // Markers the model cannot place -- stacked with another marker of their segment on one point, a
 // generic model's placeholders for a lab's cluster markers (solver/attach_markers.h,
 // StackedMarkers) -- are treated as unseen: never searched for nor labelled (picking them up by
@@ -360,7 +369,8 @@ struct TrackerOptions {
   // constant), and its measurement variance is inflated by what is not yet known of it:
   // sigma^2 = sigma_m^2 / w_m + marker_offset_sigma^2 (1 - g)^(frames seen) + marker_offset_floor^2,
   // g = 1 / (time constant x rate) (the floor: model errors that change with the pose, skin
-  // motion).
+  // motion); after a start on a model scaled to the subject, a marker the start labelled has the
+  // scaled placement's RMS in place of marker_offset_sigma ("Initialisation and recovery").
   // The offsets are a filter-side stand-in for the marker parameters that the global fit
   // identifies properly; they are cleared at every initialisation and by SwapModel.
   // While the subject stands still (the median marker moved under 2 mm + 0.1 m/s x dt since the
@@ -451,14 +461,12 @@ struct TrackerOptions {
   // Final matching radius of the search (markers farther from every point stay unlabelled).
   double init_radius_m = 0.05;
   // Scaling the model to the subject at a (re)initialisation ("Initialisation and recovery"
-  // above): never; when the model's own size cannot start (the search labels too few markers, or
-  // leaves too large a residual: a generic OpenSim model); or always, the scaled search then taken
-  // when it keeps every label the model's own size gave. The default leaves the simulated sweep's
-  // starts as they were (BENCHMARKS.md: always is better on most seeds and on the real recordings,
-  // worse on the worst seed of each scene). The scales' prior: the model's own, with this
-  // standard deviation.
+  // above): always (the default: on the simulated sweep's seeds 1-80 every scene's worst seed and
+  // median are better, BENCHMARKS.md "Many seeds"); only when the model's own size cannot start
+  // (the search labels too few markers, or leaves too large a residual: a generic OpenSim
+  // model); or never. The scales' prior: the model's own, with this standard deviation.
   enum class ScaleToSubject { kNever, kWhenTheModelDoesNotFit, kAlways };
-  ScaleToSubject init_scale_to_subject = ScaleToSubject::kWhenTheModelDoesNotFit;
+  ScaleToSubject init_scale_to_subject = ScaleToSubject::kAlways;
   double init_scale_sigma = 0.05;
   // kWhenTheModelDoesNotFit judges the model's size on this much of the recording (seconds at
   // rate_hz): it scales once every search over that span failed for too few labels or too large

@@ -74,6 +74,10 @@ struct Tracker::Impl {
   // The part of marker_offset_sigma^2 still unknown: the offset estimate's variance over the
   // prior's (LearnOffsets).
   std::vector<double> offset_unknown;
+  // Per marker, the offset's prior (standard deviation per coordinate): marker_offset_sigma, the
+  // nominal model's error; for a marker the start labelled on a model scaled to the subject,
+  // what the scaled placement left unexplained (TryInitialise).
+  std::vector<double> offset_sigma;
   // Per marker: the mean square (per coordinate) of its residuals after the update, averaged
   // like the offsets: the model error that the pose and the offset do not explain.
   std::vector<double> model_error;
@@ -247,7 +251,7 @@ struct Tracker::Impl {
 
   // sigma_m^2 / w_m plus what is not yet known of the marker's offset.
   double MeasurementVariance(int m) const {
-    const double s0 = options.marker_offset_sigma, s1 = options.marker_offset_floor;
+    const double s0 = offset_sigma[m], s1 = options.marker_offset_floor;
     return marker_variance[m] + s0 * s0 * offset_unknown[m] + s1 * s1;
   }
   double OffsetGain() const {
@@ -258,6 +262,7 @@ struct Tracker::Impl {
     std::fill(offset.begin(), offset.end(), Eigen::Vector3d::Zero());
     std::fill(offset_unknown.begin(), offset_unknown.end(), std::pow(1.0 - OffsetGain(), count));
     std::fill(model_error.begin(), model_error.end(), 0.0);
+    std::fill(offset_sigma.begin(), offset_sigma.end(), options.marker_offset_sigma);
   }
   void SetModel(std::shared_ptr<const Model> m);
   void Allocate();
@@ -393,8 +398,12 @@ struct Tracker::Impl {
   static constexpr const char* kTooFewLabelled = "too few markers labelled";
   static constexpr const char* kResidualTooLarge = "residual too large";
   // Fits per-segment scales and the pose to h's points and sets the geometry to them (see the
-  // definition).
-  void ScaleToSubject(const Hypothesis& h, int np);
+  // definition). With `held`, to that labelling alone (no reassignment), the fitted pose and
+  // the labelled markers' RMS distance written to *fitted (z, rms) and each labelled marker's
+  // distance to *distance (0 for the others); returns the fit's truncated cost (a seen marker
+  // left unlabelled counts the search's final radius squared).
+  double ScaleToSubject(const Hypothesis& h, int np, const std::vector<int>* held = nullptr,
+                        Hypothesis* fitted = nullptr, std::vector<double>* distance = nullptr);
   static constexpr int kScaleIterations = 20;
   // The scales stay within [1 / kScaleLimit, kScaleLimit] of the model's own: a humerus 33 % long
   // (the first limit tried, 0.75-1.33) fits an arm's markers shifted one along the arm (simulated

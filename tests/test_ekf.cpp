@@ -505,11 +505,15 @@ TEST(EkfTracker, LearntProcessNoiseLabelsALowFrameRate) {
   auto truth = Share(session.truth);
   SceneOptions scene;
   scene.ghosts = 5;
-  RunStats total[2];
-  for (int learnt : {0, 1}) {
+  RunStats total[3];
+  // 0, 1: the bound's and the learnt noise at the model's own size (as measured above); 2: the
+  // learnt noise scaled to the subject at the start (the default since the eighteenth session):
+  // 0.963613 (185 wrong); the bound's is 0.938992 (397 wrong) so.
+  for (int learnt : {0, 1, 2}) {
     ekf::TrackerOptions to;
     to.rate_hz = 12.5;
     if (!learnt) to.process_noise_time_constant_s = 0;
+    if (learnt < 2) to.init_scale_to_subject = ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
     for (size_t t = 0; t < session.trials.size(); ++t) {
       const auto& trial = session.trials[t];
       ekf::Tracker tracker(truth, to);
@@ -519,13 +523,16 @@ TEST(EkfTracker, LearntProcessNoiseLabelsALowFrameRate) {
       total[learnt].wrong += s.wrong;
     }
     std::printf("12.5 Hz, %s: label accuracy %.6f (%ld/%ld), wrong %ld\n",
-                learnt ? "learnt process noise" : "the bound's", total[learnt].accuracy(),
+                learnt == 2 ? "learnt process noise, scaled" : learnt ? "learnt process noise" : "the bound's",
+                total[learnt].accuracy(),
                 total[learnt].correct, total[learnt].marker_points, total[learnt].wrong);
   }
   EXPECT_GE(total[1].accuracy(), 0.963);
   EXPECT_GT(total[1].accuracy(), total[0].accuracy() + 0.015);
   EXPECT_LE(total[1].wrong, 276);
   EXPECT_LT(total[1].wrong, total[0].wrong);
+  EXPECT_GE(total[2].accuracy(), 0.9636);
+  EXPECT_LE(total[2].wrong, 185);
 }
 
 // The subject in the static pose, turned to random headings and placed anywhere in the volume:
@@ -753,7 +760,13 @@ TEST(EkfTracker, UpdateAllocatesNothingWhileTracking) {
   std::mt19937 rng(8);
   std::vector<Frame> frames;
   for (int f = 0; f < 600; ++f) frames.push_back(MakeFrame(trial.markers, f, scene, rng));
-  ekf::Tracker tracker(Share(session.nominal));
+  // At the model's own size, every label right. Scaled to the subject (the default since the
+  // eighteenth session), 21,264 of 21,265: LELB, hidden at the start, comes back at frame 15
+  // 72 mm from its prediction and is withheld one frame as a doubtful return
+  // (min_return_probability). The scaled start allocates too, but before the measured frames.
+  ekf::TrackerOptions to;
+  to.init_scale_to_subject = ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
+  ekf::Tracker tracker(Share(session.nominal), to);
   ASSERT_EQ(tracker.Update(trial.markers.times[0], frames[0].points).state,
             ekf::TrackState::kTracking);
   long correct = 0, total = 0;

@@ -24,9 +24,10 @@
 // swaps_longer_than_5_frames, per_marker_accuracy). --up names the lab's vertical (auto, the
 // default: found, sim::FindLabVertical); an OpenSim model's own is Y, ours Z (TrackerOptions::up,
 // model_up). A file's frames before the first start are labelled backward from it
-// (sim::BackfillBeforeStart; --no-backfill: as live). --scale-to-subject always scales a
-// generic model to the subject at the start (TrackerOptions::init_scale_to_subject); stats.json
-// gives the scales (segment_scales). --calibrate STATIC first fits the model to a labelled static
+// (sim::BackfillBeforeStart; --no-backfill: as live). The model is scaled to the subject at every
+// start (--scale-to-subject always, the default; with --calibrate when-needed: the calibrated model
+// is the subject's size; TrackerOptions::init_scale_to_subject); stats.json gives the scales
+// (segment_scales). --calibrate STATIC first fits the model to a labelled static
 // trial of the subject (solver/subject_calibration.h: scales, marker places, the lab's markers the
 // model lacks attached) and tracks with that subject model, as a lab labels with a skeleton
 // calibrated on a static trial; stats.json's "calibration" says what the fit did.
@@ -73,7 +74,7 @@ struct TrackArgs {
   std::string points;
   std::string marker_set, marker_map;
   std::string up = "auto";
-  std::string scale_to_subject = "when-needed";
+  std::string scale_to_subject;  // empty: always, when-needed with --calibrate
   std::string calibrate;  // a labelled static trial: the model is fitted to it first
   int threads = 0;        // the calibration's fit
   bool unlabel = false;
@@ -323,8 +324,15 @@ int RunTrack(const TrackArgs& args) {
     spdlog::error("mocap track: --up {}: expected auto, x, y, z, -x, -y or -z", args.up);
     return 2;
   }
-  topt.init_scale_to_subject = args.scale_to_subject == "never"    ? ekf::TrackerOptions::ScaleToSubject::kNever
-                               : args.scale_to_subject == "always" ? ekf::TrackerOptions::ScaleToSubject::kAlways
+  // A model calibrated on the subject's static trial is the subject's size already: scaled again
+  // at the start, on one frame of real skin, the offsets' prior narrowed to that frame's residual
+  // lost labels at low rates (welk007's hip trial at 12.5 Hz, 5 ghosts: 0.987 -> 0.940; biobuddy's
+  // left hip 0.994 -> 0.984; BENCHMARKS.md, eighteenth session). So with --calibrate only when its
+  // size cannot start.
+  const std::string scale_to_subject =
+      !args.scale_to_subject.empty() ? args.scale_to_subject : args.calibrate.empty() ? "always" : "when-needed";
+  topt.init_scale_to_subject = scale_to_subject == "never"    ? ekf::TrackerOptions::ScaleToSubject::kNever
+                               : scale_to_subject == "always" ? ekf::TrackerOptions::ScaleToSubject::kAlways
                                    : ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
   // OpenSim's ground is Y up (gravity -Y); our models are Z up.
   topt.model_up = input.osim ? Eigen::Vector3d::UnitY() : Eigen::Vector3d::UnitZ();
@@ -572,7 +580,7 @@ int RunTrack(const TrackArgs& args) {
     }
     j["unseen_markers"] = topt.unseen_markers;
     if (!calibration.is_null()) j["calibration"] = calibration;
-    j["scale_to_subject"] = args.scale_to_subject;
+    j["scale_to_subject"] = scale_to_subject;
     const std::vector<double>& scales = tracker.initialisation().segment_scales;
     j["segment_scales"] = nlohmann::json::object();  // empty: the model's own
     for (size_t k = 0; k < scales.size(); ++k) j["segment_scales"][model.segments()[k].name] = scales[k];
@@ -635,7 +643,8 @@ const CommandRegistrar kRegisterTrack("track", [](CLI::App& app, int* exit_code)
                   "the axis on which the tracker starts in the first 10 frames");
   cmd->add_option("--scale-to-subject", args->scale_to_subject,
                   "scale the model segment by segment to the subject at the start: never, when-needed "
-                  "(default: when the model's own size cannot start) or always (a generic model)")
+                  "(when the model's own size cannot start; the default with --calibrate) or always (the "
+                  "default)")
       ->check(CLI::IsMember({"never", "when-needed", "always"}));
   cmd->add_option("--calibrate", args->calibrate,
                   "with --points: a labelled static trial of the subject (.c3d/.trc, --marker-map applies): the "
