@@ -405,6 +405,8 @@ struct Tracker::Impl {
   double ScaleToSubject(const Hypothesis& h, int np, const std::vector<int>* held = nullptr,
                         Hypothesis* fitted = nullptr, std::vector<double>* distance = nullptr);
   static constexpr int kScaleIterations = 20;
+  // The least a scaled start's offsets' prior may be (m; TryInitialise).
+  static constexpr double kScaledOffsetSigmaFloor = 0.01;
   // The scales stay within [1 / kScaleLimit, kScaleLimit] of the model's own: a humerus 33 % long
   // (the first limit tried, 0.75-1.33) fits an arm's markers shifted one along the arm (simulated
   // seeds 19, 40, 48: the elbow marker on the forearm's point, that one on the wrist's).

@@ -642,8 +642,15 @@ bool Tracker::Impl::TryInitialise(int np) {
   // alike). A marker the start did not label keeps the nominal prior: nothing sized its segment
   // or measured its place (a forearm the start left, the limb search's placement of it refused
   // for its new labels' narrowed gates: TrackLab.AForearmTheStartLeavesIsPlacedAtOnce).
+  //
+  // No tighter than kScaledOffsetSigmaFloor, however well the start's one frame fits: with the
+  // TRUE model the scaled placement leaves 2-3 mm, and gates that narrow from the first frame lost
+  // a pelvis marker at 1 mm from its prediction (the rigid group left it undecided) and an upper
+  // arm 10 cm off for thousands of frames (simulated seeds 63 and 78 at 8 ghosts, true model:
+  // 0.9999 of the labels at the model's own size, 0.940 scaled with a 2 mm floor, 0.9997 / 0.9999
+  // with 1 cm; 5 mm mended only 78). The nominal model's placements leave 7-9 mm.
   if (!init.segment_scales.empty()) {
-    const double known = std::min(options.marker_offset_sigma, std::max(h.rms, options.marker_offset_floor));
+    const double known = std::min(options.marker_offset_sigma, std::max(h.rms, kScaledOffsetSigmaFloor));
     for (int m = 0; m < nm; ++m)
       if (h.assignment[m] >= 0) offset_sigma[m] = known;
   }

@@ -509,7 +509,9 @@ TEST(EkfTracker, LearntProcessNoiseLabelsALowFrameRate) {
   // 0, 1: the bound's and the learnt noise at the model's own size (as measured above); 2: the
   // learnt noise scaled to the subject at the start (the default since the eighteenth session):
   // 0.963613 (185 wrong); the bound's is 0.938992 (397 wrong) so. With the loose segments' gates
-  // moved with their parent's centre too (the same session): 0.963749, 186 wrong.
+  // moved with their parent's centre too (the same session): 0.963749, 186 wrong; with the scaled
+  // start's offsets' prior no tighter than 1 cm (TryInitialise: the true model's 8-ghost seeds 63
+  // and 78 lost 6 % of their labels at 2 mm) 0.959974, 145 wrong: fewer wrong, more left empty.
   for (int learnt : {0, 1, 2}) {
     ekf::TrackerOptions to;
     to.rate_hz = 12.5;
@@ -532,8 +534,8 @@ TEST(EkfTracker, LearntProcessNoiseLabelsALowFrameRate) {
   EXPECT_GT(total[1].accuracy(), total[0].accuracy() + 0.015);
   EXPECT_LE(total[1].wrong, 276);
   EXPECT_LT(total[1].wrong, total[0].wrong);
-  EXPECT_GE(total[2].accuracy(), 0.9637);
-  EXPECT_LE(total[2].wrong, 186);
+  EXPECT_GE(total[2].accuracy(), 0.9599);
+  EXPECT_LE(total[2].wrong, 145);
 }
 
 // The subject in the static pose, turned to random headings and placed anywhere in the volume:
