@@ -202,8 +202,9 @@
 // noise the model's own labels leave; else the model's own labels start, at the scales fitted to
 // them. The track keeps the scales (InitialisationSummary::segment_scales), and the offsets'
 // prior is then what the scaled placement left unexplained (its RMS, 7-9 mm on the simulated
-// subjects) instead of the nominal model's marker_offset_sigma: a first-second gate ~4 cm wide, not
-// ~10 cm, in which a hidden wrist marker no longer takes a ghost. Told to, only before the first
+// subjects, and no less than 1 cm: with the true model's 2-3 mm the gates lost markers) instead
+// of the nominal model's marker_offset_sigma: a first-second gate ~4 cm wide, not ~10 cm, in
+// which a hidden wrist marker no longer takes a ghost. Told to, only before the first
 // track and when the model's own size cannot start (too few labels, too large a residual; not a
 // start refused as ambiguous), or never.
 // Markers the model cannot place -- stacked with another marker of their segment on one point, a
