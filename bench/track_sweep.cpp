@@ -332,10 +332,11 @@ int main(int argc, char** argv) {
   tracker_options.min_return_probability = min_return_probability;
   tracker_options.process_noise_time_constant_s = process_noise_time_constant_s;
   tracker_options.marker_offset_prior_frames = marker_offset_prior_frames;
-  using Scale = mocap::ekf::TrackerOptions::ScaleToSubject;
-  tracker_options.init_scale_to_subject = scale_to_subject == "never"    ? Scale::kNever
-                                          : scale_to_subject == "always" ? Scale::kAlways
-                                                                         : Scale::kWhenTheModelDoesNotFit;
+  if (!mocap::ekf::ParseScaleToSubject(scale_to_subject, &tracker_options.init_scale_to_subject)) {
+    std::fprintf(stderr, "track_sweep: --scale-to-subject %s: expected never, when-needed or always\n",
+                 scale_to_subject.c_str());
+    return 2;
+  }
   std::vector<SeedResult> results(seeds.size());
   std::atomic<size_t> next{0};
   std::mutex print_mutex;

@@ -85,6 +85,15 @@ const char* ToString(TrackState state) {
   return "unknown";
 }
 
+bool ParseScaleToSubject(const std::string& name, TrackerOptions::ScaleToSubject* mode) {
+  using Scale = TrackerOptions::ScaleToSubject;
+  if (name == "never") *mode = Scale::kNever;
+  else if (name == "when-needed") *mode = Scale::kWhenTheModelDoesNotFit;
+  else if (name == "always") *mode = Scale::kAlways;
+  else return false;
+  return true;
+}
+
 void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   model = std::move(m);
   const Model& md = *model;

@@ -495,6 +495,9 @@ struct TrackerOptions {
 
 enum class TrackState { kInitialising, kTracking, kLost };
 const char* ToString(TrackState state);
+// TrackerOptions::ScaleToSubject by the name the tools take: "never", "when-needed", "always".
+// False for any other name (*mode untouched).
+bool ParseScaleToSubject(const std::string& name, TrackerOptions::ScaleToSubject* mode);
 
 struct TrackOutput {             // valid until the next Update
   TrackState state = TrackState::kInitialising;

@@ -589,7 +589,6 @@ bool Tracker::Impl::TryInitialise(int np) {
       SetGeometry(before);
       best = -1;
     } else if (!scaled_found || differ) {
-      const Eigen::VectorXd scaled = geometry_params;
       double fit_scaled = std::numeric_limits<double>::infinity();
       Hypothesis found;
       std::vector<double> distance;

@@ -599,23 +599,24 @@ mocap::sim::TrackRun TrackHarderScene(std::uint64_t seed, std::vector<std::strin
 TEST(TrackScaledStart, AHiddenWristMarkerTakesNoGhost) {
   using Scale = mocap::ekf::TrackerOptions::ScaleToSubject;
   ASSERT_EQ(mocap::ekf::TrackerOptions{}.init_scale_to_subject, Scale::kAlways);
+  auto print = [](std::uint64_t seed, const char* size, const mocap::sim::TrackRun& run) {
+    std::printf("seed %d, 8 ghosts, frames 0-1399, %s: accuracy %.6f, wrong %ld, swaps %d\n",
+                static_cast<int>(seed), size, run.score.accuracy(), static_cast<long>(run.score.wrong),
+                run.score.swaps_longer_than_5_frames);
+  };
   for (std::uint64_t seed : {10, 24}) {
     std::vector<double> scales;
     if (seed == 10) {  // seed 24's ghost, 103 mm away at the model's own size, was not taken there
       const mocap::sim::TrackRun own = TrackHarderScene(seed, {}, 1400, Scale::kWhenTheModelDoesNotFit, &scales);
       ASSERT_TRUE(own.scored);
       EXPECT_TRUE(scales.empty());
-      std::printf("seed %d, 8 ghosts, frames 0-1399, the model's own size: accuracy %.6f, wrong %ld, swaps %d\n",
-                  static_cast<int>(seed), own.score.accuracy(), static_cast<long>(own.score.wrong),
-                  own.score.swaps_longer_than_5_frames);
+      print(seed, "the model's own size", own);
       EXPECT_GE(own.score.swaps_longer_than_5_frames, 1);
     }
     const mocap::sim::TrackRun scaled = TrackHarderScene(seed, {}, 1400, Scale::kAlways, &scales);
     ASSERT_TRUE(scaled.scored);
     EXPECT_FALSE(scales.empty());
-    std::printf("seed %d, 8 ghosts, frames 0-1399, scaled to the subject: accuracy %.6f, wrong %ld, swaps %d\n",
-                static_cast<int>(seed), scaled.score.accuracy(), static_cast<long>(scaled.score.wrong),
-                scaled.score.swaps_longer_than_5_frames);
+    print(seed, "scaled to the subject", scaled);
     EXPECT_EQ(scaled.frames, 1400);
     EXPECT_EQ(scaled.reinitialisations(), 0);
     EXPECT_EQ(scaled.score.swaps_longer_than_5_frames, 0) << "seed " << seed;

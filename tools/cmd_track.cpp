@@ -331,9 +331,10 @@ int RunTrack(const TrackArgs& args) {
   // size cannot start.
   const std::string scale_to_subject =
       !args.scale_to_subject.empty() ? args.scale_to_subject : args.calibrate.empty() ? "always" : "when-needed";
-  topt.init_scale_to_subject = scale_to_subject == "never"    ? ekf::TrackerOptions::ScaleToSubject::kNever
-                               : scale_to_subject == "always" ? ekf::TrackerOptions::ScaleToSubject::kAlways
-                                   : ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit;
+  if (!ekf::ParseScaleToSubject(scale_to_subject, &topt.init_scale_to_subject)) {
+    spdlog::error("mocap track: --scale-to-subject {}: expected never, when-needed or always", scale_to_subject);
+    return 2;
+  }
   // OpenSim's ground is Y up (gravity -Y); our models are Z up.
   topt.model_up = input.osim ? Eigen::Vector3d::UnitY() : Eigen::Vector3d::UnitZ();
   // The model's markers the file never shows (virtual ones such as R_HJC, markers the lab's set
