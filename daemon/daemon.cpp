@@ -1057,7 +1057,8 @@ void Daemon::CalibrationList(const Request& r) {
 // Subjects and models
 
 Status Daemon::LoadSubjectModel(const SubjectRecord& subject, int version,
-                                std::shared_ptr<Model>* out, int* got_version) {
+                                std::shared_ptr<Model>* out, int* got_version,
+                                ekf::ModelOrigin* origin) {
   ModelRecord rec;
   MOCAP_RETURN_IF_ERROR(store_->GetModel(subject.id, version, &rec));
   auto model = std::make_shared<Model>();
@@ -1067,6 +1068,8 @@ Status Daemon::LoadSubjectModel(const SubjectRecord& subject, int version,
                                        model.get()));
   *out = std::move(model);
   *got_version = static_cast<int>(rec.version);
+  if (origin)
+    *origin = rec.fit_report_id ? ekf::ModelOrigin::kFittedToSubject : ekf::ModelOrigin::kGeneric;
   return Status::Ok();
 }
 
@@ -1115,11 +1118,12 @@ void Daemon::SubjectCreate(const Request& r) {
 Status Daemon::SelectSubject(const SubjectRecord& subject, int version) {
   std::shared_ptr<Model> model;
   int got = 0;
-  MOCAP_RETURN_IF_ERROR(LoadSubjectModel(subject, version, &model, &got));
+  ekf::ModelOrigin origin = ekf::ModelOrigin::kGeneric;
+  MOCAP_RETURN_IF_ERROR(LoadSubjectModel(subject, version, &model, &got, &origin));
   subject_ = subject;
   live_model_ = model;
   live_model_version_ = got;
-  pipeline_->SetSubjectModel(model, got);
+  pipeline_->SetSubjectModel(model, got, origin);
   RememberLive();
   return Status::Ok();
 }
@@ -1671,11 +1675,12 @@ void Daemon::ModelApply(const Request& r) {
   if (!subject_) return Fail(r, error_code::kConflict, "select a subject first (subject.select)");
   std::shared_ptr<Model> model;
   int got = 0;
-  if (Status s = LoadSubjectModel(*subject_, static_cast<int>(version), &model, &got); !s)
+  ekf::ModelOrigin origin = ekf::ModelOrigin::kGeneric;
+  if (Status s = LoadSubjectModel(*subject_, static_cast<int>(version), &model, &got, &origin); !s)
     return Fail(r, error_code::kNotFound, s.message());
   std::uint64_t from = 0;
   // Waits for the tracking thread to take the model between two frames: at most a frame period.
-  if (Status s = pipeline_->SwapModel(model, got, &from); !s)
+  if (Status s = pipeline_->SwapModel(model, got, origin, &from); !s)
     return Fail(r, error_code::kFailed, "model v" + std::to_string(got) + ": " + s.message());
   live_model_ = model;
   live_model_version_ = got;

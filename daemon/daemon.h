@@ -165,8 +165,10 @@ class Daemon {
   Status SelectSubject(const SubjectRecord& subject, int version);  // version 0: the latest
   void RememberLive();
   void ResumeLive();
+  // *origin (optional): fitted to the subject when a fit produced that version (the tracker then
+  // does not scale it at every start; ekf::ModelOrigin).
   Status LoadSubjectModel(const SubjectRecord& subject, int version, std::shared_ptr<Model>* out,
-                          int* got_version);
+                          int* got_version, ekf::ModelOrigin* origin = nullptr);
   void Stream(const LiveFrame& frame);
 
   DaemonConfig config_;

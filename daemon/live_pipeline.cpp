@@ -118,17 +118,19 @@ bool LivePipeline::calibrated() const {
   return triangulator_ != nullptr;
 }
 
-void LivePipeline::SetSubjectModel(std::shared_ptr<const Model> model, int version) {
+void LivePipeline::SetSubjectModel(std::shared_ptr<const Model> model, int version,
+                                   ekf::ModelOrigin origin) {
   std::lock_guard<std::mutex> lock(request_mutex_);
   request_ = {};
   request_.pending = true;
   request_.swap = false;
   request_.model = std::move(model);
   request_.version = version;
+  request_.origin = origin;
 }
 
 Status LivePipeline::SwapModel(std::shared_ptr<const Model> model, int version,
-                               std::uint64_t* from_frame) {
+                               ekf::ModelOrigin origin, std::uint64_t* from_frame) {
   std::unique_lock<std::mutex> lock(request_mutex_);
   if (!running_) return Status::Error("the pipeline is not running");
   if (request_.pending && !request_.swap && request_.model) {
@@ -137,12 +139,14 @@ Status LivePipeline::SwapModel(std::shared_ptr<const Model> model, int version,
     // the swap would find no tracker ("no subject is being tracked") right after a select.
     request_.model = std::move(model);
     request_.version = version;
+    request_.origin = origin;
   } else {
     request_ = {};
     request_.pending = true;
     request_.swap = true;
     request_.model = std::move(model);
     request_.version = version;
+    request_.origin = origin;
   }
   // A frame arrives every 5 ms; a second covers a descheduled tracking thread.
   if (!request_done_.wait_for(lock, std::chrono::seconds(2), [&] { return request_.done; })) {
@@ -229,14 +233,14 @@ void LivePipeline::TrackLoop() {
           tracker_.reset();
           if (request_.model) {
             ekf::TrackerOptions to = options_.tracker;
-            tracker_ = std::make_unique<ekf::Tracker>(request_.model, to);
+            tracker_ = std::make_unique<ekf::Tracker>(request_.model, to, request_.origin);
           }
           model_version_ = request_.version;
           request_.result = Status::Ok();
         } else if (!tracker_) {
           request_.result = Status::Error("no subject is being tracked");
         } else {
-          request_.result = tracker_->SwapModel(request_.model);
+          request_.result = tracker_->SwapModel(request_.model, request_.origin);
           if (request_.result) model_version_ = request_.version;
         }
         request_.from_frame = pf.sequence;

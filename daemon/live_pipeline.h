@@ -121,13 +121,16 @@ class LivePipeline {
   bool calibrated() const;
 
   // A new tracker on `model` from the next frame (subject.select): it initialises itself from the
-  // static pose. nullptr: no tracking.
-  void SetSubjectModel(std::shared_ptr<const Model> model, int version);
+  // static pose. nullptr: no tracking. `origin`: a fit's model is the subject's size already
+  // (ekf::ModelOrigin).
+  void SetSubjectModel(std::shared_ptr<const Model> model, int version,
+                       ekf::ModelOrigin origin = ekf::ModelOrigin::kGeneric);
   // The tracker keeps its track and takes `model` between two frames (model.apply). Blocks until
   // the tracking thread has done it (at most a frame plus the swap) and says at which frame, or
   // fails (another model's coordinates or markers, no tracker, timeout). Right after
   // SetSubjectModel (its tracker not started yet), the new tracker starts on `model` instead.
-  Status SwapModel(std::shared_ptr<const Model> model, int version, std::uint64_t* from_frame);
+  Status SwapModel(std::shared_ptr<const Model> model, int version, ekf::ModelOrigin origin,
+                   std::uint64_t* from_frame);
 
   // Frames go to the recorder while on.
   void SetRecording(bool on) { recording_.store(on); }
@@ -177,6 +180,7 @@ class LivePipeline {
     bool swap = false;  // true: SwapModel; false: a new tracker
     std::shared_ptr<const Model> model;
     int version = 0;
+    ekf::ModelOrigin origin = ekf::ModelOrigin::kGeneric;
     bool done = false;
     Status result;
     std::uint64_t from_frame = 0;

@@ -569,8 +569,10 @@ void Tracker::Impl::Wrap(Eigen::VectorXd* z) const {
 
 // ---------------------------------------------------------------------------------------------
 
-Tracker::Tracker(std::shared_ptr<const Model> model, TrackerOptions options) : impl_(new Impl) {
+Tracker::Tracker(std::shared_ptr<const Model> model, TrackerOptions options, ModelOrigin origin)
+    : impl_(new Impl) {
   impl_->options = std::move(options);
+  impl_->origin = origin;
   impl_->lab_to_model = Eigen::Quaterniond::FromTwoVectors(impl_->options.up.normalized(),
                                                             impl_->options.model_up.normalized())
                             .toRotationMatrix();
@@ -665,7 +667,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
   return out;
 }
 
-Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
+Status Tracker::SwapModel(std::shared_ptr<const Model> model, ModelOrigin origin) {
   if (!model) return Status::Error("SwapModel: no model");
   Impl& s = *impl_;
   const Model& old = *s.model;
@@ -740,6 +742,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model) {
   // The new model's markers are where the fit put them: forget the old model's corrections, but
   // trust the new positions more than a nominal model's.
   s.ClearOffsets(s.options.swap_offset_count);
+  s.origin = origin;
   for (int i = 0; i < s.nz; ++i)
     s.P(i, i) += s.rotational[i] ? s.options.swap_inflation_rotational
                                  : s.options.swap_inflation_translational;

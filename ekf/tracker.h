@@ -206,7 +206,8 @@
 // of the nominal model's marker_offset_sigma: a first-second gate ~4 cm wide, not ~10 cm, in
 // which a hidden wrist marker no longer takes a ghost. Told to, only before the first
 // track and when the model's own size cannot start (too few labels, too large a residual; not a
-// start refused as ambiguous), or never.
+// start refused as ambiguous), or never. A model fitted to the subject (ModelOrigin: the global
+// fit's result, given by SwapModel) is scaled only when its own size cannot start.
 // Markers the model cannot place -- stacked with another marker of their segment on one point, a
 // generic model's placeholders for a lab's cluster markers (solver/attach_markers.h,
 // StackedMarkers) -- are treated as unseen: never searched for nor labelled (picking them up by
@@ -526,10 +527,19 @@ struct InitialisationSummary {
   std::vector<double> segment_scales;
 };
 
+// Where a tracker's model comes from. A generic or nominal model is scaled to the subject at a
+// start as TrackerOptions::init_scale_to_subject says. One fitted to this subject (the global
+// fit's result, a model calibrated on the subject's static trial) is the subject's size already:
+// scaled again at every start, the labels were worse (welk007 at 12.5 Hz with its calibrated
+// model: 0.987 -> 0.940; biobuddy's left hip 0.994 -> 0.984), so it is scaled only when its own
+// size cannot start (kAlways acts as kWhenTheModelDoesNotFit).
+enum class ModelOrigin { kGeneric, kFittedToSubject };
+
 class Tracker {
  public:
   // `options` must be valid (TrackerOptions::IsValid); the model must have at least one joint.
-  Tracker(std::shared_ptr<const Model> model, TrackerOptions options = {});
+  Tracker(std::shared_ptr<const Model> model, TrackerOptions options = {},
+          ModelOrigin origin = ModelOrigin::kGeneric);
   ~Tracker();
   Tracker(const Tracker&) = delete;
   Tracker& operator=(const Tracker&) = delete;
@@ -541,8 +551,10 @@ class Tracker {
 
   // Replace the model (e.g. the global fit's result) between two frames without losing the
   // track: z and its velocities are kept, the coordinates' covariance is inflated. The new model
-  // must have the same coordinates and markers (names, order).
-  Status SwapModel(std::shared_ptr<const Model> model);
+  // must have the same coordinates and markers (names, order). `origin`: the global fit's result
+  // is the subject's own (ModelOrigin), and a later re-initialisation scales it accordingly.
+  Status SwapModel(std::shared_ptr<const Model> model,
+                   ModelOrigin origin = ModelOrigin::kFittedToSubject);
 
   TrackState state() const;
   void Reset();

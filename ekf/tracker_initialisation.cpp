@@ -558,8 +558,11 @@ bool Tracker::Impl::TryInitialise(int np) {
   unfit_searches = unfit ? unfit_searches + 1 : 0;
   const int judged = std::max(1, static_cast<int>(std::lround(options.init_scale_after_s * options.rate_hz)));
   const bool does_not_fit = unfit && unfit_searches >= judged;
-  if (!hyps.empty() && ((options.init_scale_to_subject == Scale::kAlways && best >= 0) ||
-                        (options.init_scale_to_subject != Scale::kNever && does_not_fit))) {
+  const Scale scale_mode = origin == ModelOrigin::kFittedToSubject && options.init_scale_to_subject == Scale::kAlways
+                               ? Scale::kWhenTheModelDoesNotFit
+                               : options.init_scale_to_subject;
+  if (!hyps.empty() && ((scale_mode == Scale::kAlways && best >= 0) ||
+                        (scale_mode != Scale::kNever && does_not_fit))) {
     const Eigen::VectorXd before = geometry_params;
     const InitialisationSummary summary = init;
     std::vector<Hypothesis> as_given = hyps;

@@ -533,7 +533,7 @@ TEST(LivePipeline, ModelAppliedRightAfterASelectStartsTheTrackerOnIt) {
   live.SetSubjectModel(selected, 1);
   Status swapped = Status::Error("not returned");
   std::uint64_t from_frame = 0;
-  std::thread apply([&] { swapped = live.SwapModel(applied, 2, &from_frame); });
+  std::thread apply([&] { swapped = live.SwapModel(applied, 2, ekf::ModelOrigin::kFittedToSubject, &from_frame); });
   std::this_thread::sleep_for(std::chrono::milliseconds(100));  // the apply waits for a frame
   {
     std::lock_guard<std::mutex> lock(mutex);

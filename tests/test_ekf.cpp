@@ -659,6 +659,64 @@ TEST(EkfTracker, DetectsDivergenceAndReinitialisesAfterATeleport) {
   (void)lost_at;
 }
 
+// A model fitted to the subject (the global fit's, given by SwapModel, or a tracker built on it)
+// is not scaled again at a re-initialisation; a generic one is (TrackerOptions::
+// init_scale_to_subject kAlways, the default). The subject teleports mid-trial to force a start.
+TEST(EkfTracker, ModelFittedToTheSubjectIsNotScaledAgainAtARestart) {
+  const auto& session = Session();
+  const auto& trial = session.trials[TrialIndex("knee_flexion_l")];
+  const int swap = 150, jump = 250, n = 500;
+  SceneOptions scene;
+  scene.ghosts = 3;
+  scene.transform = [&](int f, const Eigen::Vector3d& p) -> Eigen::Vector3d {
+    return f < jump ? p : Eigen::Vector3d(p + Eigen::Vector3d(1.5, 0.5, 0));
+  };
+  struct Restart {
+    int back_at = -1;
+    std::vector<double> scales;  // the re-initialisation's
+    double accuracy = 0;
+  };
+  auto run = [&](ekf::Tracker* tracker, bool swap_in_truth) {
+    std::mt19937 rng(5);
+    Restart r;
+    long correct = 0, points = 0;
+    for (int f = 0; f < n; ++f) {
+      if (swap_in_truth && f == swap) EXPECT_TRUE(tracker->SwapModel(Share(session.truth)).ok());
+      const Frame fr = MakeFrame(trial.markers, f, scene, rng);
+      const ekf::TrackOutput& out = tracker->Update(trial.markers.times[f], fr.points);
+      if (f >= jump && r.back_at < 0 && out.reinitialised) {
+        r.back_at = f;
+        r.scales = tracker->initialisation().segment_scales;
+      }
+      if (r.back_at >= 0)
+        for (size_t k = 0; k < fr.truth.size(); ++k)
+          if (fr.truth[k] >= 0) {
+            ++points;
+            correct += out.marker_of_point[k] == fr.truth[k];
+          }
+    }
+    r.accuracy = points ? double(correct) / points : 0.0;
+    return r;
+  };
+  ekf::Tracker generic(Share(session.truth));
+  const Restart g = run(&generic, false);
+  ekf::Tracker fitted(Share(session.truth), {}, ekf::ModelOrigin::kFittedToSubject);
+  const Restart f = run(&fitted, false);
+  ekf::Tracker swapped(Share(session.nominal));
+  const Restart s = run(&swapped, true);
+  std::printf("restart at %d / %d / %d: scaled segments %zu / %zu / %zu, labels %.6f / %.6f / %.6f\n",
+              g.back_at, f.back_at, s.back_at, g.scales.size(), f.scales.size(), s.scales.size(),
+              g.accuracy, f.accuracy, s.accuracy);
+  ASSERT_GE(g.back_at, jump);
+  ASSERT_GE(f.back_at, jump);
+  ASSERT_GE(s.back_at, jump);
+  EXPECT_FALSE(g.scales.empty()) << "a generic model is scaled at every start";
+  EXPECT_TRUE(f.scales.empty()) << "the subject's fitted model was scaled again";
+  EXPECT_TRUE(s.scales.empty()) << "the model given by SwapModel was scaled again";
+  EXPECT_GE(f.accuracy, 0.9995);
+  EXPECT_GE(s.accuracy, 0.9995);
+}
+
 // SwapModel mid-trial, nominal -> true: the labels stay right and the joint angles improve.
 TEST(EkfTracker, SwapModelKeepsTheTrackAndImprovesTheAngles) {
   const auto& session = Session();
