@@ -39,6 +39,16 @@ inline constexpr double kBesideSeconds = 2.0;
 inline constexpr double kMateFitMargin = 1.0;
 // The error of a predicted joint centre (a nominal model's centres are 1-2 cm off).
 inline constexpr double kJointCentreTolerance = 0.02;
+// The chi-square value with `dof` degrees of freedom that has the tail probability of the 3-dof
+// `gate_chi2` (Wilson and Hilferty 1931: (x/k)^(1/3) is nearly normal, mean 1 - 2/(9k), variance
+// 2/(9k); within 2 % of the exact quantile from 3 dof up at the 1e-3 tail). A gate on a fit's
+// whole cost, where each residual's own gate lets one outlier through spread over the others.
+inline double ChiSquareAtGateTail(double gate_chi2, int dof) {
+  const double z = (std::cbrt(gate_chi2 / 3.0) - 1.0 + 2.0 / 27.0) / std::sqrt(2.0 / 27.0);
+  const double a = 2.0 / (9.0 * dof);
+  const double c = 1.0 - a + z * std::sqrt(a);
+  return dof * c * c * c;
+}
 inline constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 // Two markers of one segment this near (unscaled) are stacked on one point (StackedOnOnePoint,
 // model/model.h; the fit's FitOptions::stacked_marker_tolerance_m is the same).

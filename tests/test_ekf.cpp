@@ -21,6 +21,7 @@
 #include "ekf/assignment.h"
 #include "ekf/filter.h"
 #include "ekf/tracker.h"
+#include "ekf/tracker_impl.h"
 #include "model/kinematics.h"
 #include "sim/simulate.h"
 #include "tests/allocation_test_util.h"
@@ -657,6 +658,19 @@ TEST(EkfTracker, DetectsDivergenceAndReinitialisesAfterATeleport) {
   EXPECT_LE(back_at, jump + options.divergence_frames);
   EXPECT_GE(double(correct_after) / points_after, 0.9995);
   (void)lost_at;
+}
+
+// The whole-fit gate of the segment registration: the chi-square at the 3-dof gate's tail, for
+// other degrees of freedom, against the exact quantiles at the 0.999 level (tables; the default
+// gate_chi2 16.27 is chi-square(3) at 0.999).
+TEST(EkfTracker, ChiSquareAtTheGatesTailMatchesTheTables) {
+  using mocap::ekf::internal::ChiSquareAtGateTail;
+  const double gate = mocap::ekf::TrackerOptions{}.gate_chi2;
+  EXPECT_NEAR(ChiSquareAtGateTail(gate, 3), gate, 1e-9);
+  const std::pair<int, double> table[] = {{6, 22.458}, {9, 27.877}, {12, 32.909}, {30, 59.703}, {42, 76.084}};
+  for (const auto& [dof, exact] : table) EXPECT_NEAR(ChiSquareAtGateTail(gate, dof), exact, 0.02 * exact) << dof;
+  // Monotone in the degrees of freedom.
+  for (int dof = 3; dof < 48; ++dof) EXPECT_LT(ChiSquareAtGateTail(gate, dof), ChiSquareAtGateTail(gate, dof + 1));
 }
 
 // A model fitted to the subject (the global fit's, given by SwapModel, or a tracker built on it)
