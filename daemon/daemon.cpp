@@ -45,6 +45,9 @@ namespace {
 
 // The nice value of a fit job and its workers (Daemon::StartFit): below the live pipeline.
 constexpr int kFitNice = 10;
+// model.apply: how long the tracking thread may take to take the model (a frame arrives every
+// 5 ms; a frame's start is ~0.1 s; a second more covers a descheduled thread).
+constexpr std::uint64_t kApplyTimeoutNs = 2'000'000'000;
 
 using Json = nlohmann::json;
 namespace fs = std::filesystem;
@@ -1678,15 +1681,37 @@ void Daemon::ModelApply(const Request& r) {
   ekf::ModelOrigin origin = ekf::ModelOrigin::kGeneric;
   if (Status s = LoadSubjectModel(*subject_, static_cast<int>(version), &model, &got, &origin); !s)
     return Fail(r, error_code::kNotFound, s.message());
-  std::uint64_t from = 0;
-  // Waits for the tracking thread to take the model between two frames: at most a frame period.
-  if (Status s = pipeline_->SwapModel(model, got, origin, &from); !s)
+  if (applying_) return Fail(r, error_code::kConflict, "another model.apply is in progress");
+  // The tracking thread takes the model between two frames, and answers on the loop: a frame can
+  // be long (the tracker's start), and the loop keeps answering meanwhile.
+  const std::int64_t subject_id = subject_->id;
+  std::shared_ptr<const Model> shared = model;
+  if (Status s = pipeline_->RequestSwap(
+          model, got, origin,
+          [this, r, shared, got, subject_id](Status result, std::uint64_t from) {
+            PostToLoop([this, r, shared, got, subject_id, result, from] {
+              ModelApplied(r, shared, got, subject_id, result, from);
+            });
+          });
+      !s)
     return Fail(r, error_code::kFailed, "model v" + std::to_string(got) + ": " + s.message());
-  live_model_ = model;
-  live_model_version_ = got;
+  applying_ = r;
+  apply_deadline_ns_ = drivers::MonotonicNs() + kApplyTimeoutNs;
+}
+
+void Daemon::ModelApplied(const Request& r, std::shared_ptr<const Model> model, int version,
+                          std::int64_t subject_id, Status result, std::uint64_t from_frame) {
+  applying_.reset();
+  if (!result)
+    return Fail(r, error_code::kFailed, "model v" + std::to_string(version) + ": " + result.message());
+  // A select after the tracking thread took the model: the select's tracker replaces it.
+  if (!subject_ || subject_->id != subject_id)
+    return Fail(r, error_code::kConflict, "the subject changed while its model was applied");
+  live_model_ = std::move(model);
+  live_model_version_ = version;
   RememberLive();
-  spdlog::info("model v{} of '{}' live from frame {}", got, subject_->name, from);
-  server_->Reply(r.client.id, r.id, {{"version", got}, {"from_frame", from}});
+  spdlog::info("model v{} of '{}' live from frame {}", version, subject_->name, from_frame);
+  server_->Reply(r.client.id, r.id, {{"version", version}, {"from_frame", from_frame}});
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -2095,6 +2120,11 @@ void Daemon::NoteSilentCameras() {
 
 void Daemon::Tick() {
   DrainFrames();
+  if (applying_ && drivers::MonotonicNs() > apply_deadline_ns_ && pipeline_->WithdrawSwap()) {
+    const Request r = *applying_;
+    applying_.reset();
+    Fail(r, error_code::kFailed, "the tracking stage did not take the model within 2 s (no frames?)");
+  }
   if (!pending_finishes_.empty() && ++ticks_since_retry_ >= 10) {
     ticks_since_retry_ = 0;
     std::vector<PendingFinish> retry;

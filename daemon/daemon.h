@@ -146,6 +146,9 @@ class Daemon {
   void FitCancel(const Request& r);
   void ModelList(const Request& r);
   void ModelApply(const Request& r);
+  // The tracking thread's answer to model.apply, on the loop.
+  void ModelApplied(const Request& r, std::shared_ptr<const Model> model, int version,
+                    std::int64_t subject_id, Status result, std::uint64_t from_frame);
   void Export(const Request& r);
   void Subscribe(const Request& r);
   void Unsubscribe(const Request& r);
@@ -208,6 +211,10 @@ class Daemon {
   std::optional<SubjectRecord> subject_;
   std::shared_ptr<const Model> live_model_;
   int live_model_version_ = 0;
+  // A model.apply the tracking thread has not answered yet (one at a time), and when Tick gives
+  // up on it (no frames: the tracking thread takes a model between two frames).
+  std::optional<Request> applying_;
+  std::uint64_t apply_deadline_ns_ = 0;
   int calibration_version_ = 0;  // live calibration (0: none)
   std::uint64_t last_frame_ = 0;
   LiveFrame last_live_;           // the newest frame (status)

@@ -3,7 +3,9 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <condition_variable>
 #include <limits>
+#include <string>
 
 #include "drivers/frame.h"
 
@@ -85,13 +87,13 @@ void LivePipeline::Stop() {
   if (track_thread_.joinable()) track_thread_.join();
   loop_queue_.Close();
   recorder_queue_.Close();
-  std::lock_guard<std::mutex> lock(request_mutex_);
-  if (request_.pending) {
-    request_.done = true;
-    request_.result = Status::Error("the pipeline stopped before the model was applied");
-    request_.pending = false;
-    request_done_.notify_all();
+  SwapDone orphan;
+  {
+    std::lock_guard<std::mutex> lock(request_mutex_);
+    orphan = std::move(request_.done);
+    request_ = {};
   }
+  if (orphan) orphan(Status::Error("the pipeline stopped before the model was applied"), 0);
 }
 
 Status LivePipeline::SetCalibration(const std::vector<reconstruction::CameraModel>& cameras) {
@@ -120,41 +122,100 @@ bool LivePipeline::calibrated() const {
 
 void LivePipeline::SetSubjectModel(std::shared_ptr<const Model> model, int version,
                                    ekf::ModelOrigin origin) {
+  SwapDone replaced;
+  {
+    std::lock_guard<std::mutex> lock(request_mutex_);
+    replaced = std::move(request_.done);
+    request_ = {};
+    request_.pending = true;
+    request_.swap = false;
+    request_.model = std::move(model);
+    request_.version = version;
+    request_.origin = origin;
+  }
+  if (replaced) replaced(Status::Error("another subject was selected before the model was applied"), 0);
+}
+
+Status LivePipeline::RequestSwap(std::shared_ptr<const Model> model, int version,
+                                 ekf::ModelOrigin origin, SwapDone done) {
+  SwapDone replaced;
+  {
+    std::lock_guard<std::mutex> lock(request_mutex_);
+    if (!running_) return Status::Error("the pipeline is not running");
+    if (request_.pending && !request_.swap && request_.model) {
+      // subject.select's new tracker has not started yet (it starts at the next frame): the
+      // tracker starts on this model instead. Replacing the request would lose the select, and
+      // the swap would find no tracker ("no subject is being tracked") right after a select.
+      replaced = std::move(request_.done);
+      if (!request_.selected) {
+        request_.selected = request_.model;
+        request_.selected_version = request_.version;
+        request_.selected_origin = request_.origin;
+      }
+      request_.model = std::move(model);
+      request_.version = version;
+      request_.origin = origin;
+      request_.done = std::move(done);
+    } else {
+      replaced = std::move(request_.done);
+      request_ = {};
+      request_.pending = true;
+      request_.swap = true;
+      request_.model = std::move(model);
+      request_.version = version;
+      request_.origin = origin;
+      request_.done = std::move(done);
+    }
+  }
+  if (replaced) replaced(Status::Error("another model was applied before this one"), 0);
+  return Status::Ok();
+}
+
+bool LivePipeline::WithdrawSwap() {
   std::lock_guard<std::mutex> lock(request_mutex_);
-  request_ = {};
-  request_.pending = true;
-  request_.swap = false;
-  request_.model = std::move(model);
-  request_.version = version;
-  request_.origin = origin;
+  if (!request_.pending || !request_.done) return false;
+  if (request_.swap) {
+    request_ = {};
+  } else {  // the select stays, on its own model
+    request_.model = std::move(request_.selected);
+    request_.version = request_.selected_version;
+    request_.origin = request_.selected_origin;
+    request_.selected = nullptr;
+    request_.done = nullptr;
+  }
+  return true;
 }
 
 Status LivePipeline::SwapModel(std::shared_ptr<const Model> model, int version,
-                               ekf::ModelOrigin origin, std::uint64_t* from_frame) {
-  std::unique_lock<std::mutex> lock(request_mutex_);
-  if (!running_) return Status::Error("the pipeline is not running");
-  if (request_.pending && !request_.swap && request_.model) {
-    // subject.select's new tracker has not started yet (it starts at the next frame): the
-    // tracker starts on this model instead. Replacing the request would lose the select, and
-    // the swap would find no tracker ("no subject is being tracked") right after a select.
-    request_.model = std::move(model);
-    request_.version = version;
-    request_.origin = origin;
-  } else {
-    request_ = {};
-    request_.pending = true;
-    request_.swap = true;
-    request_.model = std::move(model);
-    request_.version = version;
-    request_.origin = origin;
+                               ekf::ModelOrigin origin, std::uint64_t* from_frame,
+                               std::chrono::milliseconds timeout) {
+  struct Outcome {
+    std::mutex mutex;
+    std::condition_variable cv;
+    bool done = false;
+    Status result;
+    std::uint64_t from_frame = 0;
+  };
+  auto outcome = std::make_shared<Outcome>();
+  MOCAP_RETURN_IF_ERROR(RequestSwap(std::move(model), version, origin,
+                                    [outcome](Status result, std::uint64_t from) {
+                                      std::lock_guard<std::mutex> lock(outcome->mutex);
+                                      outcome->done = true;
+                                      outcome->result = std::move(result);
+                                      outcome->from_frame = from;
+                                      outcome->cv.notify_all();
+                                    }));
+  std::unique_lock<std::mutex> lock(outcome->mutex);
+  if (!outcome->cv.wait_for(lock, timeout, [&] { return outcome->done; })) {
+    lock.unlock();
+    if (WithdrawSwap())
+      return Status::Error("the tracking stage did not take the model within " +
+                           std::to_string(timeout.count()) + " ms (no frames?)");
+    lock.lock();  // taken meanwhile: its answer is on its way
+    outcome->cv.wait(lock, [&] { return outcome->done; });
   }
-  // A frame arrives every 5 ms; a second covers a descheduled tracking thread.
-  if (!request_done_.wait_for(lock, std::chrono::seconds(2), [&] { return request_.done; })) {
-    request_.pending = false;
-    return Status::Error("the tracking stage did not take the model within 2 s (no frames?)");
-  }
-  if (from_frame) *from_frame = request_.from_frame;
-  return request_.result;
+  if (from_frame) *from_frame = outcome->from_frame;
+  return outcome->result;
 }
 
 void LivePipeline::StartWandCollection() {
@@ -226,27 +287,29 @@ void LivePipeline::TrackLoop() {
     }
     // Requests from the loop, between two frames.
     {
-      std::lock_guard<std::mutex> lock(request_mutex_);
-      if (request_.pending) {
-        request_.pending = false;
-        if (!request_.swap) {
-          tracker_.reset();
-          if (request_.model) {
-            ekf::TrackerOptions to = options_.tracker;
-            tracker_ = std::make_unique<ekf::Tracker>(request_.model, to, request_.origin);
+      SwapDone done;
+      Status result;
+      {
+        std::lock_guard<std::mutex> lock(request_mutex_);
+        if (request_.pending) {
+          if (!request_.swap) {
+            tracker_.reset();
+            if (request_.model) {
+              ekf::TrackerOptions to = options_.tracker;
+              tracker_ = std::make_unique<ekf::Tracker>(request_.model, to, request_.origin);
+            }
+            model_version_ = request_.version;
+          } else if (!tracker_) {
+            result = Status::Error("no subject is being tracked");
+          } else {
+            result = tracker_->SwapModel(request_.model, request_.origin);
+            if (result) model_version_ = request_.version;
           }
-          model_version_ = request_.version;
-          request_.result = Status::Ok();
-        } else if (!tracker_) {
-          request_.result = Status::Error("no subject is being tracked");
-        } else {
-          request_.result = tracker_->SwapModel(request_.model, request_.origin);
-          if (request_.result) model_version_ = request_.version;
+          done = std::move(request_.done);
+          request_ = {};
         }
-        request_.from_frame = pf.sequence;
-        request_.done = true;
-        request_done_.notify_all();
       }
+      if (done) done(std::move(result), pf.sequence);
     }
     CollectWand(pf);
 

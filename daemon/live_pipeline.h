@@ -19,6 +19,7 @@
 // recorder (daemon/recorder.h) drains its own queue and commits each frame within 100 ms.
 #pragma once
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstdint>
 #include <functional>
@@ -125,12 +126,23 @@ class LivePipeline {
   // (ekf::ModelOrigin).
   void SetSubjectModel(std::shared_ptr<const Model> model, int version,
                        ekf::ModelOrigin origin = ekf::ModelOrigin::kGeneric);
-  // The tracker keeps its track and takes `model` between two frames (model.apply). Blocks until
-  // the tracking thread has done it (at most a frame plus the swap) and says at which frame, or
-  // fails (another model's coordinates or markers, no tracker, timeout). Right after
+  // The tracker keeps its track and takes `model` between two frames (model.apply). Right after
   // SetSubjectModel (its tracker not started yet), the new tracker starts on `model` instead.
+  // Does not block: `done` is called once, from the tracking thread when it has taken the model
+  // (with the first frame it applies to) or failed (another model's coordinates or markers, no
+  // tracker), or with an error when the request is replaced (SetSubjectModel, another swap) or
+  // the pipeline stops. The tracking thread takes requests between frames, and a frame can be
+  // long (the tracker's start: ~0.1 s, seconds under a sanitizer): the daemon's loop must not
+  // wait for it. Fails at once (`done` not called) when the pipeline is not running.
+  using SwapDone = std::function<void(Status result, std::uint64_t from_frame)>;
+  Status RequestSwap(std::shared_ptr<const Model> model, int version, ekf::ModelOrigin origin,
+                     SwapDone done);
+  // Withdraws the swap RequestSwap asked for if the tracking thread has not taken it yet (true:
+  // withdrawn, its `done` will not be called; false: taken or failed already, or none pending).
+  bool WithdrawSwap();
+  // RequestSwap, waiting up to `timeout` for the tracking thread (tests and tools).
   Status SwapModel(std::shared_ptr<const Model> model, int version, ekf::ModelOrigin origin,
-                   std::uint64_t* from_frame);
+                   std::uint64_t* from_frame, std::chrono::milliseconds timeout = std::chrono::seconds(2));
 
   // Frames go to the recorder while on.
   void SetRecording(bool on) { recording_.store(on); }
@@ -181,12 +193,13 @@ class LivePipeline {
     std::shared_ptr<const Model> model;
     int version = 0;
     ekf::ModelOrigin origin = ekf::ModelOrigin::kGeneric;
-    bool done = false;
-    Status result;
-    std::uint64_t from_frame = 0;
+    SwapDone done;  // RequestSwap's, also when a select's tracker takes the swap's model
+    // A swap carried by a select's request: the select's own model, back if it is withdrawn.
+    std::shared_ptr<const Model> selected;
+    int selected_version = 0;
+    ekf::ModelOrigin selected_origin = ekf::ModelOrigin::kGeneric;
   };
   std::mutex request_mutex_;
-  std::condition_variable request_done_;
   ModelRequest request_;
 
   // The tracking thread's.

@@ -497,64 +497,148 @@ TEST(CapturePipeline, BadSetUpIsRefusedWithAReason) {
 // back (test_hold) until both requests are in, so the apply always finds the select pending;
 // before the fix it replaced the select and failed with "no subject is being tracked", and no
 // tracker ever started.
-TEST(LivePipeline, ModelAppliedRightAfterASelectStartsTheTrackerOnIt) {
-  std::mutex mutex;
-  std::condition_variable open_cv;
-  bool open = false;
-  daemon::LivePipelineOptions options;
-  options.capture.start_on_complete_set = false;
-  options.capture.test_hold = [&](const char* stage) {
-    if (std::string(stage) != "grab") return;
-    std::unique_lock<std::mutex> lock(mutex);
-    open_cv.wait(lock, [&] { return open; });
-  };
-  drivers::SimulatedCameraOptions co;
-  co.width = 64;
-  co.height = 48;
-  drivers::CameraSettings settings;
-  settings.frame_rate_hz = 100;
-  std::vector<std::unique_ptr<drivers::CameraSource>> cameras;
-  for (int c = 0; c < 2; ++c) {
-    auto cam = std::make_unique<drivers::SimulatedCamera>(
-        c, [](int, std::uint64_t, std::uint8_t* data, int w, int h, std::ptrdiff_t stride,
-              drivers::PixelFormat) {
-          for (int y = 0; y < h; ++y) std::fill(data + y * stride, data + y * stride + w, 0);
-        },
-        co);
-    ASSERT_TRUE(cam->Open(settings).ok());
-    cameras.push_back(std::move(cam));
+// A live pipeline on two blank simulated cameras whose frames are held back (test_hold) until
+// Open(): requests made before it are all pending when the tracking thread sees its first frame.
+class HeldPipeline {
+ public:
+  HeldPipeline() {
+    daemon::LivePipelineOptions options;
+    options.capture.start_on_complete_set = false;
+    options.capture.test_hold = [this](const char* stage) {
+      if (std::string(stage) != "grab") return;
+      std::unique_lock<std::mutex> lock(mutex_);
+      open_cv_.wait(lock, [&] { return open_; });
+    };
+    drivers::SimulatedCameraOptions co;
+    co.width = 64;
+    co.height = 48;
+    drivers::CameraSettings settings;
+    settings.frame_rate_hz = 100;
+    std::vector<std::unique_ptr<drivers::CameraSource>> cameras;
+    for (int c = 0; c < 2; ++c) {
+      auto cam = std::make_unique<drivers::SimulatedCamera>(
+          c, [](int, std::uint64_t, std::uint8_t* data, int w, int h, std::ptrdiff_t stride,
+                drivers::PixelFormat) {
+            for (int y = 0; y < h; ++y) std::fill(data + y * stride, data + y * stride + w, 0);
+          },
+          co);
+      EXPECT_TRUE(cam->Open(settings).ok());
+      cameras.push_back(std::move(cam));
+    }
+    live_ = std::make_unique<daemon::LivePipeline>(std::move(cameras), options, [] {});
+    EXPECT_TRUE(live_->Start().ok());
+    const Model full = DefaultFullBodyModel(1.7);
+    selected_ = std::make_shared<Model>();
+    EXPECT_TRUE(full.WithMarkers(sim::SimulatedMarkers(full, false), selected_.get()).ok());
+    applied_ = std::make_shared<Model>(*selected_);
   }
-  daemon::LivePipeline live(std::move(cameras), options, [] {});
-  ASSERT_TRUE(live.Start().ok());
-  const Model full = DefaultFullBodyModel(1.7);
-  auto selected = std::make_shared<Model>(), applied = std::make_shared<Model>();
-  ASSERT_TRUE(full.WithMarkers(sim::SimulatedMarkers(full, false), selected.get()).ok());
-  *applied = *selected;
-  live.SetSubjectModel(selected, 1);
+  ~HeldPipeline() {
+    Open();
+    live_->Stop();
+  }
+  void Open() {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      open_ = true;
+    }
+    open_cv_.notify_all();
+  }
+  // The first frame out of the pipeline (false: none within 5 s).
+  bool FirstFrame(daemon::LiveFrame* frame) {
+    const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+    while (std::chrono::steady_clock::now() < until) {
+      if (live_->PopFrame(frame)) return true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    return false;
+  }
+  daemon::LivePipeline& live() { return *live_; }
+  std::shared_ptr<const Model> selected() const { return selected_; }
+  std::shared_ptr<const Model> applied() const { return applied_; }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable open_cv_;
+  bool open_ = false;
+  std::shared_ptr<Model> selected_, applied_;
+  std::unique_ptr<daemon::LivePipeline> live_;
+};
+
+TEST(LivePipeline, ModelAppliedRightAfterASelectStartsTheTrackerOnIt) {
+  HeldPipeline held;
+  held.live().SetSubjectModel(held.selected(), 1);
   Status swapped = Status::Error("not returned");
   std::uint64_t from_frame = 0;
-  std::thread apply([&] { swapped = live.SwapModel(applied, 2, ekf::ModelOrigin::kFittedToSubject, &from_frame); });
+  std::thread apply([&] {
+    swapped = held.live().SwapModel(held.applied(), 2, ekf::ModelOrigin::kFittedToSubject, &from_frame);
+  });
   std::this_thread::sleep_for(std::chrono::milliseconds(100));  // the apply waits for a frame
-  {
-    std::lock_guard<std::mutex> lock(mutex);
-    open = true;
-  }
-  open_cv.notify_all();
+  held.Open();
   apply.join();
   EXPECT_TRUE(swapped.ok()) << swapped.message();
   EXPECT_GT(from_frame, 0u);
   daemon::LiveFrame frame;
-  const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
-  bool got = false;
-  while (!got && std::chrono::steady_clock::now() < until) {
-    got = live.PopFrame(&frame);
-    if (!got) std::this_thread::sleep_for(std::chrono::milliseconds(10));
-  }
-  ASSERT_TRUE(got) << "no frame from the live pipeline";
+  ASSERT_TRUE(held.FirstFrame(&frame)) << "no frame from the live pipeline";
   EXPECT_EQ(frame.model_version, 2);  // the applied model, not the selected one
   EXPECT_GE(frame.tracker_state, 0) << "no tracker";
-  EXPECT_EQ(static_cast<int>(frame.markers.cols()), applied->num_markers());
-  live.Stop();
+  EXPECT_EQ(static_cast<int>(frame.markers.cols()), held.applied()->num_markers());
+}
+
+// model.apply does not block the daemon's loop (RequestSwap): its answer comes from the tracking
+// thread. One not taken in time is withdrawn (WithdrawSwap: the daemon's 2 s), its answer never
+// given, and a select it rode on starts on the select's own model; a second apply replaces the
+// first, which is answered with an error.
+TEST(LivePipeline, AModelApplyIsAnsweredOnceWithdrawnOrReplaced) {
+  HeldPipeline held;
+  held.live().SetSubjectModel(held.selected(), 1);
+  std::atomic<int> answers{0}, failed{0};
+  auto done = [&](Status result, std::uint64_t) {
+    ++answers;
+    failed += !result.ok();
+  };
+  ASSERT_TRUE(held.live().RequestSwap(held.applied(), 2, ekf::ModelOrigin::kFittedToSubject, done).ok());
+  EXPECT_TRUE(held.live().WithdrawSwap());
+  EXPECT_FALSE(held.live().WithdrawSwap()) << "nothing left to withdraw";
+  // Replaced: the first is answered with an error at once, the second by the tracking thread.
+  ASSERT_TRUE(held.live().RequestSwap(held.applied(), 3, ekf::ModelOrigin::kFittedToSubject, done).ok());
+  EXPECT_EQ(answers.load(), 0);
+  std::atomic<int> second{0};
+  std::uint64_t second_from = 0;
+  ASSERT_TRUE(held.live()
+                  .RequestSwap(held.applied(), 4, ekf::ModelOrigin::kFittedToSubject,
+                               [&](Status result, std::uint64_t from) {
+                                 EXPECT_TRUE(result.ok()) << result.message();
+                                 second_from = from;
+                                 ++second;
+                               })
+                  .ok());
+  EXPECT_EQ(answers.load(), 1);
+  EXPECT_EQ(failed.load(), 1);
+  held.Open();
+  daemon::LiveFrame frame;
+  ASSERT_TRUE(held.FirstFrame(&frame)) << "no frame from the live pipeline";
+  EXPECT_EQ(frame.model_version, 4);
+  EXPECT_EQ(second.load(), 1);
+  EXPECT_GT(second_from, 0u);
+  EXPECT_EQ(answers.load(), 1) << "the withdrawn and the replaced apply are answered once in all";
+}
+
+// Withdrawn from a select it rode on, the select starts on its own model.
+TEST(LivePipeline, AWithdrawnApplyLeavesTheSelectOnItsOwnModel) {
+  HeldPipeline held;
+  held.live().SetSubjectModel(held.selected(), 1);
+  bool answered = false;
+  ASSERT_TRUE(held.live()
+                  .RequestSwap(held.applied(), 2, ekf::ModelOrigin::kFittedToSubject,
+                               [&](Status, std::uint64_t) { answered = true; })
+                  .ok());
+  EXPECT_TRUE(held.live().WithdrawSwap());
+  held.Open();
+  daemon::LiveFrame frame;
+  ASSERT_TRUE(held.FirstFrame(&frame)) << "no frame from the live pipeline";
+  EXPECT_EQ(frame.model_version, 1);
+  EXPECT_GE(frame.tracker_state, 0) << "no tracker";
+  EXPECT_FALSE(answered);
 }
 
 }  // namespace
