@@ -146,26 +146,22 @@ Status LivePipeline::RequestSwap(std::shared_ptr<const Model> model, int version
       // subject.select's new tracker has not started yet (it starts at the next frame): the
       // tracker starts on this model instead. Replacing the request would lose the select, and
       // the swap would find no tracker ("no subject is being tracked") right after a select.
-      replaced = std::move(request_.done);
       if (!request_.selected) {
         request_.selected = request_.model;
         request_.selected_version = request_.version;
         request_.selected_origin = request_.origin;
       }
-      request_.model = std::move(model);
-      request_.version = version;
-      request_.origin = origin;
-      request_.done = std::move(done);
     } else {
       replaced = std::move(request_.done);
       request_ = {};
       request_.pending = true;
       request_.swap = true;
-      request_.model = std::move(model);
-      request_.version = version;
-      request_.origin = origin;
-      request_.done = std::move(done);
     }
+    if (!replaced) replaced = std::move(request_.done);
+    request_.model = std::move(model);
+    request_.version = version;
+    request_.origin = origin;
+    request_.done = std::move(done);
   }
   if (replaced) replaced(Status::Error("another model was applied before this one"), 0);
   return Status::Ok();
