@@ -416,6 +416,14 @@ struct Tracker::Impl {
   double ScaleToSubject(const Hypothesis& h, int np, const std::vector<int>* held = nullptr,
                         Hypothesis* fitted = nullptr, std::vector<double>* distance = nullptr);
   static constexpr int kScaleIterations = 20;
+  // Damped Gauss-Newton on the fixed labels `assign` (per marker: its point or -1) from *z, with
+  // the search's weak prior centred at `centre`, within the joint ranges; returns the cost.
+  double HeldFit(Eigen::VectorXd* z, const Eigen::VectorXd& centre, const std::vector<int>& assign,
+                 int iterations);
+  static constexpr int kHeldFitIterations = 10;
+  // The start's labels that alone turn their limb, where a second configuration is at hand, left
+  // empty and h refitted without them (see the definition); returns how many.
+  int LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np);
   // The least a scaled start's offsets' prior may be (m; TryInitialise).
   static constexpr double kScaledOffsetSigmaFloor = 0.01;
   // The scales stay within [1 / kScaleLimit, kScaleLimit] of the model's own: a humerus 33 % long
