@@ -117,6 +117,15 @@ struct LmOptions {
   // (CholmodProblem) goes on to the function tolerance, so the two may stop at different points
   // within that tenth.
   double shared_step_tolerance = 0;
+  // The function tolerance stops the solve only after a step whose gain ratio exceeds this: a
+  // small decrease from a step the model predicted badly says nothing about how near the minimum
+  // is. 0: every accepted step may stop it. In [0, 1).
+  double function_tolerance_min_gain_ratio = 0;
+  // After an accepted step whose gain ratio is below this, lambda rises as after a rejected step
+  // with halve_rejected_steps (at least to where the model's minimiser along the step is half of
+  // it, so at least 2x), not by Nielsen's at most 1.5x. 0: off. In [0, 1). Both are used by the
+  // coarse-to-fine fine stage's variable projection (coarse_to_fine.h), off by default there.
+  double raise_lambda_below_gain_ratio = 0;
   bool geodesic_acceleration = false;
   double acceleration_step = 0.02;
   double max_acceleration_ratio = 0.75;
