@@ -106,12 +106,15 @@ class WithInnerIterations : public LmProblem {
                          Eigen::VectorXd* acceleration) override {
     return whole_->SolveAcceleration(damping, velocity, h, acceleration);
   }
+  // The accepted candidate's projected poses (Cost) replace its extrapolated ones, also when the
+  // step ends the solve: x then has the cost LM reports.
+  void StepAccepted(Eigen::VectorXd* x) override {
+    if (!(project_ && refine_poses_)) return;
+    if (projected_at_ == Fingerprint(*x)) x->swap(projected_);
+    projected_at_ = 0;
+  }
   void InnerIteration(Eigen::VectorXd* x) override {
-    if (project_ && refine_poses_) {
-      if (projected_at_ == Fingerprint(*x)) x->swap(projected_);
-      projected_at_ = 0;
-      return;
-    }
+    if (project_ && refine_poses_) return;  // StepAccepted did it
     Refine(x, last_cost_);
   }
   void Refine(Eigen::VectorXd* x, double cost_at_x, double* refined_cost = nullptr) {

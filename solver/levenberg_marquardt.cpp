@@ -203,6 +203,7 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         const double step_lambda = lambda;
         const double parameter_norm = x->norm();
         x->swap(x_new);
+        problem->StepAccepted(x);
         const double old_cost = cost;
         lambda = std::max(options.min_lambda,
                           lambda * std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3)));

@@ -194,6 +194,11 @@ class LmProblem {
   // iterations": each frame's own block re-solved with the shared parameters fixed). The next
   // iteration's cost change includes what it gained. Doing nothing is correct.
   virtual void InnerIteration(Eigen::VectorXd* x) {}
+  // Right after a step is accepted, before anything else: a problem whose Cost judged the
+  // candidate at a point of its own (variable projection: the candidate's poses re-solved, at
+  // the cost Cost returned) moves *x there, so that x always has the cost LM reports. Doing
+  // nothing is correct for a problem whose Cost is the cost at the x it is given.
+  virtual void StepAccepted(Eigen::VectorXd* x) {}
   // LmOptions::shared_step_tolerance: dp^T S dp of the last SolveDamped's step, S the damped
   // reduced system of the shared parameters it solved; NaN when the problem has no such split.
   virtual double LastSharedStepMahalanobisSq() const { return std::numeric_limits<double>::quiet_NaN(); }

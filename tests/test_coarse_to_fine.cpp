@@ -168,6 +168,10 @@ TEST(CoarseToFine, VariableProjectionWithASecantModelReachesTheSameMinimum) {
   ASSERT_GE(v.num_iterations(), 2) << v.FullReport();
   EXPECT_LE(v.final_cost - ref.final_cost, 1e-6 * ref.final_cost) << v.final_cost << " vs " << ref.final_cost;
   EXPECT_LE(v.final_cost, d.final_cost * (1 + fit.lm.function_tolerance)) << v.FullReport() << d.FullReport();
+  // The cost reported is the returned x's (its poses the projected ones, also after the last step).
+  double at_x = 0;
+  ASSERT_TRUE(b.Cost(x_vp, &at_x));
+  EXPECT_NEAR(at_x, v.final_cost, 1e-9 * v.final_cost);
   // One update per linearisation after the first (the last accepted step ends the solve unlinearised).
   EXPECT_GE(b.secant_updates(), 1);
   EXPECT_LE(b.secant_updates(), v.num_iterations());
