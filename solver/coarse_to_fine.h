@@ -135,8 +135,9 @@ struct CoarseToFineOptions {
   // for both ratios): whole-problem iterations 2, 2, 2 / 6, 2, 5 / 5, 10, 14 -> 2, 2, 2 / 7, 5, 4 /
   // 7, 6, 7, every end cost at or below the default's (by up to 12.7, 5 % seed 2), centres
   // within +-0.04 mm; but 5 % seed 2 takes 5 iterations instead of 2 and seed 1 7 instead of 6,
-  // and each iteration costs more (every trial, rejected ones too, re-solves the poses): CPU over
-  // the six gap runs about 8 % less, not the 1.5 s target. In FitModel's staged fit at 10 %
+  // and each iteration costs more (every trial, rejected ones too, re-solves the poses). On a
+  // quiet machine the six gap runs take 11.1 s of wall instead of 13.6, the slowest 2.19 s
+  // instead of 3.64, but 5 % seed 2 1.60 s instead of 1.02: not the 1.5 s target. In FitModel's staged fit at 10 %
   // (test_sim_fit) 8 iterations on every frame instead of 11, the same bounds; real recordings
   // under 3,000 frames (welk007, gait2354) never reach stage 3.
   bool fine_variable_projection = false;
