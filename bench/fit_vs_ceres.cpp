@@ -257,7 +257,8 @@ struct Args {
                "         [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]\n"
                "         [--clamp-ranges] [--ik-limit-stiffness S] [--limit-sigma SIGMA]\n"
                "         [--pose-retries K] [--pose-cap R]\n"
-               "         [--geodesic | --no-geodesic] [--geodesic-alpha A] [--geodesic-h H]\n",
+               "         [--geodesic | --no-geodesic] [--geodesic-alpha A] [--geodesic-h H]\n"
+               "         [--vp] [--secant] [--reduced-damping] [--raise-gain G] [--converge-gain G]\n",
                error.c_str());
   std::exit(2);
 }
@@ -300,6 +301,11 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--no-inner") args.coarse.inner_iterations = false;
     else if (a == "--wrap") args.coarse.wrap_frame_turns = true;
     else if (a == "--no-halve") args.coarse.fine_halve_rejected_steps = false;
+    else if (a == "--secant") args.coarse.fine_secant_curvature = true;
+    else if (a == "--reduced-damping") args.coarse.fine_reduced_damping = true;
+    else if (a == "--vp") args.coarse.fine_variable_projection = true;
+    else if (a == "--raise-gain") args.coarse.fine_raise_lambda_below_gain = number(0);
+    else if (a == "--converge-gain") args.coarse.fine_converge_min_gain_ratio = number(0);
     else if (a == "--pose-tolerance") args.coarse.pose_tolerance = number(0);
     else if (a == "--fine-lambda") args.coarse.fine_initial_lambda = number(1e-300);
     else if (a == "--missing") {

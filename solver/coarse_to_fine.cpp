@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 
@@ -75,8 +76,19 @@ class WithInnerIterations : public LmProblem {
     if (!whole_->Cost(x, cost)) return false;
     costs_at_ = Fingerprint(x);
     last_cost_ = *cost;
+    if (project_ && refine_poses_) {
+      // The candidate judged with every pose re-solved for its geometry (variable projection).
+      projected_ = x;
+      double refined = std::numeric_limits<double>::infinity();
+      Refine(&projected_, *cost, &refined);
+      projected_at_ = costs_at_;
+      if (refined < *cost) *cost = refined;
+      else projected_ = x;
+      costs_at_ = 0;
+    }
     return true;
   }
+  void SetProject(bool on) { project_ = on; }
   bool Linearize(const Eigen::VectorXd& x, double* cost, Eigen::VectorXd* gradient,
                  Eigen::VectorXd* jtj_diagonal) override {
     return whole_->Linearize(x, cost, gradient, jtj_diagonal);
@@ -94,7 +106,18 @@ class WithInnerIterations : public LmProblem {
                          Eigen::VectorXd* acceleration) override {
     return whole_->SolveAcceleration(damping, velocity, h, acceleration);
   }
+  // The accepted candidate's projected poses (Cost) replace its extrapolated ones, also when the
+  // step ends the solve: x then has the cost LM reports.
+  void StepAccepted(Eigen::VectorXd* x) override {
+    if (!(project_ && refine_poses_)) return;
+    if (projected_at_ == Fingerprint(*x)) x->swap(projected_);
+    projected_at_ = 0;
+  }
   void InnerIteration(Eigen::VectorXd* x) override {
+    if (project_ && refine_poses_) return;  // StepAccepted did it
+    Refine(x, last_cost_);
+  }
+  void Refine(Eigen::VectorXd* x, double cost_at_x, double* refined_cost = nullptr) {
     candidate_ = *x;
     bool ok = false;
     // LM has just evaluated the cost at this very x (the accepted step).
@@ -111,10 +134,11 @@ class WithInnerIterations : public LmProblem {
       return;
     }
     // Frame costs are sums of squares: twice the cost's share.
-    const double min_gain = 2.0 * function_tolerance_ * last_cost_;
-    RefineFramePoses(problem_, options_, num_threads_, &candidate_, &ok, nullptr,
+    const double min_gain = 2.0 * function_tolerance_ * cost_at_x;
+    RefineFramePoses(problem_, options_, num_threads_, &candidate_, &ok, refined_cost,
                      static_cast<int>(costs_.size()) == problem_->num_frames() ? costs_.data() : nullptr, min_gain);
     if (ok) x->swap(candidate_);
+    else if (refined_cost) *refined_cost = std::numeric_limits<double>::infinity();
   }
   int rescued() const { return rescued_; }
 
@@ -141,6 +165,9 @@ class WithInnerIterations : public LmProblem {
   std::vector<double> costs_;
   Eigen::VectorXd candidate_;
   std::uint64_t costs_at_ = 0;
+  bool project_ = false;
+  Eigen::VectorXd projected_;
+  std::uint64_t projected_at_ = 0;
 };
 
 // In-place Cholesky of a small dense SPD matrix (lower triangle, column-major, n x n), then
@@ -293,6 +320,10 @@ bool CoarseToFineOptions::IsValid(std::string* error) const {
   if (inner_pose_iterations < 1) return fail("inner_pose_iterations must be >= 1");
   if (pose_step_retries < 0) return fail("pose_step_retries must be >= 0");
   if (!(pose_step_cap > 0)) return fail("pose_step_cap must be > 0 (infinity: none)");
+  if (!(fine_converge_min_gain_ratio >= 0 && fine_converge_min_gain_ratio < 1))
+    return fail("fine_converge_min_gain_ratio must be in [0, 1)");
+  if (!(fine_raise_lambda_below_gain >= 0 && fine_raise_lambda_below_gain < 1))
+    return fail("fine_raise_lambda_below_gain must be in [0, 1)");
   return true;
 }
 
@@ -641,15 +672,24 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   LmOptions fine_lm = options;
   fine_lm.initial_lambda = std::clamp(coarse.fine_initial_lambda, options.min_lambda, options.max_lambda);
   fine_lm.halve_rejected_steps = options.halve_rejected_steps || coarse.fine_halve_rejected_steps;
+  if (coarse.fine_variable_projection)
+    fine_lm.function_tolerance_min_gain_ratio =
+        std::max(fine_lm.function_tolerance_min_gain_ratio, coarse.fine_converge_min_gain_ratio);
+  fine_lm.raise_lambda_below_gain_ratio = std::max(fine_lm.raise_lambda_below_gain_ratio, coarse.fine_raise_lambda_below_gain);
   LmSummary result;
+  if (coarse.fine_secant_curvature) fine.SetSecantCurvature(true);
+  fine.SetReducedDamping(coarse.fine_reduced_damping);
   if (coarse.inner_iterations) {
     WithInnerIterations with_inner(&fine, problem, coarse, num_threads, /*refine_poses=*/true,
                                    fine_lm.function_tolerance);
+    with_inner.SetProject(coarse.fine_variable_projection);
     result = Solve(fine_lm, &with_inner, x);
     s.poses_rescued += with_inner.rescued();
   } else {
     result = Solve(fine_lm, &fine, x);
   }
+  if (coarse.fine_secant_curvature) fine.SetSecantCurvature(false);
+  fine.SetReducedDamping(false);
   result.initial_cost = s.start_cost;
   result.total_seconds = s.total_seconds = Since(start);
   return result;

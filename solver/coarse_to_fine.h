@@ -110,6 +110,41 @@ struct CoarseToFineOptions {
   // stage 1: there (a far start) Nielsen's gentle rise suits, and with the halving there 5 % seed
   // 2 took 4 whole-problem iterations instead of 2.
   bool fine_halve_rejected_steps = true;
+  // Stage 3 as variable projection with a secant model of the reduced problem; five options,
+  // measured together (nineteenth session; BENCHMARKS.md, "With gaps"). What the crawl with gaps
+  // is, traced at 10 % missing, seed 3: along the last steps the reduced problem phi(p) =
+  // min_y F(y, p) is 3-35x flatter than the Gauss-Newton Schur complement S that LM's step uses
+  // (s^T y against s^T S s, y the change of the reduced gradient over the step s): the frames'
+  // damping makes S see the poses absorb less of an axis's change than they do. And LM's gain
+  // ratio (0.1-0.6 at lambda ~1e-3) judges the poses' linear extrapolation, which the inner
+  // iteration replaces anyway.
+  //  * fine_variable_projection: each candidate step's poses re-solved (the inner iteration)
+  //    before its cost is taken, so the gain ratio judges phi (Golub and Pereyra 1973); the
+  //    accepted step keeps those poses. Alone (seventeenth session) lambda then stays at 1e-9
+  //    for steps of gain ratio 0.02-0.1.
+  //  * fine_secant_curvature: S corrected by a secant model of phi's curvature
+  //    (ArrowSchurProblem::SetSecantCurvature; NL2SOL's structured update).
+  //  * fine_reduced_damping: the shared parameters damped by S's diagonal
+  //    (ArrowSchurProblem::SetReducedDamping), not J_p^T J_p's, far larger for an axis.
+  //  * fine_raise_lambda_below_gain (LmOptions::raise_lambda_below_gain_ratio) and
+  //    fine_converge_min_gain_ratio (LmOptions::function_tolerance_min_gain_ratio, with the
+  //    projection only): after a poorly predicted step lambda rises as after a rejection, and such
+  //    a step's small gain does not end the solve (with the projection a step of gain ratio 0.04
+  //    ended 5 % seed 1 1.6 above the default's end).
+  // Off: measured at 6,000 frames, 0.8 mm noise, 0 / 5 / 10 % missing, seeds 1-3 (all five, 0.25
+  // for both ratios): whole-problem iterations 2, 2, 2 / 6, 2, 5 / 5, 10, 14 -> 2, 2, 2 / 7, 5, 4 /
+  // 7, 6, 7, every end cost at or below the default's (by up to 12.7, 5 % seed 2), centres
+  // within +-0.04 mm; but 5 % seed 2 takes 5 iterations instead of 2 and seed 1 7 instead of 6,
+  // and each iteration costs more (every trial, rejected ones too, re-solves the poses). On a
+  // quiet machine the six gap runs take 11.1 s of wall instead of 13.6, the slowest 2.19 s
+  // instead of 3.64, but 5 % seed 2 1.60 s instead of 1.02: not the 1.5 s target. In FitModel's staged fit at 10 %
+  // (test_sim_fit) 8 iterations on every frame instead of 11, the same bounds; real recordings
+  // under 3,000 frames (welk007, gait2354) never reach stage 3.
+  bool fine_variable_projection = false;
+  bool fine_secant_curvature = false;
+  bool fine_reduced_damping = false;
+  double fine_converge_min_gain_ratio = 0;
+  double fine_raise_lambda_below_gain = 0;
   // After stage 2, a frame whose cost is above `rescue_ratio` times the median frame's (a pose
   // in a wrong branch: a two-marker foot turned round during a gap) is re-solved, up to
   // `rescue_iterations` Gauss–Newton steps, from its neighbour's pose, sweeping each run of such

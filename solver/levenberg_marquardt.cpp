@@ -42,6 +42,10 @@ bool LmOptions::IsValid(std::string* error) const {
   if (!(min_gain_ratio >= 0 && min_gain_ratio < 1)) return fail("min_gain_ratio must be in [0, 1)");
   if (max_consecutive_rejections < 1) return fail("max_consecutive_rejections must be >= 1");
   if (!(acceleration_step > 0 && acceleration_step <= 1)) return fail("acceleration_step must be in (0, 1]");
+  if (!(function_tolerance_min_gain_ratio >= 0 && function_tolerance_min_gain_ratio < 1))
+    return fail("function_tolerance_min_gain_ratio must be in [0, 1)");
+  if (!(raise_lambda_below_gain_ratio >= 0 && raise_lambda_below_gain_ratio < 1))
+    return fail("raise_lambda_below_gain_ratio must be in [0, 1)");
   if (!(max_acceleration_ratio > 0)) return fail("max_acceleration_ratio must be > 0");
   return true;
 }
@@ -199,9 +203,15 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         const double step_lambda = lambda;
         const double parameter_norm = x->norm();
         x->swap(x_new);
+        problem->StepAccepted(x);
         const double old_cost = cost;
         lambda = std::max(options.min_lambda,
                           lambda * std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3)));
+        if (rho < options.raise_lambda_below_gain_ratio) {
+          const double vsv = dx.dot(damping.cwiseProduct(dx)) / step_lambda;
+          const double vjjv = 2.0 * predicted - 2.0 * step_lambda * vsv;
+          if (vsv > 0 && vjjv > 0) lambda = std::max(lambda, vjjv / vsv + 2.0 * step_lambda);
+        }
         nu = 2.0;
         rejections = 0;
         it.step_accepted = true;
@@ -210,7 +220,8 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         // here and the final point is not linearised (one pass over all the data saved; Ceres
         // does the same). The gradient reported is then the previous iterate's.
         const char* converged = nullptr;
-        if (old_cost - new_cost <= options.function_tolerance * old_cost)
+        if (old_cost - new_cost <= options.function_tolerance * old_cost &&
+            rho > options.function_tolerance_min_gain_ratio)
           converged = "function tolerance reached";
         else if (it.step_norm <= options.parameter_tolerance * (parameter_norm + options.parameter_tolerance))
           converged = "parameter tolerance reached";

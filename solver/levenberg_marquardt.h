@@ -117,6 +117,15 @@ struct LmOptions {
   // (CholmodProblem) goes on to the function tolerance, so the two may stop at different points
   // within that tenth.
   double shared_step_tolerance = 0;
+  // The function tolerance stops the solve only after a step whose gain ratio exceeds this: a
+  // small decrease from a step the model predicted badly says nothing about how near the minimum
+  // is. 0: every accepted step may stop it. In [0, 1).
+  double function_tolerance_min_gain_ratio = 0;
+  // After an accepted step whose gain ratio is below this, lambda rises as after a rejected step
+  // with halve_rejected_steps (at least to where the model's minimiser along the step is half of
+  // it, so at least 2x), not by Nielsen's at most 1.5x. 0: off. In [0, 1). Both are used by the
+  // coarse-to-fine fine stage's variable projection (coarse_to_fine.h), off by default there.
+  double raise_lambda_below_gain_ratio = 0;
   bool geodesic_acceleration = false;
   double acceleration_step = 0.02;
   double max_acceleration_ratio = 0.75;
@@ -185,6 +194,11 @@ class LmProblem {
   // iterations": each frame's own block re-solved with the shared parameters fixed). The next
   // iteration's cost change includes what it gained. Doing nothing is correct.
   virtual void InnerIteration(Eigen::VectorXd* x) {}
+  // Right after a step is accepted, before anything else: a problem whose Cost judged the
+  // candidate at a point of its own (variable projection: the candidate's poses re-solved, at
+  // the cost Cost returned) moves *x there, so that x always has the cost LM reports. Doing
+  // nothing is correct for a problem whose Cost is the cost at the x it is given.
+  virtual void StepAccepted(Eigen::VectorXd* x) {}
   // LmOptions::shared_step_tolerance: dp^T S dp of the last SolveDamped's step, S the damped
   // reduced system of the shared parameters it solved; NaN when the problem has no such split.
   virtual double LastSharedStepMahalanobisSq() const { return std::numeric_limits<double>::quiet_NaN(); }

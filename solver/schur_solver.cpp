@@ -309,6 +309,7 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
                                   Eigen::VectorXd* diagonal) {
   x_ = x;
   damped_solve_ready_ = false;
+  fresh_linearization_ = true;
   const int n = num_parameters();
   gradient->setZero(n);
   diagonal->setZero(n);
@@ -407,10 +408,26 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
   gradient_ = *gradient;
   if (all_reduced) {
     auto dmp_p = anticipated_damping_.tail(np_);
-    for (int i = 0; i < np_; ++i)
-      dmp_p[i] = anticipated_lambda_ *
-                 std::min(std::max((*diagonal)[nf_ * ny_ + i], anticipated_min_), anticipated_max_);
-    anticipated_ready_ = FinishReducedSystem(dmp_p, &anticipated_s_, &anticipated_rhs_);
+    if (reduced_damping_) {
+      // Marquardt's scaling on the reduced system: the shared parameters damped by the diagonal
+      // of S (at the frames' anticipated damping) instead of J_p^T J_p's.
+      dmp_p.setZero();
+      anticipated_ready_ = FinishReducedSystem(dmp_p, &anticipated_s_, &anticipated_rhs_);
+      if (anticipated_ready_) {
+        Eigen::VectorXd d = anticipated_s_.diagonal();
+        if (secant_ && secant_e_.size() > 0) d += secant_e_.diagonal();
+        for (int i = 0; i < np_; ++i) (*diagonal)[nf_ * ny_ + i] = std::max(d[i], 0.0);
+        for (int i = 0; i < np_; ++i)
+          dmp_p[i] = anticipated_lambda_ *
+                     std::min(std::max((*diagonal)[nf_ * ny_ + i], anticipated_min_), anticipated_max_);
+        anticipated_s_.diagonal() += dmp_p;
+      }
+    } else {
+      for (int i = 0; i < np_; ++i)
+        dmp_p[i] = anticipated_lambda_ *
+                   std::min(std::max((*diagonal)[nf_ * ny_ + i], anticipated_min_), anticipated_max_);
+      anticipated_ready_ = FinishReducedSystem(dmp_p, &anticipated_s_, &anticipated_rhs_);
+    }
   }
   return std::isfinite(*cost) && gradient->allFinite();
 }
@@ -657,17 +674,66 @@ bool ArrowSchurProblem::SolveDamped(const Eigen::VectorXd& damping, Eigen::Vecto
   anticipated_ready_ = false;
   dx->resize(num_parameters());
   Eigen::VectorXd dp = Eigen::VectorXd::Zero(np_);
+  if (secant_ && np_ > 0 && fresh_linearization_) UpdateSecant(s, rhs, damping.tail(np_));
+  fresh_linearization_ = false;
   if (np_ > 0) {
-    s_factor_.compute(s);  // reads the lower triangle only
+    if (secant_ && secant_e_.size() > 0) {
+      Eigen::MatrixXd corrected = s;
+      corrected.triangularView<Eigen::Lower>() += secant_e_;
+      s_factor_.compute(corrected);
+      if (s_factor_.info() != Eigen::Success) {
+        secant_e_.setZero();
+        s_factor_.compute(s);
+      }
+    } else {
+      s_factor_.compute(s);  // reads the lower triangle only
+    }
     if (s_factor_.info() != Eigen::Success) return false;
     dp = s_factor_.solve(rhs);
     dx->tail(np_) = dp;
     last_shared_step_sq_ = rhs.dot(dp);
+    // In the Gauss-Newton metric (without the secant's correction, which flattens exactly the
+    // directions still crawling and would stop the solve on a short step along them).
+    if (secant_ && secant_e_.size() > 0) last_shared_step_sq_ -= dp.dot(secant_e_ * dp);
   }
   if (!BackSubstitute(damping, gradient_, dp, dx)) return false;
   damped_solve_ready_ = true;
   solved_damping_ = damping;
   return true;
+}
+
+// The reduced problem phi(p) = min_y F(y, p) has the gradient G = -rhs (the frames' remaining
+// gradients folded in by their factors) and, near its minimum, a Hessian that is S (its
+// Gauss-Newton model) plus the second-order terms sum r_i grad^2 r_i that Gauss-Newton drops.
+// These are learnt from the steps as in NL2SOL (Dennis, Gay and Welsch, ACM TOMS 7, 1981): with
+// s = p_{k+1} - p_k and y = G_{k+1} - G_k, E_{k+1} s = y - S_{k+1} s =: y#, by the sized
+// DFP-like update E_{k+1} = tau E + (z y^T + y z^T) / y^T s - (z^T s) y y^T / (y^T s)^2,
+// z = y# - tau E s, tau = min(1, |s^T y#| / |s^T E s|).
+void ArrowSchurProblem::UpdateSecant(const Eigen::MatrixXd& s, const Eigen::VectorXd& rhs,
+                                     const Eigen::VectorXd& damping_p) {
+  const Eigen::VectorXd p = x_.tail(np_);
+  const Eigen::VectorXd g = -rhs;
+  if (secant_e_.size() == 0) secant_e_.setZero(np_, np_);
+  if (secant_have_last_) {
+    const Eigen::VectorXd step = p - secant_p_;
+    const Eigen::VectorXd y = g - secant_g_;
+    Eigen::VectorXd s_step = s.selfadjointView<Eigen::Lower>() * step;
+    s_step -= damping_p.cwiseProduct(step);
+    const Eigen::VectorXd ysharp = y - s_step;
+    const double ys = y.dot(step);
+    if (ys > 0 && step.squaredNorm() > 0) {
+      const Eigen::VectorXd es = secant_e_ * step;
+      const double ses = step.dot(es);
+      const double tau = ses != 0 ? std::min(1.0, std::abs(step.dot(ysharp)) / std::abs(ses)) : 1.0;
+      const Eigen::VectorXd z = ysharp - tau * es;
+      secant_e_ = tau * secant_e_ + (z * y.transpose() + y * z.transpose()) / ys -
+                  (z.dot(step) / (ys * ys)) * (y * y.transpose());
+      ++secant_updates_;
+    }
+  }
+  secant_p_ = p;
+  secant_g_ = g;
+  secant_have_last_ = true;
 }
 
 bool ArrowSchurProblem::BackSubstitute(const Eigen::VectorXd& damping, const Eigen::VectorXd& gradient,

@@ -103,6 +103,26 @@ class ArrowSchurProblem : public LmProblem {
   // per-frame pass that follows it (coarse_to_fine.h's inner iterations).
   const std::vector<double>& frame_costs() const { return frame_costs_; }
 
+  // Options of the coarse-to-fine fine stage (CoarseToFineOptions::fine_secant_curvature and
+  // fine_reduced_damping, measured there); both off unless set.
+  // A secant model of what Gauss-Newton drops from the reduced system (UpdateSecant): E, updated
+  // at the first SolveDamped after each Linearize from how the reduced gradient changed over the
+  // last step, is added to S before it is factored. The statistical stop's step length
+  // (LastSharedStepMahalanobisSq) stays in S's metric without E. Turning it on forgets E and
+  // restarts secant_updates(), the number of updates made since.
+  void SetSecantCurvature(bool on) {
+    secant_ = on;
+    secant_e_.resize(0, 0);
+    secant_have_last_ = false;
+    if (on) secant_updates_ = 0;
+  }
+  int secant_updates() const { return secant_updates_; }
+  // Marquardt's scaling on the reduced system: Linearize reports as the shared parameters'
+  // diagonal that of S (at the anticipated damping of the frames, plus E's) instead of
+  // J_p^T J_p's, so LM damps each shared parameter by what the data know about it once the poses
+  // are eliminated. Needs the anticipated damping (AnticipateDamping), else J_p^T J_p's is kept.
+  void SetReducedDamping(bool on) { reduced_damping_ = on; }
+
   // Per-frame squared residual sums at x (for per-marker statistics the problem computes itself).
   const std::vector<int>& elimination_order() const { return order_; }
 
@@ -190,6 +210,13 @@ class ArrowSchurProblem : public LmProblem {
   Eigen::VectorXd solved_damping_;
   Eigen::LLT<Eigen::MatrixXd> s_factor_;
   std::vector<std::vector<double>> shifted_residuals_;
+  bool fresh_linearization_ = false;
+  bool reduced_damping_ = false;
+  bool secant_ = false, secant_have_last_ = false;
+  int secant_updates_ = 0;
+  Eigen::MatrixXd secant_e_;
+  Eigen::VectorXd secant_p_, secant_g_;
+  void UpdateSecant(const Eigen::MatrixXd& s, const Eigen::VectorXd& rhs, const Eigen::VectorXd& damping_p);
 };
 
 }  // namespace mocap::solver

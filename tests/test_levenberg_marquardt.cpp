@@ -213,3 +213,65 @@ TEST(LevenbergMarquardt, AStepBelowATenthOfAStandardDeviationEndsTheSolve) {
   EXPECT_FALSE(damped.IsValid(&error));
   EXPECT_NE(error.find("shared_step_tolerance"), std::string::npos) << error;
 }
+
+// LmOptions::function_tolerance_min_gain_ratio: a small decrease from a step the quadratic model
+// predicted badly (gain ratio below the bound) does not end the solve; the solve then stops only
+// on a step the model predicted well, and at least as low.
+TEST(LevenbergMarquardt, APoorlyPredictedStepDoesNotEndTheSolveOnTheFunctionTolerance) {
+  int differed = 0;
+  for (double k : {10.0, 100.0, 1000.0}) {
+    for (double tolerance : {1e-2, 1e-3}) {
+      SCOPED_TRACE("valley steepness " + std::to_string(k) + ", tolerance " + std::to_string(tolerance));
+      solver::LmOptions plain = Options(false), judged = Options(false);
+      plain.function_tolerance = judged.function_tolerance = tolerance;
+      judged.function_tolerance_min_gain_ratio = 0.25;
+      Eigen::VectorXd x_plain = Eigen::Vector2d(-1.2, 1.0), x_judged = x_plain;
+      DenseProblem p_plain = Rosenbrock(k, false), p_judged = Rosenbrock(k, false);
+      const solver::LmSummary a = solver::Solve(plain, &p_plain, &x_plain);
+      const solver::LmSummary b = solver::Solve(judged, &p_judged, &x_judged);
+      ASSERT_EQ(b.termination, solver::TerminationType::kConvergence) << b.FullReport();
+      ASSERT_FALSE(b.iterations.empty());
+      if (b.message == "function tolerance reached") EXPECT_GT(b.iterations.back().gain_ratio, 0.25) << b.FullReport();
+      EXPECT_LE(b.final_cost, a.final_cost) << a.FullReport() << b.FullReport();
+      if (!a.iterations.empty() && a.message == "function tolerance reached" && a.iterations.back().gain_ratio <= 0.25)
+        ++differed;
+    }
+  }
+  // The bound must have mattered somewhere, or this test shows nothing.
+  EXPECT_GT(differed, 0);
+}
+
+// LmOptions::raise_lambda_below_gain_ratio: after an accepted step the model predicted badly,
+// lambda rises at least to twice the step's (the halving rule's lambda' = v^T J^T J v / v^T S v +
+// 2 lambda), instead of Nielsen's at most 1.5x; the minimum is the same.
+TEST(LevenbergMarquardt, APoorlyPredictedAcceptedStepRaisesTheDamping) {
+  int raised = 0;
+  for (double k : {10.0, 100.0, 1000.0}) {
+    SCOPED_TRACE("valley steepness " + std::to_string(k));
+    solver::LmOptions o = Options(false);
+    o.raise_lambda_below_gain_ratio = 0.25;
+    Eigen::VectorXd x = Eigen::Vector2d(-1.2, 1.0);
+    DenseProblem p = Rosenbrock(k, false);
+    const solver::LmSummary s = solver::Solve(o, &p, &x);
+    ASSERT_EQ(s.termination, solver::TerminationType::kConvergence) << s.FullReport();
+    EXPECT_NEAR(x[0], 1.0, 1e-6);
+    EXPECT_NEAR(x[1], 1.0, 1e-6);
+    for (size_t i = 1; i < s.iterations.size(); ++i) {
+      const solver::IterationSummary& it = s.iterations[i];
+      // The step's lambda is the previous iteration's when this one solved once.
+      if (!it.step_accepted || it.linear_solves != 1 || !(it.gain_ratio < 0.25)) continue;
+      EXPECT_GE(it.lambda, 2.0 * s.iterations[i - 1].lambda) << "iteration " << it.iteration << s.FullReport();
+      ++raised;
+    }
+  }
+  EXPECT_GT(raised, 0);
+  std::string error;
+  solver::LmOptions bad;
+  bad.raise_lambda_below_gain_ratio = 1.5;
+  EXPECT_FALSE(bad.IsValid(&error));
+  EXPECT_NE(error.find("raise_lambda_below_gain_ratio"), std::string::npos) << error;
+  bad = solver::LmOptions();
+  bad.function_tolerance_min_gain_ratio = -0.5;
+  EXPECT_FALSE(bad.IsValid(&error));
+  EXPECT_NE(error.find("function_tolerance_min_gain_ratio"), std::string::npos) << error;
+}
