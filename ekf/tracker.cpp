@@ -254,6 +254,11 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
 }
 
 void Tracker::Impl::Allocate() {
+  // SegmentFitCost's whole-fit gate per degrees of freedom (3 x up to 16 anchors - 6), not
+  // computed in the frame's loop.
+  segment_fit_chi2.assign(3 * 16 + 1, 0.0);
+  for (int dof = 1; dof < static_cast<int>(segment_fit_chi2.size()); ++dof)
+    segment_fit_chi2[dof] = ChiSquareAtGateTail(options.gate_chi2, dof);
   const int mp = options.max_points;
   valid.clear();
   valid.reserve(mp);

@@ -125,6 +125,7 @@ struct Tracker::Impl {
   bool had_track = false;
   int unfit_searches = 0;  // searches in a row refused for the model's size (init_scale_after_s)
   ModelOrigin origin = ModelOrigin::kGeneric;  // the model's (ekf/tracker.h): how a start scales it
+  std::vector<double> segment_fit_chi2;  // ChiSquareAtGateTail(gate_chi2, dof), by dof
   Eigen::VectorXd z_good;  // last pose that passed the divergence test
   Eigen::VectorXd z_static;  // the search's starting pose (options.static_pose or the default)
   int bad_frames = 0;

@@ -604,7 +604,7 @@ bool Tracker::Impl::SegmentFitCost(int segment, const int* labelling, double* co
   // one wrong point's error over every anchor (simulated seed 11 at 8 ghosts: a reflection 88 mm
   // from the hidden LASI's prediction, the pelvis fitted to it and its three labelled mates with
   // residuals of 18, 14, 13 and 13 mm, each within its 18 mm tolerance: a chi-square of 41 on 6).
-  if (c > ChiSquareAtGateTail(options.gate_chi2, 3 * n - 6)) return false;
+  if (c > segment_fit_chi2[3 * n - 6]) return false;
   *cost = c;
   return true;
 }
