@@ -417,6 +417,18 @@ struct Tracker::Impl {
   double ScaleToSubject(const Hypothesis& h, int np, const std::vector<int>* held = nullptr,
                         Hypothesis* fitted = nullptr, std::vector<double>* distance = nullptr);
   static constexpr int kScaleIterations = 20;
+  // The search's weak prior on coordinate i (m^2 per rad^2 / per m^2: 1 cm per half a radian or
+  // per metre): pins what the markers leave free.
+  double SearchPrior(int i) const { return rotational[i] ? 0.01 * 0.01 / (0.5 * 0.5) : 0.01 * 0.01; }
+  // At the last Linearise (at z): N = sum J^T J + w W and g = sum J^T r + w W (z - centre) over
+  // the markers labelled in `assign` (per marker: its point or -1), W the search's prior.
+  void LabelNormalEquations(const std::vector<int>& assign, const Eigen::VectorXd& z,
+                            const Eigen::VectorXd& centre, double prior_weight, Eigen::MatrixXd* N,
+                            Eigen::VectorXd* g) const;
+  // The labels' squared distances at z plus the prior's (over the coordinates `free` marks; all
+  // when nullptr).
+  double LabelCost(const std::vector<int>& assign, const Eigen::VectorXd& z, const Eigen::VectorXd& centre,
+                   double prior_weight, const std::vector<char>* free);
   // Damped Gauss-Newton on the fixed labels `assign` (per marker: its point or -1) from *z, with
   // the search's weak prior centred at `centre`, within the joint ranges; returns the cost.
   double HeldFit(Eigen::VectorXd* z, const Eigen::VectorXd& centre, const std::vector<int>& assign,

@@ -108,6 +108,42 @@ double Tracker::Impl::AssignWithin(int np, double radius, int depth, std::vector
   return total;
 }
 
+void Tracker::Impl::LabelNormalEquations(const std::vector<int>& assign, const Eigen::VectorXd& z,
+                                         const Eigen::VectorXd& centre, double prior_weight,
+                                         Eigen::MatrixXd* Np, Eigen::VectorXd* gp) const {
+  Eigen::MatrixXd& N = *Np;
+  Eigen::VectorXd& g = *gp;
+  N.setZero();
+  g.setZero();
+  for (int m = 0; m < nm; ++m) {
+    if (assign[m] < 0) continue;
+    const Eigen::Vector3d r = predicted.col(m) - points.col(assign[m]);
+    const std::vector<int>& cols = model->marker_coordinates(m);
+    const auto& J = jac[m];
+    for (size_t a = 0; a < cols.size(); ++a) {
+      g[cols[a]] += J.col(a).dot(r);
+      for (size_t k = 0; k < cols.size(); ++k) N(cols[a], cols[k]) += J.col(a).dot(J.col(k));
+    }
+  }
+  for (int i = 0; i < nz; ++i) {
+    const double w = prior_weight * SearchPrior(i);
+    N(i, i) += w;
+    g[i] += w * (z[i] - centre[i]);
+  }
+}
+
+double Tracker::Impl::LabelCost(const std::vector<int>& assign, const Eigen::VectorXd& z,
+                                const Eigen::VectorXd& centre, double prior_weight,
+                                const std::vector<char>* free) {
+  ForwardKinematics(*model, geometry, z, &data);
+  double s = 0;
+  for (int m = 0; m < nm; ++m)
+    if (assign[m] >= 0) s += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
+  for (int i = 0; i < nz; ++i)
+    if (!free || (*free)[i]) s += prior_weight * SearchPrior(i) * (z[i] - centre[i]) * (z[i] - centre[i]);
+  return s;
+}
+
 // ICP-like search from z: assign markers to points by distance (optimal assignment), one damped
 // Gauss-Newton step on the pose, reassign. The body is placed from the root outwards: stage d
 // frees the joints at depth <= d of the tree and assigns only the markers they carry, so a
@@ -122,8 +158,6 @@ double Tracker::Impl::AssignWithin(int np, double radius, int depth, std::vector
 // reassigns by distance from the start never reaches.
 Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const std::vector<int>* held) {
   Eigen::VectorXd start = z;
-  // Weak prior towards the start (metres^2 per rad^2 / per m^2): pins what the markers leave free.
-  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   const int stages = max_depth + 1, per_stage = 3;
   // An exchange holds its labels first, then runs the final stage in full.
   const int hold = held ? kHeldIterations : 0;
@@ -143,18 +177,7 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const st
     lower[i] = std::min(model->coordinates()[i].min_value, z[i]);
     upper[i] = std::max(model->coordinates()[i].max_value, z[i]);
   }
-  auto Cost = [&](const Eigen::VectorXd& zz) {
-    ForwardKinematics(*model, geometry, zz, &data);
-    double s = 0;
-    for (int m = 0; m < nm; ++m)
-      if (assign[m] >= 0)
-        s += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
-    for (int i = 0; i < nz; ++i)
-      if (free[i])
-        s += prior_weight * (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) *
-             (zz[i] - start[i]);
-    return s;
-  };
+  auto Cost = [&](const Eigen::VectorXd& zz) { return LabelCost(assign, zz, start, prior_weight, &free); };
   double radius = 0.25;
   double lambda = 1e-3;
   for (int iteration = held ? stages * per_stage : 0; iteration < iters; ++iteration) {
@@ -182,22 +205,8 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const st
     previous = assign;
 
     // Normal equations of the assigned markers + prior.
-    N.setZero();
-    g.setZero();
-    for (int m = 0; m < nm; ++m) {
-      if (assign[m] < 0) continue;
-      const Eigen::Vector3d r = predicted.col(m) - points.col(assign[m]);
-      const std::vector<int>& cols = model->marker_coordinates(m);
-      const auto& J = jac[m];
-      for (size_t a = 0; a < cols.size(); ++a) {
-        g[cols[a]] += J.col(a).dot(r);
-        for (size_t k = 0; k < cols.size(); ++k) N(cols[a], cols[k]) += J.col(a).dot(J.col(k));
-      }
-    }
+    LabelNormalEquations(assign, z, start, prior_weight, &N, &g);
     for (int i = 0; i < nz; ++i) {
-      const double w = prior_weight * (rotational[i] ? prior_rot : prior_trans);
-      N(i, i) += w;
-      g[i] += w * (z[i] - start[i]);
       if (!free[i]) {
         N.row(i).setZero();
         N.col(i).setZero();
@@ -301,7 +310,6 @@ double Tracker::Impl::ScaleToSubject(const Hypothesis& h, int np, const std::vec
   Eigen::VectorXd p = geometry_params, ptrial = p;
   Eigen::VectorXd z = h.z, trial(nz);
   const Eigen::VectorXd start = z;
-  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   const double prior_scale = 0.01 * 0.01 / (options.init_scale_sigma * options.init_scale_sigma);
   Eigen::MatrixXd N(n, n), Nd(n, n);
   Eigen::VectorXd g(n), step(n);
@@ -316,7 +324,7 @@ double Tracker::Impl::ScaleToSubject(const Hypothesis& h, int np, const std::vec
       if (assign[m] >= 0)
         c += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
     for (int i = 0; i < nz; ++i)
-      c += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - start[i]) * (zz[i] - start[i]);
+      c += SearchPrior(i) * (zz[i] - start[i]) * (zz[i] - start[i]);
     for (int k = 0; k < ns; ++k) c += prior_scale * (pp[k] - p0[k]) * (pp[k] - p0[k]);
     return c;
   };
@@ -367,7 +375,7 @@ double Tracker::Impl::ScaleToSubject(const Hypothesis& h, int np, const std::vec
       }
     }
     for (int i = 0; i < nz; ++i) {
-      const double w = rotational[i] ? prior_rot : prior_trans;
+      const double w = SearchPrior(i);
       N(i, i) += w;
       g[i] += w * (z[i] - start[i]);
     }
@@ -567,40 +575,14 @@ int Tracker::Impl::Search(int np, std::vector<Hypothesis>* out) {
 double Tracker::Impl::HeldFit(Eigen::VectorXd* zp, const Eigen::VectorXd& centre,
                               const std::vector<int>& assign, int iterations) {
   Eigen::VectorXd& z = *zp;
-  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   Eigen::MatrixXd N(nz, nz), Nd(nz, nz);
   Eigen::VectorXd g(nz), step(nz), trial(nz);
   Eigen::LLT<Eigen::MatrixXd> llt(nz);
-  auto Cost = [&](const Eigen::VectorXd& zz) {
-    ForwardKinematics(*model, geometry, zz, &data);
-    double c = 0;
-    for (int m = 0; m < nm; ++m)
-      if (assign[m] >= 0)
-        c += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
-    for (int i = 0; i < nz; ++i)
-      c += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - centre[i]) * (zz[i] - centre[i]);
-    return c;
-  };
+  auto Cost = [&](const Eigen::VectorXd& zz) { return LabelCost(assign, zz, centre, 1.0, nullptr); };
   double lambda = 1e-3;
   for (int it = 0; it < iterations; ++it) {
     Linearise(z);
-    N.setZero();
-    g.setZero();
-    for (int m = 0; m < nm; ++m) {
-      if (assign[m] < 0) continue;
-      const Eigen::Vector3d r = predicted.col(m) - points.col(assign[m]);
-      const std::vector<int>& cols = model->marker_coordinates(m);
-      const auto& J = jac[m];
-      for (size_t a = 0; a < cols.size(); ++a) {
-        g[cols[a]] += J.col(a).dot(r);
-        for (size_t k = 0; k < cols.size(); ++k) N(cols[a], cols[k]) += J.col(a).dot(J.col(k));
-      }
-    }
-    for (int i = 0; i < nz; ++i) {
-      const double w = rotational[i] ? prior_rot : prior_trans;
-      N(i, i) += w;
-      g[i] += w * (z[i] - centre[i]);
-    }
+    LabelNormalEquations(assign, z, centre, 1.0, &N, &g);
     const bool accepted = DampedGaussNewtonStep(N, g, Cost(z), &lambda, &Nd, &llt, &step, [&] {
       trial = z + step;
       for (int i = 0; i < nz; ++i)
@@ -618,7 +600,6 @@ double Tracker::Impl::HeldFit(Eigen::VectorXd* zp, const Eigen::VectorXd& centre
 }
 
 int Tracker::Impl::LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np) {
-  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   const double radius = options.init_radius_m;
   // The prior's mode: the static pose, the root where the search put it.
   Eigen::VectorXd centre = z_static;
@@ -627,23 +608,9 @@ int Tracker::Impl::LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np) {
   // The screen: at the search's pose, N = sum J^T J + W and g = sum J^T r + W (z - centre) over
   // the labels; without m's, one Gauss-Newton step moves m's residual r_m to r_m + J_m dz.
   Linearise(h->z);
-  Eigen::MatrixXd N = Eigen::MatrixXd::Zero(nz, nz), Nm(nz, nz);
-  Eigen::VectorXd g = Eigen::VectorXd::Zero(nz), gm(nz), dz(nz);
-  for (int m = 0; m < nm; ++m) {
-    if (h->assignment[m] < 0) continue;
-    const Eigen::Vector3d r = predicted.col(m) - points.col(h->assignment[m]);
-    const std::vector<int>& cols = model->marker_coordinates(m);
-    const auto& J = jac[m];
-    for (size_t a = 0; a < cols.size(); ++a) {
-      g[cols[a]] += J.col(a).dot(r);
-      for (size_t b = 0; b < cols.size(); ++b) N(cols[a], cols[b]) += J.col(a).dot(J.col(b));
-    }
-  }
-  for (int i = 0; i < nz; ++i) {
-    const double w = rotational[i] ? prior_rot : prior_trans;
-    N(i, i) += w;
-    g[i] += w * (h->z[i] - centre[i]);
-  }
+  Eigen::MatrixXd N(nz, nz), Nm(nz, nz);
+  Eigen::VectorXd g(nz), gm(nz), dz(nz);
+  LabelNormalEquations(h->assignment, h->z, centre, 1.0, &N, &g);
   Eigen::LLT<Eigen::MatrixXd> llt(nz);
   std::vector<int> screened;
   for (int m = 0; m < nm; ++m) {
@@ -677,7 +644,7 @@ int Tracker::Impl::LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np) {
     double d = 0;
     for (int i : model->marker_coordinates(m))
       if (!root_free[i])
-        d += (rotational[i] ? prior_rot : prior_trans) * (zz[i] - centre[i]) * (zz[i] - centre[i]);
+        d += SearchPrior(i) * (zz[i] - centre[i]) * (zz[i] - centre[i]);
     return d;
   };
   for (int m : screened) {
@@ -1006,7 +973,6 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
     if (!ltaken[k]) lcand[nc++] = k;
   if ((nc == 0 || current == ns) && !place) return false;
 
-  const double prior_rot = 0.01 * 0.01 / (0.5 * 0.5), prior_trans = 0.01 * 0.01 / (1.0 * 1.0);
   // The unheld angles (below) may pass the model's ranges by kLimbRangeSlack (see there); the
   // filter brings them back (Wrap) and the markers' offsets learn the difference.
   // Only the limb's coordinates: the others are lz0's, which the filter has wrapped already.
@@ -1032,7 +998,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
               points.col(lassign[m]))
                  .squaredNorm();
     for (int i : lcoords)
-      c += prior_scale * (rotational[i] ? prior_rot : prior_trans) * (zz[i] - lstart[i]) * (zz[i] - lstart[i]);
+      c += prior_scale * SearchPrior(i) * (zz[i] - lstart[i]) * (zz[i] - lstart[i]);
     return c;
   };
   // Cost at the pose the last LineariseLimb placed (lz): from its predictions, without placing
@@ -1042,7 +1008,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
     for (int m : rows)
       if (lassign[m] >= 0) c += (predicted.col(m) - points.col(lassign[m])).squaredNorm();
     for (int i : lcoords)
-      c += prior_scale * (rotational[i] ? prior_rot : prior_trans) * (lz[i] - lstart[i]) * (lz[i] - lstart[i]);
+      c += prior_scale * SearchPrior(i) * (lz[i] - lstart[i]) * (lz[i] - lstart[i]);
     return c;
   };
   // Damped Gauss-Newton from lz with the prior centred at lstart: kLimbIterations steps
@@ -1083,7 +1049,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
       }
       for (int l = 0; l < nl; ++l) {
         const int i = lcoords[l];
-        const double w = prior_scale * (rotational[i] ? prior_rot : prior_trans);
+        const double w = prior_scale * SearchPrior(i);
         lN(l, l) += w;
         lg[l] += w * (lz[i] - lstart[i]);
       }
