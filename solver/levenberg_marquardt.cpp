@@ -11,6 +11,15 @@ using Clock = std::chrono::steady_clock;
 double Since(Clock::time_point t) {
   return std::chrono::duration<double>(Clock::now() - t).count();
 }
+// The damping at which the quadratic model's minimiser along the step v (taken at `lambda`, with
+// damping = lambda x the scaling S) is v / 2: v^T J^T J v / v^T S v + 2 lambda, from what LM
+// already has (predicted = (lambda v^T S v - v^T g) / 2 and v^T J^T J v = -v^T g - lambda v^T S v);
+// 0 when the step says nothing (halve_rejected_steps, raise_lambda_below_gain_ratio).
+double HalvingLambda(const Eigen::VectorXd& v, const Eigen::VectorXd& damping, double lambda, double predicted) {
+  const double vsv = v.dot(damping.cwiseProduct(v)) / lambda;
+  const double vjjv = 2.0 * predicted - 2.0 * lambda * vsv;
+  return vsv > 0 && vjjv > 0 ? vjjv / vsv + 2.0 * lambda : 0.0;
+}
 }  // namespace
 
 const char* ToString(TerminationType type) {
@@ -207,11 +216,8 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
         const double old_cost = cost;
         lambda = std::max(options.min_lambda,
                           lambda * std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3)));
-        if (rho < options.raise_lambda_below_gain_ratio) {
-          const double vsv = dx.dot(damping.cwiseProduct(dx)) / step_lambda;
-          const double vjjv = 2.0 * predicted - 2.0 * step_lambda * vsv;
-          if (vsv > 0 && vjjv > 0) lambda = std::max(lambda, vjjv / vsv + 2.0 * step_lambda);
-        }
+        if (rho < options.raise_lambda_below_gain_ratio)
+          lambda = std::max(lambda, HalvingLambda(dx, damping, step_lambda, predicted));
         nu = 2.0;
         rejections = 0;
         it.step_accepted = true;
@@ -262,12 +268,8 @@ LmSummary Solve(const LmOptions& options, LmProblem* problem, Eigen::VectorXd* x
       }
       // Reject.
       double halving = 0;
-      if (options.halve_rejected_steps && solved && dx.allFinite()) {
-        // predicted = (lambda v^T S v - v^T g) / 2 and v^T J^T J v = -v^T g - lambda v^T S v.
-        const double vsv = dx.dot(damping.cwiseProduct(dx)) / lambda;
-        const double vjjv = 2.0 * predicted - 2.0 * lambda * vsv;
-        if (vsv > 0 && vjjv > 0) halving = vjjv / vsv + 2.0 * lambda;
-      }
+      if (options.halve_rejected_steps && solved && dx.allFinite())
+        halving = HalvingLambda(dx, damping, lambda, predicted);
       lambda = std::max(lambda * nu, halving);
       nu *= 2.0;
       ++rejections;
