@@ -536,6 +536,9 @@ struct InitialisationSummary {
   double runner_up_score = 0;   // best differently labelled hypothesis (0: none)
   double rms_m = 0;             // RMS distance of the best one's labelled markers
   int labelled = 0;             // markers the best one labelled
+  // Markers the close hypotheses labelled differently, left empty at the start (the gates pick
+  // them up from the next frames).
+  int undecided = 0;
   bool accepted = false;
   std::string reason;           // why it was refused (empty when accepted)
   // Per segment, the scale factors the search fitted when the model did not fit the subject

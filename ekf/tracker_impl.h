@@ -437,6 +437,12 @@ struct Tracker::Impl {
   // The start's labels that alone turn their limb, where a second configuration is at hand, left
   // empty and h refitted without them (see the definition); returns how many.
   int LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np);
+  // The start's prior's mode for a placement z: the static pose, the root where z has it.
+  Eigen::VectorXd StaticPoseAt(const Eigen::VectorXd& z) const;
+  // h's labels of the markers `empty` marks left empty, and h refitted without them (HeldFit,
+  // the prior centred at `centre`): the limbs go where their other markers and the prior put
+  // them. Returns how many labels it emptied.
+  int LeaveLabelsEmpty(Hypothesis* h, const std::vector<char>& empty, const Eigen::VectorXd& centre);
   // The least a scaled start's offsets' prior may be (m; TryInitialise).
   static constexpr double kScaledOffsetSigmaFloor = 0.01;
   // The scales stay within [1 / kScaleLimit, kScaleLimit] of the model's own: a humerus 33 % long

@@ -504,22 +504,48 @@ int Tracker::Impl::Search(int np, std::vector<Hypothesis>* out) {
   init.best_score = h.score;
   init.rms_m = h.rms;
   init.labelled = h.labelled;
-  // Unambiguous: no hypothesis that labels >= 3 markers differently comes close. Markers whose
-  // labels are exchanged pairwise (a's point b's and b's a's) do not count: each such pair is
-  // decided by its own exchange (ExchangeLabels), the wrist pairs of both arms are two decisions,
-  // not one ambiguity of four labels.
+  // Ambiguity: a hypothesis that labels >= 3 markers differently and comes close (within
+  // init_ambiguity_ratio of the best's score, or less than init_ambiguity_margin times its
+  // residual variance per coordinate above it). Markers whose labels are exchanged pairwise (a's
+  // point b's and b's a's) do not count: each such pair is decided by its own exchange
+  // (ExchangeLabels), the wrist pairs of both arms are two decisions, not one ambiguity of four
+  // labels.
+  //
+  // What the close hypotheses all agree on is decided; the markers they label differently are
+  // not, and are left empty (the pose refitted without them: LeaveLabelsEmpty) rather than
+  // guessed -- as long as the labels decided are enough to start (init_min_fraction). Refusing
+  // the whole start for one limb's doubt cost more than the limb: simulated seed 81 at 5 ghosts,
+  // the right hand's three markers and a standing reflection beside them, two placements 6e-4
+  // m^2 apart (RWRA on its point or on RWRB's), refused for seven frames, then started when RFIN
+  // was hidden on a third placement with the hand turned (RWRA on RWRB's point, RWRB on the
+  // reflection, RFIN on RWRA's point), kept for the whole session (0.955 of the labels). The
+  // gates pick an undecided marker up from the next frames, where its limb's other markers and
+  // the prior put it. A doubt over too many markers (a subject placed facing two ways) still
+  // refuses.
+  const double variance = std::max(h.rms * h.rms / 3.0, 1e-6);
+  auto close = [&](double score) {
+    return score < options.init_ambiguity_ratio * h.score ||
+           score - h.score < options.init_ambiguity_margin * variance;
+  };
   double runner_up = std::numeric_limits<double>::infinity();
+  std::vector<char> undecided(nm, 0);
+  std::vector<char> differs(nm);
   for (const Hypothesis& o : hyps) {
     int differ = 0;
     for (int m = 0; m < nm; ++m) {
+      differs[m] = 0;
       if (o.assignment[m] == h.assignment[m]) continue;
       bool exchanged = false;
       for (int k = 0; k < nm && !exchanged; ++k)
         exchanged = k != m && o.assignment[m] >= 0 && o.assignment[m] == h.assignment[k] &&
                     o.assignment[k] == h.assignment[m];
+      differs[m] = !exchanged;
       differ += !exchanged;
     }
-    if (differ >= 3) runner_up = std::min(runner_up, o.score);
+    if (differ < 3) continue;
+    runner_up = std::min(runner_up, o.score);
+    if (close(o.score))
+      for (int m = 0; m < nm; ++m) undecided[m] |= differs[m];
   }
   init.runner_up_score = std::isfinite(runner_up) ? runner_up : 0.0;
   if (h.labelled < options.init_min_fraction * nm_seen) {
@@ -530,11 +556,16 @@ int Tracker::Impl::Search(int np, std::vector<Hypothesis>* out) {
     init.reason = kResidualTooLarge;
     return -1;
   }
-  const double variance = std::max(h.rms * h.rms / 3.0, 1e-6);
-  if (runner_up < options.init_ambiguity_ratio * h.score ||
-      runner_up - h.score < options.init_ambiguity_margin * variance) {
-    init.reason = "ambiguous";
-    return -1;
+  if (std::isfinite(runner_up) && close(runner_up)) {
+    int decided = 0;
+    for (int m = 0; m < nm; ++m) decided += h.assignment[m] >= 0 && !undecided[m];
+    if (decided < options.init_min_fraction * nm_seen) {
+      init.reason = "ambiguous";
+      return -1;
+    }
+    init.undecided = LeaveLabelsEmpty(&hyps[best], undecided, StaticPoseAt(hyps[best].z));
+    init.labelled = hyps[best].labelled;
+    init.rms_m = hyps[best].rms;
   }
   return best;
 }
@@ -601,10 +632,7 @@ double Tracker::Impl::HeldFit(Eigen::VectorXd* zp, const Eigen::VectorXd& centre
 
 int Tracker::Impl::LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np) {
   const double radius = options.init_radius_m;
-  // The prior's mode: the static pose, the root where the search put it.
-  Eigen::VectorXd centre = z_static;
-  for (int i = 0; i < nz; ++i)
-    if (root_free[i]) centre[i] = h->z[i];
+  const Eigen::VectorXd centre = StaticPoseAt(h->z);
   // The screen: at the search's pose, N = sum J^T J + W and g = sum J^T r + W (z - centre) over
   // the labels; without m's, one Gauss-Newton step moves m's residual r_m to r_m + J_m dz.
   Linearise(h->z);
@@ -661,22 +689,40 @@ int Tracker::Impl::LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np) {
     if (second && departure(m, full) > departure(m, z)) dropped.push_back(m);
   }
   if (dropped.empty()) return 0;
+  std::vector<char> empty(nm, 0);
+  for (int m : dropped) empty[m] = 1;
+  h->z = full;
+  return LeaveLabelsEmpty(h, empty, centre);
+}
+
+Eigen::VectorXd Tracker::Impl::StaticPoseAt(const Eigen::VectorXd& z) const {
+  Eigen::VectorXd centre = z_static;
+  for (int i = 0; i < nz; ++i)
+    if (root_free[i]) centre[i] = z[i];
+  return centre;
+}
+
+int Tracker::Impl::LeaveLabelsEmpty(Hypothesis* h, const std::vector<char>& empty,
+                                    const Eigen::VectorXd& centre) {
+  int emptied = 0;
+  for (int m = 0; m < nm; ++m)
+    if (empty[m] && h->assignment[m] >= 0) {
+      h->assignment[m] = -1;
+      ++emptied;
+    }
+  if (emptied == 0) return 0;
   // The pose without them: where their limbs' other markers and the prior put the limbs.
-  for (int m : dropped) held[m] = -1;
-  z = full;
-  HeldFit(&z, centre, held, kHeldFitIterations);
-  h->z = z;
-  h->assignment = held;
-  Linearise(z);
+  HeldFit(&h->z, centre, h->assignment, kHeldFitIterations);
+  Linearise(h->z);
   double sum = 0;
   h->labelled = 0;
   for (int m = 0; m < nm; ++m)
-    if (held[m] >= 0) {
-      sum += (points.col(held[m]) - predicted.col(m)).squaredNorm();
+    if (h->assignment[m] >= 0) {
+      sum += (points.col(h->assignment[m]) - predicted.col(m)).squaredNorm();
       ++h->labelled;
     }
   h->rms = h->labelled > 0 ? std::sqrt(sum / h->labelled) : std::numeric_limits<double>::infinity();
-  return static_cast<int>(dropped.size());
+  return emptied;
 }
 
 bool Tracker::Impl::TryInitialise(int np) {
@@ -684,7 +730,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   init.accepted = false;
   init.hypotheses = 0;
   init.best_score = init.runner_up_score = init.rms_m = 0;
-  init.labelled = 0;
+  init.labelled = init.undecided = 0;
   if (np < options.init_min_fraction * nm_seen) {
     init.reason = "too few points";
     return false;
