@@ -13,7 +13,7 @@
 //                [--missing F] [--noise-mm S] [--seed N] [--frame-prior SIGMA] [--min-diagonal D]
 //                [--max-iterations K] [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]
 //                [--fit-model] [--rescue-rounds N] [--clamp-ranges] [--ik-limit-stiffness S]
-//                [--limit-sigma SIGMA] [--pose-retries K] [--pose-cap R]
+//                [--limit-sigma SIGMA] [--pose-retries K] [--pose-cap R] [--time-iteration K]
 //
 // The accuracy against the simulation's truth is printed ("truth:", JSON ours_accuracy): joint
 // centres, frames whose markers (hidden ones too) sit > 20 mm off, and joint rotations outside
@@ -27,7 +27,9 @@
 // --limit-sigma: IkOptions::coordinate_limit_stiffness, FitOptions::coordinate_limit_sigma_rad);
 // it prints how many (frame, rotation) pairs of the truth lie outside the ranges (none for the
 // default protocol: clamping is consistent with the simulated motions). --pose-retries / --pose-cap
-// set CoarseToFineOptions::pose_step_retries / pose_step_cap.
+// set CoarseToFineOptions::pose_step_retries / pose_step_cap. --time-iteration K times the parts of
+// one fine-stage iteration (linearisation, shared solve, cost, the inner iteration's pose re-solve)
+// K times at our solution and prints each part's least CPU time (JSON ours_iteration_parts).
 //
 // --fit-model also runs solver::FitModel, what `mocap fit` runs, on the same trials with the same
 // options: its IK start, the coarse-to-fine solve, the re-posing and the rescue of frames left in
@@ -101,6 +103,7 @@
 #include <fstream>
 #include <functional>
 #include <iostream>
+#include <limits>
 #include <map>
 #include <memory>
 #include <set>
@@ -240,6 +243,7 @@ struct Args {
   double limit_sigma = 0;          // > 0: FitOptions::coordinate_limit_sigma_rad; 0: its default
   int geodesic = -1;               // 1 / 0: LmOptions::geodesic_acceleration on / off; -1: its default
   double geodesic_alpha = 0, geodesic_h = 0;  // > 0: max_acceleration_ratio, acceleration_step
+  int time_iteration = 0;          // > 0: time one fine-stage iteration's parts this many times
 };
 
 [[noreturn]] void Usage(const std::string& error) {
@@ -258,7 +262,8 @@ struct Args {
                "         [--clamp-ranges] [--ik-limit-stiffness S] [--limit-sigma SIGMA]\n"
                "         [--pose-retries K] [--pose-cap R]\n"
                "         [--geodesic | --no-geodesic] [--geodesic-alpha A] [--geodesic-h H]\n"
-               "         [--vp] [--secant] [--reduced-damping] [--raise-gain G] [--converge-gain G]\n",
+               "         [--vp] [--secant] [--reduced-damping] [--raise-gain G] [--converge-gain G]\n"
+               "         [--time-iteration K]\n",
                error.c_str());
   std::exit(2);
 }
@@ -336,6 +341,7 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--ceres-max-seconds") args.ceres_max_seconds = number(1e-3);
     else if (a == "--verbose") args.verbose = true;
     else if (a == "--repeat") args.repeat = static_cast<int>(number(1));
+    else if (a == "--time-iteration") args.time_iteration = static_cast<int>(number(1));
     else if (a == "--ceres-solvers") {
       args.ceres_solvers = List(value(), {"schur", "normal", "dense"}, a);
     } else if (a == "--ceres-residuals") {
@@ -1391,6 +1397,60 @@ int main(int argc, char** argv) {
     }
   }
   ours_cached = ours_coarse.frames_cached;
+  // --time-iteration K: the parts of one whole-problem iteration of the fine stage, timed K times
+  // at our solution (the same work every time): the linearisation with the reduction at an
+  // anticipated damping, the shared solve and back-substitution, the candidate's cost, and the
+  // inner iteration's pose re-solve, as SolveCoarseToFine runs them. Each part's CPU seconds are
+  // the minimum over the K runs (the machine is shared: the least disturbed run is the work).
+  if (args.time_iteration > 0) {
+    const double lambda = 1e-3;  // the crawl's damping (BENCHMARKS.md, "With gaps")
+    solver::ArrowSchurProblem schur(&problem, args.threads);
+    solver::CoarseToFineOptions inner = args.coarse;
+    inner.pose_iterations = inner.inner_pose_iterations;
+    inner.pose_from_predecessor = false;
+    const char* names[4] = {"linearize", "solve", "cost", "inner_iteration"};
+    double wall_sum[4] = {0, 0, 0, 0}, cpu_min[4];
+    std::fill(cpu_min, cpu_min + 4, std::numeric_limits<double>::infinity());
+    bool ok = true;
+    for (int k = 0; k < args.time_iteration && ok; ++k) {
+      Eigen::VectorXd x = ours_x, gradient, diagonal, dx;
+      double cost = 0, new_cost = 0;
+      auto part = [&](int i, auto&& work) {
+        const SolveTimer timer;
+        ok = ok && work();
+        wall_sum[i] += timer.wall();
+        cpu_min[i] = std::min(cpu_min[i], timer.cpu());
+      };
+      part(0, [&] {
+        schur.AnticipateDamping(lambda, fit_options.lm.min_diagonal, fit_options.lm.max_diagonal);
+        return schur.Linearize(x, &cost, &gradient, &diagonal);
+      });
+      const Eigen::VectorXd damping =
+          lambda * diagonal.cwiseMax(fit_options.lm.min_diagonal).cwiseMin(fit_options.lm.max_diagonal);
+      part(1, [&] { return schur.SolveDamped(damping, &dx); });
+      x += dx;
+      part(2, [&] { return schur.Cost(x, &new_cost); });
+      part(3, [&] {
+        bool refined = false;
+        solver::RefineFramePoses(&problem, inner, args.threads, &x, &refined, nullptr, schur.frame_costs().data(),
+                                 2.0 * fit_options.lm.function_tolerance * new_cost);
+        return refined;
+      });
+    }
+    json parts;
+    std::string line;
+    double total = 0;
+    for (int i = 0; i < 4; ++i) {
+      parts[names[i]] = {{"wall_s", wall_sum[i] / args.time_iteration}, {"cpu_s", cpu_min[i]}};
+      total += cpu_min[i];
+      char part[64];
+      std::snprintf(part, sizeof(part), "%s%s %.4f", i ? ", " : "", names[i], cpu_min[i]);
+      line += part;
+    }
+    out["ours_iteration_parts"] = parts;
+    std::fprintf(stderr, "  one fine-stage iteration (%d runs, %s): CPU s %s; total %.3f\n", args.time_iteration,
+                 ok ? "min CPU" : "FAILED", line.c_str(), total);
+  }
   // The plain LM on the whole problem from x0, for comparison (--plain).
   solver::LmSummary plain;
   std::vector<double> plain_times;
