@@ -138,7 +138,10 @@
 // anchor within its gate on its own variance and the whole fit's chi-square within the gate's tail
 // on its 3n - 6 degrees of freedom (the fit spreads one wrong point's error over every anchor: a
 // reflection 88 mm from a hidden pelvis marker passed each anchor's 18 mm gate with 13-18 mm
-// residuals, a chi-square of 41 on 6); the choice labelling the most markers at the least
+// residuals, a chi-square of 41 on 6), and each label the choice gives anew within its gate of
+// where the other anchors alone put it (its deleted residual, with the others' fit's covariance:
+// with four anchors a reflection 33-38 mm from a hidden head marker's place passed both tests
+// above); the choice labelling the most markers at the least
 // cost is taken only when no different choice comes within the initialisation's log-likelihood
 // margin, and only for points no other segment's unlabelled marker could also be (in its gate and
 // at its distance from its joint centre). With three or more of the segment's markers labelled
@@ -258,8 +261,9 @@
 // placement that mends the limb), no differently labelling restart comes within the init_ambiguity_margin
 // log-likelihood margin, and no new label is on a point whose past is not rigid with the
 // marker's segment (as in the gating above: a lone finger marker's two wrist angles fit any point
-// at the right distance from the wrist); and a placement whose one new label is its segment's only
-// marker needs that point to have moved rigidly with the segment (the segment registration's
+// at the right distance from the wrist); and a placement whose one new label is the only marker of
+// its segment it labels (a hand's finger marker; a toe marker with the heel hidden) needs that
+// point to have moved rigidly with the segment (the segment registration's
 // standard for an unpinned marker: a reflection beside a hidden finger marker has no such past).
 // In the first second after a (re)initialisation the
 // labels themselves are suspect (a search over one frame can label a limb wrongly but
