@@ -502,7 +502,7 @@ struct Tracker::Impl {
   bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
   static constexpr double kFreshTrackSeconds = 1.0;
   bool RigidlyPlausible(int m, int k, bool anywhere = false) const;
-  bool LoneMarkerWithoutPast(int m, int k) const;
+  bool LoneMarkerWithoutPast(int m, int k, const std::vector<int>& placement) const;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
   // `unheld`: searched for a marker whose own limb has no label (AnchoredLimb).
   bool ReacquireLimb(int joint, int np, bool place, bool unheld);

@@ -588,11 +588,15 @@ int Tracker::Impl::Search(int np, std::vector<Hypothesis>* out) {
 // where the rest of the body puts m. m's label is left empty when all three hold:
 //  - the deleted residual exceeds the search's final radius (init_radius_m): without its own
 //    label the search would not have matched m to that point;
-//  - an unclaimed point lies within that radius of where the rest of the body puts m: there is
-//    a second configuration, not one label or none (a generic model's acromion marker 55 mm from
-//    where gait2354's torso puts it, with no other point near, keeps its label; so do welk007's
-//    wrist markers, pronated past the static pose's range by the two together: the point near
-//    one's deleted prediction is the other's);
+//  - an unclaimed point lies nearer than m's labelled point to where the rest of the body puts
+//    m: there is a second configuration, not one label or none (a generic model's acromion
+//    marker 55 mm from where gait2354's torso puts it, with no other point near, keeps its label;
+//    so do welk007's wrist markers, pronated past the static pose's range by the two together:
+//    the point near one's deleted prediction is the other's). Nearer, not within the radius: the
+//    marker's own point may be as far as the reflection it lost to (simulated seed 69 at 5
+//    ghosts: LTOE on a reflection 85 mm from where the rest of the body puts it, its own point
+//    63 mm from there, the label turning the foot by 4.6 times the prior's departure without it,
+//    kept for 311 frames);
 //  - the label takes m's chain farther from the static pose than the rest of the body does
 //    (the search's prior, summed over the chain's joint angles): it buys a turn. Where it holds
 //    the chain nearer (at the nominal model's own size seed 37's start in the static alone has
@@ -683,9 +687,10 @@ int Tracker::Impl::LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np) {
     held[m] = k;
     ForwardKinematics(*model, geometry, z, &data);
     const Eigen::Vector3d at = MarkerPosition(*model, geometry, data, m);
-    if ((at - points.col(k)).norm() <= radius) continue;
+    const double deleted = (at - points.col(k)).norm();
+    if (deleted <= radius) continue;
     bool second = false;
-    for (int q = 0; q < np && !second; ++q) second = !claimed[q] && (at - points.col(q)).norm() <= radius;
+    for (int q = 0; q < np && !second; ++q) second = !claimed[q] && (at - points.col(q)).norm() < deleted;
     if (second && departure(m, full) > departure(m, z)) dropped.push_back(m);
   }
   if (dropped.empty()) return 0;
@@ -1246,7 +1251,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
     if (lbest_assign[m] >= 0 && row_to_col[m] < 0 &&
         (NonRigidTrack(m, points.col(lbest_assign[m])) ||
          SeenBeside(m, lbest_assign[m], np) ||
-         (new_labels == 1 && LoneMarkerWithoutPast(m, lbest_assign[m]))))
+         (new_labels == 1 && LoneMarkerWithoutPast(m, lbest_assign[m], lbest_assign))))
       return false;
   const double variance = std::max(rms * rms / 3.0, 1e-6);
   if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
@@ -1274,21 +1279,26 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
 }
 
 // Whether the limb search's one new label, marker m on point k, is the only marker of its segment
-// and point k has no past that moved rigidly with the segment (RigidWithSegment, the segment
-// registration's standard for a marker its segment does not pin). Such a segment (a hand with its
-// finger marker) turns about its joint centre to put its marker on any point at the marker's
-// distance from it, so the placement is no evidence that the point is the marker: a reflection
-// that appeared beside the hidden finger marker at its 20th hidden frame was taken for it (seed
-// 50, 8 ghosts: 103 frames; seeds 15 and 47 likewise). Where the placement also gives its parent
-// limb new labels (a forearm placed anew), the past's joint centres were the wrong pose's and
+// the placement labels and point k has no past that moved rigidly with the segment
+// (RigidWithSegment, the segment registration's standard for a marker its segment does not pin).
+// Such a segment (a hand with its finger marker; a foot whose heel marker is hidden) turns about
+// its joint centre to put its marker on any point at the marker's distance from it, so the
+// placement is no evidence that the point is the marker: a reflection that appeared beside the
+// hidden finger marker at its 20th hidden frame was taken for it (seed 50, 8 ghosts: 103 frames;
+// seeds 15 and 47 likewise); with the heel marker hidden, the foot was turned to put RTOE on a
+// reflection 55 mm from its prediction, 62 mm from its own point, for 69 frames (seed 21, 8
+// ghosts; seed 4's LTOE likewise, 8 frames). Where the placement also gives its parent limb new
+// labels (a forearm placed anew), the past's joint centres were the wrong pose's and
 // say nothing; and not in a fresh track, whose joint centres may be wrong with the limb.
 // Its cost: a finger marker whose own offset or forearm is wrong is not placed again until its
 // point moves 2 cm rigidly with the predicted wrist (seed 47 at 5 ghosts, its offset learnt on a
 // reflection: 0.9926 -> 0.9815; seed 10 at 8 ghosts, its forearm mirrored from its start: 0.990
 // -> 0.969). A limb search whose evidence is over frames, not one, would need neither.
 
-bool Tracker::Impl::LoneMarkerWithoutPast(int m, int k) const {
-  if (FreshTrack() || segment_markers[model->markers()[m].segment].size() > 1) return false;
+bool Tracker::Impl::LoneMarkerWithoutPast(int m, int k, const std::vector<int>& placement) const {
+  if (FreshTrack()) return false;
+  for (int a : segment_markers[model->markers()[m].segment])
+    if (a != m && placement[a] >= 0) return false;
   return !RigidWithSegment(m, k);
 }
 
