@@ -556,6 +556,37 @@ TEST(TrackStaticStart, OffsetsLearntAsTheMeanWhileStillKeepAReturningMarkerOffAG
   EXPECT_LE(scaled.score.wrong, 10);
 }
 
+namespace {
+// The first `frames` frames of the sweep's scene of the issue's conditions (bench/track_sweep: the
+// whole protocol as one take, 5 ghosts a frame, 10 % occluded, the swap traps) for `seed`,
+// tracked with the nominal model and the default options; *scene gets the scene as tracked.
+mocap::sim::TrackRun TrackIssueScene(std::uint64_t seed, int frames, mocap::sim::TrackingScene* scene,
+                                     mocap::ekf::InitialisationSummary* start = nullptr) {
+  mocap::sim::TrackingSceneOptions o;
+  o.seed = seed;
+  o.ghosts = 5;
+  o.occlusion = 0.1;
+  o.swap_traps = true;
+  EXPECT_TRUE(mocap::sim::MakeTrackingScene(o, scene).ok());
+  EXPECT_GT(scene->num_frames(), frames);
+  scene->times.resize(frames);
+  scene->points.resize(frames);
+  scene->labels.resize(frames);
+  mocap::ekf::TrackerOptions topt;
+  topt.rate_hz = o.rate_hz;
+  mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(scene->nominal), topt);
+  mocap::sim::TrackRun run = mocap::sim::TrackScene(*scene, &tracker);
+  if (start) *start = tracker.initialisation();
+  return run;
+}
+
+int SceneMarker(const mocap::sim::TrackingScene& scene, const std::string& name) {
+  for (int i = 0; i < scene.num_markers(); ++i)
+    if (scene.marker_names[i] == name) return i;
+  return -1;
+}
+}  // namespace
+
 // The sweep's scene of the issue's conditions (5 ghosts a frame, 10 % occluded, the swap traps),
 // seed 37, its first 900 frames (the static and the first hip arcs). Its start stood between the
 // sweep and its target: the search turned the right ankle 0.46 rad and the subtalar -0.42 rad
@@ -568,26 +599,10 @@ TEST(TrackStaticStart, OffsetsLearntAsTheMeanWhileStillKeepAReturningMarkerOffAG
 // the rest of the body puts it, and the gate takes RTOE's own point from the next frame. Labels
 // asserted against the truth.
 TEST(TrackStaticStart, ALabelThatAloneTurnsItsLimbOntoAReflectionIsLeftEmpty) {
-  mocap::sim::TrackingSceneOptions o;
-  o.seed = 37;
-  o.ghosts = 5;
-  o.occlusion = 0.1;
-  o.swap_traps = true;
   mocap::sim::TrackingScene scene;
-  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &scene).ok());
-  const int frames = 900;
-  ASSERT_GT(scene.num_frames(), frames);
-  scene.times.resize(frames);
-  scene.points.resize(frames);
-  scene.labels.resize(frames);
-  mocap::ekf::TrackerOptions topt;
-  topt.rate_hz = o.rate_hz;
-  mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(scene.nominal), topt);
-  const mocap::sim::TrackRun run = mocap::sim::TrackScene(scene, &tracker);
+  const mocap::sim::TrackRun run = TrackIssueScene(37, 900, &scene);
   ASSERT_TRUE(run.scored);
-  int rtoe = -1;
-  for (int k = 0; k < scene.num_markers(); ++k)
-    if (scene.marker_names[k] == "RTOE") rtoe = k;
+  const int rtoe = SceneMarker(scene, "RTOE");
   ASSERT_GE(rtoe, 0);
   std::printf("seed 37, 5 ghosts, frames 0-899: accuracy %.6f, wrong %ld, swaps %d; RTOE %ld of %ld right\n",
               run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
@@ -611,38 +626,46 @@ TEST(TrackStaticStart, ALabelThatAloneTurnsItsLimbOntoAReflectionIsLeftEmpty) {
 // agree on and leaves the markers they dispute empty (InitialisationSummary::undecided); the
 // gates label them from the next frames. Labels asserted against the truth.
 TEST(TrackStaticStart, AStartLeavesTheMarkersItsClosePlacementsDisputeEmpty) {
-  mocap::sim::TrackingSceneOptions o;
-  o.seed = 81;
-  o.ghosts = 5;
-  o.occlusion = 0.1;
-  o.swap_traps = true;
   mocap::sim::TrackingScene scene;
-  ASSERT_TRUE(mocap::sim::MakeTrackingScene(o, &scene).ok());
-  const int frames = 900;
-  ASSERT_GT(scene.num_frames(), frames);
-  scene.times.resize(frames);
-  scene.points.resize(frames);
-  scene.labels.resize(frames);
-  mocap::ekf::TrackerOptions topt;
-  topt.rate_hz = o.rate_hz;
-  mocap::ekf::Tracker tracker(std::make_shared<const mocap::Model>(scene.nominal), topt);
-  const mocap::sim::TrackRun run = mocap::sim::TrackScene(scene, &tracker);
+  mocap::ekf::InitialisationSummary start;
+  const mocap::sim::TrackRun run = TrackIssueScene(81, 900, &scene, &start);
   ASSERT_TRUE(run.scored);
   std::printf("seed 81, 5 ghosts, frames 0-899: started at frame %d with %d markers undecided; accuracy "
-              "%.6f, wrong %ld, swaps %d\n", run.first_tracking, tracker.initialisation().undecided,
+              "%.6f, wrong %ld, swaps %d\n", run.first_tracking, start.undecided,
               run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames);
   EXPECT_EQ(run.first_tracking, 0);
-  EXPECT_GE(tracker.initialisation().undecided, 2);
+  EXPECT_GE(start.undecided, 2);
   EXPECT_EQ(run.reinitialisations(), 0);
   EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
   for (const char* name : {"RWRA", "RWRB", "RFIN"}) {
-    int k = -1;
-    for (int i = 0; i < scene.num_markers(); ++i)
-      if (scene.marker_names[i] == name) k = i;
+    const int k = SceneMarker(scene, name);
     ASSERT_GE(k, 0) << name;
     EXPECT_GE(run.marker_correct[k], run.marker_samples[k] - 5) << name;
   }
   EXPECT_GE(run.score.accuracy(), 0.9999);
+}
+
+// The issue's conditions, seed 69 (never tuned on), the static's first 600 frames. The start put
+// LTOE on a reflection, turning the foot by 4.6 times the prior's departure of the pose without
+// that label; without it the rest of the body puts LTOE 85 mm from the reflection and 63 mm from
+// LTOE's own point, unclaimed. The test for a label that alone turns its limb
+// (LeaveSelfDecidedLabelsEmpty) asked for a second point within the search's 5 cm radius and
+// kept the label: LTOE on the reflection for 311 frames, and its offset learnt there cost two
+// more swaps later (0.975 of the take's labels). A second point nearer than the labelled one
+// is enough: the label is left empty and the gate takes LTOE's own point.
+TEST(TrackStaticStart, ALabelThatTurnsItsLimbPastANearerPointIsLeftEmpty) {
+  mocap::sim::TrackingScene scene;
+  const mocap::sim::TrackRun run = TrackIssueScene(69, 600, &scene);
+  ASSERT_TRUE(run.scored);
+  const int ltoe = SceneMarker(scene, "LTOE");
+  ASSERT_GE(ltoe, 0);
+  std::printf("seed 69, 5 ghosts, frames 0-599: accuracy %.6f, wrong %ld, swaps %d; LTOE %ld of %ld right\n",
+              run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
+              run.marker_correct[ltoe], run.marker_samples[ltoe]);
+  EXPECT_EQ(run.first_tracking, 0);
+  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
+  EXPECT_LE(run.score.wrong, 2);
+  EXPECT_GE(run.marker_correct[ltoe], run.marker_samples[ltoe] - 2);
 }
 
 namespace {
@@ -734,13 +757,55 @@ TEST(TrackHarderScene, ARigidFitDoesNotSpreadAReflectionOverTheSegment) {
   EXPECT_LE(run.score.longest_wrong_run, 2);
 }
 
+// Seed 35 of the harder scene, its first 1,600 frames. LFHD hidden, the head held by its three
+// other markers: the segment registration gave it a reflection 33-38 mm from its place for 13
+// frames. With the reflection as a fourth anchor the head's rigid fit spread the error over the
+// four, each residual within its tolerance and the whole fit's chi-square within its tail. A
+// label given anew is now also judged by where the other anchors alone put it (its deleted
+// residual, against the point's variance and the others' fit's covariance).
+TEST(TrackHarderScene, ALabelGivenAnewIsJudgedByWhereTheOtherAnchorsPutIt) {
+  std::vector<double> scales;
+  const mocap::sim::TrackRun run =
+      TrackHarderScene(35, {}, 1600, mocap::ekf::TrackerOptions::ScaleToSubject::kAlways, &scales);
+  ASSERT_TRUE(run.scored);
+  std::printf("seed 35, 8 ghosts, frames 0-1599: accuracy %.6f, wrong %ld, swaps %d, longest %d\n",
+              run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
+              run.score.longest_wrong_run);
+  EXPECT_EQ(run.reinitialisations(), 0);
+  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
+  EXPECT_LE(run.score.longest_wrong_run, 2);
+}
+
+// Seed 21 of the harder scene, its first 8,300 frames. The right foot's heel marker hidden, the
+// limb search turned the foot to put RTOE on a reflection at its distance from the ankle, and
+// the label held 69 frames. The test that a limb search's one new label on a point with no rigid
+// past is refused asked for the marker to be its segment's only marker (a hand's finger marker);
+// a foot whose other marker is hidden turns as freely: now the only marker of its segment that
+// the placement labels.
+TEST(TrackHarderScene, ALimbSearchDoesNotTurnAFootOntoAPointWithNoRigidPast) {
+  std::vector<double> scales;
+  const mocap::sim::TrackRun run =
+      TrackHarderScene(21, {}, 8300, mocap::ekf::TrackerOptions::ScaleToSubject::kAlways, &scales);
+  ASSERT_TRUE(run.scored);
+  std::printf("seed 21, 8 ghosts, frames 0-8299: accuracy %.6f, wrong %ld, swaps %d, longest %d\n",
+              run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
+              run.score.longest_wrong_run);
+  EXPECT_EQ(run.reinitialisations(), 0);
+  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
+  EXPECT_LE(run.score.longest_wrong_run, 2);
+}
+
 // Seed 10 of the harder scene, the static pose alone (3 s; another draw of ghosts and gaps than
-// the whole protocol's). At the model's own size the start puts RTOE on a ghost, and the point
-// track keeps it there for 111 frames. The scaled search labels RTOE on its own point and RKNE
-// besides; when the scaled labelling was taken only if it kept every label the model's own size
-// gave, the wrong one stayed. Now each labelling is fitted with the scales free to it alone, and
-// the scaled one, clearly better (6.3 against 10.3 x 10^-3 m^2), starts: 2 wrong labels, none
-// longer than a frame.
+// the whole protocol's). At the model's own size the start put RTOE on a ghost, and the point
+// track kept it there for 111 frames (0.975 of the labels). The scaled search labels RTOE on its
+// own point and RKNE besides; when the scaled labelling was taken only if it kept every label the
+// model's own size gave, the wrong one stayed. Now each labelling is fitted with the scales free
+// to it alone, and the scaled one, clearly better (6.3 against 10.3 x 10^-3 m^2), starts: 2 wrong
+// labels, none longer than a frame. Since the twentieth session the start at the model's own size
+// leaves that label empty too (a label that turns its limb past a nearer unclaimed point:
+// LeaveSelfDecidedLabelsEmpty; RTOE's own point 107 mm from where the rest of the body puts it,
+// the reflection 122 mm): both
+// sizes are asserted.
 TEST(TrackScaledStart, AScaledLabellingThatFitsClearlyBetterStarts) {
   using Scale = mocap::ekf::TrackerOptions::ScaleToSubject;
   std::vector<double> scales;
@@ -748,7 +813,8 @@ TEST(TrackScaledStart, AScaledLabellingThatFitsClearlyBetterStarts) {
   ASSERT_TRUE(own.scored);
   std::printf("seed 10, 8 ghosts, static, the model's own size: accuracy %.6f, wrong %ld, swaps %d\n",
               own.score.accuracy(), static_cast<long>(own.score.wrong), own.score.swaps_longer_than_5_frames);
-  EXPECT_GE(own.score.swaps_longer_than_5_frames, 1);
+  EXPECT_EQ(own.score.swaps_longer_than_5_frames, 0);
+  EXPECT_GE(own.score.accuracy(), 0.9995);
   const mocap::sim::TrackRun scaled = TrackHarderScene(10, {"static"}, 600, Scale::kAlways, &scales);
   ASSERT_TRUE(scaled.scored);
   EXPECT_FALSE(scales.empty());
