@@ -585,6 +585,29 @@ int SceneMarker(const mocap::sim::TrackingScene& scene, const std::string& name)
     if (scene.marker_names[i] == name) return i;
   return -1;
 }
+
+// The issue's scene for `seed`, its first `frames` frames, where the start leaves `marker`'s label
+// empty and the gate gives it its own point from the next frame: started at frame 0, no
+// re-initialisation, no swap, at most 2 wrong labels, the marker right in all but 2 of its samples.
+mocap::sim::TrackRun ExpectAStartLabelLeftEmptyThenRight(std::uint64_t seed, int frames,
+                                                         const std::string& marker) {
+  mocap::sim::TrackingScene scene;
+  const mocap::sim::TrackRun run = TrackIssueScene(seed, frames, &scene);
+  EXPECT_TRUE(run.scored);
+  const int k = SceneMarker(scene, marker);
+  EXPECT_GE(k, 0) << marker;
+  if (!run.scored || k < 0) return run;
+  std::printf("seed %llu, 5 ghosts, frames 0-%d: accuracy %.6f, wrong %ld, swaps %d; %s %ld of %ld right\n",
+              static_cast<unsigned long long>(seed), frames - 1, run.score.accuracy(),
+              static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames, marker.c_str(),
+              run.marker_correct[k], run.marker_samples[k]);
+  EXPECT_EQ(run.first_tracking, 0);
+  EXPECT_EQ(run.reinitialisations(), 0);
+  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
+  EXPECT_LE(run.score.wrong, 2);
+  EXPECT_GE(run.marker_correct[k], run.marker_samples[k] - 2);
+  return run;
+}
 }  // namespace
 
 // The sweep's scene of the issue's conditions (5 ghosts a frame, 10 % occluded, the swap traps),
@@ -599,20 +622,7 @@ int SceneMarker(const mocap::sim::TrackingScene& scene, const std::string& name)
 // the rest of the body puts it, and the gate takes RTOE's own point from the next frame. Labels
 // asserted against the truth.
 TEST(TrackStaticStart, ALabelThatAloneTurnsItsLimbOntoAReflectionIsLeftEmpty) {
-  mocap::sim::TrackingScene scene;
-  const mocap::sim::TrackRun run = TrackIssueScene(37, 900, &scene);
-  ASSERT_TRUE(run.scored);
-  const int rtoe = SceneMarker(scene, "RTOE");
-  ASSERT_GE(rtoe, 0);
-  std::printf("seed 37, 5 ghosts, frames 0-899: accuracy %.6f, wrong %ld, swaps %d; RTOE %ld of %ld right\n",
-              run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
-              run.marker_correct[rtoe], run.marker_samples[rtoe]);
-  EXPECT_EQ(run.first_tracking, 0);
-  EXPECT_EQ(run.reinitialisations(), 0);
-  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
-  EXPECT_LE(run.score.wrong, 2);
-  // RTOE left empty at the start, its own point from the next frame on.
-  EXPECT_GE(run.marker_correct[rtoe], run.marker_samples[rtoe] - 2);
+  const mocap::sim::TrackRun run = ExpectAStartLabelLeftEmptyThenRight(37, 900, "RTOE");
   EXPECT_GE(run.score.accuracy(), 0.9999);
 }
 
@@ -654,18 +664,7 @@ TEST(TrackStaticStart, AStartLeavesTheMarkersItsClosePlacementsDisputeEmpty) {
 // more swaps later (0.975 of the take's labels). A second point nearer than the labelled one
 // is enough: the label is left empty and the gate takes LTOE's own point.
 TEST(TrackStaticStart, ALabelThatTurnsItsLimbPastANearerPointIsLeftEmpty) {
-  mocap::sim::TrackingScene scene;
-  const mocap::sim::TrackRun run = TrackIssueScene(69, 600, &scene);
-  ASSERT_TRUE(run.scored);
-  const int ltoe = SceneMarker(scene, "LTOE");
-  ASSERT_GE(ltoe, 0);
-  std::printf("seed 69, 5 ghosts, frames 0-599: accuracy %.6f, wrong %ld, swaps %d; LTOE %ld of %ld right\n",
-              run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
-              run.marker_correct[ltoe], run.marker_samples[ltoe]);
-  EXPECT_EQ(run.first_tracking, 0);
-  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
-  EXPECT_LE(run.score.wrong, 2);
-  EXPECT_GE(run.marker_correct[ltoe], run.marker_samples[ltoe] - 2);
+  ExpectAStartLabelLeftEmptyThenRight(69, 600, "LTOE");
 }
 
 namespace {
@@ -737,6 +736,24 @@ TEST(TrackScaledStart, AHiddenWristMarkerTakesNoGhost) {
   }
 }
 
+namespace {
+// The first `frames` frames of the harder scene for `seed`, scaled to the subject (the default):
+// no re-initialisation, no swap longer than 5 frames, no wrong run longer than 2 frames.
+void ExpectTheHarderSceneLabelledRight(std::uint64_t seed, int frames) {
+  std::vector<double> scales;
+  const mocap::sim::TrackRun run =
+      TrackHarderScene(seed, {}, frames, mocap::ekf::TrackerOptions::ScaleToSubject::kAlways, &scales);
+  ASSERT_TRUE(run.scored);
+  std::printf("seed %llu, 8 ghosts, frames 0-%d: accuracy %.6f, wrong %ld, swaps %d, longest %d\n",
+              static_cast<unsigned long long>(seed), frames - 1, run.score.accuracy(),
+              static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
+              run.score.longest_wrong_run);
+  EXPECT_EQ(run.reinitialisations(), 0);
+  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
+  EXPECT_LE(run.score.longest_wrong_run, 2);
+}
+}  // namespace
+
 // Seed 11 of the harder scene, its first 4,400 frames. LASI is hidden from frame ~4,080; at 4,112
 // a reflection riding 88 mm from its prediction (the pelvis held by its three other markers, the
 // gate 5 mm in sd) took its label for 10 frames, until its own point came back 9 mm from the
@@ -745,16 +762,7 @@ TEST(TrackScaledStart, AHiddenWristMarkerTakesNoGhost) {
 // tolerance, and only the fit's whole chi-square (41 on 6 degrees of freedom) tells (ekf/
 // tracker_labelling.cpp, SegmentFitCost).
 TEST(TrackHarderScene, ARigidFitDoesNotSpreadAReflectionOverTheSegment) {
-  std::vector<double> scales;
-  const mocap::sim::TrackRun run =
-      TrackHarderScene(11, {}, 4400, mocap::ekf::TrackerOptions::ScaleToSubject::kAlways, &scales);
-  ASSERT_TRUE(run.scored);
-  std::printf("seed 11, 8 ghosts, frames 0-4399: accuracy %.6f, wrong %ld, swaps %d, longest %d\n",
-              run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
-              run.score.longest_wrong_run);
-  EXPECT_EQ(run.reinitialisations(), 0);
-  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
-  EXPECT_LE(run.score.longest_wrong_run, 2);
+  ExpectTheHarderSceneLabelledRight(11, 4400);
 }
 
 // Seed 35 of the harder scene, its first 1,600 frames. LFHD hidden, the head held by its three
@@ -764,16 +772,7 @@ TEST(TrackHarderScene, ARigidFitDoesNotSpreadAReflectionOverTheSegment) {
 // label given anew is now also judged by where the other anchors alone put it (its deleted
 // residual, against the point's variance and the others' fit's covariance).
 TEST(TrackHarderScene, ALabelGivenAnewIsJudgedByWhereTheOtherAnchorsPutIt) {
-  std::vector<double> scales;
-  const mocap::sim::TrackRun run =
-      TrackHarderScene(35, {}, 1600, mocap::ekf::TrackerOptions::ScaleToSubject::kAlways, &scales);
-  ASSERT_TRUE(run.scored);
-  std::printf("seed 35, 8 ghosts, frames 0-1599: accuracy %.6f, wrong %ld, swaps %d, longest %d\n",
-              run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
-              run.score.longest_wrong_run);
-  EXPECT_EQ(run.reinitialisations(), 0);
-  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
-  EXPECT_LE(run.score.longest_wrong_run, 2);
+  ExpectTheHarderSceneLabelledRight(35, 1600);
 }
 
 // Seed 21 of the harder scene, its first 8,300 frames. The right foot's heel marker hidden, the
@@ -783,16 +782,7 @@ TEST(TrackHarderScene, ALabelGivenAnewIsJudgedByWhereTheOtherAnchorsPutIt) {
 // a foot whose other marker is hidden turns as freely: now the only marker of its segment that
 // the placement labels.
 TEST(TrackHarderScene, ALimbSearchDoesNotTurnAFootOntoAPointWithNoRigidPast) {
-  std::vector<double> scales;
-  const mocap::sim::TrackRun run =
-      TrackHarderScene(21, {}, 8300, mocap::ekf::TrackerOptions::ScaleToSubject::kAlways, &scales);
-  ASSERT_TRUE(run.scored);
-  std::printf("seed 21, 8 ghosts, frames 0-8299: accuracy %.6f, wrong %ld, swaps %d, longest %d\n",
-              run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
-              run.score.longest_wrong_run);
-  EXPECT_EQ(run.reinitialisations(), 0);
-  EXPECT_EQ(run.score.swaps_longer_than_5_frames, 0);
-  EXPECT_LE(run.score.longest_wrong_run, 2);
+  ExpectTheHarderSceneLabelledRight(21, 8300);
 }
 
 // Seed 10 of the harder scene, the static pose alone (3 s; another draw of ghosts and gaps than
