@@ -139,8 +139,10 @@ struct CoarseToFineOptions {
   // with cost left to gain (5 % seed 2 ended 12.7 higher). Each iteration costs more (every trial,
   // rejected ones too, re-solves the poses), yet on a quiet machine (nineteenth session) the six
   // gap runs took 11.1 s of wall instead of 13.6, the slowest 2.19 s instead of 3.64; in
-  // FitModel's staged fit at 10 % (test_sim_fit) fewer iterations on every frame, the same bounds;
-  // real recordings under 3,000 frames (welk007, gait2354) never reach stage 3.
+  // FitModel's staged fit at 10 % (test_sim_fit) 28 iterations instead of 31 (8 on every frame
+  // instead of 11), the same bounds; real recordings under 3,000 frames (welk007, gait2354) never
+  // reach stage 3. All five off is the earlier fine stage (bench/fit_vs_ceres: --no-vp
+  // --no-secant --no-reduced-damping --raise-gain 0 --converge-gain 0).
   bool fine_variable_projection = true;
   bool fine_secant_curvature = true;
   bool fine_reduced_damping = true;
