@@ -262,7 +262,8 @@ struct Args {
                "         [--clamp-ranges] [--ik-limit-stiffness S] [--limit-sigma SIGMA]\n"
                "         [--pose-retries K] [--pose-cap R]\n"
                "         [--geodesic | --no-geodesic] [--geodesic-alpha A] [--geodesic-h H]\n"
-               "         [--vp] [--secant] [--reduced-damping] [--raise-gain G] [--converge-gain G]\n"
+               "         [--vp | --no-vp] [--secant | --no-secant] [--reduced-damping | --no-reduced-damping]\n"
+               "         [--raise-gain G] [--converge-gain G] (the five on by default; a gain of 0: off)\n"
                "         [--time-iteration K]\n",
                error.c_str());
   std::exit(2);
@@ -307,8 +308,11 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--wrap") args.coarse.wrap_frame_turns = true;
     else if (a == "--no-halve") args.coarse.fine_halve_rejected_steps = false;
     else if (a == "--secant") args.coarse.fine_secant_curvature = true;
+    else if (a == "--no-secant") args.coarse.fine_secant_curvature = false;
     else if (a == "--reduced-damping") args.coarse.fine_reduced_damping = true;
+    else if (a == "--no-reduced-damping") args.coarse.fine_reduced_damping = false;
     else if (a == "--vp") args.coarse.fine_variable_projection = true;
+    else if (a == "--no-vp") args.coarse.fine_variable_projection = false;
     else if (a == "--raise-gain") args.coarse.fine_raise_lambda_below_gain = number(0);
     else if (a == "--converge-gain") args.coarse.fine_converge_min_gain_ratio = number(0);
     else if (a == "--pose-tolerance") args.coarse.pose_tolerance = number(0);
@@ -1500,6 +1504,11 @@ int main(int argc, char** argv) {
                         {"start_cost", ours_coarse.start_cost},
                         {"fine_start_cost", ours_coarse.fine_start_cost},
                         {"total_seconds", ours_coarse.total_seconds}};
+  out["ours_fine_options"] = {{"variable_projection", args.coarse.fine_variable_projection},
+                              {"secant_curvature", args.coarse.fine_secant_curvature},
+                              {"reduced_damping", args.coarse.fine_reduced_damping},
+                              {"raise_lambda_below_gain", args.coarse.fine_raise_lambda_below_gain},
+                              {"converge_min_gain_ratio", args.coarse.fine_converge_min_gain_ratio}};
   if (args.plain) {
     out["plain_s"] = *std::min_element(plain_times.begin(), plain_times.end());
     out["plain_s_all"] = plain_times;

@@ -130,21 +130,24 @@ struct CoarseToFineOptions {
   //    fine_converge_min_gain_ratio (LmOptions::function_tolerance_min_gain_ratio, with the
   //    projection only): after a poorly predicted step lambda rises as after a rejection, and such
   //    a step's small gain does not end the solve (with the projection a step of gain ratio 0.04
-  //    ended 5 % seed 1 1.6 above the default's end).
-  // Off: measured at 6,000 frames, 0.8 mm noise, 0 / 5 / 10 % missing, seeds 1-3 (all five, 0.25
-  // for both ratios): whole-problem iterations 2, 2, 2 / 6, 2, 5 / 5, 10, 14 -> 2, 2, 2 / 7, 5, 4 /
-  // 7, 6, 7, every end cost at or below the default's (by up to 12.7, 5 % seed 2), centres
-  // within +-0.04 mm; but 5 % seed 2 takes 5 iterations instead of 2 and seed 1 7 instead of 6,
-  // and each iteration costs more (every trial, rejected ones too, re-solves the poses). On a
-  // quiet machine the six gap runs take 11.1 s of wall instead of 13.6, the slowest 2.19 s
-  // instead of 3.64, but 5 % seed 2 1.60 s instead of 1.02: not the 1.5 s target. In FitModel's staged fit at 10 %
-  // (test_sim_fit) 8 iterations on every frame instead of 11, the same bounds; real recordings
-  // under 3,000 frames (welk007, gait2354) never reach stage 3.
-  bool fine_variable_projection = false;
-  bool fine_secant_curvature = false;
-  bool fine_reduced_damping = false;
-  double fine_converge_min_gain_ratio = 0;
-  double fine_raise_lambda_below_gain = 0;
+  //    ended 5 % seed 1 1.6 above the fine stage's end without it).
+  // On by default since the twentieth session; measured at 6,000 frames, 0.8 mm noise, 0 / 5 / 10 %
+  // missing, seeds 1-3 (all five, 0.25 for both ratios; BENCHMARKS.md, "With gaps"): whole-problem
+  // iterations 2, 2, 2 / 6, 2, 5 / 5, 10, 14 -> 2, 2, 2 / 7, 5, 4 / 7, 6, 7, every end cost at or
+  // below the earlier default's, centres within +-0.04 mm. The earlier default's fewer iterations
+  // at 5 % seed 2 (2 instead of 5) and 10 % seed 1 (5 instead of 7) were not a speed: it stopped
+  // with cost left to gain (5 % seed 2 ended 12.7 higher). Each iteration costs more (every trial,
+  // rejected ones too, re-solves the poses), yet on a quiet machine (nineteenth session) the six
+  // gap runs took 11.1 s of wall instead of 13.6, the slowest 2.19 s instead of 3.64; in
+  // FitModel's staged fit at 10 % (test_sim_fit) 28 iterations instead of 31 (8 on every frame
+  // instead of 11), the same bounds; real recordings under 3,000 frames (welk007, gait2354) never
+  // reach stage 3. All five off is the earlier fine stage (bench/fit_vs_ceres: --no-vp
+  // --no-secant --no-reduced-damping --raise-gain 0 --converge-gain 0).
+  bool fine_variable_projection = true;
+  bool fine_secant_curvature = true;
+  bool fine_reduced_damping = true;
+  double fine_converge_min_gain_ratio = 0.25;
+  double fine_raise_lambda_below_gain = 0.25;
   // After stage 2, a frame whose cost is above `rescue_ratio` times the median frame's (a pose
   // in a wrong branch: a two-marker foot turned round during a gap) is re-solved, up to
   // `rescue_iterations` Gauss–Newton steps, from its neighbour's pose, sweeping each run of such

@@ -104,7 +104,7 @@ class ArrowSchurProblem : public LmProblem {
   const std::vector<double>& frame_costs() const { return frame_costs_; }
 
   // Options of the coarse-to-fine fine stage (CoarseToFineOptions::fine_secant_curvature and
-  // fine_reduced_damping, measured there); both off unless set.
+  // fine_reduced_damping, measured there; on by default there); off here unless set.
   // A secant model of what Gauss-Newton drops from the reduced system (UpdateSecant): E, updated
   // at the first SolveDamped after each Linearize from how the reduced gradient changed over the
   // last step, is added to S before it is factored. The statistical stop's step length
