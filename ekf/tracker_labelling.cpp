@@ -233,12 +233,7 @@ void Tracker::Impl::FollowLabelledTracks(int np) {
     const Eigen::Vector3d q = last_point.col(a) + shift;
     int nearest = -1;
     double best = step2;
-    // A point whose x alone is as far as the best is no nearer (the squared norm's rounded sum
-    // of non-negative terms is at least its rounded first one): the test skips most of the
-    // frame's points before the full distance, and decides as it does.
     for (int k = 0; k < np; ++k) {
-      const double dx = points(0, k) - q[0];
-      if (dx * dx >= best) continue;
       const double d2 = (points.col(k) - q).squaredNorm();
       if (d2 < best) {
         best = d2;
@@ -249,11 +244,9 @@ void Tracker::Impl::FollowLabelledTracks(int np) {
     // Mutual: no other point of the last frame is nearer to it.
     const Eigen::Vector3d back = points.col(nearest) - shift;
     bool mutual = true;
-    for (int j = 0; j < prev_np && mutual; ++j) {
-      const double dx = prev_points(0, j) - back[0];
-      mutual = dx * dx >= best || (prev_points.col(j) - back).squaredNorm() >= best ||
+    for (int j = 0; j < prev_np && mutual; ++j)
+      mutual = (prev_points.col(j) - back).squaredNorm() >= best ||
                (prev_points.col(j) - last_point.col(a)).squaredNorm() < 1e-18;
-    }
     if (mutual) track_owner[nearest] = track_owner[nearest] < 0 ? a : nm;  // two claims: nobody's
   }
 }
@@ -707,27 +700,18 @@ int Tracker::Impl::Predecessor(int k, int np) const {
   int pred = -1;
   double best = kTrackStep * kTrackStep;
   // The few unclaimed points first: most points (the markers') have none near and stop here.
-  // The x test first, as in FollowLabelledTracks (a point that far in x is no nearer).
   for (int f = 0; f < prev_free_count; ++f) {
     const int j = prev_free_list[f];
-    const double dx = prev_points(0, j) - p[0];
-    if (dx * dx >= best) continue;
     const double d2 = (prev_points.col(j) - p).squaredNorm();
     if (d2 < best) {
       best = d2;
       pred = j;
     }
   }
-  for (int j = 0; j < prev_np && pred >= 0; ++j) {
-    const double dx = prev_points(0, j) - p[0];
-    if (!prev_free[j] && dx * dx < best && (prev_points.col(j) - p).squaredNorm() < best)
-      pred = -1;
-  }
-  for (int i = 0; i < np && pred >= 0; ++i) {
-    const double dx = points(0, i) - prev_points(0, pred);
-    if (i != k && dx * dx < best && (points.col(i) - prev_points.col(pred)).squaredNorm() < best)
-      pred = -1;
-  }
+  for (int j = 0; j < prev_np && pred >= 0; ++j)
+    if (!prev_free[j] && (prev_points.col(j) - p).squaredNorm() < best) pred = -1;
+  for (int i = 0; i < np && pred >= 0; ++i)
+    if (i != k && (points.col(i) - prev_points.col(pred)).squaredNorm() < best) pred = -1;
   pred_cache[k] = pred;
   return pred;
 }
@@ -774,8 +758,6 @@ int Tracker::Impl::PastPoint(int slot, const Eigen::Vector3d& q, int own) const 
   double best = kTrackStep * kTrackStep;
   for (int k = 0; k < hist_count[slot]; ++k) {
     if (claimed[k] && k != own) continue;
-    const double dx = pts(0, k) - q[0];  // as in FollowLabelledTracks: no nearer
-    if (dx * dx >= best) continue;
     const double d2 = (pts.col(k) - q).squaredNorm();
     if (d2 < best) {
       best = d2;
