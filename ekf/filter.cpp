@@ -37,16 +37,16 @@ void SolveRightLowerTransposed(const Eigen::MatrixXd& L, const Eigen::VectorXd& 
     V.col(j) *= reciprocal[j];
   }
 }
-// P's strict upper triangle <- the transpose of its lower one, in 4 x 4 tiles: a tile is read
-// as four contiguous column pieces and written as four, where the element-wise transposed copy
+// P's strict upper triangle <- the transpose of its lower one, in 4 x 4 tiles: a tile is read as
+// four contiguous column pieces and written as four, where the element-wise transposed copy
 // reads every element from a different column (about half the time of
-// P.triangularView<StrictlyUpper>() = P.transpose() at 114 x 114; run twice a frame).
-void MirrorLowerToUpper(Eigen::MatrixXd* Pp) {
-  Eigen::MatrixXd& P = *Pp;
+// P.triangularView<StrictlyUpper>() = P.transpose() at 114 x 114).
+template <typename Matrix>
+void MirrorLower(Matrix&& P) {
   const int n = static_cast<int>(P.rows()), tiled = n / 4 * 4;
   for (int j0 = 0; j0 < tiled; j0 += 4) {
     for (int i0 = 0; i0 < j0; i0 += 4)
-      P.block<4, 4>(i0, j0) = P.block<4, 4>(j0, i0).transpose();
+      P.template block<4, 4>(i0, j0) = P.template block<4, 4>(j0, i0).transpose();
     for (int j = j0 + 1; j < j0 + 4; ++j)
       for (int i = j0; i < j; ++i) P(i, j) = P(j, i);
   }
@@ -54,6 +54,8 @@ void MirrorLowerToUpper(Eigen::MatrixXd* Pp) {
     for (int i = 0; i < j; ++i) P(i, j) = P(j, i);
 }
 }  // namespace
+
+void MirrorLowerToUpper(Eigen::MatrixXd* P) { MirrorLower(*P); }
 
 void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eigen::VectorXd* x,
                                  Eigen::MatrixXd* Pp) {
@@ -63,6 +65,13 @@ void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eig
 void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, double velocity_decay,
                                  double acceleration_decay, Eigen::VectorXd* x,
                                  Eigen::MatrixXd* Pp) {
+  PredictConstantAccelerationLower(dt, jerk_psd, velocity_decay, acceleration_decay, x, Pp);
+  MirrorLowerToUpper(Pp);
+}
+
+void PredictConstantAccelerationLower(double dt, const Eigen::VectorXd& jerk_psd,
+                                      double velocity_decay, double acceleration_decay,
+                                      Eigen::VectorXd* x, Eigen::MatrixXd* Pp) {
   const int nz = static_cast<int>(jerk_psd.size());
   Eigen::MatrixXd& P = *Pp;
   const double h = 0.5 * dt * dt, beta = velocity_decay, alpha = acceleration_decay;
@@ -98,8 +107,9 @@ void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, dou
     P(i2, i) += q * d3 / 6;
     P(i2, i1) += q * d2 / 2;
   }
-  // The lower triangle is the result; the upper one is its mirror, exactly.
-  MirrorLowerToUpper(&P);
+  // The lower triangle is the result; the coordinates' block's upper one is its mirror, exactly
+  // (the whole upper triangle: PredictConstantAcceleration).
+  MirrorLower(P.topLeftCorner(nz, nz));
 }
 
 void CoordinateUpdate::Resize(int nz) {

@@ -22,6 +22,16 @@ void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, Eig
 // running away on its last acceleration. Decays of 1 give the plain model.
 void PredictConstantAcceleration(double dt, const Eigen::VectorXd& jerk_psd, double velocity_decay,
                                  double acceleration_decay, Eigen::VectorXd* x, Eigen::MatrixXd* P);
+// The same, with only P's lower triangle and its coordinates' block P_zz whole afterwards: the
+// strict upper triangle outside P_zz is left as it was. For a caller whose next use of the rest of
+// P is CoordinateUpdate::Apply, which reads the lower triangle only and writes the whole matrix
+// (the tracker: one 114 x 114 mirror a frame saved); any other reader first calls
+// MirrorLowerToUpper.
+void PredictConstantAccelerationLower(double dt, const Eigen::VectorXd& jerk_psd,
+                                      double velocity_decay, double acceleration_decay,
+                                      Eigen::VectorXd* x, Eigen::MatrixXd* P);
+// P's strict upper triangle <- the transpose of its lower one.
+void MirrorLowerToUpper(Eigen::MatrixXd* P);
 
 // The measurement update for measurements of the coordinates only (H = [J 0 0]), in information
 // form on the observed block, from the accumulated A = J^T R^-1 J (n_z x n_z, full symmetric),
@@ -30,7 +40,8 @@ class CoordinateUpdate {
  public:
   void Resize(int nz);
   // Updates x and P; returns false (x and P untouched) when P_zz is not positive-definite or
-  // the step is not finite. *nis receives nu^T S^-1 nu.
+  // the step is not finite. *nis receives nu^T S^-1 nu. Reads P's lower triangle only; the P it
+  // writes is whole (symmetric).
   bool Apply(const Eigen::MatrixXd& A, const Eigen::VectorXd& b, double nu_r_nu,
              Eigen::VectorXd* x, Eigen::MatrixXd* P, double* nis);
 

@@ -387,8 +387,11 @@ double Tracker::Impl::Dt(double time_s) const {
 }
 
 void Tracker::Impl::Predict(double dt) {
-  PredictConstantAcceleration(dt, jerk_psd_now, std::exp(-dt / options.velocity_time_constant_s),
-                              std::exp(-dt / options.acceleration_time_constant_s), &x, &P);
+  // P whole only in its coordinates' block, which the gates read, until the update (which reads
+  // the lower triangle and writes P whole) or Update's mirror when there is none.
+  PredictConstantAccelerationLower(dt, jerk_psd_now,
+                                   std::exp(-dt / options.velocity_time_constant_s),
+                                   std::exp(-dt / options.acceleration_time_constant_s), &x, &P);
   // A coordinate no measurement has observed for kUnobservedFrames frames stops within
   // kUnobservedSeconds: what it did before is no evidence of where it went (the knee of a leg
   // whose shank and foot markers are all hidden ran on its last velocity to the end of its range,
@@ -627,6 +630,8 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
       std::fill(s.beyond_gate.begin(), s.beyond_gate.end(), 0);
     }
     bool ok = s.measured_count == 0 || s.FilterUpdate(&nis, dt);
+    // Without an update P's upper triangle is still the prediction's stale one (Predict).
+    if (s.measured_count == 0 || !ok) MirrorLowerToUpper(&s.P);
     if (ok) {
       s.zbuf = s.x.head(s.nz);
       s.Wrap(&s.zbuf);
