@@ -66,6 +66,9 @@ struct SeedResult {
   double accuracy = 0;
   int swaps_longer_than_5_frames = 0, longest_wrong_run = 0, reinitialisations = 0;
   int frames_tracking = 0;
+  // The first frame the track started at (-1: never): the frames before it count as missed in
+  // the accuracy (a scene whose first frames show too few points to start is no labelling error).
+  int first_tracking = -1;
   double p99_us = 0, max_us = 0, cpu_p99_us = 0, cpu_max_us = 0;
   // The largest CPU time of a frame that continued a track (not one that searched for the subject).
   double cpu_max_tracking_us = 0;
@@ -217,6 +220,7 @@ SeedResult RunSeed(std::uint64_t seed, const mocap::sim::TrackingSceneOptions& b
   r.longest_wrong_run = run.score.longest_wrong_run;
   r.reinitialisations = run.reinitialisations();
   r.frames_tracking = run.frames_tracking();
+  r.first_tracking = run.first_tracking;
   r.update_us = run.update_us;
   if (runs_min_frames > 0)
     r.runs = ErrorRuns(scene, tracker.model(), run, miss_mm, runs_min_frames, &r.missed);
@@ -242,6 +246,7 @@ nlohmann::ordered_json ToJson(const SeedResult& r) {
   }
   j["frames"] = r.frames;
   j["frames_tracking"] = r.frames_tracking;
+  j["first_tracking_frame"] = r.first_tracking;
   j["marker_samples"] = r.samples;
   j["label_accuracy"] = r.accuracy;
   j["wrong_labels"] = r.wrong;
@@ -349,10 +354,10 @@ int main(int argc, char** argv) {
       if (!r.error.empty())
         std::printf("seed %3llu  error: %s\n", static_cast<unsigned long long>(r.seed), r.error.c_str());
       else
-        std::printf("seed %3llu  accuracy %.6f  wrong %5ld  swaps>5 %2d  longest %4d  reinit %2d  "
-                    "p99 %5.0f us (cpu %5.0f)  max %7.0f us (cpu %7.0f, tracking %5.0f)\n",
+        std::printf("seed %3llu  accuracy %.6f  wrong %5ld  swaps>5 %2d  longest %4d  started %4d  "
+                    "reinit %2d  p99 %5.0f us (cpu %5.0f)  max %7.0f us (cpu %7.0f, tracking %5.0f)\n",
                     static_cast<unsigned long long>(r.seed), r.accuracy, r.wrong,
-                    r.swaps_longer_than_5_frames, r.longest_wrong_run, r.reinitialisations, r.p99_us,
+                    r.swaps_longer_than_5_frames, r.longest_wrong_run, r.first_tracking, r.reinitialisations, r.p99_us,
                     r.cpu_p99_us, r.max_us, r.cpu_max_us, r.cpu_max_tracking_us);
       if (runs_min_frames > 0)
         std::printf("  missed (unlabelled, point present) %ld\n%s", r.missed, r.runs.c_str());
