@@ -443,6 +443,8 @@ struct Tracker::Impl {
   // the prior centred at `centre`): the limbs go where their other markers and the prior put
   // them. Returns how many labels it emptied.
   int LeaveLabelsEmpty(Hypothesis* h, const std::vector<char>& empty, const Eigen::VectorXd& centre);
+  // h's labelled count and their RMS distance from the predictions of the last Linearise.
+  void CountLabels(Hypothesis* h) const;
   // The least a scaled start's offsets' prior may be (m; TryInitialise).
   static constexpr double kScaledOffsetSigmaFloor = 0.01;
   // The scales stay within [1 / kScaleLimit, kScaleLimit] of the model's own: a humerus 33 % long

@@ -234,13 +234,7 @@ Tracker::Impl::Hypothesis Tracker::Impl::Icp(Eigen::VectorXd z, int np, const st
   Linearise(z);
   h.assignment.assign(nm, -1);
   h.score = AssignWithin(np, radius, max_depth, &h.assignment);
-  double sum = 0;
-  for (int m = 0; m < nm; ++m)
-    if (h.assignment[m] >= 0) {
-      sum += (points.col(h.assignment[m]) - predicted.col(m)).squaredNorm();
-      ++h.labelled;
-    }
-  h.rms = h.labelled > 0 ? std::sqrt(sum / h.labelled) : std::numeric_limits<double>::infinity();
+  CountLabels(&h);
   Wrap(&z);
   h.z = z;
   return h;
@@ -318,13 +312,7 @@ double Tracker::Impl::ScaleToSubject(const Hypothesis& h, int np, const std::vec
   std::vector<int> assign(nm, -1);
   auto Cost = [&](const Eigen::VectorXd& zz, const Eigen::VectorXd& pp) {
     SetGeometry(pp);
-    ForwardKinematics(*model, geometry, zz, &data);
-    double c = 0;
-    for (int m = 0; m < nm; ++m)
-      if (assign[m] >= 0)
-        c += (MarkerPosition(*model, geometry, data, m) - points.col(assign[m])).squaredNorm();
-    for (int i = 0; i < nz; ++i)
-      c += SearchPrior(i) * (zz[i] - start[i]) * (zz[i] - start[i]);
+    double c = LabelCost(assign, zz, start, 1.0, nullptr);
     for (int k = 0; k < ns; ++k) c += prior_scale * (pp[k] - p0[k]) * (pp[k] - p0[k]);
     return c;
   };
@@ -719,6 +707,11 @@ int Tracker::Impl::LeaveLabelsEmpty(Hypothesis* h, const std::vector<char>& empt
   // The pose without them: where their limbs' other markers and the prior put the limbs.
   HeldFit(&h->z, centre, h->assignment, kHeldFitIterations);
   Linearise(h->z);
+  CountLabels(h);
+  return emptied;
+}
+
+void Tracker::Impl::CountLabels(Hypothesis* h) const {
   double sum = 0;
   h->labelled = 0;
   for (int m = 0; m < nm; ++m)
@@ -727,7 +720,6 @@ int Tracker::Impl::LeaveLabelsEmpty(Hypothesis* h, const std::vector<char>& empt
       ++h->labelled;
     }
   h->rms = h->labelled > 0 ? std::sqrt(sum / h->labelled) : std::numeric_limits<double>::infinity();
-  return emptied;
 }
 
 bool Tracker::Impl::TryInitialise(int np) {

@@ -44,15 +44,6 @@ namespace mocap::ekf {
 
 using namespace internal;
 
-namespace {
-// [v]x: [v]x w = v x w.
-Eigen::Matrix3d CrossMatrix(const Eigen::Vector3d& v) {
-  Eigen::Matrix3d m;
-  m << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
-  return m;
-}
-}  // namespace
-
 // Mahalanobis gating with S_m = J_m P_zz J_m^T + R_m and the optimal assignment.
 void Tracker::Impl::ComputeGates() {
   const double gate = options.gate_chi2;
@@ -630,10 +621,9 @@ bool Tracker::Impl::SegmentFitCost(int segment, const int* labelling, double* co
   if (c > segment_fit_chi2[3 * n - 6]) return false;
   // Each label given anew judged by where the segment's other anchors alone put it (its deleted
   // residual, as robust regression judges an outlier): the fit that includes the point pulls
-  // towards it, and with four anchors a point 54 mm from where three labelled pelvis markers put
-  // RASI left residuals of 8-11 mm, within every tolerance and the whole fit's (simulated seed
-  // 26 at 8 ghosts: RASI hidden, a reflection labelled for 11 frames with the pelvis held by the
-  // three others, the gate's sd 5 mm). The others' fit is weighted by their variances, and the
+  // towards it, and with four anchors it spreads the point's error within every tolerance and
+  // the whole fit's (simulated seed 35 at 8 ghosts: LFHD hidden, the head held by its three other
+  // markers, a reflection 33-38 mm from LFHD's place labelled for 13 frames). The others' fit is weighted by their variances, and the
   // place it predicts carries that fit's covariance (linearised: a translation and a small
   // rotation about the others' centroid) besides the point's own variance: anchors bunched on
   // one side of a segment pin its turn about the line through them loosely, and the place of a
@@ -666,12 +656,12 @@ bool Tracker::Impl::SegmentFitCost(int segment, const int* labelling, double* co
       if (j == i) continue;
       const Eigen::Vector3d a = Rd * (local.col(j) - ml);
       Eigen::Matrix<double, 3, 6> J;
-      J << Eigen::Matrix3d::Identity(), -CrossMatrix(a);
+      J << Eigen::Matrix3d::Identity(), -Skew(a);
       info.noalias() += J.transpose() * J / var[j];
     }
     const Eigen::Vector3d a = Rd * (local.col(i) - ml);
     Eigen::Matrix<double, 3, 6> Ji;
-    Ji << Eigen::Matrix3d::Identity(), -CrossMatrix(a);
+    Ji << Eigen::Matrix3d::Identity(), -Skew(a);
     const Eigen::LDLT<Eigen::Matrix<double, 6, 6>> ldlt(info);
     Eigen::Matrix3d S = Ji * ldlt.solve(Ji.transpose());
     S.diagonal().array() += var[i];

@@ -13,6 +13,12 @@ bool SpansPlane(const Eigen::Matrix3Xd& x) {
   return std::sqrt(std::max(0.0, eig.eigenvalues()[1])) > 1e-6;
 }
 
+Eigen::Matrix3d Skew(const Eigen::Vector3d& v) {
+  Eigen::Matrix3d s;
+  s << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
+  return s;
+}
+
 Eigen::Matrix3d KabschRotation(const Eigen::Matrix3d& h) {
   Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
   Eigen::Matrix3d fix = Eigen::Matrix3d::Identity();

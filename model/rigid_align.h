@@ -24,6 +24,9 @@ bool SpansPlane(const Eigen::Matrix3Xd& points);
 // accumulate H themselves without allocating (the tracker, per marker per frame).
 Eigen::Matrix3d KabschRotation(const Eigen::Matrix3d& cross_covariance);
 
+// [v]x, the cross-product matrix: Skew(v) w = v x w.
+Eigen::Matrix3d Skew(const Eigen::Vector3d& v);
+
 // The proper rotation R and translation t minimising sum |R src_i + t - dst_i|^2 (columns
 // paired), or nothing when fewer than 3 points are given or either set is collinear.
 std::optional<RigidTransform> RigidAlign(const Eigen::Matrix3Xd& src, const Eigen::Matrix3Xd& dst);

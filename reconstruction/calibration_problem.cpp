@@ -2,13 +2,9 @@
 
 #include <cmath>
 
-namespace mocap::reconstruction {
+#include "model/rigid_align.h"
 
-Eigen::Matrix3d Skew(const Eigen::Vector3d& v) {
-  Eigen::Matrix3d s;
-  s << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
-  return s;
-}
+namespace mocap::reconstruction {
 
 Eigen::Matrix3d ExpSO3(const Eigen::Vector3d& w) {
   const double theta = w.norm();

@@ -90,9 +90,9 @@ class WandBundleProblem : public solver::ArrowProblem {
   Eigen::VectorXd prior_weight_, prior_target_, start_;
 };
 
-// Rodrigues' formula and the left Jacobian of SO(3).
+// Rodrigues' formula and the left Jacobian of SO(3) (the cross-product matrix: Skew,
+// model/rigid_align.h).
 Eigen::Matrix3d ExpSO3(const Eigen::Vector3d& w);
 Eigen::Matrix3d LeftJacobianSO3(const Eigen::Vector3d& w);
-Eigen::Matrix3d Skew(const Eigen::Vector3d& v);
 
 }  // namespace mocap::reconstruction

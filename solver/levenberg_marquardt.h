@@ -124,7 +124,7 @@ struct LmOptions {
   // After an accepted step whose gain ratio is below this, lambda rises as after a rejected step
   // with halve_rejected_steps (at least to where the model's minimiser along the step is half of
   // it, so at least 2x), not by Nielsen's at most 1.5x. 0: off. In [0, 1). Both are used by the
-  // coarse-to-fine fine stage's variable projection (coarse_to_fine.h), off by default there.
+  // coarse-to-fine fine stage's variable projection (coarse_to_fine.h), on by default there.
   double raise_lambda_below_gain_ratio = 0;
   bool geodesic_acceleration = false;
   double acceleration_step = 0.02;

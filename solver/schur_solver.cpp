@@ -410,24 +410,23 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
     auto dmp_p = anticipated_damping_.tail(np_);
     if (reduced_damping_) {
       // Marquardt's scaling on the reduced system: the shared parameters damped by the diagonal
-      // of S (at the frames' anticipated damping) instead of J_p^T J_p's.
+      // of S (at the frames' anticipated damping) instead of J_p^T J_p's; S is reduced undamped
+      // first, to read that diagonal, and damped after.
       dmp_p.setZero();
       anticipated_ready_ = FinishReducedSystem(dmp_p, &anticipated_s_, &anticipated_rhs_);
       if (anticipated_ready_) {
         Eigen::VectorXd d = anticipated_s_.diagonal();
         if (secant_ && secant_e_.size() > 0) d += secant_e_.diagonal();
         for (int i = 0; i < np_; ++i) (*diagonal)[nf_ * ny_ + i] = std::max(d[i], 0.0);
-        for (int i = 0; i < np_; ++i)
-          dmp_p[i] = anticipated_lambda_ *
-                     std::min(std::max((*diagonal)[nf_ * ny_ + i], anticipated_min_), anticipated_max_);
-        anticipated_s_.diagonal() += dmp_p;
       }
-    } else {
-      for (int i = 0; i < np_; ++i)
-        dmp_p[i] = anticipated_lambda_ *
-                   std::min(std::max((*diagonal)[nf_ * ny_ + i], anticipated_min_), anticipated_max_);
-      anticipated_ready_ = FinishReducedSystem(dmp_p, &anticipated_s_, &anticipated_rhs_);
     }
+    for (int i = 0; i < np_; ++i)
+      dmp_p[i] = anticipated_lambda_ *
+                 std::min(std::max((*diagonal)[nf_ * ny_ + i], anticipated_min_), anticipated_max_);
+    if (!reduced_damping_)
+      anticipated_ready_ = FinishReducedSystem(dmp_p, &anticipated_s_, &anticipated_rhs_);
+    else if (anticipated_ready_)
+      anticipated_s_.diagonal() += dmp_p;
   }
   return std::isfinite(*cost) && gradient->allFinite();
 }

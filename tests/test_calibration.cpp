@@ -12,6 +12,7 @@
 #include "reconstruction/calibration.h"
 #include "reconstruction/calibration_file.h"
 #include "reconstruction/calibration_intrinsics.h"
+#include "model/rigid_align.h"
 #include "reconstruction/calibration_problem.h"
 #include "sim/camera_rig.h"
 #include "sim/random.h"
