@@ -257,11 +257,21 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
   std::vector<std::uint64_t> frames;
   std::vector<int> versions;
   std::vector<int> labelled, cameras_present;
+  // A frame the daemon itself drops (a queue full on a loaded host, a set the cameras did not
+  // deliver, a subscriber that read too slowly) is counted and told; only a silent loss fails.
+  auto counted_losses = [&](std::uint64_t told) {
+    const json st = MustCall(c.get(), "status");
+    return st["sets"]["dropped"].get<std::uint64_t>() + st["sets"]["undelivered"].get<std::uint64_t>() +
+           st["tracker"]["loop_dropped"].get<std::uint64_t>() + told;
+  };
+  std::uint64_t told_dropped = 0;
+  const std::uint64_t losses_before = counted_losses(0);
   const auto watch_until = std::chrono::steady_clock::now() + std::chrono::seconds(2);
   while (std::chrono::steady_clock::now() < watch_until) {
     json ev;
     bool got = false;
     ASSERT_TRUE(watcher->NextEvent(&ev, 200, &got).ok());
+    if (got && ev.value("event", "") == "dropped") told_dropped += ev["count"].get<std::uint64_t>();
     if (!got || ev.value("event", "") != "frame") continue;
     frames.push_back(ev["frame"]);
     versions.push_back(ev["pose"]["model_version"]);
@@ -271,7 +281,14 @@ TEST(Daemon, WholeSessionOnTheSimulatedRig) {
     cameras_present.push_back(ev["health"]["cameras_present"]);
   }
   ASSERT_GT(frames.size(), 100u);
-  for (std::size_t i = 1; i < frames.size(); ++i) EXPECT_EQ(frames[i], frames[i - 1] + 1) << "lost frame";
+  const std::uint64_t counted = counted_losses(told_dropped) - losses_before;
+  std::uint64_t missing = 0;
+  for (std::size_t i = 1; i < frames.size(); ++i) {
+    EXPECT_GT(frames[i], frames[i - 1]) << "frames out of order";
+    if (frames[i] > frames[i - 1]) missing += frames[i] - frames[i - 1] - 1;
+  }
+  EXPECT_LE(missing, counted) << missing << " frames missing from the stream, " << counted
+                              << " dropped and counted by the daemon: a frame was lost silently";
   for (std::size_t i = 0; i < frames.size(); ++i) {
     if (frames[i] >= from_frame) EXPECT_EQ(versions[i], fitted_version) << frames[i];
     // A set the overloaded machine delivered with cameras missing has fewer points; the swap
