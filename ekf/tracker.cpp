@@ -315,6 +315,7 @@ void Tracker::Impl::Allocate() {
   hist_head = hist_size = 0;
   beside_prev.assign(static_cast<size_t>(mp) * nm, kNever);
   held_run.assign(nm, 0);
+  registered.assign(nm, 0);
   doubted.assign(nm, {-1, -1});
   doubted_count = 0;
   beside_now.assign(static_cast<size_t>(mp) * nm, kNever);
@@ -364,6 +365,7 @@ void Tracker::Impl::ResetState() {
   had_track = false;
   unfit_searches = 0;
   clutter_density = -1;
+  lasting_clutter_density = -1;
   std::fill(q_scale.begin(), q_scale.end(), 1.0);
   jerk_psd_now = jerk_psd;
   // A new subject may come: the model at its own size again (ScaleToSubject).

@@ -210,6 +210,14 @@ struct Tracker::Impl {
   // m^3, averaged over clutter_time_constant_s; negative until a tracking frame measured it), and
   // the reported labels of markers on their first frame back that clutter explains about as well.
   double clutter_density = -1;
+  // The same for the lasting reflections: unclaimed points near the body that continue an
+  // unclaimed point of the last frame. A marker whose gate grew while it was hidden does not take
+  // such a point afresh when a lasting reflection explains it about as well (LabelByGating).
+  double lasting_clutter_density = -1;
+  // Whether marker m, taking afresh point k that continues an unclaimed track, is less likely to
+  // be on it than a lasting reflection is (min_return_probability against
+  // lasting_clutter_density).
+  bool LastingClutterExplains(int m, int k, int np) const;
   void WithholdDoubtfulReturns(int np, double dt);
   // The last kHistory tracking frames' points and predicted joint centres (a ring), to follow a
   // point back in time (NonRigidTrack).
@@ -242,6 +250,9 @@ struct Tracker::Impl {
   int doubted_count = 0;
   // Per marker: its longest run of labelled frames since the (re)initialisation.
   std::vector<int> held_run;
+  // Per marker: labelled by the segment registration this frame (RegisterSegments), so that next
+  // frame the point continuing its track stays its label outside the gate (LabelByGating).
+  std::vector<char> registered;
   static constexpr int kHeldFrames = 20;
   Eigen::Matrix3Xd prev_points;
   std::vector<char> prev_free;
