@@ -64,6 +64,116 @@ class MarkerFrameEvaluator : public FrameEvaluator {
         z_terms_[m].push_back({j, e, element_offset_[j] + e, c,
                                model.joints()[j].elements[e].kind == ElementKind::kRotation});
       });
+    // PoseNormalEquations: every driven element, and the pairs of them on one chain (the second
+    // at or above the first: the markers moved by both are those below the first).
+    for (int j = 0; j < model.num_joints(); ++j) {
+      const Joint& jt = model.joints()[j];
+      for (size_t e = 0; e < jt.elements.size(); ++e) {
+        const JointElement& el = jt.elements[e];
+        if (el.coordinate < 0 || el.function.IsConstant()) continue;
+        pose_elements_.push_back({j, static_cast<int>(e), element_offset_[j] + static_cast<int>(e), el.coordinate,
+                                  el.kind == ElementKind::kRotation});
+      }
+    }
+    const int ne_pose = static_cast<int>(pose_elements_.size());
+    for (int a = 0; a < ne_pose; ++a) {
+      const std::vector<int>& chain = model.chain(model.joints()[pose_elements_[a].joint].child);
+      for (int b = 0; b <= a; ++b) {
+        const int jb = pose_elements_[b].joint;
+        if (std::find(chain.begin(), chain.end(), jb) == chain.end()) continue;
+        const int ca = pose_elements_[a].coordinate, cb = pose_elements_[b].coordinate;
+        // Two elements of one coordinate meet twice in U_cc (J_c is their sum).
+        pose_pairs_.push_back({a, b, std::max(ca, cb) + std::min(ca, cb) * model.num_coordinates(),
+                               ca == cb && a != b ? 2.0 : 1.0});
+      }
+    }
+    sums_.resize(model.num_segments());
+    twist_w_.resize(ne_pose);
+    twist_v_.resize(ne_pose);
+    force_w_.resize(ne_pose);
+    force_v_.resize(ne_pose);
+  }
+
+  // J_y^T J_y and J_y^T r from per-segment sums, as the composite-rigid-body algorithm forms a
+  // tree's mass matrix (Featherstone, "Rigid Body Dynamics Algorithms", 2008, ch. 6). Each
+  // element's column of a marker's dh/dz is a twist evaluated at the marker, xi(x) = w x y + v
+  // (y = x - a reference point; w = 0 for a translation), and the same twist for every marker
+  // below its joint. So sum_m w_m xi_a(x_m) . xi_b(x_m) over the markers below both is
+  // xi_a . I xi_b with I the weighted markers' "spatial inertia" below the deeper joint: their
+  // sum of weights M, first moment h = sum w y and second moment Q = sum w y y^T,
+  //     I (w', v') = (K w' + h x v', M v' + w' x h),  K = tr(Q) 1 - Q,
+  // and J_y^T r from sum w e and sum w y x e (e = x - measurement). Per frame that is one pass
+  // over the markers and a handful of multiply-adds per U entry, against three per marker per
+  // entry summed marker by marker (AddBlockNormalEquations): the per-frame solves' main work.
+  // Moments are taken about the root segment's origin, so they do not grow with the distance
+  // walked from the lab's origin.
+  bool PoseNormalEquations(int frame, const double* y, int ny, double* u, double* g) override {
+    const Model& model = problem_.model();
+    const Geometry& geometry = problem_.geometry();
+    z_ = Eigen::Map<const Eigen::VectorXd>(y, model.num_coordinates());
+    ForwardKinematics(model, geometry, z_, &data_);
+    PrepareJacobians(false);
+    const Eigen::Vector3d origin = data_.segment_position[model.joints()[0].child];
+    for (SegmentSums& s : sums_) s.SetZero();
+    const double* meas = problem_.measurements().row(frame).data();
+    for (int m = 0; m < model.num_markers(); ++m) {
+      if (!std::isfinite(meas[3 * m])) continue;
+      const double scale = problem_.residual_scale(m) * std::sqrt(problem_.sample_weight(frame, m));
+      const Eigen::Vector3d x = MarkerPosition(model, geometry, data_, m);
+      Eigen::Vector3d r;
+      for (int k = 0; k < 3; ++k) r[k] = scale * (x[k] - meas[3 * m + k]);
+      if (!std::isfinite(r[0] + r[1] + r[2])) return false;
+      SegmentSums& s = sums_[model.markers()[m].segment];
+      const double w = scale * scale;
+      const Eigen::Vector3d p = x - origin, wp = w * p, wr = scale * r;
+      s.mass += w;
+      s.first += wp;
+      s.second[0] += wp[0] * p[0];
+      s.second[1] += wp[1] * p[1];
+      s.second[2] += wp[2] * p[2];
+      s.second[3] += wp[0] * p[1];
+      s.second[4] += wp[0] * p[2];
+      s.second[5] += wp[1] * p[2];
+      s.error += wr;
+      s.moment += p.cross(wr);
+    }
+    // Composite sums: each segment's plus everything below it (joints come parents first).
+    for (int j = model.num_joints() - 1; j >= 0; --j) {
+      const Joint& jt = model.joints()[j];
+      if (jt.parent >= 0) sums_[jt.parent].Add(sums_[jt.child]);
+    }
+    const int ne_pose = static_cast<int>(pose_elements_.size());
+    for (int a = 0; a < ne_pose; ++a) {
+      const PoseElement& pe = pose_elements_[a];
+      const SegmentSums& s = sums_[model.joints()[pe.joint].child];
+      Eigen::Vector3d& w = twist_w_[a];
+      Eigen::Vector3d& v = twist_v_[a];
+      if (pe.rotation) {
+        w = data_.element_derivative[pe.joint][pe.element] * world_axis_[pe.k];
+        v = w.cross(origin - data_.element_origin[pe.joint][pe.element]);
+      } else {
+        w.setZero();
+        v = translation_column_[pe.k];
+      }
+      const Eigen::Vector3d qw(s.second[0] * w[0] + s.second[3] * w[1] + s.second[4] * w[2],
+                               s.second[3] * w[0] + s.second[1] * w[1] + s.second[5] * w[2],
+                               s.second[4] * w[0] + s.second[5] * w[1] + s.second[2] * w[2]);
+      force_w_[a] = (s.second[0] + s.second[1] + s.second[2]) * w - qw + s.first.cross(v);
+      force_v_[a] = s.mass * v + w.cross(s.first);
+      g[pe.coordinate] += w.dot(s.moment) + v.dot(s.error);
+    }
+    for (const PosePair& pp : pose_pairs_)
+      u[pp.offset] += pp.factor * (twist_w_[pp.b].dot(force_w_[pp.a]) + twist_v_[pp.b].dot(force_v_[pp.a]));
+    // Coordinate limits: a one-row block where the frame is beyond a range, as Evaluate has it.
+    for (const auto& lim : problem_.coordinate_limits()) {
+      const double excess = RangeExcess(model.coordinates()[lim.coordinate], y[lim.coordinate]);
+      if (excess == 0.0) continue;
+      const double r = lim.weight * excess;
+      if (!std::isfinite(r)) return false;
+      u[static_cast<size_t>(lim.coordinate) * (ny + 1)] += lim.weight * lim.weight;
+      g[lim.coordinate] += lim.weight * r;
+    }
+    return true;
   }
 
   bool Evaluate(int frame, const double* y, bool with_jacobians) override {
@@ -232,6 +342,39 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     int joint, element, k, column;
     bool rotation;
   };
+  // PoseNormalEquations' structure and scratch.
+  struct PoseElement {
+    int joint, element, k, coordinate;
+    bool rotation;
+  };
+  struct PosePair {
+    int a, b;       // pose elements, b's joint on a's chain
+    int offset;     // of U's lower-triangle entry (column-major, ny x ny)
+    double factor;  // 2 for two elements of one coordinate
+  };
+  struct SegmentSums {
+    double mass;
+    Eigen::Vector3d first, error, moment;
+    double second[6];  // xx, yy, zz, xy, xz, yz
+    void SetZero() {
+      mass = 0;
+      first.setZero();
+      error.setZero();
+      moment.setZero();
+      std::fill(second, second + 6, 0.0);
+    }
+    void Add(const SegmentSums& o) {
+      mass += o.mass;
+      first += o.first;
+      error += o.error;
+      moment += o.moment;
+      for (int k = 0; k < 6; ++k) second[k] += o.second[k];
+    }
+  };
+  std::vector<PoseElement> pose_elements_;
+  std::vector<PosePair> pose_pairs_;
+  std::vector<SegmentSums> sums_;
+  std::vector<Eigen::Vector3d> twist_w_, twist_v_, force_w_, force_v_;
   std::vector<int> element_offset_;
   std::vector<Eigen::Vector3d> world_axis_, translation_column_, omega_alpha_, omega_beta_;
   std::vector<Eigen::Vector3d> centre_column_;
