@@ -77,6 +77,16 @@ inline void AddBlockNormalEquations(const ResidualBlock& blk, int ny, double* u,
   }
 }
 
+// Where a frame's normal-equation entries go in an elimination solver's own storage
+// (FrameEvaluator::AddNormalEquations): U's entry of y columns (i, j), either order, at
+// u_offset[i * ny + j]; W's entry of y column i and shared column q at w_offset[i * np + q], -1
+// where the solver keeps none (no residual block has both).
+struct NormalLayout {
+  int ny = 0, np = 0;
+  const int* u_offset = nullptr;
+  const int* w_offset = nullptr;
+};
+
 // Evaluates one frame at a time; one per thread, so it may keep scratch space.
 class FrameEvaluator {
  public:
@@ -96,6 +106,13 @@ class FrameEvaluator {
     if (!EvaluatePoseJacobians(frame, y)) return false;
     for (int k = 0; k < num_blocks(); ++k) AddBlockNormalEquations(block(k), ny, u, g);
     return true;
+  }
+  // After Evaluate with Jacobians: ADDS the frame's residual blocks' J_y^T J_y into u, J_y^T J_p
+  // into w (both through `layout`), J_y^T r into gy (by y index) and J_p^T r into gp (by shared
+  // index), all summed over the blocks as the blocks' own products would be. False (nothing
+  // added) where the problem has no such assembly: the caller then forms them from the blocks.
+  virtual bool AddNormalEquations(const NormalLayout& layout, double* u, double* w, double* gy, double* gp) {
+    return false;
   }
   virtual int num_blocks() const = 0;
   virtual const ResidualBlock& block(int i) const = 0;

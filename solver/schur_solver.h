@@ -188,6 +188,8 @@ class ArrowSchurProblem : public LmProblem {
   std::vector<RowGroup> groups_;
   std::vector<BlockKind> kinds_;
   int w_size_ = 0;             // doubles in a compact W_f
+  std::vector<int> u_index_, w_index_;  // U_f's and compact W_f's offsets by (y, y) and (y, p)
+  NormalLayout layout_;
   std::vector<std::unique_ptr<ThreadState>> threads_;
   Eigen::VectorXd x_, gradient_;
   bool cached_ = false;

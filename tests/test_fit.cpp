@@ -5,6 +5,7 @@
 #include <functional>
 
 #include "fit_test_util.h"
+#include "tests/assembly_test_util.h"
 #include "model/default_model.h"
 #include "model/compare.h"
 #include "model/kinematics.h"
@@ -495,6 +496,40 @@ TEST(GlobalFit, PoseNormalEquationsFromSegmentSumsArePerMarkerSums) {
       }
     }
   }
+}
+
+// The whole frame's normal equations as the fit assembles them (U_f, W_f and the gradients from
+// per-segment sums: MarkerFitProblem's evaluator, AddNormalEquations) against the Schur solver's
+// per-marker products of the same Jacobians: the linearisation and the damped step agree to
+// rounding, with markers missing, per-sample weights and some shared parameters fixed.
+TEST(GlobalFit, NormalEquationsFromSegmentSumsArePerMarkerProducts) {
+  std::mt19937_64 rng(13);
+  const Model nominal = NominalWithoutOptional();
+  const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
+  const Model truth = mocap::testutil::Baked(nominal, p_true);
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, 12, 0.0005, rng);
+  const int nm = nominal.num_markers();
+  std::uniform_int_distribution<int> pick(0, nm - 1);
+  for (int f = 1; f < trial.positions.rows(); ++f)
+    for (int k = 0; k < f % 5; ++k) trial.positions.block(f, 3 * pick(rng), 1, 3).setConstant(NAN);
+  solver::FitOptions options;
+  options.fixed_parameters = {"knee_l.centre.x", "tibia_r.scale", "wrist_r.axis0.alpha", "LASI.y", "pelvis.scale"};
+  solver::MarkerFitProblem problem(nominal, trial.positions, options);
+  ASSERT_EQ(problem.shared_dim() + 5, solver::MarkerFitProblem(nominal, trial.positions, solver::FitOptions()).shared_dim());
+  std::uniform_real_distribution<double> weight(0.05, 1.0);
+  Eigen::MatrixXd w(problem.num_frames(), nm);
+  for (int f = 0; f < w.rows(); ++f)
+    for (int m = 0; m < nm; ++m) w(f, m) = weight(rng);
+  problem.SetSampleWeights(w);
+  const Model& model = problem.model();
+  const int nz = model.num_coordinates(), np = problem.shared_dim();
+  Eigen::VectorXd x(problem.num_frames() * nz + np);
+  std::normal_distribution<double> angle(0.0, 0.5);
+  for (int f = 0; f < problem.num_frames(); ++f)
+    for (int c = 0; c < nz; ++c) x[f * nz + c] = model.coordinates()[c].default_value + angle(rng);
+  x.tail(np) = problem.InitialShared();
+  problem.SetFramePriorTargets(x);
+  testutil::ExpectAssemblyMatchesBlocks(&problem, x);
 }
 
 // solver/robust_loss.h: the IRLS weight of each loss is rho'(s), the derivative of its cost

@@ -21,6 +21,7 @@
 #include "solver/global_fit.h"
 #include "solver/inverse_kinematics.h"
 #include "solver/marker_fit_problem.h"
+#include "tests/assembly_test_util.h"
 #include "tests/file_test_util.h"
 
 using namespace mocap;
@@ -277,12 +278,12 @@ TEST(OsimSubject, Gait2354FitFromTheGenericModelRecoversWhatTheWalkExcites) {
   }
 }
 
-// The fit's per-frame normal equations from per-segment sums (MarkerFitProblem's evaluator,
-// PoseNormalEquations) on a model with what the default one lacks: a knee whose one coordinate
+// The fit's normal equations from per-segment sums (MarkerFitProblem's evaluator,
+// PoseNormalEquations and AddNormalEquations) on a model with what the default one lacks: a knee whose one coordinate
 // drives a rotation and translations on splines (two elements of one coordinate, translation
 // columns scaled with the femur), and coordinates clamped to their ranges. They must equal the
 // per-marker sums of the evaluator's Jacobians (tests/test_fit.cpp checks those) to rounding.
-TEST(OsimSubject, Gait2354PoseNormalEquationsFromSegmentSumsArePerMarkerSums) {
+TEST(OsimSubject, Gait2354NormalEquationsFromSegmentSumsArePerMarkerSums) {
   SKIP_WITHOUT_SHARED_DATA();
   const Model model = Gait2354Generic();
   const int nz = model.num_coordinates(), nm = model.num_markers(), nf = 6;
@@ -327,6 +328,13 @@ TEST(OsimSubject, Gait2354PoseNormalEquationsFromSegmentSumsArePerMarkerSums) {
         EXPECT_NEAR(u_sums(i, j), u_blocks(i, j), 1e-11 * u_scale) << "frame " << f << " entry " << i << ", " << j;
     }
   }
+  // The whole linearisation (W_f and the shared gradient too: the knee's centre column carries
+  // its translations scaled with the femur) against the Schur solver's per-marker products.
+  Eigen::VectorXd x(nf * nz + problem.shared_dim());
+  for (int f = 0; f < nf; ++f) x.segment(f * nz, nz) = poses[f];
+  x.tail(problem.shared_dim()) = problem.InitialShared();
+  problem.SetFramePriorTargets(x);
+  testutil::ExpectAssemblyMatchesBlocks(&problem, x);
 }
 
 // The sweep behind the bounds above (run with --gtest_also_run_disabled_tests): seeds 1-20, one
