@@ -334,6 +334,11 @@ class MarkerFrameEvaluator : public FrameEvaluator {
   // I (w, v) for the sums' spatial inertia (see PoseNormalEquations).
   static void Force(const SegmentSums& s, const Vector6& twist, Vector6* force) {
     const Eigen::Vector3d w = twist.head<3>(), v = twist.tail<3>();
+    if (w.isZero()) {  // a translation or a constant column: the same figures, a third of the work
+      force->head<3>() = s.first.cross(v);
+      force->tail<3>() = s.mass * v;
+      return;
+    }
     const Eigen::Vector3d qw(s.second[0] * w[0] + s.second[3] * w[1] + s.second[4] * w[2],
                              s.second[3] * w[0] + s.second[1] * w[1] + s.second[5] * w[2],
                              s.second[4] * w[0] + s.second[5] * w[1] + s.second[2] * w[2]);
