@@ -189,6 +189,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     z_ = Eigen::Map<const Eigen::VectorXd>(y, model.num_coordinates());
     ForwardKinematics(model, geometry, z_, &data_);
     PrepareJacobians(false);
+    shared_ready_ = false;  // the blocks no longer match the pose
     const Eigen::Vector3d origin = data_.segment_position[model.joints()[0].child];
     for (SegmentSums& s : sums_) s.SetZero();
     const double* meas = problem_.measurements().row(frame).data();
@@ -223,7 +224,6 @@ class MarkerFrameEvaluator : public FrameEvaluator {
   bool AddNormalEquations(const NormalLayout& layout, double* u, double* w, double* gy, double* gp) override {
     if (!shared_ready_) return false;
     const Model& model = problem_.model();
-    const Geometry& geometry = problem_.geometry();
     if (layout.u_offset != layout_u_ || layout.w_offset != layout_w_) SetLayout(layout);
     const Eigen::Vector3d origin = data_.segment_position[model.joints()[0].child];
     for (SegmentSums& s : sums_) s.SetZero();
@@ -556,7 +556,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
   std::vector<Eigen::Vector3d> block_position_;
   const int* layout_u_ = nullptr;
   const int* layout_w_ = nullptr;
-  std::vector<int> pose_pair_offset_, param_pair_offset_;
+  std::vector<int> pose_pair_offset_;
   std::vector<int> block_marker_;
   std::vector<double> block_scale_;
   int num_marker_blocks_ = 0;

@@ -449,7 +449,8 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
   return std::isfinite(*cost) && gradient->allFinite();
 }
 
-// U (lower, elimination order) and compact W of one evaluated frame. When `linearizing`, also
+// U (lower, elimination order) and compact W of one evaluated frame, from the problem's own
+// assembly where it has one, else from the blocks as follows. When `linearizing`, also
 // the frame's cost, its gradient (by y index, in ts.gyi) and its part of the shared gradient, and
 // its J_p^T columns stacked for V. Blocks are copied into zero-padded 3-row panels so every
 // product is an unrolled 3-term dot product, scattered through the block kind's precomputed
