@@ -39,6 +39,54 @@ struct ResidualBlock {
   const double* jp = nullptr;
 };
 
+// Adds one residual block's J_y^T J_y (lower triangle of u, column-major ny x ny, by y index) and
+// J_y^T r (g). The common case, three rows and ascending y columns (a marker on its chain), is
+// written out: it is the inner loop of every per-frame solve that has no faster assembly
+// (FrameEvaluator::PoseNormalEquations).
+inline void AddBlockNormalEquations(const ResidualBlock& blk, int ny, double* u, double* g) {
+  const int n = blk.num_y;
+  const int* y = blk.y_index;
+  bool ascending = blk.rows == 3;
+  for (int a = 1; a < n && ascending; ++a) ascending = y[a - 1] < y[a];
+  if (ascending) {
+    const double r0 = blk.residual[0], r1 = blk.residual[1], r2 = blk.residual[2];
+    for (int c = 0; c < n; ++c) {
+      const double* jc = blk.jy + c * kMaxBlockRows;
+      const double j0 = jc[0], j1 = jc[1], j2 = jc[2];
+      g[y[c]] += j0 * r0 + j1 * r1 + j2 * r2;
+      double* col = u + static_cast<size_t>(y[c]) * ny;
+      for (int a = c; a < n; ++a) {
+        const double* ja = blk.jy + a * kMaxBlockRows;
+        col[y[a]] += j0 * ja[0] + j1 * ja[1] + j2 * ja[2];
+      }
+    }
+    return;
+  }
+  for (int a = 0; a < n; ++a) {
+    const double* ja = blk.jy + a * kMaxBlockRows;
+    double ga = 0;
+    for (int r = 0; r < blk.rows; ++r) ga += ja[r] * blk.residual[r];
+    g[y[a]] += ga;
+    for (int c = 0; c <= a; ++c) {
+      const double* jc = blk.jy + c * kMaxBlockRows;
+      double sum = 0;
+      for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jc[r];
+      const int hi = std::max(y[a], y[c]), lo = std::min(y[a], y[c]);
+      u[static_cast<size_t>(lo) * ny + hi] += sum;
+    }
+  }
+}
+
+// Where a frame's normal-equation entries go in an elimination solver's own storage
+// (FrameEvaluator::AddNormalEquations): U's entry of y columns (i, j), either order, at
+// u_offset[i * ny + j]; W's entry of y column i and shared column q at w_offset[i * np + q], -1
+// where the solver keeps none (no residual block has both).
+struct NormalLayout {
+  int ny = 0, np = 0;
+  const int* u_offset = nullptr;
+  const int* w_offset = nullptr;
+};
+
 // Evaluates one frame at a time; one per thread, so it may keep scratch space.
 class FrameEvaluator {
  public:
@@ -49,6 +97,23 @@ class FrameEvaluator {
   // As Evaluate with Jacobians, except that only the y Jacobians need be formed (the blocks'
   // jp may be stale): for per-frame solves with the shared parameters held fixed.
   virtual bool EvaluatePoseJacobians(int frame, const double* y) { return Evaluate(frame, y, true); }
+  // Frame f's normal equations in its own block at y (the shared values held): J_y^T J_y ADDED to
+  // the lower triangle of u (column-major ny x ny, by y index) and J_y^T r to g, over its residual
+  // blocks (not its frame prior). False if a residual is not finite. This default sums the blocks
+  // of EvaluatePoseJacobians; a problem that knows its Jacobians' structure may assemble them
+  // with less work (MarkerFitProblem: from per-segment sums). The blocks are left unspecified.
+  virtual bool PoseNormalEquations(int frame, const double* y, int ny, double* u, double* g) {
+    if (!EvaluatePoseJacobians(frame, y)) return false;
+    for (int k = 0; k < num_blocks(); ++k) AddBlockNormalEquations(block(k), ny, u, g);
+    return true;
+  }
+  // After Evaluate with Jacobians: ADDS the frame's residual blocks' J_y^T J_y into u, J_y^T J_p
+  // into w (both through `layout`), J_y^T r into gy (by y index) and J_p^T r into gp (by shared
+  // index), all summed over the blocks as the blocks' own products would be. False (nothing
+  // added) where the problem has no such assembly: the caller then forms them from the blocks.
+  virtual bool AddNormalEquations(const NormalLayout& layout, double* u, double* w, double* gy, double* gp) {
+    return false;
+  }
   virtual int num_blocks() const = 0;
   virtual const ResidualBlock& block(int i) const = 0;
 };

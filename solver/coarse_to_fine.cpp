@@ -179,6 +179,7 @@ bool CholeskyInPlace(double* a, int n) {
     for (int k = 0; k < j; ++k) {
       const double* ck = a + static_cast<size_t>(k) * n;
       const double l = ck[j];
+      if (l == 0.0) continue;  // no coupling: skipping it changes no figure
       for (int i = j; i < n; ++i) cj[i] -= l * ck[i];
     }
     if (!(cj[j] > 0)) return false;
@@ -188,6 +189,19 @@ bool CholeskyInPlace(double* a, int n) {
     for (int i = j + 1; i < n; ++i) cj[i] *= inv;
   }
   return true;
+}
+
+// Reverses the order of the unknowns of a symmetric matrix held in its lower triangle (column-major
+// n x n) in place: entry (i, j) <- (n-1-j, n-1-i). A frame's coordinates come parents first, so
+// reversed they come leaves first, and eliminated in that order a kinematic tree's normal
+// equations factor without fill: CholeskyInPlace then skips every column that does not couple
+// (a full-body frame: about a third of the dense factorisation's multiply-adds).
+void ReverseSymmetricInPlace(double* a, int n) {
+  for (int j = 0; j < n; ++j)
+    for (int i = j; i < n; ++i) {
+      const int pi = n - 1 - j, pj = n - 1 - i;  // the partner, also in the lower triangle
+      if (pj > j || (pj == j && pi > i)) std::swap(a[static_cast<size_t>(j) * n + i], a[static_cast<size_t>(pj) * n + pi]);
+    }
 }
 
 // Solves L L^T x = b in place, L from CholeskyInPlace.
@@ -205,42 +219,6 @@ void CholeskySolveInPlace(const double* l, int n, double* b) {
   }
 }
 
-// Adds one residual block's J_y^T J_y (lower triangle of u, column-major ny x ny) and J_y^T r.
-// The common case, three rows and ascending y columns (a marker on its chain), is written out:
-// it is the inner loop of every per-frame solve.
-void AddBlockNormalEquations(const ResidualBlock& blk, int ny, double* u, double* g) {
-  const int n = blk.num_y;
-  const int* y = blk.y_index;
-  bool ascending = blk.rows == 3;
-  for (int a = 1; a < n && ascending; ++a) ascending = y[a - 1] < y[a];
-  if (ascending) {
-    const double r0 = blk.residual[0], r1 = blk.residual[1], r2 = blk.residual[2];
-    for (int c = 0; c < n; ++c) {
-      const double* jc = blk.jy + c * kMaxBlockRows;
-      const double j0 = jc[0], j1 = jc[1], j2 = jc[2];
-      g[y[c]] += j0 * r0 + j1 * r1 + j2 * r2;
-      double* col = u + static_cast<size_t>(y[c]) * ny;
-      for (int a = c; a < n; ++a) {
-        const double* ja = blk.jy + a * kMaxBlockRows;
-        col[y[a]] += j0 * ja[0] + j1 * ja[1] + j2 * ja[2];
-      }
-    }
-    return;
-  }
-  for (int a = 0; a < n; ++a) {
-    const double* ja = blk.jy + a * kMaxBlockRows;
-    double ga = 0;
-    for (int r = 0; r < blk.rows; ++r) ga += ja[r] * blk.residual[r];
-    g[y[a]] += ga;
-    for (int c = 0; c <= a; ++c) {
-      const double* jc = blk.jy + c * kMaxBlockRows;
-      double sum = 0;
-      for (int r = 0; r < blk.rows; ++r) sum += ja[r] * jc[r];
-      const int hi = std::max(y[a], y[c]), lo = std::min(y[a], y[c]);
-      u[static_cast<size_t>(lo) * ny + hi] += sum;
-    }
-  }
-}
 // Up to `iterations` damped Gauss–Newton steps on frame f's own rows and prior (p fixed) from
 // y, each kept only if it lowers *cost (y's sum of squares on entry); stops once a step gains
 // at most `tolerance` of the cost, or at most `min_gain`. A step that does not lower the cost is
@@ -256,11 +234,9 @@ bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& opti
   bool moved = false;
   for (int it = 0; it < iterations; ++it) {
     // Normal equations of the frame's own rows: U = J_y^T J_y + B^T B, g = J_y^T r + B^T B (y - y0).
-    if (!evaluator->EvaluatePoseJacobians(f, yf)) break;
     u->setZero();
     g->setZero();
-    for (int k = 0; k < evaluator->num_blocks(); ++k)
-      AddBlockNormalEquations(evaluator->block(k), ny, u->data(), g->data());
+    if (!evaluator->PoseNormalEquations(f, yf, ny, u->data(), g->data())) break;
     const double *w, *target;
     if (problem.FramePrior(f, &w, &target))
       for (int i = 0; i < ny; ++i) {
@@ -281,8 +257,11 @@ bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& opti
         damping = std::max(100.0 * damping, 1e-3);
       }
       for (int i = 0; i < ny; ++i) (*u)(i, i) += damping * std::max((*u)(i, i), 1e-12);
+      ReverseSymmetricInPlace(u->data(), ny);
       if (!CholeskyInPlace(u->data(), ny)) break;
+      std::reverse(g->data(), g->data() + ny);
       CholeskySolveInPlace(u->data(), ny, g->data());
+      std::reverse(g->data(), g->data() + ny);
       const double largest = g->lpNorm<Eigen::Infinity>();
       if (largest > options.pose_step_cap) *g *= options.pose_step_cap / largest;
       *trial = Eigen::Map<const Eigen::VectorXd>(yf, ny) - *g;

@@ -36,6 +36,48 @@ bool ChildFollowsRotation(const Model& model, int j, const Eigen::Vector3d& u) {
 }  // namespace
 
 class MarkerFrameEvaluator : public FrameEvaluator {
+  using Vector6 = Eigen::Matrix<double, 6, 1>;
+  // PoseNormalEquations' and AddNormalEquations' structure.
+  struct PoseElement {
+    int joint, element, k, coordinate;
+    bool rotation;
+  };
+  struct PosePair {
+    int a, b;       // pose elements, b's joint on a's chain
+    int offset;     // of U's lower-triangle entry (column-major, ny x ny)
+    double factor;  // 2 for two elements of one coordinate
+  };
+  struct SegmentSums {
+    double mass;
+    Eigen::Vector3d first, error, moment;
+    double second[6];  // xx, yy, zz, xy, xz, yz
+    void SetZero() {
+      mass = 0;
+      first.setZero();
+      error.setZero();
+      moment.setZero();
+      std::fill(second, second + 6, 0.0);
+    }
+    void Add(const SegmentSums& o) {
+      mass += o.mass;
+      first += o.first;
+      error += o.error;
+      moment += o.moment;
+      for (int k = 0; k < 6; ++k) second[k] += o.second[k];
+    }
+  };
+  struct ParamTwist {
+    int joint;
+    enum Type { kScale, kCentre, kAlpha, kBeta } type;
+    int index;  // the centre's column, or the axis's element
+    int k;      // the axis's flattened element
+    int free;   // shared index
+  };
+  struct ParamPair {
+    int t, a;          // shared twist, pose element on one chain
+    bool twist_force;  // a at or above the twist's joint: I of the twist's subtree, else of a's
+  };
+
  public:
   explicit MarkerFrameEvaluator(const MarkerFitProblem& problem)
       : problem_(problem), data_(problem.model()) {
@@ -64,7 +106,271 @@ class MarkerFrameEvaluator : public FrameEvaluator {
         z_terms_[m].push_back({j, e, element_offset_[j] + e, c,
                                model.joints()[j].elements[e].kind == ElementKind::kRotation});
       });
+    // PoseNormalEquations: every driven element, and the pairs of them on one chain (the second
+    // at or above the first: the markers moved by both are those below the first).
+    for (int j = 0; j < model.num_joints(); ++j) {
+      const Joint& jt = model.joints()[j];
+      for (size_t e = 0; e < jt.elements.size(); ++e) {
+        const JointElement& el = jt.elements[e];
+        if (el.coordinate < 0 || el.function.IsConstant()) continue;
+        pose_elements_.push_back({j, static_cast<int>(e), element_offset_[j] + static_cast<int>(e), el.coordinate,
+                                  el.kind == ElementKind::kRotation});
+      }
+    }
+    const int ne_pose = static_cast<int>(pose_elements_.size());
+    for (int a = 0; a < ne_pose; ++a) {
+      const std::vector<int>& chain = model.chain(model.joints()[pose_elements_[a].joint].child);
+      for (int b = 0; b <= a; ++b) {
+        const int jb = pose_elements_[b].joint;
+        if (std::find(chain.begin(), chain.end(), jb) == chain.end()) continue;
+        const int ca = pose_elements_[a].coordinate, cb = pose_elements_[b].coordinate;
+        // Two elements of one coordinate meet twice in U_cc (J_c is their sum).
+        pose_pairs_.push_back({a, b, std::max(ca, cb) + std::min(ca, cb) * model.num_coordinates(),
+                               ca == cb && a != b ? 2.0 : 1.0});
+      }
+    }
+    block_marker_.resize(nm);
+    block_scale_.resize(nm);
+    block_position_.resize(nm);
+    // AddNormalEquations: the shared columns every marker below a joint shares (its parent's
+    // scale, its centre, its axes), as twists, and the pose elements on the same chain.
+    const std::vector<int>& free = problem.free_index();
+    for (int j = 0; j < model.num_joints(); ++j) {
+      const Joint& jt = model.joints()[j];
+      if (jt.parent >= 0 && free[model.scale_index(jt.parent)] >= 0)
+        param_twists_.push_back({j, ParamTwist::kScale, 0, 0, free[model.scale_index(jt.parent)]});
+      if (model.centre_index(j) >= 0)
+        for (int k = 0; k < 3; ++k)
+          if (free[model.centre_index(j) + k] >= 0)
+            param_twists_.push_back({j, ParamTwist::kCentre, k, 0, free[model.centre_index(j) + k]});
+      for (size_t e = 0; e < jt.elements.size(); ++e) {
+        const int ai = model.axis_index(j, static_cast<int>(e));
+        if (ai < 0) continue;
+        const int k = element_offset_[j] + static_cast<int>(e);
+        if (free[ai] >= 0) param_twists_.push_back({j, ParamTwist::kAlpha, static_cast<int>(e), k, free[ai]});
+        if (free[ai + 1] >= 0) param_twists_.push_back({j, ParamTwist::kBeta, static_cast<int>(e), k, free[ai + 1]});
+      }
+    }
+    for (int t = 0; t < static_cast<int>(param_twists_.size()); ++t) {
+      const int jt = param_twists_[t].joint;
+      const std::vector<int>& chain = model.chain(model.joints()[jt].child);
+      for (int a = 0; a < ne_pose; ++a) {
+        const int ja = pose_elements_[a].joint;
+        const std::vector<int>& chain_a = model.chain(model.joints()[ja].child);
+        if (std::find(chain.begin(), chain.end(), ja) != chain.end())  // a at or above the twist's joint
+          param_pairs_.push_back({t, a, true});
+        else if (std::find(chain_a.begin(), chain_a.end(), jt) != chain_a.end())  // a below it
+          param_pairs_.push_back({t, a, false});
+      }
+    }
+    param_twist_.resize(param_twists_.size());
+    param_force_.resize(param_twists_.size());
+    sums_.resize(model.num_segments());
+    twist_.resize(ne_pose);
+    force_.resize(ne_pose);
   }
+
+  // J_y^T J_y and J_y^T r from per-segment sums, as the composite-rigid-body algorithm forms a
+  // tree's mass matrix (Featherstone, "Rigid Body Dynamics Algorithms", 2008, ch. 6). Each
+  // element's column of a marker's dh/dz is a twist evaluated at the marker, xi(x) = w x y + v
+  // (y = x - a reference point; w = 0 for a translation), and the same twist for every marker
+  // below its joint. So sum_m w_m xi_a(x_m) . xi_b(x_m) over the markers below both is
+  // xi_a . I xi_b with I the weighted markers' "spatial inertia" below the deeper joint: their
+  // sum of weights M, first moment h = sum w y and second moment Q = sum w y y^T,
+  //     I (w', v') = (K w' + h x v', M v' + w' x h),  K = tr(Q) 1 - Q,
+  // and J_y^T r from sum w e and sum w y x e (e = x - measurement). Per frame that is one pass
+  // over the markers and a handful of multiply-adds per U entry, against three per marker per
+  // entry summed marker by marker (AddBlockNormalEquations): the per-frame solves' main work.
+  // Moments are taken about the root segment's origin, so they do not grow with the distance
+  // walked from the lab's origin.
+  bool PoseNormalEquations(int frame, const double* y, int ny, double* u, double* g) override {
+    const Model& model = problem_.model();
+    const Geometry& geometry = problem_.geometry();
+    z_ = Eigen::Map<const Eigen::VectorXd>(y, model.num_coordinates());
+    ForwardKinematics(model, geometry, z_, &data_);
+    PrepareJacobians(false);
+    shared_ready_ = false;  // the blocks no longer match the pose
+    const Eigen::Vector3d origin = data_.segment_position[model.joints()[0].child];
+    for (SegmentSums& s : sums_) s.SetZero();
+    const double* meas = problem_.measurements().row(frame).data();
+    for (int m = 0; m < model.num_markers(); ++m) {
+      if (!std::isfinite(meas[3 * m])) continue;
+      const double scale = problem_.residual_scale(m) * std::sqrt(problem_.sample_weight(frame, m));
+      const Eigen::Vector3d x = MarkerPosition(model, geometry, data_, m);
+      Eigen::Vector3d r;
+      for (int k = 0; k < 3; ++k) r[k] = scale * (x[k] - meas[3 * m + k]);
+      if (!std::isfinite(r[0] + r[1] + r[2])) return false;
+      AddMarker(scale * scale, x - origin, scale * r, &sums_[model.markers()[m].segment]);
+    }
+    PoseTwists(origin, g);
+    for (const PosePair& pp : pose_pairs_) u[pp.offset] += pp.factor * twist_[pp.b].dot(force_[pp.a]);
+    // Coordinate limits: a one-row block where the frame is beyond a range, as Evaluate has it.
+    for (const auto& lim : problem_.coordinate_limits()) {
+      const double excess = RangeExcess(model.coordinates()[lim.coordinate], y[lim.coordinate]);
+      if (excess == 0.0) continue;
+      const double r = lim.weight * excess;
+      if (!std::isfinite(r)) return false;
+      u[static_cast<size_t>(lim.coordinate) * (ny + 1)] += lim.weight * lim.weight;
+      g[lim.coordinate] += lim.weight * r;
+    }
+    return true;
+  }
+
+  // The whole frame's normal equations from the same sums (see PoseNormalEquations), after
+  // Evaluate with Jacobians: U and J_y^T r as there; J_y^T J_p and J_p^T r for the shared
+  // columns that every marker below a joint shares (its parent's scale, its centre and its axes:
+  // each a twist, a constant one for the first two) from the subtree's sums; only a marker's own
+  // columns (its position, its segment's scale) from its own Jacobians, one marker at a time.
+  bool AddNormalEquations(const NormalLayout& layout, double* u, double* w, double* gy, double* gp) override {
+    if (!shared_ready_) return false;
+    const Model& model = problem_.model();
+    if (layout.u_offset != layout_u_ || layout.w_offset != layout_w_) SetLayout(layout);
+    const Eigen::Vector3d origin = data_.segment_position[model.joints()[0].child];
+    for (SegmentSums& s : sums_) s.SetZero();
+    for (int b = 0; b < num_marker_blocks_; ++b) {
+      const int m = block_marker_[b];
+      const double scale = block_scale_[b];
+      const ResidualBlock& blk = blocks_[b];
+      const Eigen::Vector3d p = block_position_[b] - origin;
+      const Eigen::Vector3d r(blk.residual[0], blk.residual[1], blk.residual[2]);
+      AddMarker(scale * scale, p, scale * r, &sums_[model.markers()[m].segment]);
+      // The marker's own columns: its position (the first three) and its segment's scale (the last).
+      const int* offset = own_offset_[m].data();
+      for (int c : {0, 1, 2, blk.num_p - 1}) {
+        const int q = blk.p_index[c];
+        if (q < 0) continue;
+        const double* jp = blk.jp + c * kMaxBlockRows;
+        gp[q] += jp[0] * r[0] + jp[1] * r[1] + jp[2] * r[2];
+        for (int a = 0; a < blk.num_y; ++a) {
+          const double* jy = blk.jy + a * kMaxBlockRows;
+          w[*offset++] += jy[0] * jp[0] + jy[1] * jp[1] + jy[2] * jp[2];
+        }
+      }
+    }
+    PoseTwists(origin, gy);
+    for (size_t i = 0; i < pose_pairs_.size(); ++i) {
+      const PosePair& pp = pose_pairs_[i];
+      u[pose_pair_offset_[i]] += pp.factor * twist_[pp.b].dot(force_[pp.a]);
+    }
+    for (size_t t = 0; t < param_twists_.size(); ++t) {
+      const ParamTwist& pt = param_twists_[t];
+      const Joint& jt = model.joints()[pt.joint];
+      Vector6& tw = param_twist_[t];
+      switch (pt.type) {
+        case ParamTwist::kScale:
+          tw << Eigen::Vector3d::Zero(), centre_column_[pt.joint];
+          break;
+        case ParamTwist::kCentre:
+          tw.head<3>().setZero();
+          if (jt.parent >= 0) tw.tail<3>() = scaled_rotation_[jt.parent].col(pt.index);
+          else tw.tail<3>() = Eigen::Vector3d::Unit(pt.index);
+          break;
+        case ParamTwist::kAlpha:
+        case ParamTwist::kBeta: {
+          const Eigen::Vector3d& omega = pt.type == ParamTwist::kAlpha ? omega_alpha_[pt.k] : omega_beta_[pt.k];
+          tw << omega, omega.cross(origin - data_.element_origin[pt.joint][pt.index]);
+          break;
+        }
+      }
+      const SegmentSums& s = sums_[jt.child];
+      Force(s, tw, &param_force_[t]);
+      gp[pt.free] += tw.head<3>().dot(s.moment) + tw.tail<3>().dot(s.error);
+    }
+    // W's shared columns: I of the deeper joint's subtree times one twist, dotted with the other.
+    for (const WPair& wp : w_twist_force_) w[wp.offset] += twist_[wp.a].dot(param_force_[wp.t]);
+    for (const WPair& wp : w_force_twist_) w[wp.offset] += param_twist_[wp.t].dot(force_[wp.a]);
+    for (int b = num_marker_blocks_; b < num_blocks_; ++b) {  // coordinate limits: one row on one y
+      const ResidualBlock& blk = blocks_[b];
+      const int c = blk.y_index[0];
+      u[layout.u_offset[c * layout.ny + c]] += blk.jy[0] * blk.jy[0];
+      gy[c] += blk.jy[0] * blk.residual[0];
+    }
+    return true;
+  }
+
+ private:
+  // Where AddNormalEquations' entries go in `layout` (kept until another layout is given).
+  void SetLayout(const NormalLayout& layout) {
+    const Model& model = problem_.model();
+    layout_u_ = layout.u_offset;
+    layout_w_ = layout.w_offset;
+    pose_pair_offset_.clear();
+    for (const PosePair& pp : pose_pairs_)
+      pose_pair_offset_.push_back(
+          layout.u_offset[pose_elements_[pp.a].coordinate * layout.ny + pose_elements_[pp.b].coordinate]);
+    w_twist_force_.clear();
+    w_force_twist_.clear();
+    for (const ParamPair& pp : param_pairs_) {
+      const int offset =
+          layout.w_offset[pose_elements_[pp.a].coordinate * layout.np + param_twists_[pp.t].free];
+      if (offset < 0) continue;  // no marker has both: no marker below moves with both
+      (pp.twist_force ? w_twist_force_ : w_force_twist_).push_back({offset, pp.a, pp.t});
+    }
+    own_offset_.assign(model.num_markers(), {});
+    for (int m = 0; m < model.num_markers(); ++m) {
+      const std::vector<int>& ys = model.marker_coordinates(m);
+      const std::vector<int>& ps = problem_.marker_free_columns(m);
+      if (!problem_.observed(m) || ps.size() < 4) continue;
+      for (int c : {0, 1, 2, static_cast<int>(ps.size()) - 1}) {
+        if (ps[c] < 0) continue;
+        for (int y : ys) own_offset_[m].push_back(layout.w_offset[y * layout.np + ps[c]]);
+      }
+    }
+  }
+
+  static void AddMarker(double w, const Eigen::Vector3d& p, const Eigen::Vector3d& wr, SegmentSums* s) {
+    const Eigen::Vector3d wp = w * p;
+    s->mass += w;
+    s->first += wp;
+    s->second[0] += wp[0] * p[0];
+    s->second[1] += wp[1] * p[1];
+    s->second[2] += wp[2] * p[2];
+    s->second[3] += wp[0] * p[1];
+    s->second[4] += wp[0] * p[2];
+    s->second[5] += wp[1] * p[2];
+    s->error += wr;
+    s->moment += p.cross(wr);
+  }
+  // I (w, v) for the sums' spatial inertia (see PoseNormalEquations).
+  static void Force(const SegmentSums& s, const Vector6& twist, Vector6* force) {
+    const Eigen::Vector3d w = twist.head<3>(), v = twist.tail<3>();
+    if (w.isZero()) {  // a translation or a constant column: the same figures, a third of the work
+      force->head<3>() = s.first.cross(v);
+      force->tail<3>() = s.mass * v;
+      return;
+    }
+    const Eigen::Vector3d qw(s.second[0] * w[0] + s.second[3] * w[1] + s.second[4] * w[2],
+                             s.second[3] * w[0] + s.second[1] * w[1] + s.second[5] * w[2],
+                             s.second[4] * w[0] + s.second[5] * w[1] + s.second[2] * w[2]);
+    force->head<3>() = (s.second[0] + s.second[1] + s.second[2]) * w - qw + s.first.cross(v);
+    force->tail<3>() = s.mass * v + w.cross(s.first);
+  }
+  // From the segments' own sums: the composite sums, each pose element's twist and I times it,
+  // and J_y^T r into g.
+  void PoseTwists(const Eigen::Vector3d& origin, double* g) {
+    const Model& model = problem_.model();
+    // Composite sums: each segment's plus everything below it (joints come parents first).
+    for (int j = model.num_joints() - 1; j >= 0; --j) {
+      const Joint& jt = model.joints()[j];
+      if (jt.parent >= 0) sums_[jt.parent].Add(sums_[jt.child]);
+    }
+    const int ne_pose = static_cast<int>(pose_elements_.size());
+    for (int a = 0; a < ne_pose; ++a) {
+      const PoseElement& pe = pose_elements_[a];
+      const SegmentSums& s = sums_[model.joints()[pe.joint].child];
+      Vector6& twist = twist_[a];
+      if (pe.rotation) {
+        const Eigen::Vector3d w = data_.element_derivative[pe.joint][pe.element] * world_axis_[pe.k];
+        twist << w, w.cross(origin - data_.element_origin[pe.joint][pe.element]);
+      } else {
+        twist << Eigen::Vector3d::Zero(), translation_column_[pe.k];
+      }
+      Force(s, twist, &force_[a]);
+      g[pe.coordinate] += twist.head<3>().dot(s.moment) + twist.tail<3>().dot(s.error);
+    }
+  }
+
+ public:
 
   bool Evaluate(int frame, const double* y, bool with_jacobians) override {
     return Evaluate(frame, y, with_jacobians, with_jacobians);
@@ -80,10 +386,15 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     if (with_jacobians) PrepareJacobians(with_shared_jacobians);
     const double* meas = problem_.measurements().row(frame).data();
     num_blocks_ = 0;
+    num_marker_blocks_ = 0;
+    shared_ready_ = false;
     for (int m = 0; m < model.num_markers(); ++m) {
       if (!std::isfinite(meas[3 * m])) continue;
       const double scale = problem_.residual_scale(m) * std::sqrt(problem_.sample_weight(frame, m));
       const Eigen::Vector3d x = MarkerPosition(model, g, data_, m);
+      block_marker_[num_blocks_] = m;
+      block_position_[num_blocks_] = x;
+      block_scale_[num_blocks_] = scale;
       double* r = residual_.data() + 3 * num_blocks_;
       for (int k = 0; k < 3; ++k) r[k] = scale * (x[k] - meas[3 * m + k]);
       if (!std::isfinite(r[0] + r[1] + r[2])) return false;
@@ -111,6 +422,8 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       }
       ++num_blocks_;
     }
+    num_marker_blocks_ = num_blocks_;
+    shared_ready_ = with_jacobians && with_shared_jacobians;
     // Coordinate limits: a block only where the frame is beyond a range (zero residual inside).
     const auto& limits = problem_.coordinate_limits();
     for (size_t i = 0; i < limits.size(); ++i) {
@@ -232,6 +545,26 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     int joint, element, k, column;
     bool rotation;
   };
+  std::vector<ParamTwist> param_twists_;
+  std::vector<ParamPair> param_pairs_;
+  struct WPair {
+    int offset, a, t;  // compact W, pose element, shared twist
+  };
+  std::vector<Vector6> param_twist_, param_force_;
+  std::vector<WPair> w_twist_force_, w_force_twist_;
+  std::vector<std::vector<int>> own_offset_;  // per marker: W offsets of its own columns, by y
+  std::vector<Eigen::Vector3d> block_position_;
+  const int* layout_u_ = nullptr;
+  const int* layout_w_ = nullptr;
+  std::vector<int> pose_pair_offset_;
+  std::vector<int> block_marker_;
+  std::vector<double> block_scale_;
+  int num_marker_blocks_ = 0;
+  bool shared_ready_ = false;
+  std::vector<PoseElement> pose_elements_;
+  std::vector<PosePair> pose_pairs_;
+  std::vector<SegmentSums> sums_;
+  std::vector<Vector6> twist_, force_;  // per pose element: (w, v) and I (w, v)
   std::vector<int> element_offset_;
   std::vector<Eigen::Vector3d> world_axis_, translation_column_, omega_alpha_, omega_beta_;
   std::vector<Eigen::Vector3d> centre_column_;

@@ -24,6 +24,7 @@ struct alignas(64) ArrowSchurProblem::ThreadState {
   std::vector<double> w, y;    // compact W_f (when not cached) and Y_f
   const double* w_frame = nullptr;  // the current frame's compact W (cache or w)
   Eigen::VectorXd gy, gyi, v, rhs, gp, wdp, child_sum;
+  Eigen::VectorXd gy_unused, gp_unused;  // AccumulateFrame's gradients when not linearizing
   std::vector<double> panel_y, panel_p;  // one block's Jacobians, 3 rows, zero-padded
   std::vector<double> w_row;              // one row of the block's J_y^T J_p
   // Stacked columns awaiting a rank update, and what they have been applied to: per block kind
@@ -62,6 +63,8 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
     ts->y.resize(w_size_);
     ts->gy.resize(ny_);
     ts->gyi.resize(ny_);
+    ts->gy_unused.setZero(ny_);
+    ts->gp_unused.setZero(np_);
     ts->panel_y.resize(3 * max_block_y_);
     ts->panel_p.resize(3 * max_block_p_);
     ts->w_row.resize(max_block_p_);
@@ -227,6 +230,21 @@ void ArrowSchurProblem::Analyse() {
         kind.w_offset.push_back(g.offset + (k - g.first_row) * static_cast<int>(g.columns.size()) + col);
       }
   }
+  // The same maps by (y, p) for a problem that assembles its frames itself (NormalLayout).
+  u_index_.resize(static_cast<size_t>(ny_) * ny_);
+  for (int i = 0; i < ny_; ++i)
+    for (int j = 0; j < ny_; ++j)
+      u_index_[static_cast<size_t>(i) * ny_ + j] =
+          std::max(position_[i], position_[j]) + std::min(position_[i], position_[j]) * ny_;
+  w_index_.assign(static_cast<size_t>(ny_) * np_, -1);
+  for (size_t b = 0; b < kinds_.size(); ++b) {
+    const BlockKind& kind = kinds_[b];
+    const int n = static_cast<int>(kind.free_p.size());
+    for (int a = 0; a < kind.num_y; ++a)
+      for (int c = 0; c < n; ++c)
+        w_index_[static_cast<size_t>(ycols[b][kind.y_order[a]]) * np_ + kind.free_p[c]] = kind.w_offset[a * n + c];
+  }
+  layout_ = {ny_, np_, u_index_.data(), w_index_.data()};
 }
 
 // Cholesky in place, right-looking, skipping what is outside L_f's pattern: a column updates only
@@ -431,7 +449,8 @@ bool ArrowSchurProblem::Linearize(const Eigen::VectorXd& x, double* cost, Eigen:
   return std::isfinite(*cost) && gradient->allFinite();
 }
 
-// U (lower, elimination order) and compact W of one evaluated frame. When `linearizing`, also
+// U (lower, elimination order) and compact W of one evaluated frame, from the problem's own
+// assembly where it has one, else from the blocks as follows. When `linearizing`, also
 // the frame's cost, its gradient (by y index, in ts.gyi) and its part of the shared gradient, and
 // its J_p^T columns stacked for V. Blocks are copied into zero-padded 3-row panels so every
 // product is an unrolled 3-term dot product, scattered through the block kind's precomputed
@@ -446,6 +465,10 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
   double* u = ts.u.data();
   double* jy = ts.panel_y.data();
   double* jp = ts.panel_p.data();
+  // The problem's own assembly where it has one (MarkerFitProblem: from per-segment sums); the
+  // blocks then give only the cost and V's stacks.
+  const bool assembled = ts.evaluator->AddNormalEquations(
+      layout_, u, w, linearizing ? ts.gyi.data() : ts.gy_unused.data(), linearizing ? ts.gp.data() : ts.gp_unused.data());
   for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
     const ResidualBlock& blk = ts.evaluator->block(k);
     if (blk.kind < 0 || blk.kind >= static_cast<int>(kinds_.size()) ||
@@ -454,8 +477,7 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     const BlockKind& kind = kinds_[blk.kind];
     const int rows = blk.rows, nyb = blk.num_y, np = static_cast<int>(kind.free_p.size());
     const int* yorder = kind.y_order.data();
-    for (int a = 0; a < nyb; ++a)
-      for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[yorder[a] * kMaxBlockRows + r] : 0.0;
+    if (assembled && !linearizing) continue;
     // jp as three rows of np values (row r at jp + r * np), so a W row is three axpys.
     for (int c = 0; c < np; ++c)
       for (int r = 0; r < 3; ++r)
@@ -463,10 +485,13 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     const double* jp0 = jp;
     const double* jp1 = jp + np;
     const double* jp2 = jp + 2 * np;
+    if (!assembled)
+      for (int a = 0; a < nyb; ++a)
+        for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[yorder[a] * kMaxBlockRows + r] : 0.0;
     double* wrow = ts.w_row.data();
     const int* ypos = kind.y_position.data();
     const int* woff = kind.w_offset.data();
-    for (int a = 0; a < nyb; ++a) {
+    for (int a = 0; a < nyb && !assembled; ++a) {
       const double a0 = jy[3 * a], a1 = jy[3 * a + 1], a2 = jy[3 * a + 2];
       double* ucol = u + ypos[a];  // row ypos[a], columns ypos[c] <= ypos[a] (c >= a)
       for (int c = a; c < nyb; ++c)
@@ -479,10 +504,12 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     double res[3] = {0, 0, 0};
     for (int r = 0; r < rows; ++r) res[r] = blk.residual[r];
     ts.cost += res[0] * res[0] + res[1] * res[1] + res[2] * res[2];
-    for (int a = 0; a < nyb; ++a)
-      ts.gyi[blk.y_index[yorder[a]]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
-    for (int c = 0; c < np; ++c)
-      ts.gp[kind.free_p[c]] += jp0[c] * res[0] + jp1[c] * res[1] + jp2[c] * res[2];
+    if (!assembled) {
+      for (int a = 0; a < nyb; ++a)
+        ts.gyi[blk.y_index[yorder[a]]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
+      for (int c = 0; c < np; ++c)
+        ts.gp[kind.free_p[c]] += jp0[c] * res[0] + jp1[c] * res[1] + jp2[c] * res[2];
+    }
     if (np > 0) {
       int& count = ts.v_count[blk.kind];
       double* stack = ts.v_stack[blk.kind].data() + static_cast<size_t>(count) * np;

@@ -27,6 +27,9 @@
 //    reach every shared column, and go straight into S.
 //  * V = sum_f J_pf^T J_pf does not depend on the damping: it is formed once per linearisation,
 //    per residual-block kind, by the same stacked rank updates.
+//  * U_f, W_f and the gradients come from the problem itself where it can form them with less
+//    work than the blocks' products (FrameEvaluator::AddNormalEquations, through NormalLayout:
+//    MarkerFitProblem sums them per segment); V and the cost still come from the blocks.
 //  * U_f is factored by a Cholesky that skips L_f's zeros (336 of 703 for the full body).
 //  * LM announces the damping of its next solve (AnticipateDamping), so Linearize reduces each
 //    frame while its U_f and W_f are hot: an accepted step costs three passes over the frames
@@ -188,6 +191,8 @@ class ArrowSchurProblem : public LmProblem {
   std::vector<RowGroup> groups_;
   std::vector<BlockKind> kinds_;
   int w_size_ = 0;             // doubles in a compact W_f
+  std::vector<int> u_index_, w_index_;  // U_f's and compact W_f's offsets by (y, y) and (y, p)
+  NormalLayout layout_;
   std::vector<std::unique_ptr<ThreadState>> threads_;
   Eigen::VectorXd x_, gradient_;
   bool cached_ = false;

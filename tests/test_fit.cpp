@@ -5,6 +5,7 @@
 #include <functional>
 
 #include "fit_test_util.h"
+#include "tests/assembly_test_util.h"
 #include "model/default_model.h"
 #include "model/compare.h"
 #include "model/kinematics.h"
@@ -445,6 +446,90 @@ TEST(GlobalFit, EvaluatorJacobiansAreMarkerJacobians) {
     ASSERT_EQ(b, evaluator->num_blocks());
   }
   EXPECT_GT(compared, 10 * 30);
+}
+
+// The fit's evaluator assembles a frame's own normal equations from per-segment sums
+// (MarkerFrameEvaluator::PoseNormalEquations) instead of per-marker products: they must be the
+// per-marker sums of its Jacobians (FrameEvaluator's default assembly, which the Jacobian tests
+// above check) to rounding, with markers missing and per-sample weights, and far from the lab's
+// origin (the sums' moments are about the root).
+TEST(GlobalFit, PoseNormalEquationsFromSegmentSumsArePerMarkerSums) {
+  std::mt19937_64 rng(11);
+  const Model nominal = NominalWithoutOptional();
+  const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
+  const Model truth = mocap::testutil::Baked(nominal, p_true);
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, 8, 0.0005, rng);
+  const int nm = nominal.num_markers();
+  std::uniform_int_distribution<int> pick(0, nm - 1);
+  for (int f = 1; f < trial.positions.rows(); ++f)  // frame 0 sees every marker
+    for (int k = 0; k < f; ++k) trial.positions.block(f, 3 * pick(rng), 1, 3).setConstant(NAN);
+  solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
+  Eigen::VectorXd shared(problem.shared_dim());
+  for (int k = 0; k < problem.shared_dim(); ++k) shared[k] = p_true[problem.free_parameters()[k]];
+  ASSERT_TRUE(problem.SetShared(shared));
+  std::uniform_real_distribution<double> weight(0.05, 1.0);
+  Eigen::MatrixXd w(problem.num_frames(), nm);
+  for (int f = 0; f < w.rows(); ++f)
+    for (int m = 0; m < nm; ++m) w(f, m) = weight(rng);
+  problem.SetSampleWeights(w);
+  const Model& model = problem.model();
+  const int nz = model.num_coordinates();
+  std::normal_distribution<double> angle(0.0, 0.6);
+  auto evaluator = problem.NewEvaluator();
+  for (int f = 0; f < problem.num_frames(); ++f) {
+    Eigen::VectorXd z(nz);
+    for (int c = 0; c < nz; ++c) z[c] = model.coordinates()[c].default_value + angle(rng);
+    z.head<3>() += Eigen::Vector3d(40.0, -25.0, 0.0) * (f % 2);  // a walk away from the origin
+    Eigen::MatrixXd u_sums = Eigen::MatrixXd::Zero(nz, nz), u_blocks = u_sums;
+    Eigen::VectorXd g_sums = Eigen::VectorXd::Zero(nz), g_blocks = g_sums;
+    ASSERT_TRUE(evaluator->PoseNormalEquations(f, z.data(), nz, u_sums.data(), g_sums.data()));
+    ASSERT_TRUE(evaluator->FrameEvaluator::PoseNormalEquations(f, z.data(), nz, u_blocks.data(), g_blocks.data()));
+    const double u_scale = u_blocks.cwiseAbs().maxCoeff(), g_scale = g_blocks.cwiseAbs().maxCoeff();
+    for (int j = 0; j < nz; ++j) {
+      EXPECT_NEAR(g_sums[j], g_blocks[j], 1e-11 * g_scale) << "frame " << f << " coordinate " << j;
+      for (int i = 0; i < nz; ++i) {
+        if (i < j) {
+          EXPECT_EQ(u_sums(i, j), 0.0);  // the upper triangle is left alone
+          continue;
+        }
+        EXPECT_NEAR(u_sums(i, j), u_blocks(i, j), 1e-11 * u_scale) << "frame " << f << " entry " << i << ", " << j;
+      }
+    }
+  }
+}
+
+// The whole frame's normal equations as the fit assembles them (U_f, W_f and the gradients from
+// per-segment sums: MarkerFitProblem's evaluator, AddNormalEquations) against the Schur solver's
+// per-marker products of the same Jacobians: the linearisation and the damped step agree to
+// rounding, with markers missing, per-sample weights and some shared parameters fixed.
+TEST(GlobalFit, NormalEquationsFromSegmentSumsArePerMarkerProducts) {
+  std::mt19937_64 rng(13);
+  const Model nominal = NominalWithoutOptional();
+  const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
+  const Model truth = mocap::testutil::Baked(nominal, p_true);
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, 12, 0.0005, rng);
+  const int nm = nominal.num_markers();
+  std::uniform_int_distribution<int> pick(0, nm - 1);
+  for (int f = 1; f < trial.positions.rows(); ++f)
+    for (int k = 0; k < f % 5; ++k) trial.positions.block(f, 3 * pick(rng), 1, 3).setConstant(NAN);
+  solver::FitOptions options;
+  options.fixed_parameters = {"knee_l.centre.x", "tibia_r.scale", "wrist_r.axis0.alpha", "LASI.y", "pelvis.scale"};
+  solver::MarkerFitProblem problem(nominal, trial.positions, options);
+  ASSERT_EQ(problem.shared_dim() + 5, solver::MarkerFitProblem(nominal, trial.positions, solver::FitOptions()).shared_dim());
+  std::uniform_real_distribution<double> weight(0.05, 1.0);
+  Eigen::MatrixXd w(problem.num_frames(), nm);
+  for (int f = 0; f < w.rows(); ++f)
+    for (int m = 0; m < nm; ++m) w(f, m) = weight(rng);
+  problem.SetSampleWeights(w);
+  const Model& model = problem.model();
+  const int nz = model.num_coordinates(), np = problem.shared_dim();
+  Eigen::VectorXd x(problem.num_frames() * nz + np);
+  std::normal_distribution<double> angle(0.0, 0.5);
+  for (int f = 0; f < problem.num_frames(); ++f)
+    for (int c = 0; c < nz; ++c) x[f * nz + c] = model.coordinates()[c].default_value + angle(rng);
+  x.tail(np) = problem.InitialShared();
+  problem.SetFramePriorTargets(x);
+  testutil::ExpectAssemblyMatchesBlocks(&problem, x);
 }
 
 // solver/robust_loss.h: the IRLS weight of each loss is rho'(s), the derivative of its cost

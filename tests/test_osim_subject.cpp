@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <random>
 #include <utility>
 
 #include "formats/mot.h"
@@ -19,6 +20,8 @@
 #include "sim/osim_subject.h"
 #include "solver/global_fit.h"
 #include "solver/inverse_kinematics.h"
+#include "solver/marker_fit_problem.h"
+#include "tests/assembly_test_util.h"
 #include "tests/file_test_util.h"
 
 using namespace mocap;
@@ -273,6 +276,65 @@ TEST(OsimSubject, Gait2354FitFromTheGenericModelRecoversWhatTheWalkExcites) {
       EXPECT_LE(o.lab_mm[generic.FindJoint(ankle)], 20.0) << ankle;
     }
   }
+}
+
+// The fit's normal equations from per-segment sums (MarkerFitProblem's evaluator,
+// PoseNormalEquations and AddNormalEquations) on a model with what the default one lacks: a knee whose one coordinate
+// drives a rotation and translations on splines (two elements of one coordinate, translation
+// columns scaled with the femur), and coordinates clamped to their ranges. They must equal the
+// per-marker sums of the evaluator's Jacobians (tests/test_fit.cpp checks those) to rounding.
+TEST(OsimSubject, Gait2354NormalEquationsFromSegmentSumsArePerMarkerSums) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const Model model = Gait2354Generic();
+  const int nz = model.num_coordinates(), nm = model.num_markers(), nf = 6;
+  std::mt19937_64 rng(3);
+  std::normal_distribution<double> angle(0.0, 0.5), noise(0.0, 0.01);
+  std::vector<Eigen::VectorXd> poses(nf, Eigen::VectorXd(nz));
+  formats::RowMatrix measured(nf, 3 * nm);
+  ModelData data(model);
+  const Geometry geometry(model);
+  for (int f = 0; f < nf; ++f) {
+    for (int c = 0; c < nz; ++c) poses[f][c] = model.coordinates()[c].default_value + angle(rng);
+    Eigen::VectorXd truth = poses[f];
+    for (int c = 0; c < nz; ++c) truth[c] += 0.1 * angle(rng);
+    ForwardKinematics(model, geometry, truth, &data);
+    for (int m = 0; m < nm; ++m) {
+      const Eigen::Vector3d x = MarkerPosition(model, geometry, data, m);
+      for (int k = 0; k < 3; ++k) measured(f, 3 * m + k) = f > 0 && m % (f + 2) == 0 ? NAN : x[k] + noise(rng);
+    }
+  }
+  solver::FitOptions options;
+  options.coordinate_limit_sigma_rad = 0.01;
+  options.coordinate_limit_sigma_m = 0.001;
+  solver::MarkerFitProblem problem(model, measured, options);
+  ASSERT_TRUE(problem.SetShared(problem.InitialShared()));
+  auto evaluator = problem.NewEvaluator();
+  int coupled = 0;
+  for (const Joint& jt : model.joints())
+    for (size_t e = 0; e < jt.elements.size(); ++e)
+      for (size_t k = 0; k < e; ++k)
+        coupled += jt.elements[e].coordinate >= 0 && jt.elements[e].coordinate == jt.elements[k].coordinate &&
+                   !jt.elements[e].function.IsConstant() && !jt.elements[k].function.IsConstant();
+  EXPECT_GT(coupled, 0);  // the test covers an element pair of one coordinate
+  for (int f = 0; f < nf; ++f) {
+    Eigen::MatrixXd u_sums = Eigen::MatrixXd::Zero(nz, nz), u_blocks = u_sums;
+    Eigen::VectorXd g_sums = Eigen::VectorXd::Zero(nz), g_blocks = g_sums;
+    ASSERT_TRUE(evaluator->PoseNormalEquations(f, poses[f].data(), nz, u_sums.data(), g_sums.data()));
+    ASSERT_TRUE(evaluator->FrameEvaluator::PoseNormalEquations(f, poses[f].data(), nz, u_blocks.data(), g_blocks.data()));
+    const double u_scale = u_blocks.cwiseAbs().maxCoeff(), g_scale = g_blocks.cwiseAbs().maxCoeff();
+    for (int j = 0; j < nz; ++j) {
+      EXPECT_NEAR(g_sums[j], g_blocks[j], 1e-11 * g_scale) << "frame " << f << " coordinate " << j;
+      for (int i = j; i < nz; ++i)
+        EXPECT_NEAR(u_sums(i, j), u_blocks(i, j), 1e-11 * u_scale) << "frame " << f << " entry " << i << ", " << j;
+    }
+  }
+  // The whole linearisation (W_f and the shared gradient too: the knee's centre column carries
+  // its translations scaled with the femur) against the Schur solver's per-marker products.
+  Eigen::VectorXd x(nf * nz + problem.shared_dim());
+  for (int f = 0; f < nf; ++f) x.segment(f * nz, nz) = poses[f];
+  x.tail(problem.shared_dim()) = problem.InitialShared();
+  problem.SetFramePriorTargets(x);
+  testutil::ExpectAssemblyMatchesBlocks(&problem, x);
 }
 
 // The sweep behind the bounds above (run with --gtest_also_run_disabled_tests): seeds 1-20, one
