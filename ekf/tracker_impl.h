@@ -264,6 +264,9 @@ struct Tracker::Impl {
   // Per point of this frame: the marker whose track it continues (see FollowLabelledTracks), or -1.
   std::vector<int> track_owner;
   void FollowLabelledTracks(int np);
+  // A point that continues a label's track but that an unlabelled marker of another segment
+  // explains better is left empty (LabelByGating).
+  void LeaveHandedOffPointsEmpty(int np);
   bool SeenBeside(int m, int k, int np) const;
   // Marker m held a wrong point: its seen-beside records (made under that label) go, and the
   // label no longer counts as held.

@@ -1,10 +1,14 @@
 // The tracker's labelling: which of this frame's unlabelled points is which model marker
 // (ekf/tracker.h, "Labelling", has the design). What it decides, in order:
 //   1. Labels follow point tracks (FollowLabelledTracks): a point that continues the point a marker
-//      held in the last frame is that marker's or nobody's.
+//      held in the last frame is that marker's or nobody's -- nobody's when an unlabelled marker
+//      of another segment explains it better (LeaveHandedOffPointsEmpty: a marker hidden by
+//      another that appears beside it hands its track over); a label the segment registration
+//      gave outside the gate keeps its point to its second frame.
 //   2. Gating (LabelByGating): a marker can take a point inside its Mahalanobis gate, at its
 //      rigid-body distance from its segment's joint centre (OnSegmentSphere), whose past does not
-//      rule it out (NonRigidTrack, SeenBeside); the optimal assignment decides contested points,
+//      rule it out (NonRigidTrack, SeenBeside) and which a lasting reflection does not explain as
+//      well (LastingClutterExplains); the optimal assignment decides contested points,
 //      except a point that two markers of different segments, neither labelled, could each take
 //      afresh: that is left empty (the assignment would decide it by the joint angle between
 //      them, the very thing in doubt); and a point taken afresh that its segment's rigid geometry
@@ -119,10 +123,43 @@ void Tracker::Impl::LabelByGating(int np) {
     }
     row_to_col[m] = best_k;
   }
+  LeaveHandedOffPointsEmpty(np);
   // When no point lies in two gates, each marker's nearest gated point is the optimum; only
   // contested frames (markers crossing, a ghost between two markers) need the assignment.
   if (contested) AssignContested(np);
   DropLabelsAMateFitsBetter(np);
+}
+
+// A point track is one marker's while its point is the same one; where a marker vanishes in the
+// frame another appears beside it (a hand passing over a hip marker that the hand hides), the
+// track continues onto the other marker's point, and the label with it (simulated seed 22, the
+// swap traps: RASI hidden under the right hand, RWRB's point 9 mm from where RASI's would be,
+// RASI on it for 12 frames while it moved off with the hand, in every scene of the sweep). The
+// track says nothing there that the gates do not: a continuing point that an unlabelled marker of
+// another segment explains better (a higher density under its prediction than under the
+// holder's) is left empty, for the gates and the assignment to decide in the next frames.
+void Tracker::Impl::LeaveHandedOffPointsEmpty(int np) {
+  const double gate = options.gate_chi2;
+  auto C = cost.topLeftCorner(nm, np + nm);
+  auto density = [&](int m, const Eigen::Vector3d& e) {
+    return std::sqrt(std::max(s_inv[m].determinant(), 0.0)) * std::exp(-0.5 * e.dot(s_inv[m] * e));
+  };
+  for (int a = 0; a < nm; ++a) {
+    const int k = row_to_col[a];
+    if (k < 0 || k >= np || track_owner[k] != a) continue;
+    const Eigen::Vector3d p = points.col(k);
+    const double ga = density(a, p - predicted.col(a));
+    const int segment = model->markers()[a].segment;
+    for (int b = 0; b < nm; ++b) {
+      if (b == a || labelled_run[b] > 0 || !seen[b] || model->markers()[b].segment == segment) continue;
+      const Eigen::Vector3d e = p - predicted.col(b);
+      if (e.squaredNorm() >= reject_sq[b] || e.dot(s_inv[b] * e) >= gate || !OnSegmentSphere(b, p)) continue;
+      if (density(b, e) <= ga) continue;
+      C(a, k) = kForbidden;
+      row_to_col[a] = np + a;
+      break;
+    }
+  }
 }
 
 void Tracker::Impl::AssignContested(int np) {
