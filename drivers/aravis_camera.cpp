@@ -142,12 +142,29 @@ void AravisCamera::StartFreshStream(bool awaiting_device) {
   sequence_offset_ = 0;
 }
 
+namespace {
+// Opening a device parses its GenICam description (libxml2 into Aravis's node registry). Aravis
+// allows different objects in different threads, yet a grab thread reopening its camera crashed
+// in that parse while the rig's other grab threads ran (fuzz_daemon, 27 Nov 2026: FPE in
+// g_hash_table_remove under arv_gc_register_feature_node, from AravisFakeRig::NewDevice, on an
+// empty input: a race, not the input). Every camera's reopen runs on its own grab thread, so
+// several can parse at once; an open is rare and slow anyway: the process opens one device at a
+// time. (Whether the parse is the whole race is not shown: the crash was seen once.)
+std::mutex& DeviceOpenMutex() {
+  static std::mutex m;
+  return m;
+}
+}  // namespace
+
 Status AravisCamera::Connect() {
   std::lock_guard<std::mutex> device_lock(device_mutex_);
   if (camera_ == nullptr) {
     if (!factory_) return Status::Error(id_ + ": no camera and no way to open one");
     std::string error;
-    camera_ = factory_(&error);
+    {
+      std::lock_guard<std::mutex> open_lock(DeviceOpenMutex());
+      camera_ = factory_(&error);
+    }
     if (camera_ == nullptr) return Status::Error(error.empty() ? id_ + ": cannot open" : error);
   }
   ArvDevice* device = arv_camera_get_device(camera_);
