@@ -250,8 +250,9 @@ struct Tracker::Impl {
   int doubted_count = 0;
   // Per marker: its longest run of labelled frames since the (re)initialisation.
   std::vector<int> held_run;
-  // Per marker: labelled by the segment registration this frame (RegisterSegments), so that next
-  // frame the point continuing its track stays its label outside the gate (LabelByGating).
+  // Per marker: moved by the segment registration from one point to another this frame
+  // (RegisterSegments), so that next frame the point continuing its track stays its label
+  // outside the gate (LabelByGating).
   std::vector<char> registered;
   static constexpr int kHeldFrames = 20;
   Eigen::Matrix3Xd prev_points;

@@ -4,7 +4,7 @@
 //      held in the last frame is that marker's or nobody's -- nobody's when an unlabelled marker
 //      of another segment explains it better (LeaveHandedOffPointsEmpty: a marker hidden by
 //      another that appears beside it hands its track over); a label the segment registration
-//      gave outside the gate keeps its point to its second frame.
+//      moved to another point outside the gate keeps its point to its second frame.
 //   2. Gating (LabelByGating): a marker can take a point inside its Mahalanobis gate, at its
 //      rigid-body distance from its segment's joint centre (OnSegmentSphere), whose past does not
 //      rule it out (NonRigidTrack, SeenBeside) and which a lasting reflection does not explain as
@@ -85,11 +85,15 @@ void Tracker::Impl::LabelByGating(int np) {
     const Eigen::Vector3d p = predicted.col(m);
     double best = gate;
     int best_k = np + m;  // its own "missing" column
-    // A label the registration gave last frame outside the gate (the pose was wrong: that is
-    // why the gate missed it) keeps the point that continues it to its second frame, when the
-    // probation passes it and the limb search places its limb anew (Reacquire); the gate, still
-    // about the wrong pose, would give it back to the wrong point (simulated seed 34 at 8 ghosts:
-    // the crossed wrist pair found and set right, crossed again next frame).
+    // A label the registration's re-check moved last frame from one point to another outside the
+    // gate (the pose was wrong: that is why the marker held the wrong point) keeps the point that
+    // continues it to its second frame, when the probation passes it and the limb search places
+    // its limb anew (Reacquire); the gate, still about the wrong pose, would give it back to the
+    // wrong point (simulated seed 34 at 8 ghosts: the crossed wrist pair found and set right,
+    // crossed again next frame). Not a label the registration gave an unlabelled marker: kept so,
+    // a wrong one (a wrist marker on a reflection, seed 93 at 8 ghosts with the true model) moved
+    // the limb onto it (72 -> 1,236 wrong labels); such a label is given again by the registration
+    // if the next frame bears it out.
     const bool follow_registered = registered[m] && labelled_run[m] == 1;
     registered[m] = 0;
     if (!seen[m]) {
@@ -455,12 +459,12 @@ void Tracker::Impl::RegisterSegments(int np) {
       if (k == row_to_col[m]) continue;
       // A labelled marker moved to another point held the wrong one: what it was seen beside
       // was recorded under the wrong label, and its new label starts on probation.
+      registered[m] = row_to_col[m] >= 0 && k >= 0;
       if (row_to_col[m] >= 0) {
         ForgetRecords(m);
         labelled_run[m] = 0;
       }
       row_to_col[m] = k;
-      registered[m] = k >= 0;
       if (k >= 0) ltaken[k] = 1;
     }
   }

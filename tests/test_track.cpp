@@ -809,9 +809,8 @@ TEST(TrackHarderScene, ALimbSearchDoesNotTurnAFootOntoAPointWithNoRigidPast) {
 // the exchange and set both labels right, but the filter, on probation, had not yet moved: the
 // next frame's gates, about the crossed pose, gave the points back crossed: in these frames 217
 // wrong labels, 8 swaps, the longest 62 frames (the whole take: 1,394, 25 and 299, 0.9865, the
-// sweep's worst seed). A label the registration
-// gave outside its gate now keeps the point that continues it to its second frame, when its limb
-// is placed anew.
+// sweep's worst seed). A label the registration's re-check moved to another point outside its
+// gate now keeps the point that continues it to its second frame, when its limb is placed anew.
 TEST(TrackHarderScene, ALabelTheRegistrationSetsRightSurvivesTheNextFramesGate) {
   ExpectTheHarderSceneLabelledRight(34, 9900);
 }
