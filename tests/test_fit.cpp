@@ -448,6 +448,30 @@ TEST(GlobalFit, EvaluatorJacobiansAreMarkerJacobians) {
   EXPECT_GT(compared, 10 * 30);
 }
 
+namespace {
+// For the assembly tests: `frames` frames of random motion of the default model perturbed at
+// random (its parameters in *p_true), with hidden(f) markers hidden at random in frame f.
+formats::MarkerTrial TrialWithGaps(const Model& nominal, int frames, int (*hidden)(int),
+                                   std::mt19937_64& rng, Eigen::VectorXd* p_true) {
+  *p_true = testutil::PerturbedParameters(nominal, rng);
+  const Model truth = mocap::testutil::Baked(nominal, *p_true);
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, frames, 0.0005, rng);
+  std::uniform_int_distribution<int> pick(0, nominal.num_markers() - 1);
+  for (int f = 1; f < trial.positions.rows(); ++f)  // frame 0 sees every marker
+    for (int k = 0; k < hidden(f); ++k) trial.positions.block(f, 3 * pick(rng), 1, 3).setConstant(NAN);
+  return trial;
+}
+
+// Per-sample weights in [0.05, 1), drawn at random.
+void SetRandomSampleWeights(solver::MarkerFitProblem* problem, int markers, std::mt19937_64& rng) {
+  std::uniform_real_distribution<double> weight(0.05, 1.0);
+  Eigen::MatrixXd w(problem->num_frames(), markers);
+  for (int f = 0; f < w.rows(); ++f)
+    for (int m = 0; m < markers; ++m) w(f, m) = weight(rng);
+  problem->SetSampleWeights(w);
+}
+}  // namespace
+
 // The fit's evaluator assembles a frame's own normal equations from per-segment sums
 // (MarkerFrameEvaluator::PoseNormalEquations) instead of per-marker products: they must be the
 // per-marker sums of its Jacobians (FrameEvaluator's default assembly, which the Jacobian tests
@@ -456,22 +480,13 @@ TEST(GlobalFit, EvaluatorJacobiansAreMarkerJacobians) {
 TEST(GlobalFit, PoseNormalEquationsFromSegmentSumsArePerMarkerSums) {
   std::mt19937_64 rng(11);
   const Model nominal = NominalWithoutOptional();
-  const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
-  const Model truth = mocap::testutil::Baked(nominal, p_true);
-  formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, 8, 0.0005, rng);
-  const int nm = nominal.num_markers();
-  std::uniform_int_distribution<int> pick(0, nm - 1);
-  for (int f = 1; f < trial.positions.rows(); ++f)  // frame 0 sees every marker
-    for (int k = 0; k < f; ++k) trial.positions.block(f, 3 * pick(rng), 1, 3).setConstant(NAN);
+  Eigen::VectorXd p_true;
+  const formats::MarkerTrial trial = TrialWithGaps(nominal, 8, [](int f) { return f; }, rng, &p_true);
   solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
   Eigen::VectorXd shared(problem.shared_dim());
   for (int k = 0; k < problem.shared_dim(); ++k) shared[k] = p_true[problem.free_parameters()[k]];
   ASSERT_TRUE(problem.SetShared(shared));
-  std::uniform_real_distribution<double> weight(0.05, 1.0);
-  Eigen::MatrixXd w(problem.num_frames(), nm);
-  for (int f = 0; f < w.rows(); ++f)
-    for (int m = 0; m < nm; ++m) w(f, m) = weight(rng);
-  problem.SetSampleWeights(w);
+  SetRandomSampleWeights(&problem, nominal.num_markers(), rng);
   const Model& model = problem.model();
   const int nz = model.num_coordinates();
   std::normal_distribution<double> angle(0.0, 0.6);
@@ -505,22 +520,13 @@ TEST(GlobalFit, PoseNormalEquationsFromSegmentSumsArePerMarkerSums) {
 TEST(GlobalFit, NormalEquationsFromSegmentSumsArePerMarkerProducts) {
   std::mt19937_64 rng(13);
   const Model nominal = NominalWithoutOptional();
-  const Eigen::VectorXd p_true = testutil::PerturbedParameters(nominal, rng);
-  const Model truth = mocap::testutil::Baked(nominal, p_true);
-  formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, 12, 0.0005, rng);
-  const int nm = nominal.num_markers();
-  std::uniform_int_distribution<int> pick(0, nm - 1);
-  for (int f = 1; f < trial.positions.rows(); ++f)
-    for (int k = 0; k < f % 5; ++k) trial.positions.block(f, 3 * pick(rng), 1, 3).setConstant(NAN);
+  Eigen::VectorXd p_true;
+  const formats::MarkerTrial trial = TrialWithGaps(nominal, 12, [](int f) { return f % 5; }, rng, &p_true);
   solver::FitOptions options;
   options.fixed_parameters = {"knee_l.centre.x", "tibia_r.scale", "wrist_r.axis0.alpha", "LASI.y", "pelvis.scale"};
   solver::MarkerFitProblem problem(nominal, trial.positions, options);
   ASSERT_EQ(problem.shared_dim() + 5, solver::MarkerFitProblem(nominal, trial.positions, solver::FitOptions()).shared_dim());
-  std::uniform_real_distribution<double> weight(0.05, 1.0);
-  Eigen::MatrixXd w(problem.num_frames(), nm);
-  for (int f = 0; f < w.rows(); ++f)
-    for (int m = 0; m < nm; ++m) w(f, m) = weight(rng);
-  problem.SetSampleWeights(w);
+  SetRandomSampleWeights(&problem, nominal.num_markers(), rng);
   const Model& model = problem.model();
   const int nz = model.num_coordinates(), np = problem.shared_dim();
   Eigen::VectorXd x(problem.num_frames() * nz + np);
