@@ -218,6 +218,11 @@ struct Tracker::Impl {
   // be on it than a lasting reflection is (min_return_probability against
   // lasting_clutter_density).
   bool LastingClutterExplains(int m, int k, int np) const;
+  // N(e; 0, S_m): the density of a point at innovation e under marker m's prediction (per m^3).
+  double PredictionDensity(int m, const Eigen::Vector3d& e) const {
+    return std::pow(2 * M_PI, -1.5) * std::sqrt(std::max(s_inv[m].determinant(), 0.0)) *
+           std::exp(-0.5 * e.dot(s_inv[m] * e));
+  }
   void WithholdDoubtfulReturns(int np, double dt);
   // The last kHistory tracking frames' points and predicted joint centres (a ring), to follow a
   // point back in time (NonRigidTrack).

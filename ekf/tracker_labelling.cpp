@@ -145,20 +145,17 @@ void Tracker::Impl::LabelByGating(int np) {
 void Tracker::Impl::LeaveHandedOffPointsEmpty(int np) {
   const double gate = options.gate_chi2;
   auto C = cost.topLeftCorner(nm, np + nm);
-  auto density = [&](int m, const Eigen::Vector3d& e) {
-    return std::sqrt(std::max(s_inv[m].determinant(), 0.0)) * std::exp(-0.5 * e.dot(s_inv[m] * e));
-  };
   for (int a = 0; a < nm; ++a) {
     const int k = row_to_col[a];
     if (k < 0 || k >= np || track_owner[k] != a) continue;
     const Eigen::Vector3d p = points.col(k);
-    const double ga = density(a, p - predicted.col(a));
+    const double ga = PredictionDensity(a, p - predicted.col(a));
     const int segment = model->markers()[a].segment;
     for (int b = 0; b < nm; ++b) {
       if (b == a || labelled_run[b] > 0 || !seen[b] || model->markers()[b].segment == segment) continue;
       const Eigen::Vector3d e = p - predicted.col(b);
       if (e.squaredNorm() >= reject_sq[b] || e.dot(s_inv[b] * e) >= gate || !OnSegmentSphere(b, p)) continue;
-      if (density(b, e) <= ga) continue;
+      if (PredictionDensity(b, e) <= ga) continue;
       C(a, k) = kForbidden;
       row_to_col[a] = np + a;
       break;
@@ -990,17 +987,13 @@ void Tracker::Impl::WithholdDoubtfulReturns(int np, double dt) {
   // g / (g + lambda) < p  <=>  g < lambda p / (1 - p).
   const double p = options.min_return_probability;
   const double min_density = clutter_density * p / (1 - p);
-  const double norm = std::pow(2 * M_PI, -1.5);
   for (int m = 0; m < nm; ++m) {
     const int col = row_to_col[m];
     // A point that continues an unclaimed point of the last frame is no single-frame ghost (a
     // marker the start or the gates left unlabelled while in view; a lasting reflection is
     // judged by its past, NonRigidTrack and SeenBeside).
     if (col < 0 || col >= np || labelled_run[m] != 1 || Predecessor(col, np) >= 0) continue;
-    const Eigen::Vector3d e = points.col(col) - predicted.col(m);
-    const double d2 = e.dot(s_inv[m] * e);
-    const double g = norm * std::sqrt(std::max(s_inv[m].determinant(), 0.0)) * std::exp(-0.5 * d2);
-    if (g >= min_density) continue;
+    if (PredictionDensity(m, points.col(col) - predicted.col(m)) >= min_density) continue;
     out.point_of_marker[m] = -1;
     out.marker_of_point[valid[col]] = -1;
     --out.labelled;
@@ -1031,10 +1024,7 @@ bool Tracker::Impl::LastingClutterExplains(int m, int k, int np) const {
       held_run[m] < kHeldFrames || unlabelled_run[m] < kMinTrackFrames || Predecessor(k, np) < 0)
     return false;
   const double p = options.min_return_probability;
-  const Eigen::Vector3d e = points.col(k) - predicted.col(m);
-  const double g = std::pow(2 * M_PI, -1.5) * std::sqrt(std::max(s_inv[m].determinant(), 0.0)) *
-                   std::exp(-0.5 * e.dot(s_inv[m] * e));
-  return g < lasting_clutter_density * p / (1 - p);
+  return PredictionDensity(m, points.col(k) - predicted.col(m)) < lasting_clutter_density * p / (1 - p);
 }
 
 // The provisional window (ekf/tracker.h, "Labelling"). A label taken afresh was decided on one
