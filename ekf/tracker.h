@@ -77,6 +77,16 @@
 // marker's prediction moved, within a frame's motion) is that marker's or nobody's, so a marker
 // back from an occlusion with a grown gate cannot take its neighbour's point (a wrist marker on the
 // other wrist marker's, the neighbour left unlabelled, the forearm then turned to fit for seconds).
+// Nobody's, too, where an unlabelled marker of another segment explains the continuing point
+// better than the holder does: a marker hidden under another that appears beside it in the same
+// frame hands its track over (RASI under the right hand, seed 22). A label the segment
+// registration's re-check moved to another point, outside its gate because the pose was wrong,
+// keeps the point that continues it to its second frame, when its limb is placed anew (the gate,
+// about the wrong pose, would give the points back: a crossed wrist pair, seed 34 at 8 ghosts).
+// And a marker held before, missing for 5 frames, does not take afresh a point that continues an
+// unclaimed track unless its prediction explains the point better than the density of lasting
+// reflections does (its gate grows over the coordinates only it measured: a toe's gate took a
+// reflection 57 mm off, seed 42 at 8 ghosts).
 // And a point can be a marker only at the marker's distance from its segment's joint centre
 // (within the marker's gate on its own variance plus 2 cm for the predicted centre; not for the
 // root): a segment turns about its joint, so that distance does not depend on the angles the gate
