@@ -109,8 +109,9 @@ class FrameEvaluator {
   }
   // After Evaluate with Jacobians: ADDS the frame's residual blocks' J_y^T J_y into u, J_y^T J_p
   // into w (both through `layout`), J_y^T r into gy (by y index) and J_p^T r into gp (by shared
-  // index), all summed over the blocks as the blocks' own products would be. False (nothing
-  // added) where the problem has no such assembly: the caller then forms them from the blocks.
+  // index), all summed over the blocks as the blocks' own products would be; gy and gp may be
+  // null (no gradients wanted). False (nothing added) where the problem has no such assembly: the
+  // caller then forms them from the blocks.
   virtual bool AddNormalEquations(const NormalLayout& layout, double* u, double* w, double* gy, double* gp) {
     return false;
   }

@@ -38,10 +38,6 @@ bool ChildFollowsRotation(const Model& model, int j, const Eigen::Vector3d& u) {
 class MarkerFrameEvaluator : public FrameEvaluator {
   using Vector6 = Eigen::Matrix<double, 6, 1>;
   // PoseNormalEquations' and AddNormalEquations' structure.
-  struct PoseElement {
-    int joint, element, k, coordinate;
-    bool rotation;
-  };
   struct PosePair {
     int a, b;       // pose elements, b's joint on a's chain
     int offset;     // of U's lower-triangle entry (column-major, ny x ny)
@@ -123,7 +119,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       for (int b = 0; b <= a; ++b) {
         const int jb = pose_elements_[b].joint;
         if (std::find(chain.begin(), chain.end(), jb) == chain.end()) continue;
-        const int ca = pose_elements_[a].coordinate, cb = pose_elements_[b].coordinate;
+        const int ca = pose_elements_[a].column, cb = pose_elements_[b].column;
         // Two elements of one coordinate meet twice in U_cc (J_c is their sum).
         pose_pairs_.push_back({a, b, std::max(ca, cb) + std::min(ca, cb) * model.num_coordinates(),
                                ca == cb && a != b ? 2.0 : 1.0});
@@ -240,7 +236,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
         const int q = blk.p_index[c];
         if (q < 0) continue;
         const double* jp = blk.jp + c * kMaxBlockRows;
-        gp[q] += jp[0] * r[0] + jp[1] * r[1] + jp[2] * r[2];
+        if (gp) gp[q] += jp[0] * r[0] + jp[1] * r[1] + jp[2] * r[2];
         for (int a = 0; a < blk.num_y; ++a) {
           const double* jy = blk.jy + a * kMaxBlockRows;
           w[*offset++] += jy[0] * jp[0] + jy[1] * jp[1] + jy[2] * jp[2];
@@ -274,7 +270,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       }
       const SegmentSums& s = sums_[jt.child];
       Force(s, tw, &param_force_[t]);
-      gp[pt.free] += tw.head<3>().dot(s.moment) + tw.tail<3>().dot(s.error);
+      if (gp) gp[pt.free] += tw.head<3>().dot(s.moment) + tw.tail<3>().dot(s.error);
     }
     // W's shared columns: I of the deeper joint's subtree times one twist, dotted with the other.
     for (const WPair& wp : w_twist_force_) w[wp.offset] += twist_[wp.a].dot(param_force_[wp.t]);
@@ -283,7 +279,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       const ResidualBlock& blk = blocks_[b];
       const int c = blk.y_index[0];
       u[layout.u_offset[c * layout.ny + c]] += blk.jy[0] * blk.jy[0];
-      gy[c] += blk.jy[0] * blk.residual[0];
+      if (gy) gy[c] += blk.jy[0] * blk.residual[0];
     }
     return true;
   }
@@ -297,12 +293,12 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     pose_pair_offset_.clear();
     for (const PosePair& pp : pose_pairs_)
       pose_pair_offset_.push_back(
-          layout.u_offset[pose_elements_[pp.a].coordinate * layout.ny + pose_elements_[pp.b].coordinate]);
+          layout.u_offset[pose_elements_[pp.a].column * layout.ny + pose_elements_[pp.b].column]);
     w_twist_force_.clear();
     w_force_twist_.clear();
     for (const ParamPair& pp : param_pairs_) {
       const int offset =
-          layout.w_offset[pose_elements_[pp.a].coordinate * layout.np + param_twists_[pp.t].free];
+          layout.w_offset[pose_elements_[pp.a].column * layout.np + param_twists_[pp.t].free];
       if (offset < 0) continue;  // no marker has both: no marker below moves with both
       (pp.twist_force ? w_twist_force_ : w_force_twist_).push_back({offset, pp.a, pp.t});
     }
@@ -346,7 +342,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     force->tail<3>() = s.mass * v + w.cross(s.first);
   }
   // From the segments' own sums: the composite sums, each pose element's twist and I times it,
-  // and J_y^T r into g.
+  // and J_y^T r into g (unless null).
   void PoseTwists(const Eigen::Vector3d& origin, double* g) {
     const Model& model = problem_.model();
     // Composite sums: each segment's plus everything below it (joints come parents first).
@@ -356,7 +352,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     }
     const int ne_pose = static_cast<int>(pose_elements_.size());
     for (int a = 0; a < ne_pose; ++a) {
-      const PoseElement& pe = pose_elements_[a];
+      const ZTerm& pe = pose_elements_[a];
       const SegmentSums& s = sums_[model.joints()[pe.joint].child];
       Vector6& twist = twist_[a];
       if (pe.rotation) {
@@ -366,7 +362,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
         twist << Eigen::Vector3d::Zero(), translation_column_[pe.k];
       }
       Force(s, twist, &force_[a]);
-      g[pe.coordinate] += twist.head<3>().dot(s.moment) + twist.tail<3>().dot(s.error);
+      if (g) g[pe.column] += twist.head<3>().dot(s.moment) + twist.tail<3>().dot(s.error);
     }
   }
 
@@ -561,7 +557,7 @@ class MarkerFrameEvaluator : public FrameEvaluator {
   std::vector<double> block_scale_;
   int num_marker_blocks_ = 0;
   bool shared_ready_ = false;
-  std::vector<PoseElement> pose_elements_;
+  std::vector<ZTerm> pose_elements_;  // every driven element (ZTerm's column: its coordinate)
   std::vector<PosePair> pose_pairs_;
   std::vector<SegmentSums> sums_;
   std::vector<Vector6> twist_, force_;  // per pose element: (w, v) and I (w, v)

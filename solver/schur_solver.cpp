@@ -24,7 +24,6 @@ struct alignas(64) ArrowSchurProblem::ThreadState {
   std::vector<double> w, y;    // compact W_f (when not cached) and Y_f
   const double* w_frame = nullptr;  // the current frame's compact W (cache or w)
   Eigen::VectorXd gy, gyi, v, rhs, gp, wdp, child_sum;
-  Eigen::VectorXd gy_unused, gp_unused;  // AccumulateFrame's gradients when not linearizing
   std::vector<double> panel_y, panel_p;  // one block's Jacobians, 3 rows, zero-padded
   std::vector<double> w_row;              // one row of the block's J_y^T J_p
   // Stacked columns awaiting a rank update, and what they have been applied to: per block kind
@@ -63,8 +62,6 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
     ts->y.resize(w_size_);
     ts->gy.resize(ny_);
     ts->gyi.resize(ny_);
-    ts->gy_unused.setZero(ny_);
-    ts->gp_unused.setZero(np_);
     ts->panel_y.resize(3 * max_block_y_);
     ts->panel_p.resize(3 * max_block_p_);
     ts->w_row.resize(max_block_p_);
@@ -468,7 +465,7 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
   // The problem's own assembly where it has one (MarkerFitProblem: from per-segment sums); the
   // blocks then give only the cost and V's stacks.
   const bool assembled = ts.evaluator->AddNormalEquations(
-      layout_, u, w, linearizing ? ts.gyi.data() : ts.gy_unused.data(), linearizing ? ts.gp.data() : ts.gp_unused.data());
+      layout_, u, w, linearizing ? ts.gyi.data() : nullptr, linearizing ? ts.gp.data() : nullptr);
   for (int k = 0; k < ts.evaluator->num_blocks(); ++k) {
     const ResidualBlock& blk = ts.evaluator->block(k);
     if (blk.kind < 0 || blk.kind >= static_cast<int>(kinds_.size()) ||
