@@ -316,6 +316,7 @@ void Tracker::Impl::Allocate() {
   beside_prev.assign(static_cast<size_t>(mp) * nm, kNever);
   held_run.assign(nm, 0);
   registered.assign(nm, 0);
+  handoff_rivals.assign(nm, -1);
   doubted.assign(nm, {-1, -1});
   doubted_count = 0;
   beside_now.assign(static_cast<size_t>(mp) * nm, kNever);

@@ -273,6 +273,7 @@ struct Tracker::Impl {
   // A point that continues a label's track but that an unlabelled marker of another segment
   // explains better is left empty (LabelByGating).
   void LeaveHandedOffPointsEmpty(int np);
+  std::vector<int> handoff_rivals;  // its unlabelled markers (sized nm in Allocate)
   bool SeenBeside(int m, int k, int np) const;
   // Marker m held a wrong point: its seen-beside records (made under that label) go, and the
   // label no longer counts as held.

@@ -143,18 +143,26 @@ void Tracker::Impl::LabelByGating(int np) {
 // another segment explains better (a higher density under its prediction than under the
 // holder's) is left empty, for the gates and the assignment to decide in the next frames.
 void Tracker::Impl::LeaveHandedOffPointsEmpty(int np) {
+  // The rivals first: most frames have few unlabelled markers, and the holders' densities are
+  // needed only where one of them gates the point.
+  int nrivals = 0;
+  for (int b = 0; b < nm; ++b)
+    if (labelled_run[b] == 0 && seen[b]) handoff_rivals[nrivals++] = b;
+  if (nrivals == 0) return;
   const double gate = options.gate_chi2;
   auto C = cost.topLeftCorner(nm, np + nm);
   for (int a = 0; a < nm; ++a) {
     const int k = row_to_col[a];
     if (k < 0 || k >= np || track_owner[k] != a) continue;
     const Eigen::Vector3d p = points.col(k);
-    const double ga = PredictionDensity(a, p - predicted.col(a));
     const int segment = model->markers()[a].segment;
-    for (int b = 0; b < nm; ++b) {
-      if (b == a || labelled_run[b] > 0 || !seen[b] || model->markers()[b].segment == segment) continue;
+    double ga = -1;  // the holder's density, once needed
+    for (int i = 0; i < nrivals; ++i) {
+      const int b = handoff_rivals[i];
+      if (b == a || model->markers()[b].segment == segment) continue;
       const Eigen::Vector3d e = p - predicted.col(b);
       if (e.squaredNorm() >= reject_sq[b] || e.dot(s_inv[b] * e) >= gate || !OnSegmentSphere(b, p)) continue;
+      if (ga < 0) ga = PredictionDensity(a, p - predicted.col(a));
       if (PredictionDensity(b, e) <= ga) continue;
       C(a, k) = kForbidden;
       row_to_col[a] = np + a;
