@@ -728,7 +728,7 @@ TEST(Osim, LaiUhlrich2022IsBuiltAsOpenSimDefinesIt) {
     return Eigen::Matrix3d(Eigen::AngleAxisd(a, axis).toRotationMatrix());
   };
   const Eigen::Vector3d x = Eigen::Vector3d::UnitX(), y = Eigen::Vector3d::UnitY(), z = Eigen::Vector3d::UnitZ();
-  for (const double knee : {0.0, M_PI / 2}) {
+  for (const double knee : {0.0, 1.5708}) {  // knots of the patella's splines: 0 and 90 deg
     SCOPED_TRACE("knee_angle_r " + std::to_string(knee));
     Eigen::VectorXd q = m.DefaultCoordinates();
     const std::map<std::string, double> set = {
@@ -788,6 +788,22 @@ TEST(Osim, LaiUhlrich2022IsBuiltAsOpenSimDefinesIt) {
       ASSERT_GE(m.FindMarker(name), 0) << name;
       EXPECT_LT((at.col(m.FindMarker(name)) - p).norm(), 1e-12) << name;
     }
+    // The patella (no marker) on its SimmSplines of knee_angle_r_beta = knee_angle_r (the
+    // coupler's slope 1): at its knots a spline is the knot's value. rotation1
+    // about z, translations along x, y and a constant 0.00275 along z of the frame at
+    // (-0.00809, -0.40796, -0.00275) on the femur; the patella's own frame is its body's.
+    const bool straight = knee == 0.0;
+    const Eigen::Matrix3d rpat = rf * about(straight ? 0.00113686 : -1.26379, z);
+    const Eigen::Vector3d ppat = pf + rf * (Eigen::Vector3d(-0.00809, -0.40795999999999999, -0.0027499999999999998) +
+                                            Eigen::Vector3d(straight ? 0.0524 : -0.0088, straight ? -0.0108 : -0.0349,
+                                                            0.0027499999999999998));
+    const Geometry g(m);
+    ModelData d(m);
+    ForwardKinematics(m, g, q, &d);
+    const int patella = m.FindSegment("patella_r");
+    ASSERT_GE(patella, 0);
+    EXPECT_LT((d.segment_position[patella] - ppat).norm(), 1e-12);
+    EXPECT_LT((d.segment_rotation[patella] - rpat).norm(), 1e-12);
   }
   std::mt19937 rng(29);
   for (int trial = 0; trial < 3; ++trial)
