@@ -134,7 +134,8 @@ struct FunctionalCheck {
   double centre_spread_mm = 0;    // RMS of the per-frame functional centre about its average
   double functional_std_mm = 0;   // SCoRE's own bootstrap standard deviation
   // Axis joints (SARA); 0 for centre joints.
-  double axis_angle_deg = 0;       // fitted axis to functional axis, averaged in the parent
+  double axis_angle_deg = 0;       // fitted axis to functional axis, averaged in the parent (a
+                                   // coupled knee: the fitted model's own SARA axis, CompareWithFunctional)
   double axis_spread_deg = 0;      // RMS angle of the per-frame functional axis about its average
   double functional_axis_std_deg = 0;  // SARA's own bootstrap standard deviation
   double axis_line_distance_mm = 0;  // fitted centre's distance from the functional axis line
@@ -205,7 +206,7 @@ struct ProfileCheck {
 struct JointTrust {
   std::string joint;
   JointType type = JointType::kCustom;
-  bool axis_joint = false;           // hinge or universal: the functional reference is SARA's axis
+  bool axis_joint = false;           // solver::DescribedByAxis: the functional reference is SARA's axis
   double from_generic_mm = 0;        // fitted centre to the generic model's, parent frame
   double axis_from_generic_deg = 0;  // axis joints: fitted axis to the generic model's
   double fitted_std_mm = 0;          // the fit's sd of the centre (0: the centre was not fitted)

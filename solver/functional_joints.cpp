@@ -334,6 +334,17 @@ Eigen::Vector3d FunctionalJoint::AxisPointInLab(int f) const {
   return 0.5 * (parent.pose[f].Point(axis.point_parent) + child.pose[f].Point(axis.point_child));
 }
 
+bool DescribedByAxis(const Joint& joint) {
+  if (joint.type == JointType::kHinge || joint.type == JointType::kUniversal) return true;
+  if (joint.type != JointType::kCustom) return false;
+  std::vector<int> coordinates;
+  for (const JointElement& el : joint.elements)
+    if (el.kind == ElementKind::kRotation && el.coordinate >= 0 && !el.function.IsConstant() &&
+        std::find(coordinates.begin(), coordinates.end(), el.coordinate) == coordinates.end())
+      coordinates.push_back(el.coordinate);
+  return coordinates.size() == 1 || coordinates.size() == 2;
+}
+
 Status EstimateFunctionalJoint(const Model& model, const formats::MarkerTrial& trial,
                                const std::string& joint, const FunctionalJointOptions& options,
                                FunctionalJoint* result) {
@@ -352,6 +363,7 @@ Status EstimateFunctionalJoint(const Model& model, const formats::MarkerTrial& t
   FunctionalJoint out;
   out.joint = joint;
   out.type = jt.type;
+  out.axis_joint = DescribedByAxis(jt);
   out.parent_segment = model.segments()[jt.parent].name;
   out.child_segment = model.segments()[jt.child].name;
   // The trial's columns of the model's markers on `segment`.

@@ -108,9 +108,18 @@ Status EstimateAxis(const ClusterTrack& parent, const ClusterTrack& child, doubl
 
 // A joint of a model, estimated from one trial: the clusters are the model's markers on the
 // joint's parent segment and on its child segment (by name, as the trial has them).
+// Whether a joint is described by its axis (SARA) rather than its centre (SCoRE): a hinge, a
+// universal joint, and a joint whose moving rotations all follow one or two coordinates -- an
+// OpenSim knee whose translations and small coupled rotations follow its flexion angle
+// (gait2354's knee, the walker knee of Rajagopal's and OpenCap's models) turns about one axis,
+// and a centre needs rotation about two: on OpenCap's squats SCoRE called the walker knees "not
+// excited" (1.5 deg about the second axis) while SARA has them.
+bool DescribedByAxis(const Joint& joint);
+
 struct FunctionalJoint {
   std::string joint;
   JointType type = JointType::kCustom;
+  bool axis_joint = false;  // DescribedByAxis: its reference is `axis`, not `centre`
   std::string parent_segment, child_segment;
   std::vector<std::string> parent_markers, child_markers;  // the clusters' markers
   ClusterTrack parent, child;

@@ -728,9 +728,33 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
 }
 
 
+// The joints whose centre the trials observe directly: a marker of FitOptions::fixed_markers at
+// the origin of the joint's child segment -- a marker tied to the centre (OpenCap's RHJC_study,
+// solver/attach_markers.h TieCentreMarkers) or a functional centre's virtual marker
+// (AddFunctionalCentres) -- with a sample in some trial. Its samples are the centre in the lab, so
+// however little the joint turns, the centre is placed by them, not by the rotation.
+std::vector<bool> CentresObserved(const Model& model, const std::vector<FitTrial>& trials, const FitOptions& options) {
+  std::vector<bool> observed(model.num_joints(), false);
+  for (const std::string& name : options.fixed_markers) {
+    const int m = model.FindMarker(name);
+    if (m < 0 || model.markers()[m].position.norm() > 1e-12) continue;
+    bool seen = false;
+    for (const FitTrial& t : trials) {
+      const int c = t.markers.FindMarker(name);
+      for (int f = 0; c >= 0 && f < t.markers.num_frames() && !seen; ++f) seen = t.markers.Has(f, c);
+    }
+    if (!seen) continue;
+    for (int j = 0; j < model.num_joints(); ++j)
+      if (model.joints()[j].parent >= 0 && model.joints()[j].child == model.markers()[m].segment) observed[j] = true;
+  }
+  return observed;
+}
+
 // FitOptions::min_excitation_deg: the joints whose centre or axes are free but whose rotation
-// the poses `z` (every trial's frames) hardly move, with the parameters to hold and why.
+// the poses `z` (every trial's frames) hardly move, with the parameters to hold and why. The
+// centre of a joint in `centre_observed` (CentresObserved) is not held: only its axes are.
 void UnexcitedJoints(const Model& model, const std::vector<Eigen::MatrixXd>& z, const FitOptions& options,
+                     const std::vector<bool>& centre_observed,
                      std::vector<std::pair<std::string, std::string>>* held,
                      std::vector<std::string>* parameters) {
   // Per trial (a joint moved in one trial and still in the others is excited: pooling the frames
@@ -760,7 +784,7 @@ void UnexcitedJoints(const Model& model, const std::vector<Eigen::MatrixXd>& z, 
         names.push_back(model.parameters()[a + 1].name);
       }
     }
-    const bool centre_free = options.fit_centres;
+    const bool centre_free = options.fit_centres && !centre_observed[j];
     const bool axes_free = options.fit_axes && !names.empty();
     if (!centre_free && !axes_free) continue;
     std::vector<double> s;
@@ -773,7 +797,8 @@ void UnexcitedJoints(const Model& model, const std::vector<Eigen::MatrixXd>& z, 
     std::snprintf(why, sizeof(why), "%s spread %.1f deg (%s), below %.0f deg",
                   s.empty() ? "no rotation:" : needed == 2 ? "second rotation" : "rotation", moved,
                   ToString(joint.type), options.min_excitation_deg);
-    held->emplace_back(joint.name, why);
+    held->emplace_back(joint.name, centre_observed[j] ? std::string(why) + "; axes only: a marker on the centre places it"
+                                                      : std::string(why));
     if (centre_free)
       for (int k = 0; k < 3; ++k) parameters->push_back(model.parameters()[model.centre_index(j) + k].name);
     if (axes_free) parameters->insert(parameters->end(), names.begin(), names.end());
@@ -1168,7 +1193,8 @@ Status FitSchedule(const Model& initial, const std::vector<FitTrial>& trials, co
   // held it is a back door through which the held centre moves after all.
   last.fit_scales = false;
   std::vector<std::pair<std::string, std::string>> held;
-  UnexcitedJoints(placed.model, placed.coordinates, options, &held, &last.held_parameters);
+  UnexcitedJoints(placed.model, placed.coordinates, options, CentresObserved(placed.model, trials, options), &held,
+                  &last.held_parameters);
   last.lm.max_iterations = std::max(1, iterations_left);
   const Model placed_model = placed.model;  // *result may be `placed`'s storage
   MOCAP_RETURN_IF_ERROR(FitStage(placed_model, stage_trials, last, true, result));

@@ -194,6 +194,11 @@ struct FitOptions {
   // and axes where stage 1 left them (the model's, scaled): a ball joint needs its second-largest
   // coordinate spread (RMS about the mean over every frame) at least this, a hinge its one.
   // SCoRE's own excitation rule (solver/functional_joints.h) with the same 5 degrees.
+  // A joint whose centre a marker of fixed_markers observes (a model marker tied to the centre,
+  // OpenCap's RHJC_study; a functional centre's virtual marker) keeps its centre free however
+  // little it turns: those samples are the centre in the lab. OpenCap's squats turn the hips
+  // 5-9.6 deg about their second axis: held, the hips sat 0.7-2.0 mm RMS from the truth in the
+  // lab, fitted 0.3-0.5 mm (tests/test_osim_subject.cpp, OpenCapSquatsFromLaiUhlrich2022).
   double min_excitation_deg = 10.0;
   // From the second stage on, the data are weighted as what they are: a marker's error is not
   // the nominal marker_sigma_m of white noise but the residual RMS the previous stage left, and
@@ -327,7 +332,8 @@ struct FitReport {
   LmSummary solver;
   std::vector<FitStageSummary> stages;
   // Joints whose centre and axes the final stage held (FitOptions::min_excitation_deg): name and
-  // why, e.g. "knee_l: rotation spread 1.2 deg (hinge), below 5 deg".
+  // why, e.g. "knee_l: rotation spread 1.2 deg (hinge), below 5 deg"; "...; axes only: ..." where
+  // a marker on the centre keeps the centre free.
   std::vector<std::pair<std::string, std::string>> held_joints;
   // Trial markers the model lacked: attached to a segment, or left out and why.
   std::vector<AttachedMarker> attached_markers;

@@ -9,6 +9,8 @@
 #include <cmath>
 #include <string>
 
+#include "formats/osim.h"
+#include "model/default_model.h"
 #include "model/kinematics.h"
 #include "sim/protocol.h"
 #include "sim/simulate.h"
@@ -290,6 +292,33 @@ TEST(FunctionalJoints, FunctionalCentresJoinTheGlobalFit) {
   s = solver::AddFunctionalCentres({"hip_q"}, {}, 0.04, &m2, &knee_only, &virtual_markers, &notes);
   EXPECT_FALSE(s.ok());
   EXPECT_NE(s.message().find("no joint 'hip_q'"), std::string::npos) << s.message();
+}
+
+// Which reference describes a joint: an axis (SARA) for hinges and universal joints and for a
+// joint whose rotations all follow one or two coordinates -- OpenCap's walker knee turns about
+// its flexion axis with two small rotations and three translations coupled to the same angle --,
+// a centre (SCoRE) for the rest.
+TEST(FunctionalJoints, KneesThatTurnAboutOneAxisAreDescribedByIt) {
+  const Model d = DefaultFullBodyModel();
+  EXPECT_TRUE(solver::DescribedByAxis(d.joints()[d.FindJoint("knee_r")]));
+  EXPECT_FALSE(solver::DescribedByAxis(d.joints()[d.FindJoint("hip_r")]));
+  formats::OsimImport im;
+  const Status s =
+      formats::ImportOsim(std::string(MOCAP_SOURCE_DIR) + "/tests/data/laiuhlrich2022_skeleton.osim", &im);
+  ASSERT_TRUE(s.ok()) << s.message();
+  const Model& m = im.model;
+  auto axis = [&](const char* joint) {
+    EXPECT_GE(m.FindJoint(joint), 0) << joint;
+    return m.FindJoint(joint) >= 0 && solver::DescribedByAxis(m.joints()[m.FindJoint(joint)]);
+  };
+  EXPECT_EQ(m.joints()[m.FindJoint("walker_knee_r")].type, JointType::kCustom);
+  EXPECT_TRUE(axis("walker_knee_r"));
+  EXPECT_TRUE(axis("walker_knee_l"));
+  EXPECT_TRUE(axis("ankle_r"));
+  EXPECT_FALSE(axis("hip_r"));
+  EXPECT_FALSE(axis("hip_l"));  // custom (its -1 couplings), three coordinates
+  EXPECT_FALSE(axis("ground_pelvis"));
+  EXPECT_FALSE(axis("radius_hand_r"));  // a weld: nothing turns
 }
 
 // `mocap functional` on real data: welk007's right-hip functional trial, clusters from the

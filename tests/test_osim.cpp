@@ -8,6 +8,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <random>
 #include <regex>
 #include <sstream>
@@ -672,4 +673,143 @@ TEST(Osim, MarkersOnOffsetFramesResolveAndUnusableOnesAreLeftOut) {
                                  "): fixed to the ground: nothing to fit, left out"));
   EXPECT_THAT(ignored, HasSubstr("Marker 'ON_NOTHING'"));
   EXPECT_THAT(ignored, HasSubstr("'/bodyset/fibula', which is no body and no offset frame of a joint"));
+}
+
+namespace {
+std::string TestData(const std::string& f) { return std::string(MOCAP_SOURCE_DIR) + "/tests/data/" + f; }
+
+// OpenCap's LaiUhlrich2022 (its skeleton, tests/data) with the augmenter's marker set, as OpenCap
+// puts them together before scaling.
+OsimImport LaiUhlrich2022() {
+  OsimImport im = MustImport(TestData("laiuhlrich2022_skeleton.osim"));
+  const Status s = LoadOsimMarkerSet(TestData("laiuhlrich2022_markers_augmenter.xml"), &im);
+  EXPECT_TRUE(s.ok()) << s.message();
+  return im;
+}
+
+// OpenSim's PolynomialFunction: coefficients from the highest order down.
+double Polynomial(const std::vector<double>& c, double x) {
+  double v = 0;
+  for (double k : c) v = v * x + k;
+  return v;
+}
+}  // namespace
+
+// OpenCap's generic model, never seen before this session: every joint built as OpenSim defines
+// it. The markers of the right leg are computed here by hand from the file's own transforms --
+// X_G,B = X_G,P X_P,F X_F,M(q) X_B,M^-1 with body-fixed X-Y-Z offset orientations, a CustomJoint's
+// rotations about successive body-fixed axes and translations along F's axes, the walker knee's
+// PolynomialFunctions -- at a straight and a 90 deg knee, and must match our kinematics.
+TEST(Osim, LaiUhlrich2022IsBuiltAsOpenSimDefinesIt) {
+  const OsimImport im = LaiUhlrich2022();
+  const Model& m = im.model;
+  EXPECT_EQ(m.num_segments(), 22);
+  EXPECT_EQ(m.num_joints(), 22);
+  EXPECT_EQ(m.num_markers(), 43);
+  EXPECT_EQ(m.num_coordinates(), 33);  // 35 in the file; the patellae's follow the knees
+  for (const char* side : {"r", "l"}) {
+    const std::string beta = std::string("knee_angle_") + side + "_beta";
+    EXPECT_LT(m.FindCoordinate(beta), 0);
+    bool derived = false;
+    for (const auto& dc : m.derived_coordinates())
+      derived |= dc.name == beta && dc.source == m.FindCoordinate(std::string("knee_angle_") + side);
+    EXPECT_TRUE(derived) << beta;
+  }
+  EXPECT_EQ(m.joints()[m.FindJoint("hip_r")].type, JointType::kSpherical);
+  EXPECT_EQ(m.joints()[m.FindJoint("ankle_r")].type, JointType::kHinge);
+  EXPECT_EQ(m.joints()[m.FindJoint("radius_hand_r")].elements.size(), 0u);  // a WeldJoint
+
+  auto rot = [](double a, double b, double c) {
+    return Eigen::Matrix3d((Eigen::AngleAxisd(a, Eigen::Vector3d::UnitX()) *
+                            Eigen::AngleAxisd(b, Eigen::Vector3d::UnitY()) *
+                            Eigen::AngleAxisd(c, Eigen::Vector3d::UnitZ())).toRotationMatrix());
+  };
+  auto about = [](double a, const Eigen::Vector3d& axis) {
+    return Eigen::Matrix3d(Eigen::AngleAxisd(a, axis).toRotationMatrix());
+  };
+  const Eigen::Vector3d x = Eigen::Vector3d::UnitX(), y = Eigen::Vector3d::UnitY(), z = Eigen::Vector3d::UnitZ();
+  for (const double knee : {0.0, 1.5708}) {  // knots of the patella's splines: 0 and 90 deg
+    SCOPED_TRACE("knee_angle_r " + std::to_string(knee));
+    Eigen::VectorXd q = m.DefaultCoordinates();
+    const std::map<std::string, double> set = {
+        {"pelvis_tilt", 0.1}, {"pelvis_list", -0.05}, {"pelvis_rotation", 0.2}, {"pelvis_tx", 0.1},
+        {"pelvis_ty", 0.9},   {"pelvis_tz", -0.05},   {"hip_flexion_r", 0.5},   {"hip_adduction_r", -0.1},
+        {"hip_rotation_r", 0.15}, {"knee_angle_r", knee}, {"ankle_angle_r", 0.2}, {"subtalar_angle_r", -0.1}};
+    for (const auto& [name, v] : set) {
+      ASSERT_GE(m.FindCoordinate(name), 0) << name;
+      q[m.FindCoordinate(name)] = v;
+    }
+    const Eigen::Matrix3Xd at = Positions(m, q, m.InitialParameters());
+    // ground_pelvis: rotation1 pelvis_tilt about z, rotation2 list about x, rotation3 rotation
+    // about y, translations along ground's axes; both offset frames are the identity.
+    const Eigen::Matrix3d rp = about(0.1, z) * about(-0.05, x) * about(0.2, y);
+    const Eigen::Vector3d pp(0.1, 0.9, -0.05);
+    // hip_r: parent frame at (-0.056276, -0.07849, 0.07726) on the pelvis, child frame the femur's origin.
+    const Eigen::Matrix3d rf = rp * about(0.5, z) * about(-0.1, x) * about(0.15, y);
+    const Eigen::Vector3d pf = pp + rp * Eigen::Vector3d(-0.056276, -0.078490000000000004, 0.077259999999999995);
+    // walker_knee_r: both offset frames oriented (-1.64157, 1.44618, 1.5708); rotation1 q about x,
+    // rotation2 about z and rotation3 about y by polynomials of q, translations by polynomials.
+    const Eigen::Matrix3d ro = rot(-1.64157, 1.44618, 1.5708);
+    const Eigen::Matrix3d rF = rf * ro;
+    const Eigen::Vector3d pF = pf + rf * Eigen::Vector3d(-0.0044999999999999997, -0.40960000000000002, -0.00175);
+    const double r2 = Polynomial({0.010832094539863, -0.025218325501241, -0.032847810398852, 0.079100011967027,
+                                  -1.473252350900463e-08}, knee);
+    const double r3 = Polynomial({0.025165762727423, -0.169480051390540, 0.369499348688249, -4.430358308836305e-08}, knee);
+    const Eigen::Vector3d t(
+        Polynomial({1.590447878850381e-04, -0.001015149915669, 0.001817510974968, 2.641426645199230e-05,
+                    -7.746563532471892e-07}, knee),
+        Polynomial({-5.796878052338684e-04, 0.005079765745626, -0.011442375726364, 0.003936908668844,
+                    -2.516350383213525e-05}, knee),
+        Polynomial({0.001208086889206, -0.004453611224706, 6.116494072981739e-04, 0.006265429606387,
+                    -1.461912533723326e-05}, knee));
+    const Eigen::Matrix3d rM = rF * about(knee, x) * about(r2, z) * about(r3, y);
+    const Eigen::Vector3d pM = pF + rF * t;
+    // The tibia's body frame from its child offset frame M: X_G,B = X_G,M X_B,M^-1.
+    const Eigen::Matrix3d rt = rM * ro.transpose();
+    const Eigen::Vector3d pt = pM - rt * Eigen::Vector3d(-0.0080895399999999992, -0.0035347999999999998, -0.00148474);
+    // ankle_r (PinJoint about z of its frames, oriented (0.175895, -0.105208, 0.0186622)).
+    const Eigen::Matrix3d ra = rot(0.175895, -0.105208, 0.0186622);
+    const Eigen::Matrix3d rtalus = rt * ra * about(0.2, z) * ra.transpose();
+    const Eigen::Vector3d ptalus = pt + rt * Eigen::Vector3d(-0.01, -0.40000000000000002, 0);
+    // subtalar_r: frames oriented (-1.76819, 0.906223, 1.8196), at (-0.04877, -0.04195, 0.00792) on the talus.
+    const Eigen::Matrix3d rs = rot(-1.7681899999999999, 0.906223, 1.8196000000000001);
+    const Eigen::Matrix3d rc = rtalus * rs * about(-0.1, z) * rs.transpose();
+    const Eigen::Vector3d pc = ptalus + rtalus * Eigen::Vector3d(-0.048770000000000001, -0.041950000000000001, 0.00792);
+    const std::vector<std::pair<const char*, Eigen::Vector3d>> expected = {
+        {"r.ASIS_study", pp + rp * Eigen::Vector3d(0.028000000000000001, 0.01, 0.128)},
+        {"RHJC_study", pf},
+        {"r_knee_study", pf + rf * Eigen::Vector3d(0.0080000000000000002, -0.40400000000000003, 0.055)},
+        {"r_thigh2_study", pf + rf * Eigen::Vector3d(0.055, -0.25, 0.085)},
+        {"r_ankle_study", pt + rt * Eigen::Vector3d(-0.02, -0.38500000000000001, 0.052999999999999999)},
+        {"r_sh1_study", pt + rt * Eigen::Vector3d(0.0, -0.115, 0.07)},
+        {"r_toe_study", pc + rc * Eigen::Vector3d(0.18684400000000001, 0.0083665300000000005, 0.0052662100000000003)},
+        {"r_calc_study", pc + rc * Eigen::Vector3d(-0.032161500000000003, 0.032569300000000002, -0.011169500000000001)}};
+    for (const auto& [name, p] : expected) {
+      ASSERT_GE(m.FindMarker(name), 0) << name;
+      EXPECT_LT((at.col(m.FindMarker(name)) - p).norm(), 1e-12) << name;
+    }
+    // The patella (no marker) on its SimmSplines of knee_angle_r_beta = knee_angle_r (the
+    // coupler's slope 1): at its knots a spline is the knot's value. rotation1
+    // about z, translations along x, y and a constant 0.00275 along z of the frame at
+    // (-0.00809, -0.40796, -0.00275) on the femur; the patella's own frame is its body's.
+    const bool straight = knee == 0.0;
+    const Eigen::Matrix3d rpat = rf * about(straight ? 0.00113686 : -1.26379, z);
+    const Eigen::Vector3d ppat = pf + rf * (Eigen::Vector3d(-0.00809, -0.40795999999999999, -0.0027499999999999998) +
+                                            Eigen::Vector3d(straight ? 0.0524 : -0.0088, straight ? -0.0108 : -0.0349,
+                                                            0.0027499999999999998));
+    const Geometry g(m);
+    ModelData d(m);
+    ForwardKinematics(m, g, q, &d);
+    const int patella = m.FindSegment("patella_r");
+    ASSERT_GE(patella, 0);
+    EXPECT_LT((d.segment_position[patella] - ppat).norm(), 1e-12);
+    EXPECT_LT((d.segment_rotation[patella] - rpat).norm(), 1e-12);
+  }
+  std::mt19937 rng(29);
+  for (int trial = 0; trial < 3; ++trial)
+    EXPECT_LT(ExpectJacobiansMatchCentralDifferences(m, RandomPose(m, rng), RandomParameters(m, rng)), 1e-6);
+  const double same = RoundTripError(im, im.model, rng);
+  EXPECT_LT(same, 1e-9);
+  const double fitted = RoundTripError(im, mocap::testutil::Baked(im.model, RandomParameters(im.model, rng)), rng);
+  EXPECT_LT(fitted, 1e-9);
 }

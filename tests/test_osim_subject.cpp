@@ -5,11 +5,19 @@
 // truth known. The real-data tests skip where ../shared/data is absent.
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <map>
 #include <random>
 #include <utility>
+
+#include <nlohmann/json.hpp>
 
 #include "formats/mot.h"
 #include "formats/osim.h"
@@ -18,12 +26,16 @@
 #include "model/default_model.h"
 #include "model/kinematics.h"
 #include "sim/osim_subject.h"
+#include "solver/attach_markers.h"
+#include "solver/fit_trust.h"
 #include "solver/global_fit.h"
 #include "solver/inverse_kinematics.h"
 #include "solver/marker_fit_problem.h"
 #include "tests/assembly_test_util.h"
 #include "tests/file_test_util.h"
+#include "tests/osim_test_util.h"
 
+namespace fs = std::filesystem;
 using namespace mocap;
 using mocap::testutil::SharedData;
 
@@ -552,5 +564,459 @@ TEST(OsimSubject, DISABLED_Welk007Sweep) {
                 100 * (g.fit.report.marker_rms_mm / t.fit.report.marker_rms_mm - 1), g.lab_mm[k], t.lab_mm[k], sd,
                 sd_truth, undetermined ? "  undetermined" : "", undetermined_truth ? "  (truth: undetermined)" : "",
                 g.fit.report.solver.num_iterations(), t.fit.report.solver.num_iterations());
+  }
+}
+
+namespace {
+
+std::string TestData(const std::string& file) { return std::string(MOCAP_SOURCE_DIR) + "/tests/data/" + file; }
+
+// OpenCap's generic model (tests/data/laiuhlrich2022_skeleton.osim: its joints, constraints and
+// bodies as in opencap-core) with the augmenter's 43 markers, as OpenCap scales it.
+formats::OsimImport LaiUhlrich2022() {
+  formats::OsimImport im;
+  Status s = formats::ImportOsim(TestData("laiuhlrich2022_skeleton.osim"), &im);
+  EXPECT_TRUE(s.ok()) << s.message();
+  s = formats::LoadOsimMarkerSet(TestData("laiuhlrich2022_markers_augmenter.xml"), &im);
+  EXPECT_TRUE(s.ok()) << s.message();
+  return im;
+}
+
+// A motion of `model` at 60 Hz for `seconds`: every coordinate at its default (radians, metres)
+// but those `set` gives, as a function of time (degrees for rotational ones, as a .mot holds them).
+sim::PrescribedMotion MotionOf(const Model& model, const std::string& name, double seconds,
+                               const std::function<void(double t, std::map<std::string, double>* deg)>& set) {
+  sim::PrescribedMotion m;
+  m.source = name;
+  m.table.name = name;
+  m.table.in_degrees = true;
+  const int nf = static_cast<int>(std::lround(seconds * 60.0));
+  m.table.values.resize(nf, model.num_coordinates());
+  for (const Coordinate& c : model.coordinates()) m.table.column_names.push_back(c.name);
+  for (int f = 0; f < nf; ++f) {
+    const double t = f / 60.0;
+    m.table.times.push_back(t);
+    std::map<std::string, double> v;
+    set(t, &v);
+    for (int c = 0; c < model.num_coordinates(); ++c) {
+      const Coordinate& co = model.coordinates()[c];
+      const auto it = v.find(co.name);
+      m.table.values(f, c) = it != v.end() ? it->second : co.default_value * (co.rotational ? 180.0 / M_PI : 1.0);
+    }
+  }
+  return m;
+}
+
+// OpenCap's protocol for a lower-limb session: a standing static trial and two squats (hips and
+// knees 5 -> 100 deg and back, the ankles dorsiflexed 25 deg, the trunk leaning, the thighs
+// abducting and rotating a little, the arms reaching forward), the second wider and more rotated.
+// `hip_sway_deg`: the right thigh's ab/adduction sway (4 deg; more moves the right hip past the
+// fit's excitation rule while the left stays below it).
+std::vector<sim::PrescribedMotion> OpenCapMotions(const Model& model, double hip_sway_deg = 4.0) {
+  auto standing = [](std::map<std::string, double>* v) {
+    (*v)["pelvis_ty"] = 0.93;
+    for (const char* s : {"_r", "_l"}) {
+      (*v)[std::string("knee_angle") + s] = 5;
+      (*v)[std::string("arm_add") + s] = -15;
+      (*v)[std::string("elbow_flex") + s] = 15;
+      (*v)[std::string("pro_sup") + s] = 60;
+    }
+  };
+  auto squat = [&](double period, double abduct, double rotate, double phase) {
+    return [=](double t, std::map<std::string, double>* v) {
+      standing(v);
+      const double u = 0.5 * (1 - std::cos(2 * M_PI * t / period));  // 0 standing, 1 deepest
+      (*v)["pelvis_ty"] = 0.93 - 0.33 * u;
+      (*v)["pelvis_tx"] = -0.08 * u;
+      (*v)["pelvis_tilt"] = -25 * u;
+      (*v)["pelvis_rotation"] = 5 * std::sin(2 * M_PI * t / 3.1);
+      (*v)["lumbar_extension"] = -15 * u;
+      for (int side = 0; side < 2; ++side) {
+        const std::string s = side == 0 ? "_r" : "_l";
+        const double w = 2 * M_PI * t / (2.3 + 0.4 * side) + phase;
+        (*v)["hip_flexion" + s] = 5 + 95 * u;
+        (*v)["hip_adduction" + s] = -abduct * u + (side == 0 ? hip_sway_deg : 4.0) * std::sin(w);
+        (*v)["hip_rotation" + s] = rotate * u + 8 * std::cos(w);
+        (*v)["knee_angle" + s] = 5 + 95 * u;
+        (*v)["ankle_angle" + s] = 25 * u;
+        (*v)["subtalar_angle" + s] = 4 * std::sin(w);
+        (*v)["arm_flex" + s] = 70 * u;
+        (*v)["elbow_flex" + s] = 15 + 30 * u;
+      }
+    };
+  };
+  return {MotionOf(model, "static", 1.0, [&](double, std::map<std::string, double>* v) { standing(v); }),
+          MotionOf(model, "squats1", 5.0, squat(2.5, 8, 5, 0.0)),
+          MotionOf(model, "squats2", 4.0, squat(2.0, 15, 15, 1.3))};
+}
+
+// The video keypoints OpenCap's TRC holds beside the augmenter's markers (the pose detector's
+// Neck, RShoulder, ..., RBigToe: opencap-core's getOpenPoseMarkers_lowerExtremity2 and the
+// upper-limb ones), which the model lacks: each at its anatomical point of the truth (a joint
+// centre, a landmark of the foot, the shoulders' midpoint) plus what a pose detector adds, a
+// slow error of up to 15 mm per axis that follows the movement rather than any bone, and 3 mm of
+// jitter.
+void AddVideoKeypoints(const Model& truth, int seed, std::vector<sim::SimulatedTrial>* trials) {
+  struct Keypoint {
+    std::string name;
+    std::vector<std::string> joints;  // the mean of these joints' centres
+    std::string marker;               // or this truth marker
+  };
+  const std::vector<Keypoint> keypoints = {
+      {"Neck", {"acromial_r", "acromial_l"}, ""}, {"RShoulder", {"acromial_r"}, ""},
+      {"LShoulder", {"acromial_l"}, ""},          {"RElbow", {"elbow_r"}, ""},
+      {"LElbow", {"elbow_l"}, ""},                {"RWrist", {"radius_hand_r"}, ""},
+      {"LWrist", {"radius_hand_l"}, ""},          {"RHip", {"hip_r"}, ""},
+      {"LHip", {"hip_l"}, ""},                    {"RKnee", {"walker_knee_r"}, ""},
+      {"LKnee", {"walker_knee_l"}, ""},           {"RAnkle", {"ankle_r"}, ""},
+      {"LAnkle", {"ankle_l"}, ""},                {"RHeel", {}, "r_calc_study"},
+      {"LHeel", {}, "L_calc_study"},              {"RSmallToe", {}, "r_5meta_study"},
+      {"LSmallToe", {}, "L_5meta_study"},         {"RBigToe", {}, "r_toe_study"},
+      {"LBigToe", {}, "L_toe_study"}};
+  const Geometry g(truth);
+  ModelData d(truth);
+  std::mt19937_64 rng(2000 + seed);
+  std::uniform_real_distribution<double> amplitude(-0.015, 0.015), period(1.5, 4.0), phase(0, 2 * M_PI);
+  std::normal_distribution<double> jitter(0.0, 0.003);
+  for (sim::SimulatedTrial& t : *trials) {
+    formats::MarkerTrial& m = t.markers;
+    const int first = m.num_markers(), nf = m.num_frames();
+    formats::RowMatrix positions(nf, 3 * (first + static_cast<int>(keypoints.size())));
+    positions.leftCols(3 * first) = m.positions;
+    std::vector<std::array<double, 9>> slow(keypoints.size());
+    for (auto& w : slow)
+      for (int a = 0; a < 3; ++a) w[3 * a] = amplitude(rng), w[3 * a + 1] = period(rng), w[3 * a + 2] = phase(rng);
+    for (int f = 0; f < nf; ++f) {
+      ForwardKinematics(truth, g, sim::TrueCoordinates(truth, t.coordinates, f), &d);
+      for (size_t k = 0; k < keypoints.size(); ++k) {
+        Eigen::Vector3d p = Eigen::Vector3d::Zero();
+        if (keypoints[k].marker.empty()) {
+          for (const std::string& j : keypoints[k].joints) p += JointCentre(truth, d, truth.FindJoint(j));
+          p /= static_cast<double>(keypoints[k].joints.size());
+        } else {
+          p = MarkerPosition(truth, g, d, truth.FindMarker(keypoints[k].marker));
+        }
+        for (int a = 0; a < 3; ++a)
+          p[a] += slow[k][3 * a] * std::sin(2 * M_PI * m.times[f] / slow[k][3 * a + 1] + slow[k][3 * a + 2]) + jitter(rng);
+        positions.row(f).segment<3>(3 * (first + static_cast<int>(k))) = p.transpose();
+      }
+    }
+    for (const Keypoint& k : keypoints) m.marker_names.push_back(k.name);
+    m.positions = std::move(positions);
+  }
+}
+
+struct OpenCapSession {
+  int seed = 1;
+  double noise_mm = 0.7;
+  // The augmenter's own error, for the sweep: a slow error on every augmented marker (a constant
+  // and a 1-4 s sinusoid per axis, each up to this, mm). 0: none (the test's subject).
+  double augmenter_error_mm = 0.0;
+  double hip_sway_deg = 4.0;  // OpenCapMotions
+  double scale_spread = 0.10;  // the truth's segment scales within 1 +- this
+  bool keypoints = true;      // AddVideoKeypoints
+  // The fit ties the markers the model puts on a joint centre to it, as `mocap fit` does
+  // (solver::TieCentreMarkers); false: fitted as skin markers (before the eighteenth session).
+  bool tie_centre_markers = true;
+};
+
+struct OpenCapOutcome {
+  sim::OsimSubject subject;
+  Model fitted_from;                      // the generic model with its centre markers tied
+  std::vector<solver::FitTrial> trials;   // as fitted
+  solver::FitResult fit;
+  std::vector<double> lab_mm;  // per joint: JointCentreTrackRmsMm against the truth
+};
+
+// A subject of OpenCap's model: the truth is the generic model with each segment scaled by
+// 0.9-1.1, joint centres moved up to 10 mm and markers up to 5 mm on their segments, at 60 Hz.
+// The hip-centre markers are what OpenCap's augmenter writes for them: the true centres plus the
+// noise, not points of the pelvis's skin.
+OpenCapOutcome SimulateOpenCapSubject(const OpenCapSession& session) {
+  static const formats::OsimImport* generic = new formats::OsimImport(LaiUhlrich2022());
+  const Model& model = generic->model;
+  OpenCapOutcome out;
+  sim::OsimSubjectOptions options;
+  options.seed = session.seed;
+  options.noise_mm = session.noise_mm;
+  options.geometry.scale_spread = session.scale_spread;
+  options.geometry.marker_mm = 5.0;
+  Status s = sim::SimulateOsimSubject(model, OpenCapMotions(model, session.hip_sway_deg), options, &out.subject);
+  EXPECT_TRUE(s.ok()) << s.message();
+  const Model& truth = out.subject.truth;
+  const Geometry g(truth);
+  ModelData d(truth);
+  std::mt19937_64 rng(1000 + session.seed);
+  std::normal_distribution<double> noise(0.0, 1e-3 * options.noise_mm);
+  for (sim::SimulatedTrial& t : out.subject.trials)
+    for (const auto& [marker, joint] : {std::pair{"RHJC_study", "hip_r"}, std::pair{"LHJC_study", "hip_l"}}) {
+      const int k = t.markers.FindMarker(marker), j = truth.FindJoint(joint);
+      EXPECT_GE(k, 0);
+      EXPECT_GE(j, 0);
+      for (int f = 0; f < t.markers.num_frames(); ++f) {
+        ForwardKinematics(truth, g, sim::TrueCoordinates(truth, t.coordinates, f), &d);
+        const Eigen::Vector3d c = JointCentre(truth, d, j);
+        for (int a = 0; a < 3; ++a) t.markers.positions(f, 3 * k + a) = c[a] + noise(rng);
+      }
+    }
+  if (session.augmenter_error_mm > 0) {
+    std::mt19937_64 r(3000 + session.seed);
+    const double most = 1e-3 * session.augmenter_error_mm;
+    std::uniform_real_distribution<double> size(-most, most), period(1.0, 4.0), phase(0, 2 * M_PI);
+    for (sim::SimulatedTrial& t : out.subject.trials)
+      for (int k = 0; k < t.markers.num_markers(); ++k)
+        for (int a = 0; a < 3; ++a) {
+          const double offset = size(r), amplitude = size(r), tau = period(r), phi = phase(r);
+          for (int f = 0; f < t.markers.num_frames(); ++f)
+            t.markers.positions(f, 3 * k + a) +=
+                offset + amplitude * std::sin(2 * M_PI * t.markers.times[f] / tau + phi);
+        }
+  }
+  if (session.keypoints) AddVideoKeypoints(truth, session.seed, &out.subject.trials);
+  if (const char* dir = std::getenv("WRITE_TRC"))  // for `mocap fit` by hand
+    for (const auto& t : out.subject.trials)
+      EXPECT_TRUE(formats::WriteTrc(std::string(dir) + "/" + t.markers.name + ".trc", t.markers).ok());
+  return out;
+}
+
+// The session fitted from the generic model as `mocap fit --model` fits it (its steps,
+// tools/cmd_fit.cpp): the markers the model puts on a joint centre tied to it, FitModel with its
+// defaults, the tied markers back on their own segments.
+OpenCapOutcome FitOpenCapSubject(const OpenCapSession& session, solver::FitOptions options = solver::FitOptions()) {
+  OpenCapOutcome out = SimulateOpenCapSubject(session);
+  std::vector<formats::MarkerTrial> markers;
+  for (const auto& t : out.subject.trials) markers.push_back(t.markers);
+  Model model = out.subject.generic;
+  std::vector<solver::CentreMarker> tied;
+  if (session.tie_centre_markers) {
+    const Status s = solver::TieCentreMarkers(markers, 0.002, &model, &tied);
+    EXPECT_TRUE(s.ok()) << s.message();
+    EXPECT_EQ(tied.size(), 2u);
+  }
+  for (const auto& c : tied) options.fixed_markers.push_back(c.marker);
+  for (auto& m : markers) out.trials.push_back({std::move(m), {}});
+  out.fitted_from = model;
+  Status s = solver::FitModel(model, out.trials, options, &out.fit);
+  EXPECT_TRUE(s.ok()) << s.message();
+  if (!s.ok()) return out;
+  s = solver::UntieCentreMarkers(tied, &out.fit.model);
+  EXPECT_TRUE(s.ok()) << s.message();
+  out.lab_mm = sim::JointCentreTrackRmsMm(out.subject.truth, out.subject.trials, out.fit.model, out.fit.coordinates);
+  return out;
+}
+
+// Joint j's lab error (fitted centre minus true, RMS over every frame of every trial, mm) split
+// into its part along the axis of the joint's first rotation element (the truth's, in the lab)
+// and the part across it. A walker knee's centre along its flexion axis is all but a gauge: only
+// its small coupled rotations see it, and the report names it undetermined.
+std::pair<double, double> AlongAcrossMm(const OpenCapOutcome& o, int j) {
+  const Model& truth = o.subject.truth;
+  const Model& fitted = o.fit.model;
+  const Geometry gt(truth), gf(fitted);
+  ModelData dt(truth), df(fitted);
+  const auto& elements = truth.joints()[j].elements;
+  int e = 0;
+  while (e < static_cast<int>(elements.size()) && elements[e].kind != ElementKind::kRotation) ++e;
+  if (e == static_cast<int>(elements.size())) return {0.0, 0.0};
+  double along = 0, across = 0;
+  long n = 0;
+  for (size_t t = 0; t < o.subject.trials.size(); ++t)
+    for (int f = 0; f < o.subject.trials[t].markers.num_frames(); ++f) {
+      ForwardKinematics(truth, gt, sim::TrueCoordinates(truth, o.subject.trials[t].coordinates, f), &dt);
+      ForwardKinematics(fitted, gf, o.fit.coordinates[t].row(f).transpose(), &df);
+      const Eigen::Vector3d d = JointCentre(fitted, df, j) - JointCentre(truth, dt, j);
+      const Eigen::Vector3d u = (dt.element_rotation[j][e] * gt.axis[j][e]).normalized();
+      along += std::pow(d.dot(u), 2);
+      across += (d - d.dot(u) * u).squaredNorm();
+      ++n;
+    }
+  return {1000 * std::sqrt(along / n), 1000 * std::sqrt(across / n)};
+}
+
+void PrintOpenCap(const OpenCapSession& session, const OpenCapOutcome& o) {
+  std::printf("seed %d: %s\n", session.seed, o.fit.report.BriefReport().c_str());
+  for (const char* joint : {"hip_r", "hip_l", "walker_knee_r", "walker_knee_l", "ankle_r", "ankle_l"}) {
+    const int j = o.fit.model.FindJoint(joint);
+    const auto [along, across] = AlongAcrossMm(o, j);
+    std::printf("  %-14s lab %6.2f mm RMS (along its first axis %6.2f, across %6.2f)%s\n", joint, o.lab_mm[j],
+                along, across, Held(o.fit.report, joint) ? "  (held)" : "");
+  }
+}
+
+bool NamedUndetermined(const solver::FitReport& r, const std::string& parameter) {
+  return std::find(r.undetermined.begin(), r.undetermined.end(), parameter) != r.undetermined.end();
+}
+
+}  // namespace
+
+// OpenCap's generic model LaiUhlrich2022 fitted as a lab would fit an OpenCap session with
+// `mocap fit --model LaiUhlrich2022.osim static squats1 squats2` (no stages, no groups by hand),
+// on three subjects (seeds 1-3): the augmenter's 43 markers at 0.7 mm noise, its hip-centre
+// markers at the true centres, and the 19 video keypoints the TRC also holds (not in the model:
+// left out, as they ride on two segments alike). What the squats excite is recovered:
+//  - converged in at most 30 iterations (seeds 1-3: 17; seeds 1-7 measured: 17-23, and 17-25 with
+//    the truth's scales spread to +-30 %), marker RMS within 10 % of what the noise leaves (+5.3,
+//    +5.3, +6.9 %);
+//  - hips within 1 mm RMS in the lab (0.44-0.53 mm; seeds 1-7: at most 0.56), fitted: the hip-centre markers place them
+//    although the squats turn them only 5-9.6 deg about their second axis (FitOptions::
+//    min_excitation_deg). Held there as before this session, they were 0.72-1.98 mm off, and
+//    seed 3's marker RMS 14 % above the noise's;
+//  - knees across their flexion axis within 4 mm (1.4-3.7 mm; seeds 1-7: 0.4-3.7), along it named undetermined
+//    (0.6-7.6 mm: only the walker knee's small coupled rotations see it);
+//  - ankles (dorsiflexion 25 deg: 8.5-9.0 deg RMS, below min_excitation_deg) held and reported
+//    so, within what the subject's own deviation and the scales leave (0.7-10.0 mm; seeds 1-7:
+//    at most 10.3).
+TEST(OsimSubject, OpenCapSquatsFromLaiUhlrich2022) {
+  for (int seed = 1; seed <= 3; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    OpenCapSession session;
+    session.seed = seed;
+    const OpenCapOutcome o = FitOpenCapSubject(session);
+    ASSERT_FALSE(o.lab_mm.empty());
+    PrintOpenCap(session, o);
+    const solver::FitReport& r = o.fit.report;
+    EXPECT_TRUE(r.converged()) << r.solver.message;
+    EXPECT_LE(r.solver.num_iterations(), 30);
+    const double expected =
+        session.noise_mm * std::sqrt(3.0 * (1.0 - double(r.unknowns) / (3.0 * r.marker_samples)));
+    EXPECT_NEAR(r.marker_rms_mm, expected, 0.1 * expected);
+    const Model& m = o.fit.model;
+    for (const char* side : {"_r", "_l"}) {
+      const std::string hip = std::string("hip") + side, knee = std::string("walker_knee") + side,
+                        ankle = std::string("ankle") + side;
+      EXPECT_FALSE(Held(r, hip));
+      EXPECT_LE(o.lab_mm[m.FindJoint(hip)], 1.0) << hip;
+      EXPECT_FALSE(Held(r, knee));
+      EXPECT_LE(AlongAcrossMm(o, m.FindJoint(knee)).second, 4.0) << knee;
+      EXPECT_TRUE(NamedUndetermined(r, knee + ".centre.x")) << knee;
+      EXPECT_TRUE(Held(r, ankle));
+      EXPECT_LE(o.lab_mm[m.FindJoint(ankle)], 12.0) << ankle;
+    }
+  }
+}
+
+// The report's functional check of OpenCap's walker knees: a knee whose rotations all follow its
+// flexion angle turns about one axis, so its reference is SARA's axis (solver::DescribedByAxis),
+// compared with the same estimate made on the fitted model's own motion (its coupled rotations
+// tilt that axis from the flexion axis). The fitted knee axes are the truth's (the subject's
+// axes are the generic model's), so each squat trial's check must find them within 1 deg (seed 1:
+// 0.07-0.20 deg; SARA's own sd 0.5-0.7 deg). Before this session SCoRE judged them as ball joints, "not excited" (1.5 deg about a
+// second axis): no reference at all; with SARA against the flexion axis alone, 7.6-8.2 deg apart
+// and a warning on a right fit.
+TEST(OsimSubject, OpenCapWalkerKneesAreCheckedAgainstSara) {
+  OpenCapSession session;
+  const OpenCapOutcome o = FitOpenCapSubject(session);
+  ASSERT_FALSE(o.lab_mm.empty());
+  solver::FitTrustOptions options;
+  options.joints = {"walker_knee_r", "walker_knee_l"};
+  solver::FitTrust trust;
+  const Status s = solver::CheckFitTrust(o.fitted_from, o.fit, o.trials, options, &trust);
+  ASSERT_TRUE(s.ok()) << s.message();
+  ASSERT_EQ(trust.joints.size(), 2u);
+  for (const solver::JointTrust& knee : trust.joints) {
+    SCOPED_TRACE(knee.joint);
+    EXPECT_TRUE(knee.axis_joint);
+    ASSERT_EQ(knee.checks.size(), 3u);
+    EXPECT_FALSE(knee.checks[0].excited);  // the static trial
+    for (int t = 1; t < 3; ++t) {
+      const solver::FunctionalCheck& c = knee.checks[t];
+      std::printf("%s on %s: fitted axis %.2f deg from SARA's (SARA sd %.2f deg), centre %.1f mm from its line\n",
+                  knee.joint.c_str(), c.trial.c_str(), c.axis_angle_deg, c.functional_axis_std_deg,
+                  c.axis_line_distance_mm);
+      ASSERT_TRUE(c.excited) << c.note;
+      EXPECT_LT(c.axis_angle_deg, 1.0);
+      EXPECT_FALSE(c.far);
+    }
+  }
+}
+
+// The same session through the command a lab types, on the files OpenCap would give it (the
+// trials as TRC, the model and its marker set as .osim and .xml): `mocap fit --model
+// laiuhlrich2022_skeleton.osim --marker-set laiuhlrich2022_markers_augmenter.xml static.trc
+// squats1.trc squats2.trc --out fitted.osim --report report.json`. What it writes, read back --
+// the fitted OpenSim model and each trial's .mot of OpenSim coordinates -- puts the hips within
+// 1 mm RMS of the truth in the lab and the knees across their axes within 4 mm (seed 1: 0.44-0.48
+// and 1.4-3.7 mm, as the library fit); the report says what a lab needs to read: converged, the 19
+// keypoints unmatched, no model marker unseen, the hips not held, the knees checked against SARA.
+TEST(OsimSubject, OpenCapSessionThroughMocapFit) {
+  OpenCapSession session;
+  const OpenCapOutcome o = SimulateOpenCapSubject(session);
+  const fs::path dir = testutil::FreshDir("osim_subject", "opencap");
+  std::string trials;
+  for (const auto& t : o.subject.trials) {
+    const std::string path = (dir / (t.markers.name + ".trc")).string();
+    ASSERT_TRUE(formats::WriteTrc(path, t.markers).ok());
+    trials += " " + path;
+  }
+  const auto r = testutil::Mocap("fit --model " + TestData("laiuhlrich2022_skeleton.osim") + " --marker-set " +
+                                 TestData("laiuhlrich2022_markers_augmenter.xml") + trials + " --out " +
+                                 (dir / "fitted.osim").string() + " --report " + (dir / "report.json").string());
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("RHJC_study: the model puts it on hip_r's centre"), std::string::npos) << r.output;
+  nlohmann::json report;
+  std::ifstream(dir / "report.json") >> report;
+  EXPECT_EQ(report["termination"], "CONVERGENCE");
+  EXPECT_LE(report["iterations"].get<int>(), 30);
+  EXPECT_EQ(report["unmatched_trial_markers"].size(), 19u);
+  EXPECT_TRUE(report["unobserved_model_markers"].empty());
+  EXPECT_EQ(report["held_joints"].dump().find("hip_"), std::string::npos) << report["held_joints"].dump();
+  int knees = 0;
+  for (const auto& j : report["joint_checks"]) {
+    if (j["joint"] != "walker_knee_r" && j["joint"] != "walker_knee_l") continue;
+    ++knees;
+    EXPECT_TRUE(j["axis_joint"].get<bool>()) << j["joint"];
+    for (const auto& t : j["trials"])
+      if (t["trial"] != "static") EXPECT_LT(t["axis_angle_deg"].get<double>(), 1.0) << j["joint"] << " " << t["trial"];
+  }
+  EXPECT_EQ(knees, 2);
+
+  formats::OsimImport fitted;
+  Status s = formats::ImportOsim((dir / "fitted.osim").string(), &fitted);
+  ASSERT_TRUE(s.ok()) << s.message();
+  std::vector<Eigen::MatrixXd> poses;
+  for (const auto& t : o.subject.trials) {
+    formats::CoordinateTable table;
+    s = formats::ReadMot((dir / (t.markers.name + ".fitted.mot")).string(), &table);
+    ASSERT_TRUE(s.ok()) << s.message();
+    ASSERT_EQ(table.num_frames(), t.markers.num_frames());
+    const std::vector<int> column = testutil::CoordinateColumns(fitted.model, table);
+    Eigen::MatrixXd z(table.num_frames(), fitted.model.num_coordinates());
+    for (int f = 0; f < table.num_frames(); ++f) z.row(f) = testutil::OsimPose(fitted, table, column, f).transpose();
+    poses.push_back(z);
+  }
+  const std::vector<double> lab_mm = sim::JointCentreTrackRmsMm(o.subject.truth, o.subject.trials, fitted.model, poses);
+  OpenCapOutcome as_written = o;
+  as_written.fit.model = fitted.model;
+  as_written.fit.coordinates = poses;
+  for (const char* side : {"_r", "_l"}) {
+    const std::string hip = std::string("hip") + side, knee = std::string("walker_knee") + side;
+    const double across = AlongAcrossMm(as_written, fitted.model.FindJoint(knee)).second;
+    std::printf("written: %s %.2f mm, %s %.2f mm across its axis\n", hip.c_str(),
+                lab_mm[fitted.model.FindJoint(hip)], knee.c_str(), across);
+    EXPECT_LE(lab_mm[fitted.model.FindJoint(hip)], 1.0) << hip;
+    EXPECT_LE(across, 4.0) << knee;
+  }
+}
+
+// The sweep behind OpenCapSquatsFromLaiUhlrich2022 (run with --gtest_also_run_disabled_tests), one block per seed:
+// SEEDS (default 3), AUGMENTER_MM (the augmenter's slow error, OpenCapSession::augmenter_error_mm;
+// 10 gives the 8-9 mm RMS of a real OpenCap session), HIP_SWAY_DEG (the right thigh's sway),
+// NO_TIE (the hip-centre markers fitted as skin markers), NO_KEYPOINTS, MIN_EXCITATION_DEG
+// (FitOptions::min_excitation_deg), SCALE_SPREAD (OpenCapSession::scale_spread).
+TEST(OsimSubject, DISABLED_OpenCapSweep) {
+  const int seeds = std::getenv("SEEDS") ? std::atoi(std::getenv("SEEDS")) : 3;
+  for (int seed = 1; seed <= seeds; ++seed) {
+    OpenCapSession session;
+    session.seed = seed;
+    if (const char* e = std::getenv("AUGMENTER_MM")) session.augmenter_error_mm = std::atof(e);
+    if (const char* e = std::getenv("HIP_SWAY_DEG")) session.hip_sway_deg = std::atof(e);
+    if (const char* e = std::getenv("SCALE_SPREAD")) session.scale_spread = std::atof(e);
+    session.tie_centre_markers = std::getenv("NO_TIE") == nullptr;
+    session.keypoints = std::getenv("NO_KEYPOINTS") == nullptr;
+    solver::FitOptions options;
+    if (const char* e = std::getenv("MIN_EXCITATION_DEG")) options.min_excitation_deg = std::atof(e);
+    const OpenCapOutcome o = FitOpenCapSubject(session, options);
+    ASSERT_FALSE(o.lab_mm.empty());
+    PrintOpenCap(session, o);
   }
 }

@@ -332,7 +332,8 @@ int RunFit(const FitArgs& args) {
   for (const std::string& name : result.report.static_trials)
     spdlog::info("trial '{}' is static (its markers hardly move): its frames count as one posture", name);
   for (const auto& [joint, why] : result.report.held_joints)
-    spdlog::info("{}: centre and axes held at the model's (the trials do not move it: {})", joint, why);
+    spdlog::info("{}: {} held at the model's (the trials do not move it: {})", joint,
+                 why.find("axes only") == std::string::npos ? "centre and axes" : "axes", why);
   const solver::FitReport& r = result.report;
   for (const auto& [name, rms] : r.per_marker_rms_mm)
     for (const std::string& v : virtual_markers)

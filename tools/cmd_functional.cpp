@@ -96,8 +96,9 @@ int RunFunctional(const FunctionalArgs& args) {
     return 1;
   }
   const LabMeans lab = MeansInLab(fj, trial.num_frames());
-  // A hinge or a universal joint is described by its axis; every other joint by its centre.
-  const bool axis_joint = fj.type == JointType::kHinge || fj.type == JointType::kUniversal;
+  // A hinge, a universal joint or a knee that turns about one axis is described by its axis;
+  // every other joint by its centre (solver::DescribedByAxis).
+  const bool axis_joint = fj.axis_joint;
   const solver::FunctionalFit& primary = axis_joint ? fj.axis.fit : fj.centre.fit;
   if (!primary.excited)
     spdlog::warn("{}: {} of {} is not to be trusted: {}", args.trial,
