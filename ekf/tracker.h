@@ -271,10 +271,11 @@
 // placement that mends the limb), no differently labelling restart comes within the init_ambiguity_margin
 // log-likelihood margin, and no new label is on a point whose past is not rigid with the
 // marker's segment (as in the gating above: a lone finger marker's two wrist angles fit any point
-// at the right distance from the wrist); and a placement whose one new label is the only marker of
-// its segment it labels (a hand's finger marker; a toe marker with the heel hidden) needs that
-// point to have moved rigidly with the segment (the segment registration's
-// standard for an unpinned marker: a reflection beside a hidden finger marker has no such past).
+// at the right distance from the wrist); and a placement whose one new label its segment does not
+// pin -- fewer than three of the segment's other markers labelled (a hand's finger marker; a toe
+// marker with the heel hidden, or with the heel alone, the foot free to turn about it) -- needs
+// that point to have moved rigidly with the segment (the segment registration's standard for an
+// unpinned marker: a reflection beside a hidden finger marker has no such past).
 // In the first second after a (re)initialisation the
 // labels themselves are suspect (a search over one frame can label a limb wrongly but
 // consistently), so there the search may also relabel the limb's markers and runs whenever any

@@ -361,6 +361,11 @@ struct Tracker::Impl {
   // kMinTrackFrames or more at constant distances (within kRigidTolerance) from marker m's joint
   // centre and from each labelled marker of its segment: rigid with the segment over time.
   bool RigidWithSegment(int m, int k) const;
+  // What that past shows: shorter than kMinTrackFrames; a distance that changed; rigid but with
+  // less travel than kRegistrationTravel (a reflection fixed in the lab is rigid with a segment at
+  // rest); or rigid over that travel.
+  enum class PastWithSegment { kShort, kNotRigid, kStill, kRigid };
+  PastWithSegment SegmentPast(int m, int k) const;
   // The rigid fit of segment `segment` with `labelling` (per marker of segment_markers[segment]:
   // its point, or -1): false when fewer than 3 anchors or an anchor lies outside its tolerance;
   // else *cost = sum of squared residuals over the anchors' variances.
@@ -525,7 +530,9 @@ struct Tracker::Impl {
   bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
   static constexpr double kFreshTrackSeconds = 1.0;
   bool RigidlyPlausible(int m, int k, bool anywhere = false) const;
-  bool LoneMarkerWithoutPast(int m, int k, const std::vector<int>& placement) const;
+  bool UnpinnedMarkerWithoutPast(int m, int k, const std::vector<int>& placement) const;
+  // Labelled mates that pin a marker's place on its segment in a frame (not only its distances).
+  static constexpr int kPinningMates = 3;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
   // `unheld`: searched for a marker whose own limb has no label (AnchoredLimb).
   bool ReacquireLimb(int joint, int np, bool place, bool unheld);

@@ -1243,7 +1243,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
     if (lbest_assign[m] >= 0 && row_to_col[m] < 0 &&
         (NonRigidTrack(m, points.col(lbest_assign[m])) ||
          SeenBeside(m, lbest_assign[m], np) ||
-         (new_labels == 1 && LoneMarkerWithoutPast(m, lbest_assign[m], lbest_assign))))
+         (new_labels == 1 && UnpinnedMarkerWithoutPast(m, lbest_assign[m], lbest_assign))))
       return false;
   const double variance = std::max(rms * rms / 3.0, 1e-6);
   if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
@@ -1270,28 +1270,42 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
   return true;
 }
 
-// Whether the limb search's one new label, marker m on point k, is the only marker of its segment
-// the placement labels and point k has no past that moved rigidly with the segment
-// (RigidWithSegment, the segment registration's standard for a marker its segment does not pin).
-// Such a segment (a hand with its finger marker; a foot whose heel marker is hidden) turns about
-// its joint centre to put its marker on any point at the marker's distance from it, so the
-// placement is no evidence that the point is the marker: a reflection that appeared beside the
-// hidden finger marker at its 20th hidden frame was taken for it (seed 50, 8 ghosts: 103 frames;
-// seeds 15 and 47 likewise); with the heel marker hidden, the foot was turned to put RTOE on a
-// reflection 55 mm from its prediction, 62 mm from its own point, for 69 frames (seed 21, 8
-// ghosts; seed 4's LTOE likewise, 8 frames). Where the placement also gives its parent limb new
-// labels (a forearm placed anew), the past's joint centres were the wrong pose's and
-// say nothing; and not in a fresh track, whose joint centres may be wrong with the limb.
+// Whether the limb search's one new label, marker m on point k, is one its segment does not pin
+// -- fewer than three of its mates labelled by the placement, the segment registration's standard
+// (RegisterSegments) -- and point k has no past that moved rigidly with the segment
+// (RigidWithSegment). Such a segment (a hand with its finger marker; a foot whose heel marker is
+// hidden; a foot whose heel marker is labelled, turning about the line from the ankle centre to
+// the heel) turns to put its marker on any point at the marker's distances from the centre and
+// the mates, so the placement is no evidence that the point is the marker: a reflection that
+// appeared beside the hidden finger marker at its 20th hidden frame was taken for it (seed 50, 8
+// ghosts: 103 frames; seeds 15 and 47 likewise); with the heel marker hidden, the foot was turned
+// to put RTOE on a reflection 55 mm from its prediction, 62 mm from its own point, for 69 frames
+// (seed 21, 8 ghosts; seed 4's LTOE likewise, 8 frames); with the heel marker labelled, the foot
+// was turned about it to put LTOE on a reflection riding with the shank, 71 mm from its
+// prediction, for 106 frames (seed 33, 8 ghosts, the true model; only the marker alone on its
+// segment was held to this before the twenty-second session). Where the placement also gives its
+// parent limb new labels (a forearm placed anew), the past's joint centres were the wrong pose's
+// and say nothing; and not in a fresh track, whose joint centres may be wrong with the limb.
 // Its cost: a finger marker whose own offset or forearm is wrong is not placed again until its
 // point moves 2 cm rigidly with the predicted wrist (seed 47 at 5 ghosts, its offset learnt on a
 // reflection: 0.9926 -> 0.9815; seed 10 at 8 ghosts, its forearm mirrored from its start: 0.990
 // -> 0.969). A limb search whose evidence is over frames, not one, would need neither.
 
-bool Tracker::Impl::LoneMarkerWithoutPast(int m, int k, const std::vector<int>& placement) const {
+bool Tracker::Impl::UnpinnedMarkerWithoutPast(int m, int k, const std::vector<int>& placement) const {
   if (FreshTrack()) return false;
-  for (int a : segment_markers[model->markers()[m].segment])
-    if (a != m && placement[a] >= 0) return false;
-  return !RigidWithSegment(m, k);
+  int mates = 0;
+  for (int a : segment_markers[model->markers()[m].segment]) mates += a != m && placement[a] >= 0;
+  if (mates >= kPinningMates) return false;
+  const PastWithSegment past = SegmentPast(m, k);
+  if (mates == 0) return past != PastWithSegment::kRigid;
+  // A past too short to judge is evidence only where the marker moves slowly enough for its
+  // point to be followed from frame to frame (PastPoint: kTrackStep a frame).
+  Eigen::Vector3d velocity = Eigen::Vector3d::Zero();
+  const std::vector<int>& cols = model->marker_coordinates(m);
+  for (size_t a = 0; a < cols.size(); ++a) velocity += jac[m].col(a) * x[nz + cols[a]];
+  const bool followable = velocity.norm() * frame_dt < kTrackStep;
+  return followable ? past != PastWithSegment::kRigid
+                    : past == PastWithSegment::kNotRigid || past == PastWithSegment::kStill;
 }
 
 // Whether point k could be marker m with m's segment anywhere: within kLimbNearRadius of its

@@ -364,7 +364,7 @@ void Tracker::Impl::RegisterSegments(int np) {
     // first. With three or more of the segment's markers labelled the fit pins the marker's place
     // in this frame (not only its distances), and a point there is judged as the gating judges
     // one; with fewer, the point must also have moved rigidly with the segment (RigidWithSegment).
-    const bool pinned = labelled >= 3;
+    const bool pinned = labelled >= kPinningMates;
     int with_candidates = 0, stuck_with_candidates = 0;
     for (int o = 0; o < seg.nunl; ++o) {
       const int m = seg.unl[o];
@@ -571,6 +571,10 @@ bool Tracker::Impl::EnumerateSegment(int segment, const int* freed, int nfreed) 
 }
 
 bool Tracker::Impl::RigidWithSegment(int m, int k) const {
+  return SegmentPast(m, k) == PastWithSegment::kRigid;
+}
+
+Tracker::Impl::PastWithSegment Tracker::Impl::SegmentPast(int m, int k) const {
   const int segment = model->markers()[m].segment;
   const std::vector<int>& ms = segment_markers[segment];
   const bool has_centre = marker_depth[m] > 0;
@@ -615,12 +619,13 @@ bool Tracker::Impl::RigidWithSegment(int m, int k) const {
   }
   // Rigid while it stood still says nothing: a reflection fixed in the lab is rigid with a
   // segment at rest (the static pose).
-  if (length < kMinTrackFrames || travel2 < kRegistrationTravel * kRegistrationTravel) return false;
+  if (length < kMinTrackFrames) return PastWithSegment::kShort;
   for (int i = has_centre ? 0 : 1; i < na; ++i) {
     if (i > 0 && row_to_col[ms[i - 1]] < 0) continue;
-    if (hi[i] - lo[i] > kRigidTolerance) return false;
+    if (hi[i] - lo[i] > kRigidTolerance) return PastWithSegment::kNotRigid;
   }
-  return true;
+  return travel2 < kRegistrationTravel * kRegistrationTravel ? PastWithSegment::kStill
+                                                               : PastWithSegment::kRigid;
 }
 
 bool Tracker::Impl::SegmentFitCost(int segment, const int* labelling, double* cost) const {
