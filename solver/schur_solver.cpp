@@ -3,6 +3,9 @@
 #include <Eigen/Cholesky>
 #include <algorithm>
 #include <cmath>
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 #include "solver/parallel.h"
 
@@ -11,6 +14,35 @@ namespace {
 // Frames whose rows are stacked into one rank update: enough rows for the matrix product to run
 // near peak speed, few enough that each group's stack stays in cache.
 constexpr int kStackFrames = 16;
+
+// d[e] -= c0 b0[e] + c1 b1[e] + c2 b2[e], e < n: the reduction's short runs (2-10 entries, on
+// average 8 for the full body). With AVX-512 a run is one or two 8-wide operations, its tail
+// masked; the compiler's own vectorisation of the plain loop left most of such a run to its
+// scalar epilogue. The products are summed as the compiler had contracted that loop (c1 b1
+// first, then fused c0 b0 and c2 b2): the fit's iteration count with gaps answers last-bit
+// changes like chance (BENCHMARKS.md, "With gaps"), and this order keeps the iterates.
+inline void SubtractCombination(double* d, const double* b0, const double* b1, const double* b2, double c0,
+                                double c1, double c2, int n) {
+  int e = 0;
+#if defined(__AVX512F__)
+  const __m512d v0 = _mm512_set1_pd(c0), v1 = _mm512_set1_pd(c1), v2 = _mm512_set1_pd(c2);
+  for (; e + 8 <= n; e += 8) {
+    __m512d sum = _mm512_mul_pd(v1, _mm512_loadu_pd(b1 + e));
+    sum = _mm512_fmadd_pd(v0, _mm512_loadu_pd(b0 + e), sum);
+    sum = _mm512_fmadd_pd(v2, _mm512_loadu_pd(b2 + e), sum);
+    _mm512_storeu_pd(d + e, _mm512_sub_pd(_mm512_loadu_pd(d + e), sum));
+  }
+  if (e < n) {
+    const __mmask8 m = static_cast<__mmask8>((1u << (n - e)) - 1);
+    __m512d sum = _mm512_mul_pd(v1, _mm512_maskz_loadu_pd(m, b1 + e));
+    sum = _mm512_fmadd_pd(v0, _mm512_maskz_loadu_pd(m, b0 + e), sum);
+    sum = _mm512_fmadd_pd(v2, _mm512_maskz_loadu_pd(m, b2 + e), sum);
+    _mm512_mask_storeu_pd(d + e, m, _mm512_sub_pd(_mm512_maskz_loadu_pd(m, d + e), sum));
+  }
+#else
+  for (; e < n; ++e) d[e] -= (c1 * b1[e] + c0 * b0[e]) + c2 * b2[e];
+#endif
+}
 
 }  // namespace
 
@@ -21,9 +53,10 @@ struct alignas(64) ArrowSchurProblem::ThreadState {
   Eigen::MatrixXd u, s;  // u: U_f, then its factor L_f, in the lower triangle (pattern only)
   Eigen::MatrixXd s_v;   // this thread's share of V (lower)
   bool reduced = false;  // Linearize also reduced this thread's frames
-  std::vector<double> w, y;    // compact W_f (when not cached) and Y_f
+  std::vector<double> w;       // compact W_f (when not cached)
+  std::vector<double*> y_base; // where each row group's rows of Y_f are (in its stack), this frame
   const double* w_frame = nullptr;  // the current frame's compact W (cache or w)
-  Eigen::VectorXd gy, gyi, v, rhs, gp, wdp, child_sum;
+  Eigen::VectorXd gy, gyi, v, rhs, gp, wdp;
   std::vector<double> panel_y, panel_p;  // one block's Jacobians, 3 rows, zero-padded
   std::vector<double> w_row;              // one row of the block's J_y^T J_p
   // Stacked columns awaiting a rank update, and what they have been applied to: per block kind
@@ -59,7 +92,7 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
     ts->s.resize(np_, np_);
     ts->s_v.resize(np_, np_);
     ts->w.resize(w_size_);
-    ts->y.resize(w_size_);
+    ts->y_base.assign(groups_.size(), nullptr);
     ts->gy.resize(ny_);
     ts->gyi.resize(ny_);
     ts->panel_y.resize(3 * max_block_y_);
@@ -69,7 +102,6 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
     ts->rhs.resize(np_);
     ts->gp.resize(np_);
     ts->wdp.resize(ny_);
-    ts->child_sum.resize(std::max(np_, 1));
     for (const BlockKind& k : kinds_) {
       const int n = static_cast<int>(k.free_p.size());
       ts->v_stack.emplace_back(n, kMaxBlockRows * kStackFrames);
@@ -203,6 +235,32 @@ void ArrowSchurProblem::Analyse() {
       g.children.push_back(std::move(child));
     }
   }
+  child_rows_.clear();
+  child_l_.clear();
+  child_runs_.clear();
+  for (size_t gi = 0; gi < groups_.size(); ++gi) {
+    const RowGroup& g = groups_[gi];
+    for (const RowGroup::Child& child : g.children) {
+      const RowGroup& h = groups_[child.group];
+      for (int r = 0; r < g.num_rows; ++r) {
+        ChildRow cr;
+        cr.group = static_cast<int>(gi);
+        cr.child = child.group;
+        cr.row = r;
+        cr.first_l = static_cast<int>(child_l_.size());
+        for (int q = 0; q < h.num_rows; ++q) {
+          const int i = g.first_row + r, j = h.first_row + q;  // positions, j < i
+          if (lpat[order_[i]][order_[j]]) child_l_.push_back({i + j * ny_, q});
+        }
+        cr.num_l = static_cast<int>(child_l_.size()) - cr.first_l;
+        if (cr.num_l == 0) continue;
+        cr.first_run = static_cast<int>(child_runs_.size());
+        cr.num_runs = static_cast<int>(child.runs.size());
+        child_runs_.insert(child_runs_.end(), child.runs.begin(), child.runs.end());
+        child_rows_.push_back(cr);
+      }
+    }
+  }
   // Scatter maps of each residual-block kind into U (positions) and compact W (offsets).
   kinds_.assign(ycols.size(), BlockKind());
   for (size_t b = 0; b < ycols.size(); ++b) {
@@ -255,7 +313,8 @@ bool ArrowSchurProblem::FactorInPlace(Eigen::MatrixXd* a) const {
     const double d = std::sqrt(col[j]);
     col[j] = d;
     const std::vector<int>& rows = l_rows_[j];
-    for (int i : rows) col[i] /= d;
+    const double inv = 1.0 / d;  // one division a column instead of one an entry
+    for (int i : rows) col[i] *= inv;
     // Column segments are contiguous and zero off the pattern, so whole tails are updated
     // (vectorised) instead of indexed entries.
     for (int r : rows) {
@@ -582,50 +641,55 @@ void ArrowSchurProblem::ReduceFrame(ThreadState& ts, int f) {
   const Eigen::MatrixXd& l = ts.u;
   ts.v = ts.gy;
   SolveLower(l, &ts.v);
-  double* y = ts.y.data();
-  std::copy(ts.w_frame, ts.w_frame + w_size_, y);
-  // Y = L^{-1} W, group by group in elimination order: subtract what the rows eliminated
-  // earlier contribute (through the columns they reach), then the group's own triangle.
+  // Y = L^{-1} W, group by group in elimination order, each group's rows written straight into
+  // the next free columns of its stack for S's rank update (the stack holds them row after row,
+  // as the compact layout does): W's rows, minus what the rows eliminated earlier contribute
+  // (through the columns they reach), then the group's own triangle. A group's rows stay where
+  // they are until the next frame, so a flush after them leaves them readable by its ancestors.
+  double** base = ts.y_base.data();
+  const double* ld = l.data();
+  const ChildRow* cr = child_rows_.data();
+  const ChildRow* const cr_end = cr + child_rows_.size();
   for (size_t gi = 0; gi < groups_.size(); ++gi) {
     const RowGroup& g = groups_[gi];
     const int n = static_cast<int>(g.columns.size());
-    double* yg = y + g.offset;
-    for (const RowGroup::Child& child : g.children) {
-      const RowGroup& h = groups_[child.group];
-      const int hn = static_cast<int>(h.columns.size());
-      auto sum = ts.child_sum.head(hn);
-      for (int r = 0; r < g.num_rows; ++r) {
-        // L_gh row r times Y_h, formed densely over the child's columns (vectorised), then
-        // scattered into our columns once.
-        bool any = false;
-        for (int q = 0; q < h.num_rows; ++q) {
-          const double lv = l(g.first_row + r, h.first_row + q);
-          if (lv == 0.0) continue;
-          const Eigen::Map<const Eigen::VectorXd> yh(y + h.offset + q * hn, hn);
-          if (any) sum += lv * yh;
-          else sum = lv * yh;
-          any = true;
+    int& count = ts.g_count[gi];
+    double* yg = ts.g_stack[gi].col(count).data();
+    base[gi] = yg;
+    std::copy(ts.w_frame + g.offset, ts.w_frame + g.offset + g.num_rows * n, yg);
+    for (; cr != cr_end && cr->group == static_cast<int>(gi); ++cr) {
+      const int hn = static_cast<int>(groups_[cr->child].columns.size());
+      const double* yh = base[cr->child];
+      double* dst = yg + cr->row * n;
+      const std::pair<int, int>* lq = child_l_.data() + cr->first_l;
+      const RowGroup::Run* runs = child_runs_.data() + cr->first_run;
+      // Three of the child's rows at a time (all of them for a body's joints), zero weights for
+      // the missing ones (adding 0 * y changes nothing).
+      for (int q0 = 0; q0 < cr->num_l; q0 += 3) {
+        const int nq = std::min(3, cr->num_l - q0);
+        const double c0 = ld[lq[q0].first];
+        const double c1 = nq > 1 ? ld[lq[q0 + 1].first] : 0.0;
+        const double c2 = nq > 2 ? ld[lq[q0 + 2].first] : 0.0;
+        const double* a0 = yh + lq[q0].second * hn;
+        const double* a1 = nq > 1 ? yh + lq[q0 + 1].second * hn : a0;
+        const double* a2 = nq > 2 ? yh + lq[q0 + 2].second * hn : a0;
+        for (int k = 0; k < cr->num_runs; ++k) {
+          const RowGroup::Run& run = runs[k];
+          SubtractCombination(dst + run.to, a0 + run.from, a1 + run.from, a2 + run.from, c0, c1, c2, run.length);
         }
-        if (!any) continue;
-        double* dst = yg + r * n;
-        for (const RowGroup::Run& run : child.runs)
-          Eigen::Map<Eigen::VectorXd>(dst + run.to, run.length) -= sum.segment(run.from, run.length);
       }
     }
     for (int r = 0; r < g.num_rows; ++r) {
       Eigen::Map<Eigen::VectorXd> row(yg + r * n, n);
       for (int q = 0; q < r; ++q)
         row -= l(g.first_row + r, g.first_row + q) * Eigen::Map<const Eigen::VectorXd>(yg + q * n, n);
-      row /= l(g.first_row + r, g.first_row + r);
+      // A product with the reciprocal: a vector division costs a dozen products on this CPU
+      // (it was the largest single cost of the reduction once the rest was flat).
+      row *= 1.0 / l(g.first_row + r, g.first_row + r);
       ts.g_rhs[gi] += ts.v[g.first_row + r] * row;
     }
-    // Stack the group's rows (as columns) for its rank update.
-    int& count = ts.g_count[gi];
-    Eigen::MatrixXd& stack = ts.g_stack[gi];
-    for (int r = 0; r < g.num_rows; ++r)
-      std::copy(yg + r * n, yg + (r + 1) * n, stack.col(count + r).data());
     count += g.num_rows;
-    if (count + g.num_rows > stack.cols()) FlushGroup(ts, static_cast<int>(gi));
+    if (count + g.num_rows > ts.g_stack[gi].cols()) FlushGroup(ts, static_cast<int>(gi));
   }
 }
 

@@ -147,6 +147,16 @@ class ArrowSchurProblem : public LmProblem {
     };
     std::vector<Child> children;  // earlier groups with a non-zero block of L_f in our rows
   };
+  // One row r of a group against one earlier group h it is eliminated against: the row's
+  // entries of L_f in h's rows (offsets into the column-major ny x ny factor), and the runs of
+  // h's columns among ours. ReduceFrame runs these as a flat list: per row, each run's
+  // elements get sum_q l_q Y_h(q, ·) subtracted in one pass, with no dense temporary over h's
+  // columns and no per-row search for non-zeros (they are known from L_f's pattern).
+  struct ChildRow {
+    int group, child, row;     // row: within `group`
+    int first_l, num_l;        // in child_l_: (L_f offset, child row) pairs
+    int first_run, num_runs;   // in child_runs_
+  };
   // Where one residual-block kind's products go.
   struct BlockKind {
     int num_y = 0;
@@ -189,6 +199,9 @@ class ArrowSchurProblem : public LmProblem {
   std::vector<std::vector<int>> l_rows_;  // rows below the diagonal of each column of L_f
   std::vector<int> u_pattern_;            // offsets of L_f's pattern in a column-major ny x ny
   std::vector<RowGroup> groups_;
+  std::vector<ChildRow> child_rows_;       // in group order, then child, then row
+  std::vector<std::pair<int, int>> child_l_;
+  std::vector<RowGroup::Run> child_runs_;
   std::vector<BlockKind> kinds_;
   int w_size_ = 0;             // doubles in a compact W_f
   std::vector<int> u_index_, w_index_;  // U_f's and compact W_f's offsets by (y, y) and (y, p)

@@ -20,7 +20,10 @@ struct SchurCase {
 };
 class ArrowSchurStep : public ::testing::TestWithParam<SchurCase> {};
 
-TEST_P(ArrowSchurStep, MatchesDenseNormalEquations) {
+// The damped step from the Schur solver against the dense normal equations of the same problem
+// (with `options`' free parameters), also when Linearize anticipated the damping, and after a
+// rejected step's new damping; the shared covariance against the dense inverse.
+void ExpectStepMatchesDense(const solver::FitOptions& options, const SchurCase& c) {
   std::mt19937_64 rng(5);
   Model nominal = DefaultFullBodyModel();
   const Model truth = mocap::testutil::Baked(nominal, testutil::PerturbedParameters(nominal, rng));
@@ -30,7 +33,6 @@ TEST_P(ArrowSchurStep, MatchesDenseNormalEquations) {
   // Some missing samples, so frames differ in structure.
   trial.positions.block(2, 0, 1, 6).setConstant(NAN);
   trial.positions.block(17, 30, 3, 3).setConstant(NAN);
-  solver::FitOptions options;
   solver::MarkerFitProblem problem(nominal, trial.positions, options);
   const int ny = nominal.num_coordinates(), np = problem.shared_dim();
   Eigen::VectorXd x(nf * ny + np);
@@ -40,8 +42,8 @@ TEST_P(ArrowSchurStep, MatchesDenseNormalEquations) {
   Eigen::VectorXd targets = x;
   targets.head(nf * ny) += 0.01 * Eigen::VectorXd::Random(nf * ny);
   problem.SetFramePriorTargets(targets);
-  solver::ArrowSchurProblem schur(&problem, GetParam().threads, GetParam().cache_budget_bytes);
-  EXPECT_EQ(schur.caches_frames(), GetParam().cache_budget_bytes > 0);
+  solver::ArrowSchurProblem schur(&problem, c.threads, c.cache_budget_bytes);
+  EXPECT_EQ(schur.caches_frames(), c.cache_budget_bytes > 0);
   double cost;
   Eigen::VectorXd g, d;
   ASSERT_TRUE(schur.Linearize(x, &cost, &g, &d));
@@ -80,6 +82,36 @@ TEST_P(ArrowSchurStep, MatchesDenseNormalEquations) {
   ASSERT_TRUE(schur.SharedCovariance(x, &cov, 1e-12));
   Eigen::MatrixXd inv = jtj.ldlt().solve(Eigen::MatrixXd::Identity(jtj.rows(), jtj.cols()));
   EXPECT_LT((cov - inv.bottomRightCorner(np, np)).norm(), 1e-5 * inv.bottomRightCorner(np, np).norm());
+}
+
+TEST_P(ArrowSchurStep, MatchesDenseNormalEquations) { ExpectStepMatchesDense(solver::FitOptions(), GetParam()); }
+
+// With only the joint axes fitted, a joint's rows and its parent's reach the same shared columns
+// and form one row group of 6-7 rows (a leg's ankle, knee and hip; an arm's), so the reduction
+// eliminates the pelvis's and the trunk's rows against more than three rows of an earlier group
+// at once (ReduceFrame takes them three at a time); the full parameter set never does.
+TEST_P(ArrowSchurStep, MatchesDenseNormalEquationsWithWideRowGroups) {
+  solver::FitOptions options;
+  options.fit_scales = options.fit_centres = options.fit_markers = false;
+  {
+    Model nominal = DefaultFullBodyModel();
+    std::mt19937_64 rng(5);
+    formats::MarkerTrial trial = testutil::SimulateRandomMotion(nominal, 3, 0.0005, rng);
+    solver::MarkerFitProblem problem(nominal, trial.positions, options);
+    solver::ArrowSchurProblem schur(&problem, 1);
+    const std::string structure = schur.DescribeStructure();
+    // Group lines read "  rows FIRST+COUNT: ..."; a group of more than three rows before the last.
+    int wide_before_last = 0, groups = 0, last_wide = 0;
+    for (size_t at = structure.find("rows "); at != std::string::npos; at = structure.find("rows ", at + 1)) {
+      const int count = std::stoi(structure.substr(structure.find('+', at) + 1));
+      ++groups;
+      wide_before_last += last_wide;
+      last_wide = count > 3;
+    }
+    ASSERT_GT(groups, 1) << structure;
+    ASSERT_GT(wide_before_last, 0) << structure;
+  }
+  ExpectStepMatchesDense(options, GetParam());
 }
 
 // Geodesic acceleration (LmOptions::geodesic_acceleration): the Schur solver's a equals the dense
