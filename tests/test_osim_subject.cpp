@@ -131,6 +131,13 @@ bool Held(const solver::FitReport& r, const std::string& joint) {
   return false;
 }
 
+// A fit at the noise: marker RMS within 10 % of the noise's share of the residuals, the
+// unknowns' degrees of freedom taken out.
+void ExpectMarkerRmsAtTheNoise(const solver::FitReport& r, double noise_mm) {
+  const double expected = noise_mm * std::sqrt(3.0 * (1.0 - double(r.unknowns) / (3.0 * r.marker_samples)));
+  EXPECT_NEAR(r.marker_rms_mm, expected, 0.1 * expected);
+}
+
 }  // namespace
 
 // The truth differs from the generic model by what the options say, and the trials are the
@@ -274,9 +281,7 @@ TEST(OsimSubject, Gait2354FitFromTheGenericModelRecoversWhatTheWalkExcites) {
                   o.lab_mm[generic.FindJoint(jd.joint)], jd.centre_error_mm, Held(r, jd.joint) ? "  (held)" : "");
     EXPECT_TRUE(r.converged()) << r.solver.message;
     EXPECT_LE(r.solver.num_iterations(), 30);
-    const double expected =
-        options.noise_mm * std::sqrt(3.0 * (1.0 - double(r.unknowns) / (3.0 * r.marker_samples)));
-    EXPECT_NEAR(r.marker_rms_mm, expected, 0.1 * expected);
+    ExpectMarkerRmsAtTheNoise(r, options.noise_mm);
     for (const char* side : {"_r", "_l"}) {
       const std::string knee = std::string("knee") + side, hip = std::string("hip") + side,
                         ankle = std::string("ankle") + side;
@@ -877,9 +882,7 @@ TEST(OsimSubject, OpenCapSquatsFromLaiUhlrich2022) {
     const solver::FitReport& r = o.fit.report;
     EXPECT_TRUE(r.converged()) << r.solver.message;
     EXPECT_LE(r.solver.num_iterations(), 30);
-    const double expected =
-        session.noise_mm * std::sqrt(3.0 * (1.0 - double(r.unknowns) / (3.0 * r.marker_samples)));
-    EXPECT_NEAR(r.marker_rms_mm, expected, 0.1 * expected);
+    ExpectMarkerRmsAtTheNoise(r, session.noise_mm);
     const Model& m = o.fit.model;
     for (const char* side : {"_r", "_l"}) {
       const std::string hip = std::string("hip") + side, knee = std::string("walker_knee") + side,
