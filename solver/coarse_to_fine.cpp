@@ -7,6 +7,10 @@
 #include <cstdio>
 #include <cstring>
 #include <limits>
+#include <vector>
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 #include <Eigen/Cholesky>
 
@@ -169,19 +173,62 @@ class WithInnerIterations : public LmProblem {
   std::uint64_t projected_at_ = 0;
 };
 
+// y[i] -= a x[i], i < n: each entry one fused multiply-subtract, as the plain loop's scalar code
+// has it, so the vectorised loop gives the same bits (the fit's iterations with gaps answer
+// last-bit changes like chance: BENCHMARKS.md, "With gaps"). The compiler leaves the plain loop
+// scalar (y and x may overlap, for all it knows): a frame's factorisation ran at one entry a cycle.
+inline void SubtractScaled(double* y, const double* x, double a, int n) {
+  int i = 0;
+#if defined(__AVX512F__)
+  const __m512d va = _mm512_set1_pd(a);
+  for (; i + 8 <= n; i += 8)
+    _mm512_storeu_pd(y + i, _mm512_fnmadd_pd(va, _mm512_loadu_pd(x + i), _mm512_loadu_pd(y + i)));
+  if (i < n) {
+    const __mmask8 m = static_cast<__mmask8>((1u << (n - i)) - 1);
+    _mm512_mask_storeu_pd(y + i, m,
+                          _mm512_fnmadd_pd(va, _mm512_maskz_loadu_pd(m, x + i), _mm512_maskz_loadu_pd(m, y + i)));
+  }
+#else
+  for (; i < n; ++i) y[i] -= a * x[i];
+#endif
+}
+
 // In-place Cholesky of a small dense SPD matrix (lower triangle, column-major, n x n), then
 // the solve with it. Written out rather than Eigen's LLT because at the frame's size (38) Eigen
 // takes its blocked path (panels of 16, packed GEMM updates) and spends more in the packing than
-// in the 9,000 multiply-adds; this left-looking loop runs down contiguous columns.
-bool CholeskyInPlace(double* a, int n) {
+// in the 9,000 multiply-adds; this left-looking loop runs down contiguous columns. It also lists
+// each column's non-zero rows below the diagonal (ascending, column k's at rows[k * n], count[k]
+// of them), for the back-substitution (CholeskySolveInPlace).
+bool CholeskyInPlace(double* a, int n, int* rows, int* count, int* row_nonzeros) {
+  std::fill(count, count + n, 0);
   for (int j = 0; j < n; ++j) {
     double* cj = a + static_cast<size_t>(j) * n;
-    for (int k = 0; k < j; ++k) {
-      const double* ck = a + static_cast<size_t>(k) * n;
-      const double l = ck[j];
-      if (l == 0.0) continue;  // no coupling: skipping it changes no figure
-      for (int i = j; i < n; ++i) cj[i] -= l * ck[i];
+    // Row j's non-zeros: the columns that update this one (no coupling: skipping it changes no figure).
+    int nk = 0;
+    for (int k = 0; k < j; ++k)
+      if (a[static_cast<size_t>(k) * n + j] != 0.0) {
+        row_nonzeros[nk++] = k;
+        rows[static_cast<size_t>(k) * n + count[k]++] = j;
+      }
+#if defined(__AVX512F__)
+    // Eight rows at a time, every update applied in a register before one store: each entry gets
+    // the same fused multiply-subtracts in the same order as the plain loop over k (the same
+    // bits), without a masked store's result read back by the next update (no store forwarding).
+    for (int e = j; e < n; e += 8) {
+      const __mmask8 m = n - e >= 8 ? static_cast<__mmask8>(0xff) : static_cast<__mmask8>((1u << (n - e)) - 1);
+      __m512d acc = _mm512_maskz_loadu_pd(m, cj + e);
+      for (int t = 0; t < nk; ++t) {
+        const double* ck = a + static_cast<size_t>(row_nonzeros[t]) * n;
+        acc = _mm512_fnmadd_pd(_mm512_set1_pd(ck[j]), _mm512_maskz_loadu_pd(m, ck + e), acc);
+      }
+      _mm512_mask_storeu_pd(cj + e, m, acc);
     }
+#else
+    for (int t = 0; t < nk; ++t) {
+      const double* ck = a + static_cast<size_t>(row_nonzeros[t]) * n;
+      SubtractScaled(cj + j, ck + j, ck[j], n - j);
+    }
+#endif
     if (!(cj[j] > 0)) return false;
     const double d = std::sqrt(cj[j]);
     cj[j] = d;
@@ -191,30 +238,20 @@ bool CholeskyInPlace(double* a, int n) {
   return true;
 }
 
-// Reverses the order of the unknowns of a symmetric matrix held in its lower triangle (column-major
-// n x n) in place: entry (i, j) <- (n-1-j, n-1-i). A frame's coordinates come parents first, so
-// reversed they come leaves first, and eliminated in that order a kinematic tree's normal
-// equations factor without fill: CholeskyInPlace then skips every column that does not couple
-// (a full-body frame: about a third of the dense factorisation's multiply-adds).
-void ReverseSymmetricInPlace(double* a, int n) {
-  for (int j = 0; j < n; ++j)
-    for (int i = j; i < n; ++i) {
-      const int pi = n - 1 - j, pj = n - 1 - i;  // the partner, also in the lower triangle
-      if (pj > j || (pj == j && pi > i)) std::swap(a[static_cast<size_t>(j) * n + i], a[static_cast<size_t>(pj) * n + pi]);
-    }
-}
-
-// Solves L L^T x = b in place, L from CholeskyInPlace.
-void CholeskySolveInPlace(const double* l, int n, double* b) {
+// Solves L L^T x = b in place, L, rows and count from CholeskyInPlace. The back-substitution's
+// sums skip L's zeros (a kinematic tree's factor, leaves first, is half zeros): each is a chain
+// of dependent multiply-adds, so its length is its time; a zero term changes no sum.
+void CholeskySolveInPlace(const double* l, int n, const int* rows, const int* count, double* b) {
   for (int j = 0; j < n; ++j) {
     const double* cj = l + static_cast<size_t>(j) * n;
     b[j] /= cj[j];
-    for (int i = j + 1; i < n; ++i) b[i] -= cj[i] * b[j];
+    SubtractScaled(b + j + 1, cj + j + 1, b[j], n - j - 1);
   }
   for (int j = n - 1; j >= 0; --j) {
     const double* cj = l + static_cast<size_t>(j) * n;
+    const int* r = rows + static_cast<size_t>(j) * n;
     double sum = b[j];
-    for (int i = j + 1; i < n; ++i) sum -= cj[i] * b[i];
+    for (int t = 0; t < count[j]; ++t) sum -= cj[r[t]] * b[r[t]];
     b[j] = sum / cj[j];
   }
 }
@@ -224,13 +261,18 @@ void CholeskySolveInPlace(const double* l, int n, double* b) {
 // at most `tolerance` of the cost, or at most `min_gain`. A step that does not lower the cost is
 // retried up to options.pose_step_retries times with a damping 100 times higher (at least 1e-3
 // of the diagonal), each step shortened to options.pose_step_cap in its largest component
-// (CoarseToFineOptions). Returns whether y moved.
+// (CoarseToFineOptions). Returns whether y moved. u, g, factor, step and trial are scratch
+// (frame_dim square, or long).
 bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& options, FrameEvaluator* evaluator,
                     int f, int iterations, double tolerance, double min_gain, Eigen::MatrixXd* u,
-                    Eigen::VectorXd* g, Eigen::MatrixXd* u_undamped, Eigen::VectorXd* g_undamped,
+                    Eigen::VectorXd* g, Eigen::MatrixXd* factor, Eigen::VectorXd* step,
                     Eigen::VectorXd* trial, double* yf, double* cost) {
   const int ny = problem.frame_dim();
-  const bool retry = options.pose_step_retries > 0;
+  // The factor's non-zero rows, per thread: allocated once, not per frame.
+  thread_local std::vector<int> rows, count, row_nonzeros;
+  rows.resize(static_cast<size_t>(ny) * ny);
+  count.resize(ny);
+  row_nonzeros.resize(ny);
   bool moved = false;
   for (int it = 0; it < iterations; ++it) {
     // Normal equations of the frame's own rows: U = J_y^T J_y + B^T B, g = J_y^T r + B^T B (y - y0).
@@ -243,28 +285,31 @@ bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& opti
         (*u)(i, i) += w[i] * w[i];
         (*g)[i] += w[i] * w[i] * (yf[i] - target[i]);
       }
-    if (retry) {
-      *u_undamped = *u;
-      *g_undamped = *g;
-    }
     double trial_cost = 0;
     bool lower = false;
     double damping = options.pose_damping;
+    const double* uu = u->data();
+    double* l = factor->data();
+    double* s = step->data();
     for (int attempt = 0; attempt <= options.pose_step_retries; ++attempt) {
-      if (attempt > 0) {
-        *u = *u_undamped;
-        *g = *g_undamped;
-        damping = std::max(100.0 * damping, 1e-3);
+      if (attempt > 0) damping = std::max(100.0 * damping, 1e-3);
+      // U's lower triangle damped and reversed into the factor, entry (i, j) to (n-1-j, n-1-i)
+      // (a frame's coordinates come parents first, so reversed they come leaves first, and
+      // eliminated in that order a kinematic tree's normal equations factor without fill:
+      // CholeskyInPlace then skips every column that does not couple; a full-body frame: about a
+      // third of the dense factorisation's multiply-adds); U itself is kept for a retry.
+      for (int j = 0; j < ny; ++j)
+        for (int i = j; i < ny; ++i) l[static_cast<size_t>(ny - 1 - i) * ny + (ny - 1 - j)] = uu[static_cast<size_t>(j) * ny + i];
+      for (int i = 0; i < ny; ++i) {
+        double& d = l[static_cast<size_t>(ny - 1 - i) * (ny + 1)];
+        d += damping * std::max(d, 1e-12);
       }
-      for (int i = 0; i < ny; ++i) (*u)(i, i) += damping * std::max((*u)(i, i), 1e-12);
-      ReverseSymmetricInPlace(u->data(), ny);
-      if (!CholeskyInPlace(u->data(), ny)) break;
-      std::reverse(g->data(), g->data() + ny);
-      CholeskySolveInPlace(u->data(), ny, g->data());
-      std::reverse(g->data(), g->data() + ny);
-      const double largest = g->lpNorm<Eigen::Infinity>();
-      if (largest > options.pose_step_cap) *g *= options.pose_step_cap / largest;
-      *trial = Eigen::Map<const Eigen::VectorXd>(yf, ny) - *g;
+      if (!CholeskyInPlace(l, ny, rows.data(), count.data(), row_nonzeros.data())) break;
+      for (int i = 0; i < ny; ++i) s[ny - 1 - i] = (*g)[i];
+      CholeskySolveInPlace(l, ny, rows.data(), count.data(), s);
+      const double largest = step->lpNorm<Eigen::Infinity>();
+      if (largest > options.pose_step_cap) *step *= options.pose_step_cap / largest;
+      for (int i = 0; i < ny; ++i) (*trial)[i] = yf[i] - s[ny - 1 - i];
       lower = trial->allFinite() && FrameSquaredNorm(problem, evaluator, f, trial->data(), &trial_cost) &&
               trial_cost < *cost;
       if (lower) break;
@@ -404,8 +449,8 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
   ParallelChunks(nf, threads, [&](int t, int b, int e) {
     // Per thread, allocated once: the hot loop allocates nothing.
     std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
-    Eigen::MatrixXd u(ny, ny), u_undamped(ny, ny);
-    Eigen::VectorXd g(ny), g_undamped(ny), trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
+    Eigen::MatrixXd u(ny, ny), factor(ny, ny);
+    Eigen::VectorXd g(ny), step(ny), trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
     bool have_correction = false;
     double previous_cost = 0;
     for (int f = b; f < e; ++f) {
@@ -444,8 +489,8 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
         }
       }
       moved |= FramePoseSteps(*problem, options, evaluator.get(), f, max_iterations,
-                              min_gain > 0 ? 0.0 : options.pose_tolerance, min_gain, &u, &g, &u_undamped,
-                              &g_undamped, &trial, yf, &cost);
+                              min_gain > 0 ? 0.0 : options.pose_tolerance, min_gain, &u, &g, &factor, &step,
+                              &trial, yf, &cost);
       correction = Eigen::Map<const Eigen::VectorXd>(yf, ny) - given;
       have_correction = true;
       previous_cost = cost;
@@ -498,8 +543,8 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
   const std::vector<double> given_cost = cost;
   ParallelChunks(static_cast<int>(runs.size()), threads, [&](int t, int rb, int re) {
     std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
-    Eigen::MatrixXd u(ny, ny), u_undamped(ny, ny);
-    Eigen::VectorXd g(ny), g_undamped(ny), trial(ny), start(ny);
+    Eigen::MatrixXd u(ny, ny), factor(ny, ny);
+    Eigen::VectorXd g(ny), step(ny), trial(ny), start(ny);
     for (int r = rb; r < re; ++r) {
       const auto [first, end] = runs[r];
       // Forwards from the well-fitted frame before the run, then backwards from the one after
@@ -515,7 +560,7 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
           double c = 0;
           if (!FrameSquaredNorm(*problem, evaluator.get(), f, start.data(), &c)) continue;
           FramePoseSteps(*problem, options, evaluator.get(), f, options.rescue_iterations, 1e-3, 0.0, &u, &g,
-                         &u_undamped, &g_undamped, &trial, start.data(), &c);
+                         &factor, &step, &trial, start.data(), &c);
           if (c < cost[f]) {
             cost[f] = c;
             x->segment(static_cast<Eigen::Index>(f) * ny, ny) = start;

@@ -178,6 +178,9 @@ void ArrowSchurProblem::Analyse() {
         u_pattern_.push_back(i + j * ny_);
       }
   }
+  l_cols_.assign(ny_, {});
+  for (int j = 0; j < ny_; ++j)
+    for (int i : l_rows_[j]) l_cols_[i].push_back(j);
   // Y row patterns in elimination order: a row reaches what its own W row and every row it is
   // eliminated against reach.
   std::vector<std::vector<char>> ypat(ny_);
@@ -302,26 +305,41 @@ void ArrowSchurProblem::Analyse() {
   layout_ = {ny_, np_, u_index_.data(), w_index_.data()};
 }
 
-// Cholesky in place, right-looking, skipping what is outside L_f's pattern: a column updates only
-// the columns of its non-zero rows (the rest of its chain). Eigen's blocked dense LLT costs four
-// times as much at 38 x 38, most of it on zeros.
+// Cholesky in place, skipping what is outside L_f's pattern: column j is updated only by the
+// columns with a non-zero in row j (the rest of its chain). Eigen's blocked dense LLT costs four
+// times as much at 38 x 38, most of it on zeros. Left-looking, each column's tail gets all its
+// updates in registers, eight rows at a time, before one store; each entry gets the same fused
+// multiply-subtracts in the same order (ascending k) as the right-looking loop that came before
+// it, so the same bits (the fit's iterations with gaps answer last-bit changes like chance:
+// BENCHMARKS.md, "With gaps"); that loop read back each update's masked store in the next one.
 bool ArrowSchurProblem::FactorInPlace(Eigen::MatrixXd* a) const {
   const int n = ny_;
+  double* data = a->data();
   for (int j = 0; j < n; ++j) {
-    double* col = a->col(j).data();
+    double* col = data + static_cast<size_t>(j) * n;
+    const std::vector<int>& ks = l_cols_[j];
+#if defined(__AVX512F__)
+    for (int e = j; e < n; e += 8) {
+      const __mmask8 m = n - e >= 8 ? static_cast<__mmask8>(0xff) : static_cast<__mmask8>((1u << (n - e)) - 1);
+      __m512d acc = _mm512_maskz_loadu_pd(m, col + e);
+      for (int k : ks) {
+        const double* ck = data + static_cast<size_t>(k) * n;
+        acc = _mm512_fnmadd_pd(_mm512_set1_pd(ck[j]), _mm512_maskz_loadu_pd(m, ck + e), acc);
+      }
+      _mm512_mask_storeu_pd(col + e, m, acc);
+    }
+#else
+    for (int k : ks) {
+      const double* ck = data + static_cast<size_t>(k) * n;
+      const double lx = ck[j];
+      for (int i = j; i < n; ++i) col[i] -= lx * ck[i];
+    }
+#endif
     if (!(col[j] > 0.0)) return false;
     const double d = std::sqrt(col[j]);
     col[j] = d;
-    const std::vector<int>& rows = l_rows_[j];
     const double inv = 1.0 / d;  // one division a column instead of one an entry
-    for (int i : rows) col[i] *= inv;
-    // Column segments are contiguous and zero off the pattern, so whole tails are updated
-    // (vectorised) instead of indexed entries.
-    for (int r : rows) {
-      const double lx = col[r];
-      Eigen::Map<Eigen::VectorXd>(a->col(r).data() + r, n - r) -=
-          lx * Eigen::Map<const Eigen::VectorXd>(col + r, n - r);
-    }
+    for (int i : l_rows_[j]) col[i] *= inv;
   }
   return true;
 }

@@ -197,6 +197,7 @@ class ArrowSchurProblem : public LmProblem {
   std::vector<int> order_;     // elimination order: position -> y index
   std::vector<int> position_;  // y index -> position
   std::vector<std::vector<int>> l_rows_;  // rows below the diagonal of each column of L_f
+  std::vector<std::vector<int>> l_cols_;  // columns left of the diagonal of each row of L_f (ascending)
   std::vector<int> u_pattern_;            // offsets of L_f's pattern in a column-major ny x ny
   std::vector<RowGroup> groups_;
   std::vector<ChildRow> child_rows_;       // in group order, then child, then row

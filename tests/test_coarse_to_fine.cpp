@@ -305,6 +305,50 @@ TEST(CoarseToFine, PoseRefinementLowersEveryFrameAndConverges) {
   EXPECT_EQ((x.tail(np) - s.x0.tail(np)).lpNorm<Eigen::Infinity>(), 0.0);
 }
 
+// One pose step (RefineFramePoses with pose_iterations 1) is the damped Gauss-Newton step of the
+// frame's own rows and prior, y - (U + damping diag(U))^-1 g, solved here densely by Eigen from
+// the per-marker products (FrameEvaluator's default PoseNormalEquations): the per-frame solve's
+// own Cholesky (reversed order, register-blocked updates, sparse back-substitution) must give it.
+TEST(CoarseToFine, OnePoseStepIsTheDampedGaussNewtonStep) {
+  Session s(60, 0.05);
+  const int ny = s.problem->frame_dim(), np = s.problem->shared_dim();
+  s.x0.tail(np) = s.p_true;
+  for (double damping : {1e-6, 0.3}) {
+    solver::CoarseToFineOptions options;
+    options.pose_iterations = 1;
+    options.pose_from_predecessor = false;
+    options.pose_damping = damping;
+    Eigen::VectorXd x = s.x0;
+    bool ok = false;
+    solver::RefineFramePoses(s.problem.get(), options, 2, &x, &ok);
+    ASSERT_TRUE(ok);
+    ASSERT_TRUE(s.problem->SetShared(s.p_true));
+    auto evaluator = s.problem->NewEvaluator();
+    int stepped = 0;
+    for (int f = 0; f < 60; ++f) {
+      const double* y = s.x0.data() + static_cast<size_t>(f) * ny;
+      Eigen::MatrixXd u = Eigen::MatrixXd::Zero(ny, ny);
+      Eigen::VectorXd g = Eigen::VectorXd::Zero(ny);
+      ASSERT_TRUE(evaluator->FrameEvaluator::PoseNormalEquations(f, y, ny, u.data(), g.data()));
+      const double *w, *target;
+      if (s.problem->FramePrior(f, &w, &target))
+        for (int i = 0; i < ny; ++i) {
+          u(i, i) += w[i] * w[i];
+          g[i] += w[i] * w[i] * (y[i] - target[i]);
+        }
+      for (int i = 0; i < ny; ++i) u(i, i) += damping * std::max(u(i, i), 1e-12);
+      const Eigen::VectorXd step = u.selfadjointView<Eigen::Lower>().llt().solve(g);
+      const Eigen::VectorXd expected = Eigen::Map<const Eigen::VectorXd>(y, ny) - step;
+      const Eigen::VectorXd got = x.segment(static_cast<Eigen::Index>(f) * ny, ny);
+      if ((got - Eigen::Map<const Eigen::VectorXd>(y, ny)).isZero(0.0)) continue;  // a step that did not lower the cost
+      ++stepped;
+      EXPECT_LE((got - expected).lpNorm<Eigen::Infinity>(), 1e-9 * step.lpNorm<Eigen::Infinity>())
+          << "frame " << f << ", damping " << damping;
+    }
+    EXPECT_EQ(stepped, 60) << "damping " << damping;  // 0.05 rad off: every frame's step gains
+  }
+}
+
 // fit.cancel during the coarse stage keeps the best result reached: the subset's geometry and
 // poses, which lower the whole problem's cost after one coarse iteration (the start was kept
 // before, and the daemon stored the initial model as the "fit").
