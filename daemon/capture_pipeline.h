@@ -182,7 +182,8 @@ struct CapturePipelineOptions {
   reconstruction::DetectionOptions detection;
   reconstruction::FrameSyncOptions sync;  // num_cameras is set from the sources
   // Test hook: called by each grab thread before each grab (stage "grab") and by each detection
-  // worker before each frame (stage "detection"); a test holds a stage by blocking in it (the
+  // worker before each frame (stage "detection"), and by the live pipeline's tracking thread
+  // before each point frame (stage "track"); a test holds a stage by blocking in it (the
   // daemon's watchdog must then stop its pings). Empty: not called. mocapd sets it only when
   // built with MOCAP_TEST_HOOKS (daemon/mocapd_main.cpp).
   std::function<void(const char* stage)> test_hold;
@@ -273,6 +274,8 @@ class CapturePipeline {
   void Stop();
   // The next point frame, waiting up to timeout_ms. False on timeout or once stopped and empty.
   bool PopPoints(PointFrame* out, int timeout_ms);
+  // Point frames waiting for the caller now.
+  std::size_t PointsWaiting() const { return points_.Depth().depth; }
   // Figures so far (timing percentiles over the recent samples). The percentiles sort up to
   // 65,536 samples each (milliseconds of CPU): callers that poll often pass timings = false.
   CapturePipelineStats Stats(bool timings = true) const;

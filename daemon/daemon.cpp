@@ -764,7 +764,8 @@ Json Daemon::Status_() const {
                     {"frames_tracked", st.frames_tracked},
                     {"frames_tracking", st.frames_tracking},
                     {"loop_dropped", st.loop_dropped},
-                    {"recorder_dropped", st.recorder_dropped}};
+                    {"recorder_dropped", st.recorder_dropped},
+                    {"searches_skipped", st.searches_skipped}};
     auto depth = [](const QueueDepth& q) {
       return Json{{"depth", q.depth}, {"max", q.max_depth}, {"capacity", q.capacity}};
     };

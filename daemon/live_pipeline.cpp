@@ -281,6 +281,7 @@ void LivePipeline::TrackLoop() {
       if (!running_) break;
       continue;
     }
+    if (options_.capture.test_hold) options_.capture.test_hold("track");
     // Requests from the loop, between two frames.
     {
       SwapDone done;
@@ -321,7 +322,20 @@ void LivePipeline::TrackLoop() {
     lf.points = std::move(pf.points);
     lf.model_version = model_version_;
     const auto t0 = std::chrono::steady_clock::now();
-    if (tracker_) {
+    // LivePipelineStats::searches_skipped.
+    const bool skip_search = tracker_ && tracker_->state() != ekf::TrackState::kTracking &&
+                             capture_->PointsWaiting() > 0;
+    if (skip_search) {
+      const int nm = tracker_->model().num_markers();
+      lf.tracker_state = static_cast<int>(tracker_->state());
+      lf.labelled = 0;
+      lf.coordinates = tracker_->output().z;
+      lf.markers.setConstant(3, nm, std::numeric_limits<double>::quiet_NaN());
+      lf.predicted = tracker_->predicted_markers();
+      lf.residual_mm.assign(nm, std::numeric_limits<float>::quiet_NaN());
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.searches_skipped;
+    } else if (tracker_) {
       const int np = static_cast<int>(lf.points.size());
       points.resize(3, np);
       for (int i = 0; i < np; ++i) points.col(i) = lf.points[i];

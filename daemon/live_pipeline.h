@@ -81,6 +81,13 @@ struct LivePipelineStats {
   std::uint64_t frames_tracking = 0;     // ... in state kTracking
   std::uint64_t loop_dropped = 0;        // the loop's queue was full
   std::uint64_t recorder_dropped = 0;    // the recorder's queue was full (a recording lost frames)
+  // Frames passed on untracked because the tracker was searching for the subject (not tracking)
+  // and newer frames already waited: each search takes tens of ms, a frame period is 5 ms, and a
+  // search on every frame while the subject cannot be found (out of view, a wrong model) let the
+  // point queue overflow and the capture drop frames -- from a recording too. Searching on the
+  // newest frame only costs nothing: a search starts from one frame's points, and the frames
+  // between carry no labels either way. The frames are published and recorded as they are.
+  std::uint64_t searches_skipped = 0;
   QueueDepth loop_queue, recorder_queue;
   double track_ms_p50 = 0, track_ms_p99 = 0;
   // The slowest frame through the tracking stage since the pipeline started: the tracker's start

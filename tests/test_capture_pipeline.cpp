@@ -499,6 +499,26 @@ TEST(CapturePipeline, BadSetUpIsRefusedWithAReason) {
 // tracker ever started.
 // A live pipeline on two blank simulated cameras whose frames are held back (test_hold) until
 // Open(): requests made before it are all pending when the tracking thread sees its first frame.
+// Two blank 64 x 48 simulated cameras at `rate_hz`, open: no points, so a tracker never starts.
+std::vector<std::unique_ptr<drivers::CameraSource>> BlankCameras(double rate_hz) {
+  drivers::SimulatedCameraOptions co;
+  co.width = 64;
+  co.height = 48;
+  drivers::CameraSettings settings;
+  settings.frame_rate_hz = rate_hz;
+  std::vector<std::unique_ptr<drivers::CameraSource>> cameras;
+  for (int c = 0; c < 2; ++c) {
+    auto cam = std::make_unique<drivers::SimulatedCamera>(
+        c, [](int, std::uint64_t, std::uint8_t* data, int w, int h, std::ptrdiff_t stride, drivers::PixelFormat) {
+          for (int y = 0; y < h; ++y) std::fill(data + y * stride, data + y * stride + w, 0);
+        },
+        co);
+    EXPECT_TRUE(cam->Open(settings).ok());
+    cameras.push_back(std::move(cam));
+  }
+  return cameras;
+}
+
 class HeldPipeline {
  public:
   HeldPipeline() {
@@ -509,23 +529,7 @@ class HeldPipeline {
       std::unique_lock<std::mutex> lock(mutex_);
       open_cv_.wait(lock, [&] { return open_; });
     };
-    drivers::SimulatedCameraOptions co;
-    co.width = 64;
-    co.height = 48;
-    drivers::CameraSettings settings;
-    settings.frame_rate_hz = 100;
-    std::vector<std::unique_ptr<drivers::CameraSource>> cameras;
-    for (int c = 0; c < 2; ++c) {
-      auto cam = std::make_unique<drivers::SimulatedCamera>(
-          c, [](int, std::uint64_t, std::uint8_t* data, int w, int h, std::ptrdiff_t stride,
-                drivers::PixelFormat) {
-            for (int y = 0; y < h; ++y) std::fill(data + y * stride, data + y * stride + w, 0);
-          },
-          co);
-      EXPECT_TRUE(cam->Open(settings).ok());
-      cameras.push_back(std::move(cam));
-    }
-    live_ = std::make_unique<daemon::LivePipeline>(std::move(cameras), options, [] {});
+    live_ = std::make_unique<daemon::LivePipeline>(BlankCameras(100), options, [] {});
     EXPECT_TRUE(live_->Start().ok());
     const Model full = DefaultFullBodyModel(1.7);
     selected_ = std::make_shared<Model>();
@@ -639,6 +643,74 @@ TEST(LivePipeline, AWithdrawnApplyLeavesTheSelectOnItsOwnModel) {
   EXPECT_EQ(frame.model_version, 1);
   EXPECT_GE(frame.tracker_state, 0) << "no tracker";
   EXPECT_FALSE(answered);
+}
+
+// While the tracker searches for the subject (it is not tracking) and newer point frames wait,
+// it searches the newest only (LivePipelineStats::searches_skipped): a search takes tens of ms
+// and, run on every frame while the subject cannot be found, let the point queue overflow and
+// the capture drop frames. The frames between are published untracked, none lost. The tracking
+// thread is held for 300 ms (stage "track") while two blank 100 Hz cameras deliver: about 30
+// frames wait; a tracker with a model and no points never starts.
+TEST(LivePipeline, WhileSearchingItSearchesTheNewestWaitingFrameAndPublishesTheRest) {
+  std::mutex mutex;
+  std::condition_variable cv;
+  bool hold = false, holding = false;
+  daemon::LivePipelineOptions options;
+  options.capture.start_on_complete_set = false;
+  options.capture.test_hold = [&](const char* stage) {
+    if (std::string(stage) != "track") return;
+    std::unique_lock<std::mutex> lock(mutex);
+    if (!hold) return;
+    holding = true;
+    cv.notify_all();
+    cv.wait(lock, [&] { return !hold; });
+    holding = false;
+  };
+  daemon::LivePipeline live(BlankCameras(100), options, [] {});
+  ASSERT_TRUE(live.Start().ok());
+  const Model full = DefaultFullBodyModel(1.7);
+  auto model = std::make_shared<Model>();
+  ASSERT_TRUE(full.WithMarkers(sim::SimulatedMarkers(full, false), model.get()).ok());
+  live.SetSubjectModel(model, 1);
+  std::vector<daemon::LiveFrame> frames;
+  auto drain = [&](int ms) {
+    const auto until = std::chrono::steady_clock::now() + std::chrono::milliseconds(ms);
+    while (std::chrono::steady_clock::now() < until) {
+      daemon::LiveFrame f;
+      while (live.PopFrame(&f)) frames.push_back(std::move(f));
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+  };
+  drain(200);
+  ASSERT_FALSE(frames.empty()) << "no frame from the live pipeline";
+  const std::uint64_t skipped_before = live.Stats(false).searches_skipped;
+  {
+    std::unique_lock<std::mutex> lock(mutex);
+    hold = true;
+    ASSERT_TRUE(cv.wait_for(lock, std::chrono::seconds(5), [&] { return holding; })) << "the tracking thread never held";
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  const std::size_t waiting = live.Stats(false).capture.point_queue.depth;
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    hold = false;
+  }
+  cv.notify_all();
+  drain(300);
+  const daemon::LivePipelineStats st = live.Stats(false);
+  live.Stop();
+  EXPECT_GE(waiting, 20u);
+  // Every waiting frame but the newest went through unsearched (a frame or two may arrive while
+  // the backlog drains).
+  EXPECT_GE(st.searches_skipped - skipped_before, waiting - 1);
+  EXPECT_EQ(st.capture.dropped_frame_sets, 0u);
+  EXPECT_EQ(st.loop_dropped, 0u);
+  // None lost: the published frames are consecutive, each one untracked and unlabelled.
+  for (std::size_t i = 1; i < frames.size(); ++i) EXPECT_EQ(frames[i].frame, frames[i - 1].frame + 1) << i;
+  for (const daemon::LiveFrame& f : frames) {
+    EXPECT_NE(f.tracker_state, static_cast<int>(ekf::TrackState::kTracking));
+    EXPECT_EQ(f.labelled, 0);
+  }
 }
 
 }  // namespace
