@@ -322,33 +322,27 @@ void LivePipeline::TrackLoop() {
     lf.points = std::move(pf.points);
     lf.model_version = model_version_;
     const auto t0 = std::chrono::steady_clock::now();
-    // LivePipelineStats::searches_skipped.
+    // While the tracker searches and newer frames wait, the search is left to the newest
+    // (LivePipelineStats::searches_skipped): this frame goes on untracked.
     const bool skip_search = tracker_ && tracker_->state() != ekf::TrackState::kTracking &&
                              capture_->PointsWaiting() > 0;
-    if (skip_search) {
-      const int nm = tracker_->model().num_markers();
-      lf.tracker_state = static_cast<int>(tracker_->state());
-      lf.labelled = 0;
-      lf.coordinates = tracker_->output().z;
-      lf.markers.setConstant(3, nm, std::numeric_limits<double>::quiet_NaN());
-      lf.predicted = tracker_->predicted_markers();
-      lf.residual_mm.assign(nm, std::numeric_limits<float>::quiet_NaN());
-      std::lock_guard<std::mutex> lock(stats_mutex_);
-      ++stats_.searches_skipped;
-    } else if (tracker_) {
+    if (tracker_) {
       const int np = static_cast<int>(lf.points.size());
-      points.resize(3, np);
-      for (int i = 0; i < np; ++i) points.col(i) = lf.points[i];
-      const ekf::TrackOutput& out = tracker_->Update(lf.t_mid_s, points);
+      const ekf::TrackOutput* out = nullptr;
+      if (!skip_search) {
+        points.resize(3, np);
+        for (int i = 0; i < np; ++i) points.col(i) = lf.points[i];
+        out = &tracker_->Update(lf.t_mid_s, points);
+      }
       const int nm = tracker_->model().num_markers();
-      lf.tracker_state = static_cast<int>(out.state);
-      lf.labelled = out.labelled;
-      lf.coordinates = out.z;
+      lf.tracker_state = static_cast<int>(out ? out->state : tracker_->state());
+      lf.labelled = out ? out->labelled : 0;
+      lf.coordinates = out ? out->z : tracker_->output().z;
       lf.markers.setConstant(3, nm, std::numeric_limits<double>::quiet_NaN());
       lf.predicted = tracker_->predicted_markers();
       lf.residual_mm.assign(nm, std::numeric_limits<float>::quiet_NaN());
-      for (int m = 0; m < nm && m < static_cast<int>(out.point_of_marker.size()); ++m) {
-        const int p = out.point_of_marker[m];
+      for (int m = 0; out && m < nm && m < static_cast<int>(out->point_of_marker.size()); ++m) {
+        const int p = out->point_of_marker[m];
         if (p < 0 || p >= np) continue;
         lf.markers.col(m) = points.col(p);
         if (m < lf.predicted.cols())
@@ -361,6 +355,7 @@ void LivePipeline::TrackLoop() {
     {
       std::lock_guard<std::mutex> lock(stats_mutex_);
       ++stats_.frames_tracked;
+      stats_.searches_skipped += skip_search;
       if (lf.tracker_state == static_cast<int>(ekf::TrackState::kTracking)) ++stats_.frames_tracking;
       stats_.tracker_state = lf.tracker_state;
       stats_.labelled = lf.labelled;

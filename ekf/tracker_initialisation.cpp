@@ -1286,6 +1286,10 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
 // segment was held to this before the twenty-second session). Where the placement also gives its
 // parent limb new labels (a forearm placed anew), the past's joint centres were the wrong pose's
 // and say nothing; and not in a fresh track, whose joint centres may be wrong with the limb.
+// With one or two mates, a past too short to judge counts against the point only where the
+// marker moves slowly enough for its point to be followed at all (at 12.5 Hz none is, and the
+// mates' distances are some evidence); alone on its segment, the placement has no other
+// evidence, and a point without a rigid past is refused at any rate.
 // Its cost: a finger marker whose own offset or forearm is wrong is not placed again until its
 // point moves 2 cm rigidly with the predicted wrist (seed 47 at 5 ghosts, its offset learnt on a
 // reflection: 0.9926 -> 0.9815; seed 10 at 8 ghosts, its forearm mirrored from its start: 0.990
@@ -1298,8 +1302,8 @@ bool Tracker::Impl::UnpinnedMarkerWithoutPast(int m, int k, const std::vector<in
   if (mates >= kPinningMates) return false;
   const PastWithSegment past = SegmentPast(m, k);
   if (mates == 0) return past != PastWithSegment::kRigid;
-  // A past too short to judge is evidence only where the marker moves slowly enough for its
-  // point to be followed from frame to frame (PastPoint: kTrackStep a frame).
+  // Followable: the marker's predicted speed moves it less than PastPoint's kTrackStep a frame
+  // (jac is the placement's, LineariseLimb).
   Eigen::Vector3d velocity = Eigen::Vector3d::Zero();
   const std::vector<int>& cols = model->marker_coordinates(m);
   for (size_t a = 0; a < cols.size(); ++a) velocity += jac[m].col(a) * x[nz + cols[a]];
