@@ -261,18 +261,23 @@ void CholeskySolveInPlace(const double* l, int n, const int* rows, const int* co
 // at most `tolerance` of the cost, or at most `min_gain`. A step that does not lower the cost is
 // retried up to options.pose_step_retries times with a damping 100 times higher (at least 1e-3
 // of the diagonal), each step shortened to options.pose_step_cap in its largest component
-// (CoarseToFineOptions). Returns whether y moved. u, g, factor, step and trial are scratch
-// (frame_dim square, or long).
+// (CoarseToFineOptions). Returns whether y moved. `trial` is scratch of frame_dim.
+// A thread's scratch for FramePoseSteps, allocated once: the hot loop allocates nothing.
+struct PoseStepWorkspace {
+  explicit PoseStepWorkspace(int ny)
+      : u(ny, ny), factor(ny, ny), g(ny), step(ny), rows(static_cast<size_t>(ny) * ny), count(ny), row_nonzeros(ny) {}
+  Eigen::MatrixXd u, factor;  // the normal equations; their damped, reversed factor
+  Eigen::VectorXd g, step;
+  std::vector<int> rows, count, row_nonzeros;  // the factor's non-zeros (CholeskyInPlace)
+};
+
 bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& options, FrameEvaluator* evaluator,
-                    int f, int iterations, double tolerance, double min_gain, Eigen::MatrixXd* u,
-                    Eigen::VectorXd* g, Eigen::MatrixXd* factor, Eigen::VectorXd* step,
+                    int f, int iterations, double tolerance, double min_gain, PoseStepWorkspace* ws,
                     Eigen::VectorXd* trial, double* yf, double* cost) {
   const int ny = problem.frame_dim();
-  // The factor's non-zero rows, per thread: allocated once, not per frame.
-  thread_local std::vector<int> rows, count, row_nonzeros;
-  rows.resize(static_cast<size_t>(ny) * ny);
-  count.resize(ny);
-  row_nonzeros.resize(ny);
+  Eigen::MatrixXd* u = &ws->u;
+  Eigen::VectorXd* g = &ws->g;
+  Eigen::VectorXd* step = &ws->step;
   bool moved = false;
   for (int it = 0; it < iterations; ++it) {
     // Normal equations of the frame's own rows: U = J_y^T J_y + B^T B, g = J_y^T r + B^T B (y - y0).
@@ -289,7 +294,7 @@ bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& opti
     bool lower = false;
     double damping = options.pose_damping;
     const double* uu = u->data();
-    double* l = factor->data();
+    double* l = ws->factor.data();
     double* s = step->data();
     for (int attempt = 0; attempt <= options.pose_step_retries; ++attempt) {
       if (attempt > 0) damping = std::max(100.0 * damping, 1e-3);
@@ -304,9 +309,9 @@ bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& opti
         double& d = l[static_cast<size_t>(ny - 1 - i) * (ny + 1)];
         d += damping * std::max(d, 1e-12);
       }
-      if (!CholeskyInPlace(l, ny, rows.data(), count.data(), row_nonzeros.data())) break;
+      if (!CholeskyInPlace(l, ny, ws->rows.data(), ws->count.data(), ws->row_nonzeros.data())) break;
       for (int i = 0; i < ny; ++i) s[ny - 1 - i] = (*g)[i];
-      CholeskySolveInPlace(l, ny, rows.data(), count.data(), s);
+      CholeskySolveInPlace(l, ny, ws->rows.data(), ws->count.data(), s);
       const double largest = step->lpNorm<Eigen::Infinity>();
       if (largest > options.pose_step_cap) *step *= options.pose_step_cap / largest;
       for (int i = 0; i < ny; ++i) (*trial)[i] = yf[i] - s[ny - 1 - i];
@@ -449,8 +454,8 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
   ParallelChunks(nf, threads, [&](int t, int b, int e) {
     // Per thread, allocated once: the hot loop allocates nothing.
     std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
-    Eigen::MatrixXd u(ny, ny), factor(ny, ny);
-    Eigen::VectorXd g(ny), step(ny), trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
+    PoseStepWorkspace ws(ny);
+    Eigen::VectorXd trial(ny), given(ny), correction = Eigen::VectorXd::Zero(ny);
     bool have_correction = false;
     double previous_cost = 0;
     for (int f = b; f < e; ++f) {
@@ -489,8 +494,7 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
         }
       }
       moved |= FramePoseSteps(*problem, options, evaluator.get(), f, max_iterations,
-                              min_gain > 0 ? 0.0 : options.pose_tolerance, min_gain, &u, &g, &factor, &step,
-                              &trial, yf, &cost);
+                              min_gain > 0 ? 0.0 : options.pose_tolerance, min_gain, &ws, &trial, yf, &cost);
       correction = Eigen::Map<const Eigen::VectorXd>(yf, ny) - given;
       have_correction = true;
       previous_cost = cost;
@@ -543,8 +547,8 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
   const std::vector<double> given_cost = cost;
   ParallelChunks(static_cast<int>(runs.size()), threads, [&](int t, int rb, int re) {
     std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
-    Eigen::MatrixXd u(ny, ny), factor(ny, ny);
-    Eigen::VectorXd g(ny), step(ny), trial(ny), start(ny);
+    PoseStepWorkspace ws(ny);
+    Eigen::VectorXd trial(ny), start(ny);
     for (int r = rb; r < re; ++r) {
       const auto [first, end] = runs[r];
       // Forwards from the well-fitted frame before the run, then backwards from the one after
@@ -559,8 +563,8 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
           if (options.wrap_frame_turns) problem->WrapFramePose(f, start.data());
           double c = 0;
           if (!FrameSquaredNorm(*problem, evaluator.get(), f, start.data(), &c)) continue;
-          FramePoseSteps(*problem, options, evaluator.get(), f, options.rescue_iterations, 1e-3, 0.0, &u, &g,
-                         &factor, &step, &trial, start.data(), &c);
+          FramePoseSteps(*problem, options, evaluator.get(), f, options.rescue_iterations, 1e-3, 0.0, &ws, &trial,
+                         start.data(), &c);
           if (c < cost[f]) {
             cost[f] = c;
             x->segment(static_cast<Eigen::Index>(f) * ny, ny) = start;
