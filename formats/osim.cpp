@@ -161,6 +161,29 @@ Status ParseFunction(const Reader& rd, XMLElement* e, CoordinateFunction* f) {
     MOCAP_RETURN_IF_ERROR(rd.Numbers(Child(e, "y"), &y));
     *f = tag == "SimmSpline" ? CoordinateFunction::SimmSpline(x, y)
                              : CoordinateFunction::NaturalCubicSpline(x, y);
+  } else if (tag == "PiecewiseLinearFunction") {
+    std::vector<double> x, y;
+    MOCAP_RETURN_IF_ERROR(rd.Numbers(Child(e, "x"), &x));
+    MOCAP_RETURN_IF_ERROR(rd.Numbers(Child(e, "y"), &y));
+    *f = CoordinateFunction::PiecewiseLinear(x, y);
+  } else if (tag == "GCVSpline") {
+    // OpenSim's own default half order is 0, which it cannot evaluate: a usable file says it.
+    if (!Child(e, "half_order")) return rd.Fail(e, "missing <half_order> (3 for OpenSim's quintic)");
+    double m = 0.0, error_variance = 0.0;
+    MOCAP_RETURN_IF_ERROR(rd.Number(e, "half_order", &m, true));
+    MOCAP_RETURN_IF_ERROR(rd.Number(e, "error_variance", &error_variance, false));
+    // Checked before the cast: a huge number would not fit an int.
+    if (!(m >= 1.0 && m <= 4.0) || m != std::floor(m))
+      return rd.Fail(e, "<half_order> " + FormatNumbers(&m, 1) + " is not a whole number from 1 to 4 (degree 1 to 7)");
+    // A non-zero error variance makes GCVSPL smooth instead of interpolate: another curve,
+    // which we would have to compute as GCVSPL does to match OpenSim's kinematics.
+    if (error_variance != 0.0)
+      return rd.Fail(e, "<error_variance> " + FormatNumbers(&error_variance, 1) +
+                            ": only interpolating GCV splines (error variance 0) are supported");
+    std::vector<double> x, y;
+    MOCAP_RETURN_IF_ERROR(rd.Numbers(Child(e, "x"), &x));
+    MOCAP_RETURN_IF_ERROR(rd.Numbers(Child(e, "y"), &y));
+    *f = CoordinateFunction::GcvSpline(static_cast<int>(m), x, y);
   } else if (tag == "PolynomialFunction") {
     MOCAP_RETURN_IF_ERROR(rd.Numbers(Child(e, "coefficients"), &v));
     *f = CoordinateFunction::Polynomial(v);
@@ -175,8 +198,8 @@ Status ParseFunction(const Reader& rd, XMLElement* e, CoordinateFunction* f) {
     *f = CoordinateFunction::Multiplier(scale, g);
   } else {
     return rd.Fail(e, "unsupported function type '" + tag +
-                          "' (supported: Constant, LinearFunction, SimmSpline, "
-                          "NaturalCubicSpline, PolynomialFunction, MultiplierFunction)");
+                          "' (supported: Constant, LinearFunction, SimmSpline, NaturalCubicSpline, "
+                          "GCVSpline, PiecewiseLinearFunction, PolynomialFunction, MultiplierFunction)");
   }
   if (Status s = f->Check(tag); !s) return rd.Fail(e, s.message());
   return Status::Ok();

@@ -26,7 +26,9 @@
 //                 SliderJoint: translation along x. PlanarJoint: translation x, y, rotation z.
 //                 WeldJoint: no element.
 //   functions     Constant, LinearFunction, SimmSpline, NaturalCubicSpline, PolynomialFunction,
-//                 MultiplierFunction (model/coordinate_function.h).
+//                 MultiplierFunction, PiecewiseLinearFunction, GCVSpline with error variance 0
+//                 (model/coordinate_function.h). Others (StepFunction, Sine, a smoothing
+//                 GCVSpline) are refused with the element and line.
 //   Coordinates   default_value and range; a locked coordinate becomes a constant (its value
 //                 kept as a derived coordinate). CoordinateCouplerConstraint (dependent =
 //                 scale_factor * f(independent)): the dependent coordinate's elements are driven

@@ -3,12 +3,18 @@
 #include <algorithm>
 #include <cmath>
 
+#include <Eigen/Dense>
+
 namespace mocap {
 namespace {
 
 using Kind = CoordinateFunction::Kind;
 
-bool IsSpline(Kind k) { return k == Kind::kSimmSpline || k == Kind::kNaturalCubicSpline; }
+// Kinds defined by points (x, y).
+bool HasPoints(Kind k) {
+  return k == Kind::kSimmSpline || k == Kind::kNaturalCubicSpline || k == Kind::kPiecewiseLinear ||
+         k == Kind::kGcvSpline;
+}
 
 // Forsythe-Malcolm-Moler coefficients (see the header). sigma_i (= s''(x_i) / 6) solve a
 // symmetric tridiagonal system: interior rows are the usual C2 continuity conditions, the two end
@@ -85,6 +91,84 @@ void SplineEvaluate(const CoordinateFunction& f, double z, double* v, double* dv
   *dv = f.b[k] + dx * (2.0 * f.c[k] + 3.0 * dx * f.d[k]);
 }
 
+
+// Straight lines between the points, the end slopes beyond them (OpenSim's
+// PiecewiseLinearFunction); evaluated by SplineEvaluate with c = d = 0.
+void PiecewiseLinearCoefficients(CoordinateFunction* f) {
+  const size_t n = f->x.size();
+  f->b.assign(n, 0.0);
+  f->c.assign(n, 0.0);
+  f->d.assign(n, 0.0);
+  if (n < 2) return;
+  for (size_t i = 0; i + 1 < n; ++i) f->b[i] = (f->y[i + 1] - f->y[i]) / (f->x[i + 1] - f->x[i]);
+  f->b[n - 1] = f->b[n - 2];
+}
+
+// The dense solve is cubic in the points and each evaluation linear: a joint's GCV spline has a
+// few dozen at most, and a file with thousands is refused rather than left to stall the reader.
+constexpr int kMaxGcvPoints = 200;
+
+// |t|^p and its derivative; p is odd and >= 1.
+void OddPower(double t, int p, double* v, double* dv) {
+  const double a = std::abs(t);
+  double a1 = 1.0;  // |t|^(p-1)
+  for (int k = 1; k < p; ++k) a1 *= a;
+  *v = a1 * a;
+  *dv = t == 0.0 ? 0.0 : (t > 0.0 ? p * a1 : -p * a1);
+}
+
+// The interpolating natural spline in truncated-power form (see the header). Leaves b empty when
+// the points do not define it (too few, not increasing, not finite), for Check to name.
+void GcvCoefficients(CoordinateFunction* f) {
+  f->b.clear();
+  f->c.clear();
+  f->d.clear();
+  const std::vector<double>& x = f->x;
+  const int n = static_cast<int>(x.size()), m = f->half_order;
+  if (m < 1 || m > 4 || n < 2 * m || n > kMaxGcvPoints || f->y.size() != x.size()) return;
+  for (int i = 0; i < n; ++i)
+    if (!std::isfinite(x[i]) || !std::isfinite(f->y[i]) || (i > 0 && !(x[i] > x[i - 1]))) return;
+  const double centre = 0.5 * (x.front() + x.back()), half = 0.5 * (x.back() - x.front());
+  const int p = 2 * m - 1;
+  std::vector<double> u(n);
+  for (int i = 0; i < n; ++i) u[i] = (x[i] - centre) / half;
+  Eigen::MatrixXd a = Eigen::MatrixXd::Zero(n + m, n + m);
+  Eigen::VectorXd rhs = Eigen::VectorXd::Zero(n + m);
+  for (int i = 0; i < n; ++i) {
+    for (int j = 0; j < n; ++j) {
+      double v, dv;
+      OddPower(u[i] - u[j], p, &v, &dv);
+      a(i, j) = v;
+    }
+    double power = 1.0;
+    for (int k = 0; k < m; ++k, power *= u[i]) a(i, n + k) = a(n + k, i) = power;
+    rhs[i] = f->y[i];
+  }
+  const Eigen::VectorXd sol = a.fullPivLu().solve(rhs);
+  if (!sol.allFinite()) return;
+  f->b.assign(sol.data(), sol.data() + n);
+  f->c.assign(sol.data() + n, sol.data() + n + m);
+  f->d = {centre, half};
+}
+
+void GcvEvaluate(const CoordinateFunction& f, double z, double* v, double* dv) {
+  const double u = (z - f.d[0]) / f.d[1];
+  const int p = 2 * f.half_order - 1;
+  double s = 0.0, ds = 0.0;
+  for (size_t k = f.c.size(); k-- > 0;) {  // Horner, highest power first
+    ds = ds * u + s;
+    s = s * u + f.c[k];
+  }
+  for (size_t i = 0; i < f.x.size(); ++i) {
+    double t, dt;
+    OddPower(u - (f.x[i] - f.d[0]) / f.d[1], p, &t, &dt);
+    s += f.b[i] * t;
+    ds += f.b[i] * dt;
+  }
+  *v = s;
+  *dv = ds / f.d[1];
+}
+
 }  // namespace
 
 CoordinateFunction CoordinateFunction::Linear(double slope, double offset) {
@@ -115,6 +199,26 @@ CoordinateFunction CoordinateFunction::NaturalCubicSpline(std::vector<double> x,
                                                           std::vector<double> y) {
   CoordinateFunction f = SimmSpline(std::move(x), std::move(y));
   f.kind = Kind::kNaturalCubicSpline;
+  return f;
+}
+
+CoordinateFunction CoordinateFunction::PiecewiseLinear(std::vector<double> x, std::vector<double> y) {
+  CoordinateFunction f;
+  f.kind = Kind::kPiecewiseLinear;
+  f.x = std::move(x);
+  f.y = std::move(y);
+  if (f.x.size() == f.y.size()) PiecewiseLinearCoefficients(&f);
+  return f;
+}
+
+CoordinateFunction CoordinateFunction::GcvSpline(int half_order, std::vector<double> x,
+                                                 std::vector<double> y) {
+  CoordinateFunction f;
+  f.kind = Kind::kGcvSpline;
+  f.half_order = half_order;
+  f.x = std::move(x);
+  f.y = std::move(y);
+  GcvCoefficients(&f);
   return f;
 }
 
@@ -157,7 +261,11 @@ void CoordinateFunction::Evaluate(double z, double* v, double* dv) const {
       return;
     case Kind::kSimmSpline:
     case Kind::kNaturalCubicSpline:
+    case Kind::kPiecewiseLinear:
       SplineEvaluate(*this, z, v, dv);
+      return;
+    case Kind::kGcvSpline:
+      GcvEvaluate(*this, z, v, dv);
       return;
     case Kind::kPolynomial: {
       double p = 0.0, dp = 0.0;  // Horner for the value and its derivative together
@@ -218,7 +326,7 @@ bool CoordinateFunction::IsIdentity() const {
 Status CoordinateFunction::Check(const std::string& where) const {
   auto fail = [&](const std::string& what) { return Status::Error(where + ": " + what); };
   if (!std::isfinite(slope) || !std::isfinite(offset)) return fail("not finite");
-  if (IsSpline(kind)) {
+  if (HasPoints(kind)) {
     if (x.size() != y.size())
       return fail("spline has " + std::to_string(x.size()) + " x but " + std::to_string(y.size()) +
                   " y values");
@@ -228,7 +336,20 @@ Status CoordinateFunction::Check(const std::string& where) const {
       if (i > 0 && !(x[i] > x[i - 1]))
         return fail("spline x values must increase strictly (x[" + std::to_string(i) + "])");
     }
-    if (b.size() != x.size()) return fail("spline coefficients missing (use the factory)");
+    if (kind == Kind::kGcvSpline) {
+      if (half_order < 1 || half_order > 4)
+        return fail("GCV spline half order " + std::to_string(half_order) + " is not 1 to 4 (degree 1 to 7)");
+      if (x.size() < 2 * static_cast<size_t>(half_order))
+        return fail("GCV spline of half order " + std::to_string(half_order) + " needs at least " +
+                    std::to_string(2 * half_order) + " points, has " + std::to_string(x.size()));
+      if (x.size() > static_cast<size_t>(kMaxGcvPoints))
+        return fail("GCV spline with " + std::to_string(x.size()) + " points (at most " +
+                    std::to_string(kMaxGcvPoints) + " are supported)");
+      if (b.size() != x.size() || c.size() != static_cast<size_t>(half_order) || d.size() != 2)
+        return fail("GCV spline coefficients missing (use the factory)");
+    } else if (b.size() != x.size()) {
+      return fail("spline coefficients missing (use the factory)");
+    }
   }
   if (kind == Kind::kPolynomial) {
     if (coefficients.empty()) return fail("polynomial has no coefficients");
@@ -257,13 +378,16 @@ const char* CoordinateFunction::KindName(Kind k) {
     case Kind::kPolynomial: return "polynomial";
     case Kind::kMultiplier: return "multiplier";
     case Kind::kComposed: return "composed";
+    case Kind::kPiecewiseLinear: return "piecewise_linear";
+    case Kind::kGcvSpline: return "gcv_spline";
   }
   return "?";
 }
 
 bool CoordinateFunction::KindFromName(const std::string& name, Kind* k) {
   for (Kind c : {Kind::kIdentity, Kind::kLinear, Kind::kConstant, Kind::kSimmSpline,
-                 Kind::kNaturalCubicSpline, Kind::kPolynomial, Kind::kMultiplier, Kind::kComposed})
+                 Kind::kNaturalCubicSpline, Kind::kPolynomial, Kind::kMultiplier, Kind::kComposed,
+                 Kind::kPiecewiseLinear, Kind::kGcvSpline})
     if (name == KindName(c)) {
       *k = c;
       return true;
@@ -273,7 +397,7 @@ bool CoordinateFunction::KindFromName(const std::string& name, Kind* k) {
 
 bool CoordinateFunction::operator==(const CoordinateFunction& o) const {
   // b, c, d follow from x and y.
-  return kind == o.kind && slope == o.slope && offset == o.offset && x == o.x && y == o.y &&
+  return kind == o.kind && slope == o.slope && offset == o.offset && half_order == o.half_order && x == o.x && y == o.y &&
          coefficients == o.coefficients && inner == o.inner;
 }
 

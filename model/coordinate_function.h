@@ -7,6 +7,10 @@
 //   constant            v = offset, no coordinate needed     (OpenSim Constant)
 //   simm_spline         SIMM's interpolating cubic spline    (OpenSim SimmSpline)
 //   natural_cubic_spline                                     (OpenSim NaturalCubicSpline)
+//   piecewise_linear    straight lines between the points    (OpenSim PiecewiseLinearFunction)
+//   gcv_spline          the interpolating natural spline of degree 2m - 1 (OpenSim GCVSpline,
+//                       half order m, error variance 0: OpenSim's default and what SIMM's
+//                       converter writes)
 //   polynomial          sum c_i z^(n-i), highest power first (OpenSim PolynomialFunction, as
 //                       SimTK::Function::Polynomial)
 //   multiplier          v = slope * inner(z)                 (OpenSim MultiplierFunction; what
@@ -22,7 +26,20 @@
 // the four nearest knots (with 3 knots: a parabola; with 2: the straight line). Outside
 // [x_0, x_{n-1}] both extrapolate linearly with the end slope. We compute the same piecewise
 // cubic y_k + b_k dx + c_k dx^2 + d_k dx^3 (our own code), so a model imported from OpenSim has
-// OpenSim's kinematics.
+// OpenSim's kinematics. PiecewiseLinearFunction is the same with c = d = 0 (OpenSim's
+// PiecewiseLinearFunction.cpp also extrapolates with the end slopes).
+//
+// GCVSpline. OpenSim evaluates it through SimTK::SplineFitter::fitFromErrorVariance(degree, x, y,
+// error_variance), Woltring's GCVSPL (Adv. Eng. Software 8(2), 1986). With the error variance 0
+// GCVSPL's smoothing parameter is 0 and the spline interpolates the points: the natural spline of
+// degree 2m - 1 through them, the unique interpolant that minimises the integral of its m-th
+// derivative squared. We compute that spline in its truncated-power form
+//   s(u) = sum_{k<m} a_k u^k + sum_i w_i |u - u_i|^(2m-1),  sum_i w_i u_i^k = 0 for k < m
+// (Wahba, "Spline Models for Observational Data", 1990, ch. 1), on u = (z - centre) / half-width
+// for conditioning: (n + m) linear equations solved once by the factory. The moment conditions
+// make s a polynomial of degree m - 1 outside the knots -- the natural extension. (SimTK asserts
+// that z lies within the knots and does not define the outside; a model's coordinate ranges
+// normally keep it there.) A non-zero error variance (a smoothing fit) is refused by the reader.
 //
 // The coefficients are computed once by the factories and kept here, in the immutable Model:
 // Value and Derivative only read (no allocation).
@@ -44,7 +61,9 @@ struct CoordinateFunction {
     kNaturalCubicSpline,
     kPolynomial,
     kMultiplier,
-    kComposed
+    kComposed,
+    kPiecewiseLinear,
+    kGcvSpline
   };
   Kind kind = Kind::kIdentity;
   double slope = 1.0;   // kLinear: slope; kMultiplier: the scale
@@ -52,7 +71,11 @@ struct CoordinateFunction {
   std::vector<double> x, y;                // splines: knots (strictly increasing) and values
   std::vector<double> coefficients;        // kPolynomial: highest power first
   std::vector<CoordinateFunction> inner;   // kMultiplier: {f}; kComposed: {outer, inner}
-  std::vector<double> b, c, d;             // splines: derived from x, y by the factories
+  int half_order = 0;                      // kGcvSpline: m (degree 2m - 1)
+  // Derived from x, y by the factories. Cubic splines and kPiecewiseLinear: the piecewise
+  // polynomial's coefficients per knot. kGcvSpline: b the weights w_i, c the polynomial's a_k
+  // (lowest power first), d {centre, half-width} of the scaled abscissa u.
+  std::vector<double> b, c, d;
 
   static CoordinateFunction Identity() { return {}; }
   static CoordinateFunction Linear(double slope, double offset);
@@ -60,6 +83,9 @@ struct CoordinateFunction {
   static CoordinateFunction SimmSpline(std::vector<double> x, std::vector<double> y);
   static CoordinateFunction NaturalCubicSpline(std::vector<double> x, std::vector<double> y);
   static CoordinateFunction Polynomial(std::vector<double> coefficients);
+  static CoordinateFunction PiecewiseLinear(std::vector<double> x, std::vector<double> y);
+  // Needs at least 2m points (as OpenSim); m in 1..4 (OpenSim clamps the degree to 1..7).
+  static CoordinateFunction GcvSpline(int half_order, std::vector<double> x, std::vector<double> y);
   static CoordinateFunction Multiplier(double scale, CoordinateFunction f);
   static CoordinateFunction Compose(CoordinateFunction outer, CoordinateFunction inner);
 

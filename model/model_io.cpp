@@ -41,7 +41,7 @@ Status ParseFunction(const Reader& r, const json& jf, const std::string& path,
     return r.Fail(Reader::Join(path, "kind"),
                   "unknown function '" + name +
                       "' (identity, linear, constant, simm_spline, natural_cubic_spline, "
-                      "polynomial, multiplier, composed)");
+                      "piecewise_linear, gcv_spline, polynomial, multiplier, composed)");
   switch (kind) {
     case Kind::kIdentity:
       *f = CoordinateFunction::Identity();
@@ -63,6 +63,23 @@ Status ParseFunction(const Reader& r, const json& jf, const std::string& path,
       MOCAP_TRY(NumberArray(r, jf, path, "y", &y));
       *f = kind == Kind::kSimmSpline ? CoordinateFunction::SimmSpline(x, y)
                                      : CoordinateFunction::NaturalCubicSpline(x, y);
+      break;
+    }
+    case Kind::kPiecewiseLinear:
+    case Kind::kGcvSpline: {
+      std::vector<double> x, y;
+      MOCAP_TRY(NumberArray(r, jf, path, "x", &x));
+      MOCAP_TRY(NumberArray(r, jf, path, "y", &y));
+      if (kind == Kind::kPiecewiseLinear) {
+        *f = CoordinateFunction::PiecewiseLinear(x, y);
+        break;
+      }
+      double m = 0.0;
+      MOCAP_TRY(r.Number(jf, path, "half_order", &m));
+      // Checked before the cast: a huge number would not fit an int.
+      if (!(m >= 1.0 && m <= 4.0) || m != std::floor(m))
+        return r.Fail(Reader::Join(path, "half_order"), "must be a whole number from 1 to 4 (degree 1 to 7)");
+      *f = CoordinateFunction::GcvSpline(static_cast<int>(m), x, y);
       break;
     }
     case Kind::kPolynomial: {
@@ -106,6 +123,12 @@ json FunctionToJson(const CoordinateFunction& f) {
       break;
     case Kind::kSimmSpline:
     case Kind::kNaturalCubicSpline:
+    case Kind::kPiecewiseLinear:
+      j["x"] = f.x;
+      j["y"] = f.y;
+      break;
+    case Kind::kGcvSpline:
+      j["half_order"] = f.half_order;
       j["x"] = f.x;
       j["y"] = f.y;
       break;

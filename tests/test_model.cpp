@@ -255,6 +255,13 @@ Fn KneeSpline() {  // gait2354's knee_r translation2 (metres of knee_angle_r)
                         {-0.4226, -0.4082, -0.399, -0.3976, -0.3966, -0.395264, -0.396});
 }
 
+// A quintic GCV spline (half order 3, as SIMM's converter writes them) through a knee's
+// translation-like values.
+Fn GcvKneeSpline() {
+  return Fn::GcvSpline(3, {-2.0944, -1.5, -1.0, -0.5, 0.0, 0.5, 2.0944},
+                       {0.0035, 0.0028, 0.0017, 0.0009, -0.0002, -0.0005, -0.0031});
+}
+
 // A model exercising every function kind, coupled coordinates (one coordinate driving two
 // joints), scaled translations of non-root joints, a fitted axis after translations.
 Model FunctionModel() {
@@ -300,6 +307,8 @@ Model FunctionModel() {
   knee.child = 2;
   knee.centre = {0.0, -0.4, 0.0};
   knee.elements = {el(T, {0, 1, 0}, 7, Fn::Multiplier(1.3, KneeSpline())),
+                   el(T, {1, 0, 0}, 7, GcvKneeSpline()),
+                   el(T, {0, 0, 1}, 6, Fn::PiecewiseLinear({-1.5, 0.0, 1.2}, {0.01, -0.005, 0.02})),
                    el(R, {0, 0, 1}, 7, Fn::NaturalCubicSpline({-2, -1, 0, 0.5, 2}, {-1.9, -1.1, 0.1, 0.4, 2.2})),
                    el(R, {1, 0, 0}, 6, Fn::Compose(KneeSpline(), Fn::Polynomial({0.5, 0.1})))};
   std::vector<Marker> markers;
@@ -364,7 +373,9 @@ TEST(CoordinateFunction, DerivativesMatchCentralDifferences) {
   const std::vector<Fn> fns = {
       Fn::Identity(), Fn::Linear(-0.4, 0.2), Fn::Constant(0.7), KneeSpline(),
       Fn::NaturalCubicSpline({0, 1, 2, 3}, {0, 0.5, 0.2, 1.0}), Fn::Polynomial({0.1, -0.2, 0.3, 0.5}),
-      Fn::Multiplier(1.7, KneeSpline()), Fn::Compose(KneeSpline(), Fn::Polynomial({2.0, -0.1, 0.4}))};
+      Fn::Multiplier(1.7, KneeSpline()), Fn::Compose(KneeSpline(), Fn::Polynomial({2.0, -0.1, 0.4})),
+      GcvKneeSpline(), Fn::GcvSpline(1, {0, 1}, {0.2, 0.5}), Fn::GcvSpline(2, {-1, 0, 0.5, 2}, {1, 0, 0.3, -1}),
+      Fn::PiecewiseLinear({-1.5, 0.0, 1.2}, {0.01, -0.005, 0.02})};
   std::mt19937 rng(11);
   std::uniform_real_distribution<double> u(-3, 3);
   for (const Fn& f : fns) {
@@ -374,6 +385,13 @@ TEST(CoordinateFunction, DerivativesMatchCentralDifferences) {
       EXPECT_NEAR(f.Derivative(z), NumericDerivative(f, z), 1e-7) << Fn::KindName(f.kind) << " at " << z;
     }
   }
+  // A heptic through oscillating points: its truncated-power sum cancels to ~1e-13 of the values
+  // (weights of alternating sign), which a difference quotient over 1e-6 turns into ~1e-7.
+  const Fn heptic = Fn::GcvSpline(4, {-3, -2, -1, 0, 0.5, 1, 2, 2.5}, {0, 1, 0, 2, 1, 0, 1, 3});
+  for (int i = 0; i < 200; ++i) {
+    const double z = u(rng);
+    EXPECT_NEAR(heptic.Derivative(z), NumericDerivative(heptic, z), 1e-6) << "heptic at " << z;
+  }
   EXPECT_DOUBLE_EQ(Fn::Polynomial({2.0, -3.0, 1.0}).Value(2.0), 3.0);  // 2 z^2 - 3 z + 1
   EXPECT_DOUBLE_EQ(Fn::Multiplier(2.0, Fn::Constant(0.5)).Value(9.0), 1.0);
   EXPECT_TRUE(Fn::Multiplier(2.0, Fn::Constant(0.5)).IsConstant());
@@ -381,7 +399,73 @@ TEST(CoordinateFunction, DerivativesMatchCentralDifferences) {
   EXPECT_TRUE(Fn::Linear(1.0, 0.0).IsIdentity());
 }
 
+// OpenSim's GCVSpline with error variance 0 is the natural spline of degree 2m - 1 through the
+// points. The conditions that define it uniquely: it interpolates, it is C^(2m-2) at the knots, and
+// beyond the end knots it is a polynomial of degree m - 1 (with the continuity, the natural end
+// conditions). Checked here by differences, independently of how the factory solves for it; and
+// it reproduces any polynomial of degree below m.
+TEST(CoordinateFunction, GcvSplineIsTheInterpolatingNaturalSpline) {
+  for (int m : {1, 2, 3, 4}) {
+    const std::vector<double> x = {-2.0944, -1.7, -1.0, -0.45, 0.0, 0.3, 0.9, 2.0944};
+    std::vector<double> y;
+    for (double v : x) y.push_back(0.01 * std::sin(3.0 * v) + 0.002 * v);
+    const Fn f = Fn::GcvSpline(m, x, y);
+    ASSERT_TRUE(f.Check("f").ok()) << m << ": " << f.Check("f").message();
+    for (size_t i = 0; i < x.size(); ++i) EXPECT_NEAR(f.Value(x[i]), y[i], 1e-13) << m;
+    // Beyond each end: the (m)-th difference of a degree m - 1 polynomial vanishes.
+    for (double end : {x.front(), x.back()}) {
+      const double h = end < 0 ? -0.1 : 0.1;
+      double diff = 0.0, binom = 1.0;
+      for (int k = 0; k <= m; ++k) {
+        diff += ((m - k) % 2 == 0 ? 1.0 : -1.0) * binom * f.Value(end + k * h);
+        binom = binom * (m - k) / (k + 1);
+      }
+      EXPECT_NEAR(diff, 0.0, 1e-12) << "m " << m << " beyond " << end;
+    }
+    // Slope continuous at every knot (m >= 2), with a kink only for the linear spline.
+    if (m >= 2)
+      for (double k : x) EXPECT_NEAR(f.Derivative(k - 1e-9), f.Derivative(k + 1e-9), 1e-6) << m << " at " << k;
+  }
+  // The natural cubic (m = 2): zero curvature at both ends.
+  const std::vector<double> x = {-1.0, -0.2, 0.4, 1.1, 1.5};
+  const Fn cubic = Fn::GcvSpline(2, x, {0.3, -0.1, 0.25, 0.05, 0.4});
+  for (double end : {x.front(), x.back()}) {
+    // A one-sided second-order difference from inside: exact on the end interval's cubic.
+    const double h = end < 0 ? 1e-3 : -1e-3;
+    const double curvature =
+        (-3.0 * cubic.Derivative(end) + 4.0 * cubic.Derivative(end + h) - cubic.Derivative(end + 2 * h)) / (2 * h);
+    EXPECT_NEAR(curvature, 0.0, 1e-9) << end;
+  }
+  // A parabola is reproduced by the quintic (m = 3) exactly, a cubic is not.
+  auto parabola = [](double v) { return 0.2 - 0.3 * v + 0.05 * v * v; };
+  std::vector<double> py;
+  for (double v : x) py.push_back(parabola(v));
+  const Fn quintic = Fn::GcvSpline(3, {-1.0, -0.2, 0.4, 1.1, 1.5, 2.0}, {parabola(-1.0), parabola(-0.2), parabola(0.4), parabola(1.1), parabola(1.5), parabola(2.0)});
+  for (double v = -2.0; v <= 3.0; v += 0.05) EXPECT_NEAR(quintic.Value(v), parabola(v), 1e-12) << v;
+  auto cube = [](double v) { return v * v * v; };
+  const Fn not_cubic = Fn::GcvSpline(3, {-1.0, -0.2, 0.4, 1.1, 1.5, 2.0}, {cube(-1.0), cube(-0.2), cube(0.4), cube(1.1), cube(1.5), cube(2.0)});
+  EXPECT_GT(std::abs(not_cubic.Value(-0.6) - cube(-0.6)), 1e-4);
+}
+
+TEST(CoordinateFunction, PiecewiseLinearIsOpenSims) {
+  const Fn f = Fn::PiecewiseLinear({-1.0, 0.0, 2.0}, {1.0, -1.0, 3.0});
+  ASSERT_TRUE(f.Check("f").ok());
+  EXPECT_DOUBLE_EQ(f.Value(-0.5), 0.0);
+  EXPECT_DOUBLE_EQ(f.Value(1.0), 1.0);
+  EXPECT_DOUBLE_EQ(f.Value(-2.0), 3.0);  // the end slopes beyond the ends
+  EXPECT_DOUBLE_EQ(f.Value(3.0), 5.0);
+  EXPECT_DOUBLE_EQ(f.Derivative(0.5), 2.0);
+}
+
 TEST(CoordinateFunction, CheckRejectsBadSplines) {
+  auto says = [](const Fn& f, const std::string& what) {
+    const std::string m = f.Check("f").message();
+    return m.find(what) != std::string::npos ? ::testing::AssertionSuccess() : ::testing::AssertionFailure() << m;
+  };
+  EXPECT_TRUE(says(Fn::GcvSpline(3, {0, 1, 2, 3, 4}, {0, 1, 2, 3, 4}), "GCV spline of half order 3 needs at least 6 points, has 5"));
+  EXPECT_TRUE(says(Fn::GcvSpline(5, {0, 1, 2, 3, 4, 5, 6, 7, 8, 9}, {0, 1, 2, 3, 4, 5, 6, 7, 8, 9}), "half order 5 is not 1 to 4"));
+  EXPECT_TRUE(says(Fn::GcvSpline(1, {0, 1, 1}, {0, 1, 2}), "x values must increase"));
+  EXPECT_FALSE(Fn::PiecewiseLinear({0, 1}, {0}).Check("f").ok());
   EXPECT_FALSE(Fn::SimmSpline({0, 1, 1}, {0, 1, 2}).Check("f").ok());
   EXPECT_FALSE(Fn::SimmSpline({0, 1}, {0}).Check("f").ok());
   EXPECT_FALSE(Fn::SimmSpline({0}, {0}).Check("f").ok());

@@ -553,6 +553,47 @@ TEST(Osim, OpenSim3LayoutMatchesThe4Layout) {
   EXPECT_LT(RoundTripError(a, mocap::testutil::Baked(a.model, RandomParameters(a.model, rng2)), rng2), 1e-9);
 }
 
+// GCVSpline (as SIMM's converter and older models write joint functions) and
+// PiecewiseLinearFunction read as the functions OpenSim evaluates (model/coordinate_function.h),
+// and a fitted model written back keeps them.
+TEST(Osim, GcvSplineAndPiecewiseLinearJointFunctions) {
+  std::string text = kSmallModel;
+  const std::string simm =
+      "<SimmSpline name=\"function\"><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></SimmSpline>";
+  const std::string natural =
+      "<NaturalCubicSpline name=\"function\"><x>-2 -1 0 2</x><y>-0.42 -0.41 -0.40 -0.396</y></NaturalCubicSpline>";
+  ASSERT_NE(text.find(simm), std::string::npos);
+  ASSERT_NE(text.find(natural), std::string::npos);
+  text.replace(text.find(simm), simm.size(),
+               "<GCVSpline name=\"function\"> <half_order> 3 </half_order>\n"
+               "<x> -2 -1 -0.5 0 1 2 </x>\n<y> -0.003 0.002 0.003 0.004 0.001 -0.002 </y></GCVSpline>");
+  text.replace(text.find(natural), natural.size(),
+               "<PiecewiseLinearFunction name=\"function\"><x>-2 -1 0 2</x><y>-0.42 -0.41 -0.40 -0.396</y></PiecewiseLinearFunction>");
+  OsimImport im;
+  const Status s = ImportOsimText(text, "gcv.osim", &im);
+  ASSERT_TRUE(s.ok()) << s.message();
+  const int knee = im.model.FindJoint("knee");
+  ASSERT_GE(knee, 0);
+  const CoordinateFunction gcv = CoordinateFunction::GcvSpline(3, {-2, -1, -0.5, 0, 1, 2}, {-0.003, 0.002, 0.003, 0.004, 0.001, -0.002});
+  const CoordinateFunction linear = CoordinateFunction::PiecewiseLinear({-2, -1, 0, 2}, {-0.42, -0.41, -0.40, -0.396});
+  int found = 0;
+  for (const JointElement& el : im.model.joints()[knee].elements) {
+    if (el.function.kind == CoordinateFunction::Kind::kGcvSpline) {
+      EXPECT_EQ(el.function, gcv);
+      for (double z = -2.5; z <= 2.5; z += 0.25) EXPECT_DOUBLE_EQ(el.function.Value(z), gcv.Value(z)) << z;
+      ++found;
+    }
+    if (el.function.kind == CoordinateFunction::Kind::kPiecewiseLinear) {
+      EXPECT_EQ(el.function, linear);
+      EXPECT_NEAR(el.function.Value(-0.5), -0.405, 1e-15);
+      ++found;
+    }
+  }
+  EXPECT_EQ(found, 2);
+  std::mt19937 rng(12);
+  EXPECT_LT(RoundTripError(im, mocap::testutil::Baked(im.model, RandomParameters(im.model, rng)), rng), 1e-9);
+}
+
 TEST(Osim, BadInputIsAClearErrorWithElementAndLine) {
   const std::string good = kSmallModel;
   OsimImport im;
@@ -578,8 +619,17 @@ TEST(Osim, BadInputIsAClearErrorWithElementAndLine) {
        "EllipsoidJoint 'hip': unsupported joint type 'EllipsoidJoint'"},
       {"</PinJoint>", "</EllipsoidJoint>", "", ""},  // (paired with the case above)
       {"<SimmSpline name=\"function\"><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></SimmSpline>",
-       "<GCVSpline name=\"function\"><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></GCVSpline>",
-       "<SimmSpline name=\"function\"><x>-2", "GCVSpline 'function': unsupported function type 'GCVSpline'"},
+       "<StepFunction name=\"function\"><start_time>0</start_time><end_time>1</end_time></StepFunction>",
+       "<SimmSpline name=\"function\"><x>-2", "StepFunction 'function': unsupported function type 'StepFunction'"},
+      {"<SimmSpline name=\"function\"><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></SimmSpline>",
+       "<GCVSpline name=\"function\"><x>-2 -1 0 1 2 3</x><y>-0.003 0.002 0.004 0.001 -0.002 0</y></GCVSpline>",
+       "<SimmSpline name=\"function\"><x>-2", "GCVSpline 'function': missing <half_order>"},
+      {"<SimmSpline name=\"function\"><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></SimmSpline>",
+       "<GCVSpline name=\"function\"><half_order>3</half_order><error_variance>0.001</error_variance><x>-2 -1 0 1 2 3</x><y>-0.003 0.002 0.004 0.001 -0.002 0</y></GCVSpline>",
+       "<SimmSpline name=\"function\"><x>-2", "only interpolating GCV splines (error variance 0) are supported"},
+      {"<SimmSpline name=\"function\"><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></SimmSpline>",
+       "<GCVSpline name=\"function\"><half_order>3</half_order><x>-2 -1 0 1 2</x><y>-0.003 0.002 0.004 0.001 -0.002</y></GCVSpline>",
+       "<SimmSpline name=\"function\"><x>-2", "GCV spline of half order 3 needs at least 6 points, has 5"},
       {"<independent_coordinate_names>knee_angle</independent_coordinate_names>",
        "<independent_coordinate_names>knee_angel</independent_coordinate_names>",
        "<CoordinateCouplerConstraint name=\"knee_coupler\">",
