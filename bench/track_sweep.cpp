@@ -298,6 +298,8 @@ int main(int argc, char** argv) {
   app.add_option("--ghosts", scene.ghosts, "ghost points per frame")->check(CLI::NonNegativeNumber);
   app.add_option("--occlusion", scene.occlusion, "fraction of marker samples occluded");
   app.add_flag("--swap-traps", scene.swap_traps, "append the swap-trap movement");
+  app.add_option("--rate", scene.rate_hz, "frame rate of the scenes (Hz; the tracker is told it)")
+      ->check(CLI::PositiveNumber);
   app.add_option("--model", model, "nominal or truth")->check(CLI::IsMember({"nominal", "truth"}));
   app.add_flag("--json", json, "print JSON (per seed and summary) instead of a table");
   int timing_runs = 1;

@@ -310,6 +310,7 @@ void Tracker::Impl::Allocate() {
   segment_wants_fit.assign(model->num_segments(), 0);
   fit_rotation.assign(model->num_segments(), Eigen::Matrix3d::Identity());
   fit_translation.assign(model->num_segments(), Eigen::Vector3d::Zero());
+  fit_precision.assign(model->num_segments(), FitPrecision());
   centre_predicted.assign(model->num_segments(), Eigen::Vector3d::Zero());
   centre_variance.assign(model->num_segments(), 0.0);
   hist_head = hist_size = 0;

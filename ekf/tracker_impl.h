@@ -403,7 +403,23 @@ struct Tracker::Impl {
   static constexpr double kGroupRecentSeconds = 0.5;
   void LabelLooseSegments(int np);
   bool LooseSegment(int segment) const;
-  bool FitSegmentPose(int segment, Eigen::Matrix3d* R, Eigen::Vector3d* t) const;
+  // A segment pose's fit (FitSegmentPose): the anchors' weighted centroid, their weights' sum
+  // and the covariance of the fit's rotation (NaN where the anchors do not fix it), which say how
+  // well the fit places a point carried with the segment (PlacedVariance).
+  struct FitPrecision {
+    Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+    double weight = 0;
+    Eigen::Matrix3d rotation_covariance = Eigen::Matrix3d::Zero();
+  };
+  std::vector<FitPrecision> fit_precision;
+  bool FitSegmentPose(int segment, Eigen::Matrix3d* R, Eigen::Vector3d* t, FitPrecision* fit) const;
+  // The variance (per coordinate) of point q placed by segment's last pose fit: the fit's
+  // translation and its rotation's error carried out to q. NaN where the rotation is not fixed.
+  double PlacedVariance(int segment, const Eigen::Vector3d& q) const;
+  // The segment whose fitted pose places a loose segment's joint centre: its parent or, past
+  // segments without seen markers (a talus between a shank and a foot: no fit of its own), the
+  // nearest ancestor with markers; -1 at the root.
+  int PlacingSegment(int segment) const;
   int ApplyLabels(int np);
   bool FilterUpdate(double* nis, double dt);
   void Wrap(Eigen::VectorXd* z) const;

@@ -467,7 +467,16 @@ TEST(TrackReal, Welk007HipTrialMeetsTheTargetsWithItsGenericModelCalibratedOnThe
 // Seventeenth, their markers labelled as rigid groups (ekf/tracker.h, "Rigid groups"): 0.987609
 // (13 wrong) / 0.986928 (15 wrong), no swap longer than 5 frames; what is left is markers missed
 // in the fastest swings, where the points lie beyond the gates (BENCHMARKS.md, "Real recordings,
-// unlabelled").
+// unlabelled"). Twenty-third: those were the right foot's, whose group's sphere about its joint
+// centre was 12 cm off: the foot hangs from the talus, which has no markers and so no fit, and
+// its centre stayed where the prediction put it; carried by the shank's fit (ekf/tracker.h,
+// "Rigid groups") 0.994009 (2 wrong) / 0.993873 (3 wrong). What is left (0 ghosts: 42 samples
+// missed, 41 of them the forearms' in frames 0-9, and L_forearm and L_wrist_ulna crossed in
+// frame 2) is the forearms' start: the start leaves them (flexed away from the static pose),
+// the limb search places one arm a frame from frame 1, and its right labels then fail the
+// probation's 1 cm motion test (the limb was placed at rest; 80 ms later it has moved 2-7 cm),
+// so they are not measured and are withheld as doubtful returns until a frame's motion happens
+// to match.
 TEST(TrackReal, Welk007HipTrialAt12HzWithItsCalibratedModel) {
   SKIP_WITHOUT_SHARED_DATA();
   const mocap::Model subject = Calibrated(OsimModel(Welk("unscaled_generic.osim")), Welk("c3d_Trimmed_static1.c3d"));
@@ -477,9 +486,9 @@ TEST(TrackReal, Welk007HipTrialAt12HzWithItsCalibratedModel) {
                                         mocap::ekf::TrackerOptions::ScaleToSubject::kWhenTheModelDoesNotFit, 8);
     EXPECT_EQ(r.run.frames, 153);
     EXPECT_EQ(r.run.frames_tracking(), r.run.frames) << r.summary;
-    // What is reached (0.987609; 0.986928 with ghosts), not the accuracy targets; the swap
-    // target is met.
-    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.987 : 0.986) << r.summary;
+    // What is reached (0.994009, 2 wrong; 0.993873 with ghosts, 3 wrong: 0.987337 / 0.986928
+    // before the twenty-third session), not the accuracy targets; the swap target is met.
+    EXPECT_GE(r.run.score.accuracy(), ghosts == 0 ? 0.994 : 0.9938) << r.summary;
     EXPECT_EQ(r.run.score.swaps_longer_than_5_frames, 0) << r.summary;
   }
 }
