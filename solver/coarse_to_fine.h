@@ -179,8 +179,9 @@ struct CoarseToFineSummary {
   double fine_start_cost = 0;     // ... after stages 1 and 2
   double total_seconds = 0;
   // From the call to stage 3's start (stages 1 and 2 and the start's cost), wall and this
-  // process's CPU (every thread of it, not only the solve's): with gaps the coarse start is a
-  // fifth of the solve, and the CPU share is what a loaded machine still measures.
+  // process's CPU (every thread of it, not only the solve's): with gaps the coarse start took
+  // 18-40 % of the solve's CPU (BENCHMARKS.md, "With gaps", twenty-third session), and the CPU
+  // share is what a loaded machine still measures.
   double fine_start_seconds = 0;
   double fine_start_cpu_seconds = 0;
   bool frames_cached = false;     // the whole problem's per-frame cache fit its memory budget
