@@ -1475,7 +1475,8 @@ int main(int argc, char** argv) {
   const double ours_seconds = *std::min_element(ours_times.begin(), ours_times.end());
   const double ours_rss = memory.ProcessPeakMb();
   if (args.verbose)
-    std::fprintf(stderr, "--- ours ---\n%s%s\n", ours.FullReport().c_str(), ours_coarse.BriefReport().c_str());
+    std::fprintf(stderr, "--- ours: coarse stage ---\n%s--- ours ---\n%s%s\n", ours_coarse.coarse.FullReport().c_str(),
+                 ours.FullReport().c_str(), ours_coarse.BriefReport().c_str());
   out["ours_s"] = ours_seconds;
   out["ours_s_all"] = ours_times;
   out["ours_cpu_s"] = ours_cpu;
@@ -1505,7 +1506,9 @@ int main(int argc, char** argv) {
                         {"poses_rescued", ours_coarse.poses_rescued},
                         {"start_cost", ours_coarse.start_cost},
                         {"fine_start_cost", ours_coarse.fine_start_cost},
-                        {"total_seconds", ours_coarse.total_seconds}};
+                        {"total_seconds", ours_coarse.total_seconds},
+                        {"fine_start_s", ours_coarse.fine_start_seconds},
+                        {"fine_start_cpu_s", ours_coarse.fine_start_cpu_seconds}};
   out["ours_fine_options"] = {{"variable_projection", args.coarse.fine_variable_projection},
                               {"secant_curvature", args.coarse.fine_secant_curvature},
                               {"reduced_damping", args.coarse.fine_reduced_damping},
@@ -1735,6 +1738,11 @@ int main(int argc, char** argv) {
   std::printf("  %-30s %9.3f %9.3f %15.9e %5d %6.0f%%  %s\n", "ours (Schur LM)", ours_seconds,
               ours_cpu, ours.final_cost, ours.num_iterations(), 100 * ours_others_cpu,
               solver::ToString(ours.termination));
+  if (ours_coarse.used)
+    std::printf("    of it before the whole problem's first iteration (coarse stage %d iterations on %d frames, "
+                "poses): %.3f s (CPU %.3f s)\n",
+                ours_coarse.coarse.num_iterations(), ours_coarse.coarse_frames, ours_coarse.fine_start_seconds,
+                ours_coarse.fine_start_cpu_seconds);
   if (args.fit_model) {
     const solver::FitReport& r = fitted.report;
     double worst_trial = 0;

@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
+#include <ctime>
 #include <limits>
 #include <vector>
 #if defined(__AVX512F__)
@@ -20,6 +21,11 @@ namespace mocap::solver {
 namespace {
 using Clock = std::chrono::steady_clock;
 double Since(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
+double ProcessCpuSeconds() {
+  timespec t{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
+  return t.tv_sec + 1e-9 * t.tv_nsec;
+}
 
 class SubsetEvaluator : public FrameEvaluator {
  public:
@@ -30,6 +36,13 @@ class SubsetEvaluator : public FrameEvaluator {
   }
   bool EvaluatePoseJacobians(int frame, const double* y) override {
     return inner_->EvaluatePoseJacobians((*frames_)[frame], y);
+  }
+  // The problem's own assemblies (MarkerFitProblem: from per-segment sums), as on every frame.
+  bool PoseNormalEquations(int frame, const double* y, int ny, double* u, double* g) override {
+    return inner_->PoseNormalEquations((*frames_)[frame], y, ny, u, g);
+  }
+  bool AddNormalEquations(const NormalLayout& layout, double* u, double* w, double* gy, double* gp) override {
+    return inner_->AddNormalEquations(layout, u, w, gy, gp);
   }
   int num_blocks() const override { return inner_->num_blocks(); }
   const ResidualBlock& block(int i) const override { return inner_->block(i); }
@@ -360,12 +373,12 @@ std::string CoarseToFineSummary::BriefReport() const {
     return "coarse-to-fine: " + std::to_string(coarse.num_iterations()) + " iterations on " +
            std::to_string(coarse_frames) + " frames did not converge; all frames solved from the start";
   if (!used) return "coarse-to-fine: not used (plain solve)";
-  char buf[320];
+  char buf[400];
   std::snprintf(buf, sizeof(buf),
                 "coarse-to-fine: %d coarse frames, %d iterations (%.3f s); %d poses re-solved "
-                "(%.3f s); whole problem from cost %.6e (start %.6e); %.3f s",
+                "(%.3f s); whole problem from cost %.6e (start %.6e) after %.3f s (CPU %.3f s); %.3f s",
                 coarse_frames, coarse.num_iterations(), coarse.total_seconds, poses_improved,
-                pose_seconds, fine_start_cost, start_cost, total_seconds);
+                pose_seconds, fine_start_cost, start_cost, fine_start_seconds, fine_start_cpu_seconds, total_seconds);
   return buf;
 }
 
@@ -443,10 +456,13 @@ int UnobservedCoordinateWeights(ArrowProblem* problem, const Eigen::VectorXd& x,
 }
 
 int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
-                     Eigen::VectorXd* x, bool* ok, double* cost, const double* frame_costs, double min_gain) {
+                     Eigen::VectorXd* x, bool* ok, double* cost, const double* frame_costs, double min_gain,
+                     std::vector<double>* final_frame_costs) {
   const int nf = problem->num_frames(), ny = problem->frame_dim(), np = problem->shared_dim();
+  if (final_frame_costs) final_frame_costs->clear();
   *ok = problem->SetShared(x->tail(np));
   if (!*ok) return 0;
+  if (final_frame_costs) final_frame_costs->assign(nf, std::numeric_limits<double>::infinity());
   const int threads = std::max(1, std::min(num_threads, nf));
   std::vector<int> improved(threads, 0);
   std::vector<double> frames_cost(threads, 0.0);
@@ -500,6 +516,7 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
       previous_cost = cost;
       improved[t] += moved ? 1 : 0;
       frames_cost[t] += cost;
+      if (final_frame_costs) (*final_frame_costs)[f] = cost;
     }
   });
   int total = 0;
@@ -510,6 +527,7 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
     sum += frames_cost[t];
   }
   if (cost) *cost = 0.5 * (sum + SharedRowsSquaredNorm(*problem, x->tail(np)));
+  if (final_frame_costs && !*ok) final_frame_costs->clear();
   return total;
 }
 
@@ -583,6 +601,7 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
                             const CoarseToFineOptions& coarse, int num_threads, Eigen::VectorXd* x,
                             CoarseToFineSummary* summary) {
   const auto start = Clock::now();
+  const double start_cpu = ProcessCpuSeconds();
   CoarseToFineSummary local;
   CoarseToFineSummary& s = summary ? *summary : local;
   s = CoarseToFineSummary();
@@ -681,10 +700,21 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   if (coarse.wrap_frame_turns) WrapFramePoses(*problem, num_threads, &candidate);
   bool ok = false;
   double candidate_cost = 0;
-  s.poses_improved = RefineFramePoses(problem, coarse, num_threads, &candidate, &ok, &candidate_cost);
+  // Each frame's cost at its re-solved pose goes on to the rescue, and the candidate's cost is
+  // summed from what the rescue leaves: two passes over the frames fewer (the rescue's cost pass
+  // and a whole-problem cost), the same poses. The sum's order differs from
+  // ArrowSchurProblem::Cost's, but it only decides whether the candidate beats the caller's
+  // start and is reported; stage 3's first linearisation computes its own cost.
+  std::vector<double> frame_costs;
+  s.poses_improved =
+      RefineFramePoses(problem, coarse, num_threads, &candidate, &ok, &candidate_cost, nullptr, 0, &frame_costs);
   if (ok) {
-    s.poses_rescued = RescueFramesFromNeighbours(problem, coarse, num_threads, &candidate, nullptr);
-    if (s.poses_rescued > 0 && !fine.Cost(candidate, &candidate_cost)) ok = false;
+    s.poses_rescued = RescueFramesFromNeighbours(problem, coarse, num_threads, &candidate, &frame_costs);
+    if (s.poses_rescued > 0) {
+      double sum = 0;
+      for (double c : frame_costs) sum += c;
+      candidate_cost = 0.5 * (sum + SharedRowsSquaredNorm(*problem, candidate.tail(np)));
+    }
   }
   s.pose_seconds = Since(pose_start);
   if (ok && std::isfinite(candidate_cost) && candidate_cost < s.start_cost) {
@@ -696,6 +726,8 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   }
 
   // Stage 3.
+  s.fine_start_seconds = Since(start);
+  s.fine_start_cpu_seconds = ProcessCpuSeconds() - start_cpu;
   LmOptions fine_lm = options;
   fine_lm.initial_lambda = std::clamp(coarse.fine_initial_lambda, options.min_lambda, options.max_lambda);
   fine_lm.halve_rejected_steps = options.halve_rejected_steps || coarse.fine_halve_rejected_steps;

@@ -178,6 +178,12 @@ struct CoarseToFineSummary {
   double start_cost = 0;          // the whole problem's cost at the caller's x
   double fine_start_cost = 0;     // ... after stages 1 and 2
   double total_seconds = 0;
+  // From the call to stage 3's start (stages 1 and 2 and the start's cost), wall and this
+  // process's CPU (every thread of it, not only the solve's): with gaps the coarse start took
+  // 18-40 % of the solve's CPU (BENCHMARKS.md, "With gaps", twenty-third session), and the CPU
+  // share is what a loaded machine still measures.
+  double fine_start_seconds = 0;
+  double fine_start_cpu_seconds = 0;
   bool frames_cached = false;     // the whole problem's per-frame cache fit its memory budget
   std::string BriefReport() const;
 };
@@ -222,9 +228,12 @@ class FrameSubsetProblem : public ArrowProblem {
 // if given, holds each frame's sum of squares (residuals and frame prior) at x's poses.
 // `min_gain` > 0: a frame stops once a step lowers its sum of squares by at most min_gain
 // (instead of options.pose_tolerance of it), after at most options.pose_iterations steps.
+// `final_frame_costs`, if given, receives each frame's sum of squares at its result (what
+// FrameSquaredNorm gives there), for a pass that follows (RescueFramesFromNeighbours).
 int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
                      Eigen::VectorXd* x, bool* ok, double* cost = nullptr,
-                     const double* frame_costs = nullptr, double min_gain = 0);
+                     const double* frame_costs = nullptr, double min_gain = 0,
+                     std::vector<double>* final_frame_costs = nullptr);
 
 // Frames in marker gaps (issue 14): a frame whose markers leave some coordinates nearly
 // unobserved (a two-marker foot with its toe marker hidden: the rotation about the line from

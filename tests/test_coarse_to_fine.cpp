@@ -262,6 +262,73 @@ TEST(CoarseToFine, SubsetFrameIsTheFullProblemsFrame) {
   EXPECT_EQ(wa, wb);
 }
 
+// The coarse subset's frames use the problem's own assemblies (MarkerFitProblem: per-segment
+// sums) of the full problem's frame they stand for: what the view gives for its frame 1 is the
+// full problem's frame 17, a frame with a marker gap, to the bit, and not frame 1's.
+TEST(CoarseToFine, SubsetFrameUsesTheProblemsOwnAssembliesOfItsFrame) {
+  Model nominal = NominalWithoutOptional();
+  std::mt19937_64 rng(7);
+  Eigen::MatrixXd z_true;
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(nominal, 20, 0.0005, rng, &z_true);
+  const int fin = nominal.FindMarker("RFIN"), toe = nominal.FindMarker("LTOE");
+  ASSERT_GE(fin, 0);
+  ASSERT_GE(toe, 0);
+  trial.positions.block(15, 3 * fin, 4, 3).setConstant(std::numeric_limits<double>::quiet_NaN());
+  trial.positions.block(17, 3 * toe, 1, 3).setConstant(std::numeric_limits<double>::quiet_NaN());
+  solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
+  const int ny = problem.frame_dim(), np = problem.shared_dim();
+  Eigen::VectorXd p = problem.InitialShared();
+  for (int k = 0; k < np; ++k) p[k] += 0.01 * std::sin(1.0 + k);  // away from the nominal
+  solver::FrameSubsetProblem subset(&problem, {3, 17});
+  ASSERT_TRUE(subset.SetShared(p));
+  auto full = problem.NewEvaluator();
+  auto view = subset.NewEvaluator();
+  Eigen::VectorXd y = z_true.row(17).transpose();
+  for (int c = 0; c < ny; ++c) y[c] += 0.02 * std::cos(3.0 + c);
+
+  // The per-frame pose step's U and J_y^T r.
+  auto pose = [&](solver::FrameEvaluator* e, int f, Eigen::MatrixXd* u, Eigen::VectorXd* g) {
+    u->setZero(ny, ny);
+    g->setZero(ny);
+    return e->PoseNormalEquations(f, y.data(), ny, u->data(), g->data());
+  };
+  Eigen::MatrixXd u_full, u_view, u_other;
+  Eigen::VectorXd g_full, g_view, g_other;
+  ASSERT_TRUE(pose(full.get(), 17, &u_full, &g_full));
+  ASSERT_TRUE(pose(view.get(), 1, &u_view, &g_view));
+  ASSERT_TRUE(pose(full.get(), 1, &u_other, &g_other));
+  EXPECT_TRUE(u_view == u_full);
+  EXPECT_TRUE(g_view == g_full);
+  EXPECT_GT((g_other - g_full).norm(), 1e-6 * g_full.norm());
+
+  // The linearisation's U, W and both gradients, in a dense layout.
+  std::vector<int> u_offset(static_cast<size_t>(ny) * ny), w_offset(static_cast<size_t>(ny) * np);
+  for (int i = 0; i < ny; ++i)
+    for (int j = 0; j < ny; ++j) u_offset[static_cast<size_t>(i) * ny + j] = std::min(i, j) * ny + std::max(i, j);
+  for (int i = 0; i < ny * np; ++i) w_offset[i] = i;
+  solver::NormalLayout layout;
+  layout.ny = ny;
+  layout.np = np;
+  layout.u_offset = u_offset.data();
+  layout.w_offset = w_offset.data();
+  auto whole = [&](solver::FrameEvaluator* e, int f, Eigen::VectorXd* u, Eigen::VectorXd* w, Eigen::VectorXd* gy,
+                   Eigen::VectorXd* gp) {
+    u->setZero(ny * ny);
+    w->setZero(ny * np);
+    gy->setZero(ny);
+    gp->setZero(np);
+    return e->Evaluate(f, y.data(), true) && e->AddNormalEquations(layout, u->data(), w->data(), gy->data(), gp->data());
+  };
+  Eigen::VectorXd ua, wa, gya, gpa, ub, wb, gyb, gpb;
+  ASSERT_TRUE(whole(full.get(), 17, &ua, &wa, &gya, &gpa));
+  ASSERT_TRUE(whole(view.get(), 1, &ub, &wb, &gyb, &gpb));  // false: the view fell back to the blocks
+  EXPECT_TRUE(ua == ub);
+  EXPECT_TRUE(wa == wb);
+  EXPECT_TRUE(gya == gyb);
+  EXPECT_TRUE(gpa == gpb);
+  EXPECT_GT(wa.norm(), 0.0);
+}
+
 TEST(CoarseToFine, PoseOnlyJacobiansAreTheFullJacobiansYColumns) {
   Session s(5, 0.05);
   ASSERT_TRUE(s.problem->SetShared(s.x0.tail(s.problem->shared_dim())));
