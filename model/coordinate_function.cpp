@@ -169,6 +169,15 @@ void GcvEvaluate(const CoordinateFunction& f, double z, double* v, double* dv) {
   *dv = ds / f.d[1];
 }
 
+// A function defined by points, before its coefficients.
+CoordinateFunction WithPoints(Kind kind, std::vector<double> x, std::vector<double> y) {
+  CoordinateFunction f;
+  f.kind = kind;
+  f.x = std::move(x);
+  f.y = std::move(y);
+  return f;
+}
+
 }  // namespace
 
 CoordinateFunction CoordinateFunction::Linear(double slope, double offset) {
@@ -187,10 +196,7 @@ CoordinateFunction CoordinateFunction::Constant(double value) {
 }
 
 CoordinateFunction CoordinateFunction::SimmSpline(std::vector<double> x, std::vector<double> y) {
-  CoordinateFunction f;
-  f.kind = Kind::kSimmSpline;
-  f.x = std::move(x);
-  f.y = std::move(y);
+  CoordinateFunction f = WithPoints(Kind::kSimmSpline, std::move(x), std::move(y));
   if (f.x.size() == f.y.size()) SplineCoefficients(&f);
   return f;
 }
@@ -203,21 +209,15 @@ CoordinateFunction CoordinateFunction::NaturalCubicSpline(std::vector<double> x,
 }
 
 CoordinateFunction CoordinateFunction::PiecewiseLinear(std::vector<double> x, std::vector<double> y) {
-  CoordinateFunction f;
-  f.kind = Kind::kPiecewiseLinear;
-  f.x = std::move(x);
-  f.y = std::move(y);
+  CoordinateFunction f = WithPoints(Kind::kPiecewiseLinear, std::move(x), std::move(y));
   if (f.x.size() == f.y.size()) PiecewiseLinearCoefficients(&f);
   return f;
 }
 
 CoordinateFunction CoordinateFunction::GcvSpline(int half_order, std::vector<double> x,
                                                  std::vector<double> y) {
-  CoordinateFunction f;
-  f.kind = Kind::kGcvSpline;
+  CoordinateFunction f = WithPoints(Kind::kGcvSpline, std::move(x), std::move(y));
   f.half_order = half_order;
-  f.x = std::move(x);
-  f.y = std::move(y);
   GcvCoefficients(&f);
   return f;
 }
