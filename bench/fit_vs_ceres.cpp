@@ -659,10 +659,11 @@ Eigen::VectorXd InitialGuess(const BenchData& d, const solver::MarkerFitProblem&
   Eigen::VectorXd x(static_cast<Eigen::Index>(problem.num_frames()) * nz + np);
   const int nt = static_cast<int>(d.trial_ranges.size());
   std::vector<Status> status(nt);
-  solver::ParallelChunks(nt, threads, [&](int, int b, int e) {
+  const std::vector<int> order = solver::LongestFirst(nt, [&](int t) { return d.trial_ranges[t].second; });
+  solver::ParallelQueue(order, threads, [&](int, auto&& next) {
     Geometry geometry(d.model);
     solver::InverseKinematics ik(d.model, geometry, options.ik);
-    for (int t = b; t < e; ++t) {
+    for (int t = next(); t >= 0; t = next()) {
       const auto [first, count] = d.trial_ranges[t];
       Eigen::MatrixXd z;
       status[t] = ik.SolveTrial(problem.measurements().middleRows(first, count), &z);

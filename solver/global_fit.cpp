@@ -412,10 +412,12 @@ Status FitStage(const Model& initial, const std::vector<FitTrial>& trials, const
     Model model;
     MOCAP_RETURN_IF_ERROR(initial.WithParameters(p, &model));
     std::vector<Status> status(trials.size());
-    ParallelChunks(static_cast<int>(trials.size()), threads, [&](int, int b, int e) {
+    const std::vector<int> order = LongestFirst(static_cast<int>(trials.size()),
+                                                [&](int t) { return trials[t].markers.num_frames(); });
+    ParallelQueue(order, threads, [&](int, auto&& next) {
       Geometry geometry(model);
       InverseKinematics ik(model, geometry, options.ik);
-      for (int t = b; t < e; ++t) {
+      for (int t = next(); t >= 0; t = next()) {
         Eigen::MatrixXd z;
         if (keep_given && trials[t].initial_coordinates.size() > 0) {
           z = trials[t].initial_coordinates;

@@ -1,7 +1,10 @@
-// A minimal static-partition parallel loop. The fit's frames are independent and of equal cost,
-// so contiguous chunks per thread are balanced and keep each thread's data in its own cache.
+// Minimal parallel loops. The fit's frames are independent and of equal cost, so contiguous
+// chunks per thread are balanced and keep each thread's data in its own cache (ParallelChunks);
+// whole trials are not of equal cost (ParallelQueue).
 #pragma once
 #include <algorithm>
+#include <atomic>
+#include <numeric>
 #include <thread>
 #include <vector>
 
@@ -30,6 +33,36 @@ void ParallelChunks(int n, int num_threads, Fn&& fn) {
   }
   fn(0, 0, std::min(n, chunk));
   for (auto& th : threads) th.join();
+}
+
+// Tasks of unequal cost (a session's trials: 150 to 1,500 frames each), where contiguous chunks
+// leave a thread idle while another works through the long ones: fn(thread_index, next) on each
+// thread, where next() hands out the task indices in `order` one at a time (-1 when none is left)
+// and fn may set up its own workspace before it asks. Longest first (`order`) keeps the last task
+// short. Each task's result must not depend on the thread that runs it.
+template <typename Fn>
+void ParallelQueue(const std::vector<int>& order, int num_threads, Fn&& fn) {
+  const int n = static_cast<int>(order.size());
+  std::atomic<int> taken{0};
+  auto next = [&]() -> int {
+    const int k = taken.fetch_add(1, std::memory_order_relaxed);
+    return k < n ? order[k] : -1;
+  };
+  num_threads = std::max(1, std::min(num_threads, n));
+  std::vector<std::thread> threads;
+  threads.reserve(num_threads - 1);
+  for (int t = 1; t < num_threads; ++t) threads.emplace_back([&fn, &next, t] { fn(t, next); });
+  fn(0, next);
+  for (auto& th : threads) th.join();
+}
+
+// The indices 0..n-1 by decreasing size[i] (ties in index order): ParallelQueue's order.
+template <typename Size>
+std::vector<int> LongestFirst(int n, Size&& size) {
+  std::vector<int> order(n);
+  std::iota(order.begin(), order.end(), 0);
+  std::stable_sort(order.begin(), order.end(), [&](int a, int b) { return size(a) > size(b); });
+  return order;
 }
 
 }  // namespace mocap::solver
