@@ -281,7 +281,12 @@
 // pin -- fewer than three of the segment's other markers labelled (a hand's finger marker; a toe
 // marker with the heel hidden, or with the heel alone, the foot free to turn about it) -- needs
 // that point to have moved rigidly with the segment (the segment registration's standard for an
-// unpinned marker: a reflection beside a hidden finger marker has no such past).
+// unpinned marker: a reflection beside a hidden finger marker has no such past). And every label
+// the placement gives must be on a point the last frame had, where the marker moves slowly
+// enough for its point to be followed (at 12.5 Hz a swinging foot's point is new in every
+// frame): the placement replaces the limb's coordinates at once, so it takes no single-frame
+// point, as the gates' probation takes none into the update (seed 10 at 8 ghosts: in the fresh
+// track a forearm placed on a reflection born in that frame, RWRB on RWRA's point for 51 frames).
 // In the first second after a (re)initialisation the
 // labels themselves are suspect (a search over one frame can label a limb wrongly but
 // consistently), so there the search may also relabel the limb's markers and runs whenever any

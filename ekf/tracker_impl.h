@@ -547,6 +547,8 @@ struct Tracker::Impl {
   static constexpr double kFreshTrackSeconds = 1.0;
   bool RigidlyPlausible(int m, int k, bool anywhere = false) const;
   bool UnpinnedMarkerWithoutPast(int m, int k, const std::vector<int>& placement) const;
+  bool NewThisFrame(int k) const;
+  bool Followable(int m) const;
   // Labelled mates that pin a marker's place on its segment in a frame (not only its distances).
   static constexpr int kPinningMates = 3;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;

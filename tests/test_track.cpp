@@ -836,6 +836,17 @@ TEST(TrackHarderScene, ALimbSearchDoesNotTurnAFootAboutItsHeelOntoAReflection) {
   ExpectTheHarderSceneLabelledRight(33, 5600, true);
 }
 
+// Seed 10 of the harder scene tracked with the true model, its first 200 frames (the static
+// start). RWRB hidden from frame 7; at frame 26, in the track's first second (whose labels the
+// limb search may revise), a reflection appeared 63 mm from RWRA and the limb search's best
+// placement of the forearm put RWRA on it and RWRB on RWRA's point: the forearm turned 7 cm at
+// once, and RWRB held RWRA's point for 51 frames. The placement replaces the limb's coordinates
+// at full trust, so a label it gives now needs a point the last frame had (the gates' labels go
+// through probation for the same reason).
+TEST(TrackHarderScene, ALimbSearchDoesNotPlaceALimbOnAPointNewInThisFrame) {
+  ExpectTheHarderSceneLabelledRight(10, 200, true);
+}
+
 // Seed 10 of the harder scene, the static pose alone (3 s; another draw of ghosts and gaps than
 // the whole protocol's). At the model's own size the start put RTOE on a ghost, and the point
 // track kept it there for 111 frames (0.975 of the labels). The scaled search labels RTOE on its
