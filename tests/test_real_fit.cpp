@@ -272,6 +272,50 @@ TEST(RealFit, DISABLED_Gait2354AnklesWithin20mmOfOpenSims) {
   for (const char* joint : {"ankle_r", "ankle_l"}) EXPECT_LE(CentreDifferenceMm(Gait(), joint), 20.0) << joint;
 }
 
+// gait2354 with its knees' translation splines written as OpenSim GCVSplines (half order 3, as
+// SIMM's converter writes them; the same points), one `mocap fit` command: read, fitted and written
+// back as any generic model. The two splines differ between the points by micrometres, so the fit
+// ends as the SimmSpline model's does (Gait(): 7.556 mm, 28 iterations).
+TEST(RealFit, Gait2354WithGcvSplineKneesFitsAsItsSimmSplineModel) {
+  SKIP_WITHOUT_SHARED_DATA();
+  const std::string g = SharedData() + "/opensim_gait2354_subject01/";
+  std::ifstream in(g + "gait2354_simbody.osim");
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  int replaced = 0;
+  for (size_t at = text.find("<SimmSpline name=\"function\">"); at != std::string::npos;
+       at = text.find("<SimmSpline name=\"function\">", at)) {
+    const size_t end = text.find("</SimmSpline>", at);
+    ASSERT_NE(end, std::string::npos);
+    text.replace(end, 13, "</GCVSpline>");
+    text.replace(at, 28, "<GCVSpline name=\"function\"><half_order>3</half_order>");
+    ++replaced;
+  }
+  ASSERT_GE(replaced, 4);
+  const fs::path dir = Dir("gait2354_gcv");
+  const fs::path model = dir / "gait2354_gcv.osim";
+  std::ofstream(model) << text;
+  const auto r = Mocap("fit --model " + model.string() + " --marker-set " + g + "gait2354_Scale_MarkerSet.xml " + g +
+                       "subject01_static.trc " + g + "subject01_walk1.trc --out " + (dir / "fitted.osim").string() +
+                       " --report " + (dir / "report.json").string() + " --threads 2");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json report = ReadJson(dir / "report.json");
+  const nlohmann::json& simm = Gait().report;
+  ASSERT_FALSE(simm.is_null());
+  EXPECT_TRUE(report["converged"].get<bool>()) << report["termination_message"];
+  EXPECT_LE(report["iterations"].get<int>(), 30);
+  EXPECT_NEAR(report["marker_rms_mm"].get<double>(), simm["marker_rms_mm"].get<double>(), 0.05);
+  // The fitted model keeps its GCV splines.
+  const Model fitted = ImportModel((dir / "fitted.osim").string());
+  int gcv = 0;
+  for (const Joint& j : fitted.joints())
+    for (const JointElement& el : j.elements) {
+      const CoordinateFunction* f = &el.function;
+      while (f->kind == CoordinateFunction::Kind::kMultiplier) f = &f->inner[0];
+      gcv += f->kind == CoordinateFunction::Kind::kGcvSpline;
+    }
+  EXPECT_EQ(gcv, replaced);
+}
+
 // The ankles against the subject's malleoli instead of OpenSim's manually scaled tibiae (see
 // above): the report's landmark check (solver/fit_trust.h) on the static trial, each fitted ankle
 // no further from the malleoli's midpoint than 20 mm beyond the generic model's own offset (31.5
