@@ -149,6 +149,7 @@ void GcvCoefficients(CoordinateFunction* f) {
   f->b.assign(sol.data(), sol.data() + n);
   f->c.assign(sol.data() + n, sol.data() + n + m);
   f->d = {centre, half};
+  f->d.insert(f->d.end(), u.begin(), u.end());
 }
 
 void GcvEvaluate(const CoordinateFunction& f, double z, double* v, double* dv) {
@@ -161,7 +162,7 @@ void GcvEvaluate(const CoordinateFunction& f, double z, double* v, double* dv) {
   }
   for (size_t i = 0; i < f.x.size(); ++i) {
     double t, dt;
-    OddPower(u - (f.x[i] - f.d[0]) / f.d[1], p, &t, &dt);
+    OddPower(u - f.d[2 + i], p, &t, &dt);
     s += f.b[i] * t;
     ds += f.b[i] * dt;
   }
@@ -345,7 +346,7 @@ Status CoordinateFunction::Check(const std::string& where) const {
       if (x.size() > static_cast<size_t>(kMaxGcvPoints))
         return fail("GCV spline with " + std::to_string(x.size()) + " points (at most " +
                     std::to_string(kMaxGcvPoints) + " are supported)");
-      if (b.size() != x.size() || c.size() != static_cast<size_t>(half_order) || d.size() != 2)
+      if (b.size() != x.size() || c.size() != static_cast<size_t>(half_order) || d.size() != x.size() + 2)
         return fail("GCV spline coefficients missing (use the factory)");
     } else if (b.size() != x.size()) {
       return fail("spline coefficients missing (use the factory)");

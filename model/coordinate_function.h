@@ -74,7 +74,7 @@ struct CoordinateFunction {
   int half_order = 0;                      // kGcvSpline: m (degree 2m - 1)
   // Derived from x, y by the factories. Cubic splines and kPiecewiseLinear: the piecewise
   // polynomial's coefficients per knot. kGcvSpline: b the weights w_i, c the polynomial's a_k
-  // (lowest power first), d {centre, half-width} of the scaled abscissa u.
+  // (lowest power first), d {centre, half-width} of the scaled abscissa u, then the knots' u_i.
   std::vector<double> b, c, d;
 
   static CoordinateFunction Identity() { return {}; }

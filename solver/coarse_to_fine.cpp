@@ -269,12 +269,6 @@ void CholeskySolveInPlace(const double* l, int n, const int* rows, const int* co
   }
 }
 
-// Up to `iterations` damped Gauss–Newton steps on frame f's own rows and prior (p fixed) from
-// y, each kept only if it lowers *cost (y's sum of squares on entry); stops once a step gains
-// at most `tolerance` of the cost, or at most `min_gain`. A step that does not lower the cost is
-// retried up to options.pose_step_retries times with a damping 100 times higher (at least 1e-3
-// of the diagonal), each step shortened to options.pose_step_cap in its largest component
-// (CoarseToFineOptions). Returns whether y moved. `trial` is scratch of frame_dim.
 // A thread's scratch for FramePoseSteps, allocated once: the hot loop allocates nothing.
 struct PoseStepWorkspace {
   explicit PoseStepWorkspace(int ny)
@@ -284,6 +278,12 @@ struct PoseStepWorkspace {
   std::vector<int> rows, count, row_nonzeros;  // the factor's non-zeros (CholeskyInPlace)
 };
 
+// Up to `iterations` damped Gauss–Newton steps on frame f's own rows and prior (p fixed) from
+// y, each kept only if it lowers *cost (y's sum of squares on entry); stops once a step gains
+// at most `tolerance` of the cost, or at most `min_gain`. A step that does not lower the cost is
+// retried up to options.pose_step_retries times with a damping 100 times higher (at least 1e-3
+// of the diagonal), each step shortened to options.pose_step_cap in its largest component
+// (CoarseToFineOptions). Returns whether y moved. `trial` is scratch of frame_dim.
 bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& options, FrameEvaluator* evaluator,
                     int f, int iterations, double tolerance, double min_gain, PoseStepWorkspace* ws,
                     Eigen::VectorXd* trial, double* yf, double* cost) {
