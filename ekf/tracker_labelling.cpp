@@ -69,7 +69,7 @@ void Tracker::Impl::ComputeGates() {
     const double scale = labelled_run[m] == 0 ? HiddenScale(m) : 1.0;
     if (scale < 1.0)
       s_inv_hidden[m] =
-          (scale * S + MeasurementVariance(m) * Eigen::Matrix3d::Identity()).inverse();
+          (scale * S + (MeasurementVariance(m) + model_error[m]) * Eigen::Matrix3d::Identity()).inverse();
     S.diagonal().array() += MeasurementVariance(m) + (labelled_run[m] > 0 ? model_error[m] : 0.0);
     s_inv[m] = S.inverse();
     if (scale >= 1.0) s_inv_hidden[m] = s_inv[m];
