@@ -62,6 +62,8 @@ class ArrowSchurProblem : public LmProblem {
   ArrowSchurProblem(ArrowProblem* problem, int num_threads,
                     double cache_budget_bytes = kDefaultCacheBudgetBytes);
   bool caches_frames() const { return cached_; }
+  // The threads its passes use (Cost sums the frames' costs in their chunks).
+  int num_threads() const { return num_threads_; }
   // Passes SolveDamped made to form the reduced system (0 while Linearize anticipated them).
   int reduction_passes() const { return reduction_passes_; }
   // The symbolic structure: row groups in elimination order, how many shared columns each reaches.
