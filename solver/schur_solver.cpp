@@ -3,6 +3,10 @@
 #include <Eigen/Cholesky>
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <new>
+#include <sys/mman.h>
+#include <unistd.h>
 #if defined(__AVX512F__)
 #include <immintrin.h>
 #endif
@@ -81,10 +85,11 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
   const double cache_bytes = 8.0 * nf_ * (2.0 * u_pattern_.size() + w_size_);
   cached_ = cache_bytes <= cache_budget_bytes;
   if (cached_) {
-    u_cache_.reset(new double[static_cast<size_t>(nf_) * u_pattern_.size()]);
-    l_cache_.reset(new double[static_cast<size_t>(nf_) * u_pattern_.size()]);
-    w_cache_.reset(new double[static_cast<size_t>(nf_) * w_size_]);
+    u_cache_ = std::make_unique<CacheArray>(static_cast<size_t>(nf_) * u_pattern_.size());
+    l_cache_ = std::make_unique<CacheArray>(static_cast<size_t>(nf_) * u_pattern_.size());
+    w_cache_ = std::make_unique<CacheArray>(static_cast<size_t>(nf_) * w_size_);
   }
+  if (cached_) PopulateCaches();
   for (int t = 0; t < num_threads_; ++t) {
     auto ts = std::make_unique<ThreadState>();
     ts->evaluator = problem_->NewEvaluator();
@@ -122,6 +127,31 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
 }
 
 ArrowSchurProblem::~ArrowSchurProblem() = default;
+
+ArrowSchurProblem::CacheArray::CacheArray(size_t doubles) : bytes(std::max<size_t>(1, doubles) * sizeof(double)) {
+  void* p = mmap(nullptr, bytes, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+  if (p == MAP_FAILED) throw std::bad_alloc();
+  data = static_cast<double*>(p);
+}
+
+ArrowSchurProblem::CacheArray::~CacheArray() {
+  if (data) munmap(data, bytes);
+}
+
+void ArrowSchurProblem::PopulateCaches() {
+#if defined(MADV_POPULATE_WRITE)
+  const size_t page = static_cast<size_t>(sysconf(_SC_PAGESIZE));
+  ParallelChunks(nf_, num_threads_, [&](int, int b, int e) {
+    for (const auto& [cache, stride] : {std::pair<CacheArray*, size_t>{u_cache_.get(), u_pattern_.size()},
+                                        {l_cache_.get(), u_pattern_.size()}, {w_cache_.get(), static_cast<size_t>(w_size_)}}) {
+      const uintptr_t base = reinterpret_cast<uintptr_t>(cache->data);
+      const uintptr_t from = (base + b * stride * sizeof(double)) / page * page;
+      const uintptr_t to = std::min(base + cache->bytes, (base + e * stride * sizeof(double) + page - 1) / page * page);
+      if (to > from) madvise(reinterpret_cast<void*>(from), to - from, MADV_POPULATE_WRITE);
+    }
+  });
+#endif
+}
 
 int ArrowSchurProblem::num_parameters() const { return nf_ * ny_ + np_; }
 int ArrowSchurProblem::num_residuals() const { return problem_->num_residuals(); }
