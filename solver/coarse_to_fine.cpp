@@ -89,7 +89,7 @@ class WithInnerIterations : public LmProblem {
   // The Schur solver's cost pass keeps each frame's share: the inner iteration that follows an
   // accepted step starts from them instead of re-evaluating.
   bool Cost(const Eigen::VectorXd& x, double* cost) override {
-    if (project_ && refine_poses_ && !options_.wrap_frame_turns) {
+    if (project_ && refine_poses_ && !options_.wrap_frame_turns && options_.pose_iterations >= 1) {
       // The cost pass fused with the re-solve's first steps (ProjectedCost): the same figures.
       double refined = std::numeric_limits<double>::infinity();
       int rescued = 0;
