@@ -3,6 +3,7 @@
 #include <atomic>
 #include <gtest/gtest.h>
 
+#include "assembly_test_util.h"
 #include "fit_test_util.h"
 #include "model/default_model.h"
 #include "solver/coarse_to_fine.h"
@@ -701,8 +702,9 @@ TEST(CoarseToFine, RetriedPoseStepsAreCappedAndGoWhereAFailedStepStops) {
 // steps (solver::ProjectedCost) gives what the passes it replaces give, to the bit: the cost as
 // ArrowSchurProblem::Cost sums it (here in three chunks, the re-solve in two), then the rescue
 // judged by those costs (a stretch of frames turned into a wrong branch), then the poses
-// re-solved (markers in gaps, poses 0.05 rad off: several steps a frame). It fails if a rescued
-// frame keeps its first step from the pose it had, or if a sum is taken in another order.
+// re-solved (markers in gaps, poses 0.05 rad off: several steps a frame); with the fit's own
+// per-frame assembly and with FrameEvaluator's default one. It fails if a rescued frame keeps its
+// first step from the pose it had, or if a sum is taken in another order.
 TEST(CoarseToFine, ProjectedCostIsTheCostThenTheRescueThenTheReSolve) {
   Model nominal = NominalWithoutOptional();
   std::mt19937_64 rng(11);
@@ -737,37 +739,45 @@ TEST(CoarseToFine, ProjectedCostIsTheCostThenTheRescueThenTheReSolve) {
   options.pose_from_predecessor = false;
   const double function_tolerance = 1e-6;
 
-  solver::ArrowSchurProblem schur(&problem, 3);
+  // FrameEvaluator's default per-frame assembly (the blocks' products), which must leave the
+  // residuals in the blocks too, then the problem's own (per-segment sums), which the rest uses.
+  testutil::BlocksOnlyProblem blocks_only(&problem);
   double cost = 0, refined = 0;
-  ASSERT_TRUE(schur.Cost(x, &cost));
-  std::vector<double> costs = schur.frame_costs();
-  Eigen::VectorXd expected = x;
-  const int rescued = solver::RescueFramesFromNeighbours(&problem, options, 2, &expected, &costs);
-  bool ok = false;
-  const int moved = solver::RefineFramePoses(&problem, options, 2, &expected, &ok, &refined, costs.data(),
-                                             2.0 * function_tolerance * cost);
-  ASSERT_TRUE(ok);
-  EXPECT_GE(rescued, 10);  // the turned stretch
-  EXPECT_GT(moved, nf - 30);  // (a few frames' first step is refused: that path too, here 4)
-
-  Eigen::VectorXd projected;
-  double fused_cost = 0, fused_refined = 0;
+  Eigen::VectorXd expected;
   int fused_rescued = -1;
-  ASSERT_TRUE(solver::ProjectedCost(&problem, options, 2, schur.num_threads(), x, function_tolerance, &fused_cost,
-                                    &projected, &fused_refined, &fused_rescued));
-  EXPECT_EQ(fused_cost, cost);
-  EXPECT_EQ(fused_refined, refined);
-  EXPECT_EQ(fused_rescued, rescued);
-  ASSERT_EQ(projected.size(), expected.size());
-  int differ = 0;
-  for (Eigen::Index i = 0; i < x.size(); ++i) differ += projected[i] != expected[i];
-  EXPECT_EQ(differ, 0);
+  for (solver::ArrowProblem* view : {static_cast<solver::ArrowProblem*>(&blocks_only),
+                                     static_cast<solver::ArrowProblem*>(&problem)}) {
+    SCOPED_TRACE(view == &problem ? "own assembly" : "blocks' products");
+    solver::ArrowSchurProblem schur(view, 3);
+    ASSERT_TRUE(schur.Cost(x, &cost));
+    std::vector<double> costs = schur.frame_costs();
+    expected = x;
+    const int rescued = solver::RescueFramesFromNeighbours(view, options, 2, &expected, &costs);
+    bool ok = false;
+    const int moved = solver::RefineFramePoses(view, options, 2, &expected, &ok, &refined, costs.data(),
+                                               2.0 * function_tolerance * cost);
+    ASSERT_TRUE(ok);
+    EXPECT_GE(rescued, 10);  // the turned stretch
+    EXPECT_GT(moved, nf - 30);  // (a few frames' first step is refused: that path too, here 4)
+
+    Eigen::VectorXd projected;
+    double fused_cost = 0, fused_refined = 0;
+    ASSERT_TRUE(solver::ProjectedCost(view, options, 2, schur.num_threads(), x, function_tolerance, &fused_cost,
+                                      &projected, &fused_refined, &fused_rescued));
+    EXPECT_EQ(fused_cost, cost);
+    EXPECT_EQ(fused_refined, refined);
+    EXPECT_EQ(fused_rescued, rescued);
+    ASSERT_EQ(projected.size(), expected.size());
+    int differ = 0;
+    for (Eigen::Index i = 0; i < x.size(); ++i) differ += projected[i] != expected[i];
+    EXPECT_EQ(differ, 0);
+  }
   // Several steps in most frames: one step a frame leaves most of them elsewhere.
   solver::CoarseToFineOptions one = options;
   one.pose_iterations = 1;
   Eigen::VectorXd single;
   double single_cost = 0, single_refined = 0;
-  ASSERT_TRUE(solver::ProjectedCost(&problem, one, 2, schur.num_threads(), x, function_tolerance, &single_cost,
+  ASSERT_TRUE(solver::ProjectedCost(&problem, one, 2, 3, x, function_tolerance, &single_cost,
                                     &single, &single_refined, &fused_rescued));
   EXPECT_EQ(single_cost, cost);
   EXPECT_GT(single_refined, refined);
