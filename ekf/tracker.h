@@ -140,7 +140,7 @@
 // followed (mutual nearest neighbours between frames), which markers were measured on other points
 // beside it in the last 2 s, and stays out of those markers' gates -- one marker is one point. In
 // the first second of a track, whose labels may be wrong, this holds only for a marker labelled in
-// the last frame or that has held its point for 20 frames; a marker that loses its label while
+// the last frame or that has held its point for 0.1 s; a marker that loses its label while
 // another marker takes its last point held the wrong one, and its records go. The gate of a marker
 // labelled in the last frame also holds its own model error: the mean square of its residuals after
 // the update (an average over the offsets' time constant), which with a nominal model grows with

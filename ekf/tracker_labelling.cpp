@@ -849,11 +849,11 @@ int Tracker::Impl::Predecessor(int k, int np) const {
 // kept from its marker for good.
 bool Tracker::Impl::SeenBeside(int m, int k, int np) const {
   // A fresh track's labels may be wrong (see FreshTrack): there only a marker labelled in the last
-  // frame, or one that held its point for kHeldFrames, is kept from the reflection beside the
+  // frame, or one that held its point for kHeldSeconds, is kept from the reflection beside the
   // point it loses (an ankle marker hidden in the static pose, a lab-fixed ghost 8 cm away in its
   // still wide gate); a marker without either may be the one whose point was measured as
   // another's. A held label that proves wrong loses its records (PushHistory).
-  if (prev_np == 0 || (FreshTrack() && labelled_run[m] == 0 && held_run[m] < kHeldFrames))
+  if (prev_np == 0 || (FreshTrack() && labelled_run[m] == 0 && held_run[m] < HeldFrames()))
     return false;
   const int pred = Predecessor(k, np);
   if (pred < 0) return false;

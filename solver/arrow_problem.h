@@ -101,7 +101,9 @@ class FrameEvaluator {
   // the lower triangle of u (column-major ny x ny, by y index) and J_y^T r to g, over its residual
   // blocks (not its frame prior). False if a residual is not finite. This default sums the blocks
   // of EvaluatePoseJacobians; a problem that knows its Jacobians' structure may assemble them
-  // with less work (MarkerFitProblem: from per-segment sums). The blocks are left unspecified.
+  // with less work (MarkerFitProblem: from per-segment sums). The blocks are left with the
+  // frame's residuals at y, as Evaluate leaves them (EvaluatedFrameSquaredNorm reads them); their
+  // Jacobians are unspecified.
   virtual bool PoseNormalEquations(int frame, const double* y, int ny, double* u, double* g) {
     if (!EvaluatePoseJacobians(frame, y)) return false;
     for (int k = 0; k < num_blocks(); ++k) AddBlockNormalEquations(block(k), ny, u, g);
@@ -155,14 +157,15 @@ class ArrowProblem {
                               std::vector<std::vector<int>>* p_columns) const = 0;
 };
 
-// Frame f's own rows at y, for the shared values last set: the sum of squares (not halved) of
-// its residuals and of its frame prior. False if it is not finite.
-inline bool FrameSquaredNorm(const ArrowProblem& problem, FrameEvaluator* evaluator, int f,
-                             const double* y, double* sum) {
-  if (!evaluator->Evaluate(f, y, false)) return false;
+// Frame f's own rows at y, from an evaluator that has just evaluated f at y (Evaluate or
+// PoseNormalEquations): the sum of squares (not halved) of its blocks' residuals and of its
+// frame prior. False if it is not finite. One function for both, so a sum taken after
+// PoseNormalEquations is FrameSquaredNorm's to the bit.
+inline bool EvaluatedFrameSquaredNorm(const ArrowProblem& problem, const FrameEvaluator& evaluator, int f,
+                                      const double* y, double* sum) {
   double s = 0;
-  for (int k = 0; k < evaluator->num_blocks(); ++k) {
-    const ResidualBlock& b = evaluator->block(k);
+  for (int k = 0; k < evaluator.num_blocks(); ++k) {
+    const ResidualBlock& b = evaluator.block(k);
     for (int r = 0; r < b.rows; ++r) s += b.residual[r] * b.residual[r];
   }
   const double *w, *target;
@@ -170,6 +173,14 @@ inline bool FrameSquaredNorm(const ArrowProblem& problem, FrameEvaluator* evalua
     for (int i = 0; i < problem.frame_dim(); ++i) s += (w[i] * (y[i] - target[i])) * (w[i] * (y[i] - target[i]));
   *sum = s;
   return std::isfinite(s);
+}
+
+// Frame f's own rows at y, for the shared values last set: the sum of squares (not halved) of
+// its residuals and of its frame prior. False if it is not finite.
+inline bool FrameSquaredNorm(const ArrowProblem& problem, FrameEvaluator* evaluator, int f,
+                             const double* y, double* sum) {
+  if (!evaluator->Evaluate(f, y, false)) return false;
+  return EvaluatedFrameSquaredNorm(problem, *evaluator, f, y, sum);
 }
 
 // ||A (p - p0)||^2 + ||G (p - p0)||^2: the shared parameters' own rows (twice their cost).

@@ -89,6 +89,21 @@ class WithInnerIterations : public LmProblem {
   // The Schur solver's cost pass keeps each frame's share: the inner iteration that follows an
   // accepted step starts from them instead of re-evaluating.
   bool Cost(const Eigen::VectorXd& x, double* cost) override {
+    if (project_ && refine_poses_ && !options_.wrap_frame_turns && options_.pose_iterations >= 1) {
+      // The cost pass fused with the re-solve's first steps (ProjectedCost): the same figures.
+      double refined = std::numeric_limits<double>::infinity();
+      int rescued = 0;
+      if (!ProjectedCost(problem_, options_, num_threads_, whole_->num_threads(), x, function_tolerance_, cost,
+                         &projected_, &refined, &rescued))
+        return false;
+      rescued_ += rescued;
+      last_cost_ = *cost;
+      projected_at_ = Fingerprint(x);
+      costs_at_ = 0;
+      if (refined < *cost) *cost = refined;
+      else projected_ = x;
+      return true;
+    }
     if (!whole_->Cost(x, cost)) return false;
     costs_at_ = Fingerprint(x);
     last_cost_ = *cost;
@@ -283,20 +298,28 @@ struct PoseStepWorkspace {
 // at most `tolerance` of the cost, or at most `min_gain`. A step that does not lower the cost is
 // retried up to options.pose_step_retries times with a damping 100 times higher (at least 1e-3
 // of the diagonal), each step shortened to options.pose_step_cap in its largest component
-// (CoarseToFineOptions). Returns whether y moved. `trial` is scratch of frame_dim.
+// (CoarseToFineOptions). Returns whether y moved. `trial` is scratch of frame_dim. With
+// `given_cost`, *cost on entry is not needed: y's sum of squares is read from the first step's
+// evaluation (PoseNormalEquations leaves the residuals in the blocks) into *given_cost and
+// *cost, as FrameSquaredNorm would give it (NaN in *given_cost if y's residuals are not finite).
 bool FramePoseSteps(const ArrowProblem& problem, const CoarseToFineOptions& options, FrameEvaluator* evaluator,
                     int f, int iterations, double tolerance, double min_gain, PoseStepWorkspace* ws,
-                    Eigen::VectorXd* trial, double* yf, double* cost) {
+                    Eigen::VectorXd* trial, double* yf, double* cost, double* given_cost = nullptr) {
   const int ny = problem.frame_dim();
   Eigen::MatrixXd* u = &ws->u;
   Eigen::VectorXd* g = &ws->g;
   Eigen::VectorXd* step = &ws->step;
   bool moved = false;
+  if (given_cost) *given_cost = std::numeric_limits<double>::quiet_NaN();
   for (int it = 0; it < iterations; ++it) {
     // Normal equations of the frame's own rows: U = J_y^T J_y + B^T B, g = J_y^T r + B^T B (y - y0).
     u->setZero();
     g->setZero();
     if (!evaluator->PoseNormalEquations(f, yf, ny, u->data(), g->data())) break;
+    if (it == 0 && given_cost) {
+      if (!EvaluatedFrameSquaredNorm(problem, *evaluator, f, yf, cost)) return false;
+      *given_cost = *cost;
+    }
     const double *w, *target;
     if (problem.FramePrior(f, &w, &target))
       for (int i = 0; i < ny; ++i) {
@@ -595,6 +618,92 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
   int total = 0;
   for (int r : rescued) total += r;
   return total;
+}
+
+namespace {
+// The sum of v as a pass over ParallelChunks(n, threads) forms it: each chunk's in order, then the
+// chunks' in order (ArrowSchurProblem::Cost, RefineFramePoses), so a sum taken after the pass
+// keeps the bits.
+double ChunkedSum(const std::vector<double>& v, int threads) {
+  const int n = static_cast<int>(v.size());
+  threads = std::max(1, std::min(threads, n));
+  const int chunk = (n + threads - 1) / threads;
+  double sum = 0;
+  for (int t = 0; t < threads; ++t) {
+    double part = 0;
+    for (int f = std::min(n, t * chunk); f < std::min(n, (t + 1) * chunk); ++f) part += v[f];
+    sum += part;
+  }
+  return sum;
+}
+}  // namespace
+
+bool ProjectedCost(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads, int cost_threads,
+                   const Eigen::VectorXd& x, double function_tolerance, double* cost, Eigen::VectorXd* projected,
+                   double* projected_cost, int* rescued) {
+  const int nf = problem->num_frames(), ny = problem->frame_dim(), np = problem->shared_dim();
+  *rescued = 0;
+  *projected_cost = std::numeric_limits<double>::infinity();
+  if (options.pose_iterations < 1 || options.wrap_frame_turns || !problem->SetShared(x.tail(np))) return false;
+  const int threads = std::max(1, std::min(num_threads, nf));
+  // Pass 1: each frame's cost at x and its first pose step, the stepped poses kept apart (the
+  // rescue judges, and starts from, x's poses).
+  Eigen::VectorXd stepped = x;
+  std::vector<double> given(nf), first(nf);
+  std::vector<char> moved(nf, 0), fine(threads, 1);
+  ParallelChunks(nf, threads, [&](int t, int b, int e) {
+    std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
+    PoseStepWorkspace ws(ny);
+    Eigen::VectorXd trial(ny);
+    for (int f = b; f < e; ++f) {
+      double c = 0;
+      moved[f] = FramePoseSteps(*problem, options, evaluator.get(), f, 1, 0.0, 0.0, &ws, &trial,
+                                stepped.data() + static_cast<size_t>(f) * ny, &c, &given[f]);
+      first[f] = c;
+      if (!std::isfinite(given[f])) {
+        fine[t] = 0;
+        return;
+      }
+    }
+  });
+  for (char ok : fine)
+    if (!ok) return false;
+  *cost = 0.5 * (ChunkedSum(given, cost_threads) + SharedRowsSquaredNorm(*problem, x.tail(np)));
+  if (!std::isfinite(*cost)) return false;
+  // Frame costs are sums of squares: twice the cost's share.
+  const double min_gain = 2.0 * function_tolerance * *cost;
+  const double tolerance = min_gain > 0 ? 0.0 : options.pose_tolerance;
+  *projected = x;
+  std::vector<double> costs = given;
+  *rescued = RescueFramesFromNeighbours(problem, options, num_threads, projected, &costs);
+  // Pass 2: the steps after the first; a rescued frame (its cost lowered) from its new pose.
+  std::vector<double> final_cost(nf);
+  ParallelChunks(nf, threads, [&](int, int b, int e) {
+    std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
+    PoseStepWorkspace ws(ny);
+    Eigen::VectorXd trial(ny);
+    for (int f = b; f < e; ++f) {
+      double* yf = projected->data() + static_cast<size_t>(f) * ny;
+      double c = costs[f];
+      int iterations = options.pose_iterations;
+      if (!(costs[f] < given[f])) {
+        // x's pose: after a refused first step FramePoseSteps stops; after a kept one it goes on
+        // unless that step's gain already stops it.
+        iterations = 0;
+        if (moved[f]) {
+          c = first[f];
+          const double decrease = given[f] - c;
+          Eigen::Map<Eigen::VectorXd>(yf, ny) = stepped.segment(static_cast<Eigen::Index>(f) * ny, ny);
+          if (!(decrease <= tolerance * c || decrease <= min_gain)) iterations = options.pose_iterations - 1;
+        }
+      }
+      if (iterations > 0)
+        FramePoseSteps(*problem, options, evaluator.get(), f, iterations, tolerance, min_gain, &ws, &trial, yf, &c);
+      final_cost[f] = c;
+    }
+  });
+  *projected_cost = 0.5 * (ChunkedSum(final_cost, threads) + SharedRowsSquaredNorm(*problem, x.tail(np)));
+  return true;
 }
 
 LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, const LmOptions& options,

@@ -288,6 +288,23 @@ int UnobservedCoordinateWeights(ArrowProblem* problem, const Eigen::VectorXd& x,
 int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
                                Eigen::VectorXd* x, std::vector<double>* frame_costs);
 
+// Variable projection's judge of a candidate x (CoarseToFineOptions::fine_variable_projection):
+// the whole problem's cost at x, then every pose re-solved for x's geometry, in one pass over the
+// frames fewer than ArrowSchurProblem::Cost followed by RescueFramesFromNeighbours and
+// RefineFramePoses(..., min_gain = 2 function_tolerance cost): each frame's cost at x is read
+// from its first pose step's evaluation, which the re-solve's pass repeated (about 3 % of a
+// fine-stage iteration with gaps). The results are theirs to the bit: *cost summed as Cost sums it
+// with `cost_threads` threads (its frames in its chunks), the rescue judged by those costs
+// before any pose moves (a rescued frame's first step is taken again from its new pose), the
+// steps after the first only once that cost gives min_gain, *projected_cost summed as
+// RefineFramePoses sums it. `options.pose_iterations` steps a frame at most, from the given
+// poses (no predecessor's correction); options.wrap_frame_turns must be off. False if p is
+// refused or x's cost is not finite (*cost then undefined); *projected_cost is +inf if the
+// re-solve fails. *rescued: the frames the rescue replaced.
+bool ProjectedCost(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads, int cost_threads,
+                   const Eigen::VectorXd& x, double function_tolerance, double* cost, Eigen::VectorXd* projected,
+                   double* projected_cost, int* rescued);
+
 // Minimises `problem` from *x: stages 1-3 when it has enough frames, else LM directly. `whole`
 // is the caller's Schur solver of `problem` (it holds the per-frame cache, so the caller keeps
 // it for the covariance afterwards); stage 1 makes its own for the subset. The returned summary

@@ -189,6 +189,9 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     const Eigen::Vector3d origin = data_.segment_position[model.joints()[0].child];
     for (SegmentSums& s : sums_) s.SetZero();
     const double* meas = problem_.measurements().row(frame).data();
+    // The residuals also go to the blocks, as Evaluate leaves them (their Jacobians stale): the
+    // frame's cost at y then needs no second evaluation (EvaluatedFrameSquaredNorm).
+    num_blocks_ = 0;
     for (int m = 0; m < model.num_markers(); ++m) {
       if (!std::isfinite(meas[3 * m])) continue;
       const double scale = problem_.residual_scale(m) * std::sqrt(problem_.sample_weight(frame, m));
@@ -196,16 +199,24 @@ class MarkerFrameEvaluator : public FrameEvaluator {
       Eigen::Vector3d r;
       for (int k = 0; k < 3; ++k) r[k] = scale * (x[k] - meas[3 * m + k]);
       if (!std::isfinite(r[0] + r[1] + r[2])) return false;
+      const std::vector<int>& ycols = model.marker_coordinates(m);
+      const std::vector<int>& pcols = problem_.marker_free_columns(m);
+      SetBlock(num_blocks_++, problem_.block_kind(m), 3, r.data(), static_cast<int>(ycols.size()), ycols.data(),
+               static_cast<int>(pcols.size()), pcols.data());
       AddMarker(scale * scale, x - origin, scale * r, &sums_[model.markers()[m].segment]);
     }
+    num_marker_blocks_ = num_blocks_;
     PoseTwists(origin, g);
     for (const PosePair& pp : pose_pairs_) u[pp.offset] += pp.factor * twist_[pp.b].dot(force_[pp.a]);
     // Coordinate limits: a one-row block where the frame is beyond a range, as Evaluate has it.
-    for (const auto& lim : problem_.coordinate_limits()) {
+    const auto& limits = problem_.coordinate_limits();
+    for (size_t i = 0; i < limits.size(); ++i) {
+      const auto& lim = limits[i];
       const double excess = RangeExcess(model.coordinates()[lim.coordinate], y[lim.coordinate]);
       if (excess == 0.0) continue;
       const double r = lim.weight * excess;
       if (!std::isfinite(r)) return false;
+      SetBlock(num_blocks_++, problem_.limit_kind(static_cast<int>(i)), 1, &r, 1, &lim.coordinate, 0, nullptr);
       u[static_cast<size_t>(lim.coordinate) * (ny + 1)] += lim.weight * lim.weight;
       g[lim.coordinate] += lim.weight * r;
     }
@@ -314,6 +325,22 @@ class MarkerFrameEvaluator : public FrameEvaluator {
     }
   }
 
+  // Block b's residuals and columns as Evaluate sets them; its Jacobians left as they were.
+  void SetBlock(int b, int kind, int rows, const double* r, int num_y, const int* y_index, int num_p,
+                const int* p_index) {
+    double* out = residual_.data() + 3 * b;
+    for (int k = 0; k < rows; ++k) out[k] = r[k];
+    ResidualBlock& blk = blocks_[b];
+    blk.kind = kind;
+    blk.rows = rows;
+    blk.residual = out;
+    blk.num_y = num_y;
+    blk.y_index = y_index;
+    blk.num_p = num_p;
+    blk.p_index = p_index;
+    blk.jy = jy_[b].data();
+    blk.jp = num_p > 0 ? jp_[b].data() : nullptr;
+  }
   static void AddMarker(double w, const Eigen::Vector3d& p, const Eigen::Vector3d& wr, SegmentSums* s) {
     const Eigen::Vector3d wp = w * p;
     s->mass += w;

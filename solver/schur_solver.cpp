@@ -3,6 +3,10 @@
 #include <Eigen/Cholesky>
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <new>
+#include <sys/mman.h>
+#include <unistd.h>
 #if defined(__AVX512F__)
 #include <immintrin.h>
 #endif
@@ -81,10 +85,11 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
   const double cache_bytes = 8.0 * nf_ * (2.0 * u_pattern_.size() + w_size_);
   cached_ = cache_bytes <= cache_budget_bytes;
   if (cached_) {
-    u_cache_.reset(new double[static_cast<size_t>(nf_) * u_pattern_.size()]);
-    l_cache_.reset(new double[static_cast<size_t>(nf_) * u_pattern_.size()]);
-    w_cache_.reset(new double[static_cast<size_t>(nf_) * w_size_]);
+    u_cache_ = std::make_unique<CacheArray>(static_cast<size_t>(nf_) * u_pattern_.size());
+    l_cache_ = std::make_unique<CacheArray>(static_cast<size_t>(nf_) * u_pattern_.size());
+    w_cache_ = std::make_unique<CacheArray>(static_cast<size_t>(nf_) * w_size_);
   }
+  if (cached_) PopulateCaches();
   for (int t = 0; t < num_threads_; ++t) {
     auto ts = std::make_unique<ThreadState>();
     ts->evaluator = problem_->NewEvaluator();
@@ -122,6 +127,31 @@ ArrowSchurProblem::ArrowSchurProblem(ArrowProblem* problem, int num_threads,
 }
 
 ArrowSchurProblem::~ArrowSchurProblem() = default;
+
+ArrowSchurProblem::CacheArray::CacheArray(size_t doubles) : bytes(std::max<size_t>(1, doubles) * sizeof(double)) {
+  void* p = mmap(nullptr, bytes, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+  if (p == MAP_FAILED) throw std::bad_alloc();
+  data = static_cast<double*>(p);
+}
+
+ArrowSchurProblem::CacheArray::~CacheArray() {
+  if (data) munmap(data, bytes);
+}
+
+void ArrowSchurProblem::PopulateCaches() {
+#if defined(MADV_POPULATE_WRITE)
+  const size_t page = static_cast<size_t>(sysconf(_SC_PAGESIZE));
+  ParallelChunks(nf_, num_threads_, [&](int, int b, int e) {
+    for (const auto& [cache, stride] : {std::pair<CacheArray*, size_t>{u_cache_.get(), u_pattern_.size()},
+                                        {l_cache_.get(), u_pattern_.size()}, {w_cache_.get(), static_cast<size_t>(w_size_)}}) {
+      const uintptr_t base = reinterpret_cast<uintptr_t>(cache->data);
+      const uintptr_t from = (base + b * stride * sizeof(double)) / page * page;
+      const uintptr_t to = std::min(base + cache->bytes, (base + e * stride * sizeof(double) + page - 1) / page * page);
+      if (to > from) madvise(reinterpret_cast<void*>(from), to - from, MADV_POPULATE_WRITE);
+    }
+  });
+#endif
+}
 
 int ArrowSchurProblem::num_parameters() const { return nf_ * ny_ + np_; }
 int ArrowSchurProblem::num_residuals() const { return problem_->num_residuals(); }
@@ -552,6 +582,21 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     const int rows = blk.rows, nyb = blk.num_y, np = static_cast<int>(kind.free_p.size());
     const int* yorder = kind.y_order.data();
     if (assembled && !linearizing) continue;
+    if (assembled) {
+      // Only the cost and V's stack need the block: its J_p rows go straight into the stack (the
+      // panel below, then a copy of it, cost a memmove call per marker).
+      double res[3] = {0, 0, 0};
+      for (int r = 0; r < rows; ++r) res[r] = blk.residual[r];
+      ts.cost += res[0] * res[0] + res[1] * res[1] + res[2] * res[2];
+      if (np == 0) continue;
+      int& count = ts.v_count[blk.kind];
+      double* stack = ts.v_stack[blk.kind].data() + static_cast<size_t>(count) * np;
+      for (int c = 0; c < np; ++c)
+        for (int r = 0; r < rows; ++r) stack[r * np + c] = blk.jp[kind.free_local[c] * kMaxBlockRows + r];
+      count += rows;
+      if (count + kMaxBlockRows > ts.v_stack[blk.kind].cols()) FlushV(ts, blk.kind);
+      continue;
+    }
     // jp as three rows of np values (row r at jp + r * np), so a W row is three axpys.
     for (int c = 0; c < np; ++c)
       for (int r = 0; r < 3; ++r)
@@ -559,13 +604,12 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     const double* jp0 = jp;
     const double* jp1 = jp + np;
     const double* jp2 = jp + 2 * np;
-    if (!assembled)
-      for (int a = 0; a < nyb; ++a)
-        for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[yorder[a] * kMaxBlockRows + r] : 0.0;
+    for (int a = 0; a < nyb; ++a)
+      for (int r = 0; r < 3; ++r) jy[3 * a + r] = r < rows ? blk.jy[yorder[a] * kMaxBlockRows + r] : 0.0;
     double* wrow = ts.w_row.data();
     const int* ypos = kind.y_position.data();
     const int* woff = kind.w_offset.data();
-    for (int a = 0; a < nyb && !assembled; ++a) {
+    for (int a = 0; a < nyb; ++a) {
       const double a0 = jy[3 * a], a1 = jy[3 * a + 1], a2 = jy[3 * a + 2];
       double* ucol = u + ypos[a];  // row ypos[a], columns ypos[c] <= ypos[a] (c >= a)
       for (int c = a; c < nyb; ++c)
@@ -578,12 +622,10 @@ bool ArrowSchurProblem::AccumulateFrame(ThreadState& ts, bool linearizing) const
     double res[3] = {0, 0, 0};
     for (int r = 0; r < rows; ++r) res[r] = blk.residual[r];
     ts.cost += res[0] * res[0] + res[1] * res[1] + res[2] * res[2];
-    if (!assembled) {
-      for (int a = 0; a < nyb; ++a)
-        ts.gyi[blk.y_index[yorder[a]]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
-      for (int c = 0; c < np; ++c)
-        ts.gp[kind.free_p[c]] += jp0[c] * res[0] + jp1[c] * res[1] + jp2[c] * res[2];
-    }
+    for (int a = 0; a < nyb; ++a)
+      ts.gyi[blk.y_index[yorder[a]]] += jy[3 * a] * res[0] + jy[3 * a + 1] * res[1] + jy[3 * a + 2] * res[2];
+    for (int c = 0; c < np; ++c)
+      ts.gp[kind.free_p[c]] += jp0[c] * res[0] + jp1[c] * res[1] + jp2[c] * res[2];
     if (np > 0) {
       int& count = ts.v_count[blk.kind];
       double* stack = ts.v_stack[blk.kind].data() + static_cast<size_t>(count) * np;

@@ -62,6 +62,8 @@ class ArrowSchurProblem : public LmProblem {
   ArrowSchurProblem(ArrowProblem* problem, int num_threads,
                     double cache_budget_bytes = kDefaultCacheBudgetBytes);
   bool caches_frames() const { return cached_; }
+  // The threads its passes use (Cost sums the frames' costs in their chunks).
+  int num_threads() const { return num_threads_; }
   // Passes SolveDamped made to form the reduced system (0 while Linearize anticipated them).
   int reduction_passes() const { return reduction_passes_; }
   // The symbolic structure: row groups in elimination order, how many shared columns each reaches.
@@ -177,12 +179,12 @@ class ArrowSchurProblem : public LmProblem {
   void FlushGroup(ThreadState& ts, int group) const;
   void AddFramePrior(int f, Eigen::MatrixXd* u) const;
   bool LoadFrame(ThreadState& ts, int f, const Eigen::VectorXd& damping);
-  double* CachedU(int f) { return u_cache_.get() + static_cast<size_t>(f) * u_pattern_.size(); }
-  double* CachedL(int f) { return l_cache_.get() + static_cast<size_t>(f) * u_pattern_.size(); }
+  double* CachedU(int f) { return u_cache_->get() + static_cast<size_t>(f) * u_pattern_.size(); }
+  double* CachedL(int f) { return l_cache_->get() + static_cast<size_t>(f) * u_pattern_.size(); }
   bool FactorInPlace(Eigen::MatrixXd* a) const;
   void SolveLower(const Eigen::MatrixXd& l, Eigen::VectorXd* v) const;
   void SolveLowerTransposed(const Eigen::MatrixXd& l, Eigen::VectorXd* v) const;
-  double* CachedW(int f) { return w_cache_.get() + static_cast<size_t>(f) * w_size_; }
+  double* CachedW(int f) { return w_cache_->get() + static_cast<size_t>(f) * w_size_; }
   // Accumulates S (lower triangle) and the reduced right-hand side over all frames.
   bool FormReducedSystem(const Eigen::VectorXd& damping, Eigen::MatrixXd* s, Eigen::VectorXd* rhs);
   // dx_f = -U_f^{-1} (b_f + W_f dp) for every frame, b = `gradient` (the frames' part), with the
@@ -212,9 +214,24 @@ class ArrowSchurProblem : public LmProblem {
   bool cached_ = false;
   // Per frame: U_f and the last damped factor L_f (their pattern, packed), and compact W_f.
   // Left uninitialised (every frame's entries are written by Linearize before any read): zero-
-  // filling 144 MB at 6,000 frames took 0.1 s of a 1 s fit, single-threaded; untouched, the
-  // pages are faulted in by the first linearisation's threads as they write them.
-  std::unique_ptr<double[]> u_cache_, l_cache_, w_cache_;
+  // filling 144 MB at 6,000 frames took 0.1 s of a 1 s fit, single-threaded. Anonymous mappings
+  // whose pages each thread has the kernel populate for its own frames in one call
+  // (MADV_POPULATE_WRITE, Linux >= 5.14; elsewhere the pages fault in on first write): faulted in
+  // one at a time by the first linearisation, the 43,000 pages of 6,000 full-body frames cost
+  // about 0.1 s of the solve's CPU in page faults (BENCHMARKS.md, "With gaps", twenty-fourth
+  // session).
+  struct CacheArray {
+    double* data = nullptr;
+    size_t bytes = 0;
+    CacheArray() = default;
+    explicit CacheArray(size_t doubles);
+    CacheArray(const CacheArray&) = delete;
+    CacheArray& operator=(const CacheArray&) = delete;
+    ~CacheArray();
+    double* get() const { return data; }
+  };
+  void PopulateCaches();
+  std::unique_ptr<CacheArray> u_cache_, l_cache_, w_cache_;
   std::vector<double> frame_costs_;        // of the last Cost call
   Eigen::MatrixXd v_total_;                // sum of V_f (lower) at the linearisation point
   double anticipated_lambda_ = 0, anticipated_min_ = 0, anticipated_max_ = 0;

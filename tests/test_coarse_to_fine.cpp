@@ -3,6 +3,7 @@
 #include <atomic>
 #include <gtest/gtest.h>
 
+#include "assembly_test_util.h"
 #include "fit_test_util.h"
 #include "model/default_model.h"
 #include "solver/coarse_to_fine.h"
@@ -695,4 +696,93 @@ TEST(CoarseToFine, RetriedPoseStepsAreCappedAndGoWhereAFailedStepStops) {
   }
   EXPECT_EQ(plain_stuck, 40);  // turned 3 rad, every Gauss-Newton step of the turned frames fails
   EXPECT_EQ(retried_lower, plain_stuck);
+}
+
+// The fine stage's judge of a candidate (variable projection) fused with the re-solve's first
+// steps (solver::ProjectedCost) gives what the passes it replaces give, to the bit: the cost as
+// ArrowSchurProblem::Cost sums it (here in three chunks, the re-solve in two), then the rescue
+// judged by those costs (a stretch of frames turned into a wrong branch), then the poses
+// re-solved (markers in gaps, poses 0.05 rad off: several steps a frame); with the fit's own
+// per-frame assembly and with FrameEvaluator's default one. It fails if a rescued frame keeps its
+// first step from the pose it had, or if a sum is taken in another order.
+TEST(CoarseToFine, ProjectedCostIsTheCostThenTheRescueThenTheReSolve) {
+  Model nominal = NominalWithoutOptional();
+  std::mt19937_64 rng(11);
+  const Model truth = testutil::Baked(nominal, testutil::PerturbedParameters(nominal, rng));
+  const int nf = 300, ny = nominal.num_coordinates();
+  Eigen::MatrixXd z_true;
+  formats::MarkerTrial trial = testutil::SimulateRandomMotion(truth, nf, 0.0005, rng, &z_true);
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  for (const auto& [name, first, count] : {std::tuple<const char*, int, int>{"RFIN", 40, 40}, {"RTOE", 150, 50},
+                                           {"LHEE", 60, 30}, {"LFIN", 200, 60}}) {
+    const int m = nominal.FindMarker(name);
+    ASSERT_GE(m, 0) << name;
+    trial.positions.block(first, 3 * m, count, 3).setConstant(nan);
+  }
+  solver::MarkerFitProblem problem(nominal, trial.positions, solver::FitOptions());
+  const int np = problem.shared_dim();
+  Eigen::VectorXd x(static_cast<Eigen::Index>(nf) * ny + np);
+  std::normal_distribution<double> noise(0.0, 0.05);
+  for (int f = 0; f < nf; ++f)
+    for (int c = 0; c < ny; ++c) x[f * ny + c] = z_true(f, c) + noise(rng);
+  x.tail(np) = problem.InitialShared();
+  problem.SetFramePriorTargets(x);
+  const int knee = nominal.FindCoordinate("knee_angle_r"), hip = nominal.FindCoordinate("hip_rotation_r");
+  ASSERT_GE(knee, 0);
+  ASSERT_GE(hip, 0);
+  for (int f = 100; f < 120; ++f) {
+    x[f * ny + knee] += 1.5;
+    x[f * ny + hip] -= 1.5;
+  }
+  solver::CoarseToFineOptions options;
+  options.pose_iterations = options.inner_pose_iterations;  // as the fine stage's re-solve
+  options.pose_from_predecessor = false;
+  const double function_tolerance = 1e-6;
+
+  // FrameEvaluator's default per-frame assembly (the blocks' products), which must leave the
+  // residuals in the blocks too, then the problem's own (per-segment sums), which the rest uses.
+  testutil::BlocksOnlyProblem blocks_only(&problem);
+  double cost = 0, refined = 0;
+  Eigen::VectorXd expected;
+  int fused_rescued = -1;
+  for (solver::ArrowProblem* view : {static_cast<solver::ArrowProblem*>(&blocks_only),
+                                     static_cast<solver::ArrowProblem*>(&problem)}) {
+    SCOPED_TRACE(view == &problem ? "own assembly" : "blocks' products");
+    solver::ArrowSchurProblem schur(view, 3);
+    ASSERT_TRUE(schur.Cost(x, &cost));
+    std::vector<double> costs = schur.frame_costs();
+    expected = x;
+    const int rescued = solver::RescueFramesFromNeighbours(view, options, 2, &expected, &costs);
+    bool ok = false;
+    const int moved = solver::RefineFramePoses(view, options, 2, &expected, &ok, &refined, costs.data(),
+                                               2.0 * function_tolerance * cost);
+    ASSERT_TRUE(ok);
+    EXPECT_GE(rescued, 10);  // the turned stretch
+    EXPECT_GT(moved, nf - 30);  // (a few frames' first step is refused: that path too, here 4)
+
+    Eigen::VectorXd projected;
+    double fused_cost = 0, fused_refined = 0;
+    ASSERT_TRUE(solver::ProjectedCost(view, options, 2, schur.num_threads(), x, function_tolerance, &fused_cost,
+                                      &projected, &fused_refined, &fused_rescued));
+    EXPECT_EQ(fused_cost, cost);
+    EXPECT_EQ(fused_refined, refined);
+    EXPECT_EQ(fused_rescued, rescued);
+    ASSERT_EQ(projected.size(), expected.size());
+    int differ = 0;
+    for (Eigen::Index i = 0; i < x.size(); ++i) differ += projected[i] != expected[i];
+    EXPECT_EQ(differ, 0);
+  }
+  // Several steps in most frames: one step a frame leaves most of them elsewhere.
+  solver::CoarseToFineOptions one = options;
+  one.pose_iterations = 1;
+  Eigen::VectorXd single;
+  double single_cost = 0, single_refined = 0;
+  ASSERT_TRUE(solver::ProjectedCost(&problem, one, 2, 3, x, function_tolerance, &single_cost,
+                                    &single, &single_refined, &fused_rescued));
+  EXPECT_EQ(single_cost, cost);
+  EXPECT_GT(single_refined, refined);
+  int elsewhere = 0;
+  for (int f = 0; f < nf; ++f)
+    elsewhere += (single.segment(f * ny, ny) - expected.segment(f * ny, ny)).lpNorm<Eigen::Infinity>() > 1e-9;
+  EXPECT_GT(elsewhere, nf / 2);
 }
