@@ -102,6 +102,7 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   geometry = Geometry(md);
   geometry_params = md.InitialParameters();
   data = ModelData(md);
+  hidden_data = ModelData(md);
   rotational.assign(nz, 0);
   wraps.assign(nz, 0);
   for (int i = 0; i < nz; ++i) rotational[i] = md.coordinates()[i].rotational;
@@ -270,6 +271,7 @@ void Tracker::Impl::Allocate() {
   for (int k = 0; k < nm; ++k) jac[k].resize(3, model->marker_coordinates(k).size());
   jp.resize(3, std::max(1, model->max_chain_coordinates()));
   s_inv.resize(nm);
+  s_inv_hidden.resize(nm);
   reject_sq.resize(nm);
   gated_by.resize(mp);
   cost.resize(nm, mp + nm);
@@ -354,6 +356,43 @@ void Tracker::Impl::Allocate() {
   q_predicted.setZero(nz);
   q_weight.setZero(nz);
   q_count.setZero(nz);
+  hidden_scale.assign(nm, 1.0);
+  hidden_anchor.assign(nm, -1);
+  hidden_own.assign(nm, {});
+  for (int m = 0; m < nm; ++m) {
+    std::vector<int> joints;
+    int segment = model->markers()[m].segment;
+    for (;;) {
+      const int j = model->segments()[segment].joint;
+      joints.push_back(j);
+      const int parent = model->joints()[j].parent;
+      if (parent < 0) break;
+      bool has_seen = false;
+      for (int a : segment_markers[parent]) has_seen |= seen[a] != 0;
+      if (has_seen) {
+        hidden_anchor[m] = parent;
+        break;
+      }
+      segment = parent;
+    }
+    const std::vector<int>& cols = model->marker_coordinates(m);
+    hidden_own[m].clear();
+    for (size_t a = 0; a < cols.size(); ++a)
+      if (std::find(joints.begin(), joints.end(), model->coordinates()[cols[a]].joint) !=
+          joints.end())
+        hidden_own[m].push_back(static_cast<int>(a));
+  }
+  // Only where a frame is short against the horizon: at lower rates (12.5 Hz) the learnt process
+  // noise already sees the prediction in each frame's innovation.
+  hidden_horizon_frames = static_cast<int>(std::lround(kHiddenHorizonSeconds * options.rate_hz));
+  if (hidden_horizon_frames < kUnobservedFrames) hidden_horizon_frames = 0;
+  const int slots = std::max(hidden_horizon_frames, 1);
+  hidden_made.assign(slots, -1);
+  hidden_point.assign(slots, Eigen::Matrix3Xd::Zero(3, nm));
+  hidden_spread.assign(slots, Eigen::VectorXd::Zero(nm));
+  hidden_z.setZero(nz);
+  hidden_dt = 0;
+  hidden_count = 0;
 }
 
 void Tracker::Impl::ResetState() {
@@ -369,6 +408,8 @@ void Tracker::Impl::ResetState() {
   clutter_density = -1;
   lasting_clutter_density = -1;
   std::fill(q_scale.begin(), q_scale.end(), 1.0);
+  std::fill(hidden_scale.begin(), hidden_scale.end(), 1.0);
+  std::fill(hidden_made.begin(), hidden_made.end(), -1);
   jerk_psd_now = jerk_psd;
   // A new subject may come: the model at its own size again (ScaleToSubject).
   SetGeometry(model->InitialParameters());
@@ -492,9 +533,106 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
   A.triangularView<Eigen::StrictlyUpper>() = A.transpose();
   if (!update.Apply(A, b, nu_r_nu, &x, &P, nis)) return false;
   if (learn_noise) LearnProcessNoise(dt);
+  if (dt > 0) LearnHiddenScale(dt);
   dz = x.head(nz) - zbuf;
   LearnOffsets(dz);
+  if (dt > 0) ForecastHidden(dt);
   return true;
+}
+
+// A hidden marker's gate (tracker.h, "Hidden markers' gates"). Every update forecasts each
+// marker kHiddenHorizonSeconds ahead as its prediction would run were it hidden from now on: the
+// state carried open-loop, each coordinate stopping after kUnobservedFrames as Predict stops an
+// unobserved one, judged in the frame of the nearest ancestor segment with markers (which stay
+// in view and hold it while the marker is hidden), with the spread of that prediction over the
+// coordinates below that segment (the posterior's part carried so, exactly, and the process
+// noise's). LearnHiddenScale compares each measured marker's point with the forecast made for
+// it a horizon ago.
+void Tracker::Impl::ForecastHidden(double dt) {
+  if (hidden_horizon_frames == 0) return;
+  const int N = hidden_horizon_frames;
+  if (std::abs(dt - hidden_dt) > 1e-9 * dt) {
+    const double beta = std::exp(-dt / options.velocity_time_constant_s);
+    const double alpha = std::exp(-dt / options.acceleration_time_constant_s);
+    const double d = std::exp(-dt / kUnobservedSeconds);
+    const double h = 0.5 * dt * dt, d2 = dt * dt, d3 = d2 * dt, d4 = d3 * dt, d5 = d4 * dt;
+    Eigen::Matrix3d F, Q, D = Eigen::Vector3d(1, d, d).asDiagonal();
+    F << 1, dt, h, 0, beta, beta * dt, 0, 0, alpha;
+    Q << d5 / 20, d4 / 8, d3 / 6, d4 / 8, d3 / 3, d2 / 2, d3 / 6, d2 / 2, dt;
+    Eigen::Matrix3d phi = Eigen::Matrix3d::Identity(), sigma = Eigen::Matrix3d::Zero();
+    for (int k = 1; k <= N; ++k) {
+      phi = F * phi;
+      sigma = F * sigma * F.transpose() + Q;
+      if (k >= kUnobservedFrames) {
+        phi = D * phi;
+        sigma = D * sigma * D;
+      }
+    }
+    hidden_phi = phi;
+    hidden_unit_qvar = sigma(0, 0);
+    hidden_dt = dt;
+  }
+  const int slot = hidden_count % N;
+  hidden_made[slot] = hidden_count++;
+  const Eigen::Matrix3d& f = hidden_phi;
+  hidden_z = f(0, 0) * x.head(nz) + f(0, 1) * x.segment(nz, nz) + f(0, 2) * x.tail(nz);
+  Wrap(&hidden_z);
+  ForwardKinematics(*model, geometry, hidden_z, &hidden_data);
+  // The forecast's covariance of coordinates i and j: (F^N P F^N^T)(i, j), from the nine blocks.
+  auto carried = [&](int i, int j) {
+    double c = 0;
+    for (int k = 0; k < 3; ++k)
+      for (int l = 0; l < 3; ++l) c += f(0, k) * f(0, l) * P(k * nz + i, l * nz + j);
+    return c;
+  };
+  for (int m = 0; m < nm; ++m) {
+    const int anchor = hidden_anchor[m];
+    if (anchor < 0) continue;
+    hidden_point[slot].col(m) =
+        hidden_data.segment_rotation[anchor].transpose() *
+        (MarkerPosition(*model, geometry, hidden_data, m) +
+         hidden_data.segment_rotation[model->markers()[m].segment] * offset[m] -
+         hidden_data.segment_position[anchor]);
+    const std::vector<int>& cols = model->marker_coordinates(m);
+    const auto& J = jac[m];
+    double t = 0;
+    for (int a : hidden_own[m]) {
+      t += J.col(a).squaredNorm() * jerk_psd_now[cols[a]] * hidden_unit_qvar;
+      for (int b : hidden_own[m]) t += J.col(a).dot(J.col(b)) * carried(cols[a], cols[b]);
+    }
+    hidden_spread[slot][m] = std::max(t, 0.0);
+  }
+}
+
+// Covariance matching (Mehra 1972) on the forecasts' spread: per marker, |e|^2 (less its learnt
+// model error: the measurement variance bounds the noise from above, and taken off it left a
+// still hand's factor at a tenth of what its forecasts showed) over the spread, capped at 1
+// (never wider than the filter's own), averaged over kHiddenScaleSeconds with LearnProcessNoise's
+// weight 2 f - 1 for the forecast's share f of the spread -- and in full where the error passes
+// the whole spread, so that a factor learnt while a limb stood still rises as soon as it moves --
+// and floored at kMinHiddenScale.
+void Tracker::Impl::LearnHiddenScale(double dt) {
+  if (hidden_horizon_frames == 0) return;
+  const int N = hidden_horizon_frames;
+  const int slot = hidden_count % N;
+  if (hidden_made[slot] != hidden_count - N) return;
+  const double gain = std::min(1.0, dt / kHiddenScaleSeconds);
+  for (int m = 0; m < nm; ++m) {
+    const int anchor = hidden_anchor[m];
+    if (anchor < 0 || row_to_col[m] < 0 || !measured[m] || beyond_gate[m]) continue;
+    const double pred = hidden_spread[slot][m];
+    if (!(pred > 0)) continue;
+    const double noise = 3.0 * (MeasurementVariance(m) + model_error[m]);
+    const double e2 = (data.segment_rotation[anchor].transpose() *
+                           (points.col(row_to_col[m]) - data.segment_position[anchor]) -
+                       hidden_point[slot].col(m))
+                          .squaredNorm();
+    const double target = std::min(1.0, std::max(0.0, e2 - 3.0 * model_error[m]) / pred);
+    const double weight =
+        e2 > pred + noise ? 1.0 : std::max(0.0, 2.0 * pred / (pred + noise) - 1.0);
+    hidden_scale[m] = std::clamp(hidden_scale[m] + gain * weight * (target - hidden_scale[m]),
+                                 kMinHiddenScale, 1.0);
+  }
 }
 
 // Covariance matching (tracker.h, "Process noise"; Mehra 1972): with the labels right, a
@@ -630,6 +768,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     s.WithholdDoubtfulReturns(np, dt);
     double nis = 0;
     if (s.measured_count == 0) {
+      ++s.hidden_count;  // the forecasts' chain is broken
       std::fill(s.observed.begin(), s.observed.end(), 0);
       std::fill(s.beyond_gate.begin(), s.beyond_gate.end(), 0);
     }
@@ -663,6 +802,7 @@ const TrackOutput& Tracker::Update(double time_s, const Eigen::Ref<const Eigen::
     if (s.TryInitialise(np)) {
       out.state = TrackState::kTracking;
       out.reinitialised = true;
+      std::fill(s.hidden_made.begin(), s.hidden_made.end(), -1);
       s.had_track = true;
       s.bad_frames = 0;
       s.z_good = s.x.head(s.nz);
@@ -724,6 +864,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model, ModelOrigin origin
   auto prev_free = std::move(s.prev_free);
   auto prev_free_list = std::move(s.prev_free_list);
   auto q_scale = std::move(s.q_scale);  // the subject's motion, not the model's
+  auto hidden_scale = std::move(s.hidden_scale);  // likewise
   const int prev_np = s.prev_np, prev_free_count = s.prev_free_count;
   s.SetModel(std::move(model));
   s.Allocate();
@@ -750,6 +891,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model, ModelOrigin origin
   s.prev_free = std::move(prev_free);
   s.prev_free_list = std::move(prev_free_list);
   s.q_scale = std::move(q_scale);
+  s.hidden_scale = std::move(hidden_scale);
   for (int i = 0; i < s.nz; ++i) s.jerk_psd_now[i] = s.q_scale[i] * s.jerk_psd[i];
   s.prev_np = prev_np;
   s.prev_free_count = prev_free_count;

@@ -120,6 +120,41 @@ struct Tracker::Impl {
   // spread, and those weights and the markers' count, each marker's shared among the
   // coordinates of its chain as they make its predicted covariance (FilterUpdate).
   Eigen::VectorXd q_innovation, q_predicted, q_weight, q_count;
+  // A hidden marker's gate (tracker.h, "Hidden markers' gates"; ComputeGates, HiddenScale): per
+  // marker, the factor on its prediction's covariance while it is not labelled, learnt
+  // (LearnHiddenScale) from the forecasts every update makes of where each marker's prediction
+  // would be kHiddenHorizonSeconds on were it hidden from then (ForecastHidden): a ring of
+  // hidden_horizon_frames slots, each stamped with the update count it was made at (-1: none).
+  static constexpr double kHiddenHorizonSeconds = 0.25;
+  static constexpr double kMinHiddenScale = 1.0 / 16;
+  static constexpr double kHiddenScaleSeconds = 0.5;
+  std::vector<double> hidden_scale;
+  // Per marker: the nearest ancestor segment with markers the tracker sees (-1: none, the
+  // root's markers; not learnt), in whose frame its forecast is judged, and which of its chain's
+  // coordinates lie below that segment (its own: what moves it when it alone is hidden), as
+  // indices into its chain (marker_coordinates).
+  std::vector<int> hidden_anchor;
+  std::vector<std::vector<int>> hidden_own;
+  int hidden_horizon_frames = 0;  // 0: fewer than kUnobservedFrames at the rate (not learnt)
+  int hidden_count = 0;
+  std::vector<int> hidden_made;
+  std::vector<Eigen::Matrix3Xd> hidden_point;
+  std::vector<Eigen::VectorXd> hidden_spread;
+  Eigen::Matrix3d hidden_phi = Eigen::Matrix3d::Identity();
+  double hidden_unit_qvar = 0, hidden_dt = 0;
+  Eigen::VectorXd hidden_z;
+  ModelData hidden_data;
+  // The factor on a hidden marker's prediction covariance in its gate: the learnt one over the
+  // horizon the forecasts cover, back to 1 over as long again (past the horizon they say nothing:
+  // a limb that stood still may have started moving).
+  double HiddenScale(int m) const {
+    if (hidden_horizon_frames == 0) return 1.0;
+    const double beyond = static_cast<double>(unlabelled_run[m] - hidden_horizon_frames) /
+                          hidden_horizon_frames;
+    return hidden_scale[m] + (1.0 - hidden_scale[m]) * std::clamp(beyond, 0.0, 1.0);
+  }
+  void ForecastHidden(double dt);
+  void LearnHiddenScale(double dt);
   // Moves each q_scale towards the factor that makes its share of the innovations as large as
   // the predicted covariance says, over process_noise_time_constant_s.
   void LearnProcessNoise(double dt);
@@ -142,6 +177,9 @@ struct Tracker::Impl {
   std::vector<Eigen::Matrix<double, 3, Eigen::Dynamic>> jac;
   Eigen::Matrix<double, 3, Eigen::Dynamic> jp;
   std::vector<Eigen::Matrix3d> s_inv;
+  // The gate of a marker not labelled in the last frame with its prediction's part scaled by
+  // HiddenScale: the gate test only (LabelByGating); the densities and the other tests read s_inv.
+  std::vector<Eigen::Matrix3d> s_inv_hidden;
   std::vector<double> reject_sq;
   std::vector<int> gated_by;  // per point: how many markers' gates hold it
   Eigen::MatrixXd cost;
