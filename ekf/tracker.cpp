@@ -272,6 +272,7 @@ void Tracker::Impl::Allocate() {
   jp.resize(3, std::max(1, model->max_chain_coordinates()));
   s_inv.resize(nm);
   s_inv_hidden.resize(nm);
+  hidden_gated.assign(nm, 0);
   reject_sq.resize(nm);
   gated_by.resize(mp);
   cost.resize(nm, mp + nm);

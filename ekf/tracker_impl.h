@@ -179,7 +179,8 @@ struct Tracker::Impl {
   std::vector<Eigen::Matrix3d> s_inv;
   // The gate of a marker not labelled in the last frame with its prediction's part scaled by
   // HiddenScale: the gate test only (LabelByGating); the densities and the other tests read s_inv.
-  std::vector<Eigen::Matrix3d> s_inv_hidden;
+  std::vector<Eigen::Matrix3d> s_inv_hidden;  // valid where hidden_gated (HiddenScale < 1)
+  std::vector<char> hidden_gated;
   std::vector<double> reject_sq;
   std::vector<int> gated_by;  // per point: how many markers' gates hold it
   Eigen::MatrixXd cost;

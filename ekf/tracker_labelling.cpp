@@ -67,12 +67,12 @@ void Tracker::Impl::ComputeGates() {
     Eigen::Matrix3d S = JP.lazyProduct(J.transpose());  // 3 x k x 3: no GEMM machinery
     prediction_trace[m] = S.trace();
     const double scale = labelled_run[m] == 0 ? HiddenScale(m) : 1.0;
-    if (scale < 1.0)
+    hidden_gated[m] = scale < 1.0;
+    if (hidden_gated[m])
       s_inv_hidden[m] =
           (scale * S + (MeasurementVariance(m) + model_error[m]) * Eigen::Matrix3d::Identity()).inverse();
     S.diagonal().array() += MeasurementVariance(m) + (labelled_run[m] > 0 ? model_error[m] : 0.0);
     s_inv[m] = S.inverse();
-    if (scale >= 1.0) s_inv_hidden[m] = s_inv[m];
     // d^2 >= |e|^2 / lambda_max(S) >= |e|^2 / trace(S): a cheap test before the quadratic form.
     reject_sq[m] = gate * S.trace();
   }
@@ -116,7 +116,7 @@ void Tracker::Impl::LabelByGating(int np) {
         best_k = k;
       } else if (e.squaredNorm() < reject_sq[m] && (track_owner[k] < 0 || track_owner[k] == m)) {
         const double q = e.dot(s_inv[m] * e);
-        if (q < gate && e.dot(s_inv_hidden[m] * e) < gate &&
+        if (q < gate && (!hidden_gated[m] || e.dot(s_inv_hidden[m] * e) < gate) &&
             OnSegmentSphere(m, points.col(k)) &&
             (labelled_run[m] > 0 ||
              (!NonRigidTrack(m, points.col(k)) && !LastingClutterExplains(m, k, np))) &&

@@ -620,24 +620,6 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
   return total;
 }
 
-namespace {
-// The sum of v as a pass over ParallelChunks(n, threads) forms it: each chunk's in order, then the
-// chunks' in order (ArrowSchurProblem::Cost, RefineFramePoses), so a sum taken after the pass
-// keeps the bits.
-double ChunkedSum(const std::vector<double>& v, int threads) {
-  const int n = static_cast<int>(v.size());
-  threads = std::max(1, std::min(threads, n));
-  const int chunk = (n + threads - 1) / threads;
-  double sum = 0;
-  for (int t = 0; t < threads; ++t) {
-    double part = 0;
-    for (int f = std::min(n, t * chunk); f < std::min(n, (t + 1) * chunk); ++f) part += v[f];
-    sum += part;
-  }
-  return sum;
-}
-}  // namespace
-
 bool ProjectedCost(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads, int cost_threads,
                    const Eigen::VectorXd& x, double function_tolerance, double* cost, Eigen::VectorXd* projected,
                    double* projected_cost, int* rescued) {

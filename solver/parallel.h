@@ -6,6 +6,7 @@
 #include <atomic>
 #include <numeric>
 #include <thread>
+#include <utility>
 #include <vector>
 
 namespace mocap::solver {
@@ -16,23 +17,45 @@ inline int ResolveThreads(int requested) {
   return hw == 0 ? 1 : static_cast<int>(hw);
 }
 
+// The threads ParallelChunks uses for n items, and chunk t's [begin, end).
+inline int ChunkThreads(int n, int num_threads) { return std::max(1, std::min(num_threads, n)); }
+inline std::pair<int, int> ChunkRange(int n, int threads, int t) {
+  const int chunk = (n + threads - 1) / threads;
+  return {std::min(n, t * chunk), std::min(n, (t + 1) * chunk)};
+}
+
 // Calls fn(thread_index, begin, end) on num_threads contiguous chunks of [0, n).
 template <typename Fn>
 void ParallelChunks(int n, int num_threads, Fn&& fn) {
-  num_threads = std::max(1, std::min(num_threads, n));
+  num_threads = ChunkThreads(n, num_threads);
   if (num_threads == 1) {
     fn(0, 0, n);
     return;
   }
   std::vector<std::thread> threads;
   threads.reserve(num_threads - 1);
-  const int chunk = (n + num_threads - 1) / num_threads;
   for (int t = 1; t < num_threads; ++t) {
-    const int b = std::min(n, t * chunk), e = std::min(n, (t + 1) * chunk);
+    const auto [b, e] = ChunkRange(n, num_threads, t);
     threads.emplace_back([&fn, t, b, e] { fn(t, b, e); });
   }
-  fn(0, 0, std::min(n, chunk));
+  const auto [b0, e0] = ChunkRange(n, num_threads, 0);
+  fn(0, b0, e0);
   for (auto& th : threads) th.join();
+}
+
+// The sum of v as a pass over ParallelChunks(v.size(), num_threads) forms it -- each chunk's in
+// order, then the chunks' in order -- so a sum taken after the pass keeps the pass's bits.
+inline double ChunkedSum(const std::vector<double>& v, int num_threads) {
+  const int n = static_cast<int>(v.size());
+  const int threads = ChunkThreads(n, num_threads);
+  double sum = 0;
+  for (int t = 0; t < threads; ++t) {
+    const auto [b, e] = ChunkRange(n, threads, t);
+    double part = 0;
+    for (int f = b; f < e; ++f) part += v[f];
+    sum += part;
+  }
+  return sum;
 }
 
 // Tasks of unequal cost (a session's trials: 150 to 1,500 frames each), where contiguous chunks
