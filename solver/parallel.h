@@ -35,8 +35,9 @@ void ParallelChunks(int n, int num_threads, Fn&& fn) {
   std::vector<std::thread> threads;
   threads.reserve(num_threads - 1);
   for (int t = 1; t < num_threads; ++t) {
-    const auto [b, e] = ChunkRange(n, num_threads, t);
-    threads.emplace_back([&fn, t, b, e] { fn(t, b, e); });
+    // Not a structured binding: clang before 16 cannot capture one.
+    const std::pair<int, int> range = ChunkRange(n, num_threads, t);
+    threads.emplace_back([&fn, t, range] { fn(t, range.first, range.second); });
   }
   const auto [b0, e0] = ChunkRange(n, num_threads, 0);
   fn(0, b0, e0);
