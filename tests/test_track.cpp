@@ -884,7 +884,7 @@ TEST(TrackHarderScene, ALimbSearchDoesNotPlaceALimbOnAPointNewInThisFrame) {
 // Seeds 93 and 101 of the harder scene tracked with the true model, their first 300 and 700
 // frames (the static start; seeds the rules were never tuned on). In the track's first second
 // a foot's toe marker was hidden (93: LTOE from frame 2, its heel labelled; 101: RTOE from frame
-// 165, the heel hidden too) and a reflection fixed in the lab stood 145-163 mm from its place;
+// 165, the heel hidden too) and a still reflection stood 145-163 mm from its place;
 // the limb search, whose rule for an unpinned new label (UnpinnedMarkerWithoutPast) did not
 // hold in the first second, turned the foot onto it: 65 and 378 wrong frames. With the subject
 // standing still the reflection's past is as still as the marker's would be, so a lone new label
