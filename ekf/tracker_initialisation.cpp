@@ -1252,13 +1252,14 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
   // A new label on a point that has been around without keeping its distance to the marker's
   // joint centre is a lasting ghost (a lone finger marker's two angles fit any point at the right
   // distance from the wrist).
-  int new_labels = 0;
-  for (int m : rows) new_labels += lbest_assign[m] >= 0 && row_to_col[m] < 0;
+  // The labels the placement gives: new ones, and in a fresh track (which may relabel) moved ones.
+  int given = 0;
+  for (int m : rows) given += lbest_assign[m] >= 0 && lbest_assign[m] != row_to_col[m];
   for (int m : rows)
     if (lbest_assign[m] >= 0 && row_to_col[m] < 0 &&
         (NonRigidTrack(m, points.col(lbest_assign[m])) ||
          SeenBeside(m, lbest_assign[m], np) ||
-         (new_labels == 1 && UnpinnedMarkerWithoutPast(m, lbest_assign[m], lbest_assign))))
+         (given == 1 && UnpinnedMarkerWithoutPast(m, lbest_assign[m], lbest_assign))))
       return false;
   const double variance = std::max(rms * rms / 3.0, 1e-6);
   if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
@@ -1310,7 +1311,16 @@ bool Tracker::Impl::NewThisFrame(int k) const {
 // prediction, for 106 frames (seed 33, 8 ghosts, the true model; only the marker alone on its
 // segment was held to this before the twenty-second session). Where the placement also gives its
 // parent limb new labels (a forearm placed anew), the past's joint centres were the wrong pose's
-// and say nothing; and not in a fresh track, whose joint centres may be wrong with the limb.
+// and say nothing; so too where it moves another of the limb's labels (in a fresh track, which
+// may relabel): two labels placed together are held by their mutual distance.
+// In a fresh track, whose joint centres may be wrong with the limb, only a STILL past counts
+// against the point: followed for 5 frames and moved less than 2 cm. There the subject stands
+// still (the static start), and a reflection fixed in the lab is as still as the marker's own
+// point would be, so the placement's one new label on it is a guess between the two, made by
+// the prior on the limb's angles: left empty, it waits for a point that moves with the segment
+// or comes back inside its gate (simulated seeds 93 and 101 at 8 ghosts, the true model: a
+// toe marker hidden in the static, the foot turned onto a reflection 145-163 mm off, 65 and
+// 378 frames). A past too short or not rigid is not judged there (the centres may be wrong).
 // With one or two mates, a past too short to judge counts against the point only where the
 // marker moves slowly enough for its point to be followed at all (at 12.5 Hz none is, and the
 // mates' distances are some evidence); alone on its segment, the placement has no other
@@ -1321,11 +1331,11 @@ bool Tracker::Impl::NewThisFrame(int k) const {
 // -> 0.969). A limb search whose evidence is over frames, not one, would need neither.
 
 bool Tracker::Impl::UnpinnedMarkerWithoutPast(int m, int k, const std::vector<int>& placement) const {
-  if (FreshTrack()) return false;
   int mates = 0;
   for (int a : segment_markers[model->markers()[m].segment]) mates += a != m && placement[a] >= 0;
   if (mates >= kPinningMates) return false;
   const PastWithSegment past = SegmentPast(m, k);
+  if (FreshTrack()) return past == PastWithSegment::kStill;
   if (mates == 0) return past != PastWithSegment::kRigid;
   return Followable(m) ? past != PastWithSegment::kRigid
                        : past == PastWithSegment::kNotRigid || past == PastWithSegment::kStill;
