@@ -120,9 +120,6 @@ struct Tracker::Impl {
   // spread, and those weights and the markers' count, each marker's shared among the
   // coordinates of its chain as they make its predicted covariance (FilterUpdate).
   Eigen::VectorXd q_innovation, q_predicted, q_weight, q_count;
-  // A measured marker whose innovation's chi-square (3 degrees of freedom, under its gate's S)
-  // passes this, the 95 % quantile, outran its prediction and counts in full (LearnProcessNoise).
-  static constexpr double kOutrunChi2 = 7.81;
   // A hidden marker's gate (tracker.h, "Hidden markers' gates"; ComputeGates, HiddenScale): per
   // marker, the factor on its prediction's covariance while it is not labelled, learnt
   // (LearnHiddenScale) from the forecasts every update makes of where each marker's prediction
