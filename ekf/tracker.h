@@ -364,6 +364,19 @@
 // 0.93 at 5 ghosts, from 0.996), as did following the factor in the logarithm (a geometric mean,
 // which the bursts hardly move). The predicted covariance is close to proportional to q where the noise makes
 // it, so the factor that matches is the present one times the ratio.
+// That weight leaves the estimate biased low: the measurement variance is an upper bound (it
+// holds the model's error), so the innovations are smaller than the spread made with it at any q,
+// and at 40-100 Hz, where the prediction makes about half the spread, they pulled a quiet limb's
+// factors to the floor (1/256) while the innovations that said the motion had started were
+// weighed as little (the scene at 50 Hz: a hand lost for 10-160 frames in the wrist
+// circles). At 40 Hz and up each innovation is matched against the prediction's part plus the
+// marker's learnt model error (its residuals' mean square: the noise as seen, not its bound), and
+// one beyond its whole spread with the bound, which the bound's slack cannot have made, counts in
+// full -- as the hidden gates' factor is learnt. Below 40 Hz the prediction makes the gates, the
+// innovations count nearly in full already, and this widened them (test_ekf's 12.5 Hz run). The
+// model error in the weight too (the textbook form with R known) sends every factor to the floor:
+// the filter's prediction spread is itself made with the bound (its posterior) and stays above
+// the innovations (ekf/tracker.cpp, LearnProcessNoise; BENCHMARKS.md, "Frame rates").
 //
 // Hidden markers' gates. While a marker is hidden its prediction's covariance grows with the
 // process noise of the coordinates only it measured, and at 200 Hz that noise stays at its bound
