@@ -547,7 +547,7 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
   // A coordinate the measurements tell less than its range does stays where the prediction put it
   // (range_information; tracker.h, "Weakly observed coordinates").
   for (int i = 0; i < nz; ++i)
-    if (hidden_horizon_frames > 0 && A(i, i) < range_information[i])
+    if (hidden_horizon_frames > 0 && A(i, i) > 0 && A(i, i) < range_information[i])
       for (int idx : {i, nz + i, 2 * nz + i}) x[idx] = x_prior[idx];
   if (learn_noise) LearnProcessNoise(dt);
   if (dt > 0) LearnHiddenScale(dt);

@@ -81,11 +81,11 @@ struct Tracker::Impl {
   std::vector<char> rotational, wraps;
   // Per coordinate: the information its range gives (12 / width^2: the inverse variance of a
   // uniform distribution over it; 0 without a finite range). An update whose measurements tell a
-  // coordinate less than that (the diagonal of J^T R^-1 J, an upper bound on what they tell it
-  // with the others free) leaves it, its velocity and its acceleration where the prediction put
-  // them (FilterUpdate): what such a measurement would move it by is the measurements' systematic
-  // error, seen through a lever too short to resolve it (tracker.h, "Weakly observed
-  // coordinates").
+  // coordinate something, but less than that (the diagonal of J^T R^-1 J, an upper bound on what
+  // they tell it with the others free), leaves it, its velocity and its acceleration where the
+  // prediction put them (FilterUpdate): what such a measurement would move it by is the
+  // measurements' systematic error, seen through a lever too short to resolve it (tracker.h,
+  // "Weakly observed coordinates").
   std::vector<double> range_information;
   Eigen::VectorXd marker_variance;  // sigma_m^2 / w_m
   // Online marker offsets (see tracker.h): per marker, in its segment's frame, and how many
