@@ -405,13 +405,14 @@
 // diagonal of J^T R^-1 J, an upper bound on what they tell it with the others free, under
 // 12 / width^2) leaves that coordinate, its velocity and its acceleration where the prediction
 // put them, as a consider state of a Schmidt-Kalman filter is; its covariance is left as the
-// update makes it (a Schmidt filter would also keep that, not tried). Only a coordinate the
+// update makes it (a Schmidt filter would leave that at the prediction's too: not tried). Only a
+// coordinate the
 // measurements see (A_ii > 0): one none of them sees is moved only through its covariance with
 // those they pin, the filter's knowledge of coupled motion, not a short lever (frozen too, seed
 // 60's stuck left leg at 5 ghosts went 0.985 -> 0.977 of the labels). Not below
 // 40 Hz, the rates the hidden-marker forecasts skip: there a frame's motion is a large part of a
 // joint's range, and the weak measurement is still the best evidence of it (12.5 Hz, the scaled
-// start: 0.9606 -> 0.9510 of the labels, 109 -> 200 wrong). Nor the stricter test of Predict's
+// start: 0.9606 -> 0.9510 of the labels, 109 -> 233 wrong). Nor the stricter test of Predict's
 // "observed" (2 initialisation sigmas): a forearm whose wrist markers are hidden is told its
 // pronation to 0.12 rad a frame by its forearm and finger markers, and frozen it lost its labels
 // (seed 34 at 8 ghosts, 4 -> 55 wrong; the protocol's angles 0.3 -> 3.2 degrees RMS).
