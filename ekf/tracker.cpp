@@ -104,8 +104,17 @@ void Tracker::Impl::SetModel(std::shared_ptr<const Model> m) {
   data = ModelData(md);
   hidden_data = ModelData(md);
   rotational.assign(nz, 0);
+  range_information.assign(nz, 0.0);
   wraps.assign(nz, 0);
-  for (int i = 0; i < nz; ++i) rotational[i] = md.coordinates()[i].rotational;
+  for (int i = 0; i < nz; ++i) {
+    const Coordinate& co = md.coordinates()[i];
+    rotational[i] = co.rotational;
+    // A uniform distribution over the range: its variance width^2 / 12 (none for a coordinate
+    // without a finite range).
+    const double width = co.max_value - co.min_value;
+    if (co.min_value > -1e8 && co.max_value < 1e8 && width > 0)
+      range_information[i] = 12.0 / (width * width);
+  }
   // Wrapped: drives only identity rotations and its range covers a full turn.
   std::vector<char> only_identity_rotation(nz, 1), drives(nz, 0);
   for (const Joint& j : md.joints())
@@ -265,6 +274,7 @@ void Tracker::Impl::Allocate() {
   valid.reserve(mp);
   points.resize(3, mp);
   zbuf.resize(nz);
+  x_prior.resize(3 * nz);
   dz.resize(nz);
   predicted.resize(3, nm);
   jac.resize(nm);
@@ -538,7 +548,13 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
     observed[i] = A(i, i) * s * s >= 1.0;
   }
   A.triangularView<Eigen::StrictlyUpper>() = A.transpose();
+  x_prior = x;
   if (!update.Apply(A, b, nu_r_nu, &x, &P, nis)) return false;
+  // A coordinate the measurements tell less than its range does stays where the prediction put it
+  // (range_information; tracker.h, "Weakly observed coordinates").
+  for (int i = 0; i < nz; ++i)
+    if (hidden_horizon_frames > 0 && A(i, i) > 0 && A(i, i) < range_information[i])
+      for (int idx : {i, nz + i, 2 * nz + i}) x[idx] = x_prior[idx];
   if (learn_noise) LearnProcessNoise(dt);
   if (dt > 0) LearnHiddenScale(dt);
   dz = x.head(nz) - zbuf;

@@ -79,6 +79,14 @@ struct Tracker::Impl {
   // outside their ranges, which the search and the filter keep to).
   Eigen::Matrix3d lab_to_model = Eigen::Matrix3d::Identity();
   std::vector<char> rotational, wraps;
+  // Per coordinate: the information its range gives (12 / width^2: the inverse variance of a
+  // uniform distribution over it; 0 without a finite range). An update whose measurements tell a
+  // coordinate something, but less than that (the diagonal of J^T R^-1 J, an upper bound on what
+  // they tell it with the others free), leaves it, its velocity and its acceleration where the
+  // prediction put them (FilterUpdate): what such a measurement would move it by is the
+  // measurements' systematic error, seen through a lever too short to resolve it (tracker.h,
+  // "Weakly observed coordinates").
+  std::vector<double> range_information;
   Eigen::VectorXd marker_variance;  // sigma_m^2 / w_m
   // Online marker offsets (see tracker.h): per marker, in its segment's frame, and how many
   // frames have contributed since the last (re)initialisation.
@@ -173,6 +181,7 @@ struct Tracker::Impl {
   std::vector<int> valid;  // input indices of the finite points, compacted
   Eigen::Matrix3Xd points;
   Eigen::VectorXd zbuf, dz;
+  Eigen::VectorXd x_prior;  // FilterUpdate: the prediction, for the coordinates it leaves there
   Eigen::Matrix3Xd predicted;
   std::vector<Eigen::Matrix<double, 3, Eigen::Dynamic>> jac;
   Eigen::Matrix<double, 3, Eigen::Dynamic> jp;
