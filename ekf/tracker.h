@@ -295,10 +295,11 @@
 // that has stood still for 5 frames is refused there too. The subject stands still in the
 // static start, a reflection fixed in the lab is as still as the marker's own point, and the
 // placement that turns a foot onto it is the prior's guess, not evidence (seeds 93 and 101 at 8
-// ghosts, true model: 65 and 378 frames of a toe marker on such a reflection). Allocation-free; a hidden marker with no plausible
-// point near costs nothing. At most one limb search a frame (the one nearest the root): with the
-// segment registration's fit budget, that bounds a tracking frame's work (the search's five
-// starts of ten damped Gauss-Newton steps are the largest item, about 1 ms on the 2-core VM).
+// ghosts, true model: 65 and 378 frames of a toe marker on such a reflection).
+// Allocation-free; a hidden marker with no plausible point near costs nothing. At most one limb
+// search a frame (the one nearest the root): with the segment registration's fit budget, that
+// bounds a tracking frame's work (the search's five starts of ten damped Gauss-Newton steps are
+// the largest item, about 1 ms on the 2-core VM).
 // A limb none of whose markers is labelled (welk007's forearms in its hip trial: flexed 90
 // degrees and pronated, where the start's search, from arms hanging, left all six unlabelled)
 // has no pose to search near, and its parent's pose is only as good as the markers that hold
@@ -423,10 +424,9 @@
 // 12 / width^2) leaves that coordinate, its velocity and its acceleration where the prediction
 // put them, as a consider state of a Schmidt-Kalman filter is; its covariance is left as the
 // update makes it (a Schmidt filter would leave that at the prediction's too: not tried). Only a
-// coordinate the
-// measurements see (A_ii > 0): one none of them sees is moved only through its covariance with
-// those they pin, the filter's knowledge of coupled motion, not a short lever (frozen too, seed
-// 60's stuck left leg at 5 ghosts went 0.985 -> 0.977 of the labels). Not below
+// coordinate the measurements see (A_ii > 0): one none of them sees is moved only through its
+// covariance with those they pin, the filter's knowledge of coupled motion, not a short lever
+// (frozen too, seed 60's stuck left leg at 5 ghosts went 0.985 -> 0.977 of the labels). Not below
 // 40 Hz, the rates the hidden-marker forecasts skip: there a frame's motion is a large part of a
 // joint's range, and the weak measurement is still the best evidence of it (12.5 Hz, the scaled
 // start: 0.9606 -> 0.9510 of the labels, 109 -> 233 wrong). Nor the stricter test of Predict's
