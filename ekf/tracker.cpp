@@ -517,7 +517,7 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
       for (size_t a = 0; a < cols.size(); ++a) share += J.col(a).squaredNorm() * P(cols[a], cols[a]);
       const double spread = prediction_trace[m] + 3.0 / w;
       if (share > 0 && spread > 0) {
-        const bool fast = hidden_horizon_frames > 0;
+        const bool fast = HighRate();
         const double expected = fast ? prediction_trace[m] + 3.0 * model_error[m] : spread;
         const double f = fast && nu.squaredNorm() > spread
                              ? 1.0
@@ -548,13 +548,14 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
     observed[i] = A(i, i) * s * s >= 1.0;
   }
   A.triangularView<Eigen::StrictlyUpper>() = A.transpose();
-  x_prior = x;
+  if (HighRate()) x_prior = x;
   if (!update.Apply(A, b, nu_r_nu, &x, &P, nis)) return false;
   // A coordinate the measurements tell less than its range does stays where the prediction put it
   // (range_information; tracker.h, "Weakly observed coordinates").
-  for (int i = 0; i < nz; ++i)
-    if (hidden_horizon_frames > 0 && A(i, i) > 0 && A(i, i) < range_information[i])
-      for (int idx : {i, nz + i, 2 * nz + i}) x[idx] = x_prior[idx];
+  if (HighRate())
+    for (int i = 0; i < nz; ++i)
+      if (A(i, i) > 0 && A(i, i) < range_information[i])
+        for (int idx : {i, nz + i, 2 * nz + i}) x[idx] = x_prior[idx];
   if (learn_noise) LearnProcessNoise(dt);
   if (dt > 0) LearnHiddenScale(dt);
   dz = x.head(nz) - zbuf;
@@ -572,7 +573,7 @@ bool Tracker::Impl::FilterUpdate(double* nis, double dt) {
 // noise's). LearnHiddenScale compares each measured marker's point with the forecast made for
 // it a horizon ago.
 void Tracker::Impl::ForecastHidden(double dt) {
-  if (hidden_horizon_frames == 0) return;
+  if (!HighRate()) return;
   const int N = hidden_horizon_frames;
   if (std::abs(dt - hidden_dt) > 1e-9 * dt) {
     const double beta = std::exp(-dt / options.velocity_time_constant_s);
@@ -635,7 +636,7 @@ void Tracker::Impl::ForecastHidden(double dt) {
 // the whole spread, so that a factor learnt while a limb stood still rises as soon as it moves --
 // and floored at kMinHiddenScale.
 void Tracker::Impl::LearnHiddenScale(double dt) {
-  if (hidden_horizon_frames == 0) return;
+  if (!HighRate()) return;
   const int N = hidden_horizon_frames;
   const int slot = hidden_count % N;
   if (hidden_made[slot] != hidden_count - N) return;

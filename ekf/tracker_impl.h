@@ -144,6 +144,11 @@ struct Tracker::Impl {
   std::vector<int> hidden_anchor;
   std::vector<std::vector<int>> hidden_own;
   int hidden_horizon_frames = 0;  // 0: fewer than kUnobservedFrames at the rate (not learnt)
+  // 40 Hz and up: the rates at which a frame's motion is a small part of a joint's range and the
+  // hidden markers' forecasts run. The learnt process noise's matching (FilterUpdate) and the
+  // weakly observed coordinates' rule (tracker.h) split on the same rate; below it the prediction
+  // makes the gates and a frame's weak measurement is still the best evidence of its motion.
+  bool HighRate() const { return hidden_horizon_frames > 0; }
   int hidden_count = 0;
   std::vector<int> hidden_made;
   std::vector<Eigen::Matrix3Xd> hidden_point;
@@ -156,7 +161,7 @@ struct Tracker::Impl {
   // horizon the forecasts cover, back to 1 over as long again (past the horizon they say nothing:
   // a limb that stood still may have started moving).
   double HiddenScale(int m) const {
-    if (hidden_horizon_frames == 0) return 1.0;
+    if (!HighRate()) return 1.0;
     const double beyond = static_cast<double>(unlabelled_run[m] - hidden_horizon_frames) /
                           hidden_horizon_frames;
     return hidden_scale[m] + (1.0 - hidden_scale[m]) * std::clamp(beyond, 0.0, 1.0);
