@@ -298,6 +298,7 @@ void Tracker::Impl::Allocate() {
   measured.assign(nm, 0);
   moved_buf.assign(nm, 0.0);
   beyond_gate.assign(nm, 0);
+  relabelled.assign(nm, 0);
   observed.assign(nz, 1);
   unobserved_frames.assign(nz, 0);
   labelled_run.assign(nm, 0);

@@ -613,15 +613,27 @@ struct Tracker::Impl {
   int tracked_frames = 0;
   bool FreshTrack() const { return tracked_frames < options.rate_hz * kFreshTrackSeconds; }
   static constexpr double kFreshTrackSeconds = 1.0;
-  bool RigidlyPlausible(int m, int k, bool anywhere = false) const;
+  // `except`: a labelled marker whose point k is, left out of the distances (LimbLabelsInDoubt).
+  bool RigidlyPlausible(int m, int k, bool anywhere = false, int except = -1) const;
   bool UnpinnedMarkerWithoutPast(int m, int k, const std::vector<int>& placement) const;
   bool NewThisFrame(int k) const;
   bool Followable(int m) const;
   // Labelled mates that pin a marker's place on its segment in a frame (not only its distances).
   static constexpr int kPinningMates = 3;
   bool OnSegmentSphere(int m, const Eigen::Vector3d& p) const;
-  // `unheld`: searched for a marker whose own limb has no label (AnchoredLimb).
-  bool ReacquireLimb(int joint, int np, bool place, bool unheld);
+  // `unheld`: searched for a marker whose own limb has no label (AnchoredLimb). `relabel`: a
+  // re-check (LimbLabelsInDoubt): the limb's labelled markers may be moved, as in a fresh track.
+  bool ReacquireLimb(int joint, int np, bool place, bool unheld, bool relabel = false);
+  // The limb re-check (tracker.h, "Limb re-acquisition"): the limb of a marker stuck for
+  // kStuckFrames beside a point one of its limb's labelled markers holds, where that point is
+  // the stuck marker's by the rigid geometry (RigidlyPlausible without the holder): a limb
+  // labelled one marker round (a wrist marker on the other's point, the finger marker on the
+  // freed one) keeps every label on a point and no gate ever sees it. -1: none this frame.
+  int LimbLabelsInDoubt(int np) const;
+  bool recheck_waited = false;  // a re-check gave way to another limb's search when last due
+  // Markers a re-check moved to another point this frame: their seen-beside records were made
+  // under the wrong labels and go after this frame's are pushed (PushHistory).
+  std::vector<char> relabelled;
   // Per marker: labelled this frame outside its gate (not measured: its limb is placed anew).
   std::vector<char> beyond_gate;
   // Per coordinate: whether the last update's measurements observed it (pinned it: see
@@ -637,6 +649,9 @@ struct Tracker::Impl {
   // 0.996).
   static constexpr double kObservedSigmas = 2.0;
   double LimbAssign(int joint, const Eigen::VectorXd& z, int nc, double radius);
+  // Whether this limb search may move the limb's labels: in a fresh track, or a re-check.
+  bool lrelabel = false;
+  bool LimbRelabels() const { return lrelabel || FreshTrack(); }
 };
 
 }  // namespace mocap::ekf

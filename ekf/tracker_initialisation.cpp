@@ -961,7 +961,7 @@ double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, do
   double total = 0;
   int ns = 0;
   for (int m : limb_markers[joint]) {
-    if (row_to_col[m] >= 0 && !FreshTrack()) {
+    if (row_to_col[m] >= 0 && !LimbRelabels()) {
       lassign[m] = row_to_col[m];
       total += std::min(r2, (points.col(row_to_col[m]) - predicted.col(m)).squaredNorm());
     } else {
@@ -985,7 +985,8 @@ double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, do
   return total;
 }
 
-bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
+bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld, bool relabel) {
+  lrelabel = relabel;
   const std::vector<int>& rows = limb_markers[joint];
   const std::vector<char>& freec = limb_coord[joint];
   const int ns = static_cast<int>(rows.size());
@@ -1008,7 +1009,7 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
     if (row_to_col[m] >= 0) ltaken[row_to_col[m]] = 1;
   int current = 0;
   for (int m : rows) current += row_to_col[m] >= 0;
-  if (FreshTrack())
+  if (LimbRelabels())
     for (int m : rows)
       if (row_to_col[m] >= 0) ltaken[row_to_col[m]] = 0;
   int nc = 0;
@@ -1229,11 +1230,16 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
   // that mends the limb (seed 24: 50 of its 63 refused searches, the toe left unlabelled for
   // seconds). Kept labels count in the RMS above.
   LineariseLimb(joint, lbest);
-  for (int m : rows)
-    if (lbest_assign[m] >= 0 && lbest_assign[m] != row_to_col[m] &&
-        (points.col(lbest_assign[m]) - predicted.col(m)).squaredNorm() >
-            options.gate_chi2 * MeasurementVariance(m))
+  // A re-check's moved label is allowed its learnt offset besides: that was learnt on the wrong
+  // point (seed 13 at 50 Hz: RWRA's 12 mm, on RWRB's point; gated without it, 20-22 mm from its
+  // place, the placement that mended the forearm was refused for 50 frames).
+  for (int m : rows) {
+    if (lbest_assign[m] < 0 || lbest_assign[m] == row_to_col[m]) continue;
+    const double tol = std::sqrt(options.gate_chi2 * MeasurementVariance(m)) +
+                       (relabel && row_to_col[m] >= 0 ? offset[m].norm() : 0.0);
+    if ((points.col(lbest_assign[m]) - predicted.col(m)).squaredNorm() > tol * tol)
       return false;
+  }
   // Probation, as for a label the gates give: the placement replaces the limb's coordinates at
   // once, so a new label on a point that appeared in this frame would move the limb onto a
   // single-frame reflection at full trust, which the gates' labels never do (a label on a point
@@ -1255,16 +1261,39 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld) {
   // The labels the placement gives: new ones, and in a fresh track (which may relabel) moved ones.
   int given = 0;
   for (int m : rows) given += lbest_assign[m] >= 0 && lbest_assign[m] != row_to_col[m];
+  // In a re-check the joint centres below the limb's own were placed by the labels in doubt (a
+  // hand's wrist centre by a forearm turned one marker round), so a past measured from them
+  // says nothing (as in a fresh track, whose centres may all be wrong).
+  auto centre_in_doubt = [&](int m) {
+    return relabel && model->segments()[model->markers()[m].segment].joint != joint;
+  };
   for (int m : rows)
     if (lbest_assign[m] >= 0 && row_to_col[m] < 0 &&
-        (NonRigidTrack(m, points.col(lbest_assign[m])) ||
+        ((!centre_in_doubt(m) && NonRigidTrack(m, points.col(lbest_assign[m]))) ||
          SeenBeside(m, lbest_assign[m], np) ||
          (given == 1 && UnpinnedMarkerWithoutPast(m, lbest_assign[m], lbest_assign))))
       return false;
+  // A re-check's moved label on a point no marker held is judged by that point's past as a new
+  // one is (its seen-beside record is the wrong label's: the point was seen beside the marker
+  // measured on another point, the very label in doubt).
+  if (relabel)
+    for (int m : rows) {
+      const int k = lbest_assign[m];
+      if (k < 0 || row_to_col[m] < 0 || k == row_to_col[m]) continue;
+      bool held = false;
+      for (int a : rows) held |= row_to_col[a] == k;
+      if (!held && !centre_in_doubt(m) && NonRigidTrack(m, points.col(k))) return false;
+    }
   const double variance = std::max(rms * rms / 3.0, 1e-6);
   if (std::isfinite(runner_up) && runner_up - best < options.init_ambiguity_margin * variance)
     return false;
-  // Accept: the limb's coordinates at rest at the found pose, their covariance reset.
+  // Accept: the limb's coordinates at rest at the found pose, their covariance reset. A
+  // re-check's moved markers held wrong points: their records go (PushHistory).
+  if (relabel)
+    for (int m : rows) {
+      relabelled[m] = row_to_col[m] >= 0 && lbest_assign[m] != row_to_col[m];
+      if (relabelled[m]) offset[m].setZero();
+    }
   for (int i = 0; i < nz; ++i) {
     if (!freec[i]) continue;
     const bool r = rotational[i];
@@ -1354,7 +1383,7 @@ bool Tracker::Impl::Followable(int m) const {
 // prediction, and at m's distance from the segment's other labelled markers and from its joint
 // centre (rigid-body distances, whatever the pose). Ghosts near the body are nearly always within
 // the radius; few also sit on these spheres, so a hidden marker rarely sets off a search.
-bool Tracker::Impl::RigidlyPlausible(int m, int k, bool anywhere) const {
+bool Tracker::Impl::RigidlyPlausible(int m, int k, bool anywhere, int except) const {
   const Eigen::Vector3d p = points.col(k), pm = predicted.col(m);
   if (!anywhere && (p - pm).squaredNorm() >= kLimbNearRadius * kLimbNearRadius) return false;
   const int segment = model->markers()[m].segment;
@@ -1366,7 +1395,8 @@ bool Tracker::Impl::RigidlyPlausible(int m, int k, bool anywhere) const {
       std::sqrt(options.gate_chi2 * var_m) + kLimbCentreTolerance)
     return false;
   for (int a = 0; a < nm; ++a) {
-    if (a == m || row_to_col[a] < 0 || model->markers()[a].segment != segment) continue;
+    if (a == m || a == except || row_to_col[a] < 0 || model->markers()[a].segment != segment)
+      continue;
     const double tol = std::sqrt(options.gate_chi2 * (var_m + MeasurementVariance(a)));
     if (std::abs((p - points.col(row_to_col[a])).norm() - (pm - predicted.col(a)).norm()) > tol)
       return false;
@@ -1442,7 +1472,70 @@ void Tracker::Impl::Reacquire(int np) {
       unheld = false;
     }
   }
+  // A re-check searches its limb with the labels free, which places its unlabelled markers too:
+  // it goes before a search of the same limb or one below it (the finger marker the shifted
+  // labels left without a point is due for its own search every limb_frames), and takes turns
+  // with a search of another limb (due on the same cadence, it would wait for good: seed 13 at
+  // 50 Hz, the left hand's).
+  if (!place) {
+    const int doubt = LimbLabelsInDoubt(np);
+    bool within = joint < 0 || recheck_waited;
+    if (doubt >= 0)
+      for (int j : limb_joint_list[doubt]) within |= j == joint;
+    if (doubt >= 0) recheck_waited = !within;
+    if (doubt >= 0 && within) {
+      ReacquireLimb(doubt, np, false, false, true);
+      return;
+    }
+  }
   if (joint >= 0) ReacquireLimb(joint, np, place, unheld);
+}
+
+// The evidence that a limb is labelled wrongly but consistently: a marker stuck for kStuckFrames
+// (due as the limb search is, every limb_frames) whose point, by the rigid geometry, is one that
+// another marker of its limb holds -- within kLimbNearRadius of its prediction, at its distance
+// from its joint centre and from its segment's other labelled markers (the holder left out).
+// The limb is then searched as a fresh track's is, its labels free (ReacquireLimb, relabel), and
+// the placement is taken only on the search's own terms: more of the limb labelled, every label
+// it gives within its gate on the measurement noise, no differently labelling start within the
+// margin. A hidden marker whose segment-mates hold their own points meets the test only where
+// they stand at its distances, which a right labelling's mates do not.
+int Tracker::Impl::LimbLabelsInDoubt(int np) const {
+  if (FreshTrack()) return -1;
+  const int limb_frames = std::max(2, static_cast<int>(std::lround(kLimbSeconds * options.rate_hz)));
+  int joint = -1;
+  for (int m = 0; m < nm; ++m) {
+    const int run = unlabelled_run[m], limb = marker_limb[m];
+    if (run < kStuckFrames || run % limb_frames != 0 || limb < 0 || !seen[m]) continue;
+    if (joint >= 0 && limb >= joint) continue;  // parents first
+    bool doubt = false;
+    for (int a : limb_markers[limb]) {
+      const int k = row_to_col[a];
+      if (a == m || k < 0 || k >= np) continue;
+      if (RigidlyPlausible(m, k, false, a)) {
+        doubt = true;
+        break;
+      }
+    }
+    if (!doubt) continue;
+    // And a point no marker holds that has moved rigidly with one of the limb's segments: the
+    // marker the shifted labels left without its own point (the finger marker's, its label on a
+    // wrist point). Without it the re-check cannot label more of the limb than the track does.
+    bool spare = false;
+    for (int k = 0; k < np && !spare; ++k) {
+      bool claimed = false;
+      for (int a = 0; a < nm && !claimed; ++a) claimed = row_to_col[a] == k;
+      if (claimed) continue;
+      for (int a : limb_markers[limb])
+        if ((points.col(k) - predicted.col(a)).squaredNorm() < kLimbNearRadius * kLimbNearRadius &&
+            SegmentPast(a, k) == PastWithSegment::kRigid) {
+          spare = true;
+          break;
+        }
+    }
+    if (spare) joint = limb;
+  }
+  return joint;
 }
 
 }  // namespace mocap::ekf

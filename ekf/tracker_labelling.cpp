@@ -804,6 +804,13 @@ void Tracker::Impl::PushHistory(int np) {
     if (!claimed[k]) beside_now[static_cast<size_t>(k) * nm + m] = frame_index;
   }
   beside_prev.swap(beside_now);
+  // A limb re-check moved these markers' labels (ReacquireLimb): the points beside them were
+  // recorded against the wrong labels, this frame's too.
+  for (int m = 0; m < nm; ++m)
+    if (relabelled[m]) {
+      ForgetRecords(m);
+      relabelled[m] = 0;
+    }
   prev_points.leftCols(np) = points.leftCols(np);
   prev_free_count = 0;
   for (int k = 0; k < np; ++k) {
