@@ -986,7 +986,6 @@ double Tracker::Impl::LimbAssign(int joint, const Eigen::VectorXd& z, int nc, do
 }
 
 bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld, bool relabel) {
-  lrelabel = relabel;
   const std::vector<int>& rows = limb_markers[joint];
   const std::vector<char>& freec = limb_coord[joint];
   const int ns = static_cast<int>(rows.size());
@@ -1001,8 +1000,10 @@ bool Tracker::Impl::ReacquireLimb(int joint, int np, bool place, bool unheld, bo
     ~Restore() {
       for (int i : c) s.llocal[i] = -1;
       s.predicted = s.lsaved;
+      s.lrelabel = false;
     }
   } restore{*this, lcoords};
+  lrelabel = relabel;  // LimbAssign's; cleared on every return (Restore)
   // Candidates: the points no marker took (the limb's labelled markers keep theirs).
   std::fill(ltaken.begin(), ltaken.begin() + np, 0);
   for (int m = 0; m < nm; ++m)
