@@ -742,7 +742,7 @@ int Tracker::Impl::DeferAmbiguousStartLabels(Hypothesis* h, int np) {
     d.n = 1;
     for (int q = 0; q < np && d.n < kDeferCandidates; ++q) {
       if (claimed[q] || (points.col(q) - predicted.col(m)).norm() > radius) continue;
-      if (cost(points.col(q)) < own + kDeferMargin) d.at[d.n++] = points.col(q);
+      if (cost(points.col(q)) < own) d.at[d.n++] = points.col(q);
     }
     if (d.n == 1) {
       d.n = 0;
