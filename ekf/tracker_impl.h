@@ -332,7 +332,6 @@ struct Tracker::Impl {
     int decided = -1;  // the one candidate left when the others are ruled out or gone
   };
   std::vector<Deferral> deferral;
-  static constexpr double kDeferMargin = 6.0;
   // A candidate lost for this long is gone (longer than the occlusions of a marker in view: the
   // simulated gaps are 5-30 frames, 25-150 ms at 200 Hz).
   static constexpr double kDeferGoneSeconds = 0.2;
@@ -592,9 +591,8 @@ struct Tracker::Impl {
   // empty and h refitted without them (see the definition); returns how many.
   int LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np);
   // The start's labels whose segment's rigid distances (to its joint centre and its labelled
-  // mates, each within the model's distance error) fit an unclaimed point about as well (within
-  // kDeferMargin, twice a log-likelihood ratio): left empty in h, deferred with their candidates
-  // (TryInitialise). Returns how many.
+  // mates, each within the model's distance error) fit an unclaimed point better: left empty in
+  // h, deferred with their candidates (TryInitialise). Returns how many.
   int DeferAmbiguousStartLabels(Hypothesis* h, int np);
   // The start's prior's mode for a placement z: the static pose, the root where z has it.
   Eigen::VectorXd StaticPoseAt(const Eigen::VectorXd& z) const;

@@ -697,12 +697,13 @@ int Tracker::Impl::LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np) {
 // (the placement's RMS over 3; a scaled nominal model leaves 7-9 mm RMS, the true model 2-3 mm)
 // for each marker of a pair, and kJointCentreTolerance more for a predicted joint centre. A
 // labelled marker with two anchors or more, and an unclaimed point within the search's final
-// radius of its place that fits those distances within kDeferMargin of its labelled point (twice
-// a log-likelihood ratio), is undecided: the label is left empty, the pose refitted without it,
-// and the candidates (the labelled point and every such rival) are followed over the next frames
-// until their motion decides (MatchDeferrals, JudgeDeferrals). Simulated seed 120 with the
-// nominal model: RWRB placed 11 mm from a reflection (distances off by 6.6/10.5/11.8 mm) and 25
-// mm from its own point (20.7/4.2/5.3 mm), held the reflection 71 frames.
+// radius of its place that fits those distances better than its labelled point, is undecided
+// (the placement, not the geometry, chose the label): the label is left empty, the pose refitted
+// without it, and the candidates (the labelled point and every such rival) are followed over the
+// next frames until their motion decides (MatchDeferrals, JudgeDeferrals). Simulated seed 120
+// with the nominal model: RWRB placed 11 mm from a reflection (distances off by 6.6/10.5/11.8 mm,
+// a chi-square of 11.9) and 25 mm from its own point (20.7/4.2/5.3 mm, 2.9), held the reflection
+// 71 frames.
 int Tracker::Impl::DeferAmbiguousStartLabels(Hypothesis* h, int np) {
   for (Deferral& d : deferral) d.n = 0;
   Linearise(h->z);
