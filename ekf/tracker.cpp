@@ -330,6 +330,7 @@ void Tracker::Impl::Allocate() {
   hist_head = hist_size = 0;
   beside_prev.assign(static_cast<size_t>(mp) * nm, kNever);
   held_run.assign(nm, 0);
+  deferral.assign(nm, Deferral());
   registered.assign(nm, 0);
   handoff_rivals.assign(nm, -1);
   doubted.assign(nm, {-1, -1});

@@ -223,6 +223,29 @@
 // of the body cannot place but no other point competes for (a generic model's acromion marker 55
 // mm off) keeps it, as does one that holds its chain nearer the static pose than its mates' model
 // error would (LeaveSelfDecidedLabelsEmpty).
+// Deferred labels. The search labels each marker with the point nearest where its placement
+// puts it, and the placement is fitted to those labels, so with a nominal model (distances 1 cm
+// off the subject's) a reflection near a marker's place can win over the marker's own point by
+// the placement's pull alone. What the placement cannot bend is the segment's rigid geometry --
+// the point's distances to its joint centre and to its labelled mates -- and that the model knows
+// only to its own error: the start's residual variance per coordinate for each marker (7-9 mm RMS
+// for a scaled nominal model, 2-3 mm for the true one) and 2 cm more for a predicted joint centre.
+// A label whose point an unclaimed point within the search's radius fits better by those
+// distances is the placement's guess: it is left empty and the pose refitted without it, and
+// the candidates (its point and each such rival) are followed as point tracks.
+// Their motion decides, not the model: a candidate whose distance to a mate changes by over 1 cm
+// is not on the segment (a reflection fixed in the lab or riding elsewhere; the marker moves with
+// its segment); one lost for 0.2 s (longer than an occlusion) or after its first frame (a
+// single-frame reflection) is gone; the one left is the marker's, and the gates may give it.
+// Until then no stage (gates, registration, limb search, provisional window) gives the marker
+// any candidate; a point that comes later is the gates' as ever. A deferral ends when its marker
+// has held a label 20 frames, or after 2 s (about a stray reflection's longest life). Simulated
+// seed 120 with the nominal model: RWRB placed 11 mm from a reflection and 25 mm from its own
+// point, both fitting the forearm's distances within a centimetre (the own point better: a
+// chi-square of 2.9 against 11.9); it held the reflection 71 frames. Only a rival that fits
+// better: deferred also where a rival fitted worse within a log-likelihood margin of 6,
+// welk007's L_toe (its hip trial, the scaled OpenSim model: chi-square 2.9 on its own point, 7.9
+// on a point 40 mm off) was left empty and the trial lost 241 labels (0.99970 -> 0.97796).
 // Scaled to the subject (TrackerOptions::init_scale_to_subject): a lab calibrates a generic
 // model to its subject, and so does the tracker, at every start by default. A generic model
 // (OpenSim's gait2354, whose femurs are 15 % short of its example subject's) can put markers

@@ -308,6 +308,49 @@ struct Tracker::Impl {
   // frames whose anchors are too few to give it again. Sized nm in Allocate.
   std::vector<std::pair<int, int>> doubted;
   int doubted_count = 0;
+  // Deferred labels (tracker.h, "Deferred labels"): per marker, the points the start could not
+  // tell apart by its segment's rigid distances within the model's distance error, followed
+  // frame by frame until their motion decides. Each candidate's point in the last frame, whether
+  // its track still lives, whether its distance to an anchor (a mate labelled at the deferral)
+  // changed by more than kRigidTolerance (then it is not on the segment), and those distances at
+  // the deferral. `point`: this frame's point continuing each candidate (MatchDeferrals), -1 none.
+  static constexpr int kDeferCandidates = 4;
+  static constexpr int kDeferAnchors = 4;
+  struct Deferral {
+    int n = 0;  // candidates; 0: the marker's label is not deferred
+    int frames = 0;
+    Eigen::Vector3d at[kDeferCandidates];
+    int point[kDeferCandidates];
+    char alive[kDeferCandidates];
+    char ruled_out[kDeferCandidates];
+    int lived[kDeferCandidates];  // frames its track was followed
+    int died[kDeferCandidates];   // the deferral's frame it was lost in
+
+    int anchor[kDeferAnchors];
+    int nanchors = 0;
+    double d0[kDeferCandidates][kDeferAnchors];
+    int decided = -1;  // the one candidate left when the others are ruled out or gone
+  };
+  std::vector<Deferral> deferral;
+  // A candidate lost for this long is gone (longer than the occlusions of a marker in view: the
+  // simulated gaps are 5-30 frames, 25-150 ms at 200 Hz).
+  static constexpr double kDeferGoneSeconds = 0.2;
+  // Follows each deferred marker's candidates into this frame (nearest within kTrackStep) and
+  // says which is decided; ends a deferral none of whose candidates is left.
+  void MatchDeferrals(int np);
+  // After the frame's labels: each live candidate's distances to the anchors labelled now; a
+  // deferral ends when its marker has held a label kHeldFrames, or after kBesideSeconds (about
+  // the longest life of a stray reflection).
+  void JudgeDeferrals();
+  // Whether marker m may not take point k: k continues a candidate of m's deferral that is not
+  // the decided one.
+  bool DeferralExcludes(int m, int k) const {
+    const Deferral& d = deferral[m];
+    if (d.n == 0) return false;
+    for (int c = 0; c < d.n; ++c)
+      if (d.alive[c] && d.point[c] == k && c != d.decided) return true;
+    return false;
+  }
   // Per marker: its longest run of labelled frames since the (re)initialisation.
   std::vector<int> held_run;
   // Per marker: moved by the segment registration from one point to another this frame
@@ -547,6 +590,10 @@ struct Tracker::Impl {
   // The start's labels that alone turn their limb, where a second configuration is at hand, left
   // empty and h refitted without them (see the definition); returns how many.
   int LeaveSelfDecidedLabelsEmpty(Hypothesis* h, int np);
+  // The start's labels whose segment's rigid distances (to its joint centre and its labelled
+  // mates, each within the model's distance error) fit an unclaimed point better: left empty in
+  // h, deferred with their candidates (TryInitialise). Returns how many.
+  int DeferAmbiguousStartLabels(Hypothesis* h, int np);
   // The start's prior's mode for a placement z: the static pose, the root where z has it.
   Eigen::VectorXd StaticPoseAt(const Eigen::VectorXd& z) const;
   // h's labels of the markers `empty` marks left empty, and h refitted without them (HeldFit,

@@ -85,6 +85,7 @@ void Tracker::Impl::LabelByGating(int np) {
   std::fill(gated_by.begin(), gated_by.begin() + np, 0);
   std::fill(pred_cache.begin(), pred_cache.begin() + np, -2);
   bool contested = false;
+  MatchDeferrals(np);
   FollowLabelledTracks(np);
   for (int m = 0; m < nm; ++m) {
     const Eigen::Vector3d p = predicted.col(m);
@@ -114,7 +115,8 @@ void Tracker::Impl::LabelByGating(int np) {
         contested |= ++gated_by[k] > 1;
         best = -1;
         best_k = k;
-      } else if (e.squaredNorm() < reject_sq[m] && (track_owner[k] < 0 || track_owner[k] == m)) {
+      } else if (e.squaredNorm() < reject_sq[m] && (track_owner[k] < 0 || track_owner[k] == m) &&
+                 !DeferralExcludes(m, k)) {
         const double q = e.dot(s_inv[m] * e);
         if (q < gate && (!hidden_gated[m] || e.dot(s_inv_hidden[m] * e) < gate) &&
             OnSegmentSphere(m, points.col(k)) &&
@@ -381,7 +383,7 @@ void Tracker::Impl::RegisterSegments(int np) {
       // occlusion is the gate's (a reflection riding with the segment can sit at its place).
       if (!pinned && unlabelled_run[m] < kStuckFrames) continue;
       for (int k = 0; k < np; ++k) {
-        if (ltaken[k] || !OnSegmentSphere(m, points.col(k))) continue;
+        if (ltaken[k] || DeferralExcludes(m, k) || !OnSegmentSphere(m, points.col(k))) continue;
         const double d = (points.col(k) - predicted.col(m)).squaredNorm();
         if (n == kSegmentCandidates && d >= dist[n - 1]) continue;
         if ((pinned ? NonRigidTrack(m, points.col(k)) : !RigidWithSegment(m, k)) ||
@@ -762,6 +764,7 @@ int Tracker::Impl::ApplyLabels(int np) {
 }
 
 void Tracker::Impl::PushHistory(int np) {
+  JudgeDeferrals();
   hist_points[hist_head].leftCols(np) = points.leftCols(np);
   hist_count[hist_head] = np;
   std::vector<char>& claimed = hist_claimed[hist_head];
@@ -1096,7 +1099,8 @@ void Tracker::Impl::ReviewProvisionalLabels(int np) {
     int best = -1;
     double best_r = std::numeric_limits<double>::infinity();
     for (int j = 0; j < np; ++j) {
-      if (claimed_now[j] || (points.col(j) - p).squaredNorm() > kRivalRadius * kRivalRadius)
+      if (claimed_now[j] || (points.col(j) - p).squaredNorm() > kRivalRadius * kRivalRadius ||
+          DeferralExcludes(m, j))
         continue;
       const double r = RigidResidual(m, points.col(j));
       if (r < best_r) {
@@ -1379,7 +1383,7 @@ void Tracker::Impl::LabelLooseSegments(int np) {
         const double radius = local.col(i).norm();
         const Eigen::Vector3d expected = predicted.col(m) + centre_moved;
         for (int k = 0; k < np; ++k) {
-          if (ltaken[k]) continue;
+          if (ltaken[k] || DeferralExcludes(m, k)) continue;
           const Eigen::Vector3d e = points.col(k) - expected;
           if (e.squaredNorm() >= reject_sq[m]) continue;
           const double d2 = e.dot(s_inv[m] * e);
@@ -1526,6 +1530,74 @@ void Tracker::Impl::LabelLooseSegments(int np) {
     }
     if (segment_wants_fit[s])
       segment_fitted[s] = FitSegmentPose(s, &fit_rotation[s], &fit_translation[s], &fit_precision[s]);
+  }
+}
+
+// Deferred labels (ekf/tracker.h, "Deferred labels"). Each candidate is followed as a point
+// track (its nearest point within a frame's motion). A candidate lost for kDeferGoneSeconds (an
+// occlusion's length: the marker's own point may come back) or after a single frame (a
+// reflection of one frame: most are) is gone; one whose distance to an anchor changed is ruled
+// out. The one candidate left when every other is ruled out or gone is the marker's: the gates
+// may then give it; until then no stage gives the marker any of them (a new point, one that came
+// after the deferral, is the gates' as ever).
+void Tracker::Impl::MatchDeferrals(int np) {
+  const int gone_frames = std::max(2, static_cast<int>(std::lround(kDeferGoneSeconds * options.rate_hz)));
+  for (int m = 0; m < nm; ++m) {
+    Deferral& d = deferral[m];
+    if (d.n == 0) continue;
+    int open = 0, last = -1, undecided = 0;
+    for (int c = 0; c < d.n; ++c) {
+      d.point[c] = -1;
+      if (d.alive[c]) {
+        double best = kTrackStep * kTrackStep;
+        for (int k = 0; k < np; ++k) {
+          const double d2 = (points.col(k) - d.at[c]).squaredNorm();
+          if (d2 < best) {
+            best = d2;
+            d.point[c] = k;
+          }
+        }
+        if (d.point[c] < 0) {
+          d.alive[c] = 0;
+          d.died[c] = d.frames;
+        }
+      }
+      if (d.ruled_out[c]) continue;
+      if (d.alive[c]) {
+        ++open;
+        last = c;
+      } else if (d.lived[c] > 1 && d.frames - d.died[c] < gone_frames) {
+        ++undecided;  // hidden, perhaps: its marker may come back
+      }
+    }
+    if (open == 0 && undecided == 0) {
+      d.n = 0;
+      continue;
+    }
+    d.decided = open == 1 && undecided == 0 ? last : -1;
+  }
+}
+
+void Tracker::Impl::JudgeDeferrals() {
+  const int longest = static_cast<int>(std::lround(kBesideSeconds * options.rate_hz));
+  for (int m = 0; m < nm; ++m) {
+    Deferral& d = deferral[m];
+    if (d.n == 0) continue;
+    if ((row_to_col[m] >= 0 && labelled_run[m] >= kHeldFrames) || ++d.frames > longest) {
+      d.n = 0;
+      continue;
+    }
+    for (int c = 0; c < d.n; ++c) {
+      if (!d.alive[c] || d.point[c] < 0) continue;
+      const Eigen::Vector3d p = points.col(d.point[c]);
+      d.at[c] = p;
+      ++d.lived[c];
+      for (int a = 0; a < d.nanchors; ++a) {
+        const int k = row_to_col[d.anchor[a]];
+        if (k < 0) continue;
+        if (std::abs((p - points.col(k)).norm() - d.d0[c][a]) > kRigidTolerance) d.ruled_out[c] = 1;
+      }
+    }
   }
 }
 
