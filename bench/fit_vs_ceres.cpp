@@ -14,15 +14,16 @@
 //                [--max-iterations K] [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]
 //                [--fit-model] [--rescue-rounds N] [--clamp-ranges] [--ik-limit-stiffness S]
 //                [--limit-sigma SIGMA] [--pose-retries K] [--pose-cap R] [--time-iteration K]
-//                [--save-x FILE]
+//                [--save-x FILE] [--no-rescue-gaps]
 //
 // The accuracy against the simulation's truth is printed ("truth:", JSON ours_accuracy): joint
 // centres, frames whose markers (hidden ones too) sit > 20 mm off, and joint rotations outside
 // their ranges (frames x coordinates; the joint to the lab and joints that may turn round not
 // counted). With FVC_DEBUG=1 in the
 // environment it also prints each such frame's worst marker and the per-trial frame costs (how
-// the gap diagnosis in BENCHMARKS.md was made). --no-hold / --hold-* / --rescue-ratio set
-// FitOptions::unobserved_hold and CoarseToFineOptions::rescue_ratio (solver/coarse_to_fine.h).
+// the gap diagnosis in BENCHMARKS.md was made). --no-hold / --hold-* / --rescue-ratio / --no-rescue-gaps
+// set FitOptions::unobserved_hold and CoarseToFineOptions::rescue_ratio / rescue_gap_frames
+// (solver/coarse_to_fine.h).
 // --clamp-ranges marks those ranged joint rotations clamped (the default model declares none), so
 // the IK start and the fit hold them inside their ranges by their walls (--ik-limit-stiffness,
 // --limit-sigma: IkOptions::coordinate_limit_stiffness, FitOptions::coordinate_limit_sigma_rad);
@@ -269,7 +270,7 @@ struct Args {
                "         [--geodesic | --no-geodesic] [--geodesic-alpha A] [--geodesic-h H]\n"
                "         [--vp | --no-vp] [--secant | --no-secant] [--reduced-damping | --no-reduced-damping]\n"
                "         [--raise-gain G] [--converge-gain G] (the five on by default; a gain of 0: off)\n"
-               "         [--time-iteration K] [--save-x FILE]\n",
+               "         [--time-iteration K] [--save-x FILE] [--no-rescue-gaps]\n",
                error.c_str());
   std::exit(2);
 }
@@ -309,6 +310,7 @@ Args ParseArgs(int argc, char** argv) {
     else if (a == "--plain") args.plain = true;
     else if (a == "--coarse-frames") args.coarse.coarse_frames = static_cast<int>(number(1));
     else if (a == "--coarse-tolerance") args.coarse.coarse_function_tolerance = number(0);
+    else if (a == "--no-rescue-gaps") args.coarse.rescue_gap_frames = false;
     else if (a == "--pose-iterations") args.coarse.pose_iterations = static_cast<int>(number(0));
     else if (a == "--no-inner") args.coarse.inner_iterations = false;
     else if (a == "--wrap") args.coarse.wrap_frame_turns = true;
