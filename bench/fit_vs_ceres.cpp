@@ -14,20 +14,24 @@
 //                [--max-iterations K] [--no-hold] [--hold-weak R] [--hold-ratio R] [--rescue-ratio R]
 //                [--fit-model] [--rescue-rounds N] [--clamp-ranges] [--ik-limit-stiffness S]
 //                [--limit-sigma SIGMA] [--pose-retries K] [--pose-cap R] [--time-iteration K]
+//                [--save-x FILE] [--no-rescue-gaps]
 //
 // The accuracy against the simulation's truth is printed ("truth:", JSON ours_accuracy): joint
 // centres, frames whose markers (hidden ones too) sit > 20 mm off, and joint rotations outside
 // their ranges (frames x coordinates; the joint to the lab and joints that may turn round not
 // counted). With FVC_DEBUG=1 in the
 // environment it also prints each such frame's worst marker and the per-trial frame costs (how
-// the gap diagnosis in BENCHMARKS.md was made). --no-hold / --hold-* / --rescue-ratio set
-// FitOptions::unobserved_hold and CoarseToFineOptions::rescue_ratio (solver/coarse_to_fine.h).
+// the gap diagnosis in BENCHMARKS.md was made). --no-hold / --hold-* / --rescue-ratio / --no-rescue-gaps
+// set FitOptions::unobserved_hold and CoarseToFineOptions::rescue_ratio / rescue_gap_frames
+// (solver/coarse_to_fine.h).
 // --clamp-ranges marks those ranged joint rotations clamped (the default model declares none), so
 // the IK start and the fit hold them inside their ranges by their walls (--ik-limit-stiffness,
 // --limit-sigma: IkOptions::coordinate_limit_stiffness, FitOptions::coordinate_limit_sigma_rad);
 // it prints how many (frame, rotation) pairs of the truth lie outside the ranges (none for the
 // default protocol: clamping is consistent with the simulated motions). --pose-retries / --pose-cap
-// set CoarseToFineOptions::pose_step_retries / pose_step_cap. --time-iteration K times the parts of
+// set CoarseToFineOptions::pose_step_retries / pose_step_cap. --save-x FILE writes each frame's sum
+// of squares at our result (frame order, doubles) and then our x, to tell two end points apart
+// frame by frame (which frames a final cost's difference is in). --time-iteration K times the parts of
 // one fine-stage iteration (linearisation, shared solve, cost, the inner iteration's pose re-solve)
 // K times at our solution and prints each part's least CPU time (JSON ours_iteration_parts), and
 // as a fifth part the cost and re-solve fused as the fine stage runs them (solver::ProjectedCost).
@@ -212,6 +216,7 @@ struct Args {
   int frames = 1000;
   bool json = false;
   std::string json_out;  // also write the JSON there (the text report still goes to stdout)
+  std::string save_x;    // raw doubles: each frame's sum of squares at our result, then our x
   int threads = 0;  // 0: every core
   bool skip_ceres = false;
   double ceres_max_seconds = 600;
@@ -265,7 +270,7 @@ struct Args {
                "         [--geodesic | --no-geodesic] [--geodesic-alpha A] [--geodesic-h H]\n"
                "         [--vp | --no-vp] [--secant | --no-secant] [--reduced-damping | --no-reduced-damping]\n"
                "         [--raise-gain G] [--converge-gain G] (the five on by default; a gain of 0: off)\n"
-               "         [--time-iteration K]\n",
+               "         [--time-iteration K] [--save-x FILE] [--no-rescue-gaps]\n",
                error.c_str());
   std::exit(2);
 }
@@ -301,9 +306,11 @@ Args ParseArgs(int argc, char** argv) {
     if (a == "--frames") args.frames = static_cast<int>(number(1));
     else if (a == "--json") args.json = true;
     else if (a == "--json-out") args.json_out = value();
+    else if (a == "--save-x") args.save_x = value();
     else if (a == "--plain") args.plain = true;
     else if (a == "--coarse-frames") args.coarse.coarse_frames = static_cast<int>(number(1));
     else if (a == "--coarse-tolerance") args.coarse.coarse_function_tolerance = number(0);
+    else if (a == "--no-rescue-gaps") args.coarse.rescue_gap_frames = false;
     else if (a == "--pose-iterations") args.coarse.pose_iterations = static_cast<int>(number(0));
     else if (a == "--no-inner") args.coarse.inner_iterations = false;
     else if (a == "--wrap") args.coarse.wrap_frame_turns = true;
@@ -1405,6 +1412,18 @@ int main(int argc, char** argv) {
     }
   }
   ours_cached = ours_coarse.frames_cached;
+  if (!args.save_x.empty() && ours_x.size() > 0 && problem.SetShared(ours_x.tail(np))) {
+    std::vector<double> frame_costs(nf, 0.0);
+    auto evaluator = problem.NewEvaluator();
+    for (int f = 0; f < nf; ++f)
+      solver::FrameSquaredNorm(problem, evaluator.get(), f, ours_x.data() + static_cast<size_t>(f) * nz,
+                               &frame_costs[f]);
+    if (FILE* file = std::fopen(args.save_x.c_str(), "wb")) {
+      std::fwrite(frame_costs.data(), sizeof(double), frame_costs.size(), file);
+      std::fwrite(ours_x.data(), sizeof(double), ours_x.size(), file);
+      std::fclose(file);
+    }
+  }
   // --time-iteration K: the parts of one whole-problem iteration of the fine stage, timed K times
   // at our solution (the same work every time): the linearisation with the reduction at an
   // anticipated damping, the shared solve and back-substitution, the candidate's cost, and the

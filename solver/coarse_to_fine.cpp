@@ -555,7 +555,7 @@ int RefineFramePoses(ArrowProblem* problem, const CoarseToFineOptions& options, 
 }
 
 int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions& options, int num_threads,
-                               Eigen::VectorXd* x, std::vector<double>* frame_costs) {
+                               Eigen::VectorXd* x, std::vector<double>* frame_costs, const std::vector<char>* also) {
   const int nf = problem->num_frames(), ny = problem->frame_dim(), np = problem->shared_dim();
   if (!(options.rescue_ratio > 1) || nf < 3 || !problem->SetShared(x->tail(np))) return 0;
   const int threads = std::max(1, std::min(num_threads, nf));
@@ -575,7 +575,7 @@ int RescueFramesFromNeighbours(ArrowProblem* problem, const CoarseToFineOptions&
   const double limit = options.rescue_ratio * sorted[nf / 2];
   if (!std::isfinite(limit)) return 0;
   std::vector<char> suspect(nf);
-  for (int f = 0; f < nf; ++f) suspect[f] = !(cost[f] <= limit);
+  for (int f = 0; f < nf; ++f) suspect[f] = !(cost[f] <= limit) || (also && (*also)[f]);
   // Runs of consecutive suspect frames, each swept from both ends.
   std::vector<std::pair<int, int>> runs;
   for (int f = 0; f < nf; ++f) {
@@ -800,7 +800,25 @@ LmSummary SolveCoarseToFine(ArrowProblem* problem, ArrowSchurProblem* whole, con
   s.poses_improved =
       RefineFramePoses(problem, coarse, num_threads, &candidate, &ok, &candidate_cost, nullptr, 0, &frame_costs);
   if (ok) {
-    s.poses_rescued = RescueFramesFromNeighbours(problem, coarse, num_threads, &candidate, &frame_costs);
+    // Frames in gaps (CoarseToFineOptions::rescue_gap_frames): fewer marker rows, i.e. blocks
+    // reaching the shared parameters (a coordinate limit's block reaches none), than the fullest.
+    std::vector<char> gap;
+    if (coarse.rescue_gap_frames) {
+      std::vector<int> rows(nf, 0);
+      ParallelChunks(nf, std::max(1, std::min(num_threads, nf)), [&](int, int b, int e) {
+        std::unique_ptr<FrameEvaluator> evaluator = problem->NewEvaluator();
+        for (int f = b; f < e; ++f) {
+          if (!evaluator->Evaluate(f, candidate.data() + static_cast<size_t>(f) * ny, false)) continue;
+          for (int k = 0; k < evaluator->num_blocks(); ++k)
+            if (evaluator->block(k).num_p > 0) rows[f] += evaluator->block(k).rows;
+        }
+      });
+      const int fullest = *std::max_element(rows.begin(), rows.end());
+      gap.resize(nf);
+      for (int f = 0; f < nf; ++f) gap[f] = rows[f] < fullest;
+    }
+    s.poses_rescued = RescueFramesFromNeighbours(problem, coarse, num_threads, &candidate, &frame_costs,
+                                                 coarse.rescue_gap_frames ? &gap : nullptr);
     if (s.poses_rescued > 0) {
       double sum = 0;
       for (double c : frame_costs) sum += c;
