@@ -330,11 +330,12 @@
 // flexion-pronation RWRA on RWRB's point, RFIN on RWRA's, RWRB unlabelled beside its own point,
 // 1,938 wrong labels for the rest of the take; re-checked, 52, the longest run 496 -> 43
 // frames; at 200 Hz a wrist marker on its mate's point, seed 144 at 8 ghosts 36 -> 22 wrong,
-// seed 98 at 5 ghosts 60 -> 49; seeds 1-50 unchanged). The limb is then searched as a fresh track's is, its labels free, and the
-// placement is taken on the search's own terms: MORE of the limb labelled than now (the spare
-// point explained), every label it gives within its gate -- a moved label's allowing for its
-// learnt offset, which was learnt on the wrong point and is cleared when the placement is taken
-// --, no differently labelling start within the margin, no new label on a point whose past rules
+// seed 98 at 5 ghosts 60 -> 49; seeds 1-50 unchanged). The limb is then searched as a fresh
+// track's is, its labels free, and the placement is taken on the search's own terms: MORE of
+// the limb labelled than now (the spare point explained), every label it gives within its
+// gate -- a moved label's allowing for its learnt offset, which was learnt on the wrong point
+// and is cleared when the placement is taken --, no differently labelling start within the
+// margin, no new label on a point whose past rules
 // it out (judged from the limb's own joint centre only: the centres below it were placed by the
 // labels in doubt). The moved markers' seen-beside records go (made under the wrong labels). A
 // re-check takes turns with another limb's search due in the same frame (the one-search budget).
