@@ -762,7 +762,7 @@ TEST(TrackStaticStart, ALabelTheSegmentsDistancesCannotDecideIsDeferred) {
 }
 
 // The harder scene (8 ghosts a frame, 15 % occluded, the swap traps), seed 127 (a hold-out seed),
-// the static's 600 frames. The start labelled RKNE right, but a lab-fixed reflection 40 mm from
+// the static's 600 frames. The start labelled RKNE right, but a reflection 40 mm from
 // its place fitted the thigh's distances (to RTHI and the hip centre) better (a chi-square of 0.9
 // against 1.7), so RKNE's label was deferred; a standing subject's sway moves the reflection's
 // distance to RTHI by 1-1.6 mm, under the 1 cm that rules a candidate out, and nothing decided:
