@@ -329,24 +329,37 @@ struct Tracker::Impl {
     int anchor[kDeferAnchors];
     int nanchors = 0;
     double d0[kDeferCandidates][kDeferAnchors];
+    // Each distance's mean over blocks of kStillBlockSeconds: the first block's (the reference,
+    // `mean0`, once `blocks` > 0) and the running block's sum and count.
+    double mean0[kDeferCandidates][kDeferAnchors];
+    int blocks[kDeferCandidates][kDeferAnchors];
+    double sum[kDeferCandidates][kDeferAnchors];
+    int count[kDeferCandidates][kDeferAnchors];
     int decided = -1;  // the one candidate left when the others are ruled out or gone
   };
   std::vector<Deferral> deferral;
   // A candidate lost for this long is gone (longer than the occlusions of a marker in view: the
   // simulated gaps are 5-30 frames, 25-150 ms at 200 Hz).
   static constexpr double kDeferGoneSeconds = 0.2;
+  // A standing subject sways a few millimetres, under kRigidTolerance; a distance's mean over a
+  // block of frames (the noise of one frame's divided by the block's root length) shows it: a
+  // candidate whose block mean distance to an anchor differs from its first block's by more than
+  // kStillTolerance is not on the segment.
+  static constexpr double kStillBlockSeconds = 0.1;
+  static constexpr double kStillTolerance = 0.001;
   // Follows each deferred marker's candidates into this frame (nearest within kTrackStep) and
   // says which is decided; ends a deferral none of whose candidates is left.
   void MatchDeferrals(int np);
   // After the frame's labels: each live candidate's distances to the anchors labelled now; a
-  // deferral ends when its marker has held a label kHeldFrames, or after kBesideSeconds (about
-  // the longest life of a stray reflection).
+  // deferral ends when its marker has held a label kHeldFrames with no other candidate alive, or
+  // after kBesideSeconds (about the longest life of a stray reflection).
   void JudgeDeferrals();
   // Whether marker m may not take point k: k continues a candidate of m's deferral that is not
-  // the decided one.
+  // the decided one, or the decided one is hidden (m waits for it).
   bool DeferralExcludes(int m, int k) const {
     const Deferral& d = deferral[m];
     if (d.n == 0) return false;
+    if (d.decided >= 0 && !d.alive[d.decided]) return true;  // its point hidden: nothing else
     for (int c = 0; c < d.n; ++c)
       if (d.alive[c] && d.point[c] == k && c != d.decided) return true;
     return false;

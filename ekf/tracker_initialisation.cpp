@@ -757,8 +757,11 @@ int Tracker::Impl::DeferAmbiguousStartLabels(Hypothesis* h, int np) {
       d.lived[c] = 0;
       d.died[c] = 0;
       d.point[c] = -1;
-      for (int a = 0; a < d.nanchors; ++a)
+      for (int a = 0; a < d.nanchors; ++a) {
         d.d0[c][a] = (d.at[c] - points.col(h->assignment[d.anchor[a]])).norm();
+        d.mean0[c][a] = d.sum[c][a] = 0;
+        d.blocks[c][a] = d.count[c][a] = 0;
+      }
     }
     empty[m] = 1;
     ++deferred;

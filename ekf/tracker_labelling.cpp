@@ -1537,18 +1537,24 @@ void Tracker::Impl::LabelLooseSegments(int np) {
 // track (its nearest point within a frame's motion). A candidate lost for kDeferGoneSeconds (an
 // occlusion's length: the marker's own point may come back) or after a single frame (a
 // reflection of one frame: most are) is gone; one whose distance to an anchor changed is ruled
-// out. The one candidate left when every other is ruled out or gone is the marker's: the gates
-// may then give it; until then no stage gives the marker any of them (a new point, one that came
-// after the deferral, is the gates' as ever).
+// out, by a centimetre in a frame or by a millimetre in its mean over kStillBlockSeconds (a
+// standing subject's sway; JudgeDeferrals). The one candidate left when every other is ruled
+// out or gone is the marker's: the gates may then give it; until then no stage gives the marker
+// any of them (a new point, one that came after the deferral, is the gates' as ever, except while
+// the decided candidate is hidden: the marker waits for it). A candidate ruled out is kept from
+// the marker while it lives.
 void Tracker::Impl::MatchDeferrals(int np) {
   const int gone_frames = std::max(2, static_cast<int>(std::lround(kDeferGoneSeconds * options.rate_hz)));
   for (int m = 0; m < nm; ++m) {
     Deferral& d = deferral[m];
     if (d.n == 0) continue;
-    int open = 0, last = -1, undecided = 0;
+    int open = 0, last = -1, undecided = 0, excluded = 0;
     for (int c = 0; c < d.n; ++c) {
       d.point[c] = -1;
-      if (d.alive[c]) {
+      // The decided candidate hidden for less than kDeferGoneSeconds is looked for where it was
+      // last seen: its marker's point coming back.
+      const bool returning = !d.alive[c] && c == d.decided && d.frames - d.died[c] < gone_frames;
+      if (d.alive[c] || returning) {
         double best = kTrackStep * kTrackStep;
         for (int k = 0; k < np; ++k) {
           const double d2 = (points.col(k) - d.at[c]).squaredNorm();
@@ -1557,12 +1563,17 @@ void Tracker::Impl::MatchDeferrals(int np) {
             d.point[c] = k;
           }
         }
-        if (d.point[c] < 0) {
+        if (d.point[c] >= 0) {
+          d.alive[c] = 1;
+        } else if (d.alive[c]) {
           d.alive[c] = 0;
           d.died[c] = d.frames;
         }
       }
-      if (d.ruled_out[c]) continue;
+      if (d.ruled_out[c]) {
+        excluded += d.alive[c];
+        continue;
+      }
       if (d.alive[c]) {
         ++open;
         last = c;
@@ -1570,20 +1581,27 @@ void Tracker::Impl::MatchDeferrals(int np) {
         ++undecided;  // hidden, perhaps: its marker may come back
       }
     }
-    if (open == 0 && undecided == 0) {
+    if (open == 0 && undecided == 0 && excluded == 0) {
       d.n = 0;
       continue;
     }
-    d.decided = open == 1 && undecided == 0 ? last : -1;
+    // A decided candidate hidden (the one undecided, none open) stays decided: until it comes
+    // back or is gone, its marker takes no other point.
+    const bool hidden = open == 0 && undecided == 1 && d.decided >= 0 && !d.alive[d.decided] &&
+                        d.frames - d.died[d.decided] < gone_frames;
+    d.decided = open == 1 && undecided == 0 ? last : hidden ? d.decided : -1;
   }
 }
 
 void Tracker::Impl::JudgeDeferrals() {
   const int longest = static_cast<int>(std::lround(kBesideSeconds * options.rate_hz));
+  const int block = std::max(3, static_cast<int>(std::lround(kStillBlockSeconds * options.rate_hz)));
   for (int m = 0; m < nm; ++m) {
     Deferral& d = deferral[m];
     if (d.n == 0) continue;
-    if ((row_to_col[m] >= 0 && labelled_run[m] >= kHeldFrames) || ++d.frames > longest) {
+    bool rival = false;  // a candidate ruled out is kept from the marker while it lives
+    for (int c = 0; c < d.n; ++c) rival |= c != d.decided && d.alive[c];
+    if ((row_to_col[m] >= 0 && labelled_run[m] >= kHeldFrames && !rival) || ++d.frames > longest) {
       d.n = 0;
       continue;
     }
@@ -1595,7 +1613,17 @@ void Tracker::Impl::JudgeDeferrals() {
       for (int a = 0; a < d.nanchors; ++a) {
         const int k = row_to_col[d.anchor[a]];
         if (k < 0) continue;
-        if (std::abs((p - points.col(k)).norm() - d.d0[c][a]) > kRigidTolerance) d.ruled_out[c] = 1;
+        const double distance = (p - points.col(k)).norm();
+        if (std::abs(distance - d.d0[c][a]) > kRigidTolerance) d.ruled_out[c] = 1;
+        d.sum[c][a] += distance;
+        if (++d.count[c][a] < block) continue;
+        const double mean = d.sum[c][a] / d.count[c][a];
+        if (d.blocks[c][a]++ == 0)
+          d.mean0[c][a] = mean;
+        else if (std::abs(mean - d.mean0[c][a]) > kStillTolerance)
+          d.ruled_out[c] = 1;
+        d.sum[c][a] = 0;
+        d.count[c][a] = 0;
       }
     }
   }
