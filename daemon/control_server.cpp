@@ -262,9 +262,12 @@ int ControlServer::OnClient(sd_event_source* s, int fd, uint32_t revents, void* 
 
 void ControlServer::ReadFrom(Client* c) {
   const std::uint64_t id = c->id;
-  // Fairness: one 16 KB read per wake-up (a few hundred requests at most), then the loop serves
-  // the frames and the other clients; epoll wakes it again for the rest.
-  char buf[16384];
+  // Fairness: one 2 KB read per wake-up (a hundred short requests at most, ~30 ms of status
+  // replies), then the loop serves the frames and the other clients; epoll wakes it again for
+  // the rest. A 16 KB read was ~550 status requests, ~165 ms of work, stretched past the loop's
+  // 320 ms frame queue when other processes took half the CPU (CI, 28 Nov 2026). A longer line
+  // gathers in `in` over several wake-ups, up to max_line_bytes.
+  char buf[2048];
   for (int rounds = 0; rounds < 1; ++rounds) {
     const ssize_t n = ::recv(c->fd, buf, sizeof buf, 0);
     if (n == 0) {
