@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The daemon tier under AddressSanitizer (with LeakSanitizer) and UBSan: the real mocapd on the
 # simulated rig, built in build-fuzz/ with the fuzzers' flags (scripts/sanitizer_build.sh), driven
-# by the daemon tier's tests built there too. A report from any process (the test, the mocapd it
-# started, mocapctl) goes to build-fuzz/sanitizer-logs/ (ASAN_OPTIONS/UBSAN_OPTIONS log_path,
+# by the daemon tier's tests of the main build (build/tests, MOCAP_TEST_MOCAPD). A report from
+# the mocapd they start goes to build-fuzz/sanitizer-logs/ (ASAN_OPTIONS/UBSAN_OPTIONS log_path,
 # since a daemon's stderr is its log file) and fails the run, whatever the test concluded.
 #
 # The subset: what fits CI's budget (scripts/test.sh under 25 minutes on 2 cores; BENCHMARKS.md
@@ -15,7 +15,7 @@
 # quarantine, with no sanitizer report) and the whole session and systemd tests (minutes each).
 #
 # Usage: scripts/sanitize_daemon.sh [build|run|all|faults [FILTER]]   (default all)
-#   build:  the fuzz targets and the daemon tier in build-fuzz/ (ctest's fixture, so that the
+#   build:  the fuzz targets and mocapd in build-fuzz/ (ctest's fixture, so that the
 #           fuzz test and this one never run ninja in build-fuzz/ at once)
 #   run:    the tests below, then the logs
 #   faults: by hand, not in CI (its ~80 s run and the test's build do not fit CI's budget):
@@ -33,18 +33,29 @@ tier=(
   "test_daemon:*ProtocolEveryRequestAndEveryError*:*RefusesABadConfig*"
 )
 quarantine=""
+# The tier's tests are this build's (build/tests, gcc) driving build-fuzz/'s mocapd
+# (MOCAP_TEST_MOCAPD, tests/daemon_test_util.h): what runs under the sanitizers is the daemon.
+tests_dir=build/tests
 if [ "$what" = faults ]; then
+  # test_daemon_faults is built here with MOCAP_TEST_UNDER_ASAN (its rigs at an eighth of the rate).
   tier=("test_daemon_faults:${2:--*KilledAtRandomMoments*}")
   quarantine=":quarantine_size_mb=16"
+  tests_dir=build-fuzz/tests
   bash scripts/sanitizer_build.sh mocapd test_daemon_faults
 fi
 if [ "$what" = build ] || [ "$what" = all ]; then
-  targets=(mocapd mocapctl)
+  targets=(mocapd)
   for src in fuzz/fuzz_*.cpp; do targets+=("$(basename "$src" .cpp)"); done
-  for t in "${tier[@]}"; do targets+=("${t%%:*}"); done
   bash scripts/sanitizer_build.sh "${targets[@]}"
 fi
 [ "$what" = build ] && exit 0
+for t in "${tier[@]}"; do
+  if [ ! -x "$tests_dir/${t%%:*}" ]; then
+    echo "sanitized daemon tier: $tests_dir/${t%%:*} is not built (scripts/build.sh builds build/)" >&2
+    exit 1
+  fi
+done
+export MOCAP_TEST_MOCAPD=$PWD/build-fuzz/daemon/mocapd
 
 logs=$PWD/build-fuzz/sanitizer-logs
 rm -rf "$logs"
@@ -55,7 +66,7 @@ failed=()
 for t in "${tier[@]}"; do
   exe=${t%%:*} filter=${t#*:}
   start=$(date +%s)
-  if ! "build-fuzz/tests/$exe" --gtest_filter="$filter" >"$logs/../$exe.log" 2>&1; then
+  if ! "$tests_dir/$exe" --gtest_filter="$filter" >"$logs/../$exe.log" 2>&1; then
     tail -n 40 "$logs/../$exe.log" >&2
     failed+=("$exe")
   fi

@@ -18,8 +18,31 @@ san="-fsanitize=fuzzer-no-link,address,undefined -fno-sanitize-recover=all -fno-
 # file and line of every frame, and on CI's 2-core machines this build is the longest step of
 # the tests (27 Nov 2026: the run took 45 min). Against -O2 -g: solver/fit_trust.cpp 69 -> 54 s.
 # No precompiled headers (-DMOCAP_PCH=OFF): this build keeps every file's includes checked.
+# The numeric core (solver, report, tracker, simulation, reconstruction) is compiled without the
+# sanitizers here anyway (fuzz/CMakeLists.txt): when the main build is there (ctest runs after
+# it), link its archives instead of compiling them again (cmake/prebuilt_core.cmake), with the
+# main build's -march, provided clang and gcc see the same vector ISA with it (Eigen's fixed-size
+# types are aligned by it). Otherwise, or with MOCAP_SANITIZER_PREBUILT=0, compile everything.
+core=(-DMOCAP_PREBUILT_DIR= -DMOCAP_NATIVE=OFF)
+if [ "${MOCAP_SANITIZER_PREBUILT:-1}" = 1 ] && [ -f build/CMakeCache.txt ]; then
+  native=$(sed -n 's/^MOCAP_NATIVE:BOOL=//p' build/CMakeCache.txt)
+  gxx=$(sed -n 's/^CMAKE_CXX_COMPILER:[A-Z]*=//p' build/CMakeCache.txt)
+  march=(); [ "$native" = ON ] && march=(-march=native)
+  isa() { "$1" "${march[@]}" -dM -E -x c++ /dev/null | grep -oE '__(AVX|AVX512F)__' | sort | tr '\n' ' '; }
+  have=1
+  for a in solver/libmocap_solver.a report/libmocap_report.a ekf/libmocap_ekf.a sim/libmocap_sim.a \
+           reconstruction/libmocap_reconstruction.a; do
+    [ -f "build/$a" ] || have=0
+  done
+  if [ "$have" = 1 ] && [ -n "$gxx" ] && [ "$(isa "$gxx")" = "$(isa "$CXX_BIN")" ]; then
+    core=(-DMOCAP_PREBUILT_DIR="$PWD/build" -DMOCAP_NATIVE="$native")
+  else
+    echo "sanitizer build: compiling the numeric core here too (the main build's is missing or" \
+         "its vector ISA differs from clang's)" >&2
+  fi
+fi
 cmake -S . -B build-fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_CXX_COMPILER="$CXX_BIN" \
       -DCMAKE_CXX_FLAGS_RELWITHDEBINFO="-O1 -gline-tables-only -DNDEBUG" -DMOCAP_PCH=OFF \
-      -DMOCAP_FUZZ=ON -DMOCAP_NATIVE=OFF -DCMAKE_CXX_FLAGS="$san" \
+      -DMOCAP_FUZZ=ON "${core[@]}" -DCMAKE_CXX_FLAGS="$san" \
       -DCMAKE_CXX_COMPILER_LAUNCHER="$launcher" >/dev/null
 cmake --build build-fuzz -j"$(nproc)" --target "$@"

@@ -69,11 +69,21 @@ inline std::string RunAsUser(const std::string& user, const std::function<std::s
   return got;
 }
 
+// The mocapd the tests start: this build's, or the one MOCAP_TEST_MOCAPD names.
+// scripts/sanitize_daemon.sh runs this build's daemon-tier tests against build-fuzz/'s mocapd
+// (ASan + UBSan): the daemon is what the tier checks, and compiling the tests' own executables
+// under the sanitizers too cost CI's critical path two more large links for no coverage of
+// mocapd.
+inline std::string MocapdPath() {
+  const char* path = std::getenv("MOCAP_TEST_MOCAPD");
+  return path != nullptr && *path != '\0' ? std::string(path) : std::string(MOCAPD_PATH);
+}
+
 class DaemonProcess {
  public:
   // Writes `toml` to DIR/mocapd.toml and starts mocapd on it with DIR/state and DIR/control.sock.
   DaemonProcess(const std::string& dir, const std::string& toml,
-                std::string executable = MOCAPD_PATH)
+                std::string executable = MocapdPath())
       : dir_(dir), executable_(std::move(executable)), export_dirs_{dir} {
     std::ofstream(dir_ + "/mocapd.toml") << toml;
   }
