@@ -1271,6 +1271,12 @@ void Daemon::RecordStart(const Request& r) {
       !s)
     return Fail(r, error_code::kFailed, s.message());
   recording_ = Recording{id, r, movement, duration, drivers::MonotonicNs(), -1, false, {}};
+  {
+    const LivePipelineStats st = pipeline_->Stats(/*timings=*/false);
+    recording_->sets_dropped_at_start = st.capture.dropped_frame_sets;
+    recording_->sets_not_exposed_at_start = st.capture.undelivered_frame_sets;
+    recording_->recorder_dropped_at_start = st.recorder_dropped;
+  }
   recorder_->Begin(id, static_cast<int>(marker_names.size()), static_cast<int>(coordinate_names.size()),
                    [this](std::int64_t rec, Status s, std::int64_t frames) {
     PostToLoop([this, rec, s, frames] {
@@ -1392,6 +1398,28 @@ void Daemon::FinishRecording() {
                  rec.id, id, g.missing_frames, g.outages, g.first_frame, g.last_frame);
   }
   coverage["camera_gaps"] = gaps;
+  // Frames missing from the recording's sequence, and where they went: sets no camera exposed
+  // (lost in transport, or a simulated camera the loaded host did not schedule), sets the daemon
+  // dropped (a full queue, too late for their set), frames the recorder's queue had no room for.
+  // Nothing is missing silently: the reply, the stored coverage and the log say how many.
+  std::uint64_t missing = 0;
+  for (std::size_t f = 1; f < frames.size(); ++f)
+    if (frames[f].frame > frames[f - 1].frame + 1) missing += frames[f].frame - frames[f - 1].frame - 1;
+  Json losses;
+  {
+    const LivePipelineStats st = pipeline_->Stats(/*timings=*/false);
+    losses = {{"missing_frames", missing},
+              {"sets_not_exposed", st.capture.undelivered_frame_sets - rec.sets_not_exposed_at_start},
+              {"sets_dropped", st.capture.dropped_frame_sets - rec.sets_dropped_at_start},
+              {"recorder_dropped", st.recorder_dropped - rec.recorder_dropped_at_start}};
+  }
+  coverage["losses"] = losses;
+  if (missing > 0)
+    spdlog::warn("recording {}: {} frames missing from its sequence (meanwhile {} sets not exposed "
+                 "by any camera, {} dropped by the daemon, {} frames by the recorder's queue)",
+                 rec.id, missing, losses["sets_not_exposed"].get<std::uint64_t>(),
+                 losses["sets_dropped"].get<std::uint64_t>(),
+                 losses["recorder_dropped"].get<std::uint64_t>());
   // The rig's sync failed during the recording (PTP lock lost): its sets may mix instants, so
   // it does not pass (the fit never uses it) and the advice says why.
   coverage["sync_faults"] = rec.sync_faults;
@@ -1415,6 +1443,7 @@ void Daemon::FinishRecording() {
                   {"tracking_fraction", tracking},
                   {"coverage", coverage},
                   {"camera_gaps", gaps},
+                  {"losses", losses},
                   {"sync_faults", rec.sync_faults},
                   {"advice", advice.empty() ? Json() : Json(advice)}});
 }

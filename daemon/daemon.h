@@ -238,6 +238,9 @@ class Daemon {
     // What went wrong with the rig's synchronisation while it ran (PTP lock lost: the cameras
     // and when), noted with the recording; it then fails its coverage check.
     std::vector<std::string> sync_faults;
+    // The pipeline's loss counters when it began: the recording's own losses are the change.
+    std::uint64_t sets_dropped_at_start = 0, sets_not_exposed_at_start = 0,
+                  recorder_dropped_at_start = 0;
   };
   std::optional<Recording> recording_;
 

@@ -237,7 +237,7 @@ TEST(DaemonFaults, KilledAtRandomMomentsLosesAtMostTheLast100ms) {
       std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
   EXPECT_EQ(interrupted_checked, 12);
-  EXPECT_EQ(d.Stop(), 0) << d.Log();
+  EXPECT_EQ(d.Stop(), 0) << d.LogTail();
   EXPECT_EQ(testing::RawSql(db, "PRAGMA integrity_check"), "ok");
 }
 
@@ -298,7 +298,7 @@ TEST(DaemonFaults, DiskFullStopsTheRecordingNotTheRig) {
   EXPECT_GT(recs[0]["frames"].get<int>(), 0.5 * kRigRateHz);  // half a second
   json again = Call(c.get(), "record.start", {{"movement", "static"}, {"sim_duration_scale", 0.5}});
   EXPECT_EQ(again["coverage"]["ok"], true) << again.dump();
-  EXPECT_EQ(d.Stop(), 0) << d.Log();
+  EXPECT_EQ(d.Stop(), 0) << d.LogTail();
 }
 
 TEST(DaemonFaults, ACameraCalibratedFiveCentimetresOffIsNamedInStatus) {
@@ -425,7 +425,7 @@ TEST(DaemonFaults, CameraLostMidRecordingIsNotedAndTakenBack) {
               storage["commit_ms_max"].get<double>(), storage["wal_sync_ms_max"].get<double>());
   EXPECT_GT(storage["wal_sync_ms_max"].get<double>(), 0.0) << storage.dump();
   EXPECT_EQ(storage["wal_sync_failures"], 0) << storage.dump();
-  EXPECT_EQ(d.Stop(), 0) << d.Log();
+  EXPECT_EQ(d.Stop(), 0) << d.LogTail();
 }
 
 // A GigE Vision camera lost under the real mocapd (issue 17, item 2): Aravis's GigE fake on
@@ -528,7 +528,7 @@ TEST(DaemonFaults, GigECameraStoppedMidRecordingIsNotedAndTakenBack) {
   const double silence_s = std::max(0.5, 20.0 / kLightRigRateHz);
   EXPECT_LE(gap_s, silence_s + 0.5 * kSlowdown);
   EXPECT_FALSE(status_line.empty()) << "no STATUS= naming the silent camera";
-  EXPECT_NE(d.Log().find("camera " + gige.device_id() + " delivered no frame for"), std::string::npos) << d.Log();
+  EXPECT_NE(d.Log().find("camera " + gige.device_id() + " delivered no frame for"), std::string::npos) << d.LogTail();
   ASSERT_GE(lost_s, 0) << "the stopped GigE camera still reads connected: " << st["cameras"].dump();
   for (int k = 0; k < ro.cameras; ++k) EXPECT_EQ(st["cameras"][k]["connected"], true) << k;
   EXPECT_EQ(st["tracker"]["state"], "tracking");
@@ -547,8 +547,8 @@ TEST(DaemonFaults, GigECameraStoppedMidRecordingIsNotedAndTakenBack) {
   const double away_s = lost_s + back_s;
   EXPECT_GT(gap["missing_frames"].get<double>(), (away_s - 0.5) * kLightRigRateHz) << gap.dump();
   EXPECT_LT(gap["missing_frames"].get<double>(), (away_s + 0.5) * kLightRigRateHz) << gap.dump();
-  EXPECT_NE(d.Log().find(gige.device_id() + " missing from"), std::string::npos) << d.Log();
-  EXPECT_EQ(d.Stop(), 0) << d.Log();
+  EXPECT_NE(d.Log().find(gige.device_id() + " missing from"), std::string::npos) << d.LogTail();
+  EXPECT_EQ(d.Stop(), 0) << d.LogTail();
 }
 
 // A raw connection (the client library would refuse to send most of this).
@@ -718,7 +718,7 @@ TEST(DaemonFaults, MisbehavingClientsCannotStopTheRig) {
   EXPECT_LT(after["queues"]["loop"]["max"].get<int>(), after["queues"]["loop"]["capacity"].get<int>());
   const std::string log = d.Log();
   EXPECT_NE(log.find("line longer than"), std::string::npos) << "the refused client is not in the log";
-  EXPECT_EQ(d.Stop(), 0) << log;
+  EXPECT_EQ(d.Stop(), 0) << d.LogTail();
 }
 
 }  // namespace

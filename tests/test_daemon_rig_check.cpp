@@ -75,7 +75,7 @@ TEST(DaemonRigCheck, FreeRunReportsTheClockOffsetAndDriftEachCameraWasGiven) {
     if (status == 0 && full) break;
     std::this_thread::sleep_for(std::chrono::milliseconds(500));
   }
-  ASSERT_EQ(status, 0) << report.dump(1) << d.Log();
+  ASSERT_EQ(status, 0) << report.dump(1) << d.LogTail();
   EXPECT_EQ(report["ok"], true);
   EXPECT_EQ(report["sync"]["mode"], "free-run");
   const json& c = report["cameras"];
@@ -112,7 +112,7 @@ TEST(DaemonRigCheck, FreeRunReportsTheClockOffsetAndDriftEachCameraWasGiven) {
               c[2]["sync"]["offset_from_rig_ms"].get<double>(), c[0]["sync"]["clock_drift_ppm"].get<double>(),
               c[1]["sync"]["clock_drift_ppm"].get<double>(), c[2]["sync"]["clock_drift_ppm"].get<double>(),
               c[3]["sync"]["clock_drift_ppm"].get<double>(), c[2]["sync"]["clock_residual_us"].get<double>());
-  EXPECT_EQ(d.Stop(), 0) << d.Log();
+  EXPECT_EQ(d.Stop(), 0) << d.LogTail();
 }
 
 TEST(DaemonRigCheck, ALinkOverItsBudgetShowsNegativeHeadroomAndFails) {
@@ -143,7 +143,7 @@ TEST(DaemonRigCheck, ALinkOverItsBudgetShowsNegativeHeadroomAndFails) {
   EXPECT_TRUE(report["cameras"][2]["link"].is_null());
   EXPECT_EQ(report["sync"]["mode"], "shared-clock");
   EXPECT_THAT(d.Log(), HasSubstr("simulated rig: [rig] bandwidth: link 'eth1'"));
-  EXPECT_EQ(d.Stop(), 0) << d.Log();
+  EXPECT_EQ(d.Stop(), 0) << d.LogTail();
 }
 
 TEST(DaemonRigCheck, APtpCameraLosingItsLockIsNamedRefusedAndMarksTheRecording) {
@@ -206,7 +206,7 @@ TEST(DaemonRigCheck, APtpCameraLosingItsLockIsNamedRefusedAndMarksTheRecording) 
   EXPECT_EQ(rec.result["coverage"]["ok"], false);
   EXPECT_THAT(rec.result["advice"].get<std::string>(), HasSubstr("PTP lock lost"));
   EXPECT_EQ(Call(c.get(), "recording.list")["recordings"][0]["coverage_ok"], false);
-  EXPECT_EQ(d.Stop(), 0) << d.Log();
+  EXPECT_EQ(d.Stop(), 0) << d.LogTail();
 }
 
 }  // namespace

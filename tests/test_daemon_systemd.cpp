@@ -658,7 +658,7 @@ TEST(MocapdUnderSystemd, ACameraMissingAtStartIsADegradedStartAndJoinsWhenItAppe
     const Status started = d.Start();
     ASSERT_TRUE(started.ok()) << started.message();
     const int ready = notify.WaitFor("READY=1", 30);
-    ASSERT_GE(ready, 0) << d.Log();
+    ASSERT_GE(ready, 0) << d.LogTail();
     std::unique_ptr<daemon::ControlClient> c;
     ASSERT_TRUE(d.Connect(&c).ok());
     daemon::ControlReply st;
@@ -705,7 +705,7 @@ TEST(MocapdUnderSystemd, ACameraMissingAtStartIsADegradedStartAndJoinsWhenItAppe
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
     }
     std::printf("the missing camera streams %.2f s after it was plugged in\n", joined_s);
-    EXPECT_GE(joined_s, 0) << "the camera did not join; log:\n" << d.Log();
+    EXPECT_GE(joined_s, 0) << "the camera did not join; log:\n" << d.LogTail();
     EXPECT_LE(joined_s, 2.0);
     EXPECT_TRUE(st.result["cameras"][1]["problem"].is_null()) << st.result["cameras"].dump();
     EXPECT_GE(notify.WaitFor("STATUS=3/3 simulated cameras 200 Hz, idle", 3, plugged), 0);
@@ -724,7 +724,7 @@ TEST(MocapdUnderSystemd, ACameraMissingAtStartIsADegradedStartAndJoinsWhenItAppe
     ASSERT_TRUE(c->Call("status", json::object(), &st).ok());
     EXPECT_EQ(st.result["sync"]["locked"], false) << st.result["sync"].dump();
     EXPECT_EQ(st.result["sync"]["unlocked_cameras"], json({missing}));
-    EXPECT_EQ(d.Stop(), 0) << d.Log();
+    EXPECT_EQ(d.Stop(), 0) << d.LogTail();
   }
 
   // Fewer cameras than [rig] min_cameras: no degraded start, the camera named, unavailable.
