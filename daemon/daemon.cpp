@@ -1408,10 +1408,12 @@ void Daemon::FinishRecording() {
   Json losses;
   {
     const LivePipelineStats st = pipeline_->Stats(/*timings=*/false);
+    // A counter below its start value was reset with the pipeline: all it counts is since then.
+    auto since = [](std::uint64_t now, std::uint64_t start) { return now >= start ? now - start : now; };
     losses = {{"missing_frames", missing},
-              {"sets_not_exposed", st.capture.undelivered_frame_sets - rec.sets_not_exposed_at_start},
-              {"sets_dropped", st.capture.dropped_frame_sets - rec.sets_dropped_at_start},
-              {"recorder_dropped", st.recorder_dropped - rec.recorder_dropped_at_start}};
+              {"sets_not_exposed", since(st.capture.undelivered_frame_sets, rec.sets_not_exposed_at_start)},
+              {"sets_dropped", since(st.capture.dropped_frame_sets, rec.sets_dropped_at_start)},
+              {"recorder_dropped", since(st.recorder_dropped, rec.recorder_dropped_at_start)}};
   }
   coverage["losses"] = losses;
   if (missing > 0)

@@ -460,6 +460,14 @@ void PrintRecording(const json& r) {
     PrintTable(rows, {"coordinate", "required_deg", "reached_deg", "ok"});
   }
   std::printf("coverage: %s\n", CoveragePassed(r) ? "passed" : "NOT passed");
+  // Frames missing from the take (daemon/PROTOCOL.md, record.start's `losses`): said, not hidden.
+  if (const json losses = r.value("losses", json());
+      losses.is_object() && losses.value("missing_frames", 0) > 0)
+    std::printf("frames missing: %s (meanwhile %s sets not exposed by any camera, %s dropped by "
+                "mocapd, %s refused by the recorder)\n",
+                Text(losses["missing_frames"]).c_str(), Text(losses.value("sets_not_exposed", json())).c_str(),
+                Text(losses.value("sets_dropped", json())).c_str(),
+                Text(losses.value("recorder_dropped", json())).c_str());
   if (r.contains("advice") && r["advice"].is_string() && !r["advice"].get<std::string>().empty())
     std::printf("%s\n", r["advice"].get<std::string>().c_str());
 }

@@ -174,6 +174,8 @@ TEST(Mocapctl, RecordShowsProgressLinesAndExits4WhenTheCoverageFails) {
                     {"excitations", {{{"coordinate", "hip_flexion_l"}, {"min_deg", 0}, {"max_deg", 90},
                                       {"reached_min_deg", 1.2}, {"reached_max_deg", 38.0},
                                       {"required", true}, {"ok", false}}}}}},
+      {"losses", {{"missing_frames", 3}, {"sets_not_exposed", 3}, {"sets_dropped", 0},
+                  {"recorder_dropped", 0}}},
       {"advice", "repeat squats: hip_flexion_l reached 38° of 90°"}};
   testutil::ScriptedMocapd daemon(SocketPath(), [&](const json& r) {
     return std::vector<std::string>{Progress(r, 0.5, "squats: 3.5 of 7.0 s"),
@@ -186,7 +188,10 @@ TEST(Mocapctl, RecordShowsProgressLinesAndExits4WhenTheCoverageFails) {
                                "1400 frames, 7.00 s, tracking 99.8%\n"));
   EXPECT_THAT(r.out, HasSubstr("hip_flexion_l  0 .. 90"));
   EXPECT_THAT(r.out, HasSubstr("1.2 .. 38.0"));
-  EXPECT_THAT(r.out, HasSubstr("coverage: NOT passed\nrepeat squats: hip_flexion_l reached 38° of 90°\n"));
+  // Frames missing from the take are said, with where they went.
+  EXPECT_THAT(r.out, HasSubstr("coverage: NOT passed\nframes missing: 3 (meanwhile 3 sets not exposed "
+                               "by any camera, 0 dropped by mocapd, 0 refused by the recorder)\n"
+                               "repeat squats: hip_flexion_l reached 38° of 90°\n"));
   ASSERT_EQ(daemon.requests().size(), 1u);
   EXPECT_EQ(daemon.requests()[0]["method"], "record.start");
   EXPECT_EQ(daemon.requests()[0]["params"],
