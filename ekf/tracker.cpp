@@ -295,6 +295,7 @@ void Tracker::Impl::Allocate() {
   out.marker_of_point.reserve(mp);
   out.point_of_marker.reserve(nm);
   unlabelled_run.assign(nm, 0);
+  stuck_run.assign(nm, 0);
   measured.assign(nm, 0);
   moved_buf.assign(nm, 0.0);
   beyond_gate.assign(nm, 0);
@@ -895,6 +896,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model, ModelOrigin origin
   auto measured = std::move(s.measured);
   auto labelled_run = std::move(s.labelled_run);
   auto unlabelled_run = std::move(s.unlabelled_run);
+  auto stuck_run = std::move(s.stuck_run);
   auto last_point = std::move(s.last_point);
   auto last_predicted = std::move(s.last_predicted);
   auto hist_points = std::move(s.hist_points);
@@ -916,6 +918,7 @@ Status Tracker::SwapModel(std::shared_ptr<const Model> model, ModelOrigin origin
   s.measured = std::move(measured);
   s.labelled_run = std::move(labelled_run);
   s.unlabelled_run = std::move(unlabelled_run);
+  s.stuck_run = std::move(stuck_run);
   s.last_point = std::move(last_point);
   s.last_predicted = std::move(last_predicted);
   s.hist_points = std::move(hist_points);

@@ -340,7 +340,12 @@
 // flexion-pronation RWRA on RWRB's point, RFIN on RWRA's, RWRB unlabelled beside its own point,
 // 1,938 wrong labels for the rest of the take; re-checked, 52, the longest run 496 -> 43
 // frames; at 200 Hz a wrist marker on its mate's point, seed 144 at 8 ghosts 36 -> 22 wrong,
-// seed 98 at 5 ghosts 60 -> 49; seeds 1-50 unchanged). The limb is then searched as a fresh
+// seed 98 at 5 ghosts 60 -> 49; seeds 1-50 unchanged). Stuck means without a label that lasted
+// past its first frame (one the next frame took back was a guess), and the test is made every 5
+// frames of the run, the span over which a spare point's past is judged (seed 159 at 8 ghosts:
+// LWRB on LWRA's point, the spare points back but still for 8 frames, then rigid and moving; a
+// one-frame label had restarted LWRA's run and the next check was 20 frames off: 46 -> 38 frames
+// wrong at a stretch). The limb is then searched as a fresh
 // track's is, its labels free, and the placement is taken on the search's own terms: MORE of
 // the limb labelled than now (the spare point explained), every label it gives within its
 // gate -- a moved label's allowing for its learnt offset, which was learnt on the wrong point
@@ -351,7 +356,8 @@
 // re-check takes turns with another limb's search due in the same frame (the one-search budget).
 // Not done: a labelling as full as the present one but crossed (a wrist pair on each other's
 // points, all labelled), which the search's count cannot tell; that needs the rigid fits'
-// evidence over frames.
+// evidence over frames (no such run of 6 frames or more in the sweeps' seeds 1-50 and 111-160:
+// their wrist runs on a mate's point have the mate unlabelled).
 // Allocation-free; a hidden marker with no plausible point near costs nothing. At most one limb
 // search a frame (the one nearest the root): with the segment registration's fit budget, that
 // bounds a tracking frame's work (the search's five starts of ten damped Gauss-Newton steps are

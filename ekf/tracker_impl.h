@@ -633,6 +633,10 @@ struct Tracker::Impl {
   // without a label; per joint, the coordinates and markers of its subtree; per marker, the
   // joint whose subtree is searched again when it stays unlabelled. Workspace sized in Allocate.
   std::vector<int> unlabelled_run, marker_limb;
+  // Per marker, tracking frames without a label that lasted past its first frame: a label
+  // dropped after one frame (a guess the next frame's gate or registration took back) does not
+  // end a marker's being stuck, as it ends its unlabelled run (LimbLabelsInDoubt).
+  std::vector<int> stuck_run;
   std::vector<std::vector<char>> limb_coord;
   std::vector<std::vector<int>> limb_markers;
   static constexpr int kMaxLimbCoords = 12;  // larger subtrees are left to the global search

@@ -986,6 +986,7 @@ bool Tracker::Impl::TryInitialise(int np) {
   out.nis = nis;
   out.nis_dof = 3 * out.labelled;
   std::fill(unlabelled_run.begin(), unlabelled_run.end(), 0);
+  std::fill(stuck_run.begin(), stuck_run.end(), 0);
   tracked_frames = 0;
   hist_size = 0;
   // The search's labels are this frame's: the next frame's labels follow their points
@@ -1512,7 +1513,13 @@ int Tracker::Impl::AnchoredLimb(int m) const {
 void Tracker::Impl::Reacquire(int np) {
   ++tracked_frames;
   const int limb_frames = std::max(2, static_cast<int>(std::lround(kLimbSeconds * options.rate_hz)));
-  for (int m = 0; m < nm; ++m) unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
+  for (int m = 0; m < nm; ++m) {
+    unlabelled_run[m] = row_to_col[m] < 0 ? unlabelled_run[m] + 1 : 0;
+    if (row_to_col[m] < 0)
+      ++stuck_run[m];
+    else if (labelled_run[m] >= 2)
+      stuck_run[m] = 0;
+  }
   // One search per frame: the largest limb (nearest the root) among those due, and only when an
   // unclaimed point lies near the marker's prediction -- or, for a marker whose limb has no
   // label (no prediction to be near), anywhere at its distance from its joint centre (a hidden
@@ -1566,8 +1573,8 @@ void Tracker::Impl::Reacquire(int np) {
   // A re-check searches its limb with the labels free, which places its unlabelled markers too:
   // it goes before a search of the same limb or one below it (the finger marker the shifted
   // labels left without a point is due for its own search every limb_frames), and takes turns
-  // with a search of another limb (due on the same cadence, it would wait for good: seed 13 at
-  // 50 Hz, the left hand's).
+  // with a search of another limb (on a cadence that can coincide with the re-check's, it would
+  // wait for good: seed 13 at 50 Hz, the left hand's).
   if (!place) {
     const int doubt = LimbLabelsInDoubt(np);
     bool within = joint < 0 || recheck_waited;
@@ -1583,9 +1590,17 @@ void Tracker::Impl::Reacquire(int np) {
 }
 
 // The evidence that a limb is labelled wrongly but consistently: a marker stuck for kStuckFrames
-// (due as the limb search is, every limb_frames) whose point, by the rigid geometry, is one that
-// another marker of its limb holds -- within kLimbNearRadius of its prediction, at its distance
-// from its joint centre and from its segment's other labelled markers (the holder left out).
+// whose point, by the rigid geometry, is one that another marker of its limb holds -- within
+// kLimbNearRadius of its prediction, at its distance from its joint centre and from its
+// segment's other labelled markers (the holder left out). Stuck counts the frames since the
+// marker last held a label past its first frame (stuck_run): a label the next frame takes back
+// was a guess, not the marker found. Looked at every kMinTrackFrames of the run (every
+// limb_frames where that is fewer, at 50 Hz and below), not every limb_frames: the spare point
+// below is judged by a 5-frame past, and a check 20 frames apart let a crossed pair stand up to
+// 20 frames after that past said so. Simulated seed 159 at 8 ghosts: LWRB on LWRA's point from
+// frame 9427, the spare points back at 9451-9453 but standing still (no evidence) until ~9460;
+// a one-frame label at 9459 had restarted LWRA's run, the next check was due at 9479, and LWRB
+// let the point go on its own at 9473 (46 frames); now the placement is taken at 9464 (38).
 // The limb is then searched as a fresh track's is, its labels free (ReacquireLimb, relabel), and
 // the placement is taken only on the search's own terms: more of the limb labelled, every label
 // it gives within its gate on the measurement noise, no differently labelling start within the
@@ -1594,10 +1609,11 @@ void Tracker::Impl::Reacquire(int np) {
 int Tracker::Impl::LimbLabelsInDoubt(int np) const {
   if (FreshTrack()) return -1;
   const int limb_frames = std::max(2, static_cast<int>(std::lround(kLimbSeconds * options.rate_hz)));
+  const int cadence = std::min(limb_frames, kMinTrackFrames);
   int joint = -1;
   for (int m = 0; m < nm; ++m) {
-    const int run = unlabelled_run[m], limb = marker_limb[m];
-    if (run < kStuckFrames || run % limb_frames != 0 || limb < 0 || !seen[m]) continue;
+    const int run = stuck_run[m], limb = marker_limb[m];
+    if (run < kStuckFrames || run % cadence != 0 || limb < 0 || !seen[m]) continue;
     if (joint >= 0 && limb >= joint) continue;  // parents first
     bool doubt = false;
     for (int a : limb_markers[limb]) {

@@ -997,6 +997,28 @@ TEST(TrackHarderScene, ALimbSearchInTheFirstSecondDoesNotTurnAFootOntoAStillRefl
   ExpectTheHarderSceneLabelledRight(101, 700, true);
 }
 
+// Seed 159 of the harder scene (a hold-out seed), its first 9,500 frames (into the left elbow's
+// flexion-pronation). The forearm turned while its markers were hidden; from frame 9427 LWRB held
+// LWRA's point (LWRB's own point and LFRM hidden), LWRA unlabelled beside it. The limb re-check
+// waits for a point no marker holds that moved rigidly with the limb: LFRM's and LWRB's came back
+// at 9451-9453 but stood still (the forearm barely moving) until ~9460. The re-check was tried
+// only on every 20th frame of LWRA's unlabelled run, and a one-frame label at 9459 (dropped the
+// next frame) restarted that run: LWRB on LWRA's point for 46 frames, to 9472. A label that does
+// not last past its first frame now leaves its marker stuck, and the check runs every 5 frames
+// (a rigid past is judged over 5): 38 frames, the re-check's placement taken at frame 9464.
+TEST(TrackHarderScene, ALimbReCheckRunsWhenItsEvidenceComesBack) {
+  std::vector<double> scales;
+  const mocap::sim::TrackRun run =
+      TrackHarderScene(159, {}, 9500, mocap::ekf::TrackerOptions::ScaleToSubject::kAlways, &scales);
+  ASSERT_TRUE(run.scored);
+  std::printf("seed 159, 8 ghosts, frames 0-9499: accuracy %.6f, wrong %ld, swaps %d, longest %d\n",
+              run.score.accuracy(), static_cast<long>(run.score.wrong), run.score.swaps_longer_than_5_frames,
+              run.score.longest_wrong_run);
+  EXPECT_EQ(run.reinitialisations(), 0);
+  EXPECT_LE(run.score.longest_wrong_run, 40);
+  EXPECT_LE(run.score.wrong, 40);
+}
+
 // Seed 10 of the harder scene, the static pose alone (3 s; another draw of ghosts and gaps than
 // the whole protocol's). At the model's own size the start put RTOE on a ghost, and the point
 // track kept it there for 111 frames (0.975 of the labels). The scaled search labels RTOE on its
