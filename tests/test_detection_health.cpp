@@ -16,6 +16,7 @@
 #include "daemon/detection_health.h"
 #include "reconstruction/triangulation.h"
 #include "sim/camera_rig.h"
+#include "tests/cpu_time_test_util.h"
 
 namespace mocap {
 namespace {
@@ -29,11 +30,7 @@ using reconstruction::TriangulatedPoint;
 constexpr int kCameras = 8;
 constexpr int kMarkers = 40;
 
-double ThreadCpuMs() {
-  timespec ts{};
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
-  return ts.tv_sec * 1e3 + ts.tv_nsec / 1e6;
-}
+using testutil::ThreadCpuMs;
 
 class SyntheticRig {
  public:
