@@ -14,8 +14,8 @@
 #include "sim/renderer.h"
 #include "sim/simulate.h"
 #include "tests/aravis_test_util.h"
+#include "tests/cpu_time_test_util.h"
 
-#include <sys/resource.h>
 
 namespace mocap::drivers {
 namespace {
@@ -470,8 +470,7 @@ TEST(AravisFake, FullRigRendersTheSimulatedSubject) {
     cams.push_back(fakes.MakeCamera(i));
     ASSERT_TRUE(cams[i]->Open(s).ok());
   }
-  rusage r0;
-  getrusage(RUSAGE_SELF, &r0);
+  const double cpu0 = testutil::ProcessCpuSeconds();
   const auto t0 = std::chrono::steady_clock::now();
   for (auto& c : cams) ASSERT_TRUE(c->Start().ok());
   std::atomic<bool> stop{false};
@@ -503,10 +502,7 @@ TEST(AravisFake, FullRigRendersTheSimulatedSubject) {
   stop = true;
   for (auto& t : threads) t.join();
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  rusage r1;
-  getrusage(RUSAGE_SELF, &r1);
-  auto secs = [](const timeval& t) { return t.tv_sec + t.tv_usec * 1e-6; };
-  const double cpu = secs(r1.ru_utime) - secs(r0.ru_utime) + secs(r1.ru_stime) - secs(r0.ru_stime);
+  const double cpu = testutil::ProcessCpuSeconds() - cpu0;
   int total = 0;
   for (int i = 0; i < fakes.size(); ++i) {
     cams[i]->Stop();

@@ -12,6 +12,7 @@
 
 #include "sim/camera_rig.h"
 #include "sim/simulate.h"
+#include "tests/cpu_time_test_util.h"
 
 namespace mocap::sim {
 namespace {
@@ -308,11 +309,7 @@ TEST(Renderer, SessionSceneAndCost) {
   // Warm up (first use of each buffer clears it in full), then time steady-state frames.
   for (int c = 0; c < 8; ++c) images[c].Render(r, c, 0);
   // Thread CPU time: the machine is shared, wall time would measure the other jobs.
-  auto cpu_us = [] {
-    timespec ts;
-    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
-    return ts.tv_sec * 1e6 + ts.tv_nsec * 1e-3;
-  };
+  auto cpu_us = [] { return 1e3 * testutil::ThreadCpuMs(); };
   const int frames = 100;
   const double t0 = cpu_us();
   std::size_t blobs = 0;
