@@ -1548,12 +1548,14 @@ void Tracker::Impl::MatchDeferrals(int np) {
   for (int m = 0; m < nm; ++m) {
     Deferral& d = deferral[m];
     if (d.n == 0) continue;
+    // Lost for less than kDeferGoneSeconds: its marker's point may be coming back.
+    auto hidden_briefly = [&](int c) { return !d.alive[c] && d.frames - d.died[c] < gone_frames; };
     int open = 0, last = -1, undecided = 0, excluded = 0;
     for (int c = 0; c < d.n; ++c) {
       d.point[c] = -1;
       // The decided candidate hidden for less than kDeferGoneSeconds is looked for where it was
       // last seen: its marker's point coming back.
-      const bool returning = !d.alive[c] && c == d.decided && d.frames - d.died[c] < gone_frames;
+      const bool returning = c == d.decided && hidden_briefly(c);
       if (d.alive[c] || returning) {
         double best = kTrackStep * kTrackStep;
         for (int k = 0; k < np; ++k) {
@@ -1587,8 +1589,7 @@ void Tracker::Impl::MatchDeferrals(int np) {
     }
     // A decided candidate hidden (the one undecided, none open) stays decided: until it comes
     // back or is gone, its marker takes no other point.
-    const bool hidden = open == 0 && undecided == 1 && d.decided >= 0 && !d.alive[d.decided] &&
-                        d.frames - d.died[d.decided] < gone_frames;
+    const bool hidden = open == 0 && undecided == 1 && d.decided >= 0 && hidden_briefly(d.decided);
     d.decided = open == 1 && undecided == 0 ? last : hidden ? d.decided : -1;
   }
 }

@@ -17,7 +17,8 @@ san="-fsanitize=fuzzer-no-link,address,undefined -fno-sanitize-recover=all -fno-
 # -O1 and line tables only, as the sanitizers' own documentation advises: a report still names
 # file and line of every frame, and on CI's 2-core machines this build is the longest step of
 # the tests (27 Nov 2026: the run took 45 min). Against -O2 -g: solver/fit_trust.cpp 69 -> 54 s.
-# No precompiled headers (-DMOCAP_PCH=OFF): this build keeps every file's includes checked.
+# No precompiled headers (-DMOCAP_PCH=OFF): this build keeps the includes of every file it
+# compiles checked (with the numeric core linked from build/, not that core's).
 # The numeric core (solver, report, tracker, simulation, reconstruction) is compiled without the
 # sanitizers here anyway (fuzz/CMakeLists.txt): when the main build is there (ctest runs after
 # it), link its archives instead of compiling them again (cmake/prebuilt_core.cmake), with the
@@ -29,16 +30,12 @@ if [ "${MOCAP_SANITIZER_PREBUILT:-1}" = 1 ] && [ -f build/CMakeCache.txt ]; then
   gxx=$(sed -n 's/^CMAKE_CXX_COMPILER:[A-Z]*=//p' build/CMakeCache.txt)
   march=(); [ "$native" = ON ] && march=(-march=native)
   isa() { "$1" "${march[@]}" -dM -E -x c++ /dev/null | grep -oE '__(AVX|AVX512F)__' | sort | tr '\n' ' '; }
-  have=1
-  for a in solver/libmocap_solver.a report/libmocap_report.a ekf/libmocap_ekf.a sim/libmocap_sim.a \
-           reconstruction/libmocap_reconstruction.a; do
-    [ -f "build/$a" ] || have=0
-  done
-  if [ "$have" = 1 ] && [ -n "$gxx" ] && [ "$(isa "$gxx")" = "$(isa "$CXX_BIN")" ]; then
+  # (A library whose archive build/ lacks is compiled here: cmake/prebuilt_core.cmake.)
+  if [ -n "$gxx" ] && [ "$(isa "$gxx")" = "$(isa "$CXX_BIN")" ]; then
     core=(-DMOCAP_PREBUILT_DIR="$PWD/build" -DMOCAP_NATIVE="$native")
   else
-    echo "sanitizer build: compiling the numeric core here too (the main build's is missing or" \
-         "its vector ISA differs from clang's)" >&2
+    echo "sanitizer build: compiling the numeric core here too (the main build's vector ISA" \
+         "differs from clang's)" >&2
   fi
 fi
 cmake -S . -B build-fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_CXX_COMPILER="$CXX_BIN" \
